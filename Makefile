@@ -1,0 +1,75 @@
+# OIBAR front door. `make demo` and `make test` do all set-up themselves (scripts/setup.sh).
+# `make help` lists the targets.
+
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DEFAULT_GOAL := help
+
+ROOT       := $(abspath .)
+VENV       := $(ROOT)/.venv
+PY         := $(VENV)/bin/python
+BUILD      := $(ROOT)/build
+GEN_C      := $(BUILD)/gen/c
+GEN_PY     := $(ROOT)/host/oibar/_generated
+FW_HOST    := $(BUILD)/fw-host
+UNITY_DIR  ?= $(ROOT)/.cache/src/unity
+NANOPB_DIR ?= $(ROOT)/.cache/src/nanopb
+JOBS       ?= $(shell nproc)
+export UNITY_DIR NANOPB_DIR
+
+PROTO      := proto/oibar.proto
+PROTO_OPTS := proto/oibar.options
+
+.PHONY: help setup gen firmware-host test test-c test-py golden demo clean distclean
+
+help: ## list the targets
+	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-14s %s\n", $$1, $$2}'
+
+setup: ## install what is missing (Debian packages, .venv, Unity and nanopb sources)
+	@bash scripts/setup.sh
+
+# --- code generation (at build time, never committed) -------------------------------------
+$(GEN_C)/oibar.pb.c $(GEN_C)/oibar.pb.h &: $(PROTO) $(PROTO_OPTS) | setup
+	@mkdir -p $(GEN_C)
+	@cd proto && nanopb_generator.py -q -D $(GEN_C) -f oibar.options oibar.proto
+
+$(GEN_PY)/oibar_pb2.py: $(PROTO) | setup
+	@mkdir -p $(GEN_PY)
+	@protoc -Iproto --python_out=$(GEN_PY) $(PROTO)
+	@touch $(GEN_PY)/__init__.py
+
+gen: $(GEN_C)/oibar.pb.c $(GEN_PY)/oibar_pb2.py ## generate the C (nanopb) and Python (protoc) code from proto/
+
+# --- firmware, host build (tests, tools, simulated MCU) -----------------------------------
+firmware-host: gen ## build the firmware libraries, tools and Unity suites for this machine (ASan+UBSan)
+	@cmake -S firmware -B $(FW_HOST) -DCMAKE_BUILD_TYPE=Debug -DOIBAR_GEN_DIR=$(GEN_C) \
+	  -DNANOPB_DIR=$(NANOPB_DIR) -DUNITY_DIR=$(UNITY_DIR) >$(BUILD)/fw-host-configure.log \
+	  || { cat $(BUILD)/fw-host-configure.log; exit 1; }
+	@cmake --build $(FW_HOST) -j$(JOBS) -- --no-print-directory >$(BUILD)/fw-host-build.log 2>&1 \
+	  || { cat $(BUILD)/fw-host-build.log; exit 1; }
+	@echo "firmware-host: built in build/fw-host"
+
+# --- tests --------------------------------------------------------------------------------
+test: firmware-host gen ## run every test suite (Unity for C, pytest for Python) and print the counts
+	@$(PY) scripts/run_tests.py --fw-build $(FW_HOST)
+
+test-c: firmware-host ## run only the firmware Unity suites
+	@$(PY) scripts/run_tests.py --fw-build $(FW_HOST) --only c
+
+test-py: gen ## run only the pytest suites
+	@$(PY) scripts/run_tests.py --fw-build $(FW_HOST) --only py
+
+golden: firmware-host gen ## rewrite the golden link frames on purpose (C writes mcu_to_host, Python host_to_mcu)
+	@OIBAR_GOLDEN_WRITE=1 $(FW_HOST)/tests/test_golden
+	@OIBAR_GOLDEN_WRITE=1 $(PY) -m pytest -q -p no:cacheprovider tests/host/test_golden.py
+	@git status --short tests/golden
+
+# --- demo ---------------------------------------------------------------------------------
+demo: firmware-host gen ## run the demo (today: the host link against the firmware link over a pseudo-terminal)
+	@$(PY) scripts/demo.py --peer $(FW_HOST)/link/oibar_link_peer
+
+clean: ## remove build outputs (keeps .venv and the source cache)
+	rm -rf $(BUILD) $(GEN_PY)
+
+distclean: clean ## also remove .venv and .cache
+	rm -rf $(VENV) .cache

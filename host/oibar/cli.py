@@ -1,0 +1,211 @@
+"""The ``oibar`` command line.
+
+``oibar link`` is the first thing to run against a new board or cable: it proves the link
+works end to end (handshake, commands, telemetry) and shows its health live. Expected
+failures (no port, no answer, wrong firmware version) end with one readable line and exit
+code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shutil
+import sys
+import time
+from typing import Sequence, TextIO
+
+from oibar import __version__, pb
+from oibar.link.client import LinkClient, LinkStatistics, parse_opcode
+from oibar.link.errors import LinkError, LinkTimeout, PortError, ProtocolVersionError
+
+EXIT_OK = 0
+EXIT_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+_KNOWN_COMMANDS = " ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")
+
+_LINK_EPILOG = f"""\
+examples:
+  oibar link --port /dev/ttyACM0
+  oibar link --port /dev/ttyUSB0 --command NOOP APPROACH_ARM --seconds 10
+  oibar link --port socket://127.0.0.1:5555 --command START_TRANSFER --target-pressure-kpa 1200
+
+commands (the CMD_ prefix is optional, any case):
+  {_KNOWN_COMMANDS}
+
+exit status: 0 when the link worked (a refused command is reported, not an error),
+2 when the port cannot be opened, the MCU does not answer or speaks another protocol
+version, 130 on Ctrl-C.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="oibar",
+        description="OIBAR companion-computer tools (docking and refuelling mechanism).",
+    )
+    parser.add_argument("--version", action="version", version=f"oibar {__version__}")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0,
+        help="log more: -v for link events, -vv for every retransmission",
+    )
+    sub = parser.add_subparsers(dest="subcommand", metavar="SUBCOMMAND")
+    link = sub.add_parser(
+        "link",
+        help="connect to the MCU, send commands, watch the link status",
+        description=(
+            "Open the link to the MCU and print its handshake (firmware, build, protocol\n"
+            "version, reset cause); send the given mechanism commands in order and print\n"
+            "each answer; then show a live status line (state, MCU uptime, telemetry rate,\n"
+            "link counters) for --seconds."
+        ),
+        epilog=_LINK_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    link.add_argument(
+        "--port", required=True, metavar="URL",
+        help="serial device (/dev/ttyACM0, COM3), socket://HOST:PORT or loop://",
+    )
+    link.add_argument(
+        "--baudrate", type=int, default=115200, help="serial baud rate (default: 115200)"
+    )
+    link.add_argument(
+        "--seconds", type=float, default=5.0, metavar="S",
+        help="how long to show the live status, in seconds (default: 5; 0 skips it)",
+    )
+    link.add_argument(
+        "--command", dest="commands", nargs="+", action="extend", default=[], metavar="NAME",
+        help="mechanism command(s) to send after connecting, e.g. NOOP APPROACH_ARM",
+    )
+    link.add_argument(
+        "--target-pressure-kpa", type=float, default=None, metavar="KPA",
+        help="target pressure sent with the commands (used by START_TRANSFER)",
+    )
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=max(logging.DEBUG, logging.WARNING - 10 * args.verbose),
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    if args.subcommand is None:
+        parser.print_help(sys.stderr)
+        return EXIT_ERROR
+    if args.subcommand == "link":
+        try:
+            opcodes = [parse_opcode(name) for name in args.commands]
+        except ValueError as exc:
+            parser.error(str(exc))  # exits with 2
+        return run_link(args.port, args.baudrate, args.seconds, opcodes, args.target_pressure_kpa)
+    parser.error(f"unknown subcommand {args.subcommand!r}")
+    return EXIT_ERROR  # not reached
+
+
+def run_link(
+    url: str,
+    baudrate: int,
+    seconds: float,
+    opcodes: Sequence[int],
+    target_pressure_kpa: float | None = None,
+    out: TextIO | None = None,
+) -> int:
+    """Body of ``oibar link``; returns the exit status."""
+    out = out or sys.stdout
+    client = LinkClient(url, baudrate=baudrate)
+    try:
+        info = client.connect()
+        print(
+            f"connected to {url}: firmware {info.firmware_version or '?'} "
+            f"(build {info.build_id or '?'}), protocol {info.protocol_version}, "
+            f"reset cause {info.reset_cause}, MCU uptime {info.uptime_ms / 1000:.1f} s",
+            file=out, flush=True,
+        )
+        for opcode in opcodes:
+            name = pb.enum_name(pb.CommandOpcode, opcode)
+            result = client.command(opcode, target_pressure_kpa)
+            verdict = "accepted" if result.accepted else "REFUSED"
+            print(f"{name}: {verdict}, reason {result.reason}, state {result.state}", file=out, flush=True)
+        _show_status(client, seconds, out)
+        return EXIT_OK
+    except KeyboardInterrupt:
+        print(file=out)
+        _error("interrupted")
+        return EXIT_INTERRUPTED
+    except PortError as exc:
+        _error(str(exc))
+    except ProtocolVersionError as exc:
+        _error(str(exc))
+    except LinkTimeout as exc:
+        _error(f"no answer from the MCU on {url}: {exc}; is the firmware running, is the baud rate right?")
+    except LinkError as exc:
+        _error(str(exc))
+    finally:
+        try:
+            client.close()
+        except KeyboardInterrupt:  # a second Ctrl-C while closing: still no traceback
+            pass
+    return EXIT_ERROR
+
+
+def _show_status(client: LinkClient, seconds: float, out: TextIO) -> None:
+    """One status line, redrawn in place on a terminal, printed once a second otherwise."""
+    if seconds <= 0:
+        return
+    tty = out.isatty()
+    refresh_s = 0.25 if tty else 1.0
+    start = time.monotonic()
+    end = start + seconds
+    while True:
+        now = time.monotonic()
+        line = status_line(client, now - start)
+        if tty:
+            width = shutil.get_terminal_size().columns - 1  # a wrapped line cannot be redrawn
+            out.write("\r" + line[:width] + "\x1b[K")
+            out.flush()
+        else:
+            print(line, file=out, flush=True)
+        if now >= end:
+            break
+        time.sleep(min(refresh_s, max(0.0, end - now)))
+    if tty:
+        out.write("\n")
+        out.flush()
+
+
+def status_line(client: LinkClient, elapsed_s: float) -> str:
+    """State, MCU uptime, telemetry rate and link counters in one line; counters that
+    signal trouble are listed only when non-zero, to keep it short."""
+    telemetry = client.telemetry
+    stats: LinkStatistics = client.statistics
+    state = pb.enum_name(pb.State, telemetry.state) if telemetry is not None else "state ?"
+    uptime = f"{telemetry.uptime_ms / 1000:.1f} s" if telemetry is not None else "?"
+    trouble = {
+        "crc": stats.rx_crc_errors,
+        "framing": stats.rx_framing_errors,
+        "oversize": stats.rx_oversize,
+        "bad header": stats.rx_bad_header,
+        "undecodable": stats.rx_decode_errors,
+        "unknown type": stats.rx_unknown_type,
+        "lost": stats.lost_peer_packets,
+        "retransmissions": stats.retransmissions,
+        "timeouts": stats.timeouts,
+        "reconnects": stats.reconnects,
+    }
+    problems = ", ".join(f"{name} {count}" for name, count in trouble.items() if count)
+    return (
+        f"[{elapsed_s:5.1f} s] link {'UP' if client.link_alive else 'DOWN'} | {state} | "
+        f"MCU uptime {uptime} | telemetry {client.telemetry_rate_hz:4.1f} Hz | "
+        f"rx {stats.rx_packets} tx {stats.tx_packets} | {problems or 'no errors'}"
+    )
+
+
+def _error(message: str) -> None:
+    print(f"oibar: error: {message}", file=sys.stderr, flush=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,176 @@
+#!/usr/bin/env bash
+# One-shot, idempotent set-up of everything OIBAR needs on Debian 12:
+#   1. missing Debian packages (installed when root, otherwise the exact command is printed);
+#   2. the Python virtual environment (.venv) with the pinned requirements;
+#   3. the Unity and nanopb C sources, from Debian source packages, checksummed (.cache/src).
+# When everything is already there it only checks, in well under 10 s.
+#
+# Environment:
+#   PYTHON=/path/to/python3   interpreter for the venv (default /usr/bin/python3)
+#   UNITY_DIR=/path           use these Unity sources instead of fetching them
+#   NANOPB_DIR=/path          use these nanopb runtime sources instead of fetching them
+set -euo pipefail
+
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+cd "$ROOT"
+CACHE="$ROOT/.cache"
+VENV="$ROOT/.venv"
+PYTHON=${PYTHON:-/usr/bin/python3}
+
+say()  { printf 'setup: %s\n' "$*"; }
+die()  { printf 'setup: error: %s\n' "$*" >&2; exit 1; }
+
+# --- 1. Debian packages -------------------------------------------------------------------
+apt_packages() {
+  local wanted missing=()
+  wanted=$(sed -e 's/#.*//' -e '/^[[:space:]]*$/d' scripts/apt-packages.txt)
+  for p in $wanted; do
+    dpkg-query -W -f='${db:Status-Abbrev}' "$p" 2>/dev/null | grep -q '^ii' || missing+=("$p")
+  done
+  [ ${#missing[@]} -eq 0 ] && return 0
+  local cmd="apt-get install -y --no-install-recommends ${missing[*]}"
+  if [ "$(id -u)" -ne 0 ]; then
+    die "missing Debian packages: ${missing[*]}
+  run as root:  sudo apt-get update && sudo $cmd
+  then run this again."
+  fi
+  say "installing Debian packages: ${missing[*]}"
+  export DEBIAN_FRONTEND=noninteractive
+  # A fresh machine may have empty package lists; refresh once if the install cannot find them.
+  if ! $cmd >/dev/null 2>"$CACHE/apt-install.log"; then
+    apt-get update -q >/dev/null
+    $cmd >/dev/null 2>"$CACHE/apt-install.log" || die "apt-get failed, see $CACHE/apt-install.log"
+  fi
+}
+
+# --- 2. Python virtual environment -------------------------------------------------------
+venv() {
+  local reqs stamp want have=""
+  reqs=$(ls requirements/*.txt)
+  # Rebuild when any pin or any of our package definitions change.
+  want=$(cat $reqs $(ls host/pyproject.toml hil/pyproject.toml models/pyproject.toml 2>/dev/null) \
+         | sha256sum | cut -c1-16)
+  stamp="$VENV/.oibar-stamp"
+  [ -f "$stamp" ] && have=$(cat "$stamp")
+  if [ -x "$VENV/bin/python" ] && [ "$have" = "$want" ]; then return 0; fi
+  [ -x "$PYTHON" ] || die "no Python at $PYTHON (set PYTHON=/path/to/python3)"
+  if [ ! -x "$VENV/bin/python" ]; then
+    say "creating the virtual environment in .venv"
+    "$PYTHON" -m venv "$VENV" || die "could not create .venv (is python3-venv installed?)"
+  fi
+  say "installing pinned Python packages (requirements/*.txt)"
+  local args=()
+  for r in $reqs; do args+=(-r "$r"); done
+  "$VENV/bin/pip" install -q --disable-pip-version-check "${args[@]}" \
+    || die "pip install failed (see the messages above)"
+  # Our own packages, editable, without touching the pins.
+  local pkgs=()
+  for d in host hil models; do
+    [ -f "$d/pyproject.toml" ] && pkgs+=(-e "$d")
+  done
+  if [ ${#pkgs[@]} -gt 0 ]; then
+    "$VENV/bin/pip" install -q --disable-pip-version-check --no-deps --no-build-isolation "${pkgs[@]}" \
+      || die "installing the project's packages into .venv failed"
+  fi
+  echo "$want" > "$stamp"
+}
+
+# --- 3. third-party C sources from Debian source packages --------------------------------
+# Private apt configuration: the system's own Debian mirrors, as deb-src, in .cache/apt.
+# No system file is changed.
+apt_src() {
+  local a="$CACHE/apt"
+  mkdir -p "$a/lists/partial" "$a/cache/archives/partial" "$a/sources.d"
+  if [ ! -s "$a/sources.d/debian-src.sources" ]; then
+    local found=0
+    for f in /etc/apt/sources.list.d/*.sources; do
+      [ -f "$f" ] || continue
+      grep -qi '^URIs:.*debian' "$f" || continue
+      sed -e 's/^Types:.*/Types: deb-src/' "$f" >> "$a/sources.d/debian-src.sources"
+      echo >> "$a/sources.d/debian-src.sources"
+      found=1
+    done
+    if [ $found -eq 0 ] && [ -f /etc/apt/sources.list ]; then
+      grep -E '^deb ' /etc/apt/sources.list | sed 's/^deb /deb-src /' > "$a/sources.d/debian-src.list"
+      [ -s "$a/sources.d/debian-src.list" ] && found=1
+    fi
+    [ $found -eq 1 ] || die "no Debian apt source found in /etc/apt to derive deb-src entries from"
+  fi
+  APT_OPTS=(-o "Dir::Etc::SourceList=/dev/null" -o "Dir::Etc::SourceParts=$a/sources.d"
+            -o "Dir::State::Lists=$a/lists" -o "Dir::Cache=$a/cache")
+  if [ ! -f "$a/lists/.updated" ]; then
+    say "reading Debian source package lists"
+    apt-get -q "${APT_OPTS[@]}" update >/dev/null || die "apt-get update for source lists failed"
+    touch "$a/lists/.updated"
+  fi
+}
+
+# Verify the files of one cache folder against scripts/third_party.lock; prints bad files.
+check_folder() {
+  local folder=$1 dir=$2 bad=0
+  while read -r f pkg path sum; do
+    [ "$f" = "$folder" ] || continue
+    local file="$dir/$(basename "$path")"
+    if [ ! -f "$file" ] || [ "$(sha256sum "$file" | cut -d' ' -f1)" != "$sum" ]; then
+      echo "$file"; bad=1
+    fi
+  done < <(sed -e 's/#.*//' -e '/^[[:space:]]*$/d' scripts/third_party.lock)
+  return $bad
+}
+
+fetch_folder() {
+  local folder=$1 dir="$CACHE/src/$1" pkg
+  check_folder "$folder" "$dir" >/dev/null && return 0
+  pkg=$(awk -v f="$folder" '$1==f {print $2; exit}' <(sed 's/#.*//' scripts/third_party.lock))
+  say "fetching $folder sources from Debian source package '$pkg'"
+  apt_src
+  local dl="$CACHE/apt/dl"
+  rm -rf "$dl" && mkdir -p "$dl"
+  (cd "$dl" && apt-get -q "${APT_OPTS[@]}" source --download-only "$pkg" >/dev/null 2>&1) \
+    || die "could not download the source package '$pkg' (apt-get source --download-only)"
+  local orig
+  orig=$(ls "$dl"/"${pkg}"_*.orig.tar.* 2>/dev/null | awk 'NR==1')
+  [ -n "$orig" ] || die "source package '$pkg' has no orig tarball"
+  rm -rf "$dir" && mkdir -p "$dir"
+  local top
+  top=$(tar tf "$orig" | awk -F/ 'NR==1 {print $1}')
+  while read -r f p path sum; do
+    [ "$f" = "$folder" ] || continue
+    tar xf "$orig" -C "$dl" "$top/$path" || die "'$path' not found in $orig"
+    cp "$dl/$top/$path" "$dir/"
+  done < <(sed -e 's/#.*//' -e '/^[[:space:]]*$/d' scripts/third_party.lock)
+  local bad
+  if ! bad=$(check_folder "$folder" "$dir"); then
+    die "checksum mismatch for: $bad
+  Debian's '$pkg' sources differ from scripts/third_party.lock; review them before updating the lock."
+  fi
+  rm -rf "$dl"
+}
+
+third_party() {
+  if [ -n "${UNITY_DIR:-}" ]; then
+    [ -f "$UNITY_DIR/unity.c" ] || die "UNITY_DIR=$UNITY_DIR has no unity.c"
+  else
+    fetch_folder unity
+  fi
+  if [ -n "${NANOPB_DIR:-}" ]; then
+    [ -f "$NANOPB_DIR/pb_decode.c" ] || die "NANOPB_DIR=$NANOPB_DIR has no pb_decode.c"
+  else
+    fetch_folder nanopb
+  fi
+  # The generated C code must come from the same nanopb version as the runtime.
+  local gen_v rt_v
+  gen_v=$(nanopb_generator.py --version 2>/dev/null | tr -d '[:space:]')
+  rt_v=$(sed -n 's/^#define NANOPB_VERSION *"\?\([^" ]*\)"\?.*/\1/p' "${NANOPB_DIR:-$CACHE/src/nanopb}/pb.h")
+  [ "$gen_v" = "$rt_v" ] || die "nanopb generator ($gen_v) and runtime ($rt_v) differ"
+  # The Python code must come from the protoc matching the pinned protobuf runtime.
+  local protoc_v
+  protoc_v=$(protoc --version | awk '{print $2}')
+  grep -q "^protobuf==4\.${protoc_v#3.}\$" requirements/base.txt \
+    || die "protoc $protoc_v does not match the protobuf runtime pinned in requirements/base.txt"
+}
+
+mkdir -p "$CACHE"
+apt_packages
+venv
+third_party
