@@ -12,10 +12,12 @@ BUILD      := $(ROOT)/build
 GEN_C      := $(BUILD)/gen/c
 GEN_PY     := $(ROOT)/host/oibar/_generated
 FW_HOST    := $(BUILD)/fw-host
-UNITY_DIR  ?= $(ROOT)/.cache/src/unity
-NANOPB_DIR ?= $(ROOT)/.cache/src/nanopb
+# Your own Unity / nanopb sources: make test UNITY_DIR=/path NANOPB_DIR=/path
+UNITY_DIR  ?=
+NANOPB_DIR ?=
+UNITY_SRC  := $(or $(UNITY_DIR),$(ROOT)/.cache/src/unity)
+NANOPB_SRC := $(or $(NANOPB_DIR),$(ROOT)/.cache/src/nanopb)
 JOBS       ?= $(shell nproc)
-export UNITY_DIR NANOPB_DIR
 
 PROTO      := proto/oibar.proto
 PROTO_OPTS := proto/oibar.options
@@ -26,7 +28,7 @@ help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-14s %s\n", $$1, $$2}'
 
 setup: ## install what is missing (Debian packages, .venv, Unity and nanopb sources)
-	@bash scripts/setup.sh
+	@UNITY_DIR='$(UNITY_DIR)' NANOPB_DIR='$(NANOPB_DIR)' bash scripts/setup.sh
 
 # --- code generation (at build time, never committed) -------------------------------------
 $(GEN_C)/oibar.pb.c $(GEN_C)/oibar.pb.h &: $(PROTO) $(PROTO_OPTS) | setup
@@ -43,7 +45,7 @@ gen: $(GEN_C)/oibar.pb.c $(GEN_PY)/oibar_pb2.py ## generate the C (nanopb) and P
 # --- firmware, host build (tests, tools, simulated MCU) -----------------------------------
 firmware-host: gen ## build the firmware libraries, tools and Unity suites for this machine (ASan+UBSan)
 	@cmake -S firmware -B $(FW_HOST) -DCMAKE_BUILD_TYPE=Debug -DOIBAR_GEN_DIR=$(GEN_C) \
-	  -DNANOPB_DIR=$(NANOPB_DIR) -DUNITY_DIR=$(UNITY_DIR) >$(BUILD)/fw-host-configure.log \
+	  -DNANOPB_DIR=$(NANOPB_SRC) -DUNITY_DIR=$(UNITY_SRC) >$(BUILD)/fw-host-configure.log \
 	  || { cat $(BUILD)/fw-host-configure.log; exit 1; }
 	@cmake --build $(FW_HOST) -j$(JOBS) -- --no-print-directory >$(BUILD)/fw-host-build.log 2>&1 \
 	  || { cat $(BUILD)/fw-host-build.log; exit 1; }
