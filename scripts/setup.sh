@@ -98,6 +98,8 @@ apt_src() {
   fi
   APT_OPTS=(-o "Dir::Etc::SourceList=/dev/null" -o "Dir::Etc::SourceParts=$a/sources.d"
             -o "Dir::State::Lists=$a/lists" -o "Dir::Cache=$a/cache")
+  # Our private folders belong to the invoking user; apt's '_apt' sandbox user cannot write them.
+  [ "$(id -u)" -eq 0 ] && APT_OPTS+=(-o "APT::Sandbox::User=root")
   if [ ! -f "$a/lists/.updated" ]; then
     say "reading Debian source package lists"
     apt-get -q "${APT_OPTS[@]}" update >/dev/null || die "apt-get update for source lists failed"
