@@ -11,28 +11,33 @@ from __future__ import annotations
 import argparse
 import logging
 import shutil
+import signal
 import sys
+import threading
 import time
-from typing import Sequence, TextIO
+from typing import TYPE_CHECKING, Sequence, TextIO
 
-from oibar import __version__, pb
-from oibar.link.client import LinkClient, LinkStatistics, parse_opcode
-from oibar.link.errors import LinkError, LinkTimeout, PortError, ProtocolVersionError
+from oibar import __version__
+
+if TYPE_CHECKING:
+    from oibar.link.client import LinkClient
+
+# The schema and the link are imported inside main() with Ctrl-C deferred: importing
+# protobuf takes a noticeable moment, and a KeyboardInterrupt raised inside its C extension's
+# initialisation can crash the interpreter instead of just printing a traceback.
 
 EXIT_OK = 0
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
 
-_KNOWN_COMMANDS = " ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")
-
-_LINK_EPILOG = f"""\
+_LINK_EPILOG = """\
 examples:
   oibar link --port /dev/ttyACM0
   oibar link --port /dev/ttyUSB0 --command NOOP APPROACH_ARM --seconds 10
   oibar link --port socket://127.0.0.1:5555 --command START_TRANSFER --target-pressure-kpa 1200
 
 commands (the CMD_ prefix is optional, any case):
-  {_KNOWN_COMMANDS}
+  {known_commands}
 
 exit status: 0 when the link worked (a refused command is reported, not an error),
 2 when the port cannot be opened, the MCU does not answer or speaks another protocol
@@ -41,6 +46,9 @@ version, 130 on Ctrl-C.
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from oibar import pb
+
+    known_commands = " ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")
     parser = argparse.ArgumentParser(
         prog="oibar",
         description="OIBAR companion-computer tools (docking and refuelling mechanism).",
@@ -60,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
             "each answer; then show a live status line (state, MCU uptime, telemetry rate,\n"
             "link counters) for --seconds."
         ),
-        epilog=_LINK_EPILOG,
+        epilog=_LINK_EPILOG.format(known_commands=known_commands),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     link.add_argument(
@@ -86,6 +94,35 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``oibar`` console script; returns the exit status."""
+    try:
+        if not _import_link_modules():
+            raise KeyboardInterrupt
+        return _main(argv)
+    except KeyboardInterrupt:
+        print(file=sys.stderr)
+        _error("interrupted")
+        return EXIT_INTERRUPTED
+
+
+def _import_link_modules() -> bool:
+    """Import protobuf and the link with SIGINT held back; False if Ctrl-C was pressed."""
+    if threading.current_thread() is not threading.main_thread():
+        import oibar.link  # noqa: F401  (signal handlers can only be set in the main thread)
+
+        return True
+    pressed: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: pressed.append(signum))
+    try:
+        import oibar.link  # noqa: F401
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    return not pressed
+
+
+def _main(argv: Sequence[str] | None) -> int:
+    from oibar.link.client import parse_opcode
+
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
@@ -114,6 +151,10 @@ def run_link(
     out: TextIO | None = None,
 ) -> int:
     """Body of ``oibar link``; returns the exit status."""
+    from oibar import pb
+    from oibar.link.client import LinkClient
+    from oibar.link.errors import LinkError, LinkTimeout, PortError, ProtocolVersionError
+
     out = out or sys.stdout
     client = LinkClient(url, baudrate=baudrate)
     try:
@@ -131,10 +172,6 @@ def run_link(
             print(f"{name}: {verdict}, reason {result.reason}, state {result.state}", file=out, flush=True)
         _show_status(client, seconds, out)
         return EXIT_OK
-    except KeyboardInterrupt:
-        print(file=out)
-        _error("interrupted")
-        return EXIT_INTERRUPTED
     except PortError as exc:
         _error(str(exc))
     except ProtocolVersionError as exc:
@@ -179,8 +216,10 @@ def _show_status(client: LinkClient, seconds: float, out: TextIO) -> None:
 def status_line(client: LinkClient, elapsed_s: float) -> str:
     """State, MCU uptime, telemetry rate and link counters in one line; counters that
     signal trouble are listed only when non-zero, to keep it short."""
+    from oibar import pb
+
     telemetry = client.telemetry
-    stats: LinkStatistics = client.statistics
+    stats = client.statistics
     state = pb.enum_name(pb.State, telemetry.state) if telemetry is not None else "state ?"
     uptime = f"{telemetry.uptime_ms / 1000:.1f} s" if telemetry is not None else "?"
     trouble = {

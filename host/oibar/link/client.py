@@ -650,6 +650,7 @@ class LinkClient:
 
     def _reader_loop(self) -> None:
         """Feed the decoder with whatever the port delivers and dispatch the packets."""
+        previous_port = None
         while True:
             with self._cond:
                 while self._port is None and not self._stop.is_set():
@@ -657,6 +658,9 @@ class LinkClient:
                 if self._stop.is_set():
                     return
                 port = self._port
+            if port is not previous_port:
+                self._decoder.reset()  # a frame cut by the old port's failure is not news
+                previous_port = port
             try:
                 data = port.read(1)  # blocks up to _READ_TIMEOUT_S
                 if data:
@@ -734,7 +738,6 @@ class LinkClient:
                     stale = True
                 else:
                     stale = False
-                    self._decoder.reset()
                     self._port = port
                     self._cond.notify_all()
             if stale:
