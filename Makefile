@@ -22,6 +22,11 @@ JOBS       ?= $(shell nproc)
 PROTO      := proto/oibar.proto
 PROTO_OPTS := proto/oibar.options
 
+# Each part may bring its own targets in mk/<part>.mk; what `make test` must build first for
+# that part goes into TEST_DEPS there.
+TEST_DEPS  :=
+-include mk/*.mk
+
 .PHONY: help setup gen firmware-host test test-c test-py golden demo clean distclean
 
 help: ## list the targets
@@ -52,13 +57,13 @@ firmware-host: gen ## build the firmware libraries, tools and Unity suites for t
 	@echo "firmware-host: built in build/fw-host"
 
 # --- tests --------------------------------------------------------------------------------
-test: firmware-host gen ## run every test suite (Unity for C, pytest for Python) and print the counts
+test: firmware-host gen $(TEST_DEPS) ## run every test suite (Unity for C, pytest for Python) and print the counts
 	@$(PY) scripts/run_tests.py --fw-build $(FW_HOST)
 
 test-c: firmware-host ## run only the firmware Unity suites
 	@$(PY) scripts/run_tests.py --fw-build $(FW_HOST) --only c
 
-test-py: gen ## run only the pytest suites
+test-py: gen $(TEST_DEPS) ## run only the pytest suites
 	@$(PY) scripts/run_tests.py --fw-build $(FW_HOST) --only py
 
 golden: firmware-host gen ## rewrite the golden link frames on purpose (C writes mcu_to_host, Python host_to_mcu)
