@@ -1,0 +1,85 @@
+/*
+ * Parameter table, F Prime style: every tunable number of the mechanism in one
+ * place, with a unit, a default and bounds. Values are settable over the link
+ * only while the mechanism is safe (STATE_BOOT, STATE_IDLE or STATE_FAULT).
+ */
+#ifndef OIBAR_APP_PARAMS_H
+#define OIBAR_APP_PARAMS_H
+
+#include <stdbool.h>
+#include <stdint.h>
+
+#include "oibar.pb.h"
+
+/* Ids are part of the host contract: append only, never renumber. */
+typedef enum {
+    PARAM_CAPTURE_MAX_CLOSING_SPEED_MM_S = 1,
+    PARAM_CAPTURE_MAX_MISALIGNMENT_DEG,
+    PARAM_SOFT_DOCK_MAX_FORCE_N,
+    PARAM_HARD_DOCK_MAX_FORCE_N,
+    PARAM_NAV_MAX_AGE_MS,
+    PARAM_DEBOUNCE_MS,
+    PARAM_BOOT_SETTLE_MS,
+    PARAM_APPROACH_READY_TIMEOUT_MS,
+    PARAM_RECEPTION_TIMEOUT_MS,
+    PARAM_PLANE_MOVE_TIMEOUT_MS,
+    PARAM_HARD_DOCKING_TIMEOUT_MS,
+    PARAM_TRANSFER_ARMED_TIMEOUT_MS,
+    PARAM_SEPARATING_TIMEOUT_MS,
+    PARAM_LATCH_MOVE_TIMEOUT_MS,
+    PARAM_LATCH_RELEASE_BUDGET_STEPS,
+    PARAM_LATCH_HOME_BUDGET_STEPS,
+    PARAM_LATCH_MAX_SPEED_STEPS_S,
+    PARAM_LATCH_ACCEL_STEPS_S2,
+    PARAM_LATCH_HOME_SPEED_STEPS_S,
+    PARAM_VALVE_MISMATCH_MS,
+    PARAM_PRESS_ZERO_COUNTS,
+    PARAM_PRESS_SV_KPA_PER_COUNT,
+    PARAM_PRESS_TV_KPA_PER_COUNT,
+    PARAM_PRESS_LINE_KPA_PER_COUNT,
+    PARAM_PRESS_VALID_MIN_COUNTS,
+    PARAM_PRESS_VALID_MAX_COUNTS,
+    PARAM_PRESS_MAX_RATE_KPA_S,
+    PARAM_OVERPRESSURE_KPA,
+    PARAM_TARGET_MIN_KPA,
+    PARAM_TARGET_MAX_KPA,
+    PARAM_TRANSFER_MAX_MS,
+    PARAM_PLANE_MM_PER_COUNT,
+    PARAM_FORCE_N_PER_COUNT,
+    PARAM_ABORT_TIMEOUT_MS,
+    PARAM_ID_END /* one past the last id */
+} oibar_param_id_t;
+
+#define OIBAR_PARAM_COUNT ((unsigned)PARAM_ID_END - 1u)
+
+typedef struct {
+    oibar_param_id_t id;
+    const char *name;   /* snake_case, unit suffix included */
+    const char *unit;
+    float default_value;
+    float min;
+    float max;
+    bool integer;       /* value must be a whole number */
+} oibar_param_def_t;
+
+/* Restore every default. */
+void oibar_params_init(void);
+
+/* Definition by id, NULL when unknown. */
+const oibar_param_def_t *oibar_param_def(uint32_t id);
+/* Definition by table index 0 .. OIBAR_PARAM_COUNT-1. */
+const oibar_param_def_t *oibar_param_def_at(unsigned index);
+
+/* Current values; the id must be valid (contract). */
+float oibar_param_f(oibar_param_id_t id);
+uint32_t oibar_param_u32(oibar_param_id_t id);
+
+/* Set a value: NACK_UNKNOWN_PARAM, NACK_PARAM_OUT_OF_BOUNDS (also for a
+ * fraction on an integer parameter or NaN), NACK_PARAM_LOCKED when `state`
+ * is not a safe state, else NACK_NONE. */
+oibar_v1_NackReason oibar_param_set(uint32_t id, float value, oibar_v1_State state);
+
+/* True in the states where parameters may change. */
+bool oibar_params_settable_in(oibar_v1_State state);
+
+#endif

@@ -1,0 +1,312 @@
+/* Application wiring: init, the control tick, the main-loop pass, and the
+ * requests from the host. */
+#include "oibar/app.h"
+
+#include <math.h>
+#include <string.h>
+
+#include "oibar/app_assert.h"
+#include "oibar/app_events.h"
+#include "oibar/app_faults.h"
+#include "oibar/app_fsm.h"
+#include "oibar/app_params.h"
+#include "oibar/app_safety.h"
+#include "oibar/drv_inputs.h"
+#include "oibar/drv_plane.h"
+#include "oibar/drv_pressure.h"
+#include "oibar/drv_stepper.h"
+#include "oibar/drv_valves.h"
+#include "oibar/hal.h"
+#include "oibar/pressure_loop.h"
+
+/* Main-loop passes handle at most this many events, so one pass stays
+ * bounded even if an ISR keeps posting. */
+#define MAX_EVENTS_PER_PASS (OIBAR_EVT_QUEUE_LEN + OIBAR_FAULT_CODE_MAX)
+
+static volatile uint32_t s_ticks;        /* written by the tick ISR only */
+static volatile bool s_tick_alive;       /* set by the tick, cleared by the kick */
+static uint32_t s_ticks_seen;
+static uint32_t s_kicks;
+static bool s_link_alive;
+static oibar_v1_ResetCause s_reset_cause;
+
+/* Latest navigation update (host guidance). */
+static bool s_nav_valid;
+static uint32_t s_nav_rx_ms;
+static float s_nav_closing_mm_s;
+static float s_nav_misalign_deg;
+
+static oibar_v1_ResetCause map_reset(hal_reset_cause_t c)
+{
+    switch (c) {
+    case HAL_RESET_POWER_ON: return oibar_v1_RESET_POWER_ON;
+    case HAL_RESET_PIN: return oibar_v1_RESET_PIN;
+    case HAL_RESET_WATCHDOG: return oibar_v1_RESET_WATCHDOG;
+    case HAL_RESET_BROWNOUT: return oibar_v1_RESET_BROWNOUT;
+    case HAL_RESET_SOFTWARE: return oibar_v1_RESET_SOFTWARE;
+    case HAL_RESET_LOCKUP: return oibar_v1_RESET_LOCKUP;
+    case HAL_RESET_UNKNOWN:
+    default: return oibar_v1_RESET_UNKNOWN;
+    }
+}
+
+void oibar_app_emit(oibar_v1_EventId id, oibar_v1_Severity sev, oibar_v1_State from,
+                    oibar_v1_State to, oibar_v1_FaultCode fault, oibar_v1_NackReason reason,
+                    uint32_t arg)
+{
+    oibar_v1_Event ev;
+    memset(&ev, 0, sizeof ev);
+    ev.uptime_ms = hal_time_ms();
+    ev.id = id;
+    ev.severity = sev;
+    ev.from_state = from;
+    ev.to_state = to;
+    ev.fault = fault;
+    ev.reason = reason;
+    ev.arg = arg;
+    oibar_evlog_push(&ev);
+}
+
+void oibar_app_init(void)
+{
+    /* SAFETY_RULE_SAFE_START: every output is driven to its safe level
+     * before anything else runs (the drivers' init do it), whatever the
+     * reset cause. */
+    oibar_valves_init();
+    oibar_params_init();
+    oibar_evtq_init();
+    oibar_evlog_init();
+    oibar_faults_init();
+    oibar_inputs_init();
+    oibar_plane_init();
+    oibar_stepper_init();
+    oibar_pressure_init();
+    oibar_ploop_init();
+    oibar_safety_init();
+    oibar_valves_set_permit(oibar_safety_valves_permitted);
+
+    uint32_t cs = hal_critical_enter();
+    s_ticks = 0;
+    s_tick_alive = false;
+    hal_critical_exit(cs);
+    s_ticks_seen = 0;
+    s_kicks = 0;
+    s_link_alive = false;
+    s_nav_valid = false;
+    s_nav_rx_ms = 0;
+    s_nav_closing_mm_s = 0.0f;
+    s_nav_misalign_deg = 0.0f;
+
+    s_reset_cause = map_reset(hal_reset_cause());
+    uint32_t now = hal_time_ms();
+    oibar_app_emit(oibar_v1_EVT_BOOT, oibar_v1_SEVERITY_ACTIVITY_HI, oibar_v1_STATE_UNSPECIFIED,
+                   oibar_v1_STATE_BOOT, oibar_v1_FAULT_NONE, oibar_v1_NACK_NONE,
+                   (uint32_t)s_reset_cause);
+    oibar_fsm_init(now);
+    if (s_reset_cause == oibar_v1_RESET_WATCHDOG || s_reset_cause == oibar_v1_RESET_LOCKUP) {
+        /* The mechanism may be mid-sequence: wait in FAULT for the host. */
+        oibar_fault_raise(oibar_v1_FAULT_WATCHDOG_RESET);
+    }
+    hal_control_tick_attach(oibar_app_tick_1khz);
+}
+
+void oibar_app_tick_1khz(void)
+{
+    s_ticks = s_ticks + 1u;
+    s_tick_alive = true;
+    oibar_inputs_tick_isr();
+}
+
+static void per_ms(uint32_t now)
+{
+    oibar_inputs_analog_update();
+    oibar_pressure_tick();
+    oibar_valves_tick();
+    oibar_plane_tick(now);
+    oibar_ploop_tick(now);
+    oibar_safety_force_tick();
+    oibar_fsm_tick(now);
+}
+
+/* Faults first (they are never queued), then the queue, bounded. */
+static void drain(uint32_t now)
+{
+    for (unsigned n = 0; n < MAX_EVENTS_PER_PASS; n++) {
+        oibar_v1_FaultCode f = oibar_fault_take_pending();
+        if (f != oibar_v1_FAULT_NONE) {
+            oibar_fsm_signal(SIG_FAULT, (uint16_t)f, now);
+            continue;
+        }
+        oibar_evt_t e;
+        if (!oibar_evtq_get(&e)) {
+            return;
+        }
+        oibar_fsm_signal((oibar_sig_t)e.sig, e.arg, now);
+    }
+}
+
+void oibar_app_run_once(void)
+{
+    uint32_t now = hal_time_ms();
+    uint32_t ticks = s_ticks;
+    if (ticks != s_ticks_seen) {
+        s_ticks_seen = ticks;
+        per_ms(now);
+    }
+    drain(now);
+    oibar_safety_enforce();
+    drain(now); /* report what enforcement found in the same pass */
+
+    /* SAFETY_RULE_WATCHDOG_NEEDS_BOTH_LOOPS: kicked here (main loop alive)
+     * only if the tick ran since the last kick (control tick alive). */
+    if (s_tick_alive) {
+        s_tick_alive = false;
+        hal_watchdog_kick();
+        s_kicks++;
+    }
+}
+
+uint32_t oibar_app_watchdog_kicks(void) { return s_kicks; }
+
+oibar_v1_NackReason oibar_app_command(oibar_v1_CommandOpcode op, float target_pressure_kpa)
+{
+    uint32_t now = hal_time_ms();
+    drain(now); /* a fault raised since the last pass wins over the command */
+    oibar_v1_State before = oibar_fsm_state();
+    oibar_v1_NackReason r = oibar_fsm_command(op, target_pressure_kpa, now);
+    if (r != oibar_v1_NACK_NONE) {
+        oibar_app_emit(oibar_v1_EVT_COMMAND_REJECTED, oibar_v1_SEVERITY_WARNING_LO, before, before,
+                       oibar_v1_FAULT_NONE, r, (uint32_t)op);
+    }
+    return r;
+}
+
+float oibar_app_misalignment_deg(const oibar_v1_Quat *q)
+{
+    /* z axis of the target expressed in the camera frame: third column of
+     * the rotation matrix. Its angle to the boresight (camera z) is the
+     * combined yaw/pitch error; roll about the axis does not count. */
+    float n2 = q->w * q->w + q->x * q->x + q->y * q->y + q->z * q->z;
+    if (!(n2 > 1e-6f) || !isfinite(n2)) {
+        return 180.0f; /* not a rotation: treat as worst case */
+    }
+    float zz = 1.0f - 2.0f * (q->x * q->x + q->y * q->y) / n2;
+    if (zz > 1.0f) {
+        zz = 1.0f;
+    } else if (zz < -1.0f) {
+        zz = -1.0f;
+    }
+    float deg = acosf(zz) * (180.0f / 3.14159265f);
+    /* Facing (anti-parallel) axes are as aligned as parallel ones: the
+     * convention of the pose pipeline does not matter. */
+    return (deg > 90.0f) ? 180.0f - deg : deg;
+}
+
+void oibar_app_nav_update(const oibar_v1_NavUpdate *nav)
+{
+    if (nav == NULL) {
+        return;
+    }
+    s_nav_valid = isfinite(nav->closing_speed_mps) && nav->has_q_cam_target;
+    s_nav_rx_ms = hal_time_ms();
+    s_nav_closing_mm_s = nav->closing_speed_mps * 1000.0f;
+    s_nav_misalign_deg = nav->has_q_cam_target ? oibar_app_misalignment_deg(&nav->q_cam_target)
+                                               : 180.0f;
+}
+
+bool oibar_app_capture_envelope_ok(uint32_t now_ms)
+{
+    if (!s_nav_valid || now_ms - s_nav_rx_ms > oibar_param_u32(PARAM_NAV_MAX_AGE_MS)) {
+        return false;
+    }
+    return s_nav_closing_mm_s <= oibar_param_f(PARAM_CAPTURE_MAX_CLOSING_SPEED_MM_S) &&
+           s_nav_misalign_deg <= oibar_param_f(PARAM_CAPTURE_MAX_MISALIGNMENT_DEG);
+}
+
+static void fill_param(const oibar_param_def_t *d, oibar_v1_ParamValue *out)
+{
+    out->param_id = (uint32_t)d->id;
+    out->value = oibar_param_f(d->id);
+    out->min = d->min;
+    out->max = d->max;
+    out->default_value = d->default_value;
+    strncpy(out->name, d->name, sizeof out->name - 1u);
+    strncpy(out->unit, d->unit, sizeof out->unit - 1u);
+}
+
+void oibar_app_param_get(uint32_t id, oibar_v1_ParamValue *out)
+{
+    memset(out, 0, sizeof *out);
+    out->param_id = id;
+    const oibar_param_def_t *d = oibar_param_def(id);
+    if (d == NULL) {
+        out->reason = oibar_v1_NACK_UNKNOWN_PARAM;
+        return;
+    }
+    fill_param(d, out);
+    out->reason = oibar_v1_NACK_NONE;
+}
+
+void oibar_app_param_set(uint32_t id, float value, oibar_v1_ParamValue *out)
+{
+    oibar_v1_NackReason r = oibar_param_set(id, value, oibar_fsm_state());
+    oibar_app_param_get(id, out); /* current value, whether or not it changed */
+    if (out->reason == oibar_v1_NACK_NONE) {
+        out->reason = r;
+    }
+    if (r == oibar_v1_NACK_NONE) {
+        oibar_app_emit(oibar_v1_EVT_PARAM_CHANGED, oibar_v1_SEVERITY_ACTIVITY_HI,
+                       oibar_fsm_state(), oibar_fsm_state(), oibar_v1_FAULT_NONE,
+                       oibar_v1_NACK_NONE, id);
+    }
+}
+
+void oibar_app_link_state(bool up)
+{
+    if (up == s_link_alive) {
+        return;
+    }
+    s_link_alive = up;
+    if (!up) {
+        /* SAFETY_RULE_VALVES_NEED_HOST_LINK_ALIVE: close first, then tell
+         * the state machine (which faults outside the safe states). */
+        oibar_valves_close_all();
+        (void)oibar_evtq_post(SIG_LINK_DOWN, 0u);
+    }
+}
+
+bool oibar_app_host_link_alive(void) { return s_link_alive; }
+oibar_v1_State oibar_app_state(void) { return oibar_fsm_state(); }
+oibar_v1_ResetCause oibar_app_reset_cause(void) { return s_reset_cause; }
+
+void oibar_app_fill_telemetry(oibar_v1_Telemetry *out)
+{
+    /* Leaves out->link / has_link to the link layer. */
+    out->uptime_ms = hal_time_ms();
+    out->state = oibar_fsm_state();
+    out->fault_flags = oibar_fault_flags();
+    out->latch_pos_steps = oibar_stepper_pos_steps();
+    out->latch_engaged = oibar_input(HAL_DI_LATCH_ENGAGED);
+    out->plane_pos_mm = oibar_plane_pos_mm();
+    out->contact = oibar_input(HAL_DI_CONTACT);
+    out->connector_mated = oibar_input(HAL_DI_CONNECTOR_MATED);
+    out->sv_valve_cmd_open = oibar_valve_cmd_open(OIBAR_VALVE_SV);
+    out->sv_valve_open = oibar_valve_sensed_open(OIBAR_VALVE_SV);
+    out->tv_valve_cmd_open = oibar_valve_cmd_open(OIBAR_VALVE_TV);
+    out->tv_valve_open = oibar_valve_sensed_open(OIBAR_VALVE_TV);
+    out->sv_tank_kpa = oibar_pressure_kpa(OIBAR_PSENS_SV);
+    out->tv_tank_kpa = oibar_pressure_kpa(OIBAR_PSENS_TV);
+    out->line_kpa = oibar_pressure_kpa(OIBAR_PSENS_LINE);
+    out->target_pressure_kpa = oibar_fsm_target_kpa();
+    out->event_queue_overflows = oibar_evtq_overflows();
+    out->host_link_alive = s_link_alive;
+}
+
+bool oibar_app_next_event(oibar_v1_Event *out) { return oibar_evlog_pop(out); }
+
+void oibar_app_assert_failed(const char *file, int line)
+{
+    (void)file;
+    (void)line;
+    oibar_fault_raise(oibar_v1_FAULT_ASSERTION);
+}

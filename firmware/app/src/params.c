@@ -1,0 +1,147 @@
+/* Parameter table. Every number below marked "assumption" is ours: SPEC gives
+ * only the capture envelope and contact forces from the paper; travel,
+ * speeds, pressures, sensor ranges and timeouts are design choices to be
+ * confirmed on hardware. */
+#include "oibar/app_params.h"
+
+#include <math.h>
+#include <stddef.h>
+
+#include "oibar/app_assert.h"
+
+#define P_INT(id_, name_, unit_, def_, min_, max_) \
+    { (id_), (name_), (unit_), (float)(def_), (float)(min_), (float)(max_), true }
+#define P_REAL(id_, name_, unit_, def_, min_, max_) \
+    { (id_), (name_), (unit_), (float)(def_), (float)(min_), (float)(max_), false }
+
+/* Ordered by id: s_defs[i].id == i + 1 (checked by a test). */
+static const oibar_param_def_t s_defs[OIBAR_PARAM_COUNT] = {
+    /* Paper: capture works up to 50 mm/s closing speed. */
+    P_REAL(PARAM_CAPTURE_MAX_CLOSING_SPEED_MM_S, "capture_max_speed_mm_s", "mm/s", 50, 0, 50),
+    /* Paper: combined yaw and pitch misalignment up to 10 deg. */
+    P_REAL(PARAM_CAPTURE_MAX_MISALIGNMENT_DEG, "capture_max_misalign_deg", "deg", 10, 0, 10),
+    /* Paper: soft-docking contact force under half the hard-docking one. */
+    P_REAL(PARAM_SOFT_DOCK_MAX_FORCE_N, "soft_dock_max_force_n", "N", 30, 0, 30),
+    /* Paper: hard-docking contact force under 60 N. */
+    P_REAL(PARAM_HARD_DOCK_MAX_FORCE_N, "hard_dock_max_force_n", "N", 60, 0, 60),
+    /* Assumption: navigation updates arrive every 100 ms; 5 missed = stale. */
+    P_INT(PARAM_NAV_MAX_AGE_MS, "nav_max_age_ms", "ms", 500, 100, 5000),
+    /* Assumption: switch bounce of microswitches settles within 10 ms. */
+    P_INT(PARAM_DEBOUNCE_MS, "debounce_ms", "ms", 10, 1, 100),
+    /* Assumption: inputs and ADC settle within 100 ms of power-up. */
+    P_INT(PARAM_BOOT_SETTLE_MS, "boot_settle_ms", "ms", 100, 20, 2000),
+    /* Assumption: contact must come within 10 min of arming for reception. */
+    P_INT(PARAM_APPROACH_READY_TIMEOUT_MS, "approach_timeout_ms", "ms", 600000, 1000, 3600000),
+    /* Assumption: latches engage and the host confirms within 30 s of contact. */
+    P_INT(PARAM_RECEPTION_TIMEOUT_MS, "reception_timeout_ms", "ms", 30000, 1000, 300000),
+    /* Assumption: 40 mm plane travel at 10 mm/s = 4 s, doubled. */
+    P_INT(PARAM_PLANE_MOVE_TIMEOUT_MS, "plane_move_timeout_ms", "ms", 8000, 500, 60000),
+    /* Assumption: plane move plus connector mating, with margin. */
+    P_INT(PARAM_HARD_DOCKING_TIMEOUT_MS, "hard_docking_timeout_ms", "ms", 12000, 1000, 120000),
+    /* Assumption: an arm step not followed by a start within 60 s lapses. */
+    P_INT(PARAM_TRANSFER_ARMED_TIMEOUT_MS, "armed_timeout_ms", "ms", 60000, 1000, 600000),
+    /* Assumption: spring-damper pre-load extracts the probe within 10 s. */
+    P_INT(PARAM_SEPARATING_TIMEOUT_MS, "separating_timeout_ms", "ms", 10000, 1000, 60000),
+    /* Assumption: longer than the home budget at home speed (2400 steps at
+     * 400 steps/s = 6 s), so a stall is reported as a stall, not a timeout. */
+    P_INT(PARAM_LATCH_MOVE_TIMEOUT_MS, "latch_move_timeout_ms", "ms", 8000, 500, 60000),
+    /* Assumption: the latch releases about 600 steps from home; 2x budget. */
+    P_INT(PARAM_LATCH_RELEASE_BUDGET_STEPS, "latch_rel_budget_steps", "steps", 1200, 10, 20000),
+    /* Assumption: homing from the far end of travel, 2x margin. */
+    P_INT(PARAM_LATCH_HOME_BUDGET_STEPS, "latch_home_budget_steps", "steps", 2400, 10, 40000),
+    /* Assumption: stepper cruise speed. */
+    P_INT(PARAM_LATCH_MAX_SPEED_STEPS_S, "latch_max_speed_steps_s", "steps/s", 800, 50, 5000),
+    /* Assumption: stepper acceleration for the trapezoidal profile. */
+    P_INT(PARAM_LATCH_ACCEL_STEPS_S2, "latch_accel_steps_s2", "steps/s2", 4000, 100, 50000),
+    /* Assumption: slower homing speed so the switch is not overrun. */
+    P_INT(PARAM_LATCH_HOME_SPEED_STEPS_S, "latch_home_speed_steps_s", "steps/s", 400, 50, 2000),
+    /* Assumption: solenoid valve stroke under 100 ms; 2x before a mismatch. */
+    P_INT(PARAM_VALVE_MISMATCH_MS, "valve_mismatch_ms", "ms", 200, 20, 2000),
+    /* Assumption: 0.5-4.5 V ratiometric transducers; 0.5 V = 410 counts. */
+    P_INT(PARAM_PRESS_ZERO_COUNTS, "press_zero_counts", "counts", 410, 0, 1000),
+    /* Assumption: 0..3000 kPa over 3276 counts (calibration per sensor). */
+    P_REAL(PARAM_PRESS_SV_KPA_PER_COUNT, "press_sv_kpa_per_count", "kPa/cnt", 0.9158, 0.1, 10),
+    P_REAL(PARAM_PRESS_TV_KPA_PER_COUNT, "press_tv_kpa_per_count", "kPa/cnt", 0.9158, 0.1, 10),
+    P_REAL(PARAM_PRESS_LINE_KPA_PER_COUNT, "press_line_kpa_per_count", "kPa/cnt", 0.9158, 0.1, 10),
+    /* Assumption: below 0.25 V = open wire, above 4.75 V = short. */
+    P_INT(PARAM_PRESS_VALID_MIN_COUNTS, "press_min_counts", "counts", 200, 0, 1000),
+    P_INT(PARAM_PRESS_VALID_MAX_COUNTS, "press_max_counts", "counts", 3900, 3000, 4095),
+    /* Assumption: no real fill changes pressure faster than 2000 kPa/s. */
+    P_REAL(PARAM_PRESS_MAX_RATE_KPA_S, "press_max_rate_kpa_s", "kPa/s", 2000, 10, 100000),
+    /* Assumption: tanks and line rated 3000 kPa; trip at 2600 kPa. */
+    P_REAL(PARAM_OVERPRESSURE_KPA, "overpressure_kpa", "kPa", 2600, 100, 3000),
+    /* Assumption: accepted range of CMD_START_TRANSFER target pressure. */
+    P_REAL(PARAM_TARGET_MIN_KPA, "target_min_kpa", "kPa", 100, 0, 3000),
+    P_REAL(PARAM_TARGET_MAX_KPA, "target_max_kpa", "kPa", 2400, 0, 3000),
+    /* Assumption: a fill never takes longer than 10 min. */
+    P_INT(PARAM_TRANSFER_MAX_MS, "transfer_max_ms", "ms", 600000, 1000, 3600000),
+    /* Assumption: 50 mm potentiometer over the full ADC range. */
+    P_REAL(PARAM_PLANE_MM_PER_COUNT, "plane_mm_per_count", "mm/cnt", 0.01221, 0.001, 1),
+    /* Assumption: load cell amplifier 0..204 N over the full ADC range. */
+    P_REAL(PARAM_FORCE_N_PER_COUNT, "force_n_per_count", "N/cnt", 0.05, 0.001, 1),
+    /* Assumption: abort retracts the plane (plane timeout) plus margin. */
+    P_INT(PARAM_ABORT_TIMEOUT_MS, "abort_timeout_ms", "ms", 12000, 1000, 120000),
+};
+
+static float s_values[OIBAR_PARAM_COUNT];
+
+void oibar_params_init(void)
+{
+    for (unsigned i = 0; i < OIBAR_PARAM_COUNT; i++) {
+        s_values[i] = s_defs[i].default_value;
+    }
+}
+
+const oibar_param_def_t *oibar_param_def(uint32_t id)
+{
+    if (id == 0u || id >= (uint32_t)PARAM_ID_END) {
+        return NULL;
+    }
+    return &s_defs[id - 1u];
+}
+
+const oibar_param_def_t *oibar_param_def_at(unsigned index)
+{
+    return (index < OIBAR_PARAM_COUNT) ? &s_defs[index] : NULL;
+}
+
+float oibar_param_f(oibar_param_id_t id)
+{
+    if (!OIBAR_REQUIRE(id > 0 && id < PARAM_ID_END)) {
+        return 0.0f;
+    }
+    return s_values[(unsigned)id - 1u];
+}
+
+uint32_t oibar_param_u32(oibar_param_id_t id)
+{
+    float v = oibar_param_f(id);
+    return (v <= 0.0f) ? 0u : (uint32_t)v;
+}
+
+bool oibar_params_settable_in(oibar_v1_State state)
+{
+    return state == oibar_v1_STATE_BOOT || state == oibar_v1_STATE_IDLE ||
+           state == oibar_v1_STATE_FAULT;
+}
+
+oibar_v1_NackReason oibar_param_set(uint32_t id, float value, oibar_v1_State state)
+{
+    const oibar_param_def_t *def = oibar_param_def(id);
+    if (def == NULL) {
+        return oibar_v1_NACK_UNKNOWN_PARAM;
+    }
+    /* The locked check comes before the bounds check: a host probing a
+     * moving mechanism learns first that it must not. */
+    if (!oibar_params_settable_in(state)) {
+        return oibar_v1_NACK_PARAM_LOCKED;
+    }
+    if (!(value >= def->min && value <= def->max)) { /* also rejects NaN */
+        return oibar_v1_NACK_PARAM_OUT_OF_BOUNDS;
+    }
+    if (def->integer && floorf(value) != value) {
+        return oibar_v1_NACK_PARAM_OUT_OF_BOUNDS;
+    }
+    s_values[id - 1u] = value;
+    return oibar_v1_NACK_NONE;
+}

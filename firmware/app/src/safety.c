@@ -1,0 +1,135 @@
+/* SPEC section 3 safety rules that are checked at run time. The others are
+ * structural (named where they are implemented; see docs/firmware.md). */
+#include "oibar/app_safety.h"
+
+#include "oibar/app.h"
+#include "oibar/app_faults.h"
+#include "oibar/app_fsm.h"
+#include "oibar/app_params.h"
+#include "oibar/drv_inputs.h"
+#include "oibar/drv_pressure.h"
+#include "oibar/drv_valves.h"
+
+static const char *const k_names[SAFETY_RULE_COUNT] = {
+    "SAFETY_RULE_SAFE_START",
+    "SAFETY_RULE_VALVES_ONLY_WHEN_TRANSFERRING",
+    "SAFETY_RULE_VALVES_NEED_ARM_THEN_START",
+    "SAFETY_RULE_VALVES_NEED_CONNECTOR_MATED",
+    "SAFETY_RULE_VALVES_NEED_LATCH_ENGAGED",
+    "SAFETY_RULE_VALVES_NEED_SENSORS_HEALTHY",
+    "SAFETY_RULE_VALVES_NEED_HOST_LINK_ALIVE",
+    "SAFETY_RULE_VALVES_NEED_NO_FAULT",
+    "SAFETY_RULE_LOST_PRECONDITION_CLOSES_VALVES",
+    "SAFETY_RULE_FAULT_CLOSES_VALVES_AND_REPORTS",
+    "SAFETY_RULE_FAULT_NEEDS_EXPLICIT_CLEAR",
+    "SAFETY_RULE_INVALID_COMMAND_CHANGES_NOTHING",
+    "SAFETY_RULE_MALFORMED_FRAME_DROPPED",
+    "SAFETY_RULE_WATCHDOG_NEEDS_BOTH_LOOPS",
+    "SAFETY_RULE_CONTACT_FORCE_LIMIT",
+};
+
+const char *oibar_safety_rule_name(oibar_safety_rule_t rule)
+{
+    return ((unsigned)rule < (unsigned)SAFETY_RULE_COUNT) ? k_names[rule] : "?";
+}
+
+uint32_t oibar_safety_valve_blockers(void)
+{
+    uint32_t b = 0;
+    if (oibar_fsm_state() != oibar_v1_STATE_TRANSFERRING) {
+        b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_ONLY_WHEN_TRANSFERRING);
+    }
+    if (!oibar_fsm_transfer_armed() || !oibar_fsm_transfer_started()) {
+        b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_ARM_THEN_START);
+    }
+    if (!oibar_input(HAL_DI_CONNECTOR_MATED)) {
+        b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_CONNECTOR_MATED);
+    }
+    if (!oibar_input(HAL_DI_LATCH_ENGAGED)) {
+        b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_LATCH_ENGAGED);
+    }
+    if (!oibar_pressure_all_ok() || oibar_pressure_over()) {
+        b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_SENSORS_HEALTHY);
+    }
+    if (!oibar_app_host_link_alive()) {
+        b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_HOST_LINK_ALIVE);
+    }
+    if (oibar_fault_flags() != 0u) {
+        b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_NO_FAULT);
+    }
+    return b;
+}
+
+bool oibar_safety_valves_permitted(void) { return oibar_safety_valve_blockers() == 0u; }
+
+/* SAFETY_RULE_LOST_PRECONDITION_CLOSES_VALVES: whatever the state machine
+ * believes, an open valve without every precondition is closed now, and the
+ * loss is reported as the fault that names it. */
+void oibar_safety_enforce(void)
+{
+    if (!oibar_valves_any_cmd_open()) {
+        return;
+    }
+    uint32_t b = oibar_safety_valve_blockers();
+    if (b == 0u) {
+        return;
+    }
+    oibar_valves_close_all();
+    oibar_v1_FaultCode code = oibar_v1_FAULT_ASSERTION; /* state/arm: a broken contract */
+    if (b & OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_CONNECTOR_MATED)) {
+        code = oibar_v1_FAULT_CONNECTOR_LOST;
+    } else if (b & OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_LATCH_ENGAGED)) {
+        code = oibar_v1_FAULT_LATCH_LOST;
+    } else if (b & OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_SENSORS_HEALTHY)) {
+        code = oibar_pressure_over() ? oibar_v1_FAULT_OVERPRESSURE
+                                     : oibar_v1_FAULT_PRESSURE_SENSOR_RANGE;
+    } else if (b & OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_HOST_LINK_ALIVE)) {
+        code = oibar_v1_FAULT_HOST_LINK_LOSS;
+    } else if (b & OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_NO_FAULT)) {
+        return; /* the latched fault is already being handled */
+    }
+    oibar_fault_raise(code);
+}
+
+float oibar_safety_force_limit_n(unsigned state)
+{
+    switch (state) {
+    case oibar_v1_STATE_FAULT:
+    case oibar_v1_STATE_UNSPECIFIED:
+        return 0.0f; /* already safe; nothing more to do */
+    case oibar_v1_STATE_APPROACH_READY:
+    case oibar_v1_STATE_RECEPTION:
+    case oibar_v1_STATE_SOFT_DOCKED:
+        return oibar_param_f(PARAM_SOFT_DOCK_MAX_FORCE_N);
+    default:
+        return oibar_param_f(PARAM_HARD_DOCK_MAX_FORCE_N);
+    }
+}
+
+/* SAFETY_RULE_CONTACT_FORCE_LIMIT: over the limit for debounce_ms. */
+static uint32_t s_over_ms;
+static bool s_force_reported;
+
+void oibar_safety_init(void)
+{
+    s_over_ms = 0;
+    s_force_reported = false;
+}
+
+void oibar_safety_force_tick(void)
+{
+    float limit = oibar_safety_force_limit_n((unsigned)oibar_fsm_state());
+    bool over = limit > 0.0f && oibar_contact_force_valid() && oibar_contact_force_n() > limit;
+    if (!over) {
+        s_over_ms = 0;
+        s_force_reported = false;
+        return;
+    }
+    if (s_over_ms < oibar_param_u32(PARAM_DEBOUNCE_MS)) {
+        s_over_ms++;
+    }
+    if (s_over_ms >= oibar_param_u32(PARAM_DEBOUNCE_MS) && !s_force_reported) {
+        s_force_reported = true;
+        oibar_fault_raise(oibar_v1_FAULT_CONTACT_OVERLOAD);
+    }
+}

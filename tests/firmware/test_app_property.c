@@ -1,0 +1,240 @@
+/* Seeded random-sequence property test: commands, sensor changes, hardware
+ * faults and link drops in any order. Whatever happens, no valve is ever
+ * driven open unless the machine is in STATE_TRANSFERRING with every
+ * precondition of SPEC section 3 true. The preconditions are checked three
+ * ways: the firmware's own view, the raw hardware (allowing only the
+ * debounce time), and the command history seen by this test. */
+#include <stdio.h>
+#include <string.h>
+
+#include "fake_hal.h"
+#include "oibar/app.h"
+#include "oibar/app_faults.h"
+#include "oibar/app_fsm.h"
+#include "oibar/app_safety.h"
+#include "unity.h"
+
+#define STEPS 100000u
+#define SEED 0x0B1A2u
+#define DEBOUNCE_SLACK_MS 12u /* debounce_ms + the pass that acts on it */
+
+static uint32_t s_rng;
+static unsigned s_phase;          /* 0: nothing, 1: arm accepted, 2: start accepted after arm */
+static bool s_link_up;
+static uint32_t s_conn_false_ms, s_latch_false_ms, s_press_bad_ms;
+static uint32_t s_open_ms, s_starts, s_faults_seen, s_ms;
+static uint32_t s_state_hist[16];
+
+void setUp(void) {}
+void tearDown(void) {}
+
+static uint32_t rnd(void)
+{
+    s_rng ^= s_rng << 13;
+    s_rng ^= s_rng >> 17;
+    s_rng ^= s_rng << 5;
+    return s_rng;
+}
+
+static uint32_t below(uint32_t n) { return rnd() % n; }
+
+static void track_state(void)
+{
+    oibar_v1_State st = oibar_app_state();
+    if (st != oibar_v1_STATE_TRANSFER_ARMED && st != oibar_v1_STATE_TRANSFERRING) {
+        s_phase = 0;
+    }
+}
+
+static void check_invariant(void)
+{
+    char msg[160];
+    track_state();
+    if (!bench_any_valve_driven()) {
+        return;
+    }
+    s_open_ms++;
+    snprintf(msg, sizeof msg, "ms %u state %d phase %u blockers 0x%x conn %u latch %u press %u",
+             (unsigned)s_ms, (int)oibar_app_state(), s_phase, (unsigned)oibar_safety_valve_blockers(),
+             (unsigned)s_conn_false_ms, (unsigned)s_latch_false_ms, (unsigned)s_press_bad_ms);
+    TEST_ASSERT_EQUAL_INT_MESSAGE(oibar_v1_STATE_TRANSFERRING, oibar_app_state(), msg);
+    TEST_ASSERT_EQUAL_UINT32_MESSAGE(0u, oibar_safety_valve_blockers(), msg);
+    TEST_ASSERT_EQUAL_UINT32_MESSAGE(0u, oibar_fault_flags(), msg);
+    TEST_ASSERT_EQUAL_UINT_MESSAGE(2u, s_phase, msg);
+    TEST_ASSERT_TRUE_MESSAGE(s_link_up, msg);
+    TEST_ASSERT_TRUE_MESSAGE(s_conn_false_ms <= DEBOUNCE_SLACK_MS, msg);
+    TEST_ASSERT_TRUE_MESSAGE(s_latch_false_ms <= DEBOUNCE_SLACK_MS, msg);
+    TEST_ASSERT_TRUE_MESSAGE(s_press_bad_ms <= DEBOUNCE_SLACK_MS, msg);
+}
+
+static bool pressure_raw_ok(void)
+{
+    const hal_adc_t ch[3] = { HAL_ADC_SV_TANK, HAL_ADC_TV_TANK, HAL_ADC_LINE };
+    for (unsigned i = 0; i < 3; i++) {
+        uint16_t c = 0;
+        if (!hal_adc_read(ch[i], &c) || c < 200u || c > 3900u) {
+            return false;
+        }
+    }
+    return true;
+}
+
+static void run_ms(uint32_t ms)
+{
+    for (uint32_t i = 0; i < ms; i++) {
+        fake_hal_advance_ms(1);
+        s_ms++;
+        s_conn_false_ms = hal_di_read(HAL_DI_CONNECTOR_MATED) ? 0u : s_conn_false_ms + 1u;
+        s_latch_false_ms = hal_di_read(HAL_DI_LATCH_ENGAGED) ? 0u : s_latch_false_ms + 1u;
+        s_press_bad_ms = pressure_raw_ok() ? 0u : s_press_bad_ms + 1u;
+        check_invariant();
+    }
+}
+
+static void command(oibar_v1_CommandOpcode op, float arg)
+{
+    oibar_app_run_once(); /* handle what is pending, as the command would */
+    check_invariant();
+    oibar_v1_State before = oibar_app_state();
+    oibar_v1_NackReason r = oibar_app_command(op, arg);
+    if (r == oibar_v1_NACK_NONE) {
+        if (op == oibar_v1_CMD_ARM_TRANSFER) {
+            s_phase = 1;
+        } else if (op == oibar_v1_CMD_START_TRANSFER && s_phase == 1u) {
+            s_phase = 2;
+            s_starts++;
+        }
+    } else {
+        TEST_ASSERT_EQUAL_INT(before, oibar_app_state()); /* rejected: no change */
+    }
+    check_invariant();
+}
+
+static void clear_knobs(void)
+{
+    fake_plant_clear_overrides();
+    fake_plant_set_valve_mode(0, FAKE_VALVE_OK);
+    fake_plant_set_valve_mode(1, FAKE_VALVE_OK);
+    fake_plant_set_plane_jam(false);
+    fake_plant_set_stepper_stall(false);
+    fake_plant_set_force_n(0.0f);
+    if (!s_link_up) {
+        s_link_up = true;
+        oibar_app_link_state(true);
+    }
+}
+
+/* The command a cooperative host would send next, so that the random walk
+ * keeps reaching the transfer. */
+static void guided(void)
+{
+    switch (oibar_app_state()) {
+    case oibar_v1_STATE_IDLE:
+        if (fake_plant_probe()) {
+            fake_plant_set_probe(false);
+        }
+        command(oibar_v1_CMD_APPROACH_ARM, 0.0f);
+        break;
+    case oibar_v1_STATE_APPROACH_READY:
+        bench_nav_good();
+        fake_plant_set_probe(true);
+        break;
+    case oibar_v1_STATE_RECEPTION:
+        bench_nav_good();
+        command(oibar_v1_CMD_DOCK, 0.0f);
+        break;
+    case oibar_v1_STATE_SOFT_DOCKED:
+        command(oibar_v1_CMD_HARD_DOCK, 0.0f);
+        break;
+    case oibar_v1_STATE_HARD_DOCKED:
+        command(below(4) == 0 ? oibar_v1_CMD_SEPARATE : oibar_v1_CMD_ARM_TRANSFER, 0.0f);
+        break;
+    case oibar_v1_STATE_TRANSFER_ARMED:
+        command(oibar_v1_CMD_START_TRANSFER, 300.0f + (float)below(1800));
+        break;
+    case oibar_v1_STATE_TRANSFERRING:
+        if (below(8) == 0) {
+            command(oibar_v1_CMD_STOP_TRANSFER, 0.0f);
+        }
+        break;
+    case oibar_v1_STATE_FAULT:
+        clear_knobs();
+        run_ms(30);
+        command(oibar_v1_CMD_CLEAR_FAULT, 0.0f);
+        break;
+    default:
+        break;
+    }
+}
+
+static void test_no_valve_open_outside_a_legitimate_transfer(void)
+{
+    s_rng = SEED;
+    s_phase = 0;
+    s_conn_false_ms = s_latch_false_ms = s_press_bad_ms = 0;
+    s_open_ms = s_starts = s_faults_seen = s_ms = 0;
+    bench_start();
+    s_link_up = true;
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_IDLE, oibar_app_state());
+
+    for (uint32_t step = 0; step < STEPS; step++) {
+        uint32_t r = below(1000);
+        if (r >= 800 && below(3) != 0) {
+            r = 0; /* perturbations at a third of their nominal rate */
+        }
+        if (r < 450) {
+            run_ms(1u + below(100));
+        } else if (r < 800) {
+            guided();
+        } else if (r < 810) {
+            command((oibar_v1_CommandOpcode)below(13), (float)below(3000) - 100.0f);
+        } else if (r < 820) {
+            int level = (int)below(4) - 1; /* -1 release (twice as likely), 0, 1 */
+            fake_plant_override_di((hal_di_t)below(HAL_DI_COUNT), level > 1 ? -1 : level);
+        } else if (r < 858) {
+            fake_plant_override_adc((hal_adc_t)below(HAL_ADC_COUNT),
+                                    below(3) == 0 ? (int)below(4096) : -1);
+        } else if (r < 862) {
+            fake_plant_set_valve_mode(below(2), (fake_valve_mode_t)below(3));
+        } else if (r < 864) {
+            fake_plant_set_plane_jam(below(2) == 0);
+        } else if (r < 866) {
+            fake_plant_set_stepper_stall(below(2) == 0);
+        } else if (r < 869) {
+            fake_plant_set_force_n((float)below(80));
+        } else if (r < 874) {
+            s_link_up = !s_link_up;
+            oibar_app_link_state(s_link_up);
+            check_invariant();
+        } else if (r < 878) {
+            fake_plant_set_probe(below(2) == 0);
+        } else if (r < 881) {
+            oibar_fault_raise((oibar_v1_FaultCode)(1u + below(OIBAR_FAULT_CODE_MAX)));
+            check_invariant();
+            s_faults_seen++;
+        } else {
+            clear_knobs();
+        }
+        s_state_hist[oibar_app_state()]++;
+    }
+    char msg[128];
+    snprintf(msg, sizeof msg, "coverage: %u starts, %u ms with valves open, %u ms simulated",
+             (unsigned)s_starts, (unsigned)s_open_ms, (unsigned)s_ms);
+    TEST_MESSAGE(msg);
+    for (unsigned i = 1; i < 16; i++) {
+        snprintf(msg, sizeof msg, "steps ending in %s: %u", oibar_fsm_state_name(i), (unsigned)s_state_hist[i]);
+        TEST_MESSAGE(msg);
+    }
+    snprintf(msg, sizeof msg, "coverage: %u starts, %u ms with valves open, %u ms simulated",
+             (unsigned)s_starts, (unsigned)s_open_ms, (unsigned)s_ms);
+    /* The walk must actually exercise the transfer, or it proves nothing. */
+    TEST_ASSERT_TRUE_MESSAGE(s_starts >= 100u, msg);
+    TEST_ASSERT_TRUE_MESSAGE(s_open_ms >= 10000u, msg);
+}
+
+int main(void)
+{
+    UNITY_BEGIN();
+    RUN_TEST(test_no_valve_open_outside_a_legitimate_transfer);
+    return UNITY_END();
+}
