@@ -1,0 +1,115 @@
+import json
+import os
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from oibar_hil.dataset import (PAPER_SEQUENCES, DatasetError, SequenceSpec, generate_dataset, plan_sequence,
+                               read_poses_csv, sha256_file, verify_sequence)
+
+N = 5
+PERLIN = PAPER_SEQUENCES[2]
+ISS = PAPER_SEQUENCES[8]
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory, gl_renderer):
+    out = tmp_path_factory.mktemp("ds")
+    rep = generate_dataset(out, [PERLIN, ISS], frames_limit=N, workers=1, progress=False)
+    return out, rep
+
+
+def test_paper_table():
+    assert len(PAPER_SEQUENCES) == 12
+    assert [s.background for s in PAPER_SEQUENCES.values()].count("iss") == 6
+    s8 = PAPER_SEQUENCES[8]
+    assert (s8.port, s8.approach, s8.sun_elevation_deg, s8.background) == (4, "-R-bar", 146, "iss")
+    with pytest.raises(ValueError):
+        plan_sequence(replace(s8, approach="+V-bar"))
+
+
+def test_manifest_and_poses(tiny):
+    out, rep = tiny
+    assert rep.rendered == 2 * N and rep.sequences_complete == 2
+    for spec in (PERLIN, ISS):
+        d = out / spec.name
+        m = verify_sequence(d)
+        assert m["seed"] == spec.seed and m["spec"]["port"] == spec.port
+        assert m["generator_version"] and m["frames"] == N
+        assert m["config"]["camera"]["fx_px"] == pytest.approx(583.3333, abs=1e-3)
+        assert set(m["files"]) == {"poses.csv"} | {f"frames/{k:06d}.jpg" for k in range(N)}
+        for name, digest in m["files"].items():
+            assert sha256_file(d / name) == digest
+        rows = read_poses_csv(d / "poses.csv")
+        plan = plan_sequence(spec, N)
+        assert len(rows) == N
+        for k, row in enumerate(rows):
+            T = [float(row[c]) for c in ("tx_m", "ty_m", "tz_m")]
+            q = [float(row[c]) for c in ("qw", "qx", "qy", "qz")]
+            np.testing.assert_allclose(T, plan.T_cam_target[k], atol=1e-6)
+            np.testing.assert_allclose(q, plan.q_cam_target[k], atol=1e-8)
+            assert float(row["range_m"]) == pytest.approx(np.linalg.norm(T), abs=1e-5)
+            assert row["phase"] == "1" and float(row["time_s"]) == pytest.approx(0.1 * k)
+
+
+def test_same_seed_same_bytes_across_worker_counts(tiny, tmp_path):
+    out, _ = tiny
+    generate_dataset(tmp_path, [PERLIN], frames_limit=N, workers=2, progress=False)
+    a = json.loads((out / PERLIN.name / "manifest.json").read_text())["files"]
+    b = json.loads((tmp_path / PERLIN.name / "manifest.json").read_text())["files"]
+    assert a == b
+
+
+def test_truncated_or_corrupt_frame_is_detected(tiny, tmp_path):
+    out, _ = tiny
+    generate_dataset(tmp_path, [PERLIN], frames_limit=N, workers=1, progress=False)
+    d = tmp_path / PERLIN.name
+    f2 = d / "frames/000002.jpg"
+    f2.write_bytes(f2.read_bytes()[:-100])
+    with pytest.raises(DatasetError, match=r"000002\.jpg: truncated"):
+        verify_sequence(d)
+    f2.write_bytes((out / PERLIN.name / "frames/000002.jpg").read_bytes())
+    verify_sequence(d)
+    f3 = d / "frames/000003.jpg"
+    data = bytearray(f3.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    f3.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match=r"000003\.jpg: corrupt"):
+        verify_sequence(d)
+
+
+def test_resume_skips_finished_frames(tiny, tmp_path):
+    out, _ = tiny
+    d = tmp_path / PERLIN.name
+    generate_dataset(tmp_path, [PERLIN], frames_limit=N, workers=1, progress=False)
+    # Simulate an interruption: manifest not yet written, one frame missing, one cut short.
+    (d / "manifest.json").unlink()
+    (d / "frames/000001.jpg").unlink()
+    f3 = d / "frames/000003.jpg"
+    f3.write_bytes(f3.read_bytes()[:500])
+    kept = {k: os.stat(d / f"frames/{k:06d}.jpg").st_mtime_ns for k in (0, 2, 4)}
+    rep = generate_dataset(tmp_path, [PERLIN], frames_limit=N, workers=1, progress=False)
+    assert rep.rendered == 2 and rep.skipped == N - 2
+    for k, t in kept.items():
+        assert os.stat(d / f"frames/{k:06d}.jpg").st_mtime_ns == t
+    m = verify_sequence(d)
+    assert m["files"] == json.loads((out / PERLIN.name / "manifest.json").read_text())["files"]
+    # A complete sequence is skipped entirely.
+    rep2 = generate_dataset(tmp_path, [PERLIN], frames_limit=N, workers=1, progress=False)
+    assert rep2.rendered == 0 and rep2.skipped == N
+
+
+def test_resume_refuses_a_different_spec(tmp_path, gl_renderer):
+    generate_dataset(tmp_path, [PERLIN], frames_limit=2, workers=1, progress=False)
+    other = replace(PERLIN, seed=PERLIN.seed + 1)
+    with pytest.raises(DatasetError, match="different sequence spec"):
+        generate_dataset(tmp_path, [other], frames_limit=2, workers=1, progress=False)
+
+
+def test_custom_spec_png_envelope(tmp_path, gl_renderer):
+    spec = SequenceSpec(name="custom", port=5, approach="+R-bar", sun_elevation_deg=100, background="perlin",
+                        seed=77, envelope=True, image_format="png", noise_sigma_dn=2.0, blur_sigma_px=0.7)
+    generate_dataset(tmp_path, [spec], frames_limit=2, workers=1, progress=False)
+    m = verify_sequence(tmp_path / "custom")
+    assert "frames/000001.png" in m["files"] and m["spec"]["envelope"] is True
