@@ -59,11 +59,15 @@ def run_cppcheck() -> tuple[int, int]:
     if shutil.which("cppcheck") is None:
         print("== cppcheck: not installed (run `make setup`)", file=sys.stderr)
         return 0, 1
-    parts = [p for p in ("link", "app", "hal", "port/sim") if (ROOT / "firmware" / p).is_dir()]
+    parts = [p for p in ("link", "app", "hal", "port/sim", "port/stm32f4")
+             if (ROOT / "firmware" / p).is_dir()]
     includes = [f"-I{p}" for p in (ROOT / "firmware").glob("*/include")]
+    includes += [f"-I{p}" for p in (ROOT / "firmware" / "port").glob("*/include")]
     cmd = ["cppcheck", "--quiet", "--enable=warning,style,performance,portability",
            "--error-exitcode=1", "--inline-suppr", "--std=c11",
            "--suppress=missingIncludeSystem", *includes,
+           # the board image gets these from its build; any value will do for the analysis
+           '-DOIBAR_FW_VERSION="0"', '-DOIBAR_BUILD_ID="0"',
            *[str(ROOT / "firmware" / p) for p in parts]]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     findings = proc.stderr.strip()

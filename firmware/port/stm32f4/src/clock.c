@@ -1,0 +1,125 @@
+/*
+ * Clock tree: 168 MHz core from the crystal through the main PLL
+ * (RM0090 section 6.3), AHB /1, APB1 /4 (42 MHz, timers 84 MHz),
+ * APB2 /2 (84 MHz).
+ *
+ * Every wait on a hardware flag is bounded. If the crystal does not start
+ * the PLL runs from the internal 16 MHz RC instead (still 168 MHz, less
+ * accurate baud rate); if the PLL does not lock or the switch does not take,
+ * the core stays on the 16 MHz RC and every divider below is computed from
+ * what is actually running, so the link still works at the right baud rate.
+ */
+#include "board.h"
+#include "port.h"
+#include "stm32f4_regs.h"
+
+/* At 16 MHz a polling loop iteration takes a few cycles: 50,000 of them is
+ * ~10-20 ms, well beyond the crystal's 2 ms start-up and the PLL's 0.1 ms
+ * lock time from the datasheet. */
+#define CLOCK_WAIT_LOOPS 50000u
+
+#define PLL_VCO_IN_HZ 1000000u /* 1 MHz VCO input: lowest jitter per RM0090 */
+#define PLL_N 336u             /* VCO 336 MHz */
+/* PLLP = 0b00: SYSCLK = VCO / 2 = 168 MHz (the field stays 0 below). */
+#define PLL_Q 7u               /* 48 MHz for USB/SDIO (unused, but must be <= 48) */
+#define FLASH_WAIT_STATES_168MHZ 5u /* 2.7-3.6 V supply, RM0090 table 10 */
+
+static clock_info_t s_info;
+
+static bool wait_set(const volatile uint32_t *reg, uint32_t mask, uint32_t value)
+{
+    for (uint32_t n = 0; n < CLOCK_WAIT_LOOPS; n++) {
+        if ((*reg & mask) == value) {
+            return true;
+        }
+    }
+    return false;
+}
+
+static void info_hsi(clock_info_t *out, clock_source_t src)
+{
+    out->source = src;
+    out->hclk_hz = BOARD_HSI_HZ;
+    out->pclk2_hz = BOARD_HSI_HZ;     /* prescalers left at /1 */
+    out->tim_apb1_hz = BOARD_HSI_HZ;  /* APB1 /1: timer clock = PCLK1 */
+}
+
+static void info_168(clock_info_t *out, clock_source_t src)
+{
+    out->source = src;
+    out->hclk_hz = BOARD_SYSCLK_TARGET_HZ;
+    out->pclk2_hz = BOARD_SYSCLK_TARGET_HZ / 2u;
+    /* APB1 prescaler != 1: the timers run at twice PCLK1 (RM0090 6.2). */
+    out->tim_apb1_hz = 2u * (BOARD_SYSCLK_TARGET_HZ / 4u);
+}
+
+void clock_init(clock_info_t *out)
+{
+    /* Out of reset the core runs from the HSI, so HSIRDY reads 1 on any real
+     * chip. An RCC that does not even report that (an emulator's stub, e.g.
+     * QEMU's netduinoplus2) cannot be configured or verified: nothing is
+     * programmed and the nominal 168 MHz, which such a model provides, is
+     * assumed. */
+    if ((RCC->CR & RCC_CR_HSIRDY) == 0u) {
+        info_168(out, CLOCK_SRC_UNVERIFIED);
+        s_info = *out;
+        return;
+    }
+
+    /* Regulator scale 1 is needed above 144 MHz. */
+    RCC->APB1ENR |= RCC_APB1ENR_PWREN;
+    (void)RCC->APB1ENR; /* read back: the enable takes effect before PWR is touched */
+    PWR->CR |= PWR_CR_VOS;
+
+    clock_source_t src = CLOCK_SRC_HSE_PLL;
+    uint32_t pll_in_hz = BOARD_HSE_HZ;
+    RCC->CR |= RCC_CR_HSEON;
+    if (!wait_set(&RCC->CR, RCC_CR_HSERDY, RCC_CR_HSERDY)) {
+        RCC->CR &= ~RCC_CR_HSEON; /* do not leave a half-started oscillator */
+        src = CLOCK_SRC_HSI_PLL;
+        pll_in_hz = BOARD_HSI_HZ;
+    }
+
+    RCC->CR &= ~RCC_CR_PLLON; /* PLLCFGR may only change while the PLL is off */
+    (void)wait_set(&RCC->CR, RCC_CR_PLLRDY, 0u);
+    uint32_t pllm = pll_in_hz / PLL_VCO_IN_HZ;
+    RCC->PLLCFGR = (pllm << RCC_PLLCFGR_PLLM_POS) | (PLL_N << RCC_PLLCFGR_PLLN_POS) |
+                   (PLL_Q << RCC_PLLCFGR_PLLQ_POS) |
+                   ((src == CLOCK_SRC_HSE_PLL) ? RCC_PLLCFGR_PLLSRC_HSE : 0u);
+    RCC->CR |= RCC_CR_PLLON;
+    if (!wait_set(&RCC->CR, RCC_CR_PLLRDY, RCC_CR_PLLRDY)) {
+        RCC->CR &= ~(RCC_CR_PLLON | RCC_CR_HSEON);
+        info_hsi(out, CLOCK_SRC_HSI);
+        s_info = *out;
+        return;
+    }
+
+    /* Flash wait states before the clock goes up, and check they took:
+     * running 168 MHz with too few wait states reads garbage. */
+    FLASH->ACR = FLASH_ACR_PRFTEN | FLASH_ACR_ICEN | FLASH_ACR_DCEN | FLASH_WAIT_STATES_168MHZ;
+    if (!wait_set(&FLASH->ACR, FLASH_ACR_LATENCY_MASK, FLASH_WAIT_STATES_168MHZ)) {
+        RCC->CR &= ~(RCC_CR_PLLON | RCC_CR_HSEON);
+        info_hsi(out, CLOCK_SRC_HSI);
+        s_info = *out;
+        return;
+    }
+
+    /* HPRE = 0 (AHB /1); APB1 /4 (42 MHz max), APB2 /2 (84 MHz max). */
+    RCC->CFGR = (RCC_CFGR_PPRE_DIV4 << RCC_CFGR_PPRE1_POS) |
+                (RCC_CFGR_PPRE_DIV2 << RCC_CFGR_PPRE2_POS);
+    RCC->CFGR = (RCC->CFGR & ~RCC_CFGR_SW_MASK) | RCC_CFGR_SW_PLL;
+    if (!wait_set(&RCC->CFGR, RCC_CFGR_SW_MASK << RCC_CFGR_SWS_POS,
+                  RCC_CFGR_SW_PLL << RCC_CFGR_SWS_POS)) {
+        /* Back to the RC with the prescalers at /1, so the dividers match. */
+        RCC->CFGR = RCC_CFGR_SW_HSI;
+        (void)wait_set(&RCC->CFGR, RCC_CFGR_SW_MASK << RCC_CFGR_SWS_POS, 0u);
+        RCC->CR &= ~(RCC_CR_PLLON | RCC_CR_HSEON);
+        info_hsi(out, CLOCK_SRC_HSI);
+        s_info = *out;
+        return;
+    }
+    info_168(out, src);
+    s_info = *out;
+}
+
+const clock_info_t *clock_info(void) { return &s_info; }

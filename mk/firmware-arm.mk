@@ -1,0 +1,23 @@
+# The STM32F405 image (firmware/port/stm32f4) and its test under QEMU (tests/qemu).
+
+FW_ARM         := $(BUILD)/fw-arm
+ARM_TOOLCHAIN  := $(ROOT)/firmware/cmake/arm-none-eabi.cmake
+# Reported in the handshake; `make firmware-arm FW_BUILD_ID=...` overrides it.
+FW_BUILD_ID    ?= $(shell git -C $(ROOT) describe --always --dirty --tags 2>/dev/null || echo unknown)
+
+.PHONY: firmware-arm qemu-test
+
+firmware-arm: gen ## cross-build the STM32F405 image (build/fw-arm: .elf .bin .hex) and print its size report
+	@mkdir -p $(FW_ARM)
+	@cmake -S firmware/port/stm32f4 -B $(FW_ARM) -DCMAKE_TOOLCHAIN_FILE=$(ARM_TOOLCHAIN) \
+	  -DCMAKE_BUILD_TYPE=MinSizeRel -DOIBAR_GEN_DIR=$(GEN_C) -DNANOPB_DIR=$(NANOPB_SRC) \
+	  -DOIBAR_BUILD_ID='$(FW_BUILD_ID)' >$(BUILD)/fw-arm-configure.log \
+	  || { cat $(BUILD)/fw-arm-configure.log; exit 1; }
+	@cmake --build $(FW_ARM) -j$(JOBS) -- --no-print-directory >$(BUILD)/fw-arm-build.log 2>&1 \
+	  || { cat $(BUILD)/fw-arm-build.log; exit 1; }
+	@cat $(FW_ARM)/size-report.txt
+
+qemu-test: firmware-arm gen ## boot the STM32F405 image on QEMU (netduinoplus2) and run the link tests against it
+	@$(PY) -m pytest tests/qemu -q -p no:cacheprovider
+
+TEST_DEPS += firmware-arm
