@@ -72,8 +72,8 @@ golden: firmware-host gen ## rewrite the golden link frames on purpose (C writes
 	@git status --short tests/golden
 
 # --- demo ---------------------------------------------------------------------------------
-demo: firmware-host gen ## run the demo (today: the host link against the firmware link over a pseudo-terminal)
-	@$(PY) scripts/demo.py --peer $(FW_HOST)/link/oibar_link_peer
+demo: firmware-host gen ## run the simulated mission end to end (sim MCU + rig), print a summary and the report path
+	@$(PY) scripts/demo.py
 
 clean: ## remove build outputs (keeps .venv and the source cache)
 	rm -rf $(BUILD) $(GEN_PY)

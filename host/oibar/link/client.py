@@ -37,7 +37,7 @@ from oibar.link.errors import (
     PortError,
     ProtocolVersionError,
 )
-from oibar.link.framing import FrameDecoder, Packet, encode_frame
+from oibar.link.framing import MAX_HOST_VERSION_BYTES, FrameDecoder, Packet, encode_frame
 
 _log = logging.getLogger(__name__)
 
@@ -208,6 +208,8 @@ class LinkClient:
             raise ValueError("periods and timeouts must be positive")
         if max_retries < 0:
             raise ValueError("max_retries must be >= 0")
+        if len(host_version.encode()) > MAX_HOST_VERSION_BYTES:
+            raise ValueError(f"host_version is limited to {MAX_HOST_VERSION_BYTES} bytes")
         self.url = url
         self.baudrate = baudrate
         self.host_version = host_version

@@ -39,6 +39,10 @@ MAX_ENCODED_FRAME_BYTES = MAX_FRAME_BYTES - 1
 
 Packet = pb.Packet
 
+# proto/oibar.options: Handshake.host_version has max_size 17 (16 bytes + NUL) on the MCU, which
+# drops a longer one as undecodable; both host link implementations refuse it up front.
+MAX_HOST_VERSION_BYTES = 16
+
 
 def encode_frame(packet: Packet) -> bytes:
     """Return the wire bytes of ``packet``: COBS(0x01 + packet + CRC-32C LE) + 0x00.

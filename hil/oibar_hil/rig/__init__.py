@@ -1,0 +1,16 @@
+"""The OIBAR HIL rig (issue 5): the real firmware on a simulated MCU, in lockstep with a
+simulated approach and mechanism, driven by a host link session on simulated time.
+
+Modules, one idea each:
+  lockstep    the plant's end of the lockstep channel; the sim-MCU process
+  wire        the serial cable, where link faults happen
+  world       the service vehicle's relative 6-DOF motion
+  mechanism   probe/drogue, latches, plane, valves, tanks and sensors
+  faults      fault injection by scenario
+  scenario    YAML scenario files
+  controller  the STAND-IN mission controller (replaced by the navigation daemon later)
+  runner      the lockstep loop and the measurements
+  checks      requirements and expected outcomes, pass/fail
+  report      the mission report (HTML + PNG plots)
+  cli         `python -m oibar_hil.rig run|all|demo`
+"""

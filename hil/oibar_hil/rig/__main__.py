@@ -1,0 +1,5 @@
+import sys
+
+from oibar_hil.rig.cli import main
+
+sys.exit(main())

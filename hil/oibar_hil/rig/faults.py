@@ -1,0 +1,136 @@
+"""Fault injection by scenario: what each fault does to the plant, the wire or the host.
+
+A scenario lists faults, each with a trigger (``at_s`` simulated seconds, or ``at_state``: the
+first time the MCU enters that state, plus ``after_s``) and an optional ``duration_s`` (the
+fault clears by itself afterwards; without it the fault stays). docs/hil.md lists every type
+with the outcome the firmware and the stand-in controller should produce.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+FAULT_TYPES = (
+    "link_loss", "bit_errors", "pressure_sensor_stuck", "pressure_sensor_range",
+    "valve_stuck_open", "valve_stuck_closed", "latch_stall", "actuator_jam",
+    "overpressure", "watchdog_reset", "host_crash",
+)
+
+
+@dataclass
+class FaultSpec:
+    type: str
+    at_s: float | None = None
+    at_state: str | None = None
+    after_s: float = 0.0
+    duration_s: float | None = None
+    args: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "FaultSpec":
+        d = dict(d)
+        kind = d.pop("type")
+        if kind not in FAULT_TYPES:
+            raise ValueError(f"unknown fault type {kind!r}; known: {', '.join(FAULT_TYPES)}")
+        spec = cls(kind, d.pop("at_s", None), d.pop("at_state", None), float(d.pop("after_s", 0.0)),
+                   d.pop("duration_s", None), d)
+        if spec.at_s is None and spec.at_state is None:
+            spec.at_s = 0.0
+        return spec
+
+
+@dataclass
+class ActiveFault:
+    spec: FaultSpec
+    start_s: float
+    end_s: float | None
+    state: dict[str, Any] = field(default_factory=dict)
+
+
+class FaultInjector:
+    """Arms, applies and removes the scenario's faults as simulated time goes by."""
+
+    def __init__(self, specs: list[FaultSpec]) -> None:
+        self.pending = list(specs)
+        self.state_seen_at: dict[str, float] = {}
+        self.active: list[ActiveFault] = []
+        self.log: list[tuple[float, str]] = []  # (t_s, text) for the report
+        self.first_injection_s: float | None = None
+
+    def update(self, t_s: float, dt_s: float, mcu_state: str, rig: Any) -> None:
+        self.state_seen_at.setdefault(mcu_state, t_s)
+        for spec in list(self.pending):
+            if spec.at_state is not None:
+                seen = self.state_seen_at.get(spec.at_state)
+                due = seen is not None and t_s >= seen + spec.after_s
+            else:
+                due = t_s >= float(spec.at_s) + spec.after_s
+            if due:
+                self.pending.remove(spec)
+                end = None if spec.duration_s is None else t_s + float(spec.duration_s)
+                fault = ActiveFault(spec, t_s, end)
+                self._apply(fault, rig, True)
+                self.active.append(fault)
+                if self.first_injection_s is None:
+                    self.first_injection_s = t_s
+                self.log.append((t_s, f"inject {spec.type} {spec.args or ''}".strip()))
+        for fault in list(self.active):
+            if fault.spec.type == "overpressure":
+                self._overpressure(fault, t_s, dt_s, rig)
+            if fault.end_s is not None and t_s >= fault.end_s:
+                self.active.remove(fault)
+                self._apply(fault, rig, False)
+                self.log.append((t_s, f"clear {fault.spec.type}"))
+
+    # -- the faults ---------------------------------------------------------------------
+
+    def _apply(self, fault: ActiveFault, rig: Any, on: bool) -> None:
+        spec, mech, wire = fault.spec, rig.mech, rig.wire
+        kind = spec.type
+        if kind == "link_loss":
+            wire.cut = on
+        elif kind == "bit_errors":
+            wire.ber = float(spec.args.get("ber", 1e-4)) if on else 0.0
+        elif kind == "pressure_sensor_stuck":
+            s = mech.sensor_faults[spec.args.get("sensor", "tv")]
+            s.stuck_counts = mech.last_counts(spec.args.get("sensor", "tv")) if on else None
+        elif kind == "pressure_sensor_range":
+            s = mech.sensor_faults[spec.args.get("sensor", "tv")]
+            level = spec.args.get("level", "high")
+            s.forced_counts = (4095 if level == "high" else 0) if on else None
+        elif kind in ("valve_stuck_open", "valve_stuck_closed"):
+            valve = mech.sv_valve if spec.args.get("valve", "sv") == "sv" else mech.tv_valve
+            valve.stuck = (("open" if kind == "valve_stuck_open" else "closed") if on else None)
+        elif kind == "latch_stall":
+            mech.latch_stall = on
+        elif kind == "actuator_jam":
+            mech.plane_jam = on
+        elif kind == "overpressure":
+            if not on:
+                mech.tank_offset_kpa[spec.args.get("tank", "sv")] = 0.0
+        elif kind == "watchdog_reset":
+            if on:
+                rig.request_hang()
+        elif kind == "host_crash":
+            rig.host_crash(on)
+
+    @staticmethod
+    def _overpressure(fault: ActiveFault, t_s: float, dt_s: float, rig: Any) -> None:
+        """A thermal transient in one tank: ramp up to ``peak_kpa``, hold, ramp back down."""
+        args = fault.spec.args
+        tank = args.get("tank", "sv")
+        rate = float(args.get("rate_kpa_s", 300.0))
+        hold_s = float(args.get("hold_s", 5.0))
+        mech = rig.mech
+        base = mech.sv_kpa if tank == "sv" else mech.tv_kpa
+        off = mech.tank_offset_kpa[tank]
+        st = fault.state
+        if "peak_at" not in st:
+            if base + off >= float(args.get("peak_kpa", 2700.0)):
+                st["peak_at"] = t_s
+            else:
+                off += rate * dt_s
+        elif t_s >= st["peak_at"] + hold_s:
+            off = max(0.0, off - rate * dt_s)
+        mech.tank_offset_kpa[tank] = off

@@ -1,0 +1,358 @@
+"""The rig: simulated MCU + plant + wire + host session + controller, in lockstep.
+
+One loop iteration is one lockstep exchange (docs/hil.md):
+
+1. the host's bytes cross the wire into the MCU's UART (count announced in the exchange);
+2. the MCU runs ``advance_ms`` of firmware time with the current sensor values;
+3. its UART bytes cross the wire to the host; its outputs drive the plant for the same
+   interval (world + mechanism), then faults are updated;
+4. the host session steps on simulated time; at 10 Hz the controller runs.
+
+``advance_ms`` is 1 ms while the latch stepper runs (its home/release switches must be seen
+within a step or two), ``exchange_ms`` (10) while anything mechanical or the contact is active,
+and ``coast_exchange_ms`` (20) in free flight with the mechanism idle.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from oibar import pb
+from oibar.link.session import LinkSession
+from oibar_hil.rig.controller import (MechRequest, Observation, RequestResult,
+                                      StandInController)
+from oibar_hil.rig.faults import FaultInjector
+from oibar_hil.rig.lockstep import FLAG_HANG_MAIN_LOOP, RESET_CAUSES, SimMcu
+from oibar_hil.rig.mechanism import Mechanism, MechanismParams
+from oibar_hil.rig.scenario import FIRMWARE_PARAM_IDS, Scenario
+from oibar_hil.rig.wire import Wire
+from oibar_hil.rig.world import VehicleParams, World, WorldState
+
+REPO_ROOT = Path(__file__).resolve().parents[3]
+DEFAULT_MCU = REPO_ROOT / "build" / "fw-host" / "port" / "sim" / "oibar_sim_mcu"
+HOST_VERSION = "oibar-rig-0.1"  # Handshake.host_version holds 16 bytes
+
+
+def default_mcu_path() -> Path:
+    return Path(os.environ.get("OIBAR_SIM_MCU", DEFAULT_MCU))
+
+
+@dataclass
+class RunResult:
+    scenario: Scenario
+    outcome: str
+    sim_time_s: float
+    wall_time_s: float
+    samples: dict[str, list]
+    states: list[tuple[float, str]]          # ground truth, from the lockstep replies
+    requests: list[tuple[float, str, str]]   # (t, label, result)
+    events: list[tuple[float, str]]          # MCU events the host received
+    notes: list[tuple[float, str]]           # controller, faults, rig
+    capture: dict | None
+    capture_attempts: list
+    metrics: dict[str, Any]
+    checks: list = field(default_factory=list)  # filled by checks.evaluate
+    report_path: Path | None = None
+
+    @property
+    def speed_factor(self) -> float:
+        return self.sim_time_s / self.wall_time_s if self.wall_time_s > 0 else float("inf")
+
+    @property
+    def passed(self) -> bool:
+        return all(c.ok is not False for c in self.checks)
+
+
+class Rig:
+    def __init__(self, scenario: Scenario, *, mcu_path: Path | None = None,
+                 out_dir: Path | None = None, progress: bool = False,
+                 controller_factory: Callable[..., Any] | None = None) -> None:
+        self.sc = scenario
+        self.mcu_path = Path(mcu_path) if mcu_path else default_mcu_path()
+        self.out_dir = Path(out_dir) if out_dir else None
+        self.progress = progress
+        self.rng = np.random.default_rng(scenario.seed)
+        self.controller_factory = controller_factory or (
+            lambda: StandInController(scenario.mission,
+                                      {FIRMWARE_PARAM_IDS[k]: float(v)
+                                       for k, v in scenario.firmware_params.items()}))
+        st = scenario.start
+        world_state = WorldState(
+            r_D_m=np.array([st.lateral_m[0], st.lateral_m[1], st.range_m], dtype=float),
+            v_D_mps=np.array([0.0, 0.0, -st.closing_speed_mps]),
+            att_rad=np.radians([st.misalignment_deg[0], st.misalignment_deg[1], 0.0]))
+        self.world = World(VehicleParams(**scenario.vehicle), world_state, self.rng)
+        self.mech = Mechanism(MechanismParams(**scenario.plant), self.rng)
+        self.wire = Wire(self.rng)
+        self.faults = FaultInjector(scenario.faults)
+        self._hang = False
+        self._host_alive = True
+        self.t_s = 0.0
+
+    # -- hooks for the faults -----------------------------------------------------------
+
+    def request_hang(self) -> None:
+        self._hang = True
+
+    def host_crash(self, crashed: bool) -> None:
+        self._host_alive = not crashed
+        self.wire.host_attached = not crashed
+        if crashed:
+            self.session.drop(self.t_s)
+            self.notes.append((self.t_s, "host process crashed: session and controller gone"))
+        else:
+            self._new_host()
+            self.notes.append((self.t_s, "host process restarted: new session, new controller"))
+
+    def _new_host(self) -> None:
+        self.session = LinkSession(self.wire.host_end, host_version=HOST_VERSION)
+        self.controller = self.controller_factory()
+        self.awaiting: tuple[MechRequest, Any] | None = None
+        self.results: list[RequestResult] = []
+
+    # -- the loop -----------------------------------------------------------------------
+
+    def _advance_ms(self, reply: Any, state: str) -> int:
+        rs = self.sc.rig
+        if reply is None:
+            return 1
+        if reply.step_timer_running or reply.do("LATCH_ENABLE") and self.mech.latch_steps > 0:
+            return 1
+        m = self.mech
+        busy = (m.contact or self.world.range_m < 0.3 or reply.do_bits & 0b111100
+                or m.sv_valve.open or m.tv_valve.open
+                or state not in ("STATE_IDLE", "STATE_APPROACH_READY", "STATE_BOOT"))
+        return rs.exchange_ms if busy else rs.coast_exchange_ms
+
+    def _send_request(self, req: MechRequest) -> None:
+        s = self.session
+        try:
+            if req.kind == "param_set":
+                handle = s.param_set(req.param_id, req.value, now_s=self.t_s)
+            else:
+                handle = s.command(req.opcode, req.target_kpa, now_s=self.t_s)
+        except Exception as exc:  # link down or busy: the controller hears about it
+            self.results.append(RequestResult(req, False, type(exc).__name__))
+            self.requests_log.append((self.t_s, req.label, type(exc).__name__))
+            return
+        self.awaiting = (req, handle)
+
+    def _collect_result(self) -> None:
+        if self.awaiting is None:
+            return
+        req, handle = self.awaiting
+        if not handle.done:
+            return
+        self.awaiting = None
+        if handle.error is not None:
+            res = RequestResult(req, False, type(handle.error).__name__)
+        elif req.kind == "param_set":
+            res = RequestResult(req, handle.accepted, pb.enum_name(pb.NackReason, handle.response.reason))
+        else:
+            res = RequestResult(req, handle.accepted, pb.enum_name(pb.NackReason, handle.response.reason),
+                                pb.enum_name(pb.State, handle.response.state))
+        self.results.append(res)
+        verdict = "accepted" if res.accepted else f"refused ({res.reason})"
+        self.requests_log.append((self.t_s, req.label, verdict + (f" -> {res.state}" if res.state else "")))
+
+    def _observe(self) -> Observation:
+        w = self.world
+        t_ct, q_ct = w.pose_cam_target()
+        events = self.session.take_events()
+        for ev in events:
+            self.events_log.append((self.t_s, self._event_text(ev)))
+        obs = Observation(
+            t_s=self.t_s, r_D_m=w.s.r_D_m.copy(), v_D_mps=w.s.v_D_mps.copy(),
+            att_rad=w.s.att_rad.copy(), range_m=w.range_m, closing_speed_mps=w.closing_speed_mps,
+            misalignment_deg=w.misalignment_deg, t_cam_target_m=t_ct, q_cam_target=q_ct,
+            link_up=self.session.link_up, telemetry=self.session.telemetry, events=events,
+            results=self.results)
+        self.results = []
+        return obs
+
+    @staticmethod
+    def _event_text(ev: Any) -> str:
+        name = pb.enum_name(pb.EventId, ev.id)
+        if ev.id == pb.EVT_STATE_CHANGE:
+            return f"{name} {pb.enum_name(pb.State, ev.from_state)} -> {pb.enum_name(pb.State, ev.to_state)}"
+        if ev.id == pb.EVT_FAULT:
+            return f"{name} {pb.enum_name(pb.FaultCode, ev.fault)}"
+        if ev.id == pb.EVT_COMMAND_REJECTED:
+            return f"{name} {pb.enum_name(pb.CommandOpcode, ev.arg)} {pb.enum_name(pb.NackReason, ev.reason)}"
+        if ev.id == pb.EVT_BOOT:
+            return f"{name} reset cause {pb.enum_name(pb.ResetCause, ev.arg)}"
+        return name
+
+    def run(self) -> RunResult:
+        sc = self.sc
+        self.notes: list[tuple[float, str]] = []
+        self.requests_log: list[tuple[float, str, str]] = []
+        self.events_log: list[tuple[float, str]] = []
+        self._new_host()
+        samples: dict[str, list] = {k: [] for k in (
+            "t_s", "state", "range_m", "lateral_m", "closing_mps", "lat_speed_mps", "misalign_deg",
+            "v_sp_closing_mps", "force_n", "latch_steps", "latch_engaged", "plane_mm",
+            "sv_cmd", "sv_open", "tv_cmd", "tv_open", "sv_kpa", "tv_kpa", "line_kpa",
+            "tv_sensed_kpa", "link_up", "fuel_lost_kg", "phase")}
+        states: list[tuple[float, str]] = []
+        stderr_path = (self.out_dir / "sim_mcu.stderr.log") if self.out_dir else None
+        if self.out_dir:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+        bar = None
+        if self.progress:
+            from tqdm import tqdm
+            bar = tqdm(total=int(sc.rig.max_time_s), unit="sim s", desc=sc.name, leave=False,
+                       bar_format="{desc}: {n_fmt}/{total_fmt} sim s [{elapsed}, {rate_fmt}]")
+        metrics: dict[str, Any] = {"max_force_soft_n": 0.0, "max_force_n": 0.0, "exchanges": 0,
+                                   "exchanges_1ms": 0}
+        state = "STATE_UNSPECIFIED"
+        reply = None
+        first_fault_s = None
+        fault_flags_seen = 0
+        coils_off_after_fault_s = None
+        valves_closed_after_injection_s = None
+        next_guidance = 0.0
+        next_record = 0.0
+        out = None
+        wall0 = time.perf_counter()
+        with SimMcu(self.mcu_path, watchdog_ms=sc.rig.watchdog_ms, build_id=f"rig-{sc.name}"[:24],
+                    stderr_path=stderr_path) as mcu:
+            while self.t_s < sc.rig.max_time_s and not self.controller.finished:
+                adv = self._advance_ms(reply, state)
+                flags = FLAG_HANG_MAIN_LOOP if self._hang else 0
+                self._hang = False
+                to_mcu = self.wire.take_to_mcu()
+                if to_mcu:
+                    mcu.write_uart(to_mcu)
+                reply = mcu.exchange(adv, self.mech.di_bits(), self.mech.adc_counts(),
+                                     adc_fail_bits=self.mech.adc_fail_bits, flags=flags,
+                                     uart_rx_bytes=len(to_mcu))
+                metrics["exchanges"] += 1
+                metrics["exchanges_1ms"] += adv == 1
+                dt = adv / 1000.0
+                self.t_s += dt
+                self.wire.deliver_to_host(mcu.read_uart(reply.uart_tx_bytes))
+                f = self.mech.step(dt, self.t_s, reply, self.world)
+                self.world.step(dt, f)
+                self.mech.after_motion(self.world)
+                fault_flags_seen |= reply.fault_flags
+                new_state = pb.enum_name(pb.State, reply.app_state)
+                if new_state != state:
+                    states.append((self.t_s, new_state))
+                    state = new_state
+                self.faults.update(self.t_s, dt, state, self)
+                # ground-truth measurements for the checks
+                force = self.mech.contact_force_n
+                metrics["max_force_n"] = max(metrics["max_force_n"], force)
+                if state in ("STATE_APPROACH_READY", "STATE_RECEPTION", "STATE_SOFT_DOCKED"):
+                    metrics["max_force_soft_n"] = max(metrics["max_force_soft_n"], force)
+                if state == "STATE_FAULT" and first_fault_s is None:
+                    first_fault_s = self.t_s
+                if first_fault_s is not None and coils_off_after_fault_s is None and \
+                        not (reply.do("SV_VALVE") or reply.do("TV_VALVE")):
+                    coils_off_after_fault_s = self.t_s - first_fault_s
+                inj = self.faults.first_injection_s
+                if inj is not None and valves_closed_after_injection_s is None and \
+                        not (self.mech.sv_valve.open or self.mech.tv_valve.open):
+                    valves_closed_after_injection_s = self.t_s - inj
+                # the host
+                if self._host_alive:
+                    self.session.step(self.t_s)
+                    self._collect_result()
+                    if self.t_s >= next_guidance:
+                        next_guidance += sc.rig.guidance_period_s
+                        out = self.controller.step(self.t_s, self._observe())
+                        self.world.set_setpoint(out.v_sp_D_mps, out.w_sp_rad_s)
+                        self.session.nav_update(out.nav, now_s=self.t_s)
+                        if out.request is not None:
+                            self._send_request(out.request)
+                else:
+                    self.world.set_setpoint(np.zeros(3), np.zeros(3))  # vehicle holds
+                if self.t_s >= next_record:
+                    next_record += sc.rig.record_period_s
+                    self._record(samples, state, out)
+                    if bar is not None:
+                        bar.update(int(self.t_s) - bar.n)
+            final = mcu.last
+        wall = time.perf_counter() - wall0
+        if bar is not None:
+            bar.close()
+        self._record(samples, state, out)
+        tm = self.session.telemetry
+        info = self.session.handshake_info
+        dec = self.session.decoder.counters
+        metrics.update({
+            "final_state": state,
+            "faults_seen": sorted(self._flags_to_faults(fault_flags_seen)),
+            "faults_reported_to_host": sorted({t.split()[-1] for _, t in self.events_log
+                                               if t.startswith("EVT_FAULT ")}),
+            "fuel_lost_kg": self.mech.fuel_lost_kg,
+            "tv_final_kpa": self.mech.tv_true_kpa,
+            "sv_final_kpa": self.mech.sv_true_kpa,
+            "valves_closed_at_end": not (self.mech.sv_valve.open or self.mech.tv_valve.open),
+            "coils_off_at_end": not (final.do("SV_VALVE") or final.do("TV_VALVE")),
+            "valve_violation_ms": final.valve_violation_ms,
+            "mcu_resets": final.resets,
+            "reset_cause": "RESET_" + RESET_CAUSES[final.reset_cause],
+            "handshake_reset_cause": pb.enum_name(pb.ResetCause, info.reset_cause) if info else None,
+            "watchdog_kicks": final.watchdog_kicks,
+            "steps_total": final.steps_total,
+            "lockstep_frames": mcu.frame,
+            "host_rx_crc_errors": dec.rx_crc_errors,
+            "host_rx_errors": dec.errors,
+            "mcu_rx_crc_errors": tm.link.rx_crc_errors if tm else 0,
+            "mcu_link_losses": tm.link.link_losses if tm else 0,
+            "host_retransmissions": self.session.counters.retransmissions,
+            "host_link_losses": self.session.counters.link_losses,
+            "wire": vars(self.wire.counters).copy(),
+            "first_fault_s": first_fault_s,
+            "coils_off_after_fault_s": coils_off_after_fault_s,
+            "valves_closed_after_injection_s": valves_closed_after_injection_s,
+            "first_injection_s": self.faults.first_injection_s,
+            "captured": self.mech.capture_record is not None,
+        })
+        notes = sorted(self.notes + self.controller.notes + self.faults.log)
+        return RunResult(sc, self.controller.outcome, self.t_s, wall, samples, states,
+                         self.requests_log, self.events_log, notes, self.mech.capture_record,
+                         self.mech.capture_attempts, metrics)
+
+    @staticmethod
+    def _flags_to_faults(flags: int) -> set[str]:
+        out = set()
+        for code in range(1, 32):
+            if flags >> (code - 1) & 1:
+                out.add(pb.enum_name(pb.FaultCode, code))
+        return out
+
+    def _record(self, s: dict[str, list], state: str, out: Any) -> None:
+        w, m = self.world, self.mech
+        s["t_s"].append(self.t_s)
+        s["state"].append(state)
+        s["range_m"].append(w.range_m)
+        s["lateral_m"].append(w.lateral_m)
+        s["closing_mps"].append(w.closing_speed_mps)
+        s["lat_speed_mps"].append(float(np.hypot(*w.s.v_D_mps[:2])))
+        s["misalign_deg"].append(w.misalignment_deg)
+        s["v_sp_closing_mps"].append(float(-out.v_sp_D_mps[2]) if out is not None else 0.0)
+        s["force_n"].append(m.contact_force_n)
+        s["latch_steps"].append(m.latch_steps)
+        s["latch_engaged"].append(m.latched)
+        s["plane_mm"].append(m.plane_mm)
+        s["sv_cmd"].append(m.sv_valve.cmd_open)
+        s["sv_open"].append(m.sv_valve.open)
+        s["tv_cmd"].append(m.tv_valve.cmd_open)
+        s["tv_open"].append(m.tv_valve.open)
+        s["sv_kpa"].append(m.sv_true_kpa)
+        s["tv_kpa"].append(m.tv_true_kpa)
+        s["line_kpa"].append(m.line_kpa)
+        tm = self.session.telemetry if self._host_alive else None
+        s["tv_sensed_kpa"].append(tm.tv_tank_kpa if tm is not None else float("nan"))
+        s["link_up"].append(bool(self._host_alive and self.session.link_up))
+        s["fuel_lost_kg"].append(m.fuel_lost_kg)
+        s["phase"].append(out.phase if out is not None else "")

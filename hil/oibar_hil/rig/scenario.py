@@ -1,0 +1,110 @@
+"""Scenario files (YAML, hil/scenarios/): the start condition, the mission, plant and firmware
+parameter overrides, the faults to inject and the expected outcome. Format: docs/hil.md."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from oibar_hil.rig.faults import FaultSpec
+
+# Firmware parameter ids by name (firmware/app/src/params.c; ids are part of the host contract).
+FIRMWARE_PARAM_IDS = {name: i + 1 for i, name in enumerate((
+    "capture_max_speed_mm_s", "capture_max_misalign_deg", "soft_dock_max_force_n",
+    "hard_dock_max_force_n", "nav_max_age_ms", "debounce_ms", "boot_settle_ms",
+    "approach_timeout_ms", "reception_timeout_ms", "plane_move_timeout_ms",
+    "hard_docking_timeout_ms", "armed_timeout_ms", "separating_timeout_ms",
+    "latch_move_timeout_ms", "latch_rel_budget_steps", "latch_home_budget_steps",
+    "latch_max_speed_steps_s", "latch_accel_steps_s2", "latch_home_speed_steps_s",
+    "valve_mismatch_ms", "press_zero_counts", "press_sv_kpa_per_count", "press_tv_kpa_per_count",
+    "press_line_kpa_per_count", "press_min_counts", "press_max_counts", "press_max_rate_kpa_s",
+    "overpressure_kpa", "target_min_kpa", "target_max_kpa", "transfer_max_ms",
+    "plane_mm_per_count", "force_n_per_count", "abort_timeout_ms",
+))}
+
+EXPECT_KEYS = {
+    "outcome", "final_state", "faults", "valves_closed_within_s", "coils_off_within_s_of_fault",
+    "fuel_lost_max_kg", "tv_min_kpa", "reset_cause", "min_crc_errors", "captured",
+    "max_sim_time_s",
+}
+
+
+@dataclass
+class StartCondition:
+    range_m: float = 10.0
+    lateral_m: tuple[float, float] = (0.3, -0.2)
+    misalignment_deg: tuple[float, float] = (2.0, -1.5)  # about camera x (pitch), y (yaw)
+    closing_speed_mps: float = 0.0
+
+
+@dataclass
+class MissionSpec:
+    target_kpa: float = 1200.0
+    arm_range_m: float = 2.0
+    retreat_to_m: float = 2.0
+    final_closing_mps: float = 0.03
+
+
+@dataclass
+class RigSpec:
+    max_time_s: float = 900.0
+    exchange_ms: int = 10        # while the mechanism or the contact is active
+    coast_exchange_ms: int = 20  # free flight far from the drogue, mechanism idle
+    watchdog_ms: int = 100
+    guidance_period_s: float = 0.1  # navigation/guidance at 10 Hz (SPEC section 5)
+    record_period_s: float = 0.05
+
+
+@dataclass
+class Scenario:
+    name: str
+    description: str = ""
+    seed: int = 1
+    start: StartCondition = field(default_factory=StartCondition)
+    mission: MissionSpec = field(default_factory=MissionSpec)
+    rig: RigSpec = field(default_factory=RigSpec)
+    plant: dict[str, Any] = field(default_factory=dict)
+    vehicle: dict[str, Any] = field(default_factory=dict)
+    firmware_params: dict[str, float] = field(default_factory=dict)
+    faults: list[FaultSpec] = field(default_factory=list)
+    expect: dict[str, Any] = field(default_factory=dict)
+    path: Path | None = None
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], path: Path | None = None) -> "Scenario":
+        d = dict(d)
+        unknown_expect = set(d.get("expect", {})) - EXPECT_KEYS
+        if unknown_expect:
+            raise ValueError(f"unknown expect keys {sorted(unknown_expect)}; known: {sorted(EXPECT_KEYS)}")
+        for name in d.get("firmware_params", {}):
+            if name not in FIRMWARE_PARAM_IDS:
+                raise ValueError(f"unknown firmware parameter {name!r}")
+        start = d.get("start", {})
+        return cls(
+            name=d.get("name") or (path.stem if path else "scenario"),
+            description=d.get("description", ""),
+            seed=int(d.get("seed", 1)),
+            start=StartCondition(
+                range_m=float(start.get("range_m", 10.0)),
+                lateral_m=tuple(start.get("lateral_m", (0.3, -0.2))),
+                misalignment_deg=tuple(start.get("misalignment_deg", (2.0, -1.5))),
+                closing_speed_mps=float(start.get("closing_speed_mps", 0.0))),
+            mission=MissionSpec(**d.get("mission", {})),
+            rig=RigSpec(**d.get("rig", {})),
+            plant=d.get("plant", {}),
+            vehicle=d.get("vehicle", {}),
+            firmware_params=d.get("firmware_params", {}),
+            faults=[FaultSpec.from_dict(f) for f in d.get("faults", [])],
+            expect=d.get("expect", {}),
+            path=path,
+        )
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    path = Path(path)
+    with open(path, encoding="utf-8") as f:
+        data = yaml.safe_load(f) or {}
+    return Scenario.from_dict(data, path)

@@ -1,0 +1,125 @@
+"""Relative 6-DOF motion of the service vehicle (SV) with respect to the target's drogue.
+
+Frame D (docking frame, fixed to the target vehicle's drogue): origin at the drogue
+entrance, +z out of the drogue towards the approaching SV, x/y lateral. The state is the
+SV probe tip position ``r_D_m`` and velocity ``v_D_mps`` in D, and the SV attitude error
+``att_rad`` (small rotation vector from the aligned attitude, in the SV camera/body frame)
+with its rate ``w_rad_s``. The camera looks along the probe (camera +z towards the target).
+
+The SV's own GNC (not ours: the "vehicle interface" of SPEC section 5) tracks the relative
+velocity and angular-rate setpoints that guidance sends, with a first-order response,
+thrust limits and actuator noise. Orbital (Clohessy-Wiltshire) terms are left out: over the
+last 10 m and a few minutes they are millimetres, far below the guidance corrections.
+All numbers here are assumptions (docs/hil.md, "Plant parameters").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from oibar_hil.rotations import matrix_to_quat, rotvec_to_matrix
+
+# Camera axes expressed in D when perfectly aligned: looking down -z_D, x shared.
+R_D_CAM_ALIGNED = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass
+class VehicleParams:
+    mass_kg: float = 150.0            # assumption: effective relative mass of the SV
+    thrust_max_n: float = 20.0        # assumption: translation thrust per axis
+    velocity_tau_s: float = 1.0       # assumption: SV GNC velocity loop time constant
+    rate_tau_s: float = 0.5           # assumption: attitude-rate loop time constant
+    ang_accel_max_rad_s2: float = 0.02
+    accel_noise_mps2: float = 4e-4    # actuator noise (1 sigma), thruster quantisation
+    ang_noise_rad_s2: float = 2e-4
+    noise_period_s: float = 0.1       # noise is held for one thruster cycle
+
+
+@dataclass
+class WorldState:
+    r_D_m: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 10.0]))
+    v_D_mps: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    att_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    w_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+class World:
+    """Integrates the SV's relative motion; the mechanism adds axial forces and limits."""
+
+    def __init__(self, params: VehicleParams, state: WorldState, rng: np.random.Generator) -> None:
+        self.p = params
+        self.s = state
+        self.rng = rng
+        self.v_sp_mps = np.zeros(3)
+        self.w_sp_rad_s = np.zeros(3)
+        self.thrust_n = np.zeros(3)
+        self._noise_a = np.zeros(3)
+        self._noise_w = np.zeros(3)
+        self._noise_left_s = 0.0
+
+    def set_setpoint(self, v_sp_mps: np.ndarray, w_sp_rad_s: np.ndarray) -> None:
+        self.v_sp_mps = np.asarray(v_sp_mps, dtype=float)
+        self.w_sp_rad_s = np.asarray(w_sp_rad_s, dtype=float)
+
+    def step(self, dt_s: float, f_ext_D_n: np.ndarray) -> None:
+        p, s = self.p, self.s
+        self._noise_left_s -= dt_s
+        if self._noise_left_s <= 0.0:
+            self._noise_left_s = p.noise_period_s
+            self._noise_a = self.rng.normal(0.0, p.accel_noise_mps2, 3)
+            self._noise_w = self.rng.normal(0.0, p.ang_noise_rad_s2, 3)
+        self.thrust_n = np.clip(p.mass_kg * (self.v_sp_mps - s.v_D_mps) / p.velocity_tau_s,
+                                -p.thrust_max_n, p.thrust_max_n)
+        a = (self.thrust_n + f_ext_D_n) / p.mass_kg + self._noise_a
+        s.v_D_mps = s.v_D_mps + a * dt_s  # semi-implicit Euler: stable with the probe spring
+        s.r_D_m = s.r_D_m + s.v_D_mps * dt_s
+        alpha = np.clip((self.w_sp_rad_s - s.w_rad_s) / p.rate_tau_s,
+                        -p.ang_accel_max_rad_s2, p.ang_accel_max_rad_s2) + self._noise_w
+        s.w_rad_s = s.w_rad_s + alpha * dt_s
+        s.att_rad = s.att_rad + s.w_rad_s * dt_s
+
+    # -- ground truth, as navigation would report it ------------------------------------
+
+    @property
+    def range_m(self) -> float:
+        """Probe tip to drogue entrance along the docking axis (negative once inside)."""
+        return float(self.s.r_D_m[2])
+
+    @property
+    def closing_speed_mps(self) -> float:
+        return float(-self.s.v_D_mps[2])
+
+    @property
+    def lateral_m(self) -> float:
+        return float(np.hypot(self.s.r_D_m[0], self.s.r_D_m[1]))
+
+    def R_D_cam(self) -> np.ndarray:
+        return R_D_CAM_ALIGNED @ rotvec_to_matrix(self.s.att_rad)
+
+    @property
+    def misalignment_deg(self) -> float:
+        """Combined yaw/pitch: angle between the camera boresight and -z_D (roll excluded)."""
+        z_cam_D = self.R_D_cam()[:, 2]
+        return float(np.degrees(np.arccos(np.clip(-z_cam_D[2], -1.0, 1.0))))
+
+    def pose_cam_target(self) -> tuple[np.ndarray, np.ndarray]:
+        """(t_cam_target_m, q_cam_target wxyz): the drogue frame D seen from the camera."""
+        R_cam_D = self.R_D_cam().T
+        t_cam_target = R_cam_D @ (-self.s.r_D_m)
+        return t_cam_target, matrix_to_quat(R_cam_D)
+
+    def clamp_lateral(self, radius_m: float) -> None:
+        r = self.lateral_m
+        if r > radius_m:
+            k = radius_m / r if r > 0 else 0.0
+            self.s.r_D_m[:2] *= k
+            self.s.v_D_mps[:2] = 0.0
+
+    def clamp_misalignment(self, max_rad: float) -> None:
+        e = self.s.att_rad[:2]
+        n = float(np.linalg.norm(e))
+        if n > max_rad:
+            self.s.att_rad[:2] = e * (max_rad / n)
+            self.s.w_rad_s[:2] = 0.0
