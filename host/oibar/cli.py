@@ -90,6 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--target-pressure-kpa", type=float, default=None, metavar="KPA",
         help="target pressure sent with the commands (used by START_TRANSFER)",
     )
+    from oibar.calib.cli import register as register_calib
+
+    register_calib(sub)
     return parser
 
 
@@ -132,6 +135,10 @@ def _main(argv: Sequence[str] | None) -> int:
     if args.subcommand is None:
         parser.print_help(sys.stderr)
         return EXIT_ERROR
+    if hasattr(args, "handler"):  # subcommand groups registered from their own modules
+        from oibar.calib.cli import run
+
+        return run(args)
     if args.subcommand == "link":
         try:
             opcodes = [parse_opcode(name) for name in args.commands]

@@ -1,0 +1,215 @@
+"""`oibar calib ...`: the ground-truth calibration commands (docs/calibration.md).
+
+    oibar calib extract VIDEO OUT_DIR            video -> frames/ + frames.csv
+    oibar calib estimate --mocap M --frames F --pattern P --housing-body H --target-body T -o calib.json
+    oibar calib apply --calib calib.json --mocap M --frames F -o poses.csv
+    oibar calib overlay --poses poses.csv --out DIR [--every N]
+    oibar calib synth OUT_DIR                    a synthetic recording with known truth
+
+Bad input ends with one line `oibar: error: ...` and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+EXIT_OK = 0
+EXIT_ERROR = 2
+
+
+def register(sub) -> None:
+    """Add the `calib` subcommand group to the `oibar` parser's subparsers."""
+    calib = sub.add_parser("calib", help="mocap ground-truth calibration (estimate, apply, overlay)",
+                           description="Ground-truth calibration toolbox for the motion-capture lab "
+                                       "(docs/calibration.md).")
+    calib.set_defaults(handler=lambda a: (calib.print_help(sys.stderr), EXIT_ERROR)[1])
+    cs = calib.add_subparsers(dest="calib_command", metavar="COMMAND")
+
+    ex = cs.add_parser("extract", help="split a video into frames/ and frames.csv (time stamps from the video)")
+    ex.add_argument("video", type=Path)
+    ex.add_argument("out", type=Path, help="output folder")
+    ex.add_argument("--every", type=int, default=1, metavar="N", help="keep every N-th frame (default 1)")
+    ex.set_defaults(handler=cmd_extract)
+
+    es = cs.add_parser("estimate", help="estimate T_housing_cam, T_tmarkers_target and the time offset")
+    _inputs(es)
+    es.add_argument("--pattern", type=Path, required=True, help="pattern JSON (ChArUco board and T_target_pattern)")
+    es.add_argument("--offset-s", type=float, default=None,
+                    help="known time offset (mocap time = frame time + offset); default: estimate it")
+    es.add_argument("--offset-search-s", type=float, default=0.5, help="search +- this many seconds (default 0.5)")
+    es.add_argument("--mocap-sigma-mm", type=float, default=0.2, help="RMS mocap position noise per sample (0.2)")
+    es.add_argument("--mocap-sigma-deg", type=float, default=0.5, help="RMS mocap rotation noise per sample (0.5)")
+    es.add_argument("--corner-sigma-px", type=float, default=None, help="corner noise (default: from the PnP residuals)")
+    es.add_argument("--housing-body", required=True, help="mocap rigid body on the camera housing")
+    es.add_argument("--target-body", required=True, help="mocap rigid body on the target")
+    es.add_argument("-o", "--out", type=Path, required=True, help="calibration JSON to write")
+    es.set_defaults(handler=cmd_estimate)
+
+    ap = cs.add_parser("apply", help="write the ground-truth camera-to-target poses for every frame")
+    _inputs(ap)
+    ap.add_argument("--calib", type=Path, required=True, help="calibration JSON from `estimate`")
+    ap.add_argument("--max-gap-s", type=float, default=None,
+                    help="longest mocap gap bridged by interpolation (default 2.5 sample periods)")
+    ap.add_argument("-o", "--out", type=Path, required=True, help="poses CSV to write (dataset format)")
+    ap.set_defaults(handler=cmd_apply)
+
+    ov = cs.add_parser("overlay", help="draw the target model from a poses file onto its frames")
+    ov.add_argument("--poses", type=Path, required=True, help="poses CSV (from `apply`, or a dataset's poses.csv)")
+    ov.add_argument("--root", type=Path, default=None, help="folder the file column is relative to "
+                                                             "(default: the poses file's folder)")
+    ov.add_argument("--intrinsics", type=Path, default=None, help="intrinsics JSON (default: the OIBAR camera)")
+    ov.add_argument("--every", type=int, default=10, metavar="N", help="every N-th row (default 10)")
+    ov.add_argument("--out", type=Path, required=True, help="output folder for the PNGs")
+    ov.set_defaults(handler=cmd_overlay)
+
+    sy = cs.add_parser("synth", help="write a synthetic calibration recording with known truth")
+    sy.add_argument("out", type=Path)
+    sy.add_argument("--poses", type=int, default=200)
+    sy.add_argument("--seed", type=int, default=1)
+    sy.set_defaults(handler=cmd_synth)
+
+
+def _inputs(p) -> None:
+    p.add_argument("--mocap", type=Path, required=True, help="mocap CSV (time_s,body,x_m,y_m,z_m,qw,qx,qy,qz)")
+    p.add_argument("--mocap-units", choices=("m", "mm"), default="m", help="position unit in the mocap CSV")
+    p.add_argument("--frames", type=Path, required=True, help="frame index CSV (frame,file,time_s)")
+    p.add_argument("--intrinsics", type=Path, default=None, help="intrinsics JSON (default: the OIBAR camera)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Dispatch with the toolbox's errors turned into one line and exit 2."""
+    from .errors import CalibError
+
+    try:
+        return args.handler(args)
+    except CalibError as exc:
+        print(f"oibar: error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_ERROR
+
+
+def cmd_extract(a) -> int:
+    import cv2
+
+    from .errors import CalibError
+
+    if a.every < 1:
+        raise CalibError("--every must be >= 1")
+    cap = cv2.VideoCapture(str(a.video))
+    if not a.video.is_file() or not cap.isOpened():
+        raise CalibError(f"{a.video}: cannot open the video")
+    (a.out / "frames").mkdir(parents=True, exist_ok=True)
+    rows, k, kept = ["frame,file,time_s"], 0, 0
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        t_s = cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+        if k % a.every == 0:
+            name = f"frames/{k:06d}.png"
+            cv2.imwrite(str(a.out / name), img)
+            rows.append(f"{k},{name},{t_s:.6f}")
+            kept += 1
+        k += 1
+    if kept == 0:
+        raise CalibError(f"{a.video}: no frames decoded")
+    (a.out / "frames.csv").write_text("\n".join(rows) + "\n")
+    print(f"{kept} frames -> {a.out / 'frames.csv'} (time_s from the video's time stamps)")
+    return EXIT_OK
+
+
+def _progress(done: int, total: int) -> None:
+    if done == total or done % 50 == 0:
+        print(f"  pattern detection: {done}/{total} frames", file=sys.stderr, flush=True)
+
+
+def cmd_estimate(a) -> int:
+    from . import io
+    from .pipeline import EstimateInputs, estimate
+
+    inp = EstimateInputs(a.mocap, a.frames, a.pattern, a.housing_body, a.target_body, a.intrinsics,
+                         a.mocap_units, a.offset_s, a.offset_search_s, a.mocap_sigma_mm, a.mocap_sigma_deg,
+                         a.corner_sigma_px)
+    res = estimate(inp, progress=_progress)
+    res.pop("_details")
+    io.write_calibration(a.out, res)
+    print(summary(res))
+    print(f"wrote {a.out}")
+    return EXIT_OK
+
+
+def summary(res: dict) -> str:
+    from .transforms import R_to_quat_wxyz
+
+    lines = []
+    for key in ("T_housing_cam", "T_tmarkers_target"):
+        T = res[key]
+        s = res["sigma_1"][key]
+        lines.append(f"{key}: t = {_fmt(T[:3, 3] * 1e3)} mm, q_wxyz = {_fmt(R_to_quat_wxyz(T[:3, :3]), 6)}"
+                     f"  (1 sigma {s['t_mm']} mm, {s['r_deg']} deg)")
+    so = res["sigma_1"]["offset_ms"]
+    lines.append(f"offset_s: {res['offset_s']:.5f}" + (f" (1 sigma {so:.2f} ms)" if so else " (given)"))
+    p, r = res["poses"], res["residuals"]
+    lines.append(f"poses: {p['used']} used of {p['pattern_found']} with the pattern ({p['frames']} frames), "
+                 f"{p['outliers']} outliers; max rotation {p['max_rotation_deg']:.0f} deg, axis spread {p['axis_spread']:.2f}")
+    lines.append(f"residuals: chi2/dof {r['chi2_per_dof']:.2f}; per pose {r['pose_translation_mm']['rms']:.2f} mm / "
+                 f"{r['pose_rotation_deg']['rms']:.3f} deg RMS; chain reprojection {r['chain_reprojection_px']['rms']:.2f} px RMS; "
+                 f"PnP {r['pnp_reprojection_px']['rms']:.3f} px RMS")
+    return "\n".join(lines)
+
+
+def _fmt(v, digits: int = 3) -> str:
+    return "(" + ", ".join(f"{float(x):.{digits}f}" for x in v) + ")"
+
+
+def cmd_apply(a) -> int:
+    from . import io
+    from .pipeline import apply
+
+    calib = io.read_calibration(a.calib)
+    tracks = io.read_mocap_csv(a.mocap, a.mocap_units)
+    frames = io.read_frames_csv(a.frames, check_files=False)
+    rows, skipped = apply(calib, tracks, frames, a.mocap, a.max_gap_s)
+    io.write_poses_csv(a.out, rows)
+    msg = f"{len(rows)} of {len(frames)} frames -> {a.out}"
+    if skipped:
+        more = ", ..." if len(skipped) > 10 else ""
+        msg += f"; {len(skipped)} without mocap coverage skipped (frames {', '.join(map(str, skipped[:10]))}{more})"
+    print(msg)
+    return EXIT_OK
+
+
+def cmd_overlay(a) -> int:
+    import cv2
+
+    from . import io
+    from .errors import CalibError
+    from .overlay import caption, draw_model
+
+    if a.every < 1:
+        raise CalibError("--every must be >= 1")
+    intr = io.read_intrinsics(a.intrinsics)
+    rows = io.read_poses_csv(a.poses)
+    root = a.root or a.poses.parent
+    a.out.mkdir(parents=True, exist_ok=True)
+    n = 0
+    for row in rows[::a.every]:
+        img = cv2.imread(str(root / row["file"]))
+        if img is None:
+            raise CalibError(f"{root / row['file']}: cannot read the image (set --root?)")
+        img = caption(draw_model(img, row["T_cam_target"], intr), f"frame {row['frame']}")
+        cv2.imwrite(str(a.out / f"overlay_{row['frame']:06d}.png"), img)
+        n += 1
+    print(f"{n} overlays -> {a.out}")
+    return EXIT_OK
+
+
+def cmd_synth(a) -> int:
+    from .synthetic import SynthConfig, write_recording
+
+    tr = write_recording(a.out, SynthConfig(n_frames=a.poses, seed=a.seed))
+    print(f"wrote {a.out}: mocap.csv, frames.csv, frames/, pattern.json, intrinsics.json, truth.json")
+    print(json.dumps({k: tr[k] for k in ("T_housing_cam", "T_tmarkers_target", "offset_s")}))
+    return EXIT_OK

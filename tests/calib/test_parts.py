@@ -1,0 +1,73 @@
+"""The building blocks: transforms, interpolation, closed form, refinement on exact data."""
+
+import numpy as np
+import pytest
+
+from oibar.calib import handeye, refine, timing
+from oibar.calib.synthetic import SynthConfig, T_target_cam_at, frame_times, mocap_samples
+from oibar.calib.transforms import T_from_vec, adjoint, inv_T, log_T, pose_error, R_to_quat_wxyz, quat_wxyz_to_R
+
+
+def test_quaternion_convention_matches_the_dataset():
+    from oibar_hil.rotations import matrix_to_quat, quat_to_matrix
+
+    R = T_from_vec(np.r_[0, 0, 0, 0.3, -1.2, 2.0])[:3, :3]
+    assert np.allclose(R_to_quat_wxyz(R), matrix_to_quat(R))
+    assert np.allclose(quat_wxyz_to_R(matrix_to_quat(R)), quat_to_matrix(matrix_to_quat(R)))
+
+
+def test_adjoint_moves_a_right_perturbation_to_the_left():
+    T = T_from_vec(np.r_[0.3, -0.2, 1.0, 0.4, 0.1, -0.7])
+    d = np.r_[1e-4, -2e-4, 3e-4, 2e-4, 1e-4, -1e-4]
+    lhs = T @ T_from_vec(d)
+    rhs = T_from_vec(adjoint(T) @ d) @ T
+    assert np.allclose(lhs, rhs, atol=1e-7)
+
+
+def test_interpolation_and_gaps():
+    t = np.array([0.0, 0.01, 0.02, 0.10])
+    T = np.stack([T_from_vec(np.r_[k, 0, 0, 0, 0, 0.1 * k]) for k in range(4)])
+    tr = timing.Track("a", t, T)
+    out, valid, k = timing.interpolate(tr, np.array([0.005, 0.05, -1.0]), with_variance=True)
+    assert valid.tolist() == [True, False, False]
+    assert out[0][0, 3] == pytest.approx(0.5) and np.degrees(np.arccos(out[0][0, 0])) == pytest.approx(np.degrees(0.05))
+    assert k[0] == pytest.approx(0.5)
+
+
+def _exact_problem(n=60):
+    cfg = SynthConfig(n_frames=n)
+    t_f = frame_times(cfg)
+    A = np.einsum("nij,jk->nik", inv_T(T_target_cam_at(t_f + cfg.offset_s, cfg)), cfg.pattern.T_target_pattern)
+    Z = inv_T(cfg.T_housing_cam)
+    X = inv_T(cfg.T_tmarkers_target @ cfg.pattern.T_target_pattern)
+    B = np.einsum("ij,njk,kl->nil", inv_T(Z), A, X)
+    return A, B, X, Z
+
+
+def test_closed_form_on_exact_data():
+    A, B, X, Z = _exact_problem()
+    X0, Z0 = handeye.closed_form(A, B)
+    assert pose_error(X0, X)[0] < 1e-6 and pose_error(Z0, Z)[1] < 1e-5
+
+
+def test_refinement_fixes_a_perturbed_start():
+    A, B, X, Z = _exact_problem()
+    n = len(A)
+    B_at = lambda off: (B, np.ones(n, bool), np.ones(n), np.ones(n))  # noqa: E731
+    noise = refine.MocapNoise()
+    A_cov = np.tile(np.eye(6) * 1e-10, (n, 1, 1))
+    res = refine.refine(A, A_cov, B_at, X @ T_from_vec(np.r_[0.01, 0, -0.01, 0.02, 0, 0.01]),
+                        Z @ T_from_vec(np.r_[-0.01, 0.02, 0, 0, 0.03, 0]), 0.0, noise, noise)
+    assert pose_error(res.X, X)[0] < 1e-7 and pose_error(res.Z, Z)[1] < 1e-6
+    assert np.all(np.abs(log_T(inv_T(res.Z) @ Z)) < 1e-7)
+
+
+def test_offset_from_angular_speed():
+    cfg = SynthConfig(n_frames=120)
+    mo = mocap_samples(cfg)
+    h, m = timing.Track("h", mo["t_s"], mo["housing"]), timing.Track("m", mo["t_s"], mo["tmarkers"])
+    t_f = frame_times(cfg)
+    A = inv_T(T_target_cam_at(t_f + cfg.offset_s, cfg))
+    coarse = timing.offset_by_speed(t_f, A[:, :3, :3], h, m, 0.5)
+    fine = timing.offset_by_handeye(t_f, A, h, m, coarse)
+    assert abs(coarse - cfg.offset_s) < 0.05 and abs(fine - cfg.offset_s) < 0.005
