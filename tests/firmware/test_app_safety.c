@@ -220,6 +220,24 @@ static void test_SAFETY_RULE_CONTACT_FORCE_LIMIT(void)
     TEST_ASSERT_TRUE(oibar_fault_flags() & OIBAR_FAULT_BIT(oibar_v1_FAULT_CONTACT_OVERLOAD));
 }
 
+static void test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN(void)
+{
+    /* A target valve stuck open right after a transfer: separating now would pull the
+     * couplings apart with fluid in the line, so the command is refused and nothing moves. */
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKED));
+    fake_plant_set_valve_mode(1, FAKE_VALVE_STUCK_OPEN);
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u); /* sensed open, not yet a fault */
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_PRECONDITION_FAILED, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+    TEST_ASSERT_NOT_EQUAL(oibar_v1_STATE_UNMATING, oibar_app_state());
+    /* Valve closed again: separation goes ahead. */
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKED, oibar_app_state());
+    fake_plant_set_valve_mode(1, FAKE_VALVE_OK);
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_UNMATING, oibar_app_state());
+}
+
 static void test_rule_names_are_the_identifiers(void)
 {
     TEST_ASSERT_EQUAL_STRING("SAFETY_RULE_SAFE_START", oibar_safety_rule_name(SAFETY_RULE_SAFE_START));
@@ -247,6 +265,7 @@ int main(void)
     RUN_TEST(test_SAFETY_RULE_MALFORMED_FRAME_DROPPED);
     RUN_TEST(test_SAFETY_RULE_WATCHDOG_NEEDS_BOTH_LOOPS);
     RUN_TEST(test_SAFETY_RULE_CONTACT_FORCE_LIMIT);
+    RUN_TEST(test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN);
     RUN_TEST(test_rule_names_are_the_identifiers);
     return UNITY_END();
 }

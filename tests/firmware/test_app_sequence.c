@@ -56,6 +56,9 @@ static void test_full_refuelling_sequence(void)
     TEST_ASSERT_FALSE(bench_any_valve_driven());
     TEST_ASSERT_TRUE(fake_plant_tv_kpa() >= 1495.0f); /* ADC quantisation */
     TEST_ASSERT_TRUE(saw_event(oibar_v1_EVT_TRANSFER_COMPLETE, oibar_v1_FAULT_NONE));
+    /* The valves take their stroke time to read closed; separating before that is refused
+     * (SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN), so a host waits for closed valves first. */
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 50u);
     TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
     TEST_ASSERT_EQUAL(oibar_v1_STATE_UNMATING, oibar_app_state());
     TEST_ASSERT_TRUE(bench_wait_state(oibar_v1_STATE_LATCH_RELEASE, 6000));

@@ -60,7 +60,7 @@ static const oibar_fsm_row_t k_table[] = {
     { S(HARD_DOCKING),    C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(HARD_DOCKED),     C(ARM_TRANSFER),       G(TRANSFER_READY),    S(TRANSFER_ARMED), A(ARM) },
-    { S(HARD_DOCKED),     C(SEPARATE),           G(NONE),              S(UNMATING),       A(NONE) },
+    { S(HARD_DOCKED),     C(SEPARATE),           G(VALVES_CLOSED),     S(UNMATING),       A(NONE) },
     { S(HARD_DOCKED),     C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
     { S(HARD_DOCKED),     E(CONNECTOR_LOST),     G(NONE),              S(FAULT),          A(FAULT_CONNECTOR_LOST) },
     { S(HARD_DOCKED),     E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
@@ -134,7 +134,7 @@ static const char *const k_cmd_names[OIBAR_CMD_LAST + 1u] = {
 static const char *const k_guard_names[GUARD_COUNT] = {
     "-", "at_home", "not_at_home", "ready_for_approach", "capture_confirmed",
     "soft_dock_held", "connector_mated", "plane_extended", "latch_engaged",
-    "latch_not_engaged", "transfer_ready", "start_ok", "fault_causes_gone",
+    "latch_not_engaged", "transfer_ready", "start_ok", "fault_causes_gone", "valves_closed",
 };
 static const char *const k_action_names[ACT_COUNT] = {
     "-", "record_capture", "arm", "start_transfer", "report_transfer_complete",
@@ -251,6 +251,11 @@ static oibar_v1_NackReason guard(oibar_guard_t g)
     case GUARD_FAULT_CAUSES_GONE:
         return pre(oibar_pressure_all_ok() && !oibar_pressure_over() && !oibar_valves_mismatch() &&
                    !oibar_valves_any_sensed_open() && oibar_app_host_link_alive());
+    case GUARD_VALVES_CLOSED:
+        /* SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN: the valve monitor needs its
+         * debounce time to call a stuck valve a fault; until then a valve that
+         * still reads open must keep the fluid couplings mated, or fuel vents. */
+        return pre(!oibar_valves_any_sensed_open() && !oibar_valves_mismatch());
     case GUARD_COUNT:
     default:
         break;

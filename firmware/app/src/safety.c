@@ -26,6 +26,7 @@ static const char *const k_names[SAFETY_RULE_COUNT] = {
     "SAFETY_RULE_MALFORMED_FRAME_DROPPED",
     "SAFETY_RULE_WATCHDOG_NEEDS_BOTH_LOOPS",
     "SAFETY_RULE_CONTACT_FORCE_LIMIT",
+    "SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN",
 };
 
 const char *oibar_safety_rule_name(oibar_safety_rule_t rule)

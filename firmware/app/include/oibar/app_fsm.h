@@ -48,6 +48,7 @@ typedef enum {
     GUARD_TRANSFER_READY,
     GUARD_START_OK,
     GUARD_FAULT_CAUSES_GONE,
+    GUARD_VALVES_CLOSED,
     GUARD_COUNT
 } oibar_guard_t;
 

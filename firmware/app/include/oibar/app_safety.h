@@ -29,6 +29,7 @@ typedef enum {
     SAFETY_RULE_MALFORMED_FRAME_DROPPED,        /* link layer; app never sees it */
     SAFETY_RULE_WATCHDOG_NEEDS_BOTH_LOOPS,
     SAFETY_RULE_CONTACT_FORCE_LIMIT,            /* paper: <30 N soft, <60 N hard */
+    SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN,      /* couplings stay mated while fluid can flow */
     SAFETY_RULE_COUNT
 } oibar_safety_rule_t;
 
