@@ -41,6 +41,9 @@ class EstimateInputs:
     mocap_sigma_deg: float = 0.5           # RMS rotation angle error per sample
     corner_sigma_px: float | None = None   # None: pooled from the PnP residuals
     min_poses: int = handeye.MIN_POSES
+    # Local quadratic fit of the mocap around each frame (+- this, s); None: interpolate
+    # between the two neighbouring samples (timing.smooth explains why not).
+    smooth_half_width_s: float | None = timing.SMOOTH_HALF_WIDTH_S
 
 
 def _noise(sigma_mm: float, sigma_deg: float) -> MocapNoise:
@@ -101,6 +104,15 @@ def estimate(inp: EstimateInputs, progress: Callable[[int, int], None] | None = 
     else:
         obs = [det.observe(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)) for im in images]
 
+    return estimate_from_observations(inp, housing, tmarkers, frames, obs, pattern, intr)
+
+
+def estimate_from_observations(inp: EstimateInputs, housing: timing.Track, tmarkers: timing.Track,
+                               frames: list[dict], obs: list[Observation | None], pattern: Pattern,
+                               intr: Intrinsics) -> dict:
+    """The estimation proper, once the files are read and the pattern observed in every frame
+    (`obs[k]` None where it was not found). Also used by the multi-recording validation, which
+    simulates the observations instead of rendering frames."""
     seen = [k for k, o in enumerate(obs) if o is not None]
     if len(seen) < inp.min_poses:
         raise CalibError(f"too few calibration poses: the pattern was found in {len(seen)} of {len(frames)} "
@@ -116,25 +128,29 @@ def estimate(inp: EstimateInputs, progress: Callable[[int, int], None] | None = 
     if (t_f[-1] + inp.offset_search_s < housing.t_s[0] or t_f[0] - inp.offset_search_s > housing.t_s[-1]):
         raise CalibError(f"the mocap ({housing.t_s[0]:.2f}-{housing.t_s[-1]:.2f} s) and the frames "
                          f"({t_f[0]:.2f}-{t_f[-1]:.2f} s) do not overlap; pass --offset-s with the clock difference")
+    hw = inp.smooth_half_width_s
     if inp.offset_s is None:
         off_speed = timing.offset_by_speed(t_f, A[:, :3, :3], housing, tmarkers, inp.offset_search_s)
-        off0 = timing.offset_by_handeye(t_f, A, housing, tmarkers, off_speed)
+        off0 = timing.offset_by_handeye(t_f, A, housing, tmarkers, off_speed, smooth_half_width_s=hw)
         window = OFFSET_FINE_WINDOW_S
     else:
         off_speed = off0 = float(inp.offset_s)
         window = None
 
-    B0, valid0 = timing.relative_at(housing, tmarkers, t_f + off0)
+    B0, valid0 = timing.relative_at(housing, tmarkers, t_f + off0, smooth_half_width_s=hw)
     if valid0.sum() < inp.min_poses:
         raise CalibError(f"too few poses with mocap coverage at offset {off0:.3f} s: {int(valid0.sum())} "
                          f"(need {inp.min_poses}); mocap gaps, or the wrong rigid bodies?")
     X0, Z0 = handeye.closed_form(A[valid0], B0[valid0])
     noise = _noise(inp.mocap_sigma_mm, inp.mocap_sigma_deg)
-    res = refine(A, A_cov, lambda off: timing.relative_at(housing, tmarkers, t_f + off, with_variance=True),
+    # The reference samples of the local fits stay those of the start offset, so that the mocap
+    # poses are a smooth function of the offset (timing.smooth).
+    res = refine(A, A_cov, lambda off: timing.relative_at(housing, tmarkers, t_f + off, with_variance=True,
+                                                          smooth_half_width_s=hw, ref_t_s=t_f + off0),
                  X0, Z0, off0, noise, noise, offset_window_s=window, min_poses=inp.min_poses)
 
     # Reprojection of the detected corners through the calibrated mocap chain.
-    B, _ = timing.relative_at(housing, tmarkers, t_f + res.offset_s)
+    B, _ = timing.relative_at(housing, tmarkers, t_f + res.offset_s, smooth_half_width_s=hw)
     A_pred = res.Z @ B @ inv_T(res.X)
     reproj = []
     for j, k in enumerate(seen):

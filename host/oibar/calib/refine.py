@@ -12,9 +12,11 @@ the target-marker frame. Every term is whitened by its first-order covariance, b
 
 So the cost is a Mahalanobis distance (chi-square with 6 dof per pose when the noise figures
 are right): `chi2_per_dof` near 1 says the stated noise matches the data.
-The time offset enters through B[i](offset); it is found by a bounded 1-D search over the
-profile cost (solve X, Z for each trial offset), since slerp between mocap samples makes the
-cost only piecewise smooth in the offset.
+The time offset enters through B[i](offset). With the mocap fitted locally around each frame
+(timing.smooth) B is a smooth function of the offset, so the offset is a 13th parameter of the
+same least squares, fitted jointly with X and Z (its derivative by finite differences of B),
+and its variance comes out of the same covariance. Without smoothing (interpolation between
+samples, piecewise linear in the offset) pass an `offset_window_s` of None and a fixed offset.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
-from scipy.optimize import least_squares, minimize_scalar
+from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from .errors import CalibError
@@ -85,13 +87,34 @@ def _solve(A_inv, B, W, X0, Z0):
     return X0 @ T_from_vec(sol.x[6:]), Z0 @ T_from_vec(sol.x[:6]), float(2 * sol.cost), sol.jac
 
 
+def _solve_joint(A_inv, B_of, W, X0, Z0, off0_s, off_lo_s, off_hi_s):
+    """X, Z and the offset together: B_of(offset) gives the mocap poses (smooth in the offset
+    when the mocap is fitted locally, timing.smooth). The offset is a parameter in ms, bounded
+    to [off_lo_s, off_hi_s]; its derivative is taken by finite differences of the smooth B."""
+    def fun(x):
+        Z = Z0 @ T_from_vec(x[:6])
+        X = X0 @ T_from_vec(x[6:12])
+        return np.einsum("nij,nj->ni", W, _residuals(A_inv, B_of(off0_s + 1e-3 * x[12]), X, Z)).ravel()
+
+    sol = least_squares(fun, np.zeros(13), method="lm", x_scale="jac", diff_step=1e-7)
+    off = off0_s + 1e-3 * float(sol.x[12])
+    if not off_lo_s <= off <= off_hi_s:
+        raise CalibError(f"the time offset left its search window ({off * 1e3:.1f} ms, window "
+                         f"{off_lo_s * 1e3:.1f} to {off_hi_s * 1e3:.1f} ms); check the time columns or pass --offset-s")
+    J = sol.jac.copy()
+    J[:, 12] *= 1e3        # d residual / d offset in s
+    return (X0 @ T_from_vec(sol.x[6:12]), Z0 @ T_from_vec(sol.x[:6]), off0_s + 1e-3 * float(sol.x[12]),
+            float(2 * sol.cost), J)
+
+
 def refine(A: np.ndarray, A_cov: np.ndarray, B_at: Callable[[float], tuple],
            X0: np.ndarray, Z0: np.ndarray, offset0_s: float, noise_housing: MocapNoise,
            noise_tmarkers: MocapNoise, offset_window_s: float | None = None,
            min_poses: int = 10) -> RefineResult:
     """Refine X, Z (and the offset within offset0_s +- offset_window_s when given).
     `B_at(offset_s)` returns T_housing_tmarkers for every pose, a validity mask and the
-    interpolation variance factors of both bodies (timing.relative_at(..., with_variance=True))."""
+    variance factors of both bodies (timing.relative_at(..., with_variance=True)); for the
+    joint fit of the offset it must be smooth in the offset (timing.smooth)."""
     n = len(A)
     # Keep the same poses for every trial offset, or the costs would not be comparable.
     keep = np.ones(n, bool)
@@ -106,46 +129,44 @@ def refine(A: np.ndarray, A_cov: np.ndarray, B_at: Callable[[float], tuple],
     A_inv, Acov_k = inv_T(A[idx]), A_cov[idx]
     B_cache: dict = {}
 
-    def B_k(off):
-        key = round(float(off), 9)
+    def B_full(off):
+        key = float(off)
         if key not in B_cache:
-            B, _, k_h, k_m = B_at(off)
+            if len(B_cache) > 64:
+                B_cache.clear()
+            B, _, k_h, k_m = B_at(key)
             B_cache[key] = (B[idx], k_h[idx], k_m[idx])
-        return B_cache[key][0]
+        return B_cache[key]
+
+    def B_k(off):
+        return B_full(off)[0]
 
     def W_k(off, X):
-        # Weights follow the trial offset (interpolation variance), with X fixed per pass.
-        B_k(off)
-        _, k_h, k_m = B_cache[round(float(off), 9)]
-        return _whitening(Acov_k, B_k(off), X, noise_housing, noise_tmarkers, k_h, k_m)
+        # Weights follow the offset (variance factors), with X fixed per pass.
+        B, k_h, k_m = B_full(off)
+        return _whitening(Acov_k, B, X, noise_housing, noise_tmarkers, k_h, k_m)
 
     X, Z, offset = X0, Z0, offset0_s
     inl = np.ones(len(idx), bool)
-    profile: dict = {}
+    lo_s = offset0_s - (offset_window_s or 0.0)
+    hi_s = offset0_s + (offset_window_s or 0.0)
+    profile: list = []
 
-    def search_offset(lo, hi, n_grid):
-        def cost(off):
-            key = round(float(off), 7)
-            if key not in profile:
-                W = W_k(off, X)
-                profile[key] = _solve(A_inv[inl], B_k(off)[inl], W[inl], X, Z)[2]
-            return profile[key]
+    def solve(W, mask, joint):
+        nonlocal X, Z, offset
+        if offset_window_s and joint:
+            X, Z, offset, cost, J = _solve_joint(A_inv[mask], lambda o: B_k(o)[mask], W[mask], X, Z,
+                                                 offset, lo_s, hi_s)
+            profile.append((round(offset, 7), cost))
+        else:
+            X, Z, cost, J = _solve(A_inv[mask], B_k(offset)[mask], W[mask], X, Z)
+        return cost, J
 
-        grid = np.linspace(lo, hi, n_grid)
-        j = int(np.argmin([cost(o) for o in grid]))
-        a, b = grid[max(j - 1, 0)], grid[min(j + 1, n_grid - 1)]
-        return float(minimize_scalar(cost, bounds=(a, b), method="bounded", options={"xatol": 2e-5}).x)
-
-    # Pass 0 gets X, Z close with weights from the closed form; pass 1 searches the offset
-    # with the weights re-made from the better X and rejects outliers; pass 2 settles.
+    # Pass 0 gets X, Z close with weights from the closed form (offset fixed); passes 1 and 2
+    # fit the offset too, with the weights re-made from the better X, and reject outliers.
     for it in range(3):
-        if offset_window_s and it == 1:
-            offset = search_offset(offset - offset_window_s, offset + offset_window_s, 11)
-        elif offset_window_s and it == 2:
-            step = 2 * offset_window_s / 10
-            offset = search_offset(offset - step, offset + step, 3)
         W = W_k(offset, X)
-        X, Z, _, _ = _solve(A_inv[inl], B_k(offset)[inl], W[inl], X, Z)
+        solve(W, inl, joint=it > 0)
         wr = np.einsum("nij,nj->ni", W, _residuals(A_inv, B_k(offset), X, Z))
         d2 = np.sum(wr ** 2, axis=1)
         if it == 0:
@@ -158,19 +179,13 @@ def refine(A: np.ndarray, A_cov: np.ndarray, B_at: Callable[[float], tuple],
             raise CalibError(f"only {int(inl.sum())} poses agree with the model; check the body names, "
                              "the pattern file and the time columns")
 
-    X, Z, cost_val, J = _solve(A_inv[inl], B_k(offset)[inl], W[inl], X, Z)
-    dof = max(6 * int(inl.sum()) - 12 - (1 if offset_window_s else 0), 1)
+    W = W_k(offset, X)
+    cost_val, J = solve(W, inl, joint=True)
+    n_par = J.shape[1]
+    dof = max(6 * int(inl.sum()) - n_par, 1)
     chi2_dof = cost_val / dof
     cov = np.linalg.pinv(J.T @ J) * max(1.0, chi2_dof)   # inflate when the data are noisier than stated
-    sigma_offset = float("nan")
-    if offset_window_s:
-        # Curvature of the profile cost around the optimum: var(offset) = 2 / cost''.
-        h = 2e-3
-        c = [_solve(A_inv[inl], B_k(offset + k * h)[inl], W_k(offset + k * h, X)[inl], X, Z)[2]
-             for k in (-1, 0, 1)]
-        curv = (c[0] - 2 * c[1] + c[2]) / h ** 2
-        if curv > 0:
-            sigma_offset = float(np.sqrt(2.0 / curv * max(1.0, chi2_dof)))
+    sigma_offset = float(np.sqrt(cov[12, 12])) if n_par == 13 else float("nan")
     r = _residuals(A_inv, B_k(offset), X, Z)
     wr = np.einsum("nij,nj->ni", W, r)
     inliers = np.zeros(n, bool)
@@ -179,6 +194,6 @@ def refine(A: np.ndarray, A_cov: np.ndarray, B_at: Callable[[float], tuple],
     d2_all[idx] = np.sum(wr ** 2, axis=1)
     res_all = np.full((n, 6), np.nan)
     res_all[idx] = r
-    return RefineResult(X=X, Z=Z, offset_s=offset, cov_X=cov[6:, 6:], cov_Z=cov[:6, :6],
+    return RefineResult(X=X, Z=Z, offset_s=offset, cov_X=cov[6:12, 6:12], cov_Z=cov[:6, :6],
                         sigma_offset_s=sigma_offset, inliers=inliers, d2=d2_all, residuals=res_all,
-                        chi2_per_dof=float(chi2_dof), offset_profile=sorted(profile.items()))
+                        chi2_per_dof=float(chi2_dof), offset_profile=profile)
