@@ -1,11 +1,12 @@
 """Headless OpenGL renderer (moderngl on EGL: Mesa llvmpipe on CPU, the NVIDIA driver where a
 GPU is present).
 
-One pass draws the background (black space with an analytic Earth, or a Perlin backdrop),
-one depth pass renders the Sun's shadow map (cached while the Sun direction is unchanged), and
-one pass draws the meshes with Lambert + Blinn-Phong lighting from the Sun, an Earth-albedo fill
-light and a small ambient term. The id pass writes each part's id into the red channel instead
-of a colour, for label checks.
+A depth pass renders the Sun's two shadow-map cascades into one atlas (cached while the Sun
+direction is unchanged), one pass draws the meshes with Lambert + Blinn-Phong lighting from the
+Sun, an Earth-albedo fill light and a small ambient term, and one pass draws the background on
+the pixels left uncovered (black space with an analytic Earth, or a Perlin backdrop). The id
+pass (its own flat shader) writes each part's id into the red channel instead of a colour, for
+label checks. Performance notes for llvmpipe are in docs/synthetic.md.
 
 World coordinates are LVLH metres (the station flies LVLH-hold). The Earth is drawn by
 ray-sphere intersection in the background shader rather than as a mesh: its 6371 km radius
@@ -27,17 +28,24 @@ EARTH_RADIUS_KM = 6371.0
 _MESH_VS = """
 #version 330
 uniform mat4 u_vp;
-in vec3 in_pos; in vec3 in_nrm; in vec4 in_col; in float in_id;
-out vec3 v_pos; out vec3 v_nrm; out vec4 v_col; out float v_id;
+uniform mat4 u_light_vp_near;      // cascade 0 (around the berthing fixture)
+in vec3 in_pos; in vec3 in_nrm; in vec4 in_col;
+out vec3 v_pos; out vec3 v_nrm; out vec4 v_col;
+// Near-cascade shadow-map coordinates of the vertex ([0, 1]^3) and the image of its normal: both
+// are affine in the world position/normal, so interpolating them is exact and the fragment shader
+// only adds the normal offset instead of doing 4x4 transforms per pixel. The far cascade is the
+// same light view scaled about the focus (same depth range), so it follows from these.
+out vec3 v_s0; out vec3 v_ds0;
 void main() {
-    v_pos = in_pos; v_nrm = in_nrm; v_col = in_col; v_id = in_id;
+    v_pos = in_pos; v_nrm = in_nrm; v_col = in_col;
+    v_s0 = (u_light_vp_near * vec4(in_pos, 1.0)).xyz * 0.5 + 0.5;
+    v_ds0 = mat3(u_light_vp_near) * in_nrm * 0.5;
     gl_Position = u_vp * vec4(in_pos, 1.0);
 }
 """
 
 _MESH_FS = """
 #version 330
-uniform int u_mode;              // 0 shaded, 1 part ids
 uniform vec3 u_sun_dir;          // unit, towards the Sun
 uniform vec3 u_earth_dir;        // unit, towards the Earth's centre
 uniform vec3 u_cam_pos;
@@ -45,37 +53,53 @@ uniform float u_sun_intensity;
 uniform float u_ambient;
 uniform float u_albedo;
 uniform float u_shadow_bias;
-uniform mat4 u_light_vp_near;      // cascade 0: around the berthing fixture
-uniform mat4 u_light_vp_far;       // cascade 1: the station around the port
-uniform sampler2DShadow u_shadow_near;
-uniform sampler2DShadow u_shadow_far;
-in vec3 v_pos; in vec3 v_nrm; in vec4 v_col; in float v_id;
+uniform float u_atlas_margin;    // half a texel of one cascade: keeps the 2x2 PCF inside it
+uniform float u_far_scale;       // near / far cascade half-extent
+uniform sampler2DShadow u_shadow; // atlas: cascade 0 in the left half, cascade 1 in the right
+in vec3 v_pos; in vec3 v_nrm; in vec4 v_col;
+in vec3 v_s0; in vec3 v_ds0;
 out vec4 f_color;
-bool inside(vec3 s) { return s.x > 0.0 && s.x < 1.0 && s.y > 0.0 && s.y < 1.0 && s.z < 1.0; }
+bool inside(vec3 s) {
+    return s.x > u_atlas_margin && s.x < 1.0 - u_atlas_margin && s.y > u_atlas_margin && s.y < 1.0 - u_atlas_margin
+        && s.z < 1.0;
+}
 void main() {
-    if (u_mode == 1) { f_color = vec4(v_id / 255.0, 0.0, 0.0, 1.0); return; }
-    vec3 n = normalize(v_nrm);
+    float inv_len = inversesqrt(dot(v_nrm, v_nrm));
+    vec3 n = v_nrm * inv_len;
     vec3 view = normalize(u_cam_pos - v_pos);
-    if (dot(n, view) < 0.0) n = -n;   // thin panels are seen from both sides
+    if (dot(n, view) < 0.0) { n = -n; inv_len = -inv_len; }   // thin panels are seen from both sides
     float ndl = max(dot(n, u_sun_dir), 0.0);
-    float lit = 0.0;
-    if (ndl > 0.0) {
-        // Normal-offset lookup plus a constant bias against shadow acne.
-        vec3 s0 = (u_light_vp_near * vec4(v_pos + n * 0.002, 1.0)).xyz * 0.5 + 0.5;
-        lit = 1.0;
-        if (inside(s0)) {
-            lit = texture(u_shadow_near, vec3(s0.xy, s0.z - u_shadow_bias));
-        } else {
-            vec3 s1 = (u_light_vp_far * vec4(v_pos + n * 0.02, 1.0)).xyz * 0.5 + 0.5;
-            if (inside(s1)) lit = texture(u_shadow_far, vec3(s1.xy, s1.z - u_shadow_bias));
-        }
-    }
+    // Normal-offset lookup (2 mm near, 2 cm far) plus a constant bias against shadow acne;
+    // one hardware-filtered (2x2 PCF) tap in whichever cascade holds the point.
+    vec3 s0 = v_s0 + (0.002 * inv_len) * v_ds0;
+    vec3 s1 = v_s0 + (0.02 * inv_len) * v_ds0;
+    s1.xy = (s1.xy - 0.5) * u_far_scale + 0.5;
+    bool near = inside(s0);
+    vec3 s = near ? vec3(s0.xy * vec2(0.5, 1.0), s0.z) : vec3(s1.xy * vec2(0.5, 1.0) + vec2(0.5, 0.0), s1.z);
+    float lit = texture(u_shadow, vec3(s.xy, s.z - u_shadow_bias));
+    lit = (near || inside(s1)) ? lit : 1.0;    // (irrelevant where ndl == 0)
     vec3 h = normalize(u_sun_dir + view);
     float spec = ndl > 0.0 ? pow(max(dot(n, h), 0.0), 48.0) * v_col.a : 0.0;
     vec3 c = v_col.rgb * (u_ambient + u_albedo * max(dot(n, u_earth_dir), 0.0) + u_sun_intensity * ndl * lit)
            + vec3(spec * lit * u_sun_intensity);
     f_color = vec4(pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
 }
+"""
+
+# Label pass: part ids in the red channel, nothing else computed.
+_ID_VS = """
+#version 330
+uniform mat4 u_vp;
+in vec3 in_pos; in float in_id;
+flat out float v_id;
+void main() { v_id = in_id; gl_Position = u_vp * vec4(in_pos, 1.0); }
+"""
+
+_ID_FS = """
+#version 330
+flat in float v_id;
+out vec4 f_color;
+void main() { f_color = vec4(v_id / 255.0, 0.0, 0.0, 1.0); }
 """
 
 _DEPTH_VS = """
@@ -92,41 +116,56 @@ void main() { }
 
 _BG_VS = """
 #version 330
-in vec2 in_xy;
-// Drawn after the meshes at the far plane with depth test LEQUAL, so only uncovered pixels
-// pay for the background shader (early-z rejects the rest).
-void main() { gl_Position = vec4(in_xy, 1.0, 1.0); }
-"""
-
-_BG_FS = """
-#version 330
-uniform int u_bg;                 // 0 space + Earth, 1 Perlin backdrop
 uniform mat3 u_R_world_cam;       // OpenCV camera axes -> LVLH
 uniform vec4 u_intr;              // fx, fy, cx, cy (pixel-corner convention)
-uniform float u_height;
-uniform vec3 u_sun_dir;
-uniform vec3 u_earth_center_km;   // LVLH, from the station
-uniform mat3 u_R_ecef_world;
-uniform sampler2D u_tex;
-out vec4 f_color;
+uniform vec2 u_size;              // width, height in pixels
+in vec2 in_xy;
+out vec3 v_dir;                   // viewing ray in LVLH (not normalised: linear across the screen)
+// Drawn after the meshes at the far plane with depth test LEQUAL, so only uncovered pixels
+// pay for the background shader (early-z rejects the rest).
+void main() {
+    vec2 px = vec2((in_xy.x + 1.0) * 0.5 * u_size.x, (1.0 - in_xy.y) * 0.5 * u_size.y);
+    v_dir = u_R_world_cam * vec3((px.x - u_intr.z) / u_intr.x, (px.y - u_intr.w) / u_intr.y, 1.0);
+    gl_Position = vec4(in_xy, 1.0, 1.0);
+}
+"""
+
+_EQUIRECT = """
 const float PI = 3.14159265358979;
-const float R_EARTH = 6371.0;
 vec2 equirect(vec3 d) {
     return vec2(atan(d.y, d.x) / (2.0 * PI) + 0.5, 0.5 - asin(clamp(d.z, -1.0, 1.0)) / PI);
 }
+"""
+
+# The Perlin backdrop is fixed to the LVLH frame so it moves like a distant scene.
+_PERLIN_FS = """
+#version 330
+uniform sampler2D u_tex;
+in vec3 v_dir;
+out vec4 f_color;
+""" + _EQUIRECT + """
+void main() { f_color = vec4(texture(u_tex, equirect(normalize(v_dir))).rgb, 1.0); }
+"""
+
+# Space and the Earth: exact ray-sphere intersection per pixel. The per-frame constants
+# (|c|^2 - R^2, 1/|c|, the limb angle) come in as uniforms.
+_EARTH_FS = """
+#version 330
+uniform vec3 u_sun_dir;
+uniform vec3 u_earth_center_km;   // LVLH, from the station
+uniform float u_c2_minus_r2;      // |c|^2 - R_earth^2
+uniform float u_inv_clen;         // 1 / |c|
+uniform float u_limb;             // angular radius of the Earth seen from the station
+uniform mat3 u_R_ecef_world;
+uniform sampler2D u_tex;
+in vec3 v_dir;
+out vec4 f_color;
+""" + _EQUIRECT + """
 void main() {
-    float u = gl_FragCoord.x;
-    float v = u_height - gl_FragCoord.y;
-    vec3 d_cam = vec3((u - u_intr.z) / u_intr.x, (v - u_intr.w) / u_intr.y, 1.0);
-    vec3 d = normalize(u_R_world_cam * d_cam);
-    if (u_bg == 1) {
-        // The backdrop is fixed to the target frame so it moves like a distant scene.
-        f_color = vec4(texture(u_tex, equirect(d)).rgb, 1.0);
-        return;
-    }
+    vec3 d = normalize(v_dir);
     vec3 c = u_earth_center_km;
     float b = dot(d, c);
-    float disc = b * b - (dot(c, c) - R_EARTH * R_EARTH);
+    float disc = b * b - u_c2_minus_r2;
     vec3 col = vec3(0.0);
     if (disc > 0.0 && b > 0.0) {
         float t = b - sqrt(disc);
@@ -136,12 +175,10 @@ void main() {
         float ndl = max(dot(n, u_sun_dir), 0.0);
         // Thin blue haze towards the limb, where the line of sight grazes the atmosphere.
         float graze = 1.0 - clamp(-dot(n, d), 0.0, 1.0);
-        col = surf * (0.02 + 1.1 * ndl) + vec3(0.25, 0.45, 0.9) * pow(graze, 3.0) * (0.1 + ndl);
+        col = surf * (0.02 + 1.1 * ndl) + vec3(0.25, 0.45, 0.9) * (graze * graze * graze) * (0.1 + ndl);
     } else {
         // Glow just above the limb.
-        float ang = acos(clamp(b / length(c), -1.0, 1.0));
-        float limb = asin(R_EARTH / length(c));
-        float above = ang - limb;
+        float above = acos(clamp(b * u_inv_clen, -1.0, 1.0)) - u_limb;
         if (above > 0.0 && above < 0.03) {
             float sunlit = max(dot(d, u_sun_dir), 0.0);
             col = vec3(0.2, 0.4, 0.9) * (1.0 - above / 0.03) * (0.15 + 0.5 * sunlit);
@@ -228,7 +265,11 @@ def _vertex_data(parts: list[Part]) -> tuple[np.ndarray, np.ndarray]:
         v[:, 10] = p.part_id
         verts.append(v)
     data = np.concatenate(verts)
-    return data, np.arange(len(data), dtype=np.uint32)
+    # Share identical corners (same position, normal, colour, id): ~4x fewer vertices to shade,
+    # while the triangle order, and so the rasterised result, stays the same.
+    uniq, first, inverse = np.unique(data.view(np.dtype((np.void, data.dtype.itemsize * 11))).ravel(),
+                                     return_index=True, return_inverse=True)
+    return data[first], inverse.astype(np.uint32).ravel()
 
 
 def view_matrix(R_world_cam: np.ndarray, p_world_cam: np.ndarray) -> np.ndarray:
@@ -264,10 +305,16 @@ class Renderer:
         c, s = self.ctx, self.settings
         W, H = self.camera.width_px, self.camera.height_px
         self.mesh_prog = c.program(vertex_shader=_MESH_VS, fragment_shader=_MESH_FS)
+        self.id_prog = c.program(vertex_shader=_ID_VS, fragment_shader=_ID_FS)
         self.depth_prog = c.program(vertex_shader=_DEPTH_VS, fragment_shader=_DEPTH_FS)
-        self.bg_prog = c.program(vertex_shader=_BG_VS, fragment_shader=_BG_FS)
-        tri = np.array([-1, -1, 3, -1, -1, 3], dtype="f4")
-        self.bg_vao = c.vertex_array(self.bg_prog, [(c.buffer(tri.tobytes()), "2f", "in_xy")])
+        # One background program per kind, so neither pays for the other's instructions
+        # (llvmpipe executes both sides of a branch under a mask).
+        tri = c.buffer(np.array([-1, -1, 3, -1, -1, 3], dtype="f4").tobytes())
+        self.bg_progs, self.bg_vaos = {}, {}
+        for kind, fs in (("iss", _EARTH_FS), ("perlin", _PERLIN_FS)):
+            prog = c.program(vertex_shader=_BG_VS, fragment_shader=fs)
+            self.bg_progs[kind] = prog
+            self.bg_vaos[kind] = c.vertex_array(prog, [(tri, "2f", "in_xy")])
 
         samples = s.msaa_samples
         self.fbo = c.framebuffer(
@@ -276,20 +323,21 @@ class Renderer:
         )
         self.resolve_fbo = c.framebuffer(color_attachments=[c.renderbuffer((W, H), 4)]) if samples else self.fbo
 
-        self.shadow_tex, self.shadow_fbo = [], []
-        for _ in range(2):   # near and far cascades
-            tex = c.depth_texture((s.shadow_map_px, s.shadow_map_px))
-            tex.compare_func = "<="
-            tex.filter = (moderngl.LINEAR, moderngl.LINEAR)   # 2x2 PCF in hardware
-            self.shadow_tex.append(tex)
-            self.shadow_fbo.append(c.framebuffer(depth_attachment=tex))
+        # Both cascades in one depth texture (near | far), so the mesh shader needs a single
+        # filtered shadow tap per pixel, not one per cascade.
+        n = s.shadow_map_px
+        self.shadow_tex = c.depth_texture((2 * n, n))
+        self.shadow_tex.compare_func = "<="
+        self.shadow_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)   # 2x2 PCF in hardware
+        self.shadow_tex.repeat_x = self.shadow_tex.repeat_y = False
+        self.shadow_fbo = c.framebuffer(depth_attachment=self.shadow_tex)
         self._shadow_key = None
         self._light_vp = [np.eye(4), np.eye(4)]
 
         self._earth_tex = None   # built on first use: ~1 s of noise, not needed for `perlin`
         self.bg_tex = None
         self.background = "iss"
-        self.mesh_vao = self.depth_vao = None
+        self.mesh_vao = self.depth_vao = self.id_vao = self._vbo = self._ibo = None
         self.focus = np.zeros(3)
         self.gl_renderer = c.info.get("GL_RENDERER", "unknown")
 
@@ -304,16 +352,18 @@ class Renderer:
 
     def load_scene(self, parts: list[Part], background: str, focus_lvlh: np.ndarray, perlin_seed: int | None = None):
         """Upload the meshes; `focus_lvlh` centres the shadow map (the target port)."""
-        for vao in (self.mesh_vao, self.depth_vao):
-            if vao is not None:
-                vao.release()
+        for obj in (self.mesh_vao, self.depth_vao, self.id_vao, self._vbo, self._ibo):
+            if obj is not None:
+                obj.release()
         # Target fixture first, station last: front-to-back order lets early-z skip hidden work.
         parts = sorted(parts, key=lambda p: (p.part_id >= ID_ADAPTER, p.part_id >= ID_MODULE))
         data, idx = _vertex_data(parts)
-        vbo = self.ctx.buffer(data.tobytes())
-        ibo = self.ctx.buffer(idx.tobytes())
+        vbo = self._vbo = self.ctx.buffer(data.tobytes())
+        ibo = self._ibo = self.ctx.buffer(idx.tobytes())
         self.mesh_vao = self.ctx.vertex_array(
-            self.mesh_prog, [(vbo, "3f 3f 4f 1f", "in_pos", "in_nrm", "in_col", "in_id")], index_buffer=ibo, index_element_size=4)
+            self.mesh_prog, [(vbo, "3f 3f 4f 4x", "in_pos", "in_nrm", "in_col")], index_buffer=ibo, index_element_size=4)
+        self.id_vao = self.ctx.vertex_array(
+            self.id_prog, [(vbo, "3f 28x 1f", "in_pos", "in_id")], index_buffer=ibo, index_element_size=4)
         self.depth_vao = self.ctx.vertex_array(
             self.depth_prog, [(vbo, "3f 32x", "in_pos")], index_buffer=ibo, index_element_size=4)
         self.background = background
@@ -334,12 +384,18 @@ class Renderer:
         if key == self._shadow_key:
             return
         s = self.settings
-        self.ctx.enable(self.ctx.DEPTH_TEST)
+        # Closed meshes: the surface nearest the Sun is always a front face, so culling back
+        # faces leaves the depth map unchanged and halves the fill.
+        self.ctx.enable(self.ctx.DEPTH_TEST | self.ctx.CULL_FACE)
         self.ctx.polygon_offset = (1.5, 2.0)   # slope-scaled bias
+        n = s.shadow_map_px
+        self.shadow_fbo.use()
+        self.shadow_fbo.clear(depth=1.0)
+        # Same light view, focus and depth range for both cascades, only the extent differs: the
+        # mesh shader derives far-cascade coordinates from near ones with u_far_scale.
         for i, half in enumerate((s.shadow_near_half_extent_m, s.shadow_far_half_extent_m)):
             self._light_vp[i] = light_matrix(sun_lvlh, self.focus, half, s.shadow_depth_m)
-            self.shadow_fbo[i].use()
-            self.shadow_fbo[i].clear(depth=1.0)
+            self.shadow_fbo.viewport = (i * n, 0, n, n)
             self.depth_prog["u_light_vp"].write(_m4(self._light_vp[i]))
             self.depth_vao.render()
         self.ctx.polygon_offset = (0.0, 0.0)
@@ -365,14 +421,17 @@ class Renderer:
         # All meshes are closed with outward CCW faces: culling back faces halves the work.
         ctx.enable(ctx.DEPTH_TEST | ctx.CULL_FACE)
         ctx.depth_func = "<="
-        mp = self.mesh_prog
         V = view_matrix(np.asarray(R_lvlh_cam, float), np.asarray(p_lvlh_cam, float))
-        mp["u_vp"].write(_m4(cam.gl_projection() @ V))
-        mp["u_mode"].value = 1 if mode == "id" else 0
-        if mode != "id":
+        vp = _m4(cam.gl_projection() @ V)
+        if mode == "id":
+            self.id_prog["u_vp"].write(vp)
+            self.id_vao.render()
+        else:
+            mp = self.mesh_prog
             earth_dir = earth_c / np.linalg.norm(earth_c)
+            mp["u_vp"].write(vp)
             mp["u_light_vp_near"].write(_m4(self._light_vp[0]))
-            mp["u_light_vp_far"].write(_m4(self._light_vp[1]))
+            mp["u_far_scale"].value = s.shadow_near_half_extent_m / s.shadow_far_half_extent_m
             mp["u_sun_dir"].value = tuple(sun)
             mp["u_earth_dir"].value = tuple(earth_dir)
             mp["u_cam_pos"].value = tuple(np.asarray(p_lvlh_cam, float))
@@ -381,25 +440,28 @@ class Renderer:
             # Earth-shine scales with how much of the Earth below is sunlit.
             mp["u_albedo"].value = s.albedo_max * max(0.0, float(-sun @ earth_dir))
             mp["u_shadow_bias"].value = s.shadow_bias
-            self.shadow_tex[0].use(location=2)
-            self.shadow_tex[1].use(location=3)
-            mp["u_shadow_near"].value = 2
-            mp["u_shadow_far"].value = 3
-        self.mesh_vao.render()
+            mp["u_atlas_margin"].value = 0.5 / s.shadow_map_px
+            self.shadow_tex.use(location=2)
+            mp["u_shadow"].value = 2
+            self.mesh_vao.render()
 
-        if mode != "id":
             ctx.disable(ctx.CULL_FACE)
-            bp = self.bg_prog
-            bp["u_bg"].value = 1 if self.background == "perlin" else 0
+            kind = "perlin" if self.background == "perlin" else "iss"
+            bp = self.bg_progs[kind]
             bp["u_R_world_cam"].write(_m3(R_lvlh_cam))
             bp["u_intr"].value = (cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
-            bp["u_height"].value = float(cam.height_px)
-            bp["u_sun_dir"].value = tuple(sun)
-            bp["u_earth_center_km"].value = tuple(earth_c)
-            bp["u_R_ecef_world"].write(_m3(R_ecef))
+            bp["u_size"].value = (float(cam.width_px), float(cam.height_px))
+            if kind == "iss":
+                clen = float(np.linalg.norm(earth_c))
+                bp["u_sun_dir"].value = tuple(sun)
+                bp["u_earth_center_km"].value = tuple(earth_c)
+                bp["u_c2_minus_r2"].value = clen * clen - EARTH_RADIUS_KM ** 2
+                bp["u_inv_clen"].value = 1.0 / clen
+                bp["u_limb"].value = float(np.arcsin(EARTH_RADIUS_KM / clen))
+                bp["u_R_ecef_world"].write(_m3(R_ecef))
             self.bg_tex.use(location=1)
             bp["u_tex"].value = 1
-            self.bg_vao.render()
+            self.bg_vaos[kind].render()
 
         if self.resolve_fbo is not self.fbo:
             ctx.copy_framebuffer(self.resolve_fbo, self.fbo)
