@@ -238,6 +238,50 @@ static void test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN(void)
     TEST_ASSERT_EQUAL(oibar_v1_STATE_UNMATING, oibar_app_state());
 }
 
+static void test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN(void)
+{
+    /* Unmating: the plane is on its way out when a valve fails open. The valve monitor
+     * faults; the FAULT entry must drive the plane back to full mate, not stop it halfway. */
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKED));
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 50u);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
+    fake_hal_advance_ms(300);
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_UNMATING, oibar_app_state());
+    const float half_mm = fake_plant_plane_mm();
+    TEST_ASSERT_TRUE(half_mm > 1.0f && half_mm < FAKE_PLANT_TRAVEL_MM - 1.0f);
+    fake_plant_set_valve_mode(0, FAKE_VALVE_STUCK_OPEN);
+    TEST_ASSERT_TRUE(bench_wait_state(oibar_v1_STATE_FAULT, 2000));
+    TEST_ASSERT_TRUE(fake_hal_do(HAL_DO_PLANE_EXTEND));
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+    TEST_ASSERT_FALSE(bench_any_valve_driven());
+    fake_hal_advance_ms(6000);
+    TEST_ASSERT_TRUE(fake_plant_plane_mm() > FAKE_PLANT_TRAVEL_MM - 0.5f); /* re-seated */
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_EXTEND));                  /* and stopped */
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_FAULT, oibar_app_state());
+
+    /* A valve failing open while the plane is still short of the couplings (hard docking
+     * just started): moving on would cross the venting zone, so the plane stops. */
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKING));
+    fake_hal_advance_ms(300);
+    TEST_ASSERT_TRUE(fake_plant_plane_mm() < 20.0f);
+    fake_plant_set_valve_mode(0, FAKE_VALVE_STUCK_OPEN);
+    TEST_ASSERT_TRUE(bench_wait_state(oibar_v1_STATE_FAULT, 2000));
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_EXTEND));
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+    fake_plant_set_valve_mode(0, FAKE_VALVE_OK);
+
+    /* The same fault with the valves healthy leaves the plane still, as before. */
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKED));
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 50u);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
+    fake_hal_advance_ms(300);
+    oibar_fault_raise(oibar_v1_FAULT_LATCH_STALL);
+    fake_hal_advance_ms(5);
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_FAULT, oibar_app_state());
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_EXTEND));
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+}
+
 static void test_rule_names_are_the_identifiers(void)
 {
     TEST_ASSERT_EQUAL_STRING("SAFETY_RULE_SAFE_START", oibar_safety_rule_name(SAFETY_RULE_SAFE_START));
@@ -266,6 +310,7 @@ int main(void)
     RUN_TEST(test_SAFETY_RULE_WATCHDOG_NEEDS_BOTH_LOOPS);
     RUN_TEST(test_SAFETY_RULE_CONTACT_FORCE_LIMIT);
     RUN_TEST(test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN);
+    RUN_TEST(test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN);
     RUN_TEST(test_rule_names_are_the_identifiers);
     return UNITY_END();
 }

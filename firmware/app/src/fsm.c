@@ -410,12 +410,24 @@ static void entry_aborting(uint32_t now_ms)
     oibar_plane_retract(now_ms);
 }
 
-/* Safe and still: valves closed, nothing driven. */
+/* Safe and still: valves closed, nothing driven -- except a plane that would
+ * otherwise stop half-mated next to a valve that reads open.
+ * SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN: the couplings seal at full mate
+ * and self-seal when apart (below plane_coupling_mm), but vent in between; a
+ * valve stuck open while unmating must not leave them there, so the plane
+ * re-seats (extends to its switch, bounded by the plane move timeout). Below
+ * the coupling travel, stopping is the safe choice: moving on would cross the
+ * venting zone. Found by the HIL fault matrix (valve_stuck_open@unmating). */
 static void entry_fault(uint32_t now_ms)
 {
-    (void)now_ms;
-    oibar_plane_stop();
     oibar_stepper_disable();
+    const bool half_mated = !oibar_plane_is_extended() &&
+                            oibar_plane_pos_mm() >= oibar_param_f(PARAM_PLANE_COUPLING_MM);
+    if (oibar_valves_any_sensed_open() && half_mated) {
+        oibar_plane_extend(now_ms);
+    } else {
+        oibar_plane_stop();
+    }
 }
 
 typedef struct {

@@ -81,6 +81,9 @@ static const oibar_param_def_t s_defs[OIBAR_PARAM_COUNT] = {
     P_REAL(PARAM_FORCE_N_PER_COUNT, "force_n_per_count", "N/cnt", 0.05, 0.001, 1),
     /* Assumption: abort retracts the plane (plane timeout) plus margin. */
     P_INT(PARAM_ABORT_TIMEOUT_MS, "abort_timeout_ms", "ms", 12000, 1000, 120000),
+    /* Assumption: plane travel (mm from retracted) from which the fluid couplings' poppets
+     * are pushed open; below it they are apart and self-sealed, at full travel sealed. */
+    P_REAL(PARAM_PLANE_COUPLING_MM, "plane_coupling_mm", "mm", 30, 0, 40),
 };
 
 static float s_values[OIBAR_PARAM_COUNT];

@@ -27,6 +27,7 @@ static const char *const k_names[SAFETY_RULE_COUNT] = {
     "SAFETY_RULE_WATCHDOG_NEEDS_BOTH_LOOPS",
     "SAFETY_RULE_CONTACT_FORCE_LIMIT",
     "SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN",
+    "SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN",
 };
 
 const char *oibar_safety_rule_name(oibar_safety_rule_t rule)

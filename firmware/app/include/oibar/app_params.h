@@ -47,6 +47,7 @@ typedef enum {
     PARAM_PLANE_MM_PER_COUNT,
     PARAM_FORCE_N_PER_COUNT,
     PARAM_ABORT_TIMEOUT_MS,
+    PARAM_PLANE_COUPLING_MM,
     PARAM_ID_END /* one past the last id */
 } oibar_param_id_t;
 

@@ -30,6 +30,7 @@ typedef enum {
     SAFETY_RULE_WATCHDOG_NEEDS_BOTH_LOOPS,
     SAFETY_RULE_CONTACT_FORCE_LIMIT,            /* paper: <30 N soft, <60 N hard */
     SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN,      /* couplings stay mated while fluid can flow */
+    SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN,  /* a fault re-seats a half-mated plane */
     SAFETY_RULE_COUNT
 } oibar_safety_rule_t;
 
