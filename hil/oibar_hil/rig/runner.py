@@ -72,8 +72,14 @@ class RunResult:
 class Rig:
     def __init__(self, scenario: Scenario, *, mcu_path: Path | None = None,
                  out_dir: Path | None = None, progress: bool = False,
-                 controller_factory: Callable[..., Any] | None = None) -> None:
+                 controller_factory: Callable[..., Any] | None = None,
+                 between_missions: Callable[["Rig"], bool] | None = None) -> None:
         self.sc = scenario
+        # Called once per exchange while the controller reports the mission finished; it
+        # returns True to keep the run going (it may install a new controller and world:
+        # the soak loops the mission this way, rig/soak.py), False to end the run.
+        self.between_missions = between_missions
+        self.mcu: SimMcu | None = None
         self.mcu_path = Path(mcu_path) if mcu_path else default_mcu_path()
         self.out_dir = Path(out_dir) if out_dir else None
         self.progress = progress
@@ -195,12 +201,14 @@ class Rig:
         self.requests_log: list[tuple[float, str, str]] = []
         self.events_log: list[tuple[float, str]] = []
         self._new_host()
-        samples: dict[str, list] = {k: [] for k in (
+        samples: dict[str, list]
+        self.samples = samples = {k: [] for k in (
             "t_s", "state", "range_m", "lateral_m", "closing_mps", "lat_speed_mps", "misalign_deg",
             "v_sp_closing_mps", "force_n", "latch_steps", "latch_engaged", "plane_mm",
             "sv_cmd", "sv_open", "tv_cmd", "tv_open", "sv_kpa", "tv_kpa", "line_kpa",
             "tv_sensed_kpa", "link_up", "fuel_lost_kg", "phase")}
-        states: list[tuple[float, str]] = []
+        states: list[tuple[float, str]]
+        self.states = states = []
         stderr_path = (self.out_dir / "sim_mcu.stderr.log") if self.out_dir else None
         if self.out_dir:
             self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -209,12 +217,14 @@ class Rig:
             from tqdm import tqdm
             bar = tqdm(total=int(sc.rig.max_time_s), unit="sim s", desc=sc.name, leave=False,
                        bar_format="{desc}: {n_fmt}/{total_fmt} sim s [{elapsed}, {rate_fmt}]")
-        metrics: dict[str, Any] = {"max_force_soft_n": 0.0, "max_force_n": 0.0, "exchanges": 0,
+        metrics: dict[str, Any]
+        self.metrics = metrics = {"max_force_soft_n": 0.0, "max_force_n": 0.0, "exchanges": 0,
                                    "exchanges_1ms": 0}
         state = "STATE_UNSPECIFIED"
         reply = None
         first_fault_s = None
         fault_flags_seen = 0
+        host_fault_flags = 0  # fault_flags in the telemetry the host received
         coils_off_after_fault_s = None
         valves_closed_after_injection_s = None
         next_guidance = 0.0
@@ -223,7 +233,11 @@ class Rig:
         wall0 = time.perf_counter()
         with SimMcu(self.mcu_path, watchdog_ms=sc.rig.watchdog_ms, build_id=f"rig-{sc.name}"[:24],
                     stderr_path=stderr_path) as mcu:
-            while self.t_s < sc.rig.max_time_s and not self.controller.finished:
+            self.mcu = mcu
+            while self.t_s < sc.rig.max_time_s:
+                if self.controller.finished and (self.between_missions is None
+                                                 or not self.between_missions(self)):
+                    break
                 adv = self._advance_ms(reply, state)
                 flags = FLAG_HANG_MAIN_LOOP if self._hang else 0
                 self._hang = False
@@ -265,6 +279,9 @@ class Rig:
                 if self._host_alive:
                     self.session.step(self.t_s)
                     self._collect_result()
+                    self.session.take_notices()  # results come through the handles; drain
+                    if self.session.telemetry is not None:
+                        host_fault_flags |= self.session.telemetry.fault_flags
                     if self.t_s >= next_guidance:
                         next_guidance += sc.rig.guidance_period_s
                         out = self.controller.step(self.t_s, self._observe())
@@ -292,6 +309,7 @@ class Rig:
             "faults_seen": sorted(self._flags_to_faults(fault_flags_seen)),
             "faults_reported_to_host": sorted({t.split()[-1] for _, t in self.events_log
                                                if t.startswith("EVT_FAULT ")}),
+            "faults_in_host_telemetry": sorted(self._flags_to_faults(host_fault_flags)),
             "fuel_lost_kg": self.mech.fuel_lost_kg,
             "tv_final_kpa": self.mech.tv_true_kpa,
             "sv_final_kpa": self.mech.sv_true_kpa,

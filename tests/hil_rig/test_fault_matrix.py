@@ -1,0 +1,63 @@
+"""The short version of the HIL fault matrix (`make fault-matrix` runs all 66 cells): one
+phase per fault and one fault per phase, each cell checked by the same code as the full
+matrix (generic invariants + the cell's expected outcome), plus the matrix's bookkeeping."""
+
+import pytest
+
+from oibar_hil.rig import matrix as mx
+from oibar_hil.rig.faults import FAULT_TYPES
+
+# Every fault once, every phase at least once (and none of them the scenario of test_scenarios).
+SUBSET = [
+    ("link_loss", "approach"), ("bit_errors", "approach"),
+    ("pressure_sensor_range", "reception"), ("latch_stall", "reception"), ("host_crash", "reception"),
+    ("valve_stuck_open", "hard_docking"), ("watchdog_reset", "hard_docking"),
+    ("pressure_sensor_stuck", "hard_docked"), ("actuator_jam", "hard_docked"),
+    ("valve_stuck_closed", "transferring"),
+    ("overpressure", "unmating"),
+]
+
+
+def test_subset_covers_every_fault_and_every_phase():
+    assert {f for f, _ in SUBSET} == set(FAULT_TYPES)
+    assert {p for _, p in SUBSET} == set(mx.PHASE_KEYS)
+
+
+def test_every_cell_has_an_expected_outcome_or_a_reason():
+    cells = mx.all_cells()
+    assert len(cells) == len(FAULT_TYPES) * len(mx.PHASES) == 66
+    for f, p in cells:
+        e = mx.expectation(f, p)
+        if isinstance(e, str):
+            assert len(e) > 20, f"{f}@{p}: n.a. needs a reason"
+            continue
+        assert e.outcome in ("completed", "aborted", "safed")
+        assert e.final_state == ("STATE_FAULT" if e.outcome == "safed" else "STATE_IDLE")
+        sc = mx.cell_scenario(f, p, e)  # the scenario loader accepts it
+        assert sc.faults[0].type == f and sc.faults[0].at_state.startswith("STATE_")
+        assert sc.expect["fuel_lost_max_kg"] == mx.FUEL_LOST_MAX_KG
+
+
+def test_not_applicable_cells_are_reported_not_skipped():
+    na = [c for c in mx.all_cells() if isinstance(mx.expectation(*c), str)]
+    r = mx.run_cell(*na[0])
+    assert r.status == "n.a." and r.reason
+    table = mx.markdown([r])
+    assert "n.a.¹" in table and "not run" in table
+
+
+@pytest.mark.parametrize("fault,phase", SUBSET, ids=[f"{f}@{p}" for f, p in SUBSET])
+def test_fault_matrix_cell(fault, phase, sim_mcu_path):
+    r = mx.run_cell(fault, phase, str(sim_mcu_path))
+    assert r.status == "pass", f"{fault}@{phase}: {r.reason}"
+    ids = {c["id"] for c in r.checks}
+    assert {"REQ-VALVES", "REQ-SAFE-END", "REQ-FORCE-HARD", "G-INJECTED", "G-END", "G-VALVES",
+            "EXP-fuel_lost_max_kg", "EXP-faults", "EXP-outcome"} <= ids
+
+
+def test_valve_failing_open_while_unmating_is_reseated_not_left_venting(sim_mcu_path):
+    # Was the matrix's one unsafe cell: FAULT stopped the plane half-mated and the line vented
+    # until the tank was empty (72 g in the run). The firmware now re-seats the plane.
+    r = mx.run_cell("valve_stuck_open", "unmating", str(sim_mcu_path))
+    assert r.status == "pass", r.reason
+    assert r.fuel_lost_kg < 0.010
