@@ -35,7 +35,11 @@ def test_every_cell_has_an_expected_outcome_or_a_reason():
         assert e.final_state == ("STATE_FAULT" if e.outcome == "safed" else "STATE_IDLE")
         sc = mx.cell_scenario(f, p, e)  # the scenario loader accepts it
         assert sc.faults[0].type == f and sc.faults[0].at_state.startswith("STATE_")
-        assert sc.expect["fuel_lost_max_kg"] == mx.FUEL_LOST_MAX_KG
+        # Nothing may vent, except where a cell states its own (small) bound and why: a valve
+        # failing open with the couplings already half-mated vents until the firmware re-seats.
+        bound = e.extra.get("fuel_lost_max_kg", mx.FUEL_LOST_MAX_KG)
+        assert sc.expect["fuel_lost_max_kg"] == bound <= 0.010
+        assert bound == mx.FUEL_LOST_MAX_KG or "vents" in e.why
 
 
 def test_not_applicable_cells_are_reported_not_skipped():
