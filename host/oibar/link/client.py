@@ -37,7 +37,7 @@ from oibar.link.errors import (
     PortError,
     ProtocolVersionError,
 )
-from oibar.link.framing import MAX_HOST_VERSION_BYTES, FrameDecoder, Packet, encode_frame
+from oibar.link.framing import FrameDecoder, Packet, check_link_settings, encode_frame
 
 _log = logging.getLogger(__name__)
 
@@ -204,12 +204,8 @@ class LinkClient:
         protocol_version: int = pb.PROTOCOL_VERSION,
         event_queue_size: int = 256,
     ) -> None:
-        if min(heartbeat_period_s, link_timeout_s, retransmit_timeout_s, reconnect_period_s) <= 0:
-            raise ValueError("periods and timeouts must be positive")
-        if max_retries < 0:
-            raise ValueError("max_retries must be >= 0")
-        if len(host_version.encode()) > MAX_HOST_VERSION_BYTES:
-            raise ValueError(f"host_version is limited to {MAX_HOST_VERSION_BYTES} bytes")
+        check_link_settings(host_version, max_retries, heartbeat_period_s, link_timeout_s,
+                            retransmit_timeout_s, reconnect_period_s)
         self.url = url
         self.baudrate = baudrate
         self.host_version = host_version

@@ -44,6 +44,18 @@ Packet = pb.Packet
 MAX_HOST_VERSION_BYTES = 16
 
 
+def check_link_settings(host_version: str, max_retries: int, *periods_s: float) -> None:
+    """Refuse settings that cannot work, before anything is opened (shared by LinkClient and
+    LinkSession): non-positive periods or timeouts, negative retries, a host version the MCU
+    could not decode (nanopb's static size: it would stay silent)."""
+    if min(periods_s) <= 0:
+        raise ValueError("periods and timeouts must be positive")
+    if max_retries < 0:
+        raise ValueError("max_retries must be >= 0")
+    if len(host_version.encode()) > MAX_HOST_VERSION_BYTES:
+        raise ValueError(f"host_version is limited to {MAX_HOST_VERSION_BYTES} bytes")
+
+
 def encode_frame(packet: Packet) -> bytes:
     """Return the wire bytes of ``packet``: COBS(0x01 + packet + CRC-32C LE) + 0x00.
 

@@ -29,7 +29,7 @@ from typing import Any, Protocol
 
 from oibar import pb
 from oibar.link.errors import LinkDown, LinkError, LinkTimeout, ProtocolVersionError
-from oibar.link.framing import MAX_HOST_VERSION_BYTES, FrameDecoder, Packet, encode_frame
+from oibar.link.framing import FrameDecoder, Packet, check_link_settings, encode_frame
 
 _log = logging.getLogger(__name__)
 
@@ -108,11 +108,8 @@ class LinkSession:
         auto_connect: bool = True,
         protocol_version: int = pb.PROTOCOL_VERSION,
     ) -> None:
-        if min(heartbeat_period_s, link_timeout_s, retransmit_timeout_s, reconnect_period_s) <= 0:
-            raise ValueError("periods and timeouts must be positive")
-        if len(host_version.encode()) > MAX_HOST_VERSION_BYTES:
-            # The MCU (nanopb, static sizes) could not decode the Handshake and stays silent.
-            raise ValueError(f"host_version is limited to {MAX_HOST_VERSION_BYTES} bytes")
+        check_link_settings(host_version, max_retries, heartbeat_period_s, link_timeout_s,
+                            retransmit_timeout_s, reconnect_period_s)
         self.transport = transport
         self.host_version = host_version
         self.heartbeat_period_s = heartbeat_period_s
