@@ -32,6 +32,7 @@
 #include <unistd.h>
 
 #include "oibar/link.h"
+#include "oibar_pty.h"
 
 #define PEER_FIRMWARE_VERSION "peer-0.1.0"
 #define PEER_TXQ_BYTES 8192u /* whole frames waiting for the pty to take them */
@@ -290,26 +291,10 @@ static void port_receive(peer_t *p)
 
 static int open_pty(void)
 {
-    const int fd = posix_openpt(O_RDWR | O_NOCTTY);
-    if (fd < 0 || grantpt(fd) != 0 || unlockpt(fd) != 0) {
-        perror("posix_openpt");
-        return -1;
-    }
-    struct termios tio;
-    if (tcgetattr(fd, &tio) == 0) {
-        /* Raw bytes both ways: no echo, no line editing, no CR/LF mapping. */
-        tio.c_iflag &= ~(tcflag_t)(IGNBRK | BRKINT | PARMRK | ISTRIP | INLCR | IGNCR | ICRNL | IXON | IXOFF);
-        tio.c_oflag &= ~(tcflag_t)OPOST;
-        tio.c_lflag &= ~(tcflag_t)(ECHO | ECHONL | ICANON | ISIG | IEXTEN);
-        tio.c_cflag &= ~(tcflag_t)(CSIZE | PARENB);
-        tio.c_cflag |= (tcflag_t)CS8;
-        tio.c_cc[VMIN] = 1;
-        tio.c_cc[VTIME] = 0;
-        (void)tcsetattr(fd, TCSANOW, &tio);
-    }
-    const char *slave_path = ptsname(fd);
-    if (slave_path == NULL) {
-        perror("ptsname");
+    char slave_path[64];
+    const int fd = oibar_pty_open_raw(slave_path, sizeof slave_path);
+    if (fd < 0) {
+        perror("pty");
         return -1;
     }
     /* Open and close the slave once: until then Linux reports no hang-up on
@@ -317,11 +302,6 @@ static int open_pty(void)
     const int slave = open(slave_path, O_RDWR | O_NOCTTY);
     if (slave >= 0) {
         (void)close(slave);
-    }
-    const int flags = fcntl(fd, F_GETFL);
-    if (flags < 0 || fcntl(fd, F_SETFL, flags | O_NONBLOCK) != 0) {
-        perror("fcntl");
-        return -1;
     }
     return fd;
 }

@@ -1,6 +1,8 @@
 /* pty master as the simulated MCU's UART (see oibar/sim_pty.h). */
 #include "oibar/sim_pty.h"
 
+#include "oibar_pty.h"
+
 #include <errno.h>
 #include <fcntl.h>
 #include <poll.h>
@@ -15,31 +17,10 @@ static uint32_t s_tx_count;
 
 bool sim_pty_open(char *path, size_t cap)
 {
-    const int fd = posix_openpt(O_RDWR | O_NOCTTY);
+    const int fd = oibar_pty_open_raw(path, cap);
     if (fd < 0) {
         return false;
     }
-    if (grantpt(fd) != 0 || unlockpt(fd) != 0) {
-        (void)close(fd);
-        return false;
-    }
-    struct termios tio;
-    if (tcgetattr(fd, &tio) == 0) {
-        /* Raw bytes both ways: no echo, no line editing, no CR/LF mapping. */
-        tio.c_iflag &= ~(tcflag_t)(IGNBRK | BRKINT | PARMRK | ISTRIP | INLCR | IGNCR | ICRNL | IXON | IXOFF);
-        tio.c_oflag &= ~(tcflag_t)OPOST;
-        tio.c_lflag &= ~(tcflag_t)(ECHO | ECHONL | ICANON | ISIG | IEXTEN);
-        tio.c_cflag &= ~(tcflag_t)(CSIZE | PARENB);
-        tio.c_cflag |= (tcflag_t)CS8;
-        (void)tcsetattr(fd, TCSANOW, &tio);
-    }
-    const char *slave = ptsname(fd);
-    const int flags = fcntl(fd, F_GETFL);
-    if (slave == NULL || flags < 0 || fcntl(fd, F_SETFL, flags | O_NONBLOCK) != 0) {
-        (void)close(fd);
-        return false;
-    }
-    (void)snprintf(path, cap, "%s", slave);
     s_fd = fd;
     return true;
 }
