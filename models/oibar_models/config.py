@@ -57,6 +57,10 @@ class ModelConfig:
     input_height_px: int = 160
     dropout: float = 0.2                     # the paper
     coord_channels: bool = False             # append normalised (u, v) maps to the input
+    # How the position head is parameterised (the graph's output is metres either way):
+    #   metres: standardised (x, y, z);  uvlogz: (x/z, y/z, ln z), i.e. where the fixture is in
+    #   the image and how far, which a convolutional net reads off far more directly
+    pos_param: str = "metres"
     temporal_layers: int = 0                 # >0: BiLSTM back-end on the CNN features (study)
 
 
@@ -71,6 +75,9 @@ class TrainConfig:
     weight_decay: float = 0.0
     init_s_r: float = 0.0                    # learned log-std of the attitude term
     init_s_t: float = 0.0                    # learned log-std of the position term
+    # L_t over the batch: metres (the paper's ||t_hat - t||) or range_normalised (||t_hat - t|| /
+    # ||t||, the paper's evaluation metric: otherwise the 10 m frames dominate the gradient)
+    pos_loss: str = "metres"
     workers: int = 1                         # DataLoader worker processes
     threads: int = 0                         # torch intra-op threads (0: leave torch's default)
     seed: int = 0

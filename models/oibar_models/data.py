@@ -340,7 +340,10 @@ def label_statistics(ds: PoseDataset) -> dict:
     from .metrics import mean_pose
     T_mean, q_mean = mean_pose(T, q)
     R_mean = quat_to_matrix_np(q_mean)
+    z = np.maximum(T[:, 2], 1e-3)
+    uvz = np.stack([T[:, 0] / z, T[:, 1] / z, np.log(z)], 1)
     return {"pos_mean_m": T.mean(0).tolist(), "pos_std_m": np.maximum(T.std(0), 0.05).tolist(),
+            "uvlogz_mean": uvz.mean(0).tolist(), "uvlogz_std": np.maximum(uvz.std(0), 0.02).tolist(),
             "mean_T_cam_target": T_mean.tolist(), "mean_q_cam_target": q_mean.tolist(),
             "rot6d_mean": rot6d_from_matrix_np(R_mean).tolist(), "frames": int(len(T))}
 

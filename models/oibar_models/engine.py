@@ -94,7 +94,8 @@ def load_checkpoint(path: str | Path, map_location="cpu"):
         raise RuntimeError(f"{path}: not an OibarNet checkpoint (no model/config entries)")
     cfg = from_dict(ck["config"])
     lab = ck["labels"]
-    net = build_model(cfg.model, lab["pos_mean_m"], lab["pos_std_m"], lab["rot6d_mean"])
+    net = build_model(cfg.model, lab["pos_mean_m"], lab["pos_std_m"], lab["rot6d_mean"],
+                      lab.get("uvlogz_mean"), lab.get("uvlogz_std"))
     net.load_state_dict(ck["model"])
     net.eval()
     return net, ck
@@ -114,11 +115,15 @@ def train(cfg, progress: bool = True, log=print) -> dict:
     (run / "labels.json").write_text(json.dumps(labels, indent=1) + "\n")
     (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
 
-    net = build_model(cfg.model, labels["pos_mean_m"], labels["pos_std_m"], labels["rot6d_mean"]).to(device)
+    net = build_model(cfg.model, labels["pos_mean_m"], labels["pos_std_m"], labels["rot6d_mean"],
+                      labels["uvlogz_mean"], labels["uvlogz_std"]).to(device)
     # channels-last roughly doubles oneDNN's CPU training speed for these convolutions (measured)
     fmt = torch.channels_last if device.type == "cpu" else torch.contiguous_format
     net = net.to(memory_format=fmt)
-    crit = UncertaintyPoseLoss(cfg.train.init_s_r, cfg.train.init_s_t).to(device)
+    if cfg.train.pos_loss not in ("metres", "range_normalised"):
+        raise ValueError(f"train.pos_loss: {cfg.train.pos_loss!r} is not metres or range_normalised")
+    crit = UncertaintyPoseLoss(cfg.train.init_s_r, cfg.train.init_s_t,
+                               range_normalised=cfg.train.pos_loss == "range_normalised").to(device)
     opt = torch.optim.Adam(list(net.parameters()) + list(crit.parameters()), lr=cfg.train.lr_max,
                            weight_decay=cfg.train.weight_decay)
 

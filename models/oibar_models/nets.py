@@ -157,8 +157,12 @@ class OibarNet(nn.Module):
 
     def __init__(self, backbone: str = "oibar_lite", width: float = 1.0, dropout: float = 0.2,
                  coord_channels: bool = False, pos_mean_m=(0.0, 0.1, 5.0), pos_std_m=(0.5, 0.5, 3.0),
-                 rot6d_mean=(1.0, 0.0, 0.0, 0.0, 1.0, 0.0)):
+                 rot6d_mean=(1.0, 0.0, 0.0, 0.0, 1.0, 0.0), pos_param: str = "metres",
+                 uvlogz_mean=(0.0, 0.0, 1.4), uvlogz_std=(0.1, 0.1, 0.8)):
         super().__init__()
+        if pos_param not in ("metres", "uvlogz"):
+            raise ValueError(f"unknown pos_param {pos_param!r}; choose metres or uvlogz")
+        self.pos_param = pos_param
         if backbone not in BACKBONES:
             raise ValueError(f"unknown backbone {backbone!r}; choose one of {sorted(BACKBONES)}")
         self.backbone_name = backbone
@@ -181,6 +185,8 @@ class OibarNet(nn.Module):
         self.register_buffer("input_std", torch.tensor(INPUT_STD).view(1, 3, 1, 1))
         self.register_buffer("pos_mean_m", torch.tensor(pos_mean_m, dtype=torch.float32))
         self.register_buffer("pos_std_m", torch.tensor(pos_std_m, dtype=torch.float32))
+        self.register_buffer("uvlogz_mean", torch.tensor(uvlogz_mean, dtype=torch.float32))
+        self.register_buffer("uvlogz_std", torch.tensor(uvlogz_std, dtype=torch.float32))
         nn.init.zeros_(self.head_t.weight)
         nn.init.zeros_(self.head_t.bias)
         nn.init.normal_(self.head_r.weight, std=1e-3)
@@ -196,8 +202,16 @@ class OibarNet(nn.Module):
             x = torch.cat([x, u, v], 1)
         return self.pool(self.dropout(self.backbone(x))).flatten(1)
 
+    def decode_position(self, raw: torch.Tensor) -> torch.Tensor:
+        """Position head output (standardised) -> T_cam_target in metres."""
+        if self.pos_param == "metres":
+            return raw * self.pos_std_m + self.pos_mean_m
+        p = raw * self.uvlogz_std + self.uvlogz_mean
+        z = torch.exp(p[..., 2:3].clamp(-5.0, 5.0))
+        return torch.cat([p[..., 0:2] * z, z], -1)
+
     def heads(self, f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.head_t(f) * self.pos_std_m + self.pos_mean_m, self.head_r(f)
+        return self.decode_position(self.head_t(f)), self.head_r(f)
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.heads(self.features(image))
@@ -227,7 +241,7 @@ class TemporalOibarNet(nn.Module):
         n, t = clip.shape[:2]
         f = self.cnn.features(clip.flatten(0, 1)).view(n, t, -1)
         h, _ = self.lstm(f)
-        return self.head_t(h) * self.cnn.pos_std_m + self.cnn.pos_mean_m, self.head_r(h)
+        return self.cnn.decode_position(self.head_t(h)), self.head_r(h)
 
 
 class PoseOutputs(nn.Module):
@@ -244,8 +258,12 @@ class PoseOutputs(nn.Module):
         return t, quat_from_matrix(R), R, r6
 
 
-def build_model(mcfg, pos_mean_m=None, pos_std_m=None, rot6d_mean=None) -> OibarNet:
-    kw = {}
+def build_model(mcfg, pos_mean_m=None, pos_std_m=None, rot6d_mean=None, uvlogz_mean=None,
+                uvlogz_std=None) -> OibarNet:
+    kw = {"pos_param": getattr(mcfg, "pos_param", "metres")}
+    for name, val in (("uvlogz_mean", uvlogz_mean), ("uvlogz_std", uvlogz_std)):
+        if val is not None:
+            kw[name] = tuple(float(x) for x in val)
     if pos_mean_m is not None:
         kw["pos_mean_m"] = tuple(float(x) for x in pos_mean_m)
     if pos_std_m is not None:
