@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oibar.nav.frames import GEOMETRY
+
 from .ports import Port
 from .rotations import matrix_to_quat
 from .trajectory import Trajectory
@@ -25,10 +27,12 @@ from .trajectory import Trajectory
 class CameraMount:
     """Camera pose in the chaser docking frame F_s (assumption): 0.12 m above the probe axis
     (-Y_s) and 0.30 m behind the shaft plane, boresight parallel to the docking axis, so the
-    fixture stays in view down to soft-dock."""
+    fixture stays in view down to soft-dock. The numbers come from oibar.nav.frames.GEOMETRY,
+    the one source shared with guidance and the HIL rig's rendered camera (plain tuples here so
+    the dataset manifest stays JSON)."""
 
-    p_s_cam_m: tuple = (0.0, -0.12, -0.30)
-    R_s_cam: tuple = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    p_s_cam_m: tuple = tuple(float(x) for x in GEOMETRY.p_s_cam_m)
+    R_s_cam: tuple = tuple(tuple(float(x) for x in row) for row in np.asarray(GEOMETRY.R_s_cam))
 
 
 MOUNT = CameraMount()

@@ -91,8 +91,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="target pressure sent with the commands (used by START_TRANSFER)",
     )
     from oibar.calib.cli import register as register_calib
+    from oibar.nav.cli import register as register_nav
 
     register_calib(sub)
+    register_nav(sub)
     return parser
 
 
@@ -138,7 +140,7 @@ def _main(argv: Sequence[str] | None) -> int:
     if hasattr(args, "handler"):  # subcommand groups registered from their own modules
         from oibar.calib.cli import run
 
-        return run(args)
+        return getattr(args, "run", run)(args)
     if args.subcommand == "link":
         try:
             opcodes = [parse_opcode(name) for name in args.commands]

@@ -66,3 +66,13 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of a rotation matrix, degrees (0..180)."""
     c = (np.trace(R) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """Inverse of rotvec_to_matrix (angle in 0..pi), via the quaternion for stability near 0."""
+    q = matrix_to_quat(R)
+    s = float(np.linalg.norm(q[1:]))
+    if s < 1e-12:
+        return np.zeros(3)
+    angle = 2.0 * np.arctan2(s, q[0])
+    return q[1:] / s * angle

@@ -1,5 +1,6 @@
 """The OIBAR HIL rig (issue 5): the real firmware on a simulated MCU, in lockstep with a
-simulated approach and mechanism, driven by a host link session on simulated time.
+simulated approach and mechanism, driven by the host's guidance (oibar.nav.guidance) and link
+session on simulated time.
 
 Modules, one idea each:
   lockstep    the plant's end of the lockstep channel; the sim-MCU process
@@ -8,7 +9,8 @@ Modules, one idea each:
   mechanism   probe/drogue, latches, plane, valves, tanks and sensors
   faults      fault injection by scenario
   scenario    YAML scenario files
-  controller  the STAND-IN mission controller (replaced by the navigation daemon later)
+  navigation  what guidance is told: ground truth, or the rendered camera + the host's navigator
+  camera      the rendered camera (the synthetic world's renderer for the rig's current pose)
   runner      the lockstep loop and the measurements
   checks      requirements and expected outcomes, pass/fail
   report      the mission report (HTML + PNG plots)

@@ -1,11 +1,17 @@
 """Command line of the rig.
 
-    python -m oibar_hil.rig demo                  the nominal mission, summary table, report path
+    python -m oibar_hil.rig demo                  the nominal mission with the CNN in the loop
+    python -m oibar_hil.rig --nav truth demo      the same on ground-truth navigation
     python -m oibar_hil.rig run SCENARIO.yaml...  run scenarios, one report each
     python -m oibar_hil.rig all [--dir DIR]       every scenario in hil/scenarios, summary table
 
 Reports go to build/hil/<scenario>/report.html (``--out`` to change). Exit status 1 when a
-scenario fails one of its checks.
+scenario fails one of its checks, 2 when the model or the rendered camera cannot be set up.
+
+Navigation (``--nav``): ``cnn`` renders the camera and runs the host's navigator (OibarNet on
+onnxruntime, checks, filter) every guidance cycle; ``truth`` gives guidance the true pose. The
+demo defaults to ``cnn``; ``run`` and ``all`` (the fault scenarios: they test the mechanism and
+the link) default to ``truth``.
 """
 
 from __future__ import annotations
@@ -26,11 +32,12 @@ DEFAULT_OUT = REPO_ROOT / "build" / "hil"
 
 def run_scenario(scenario: Scenario | str | Path, *, out_root: Path | None = DEFAULT_OUT,
                  progress: bool = False, mcu_path: Path | None = None,
-                 report: bool = True) -> RunResult:
+                 report: bool = True, nav: str = "truth", nav_options: dict | None = None) -> RunResult:
     """Run one scenario, check it, and (by default) write its report."""
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     out_dir = (Path(out_root) / sc.name) if out_root else None
-    result = Rig(sc, mcu_path=mcu_path, out_dir=out_dir, progress=progress).run()
+    result = Rig(sc, mcu_path=mcu_path, out_dir=out_dir, progress=progress, nav=nav,
+                 nav_options=nav_options).run()
     result.checks = evaluate(result)
     if report and out_dir is not None:
         result.report_path = write_report(result, out_dir)
@@ -53,11 +60,31 @@ def _print_checks(r: RunResult) -> None:
         print(f"  [{verdict}] {c.id:<32} {c.text}  ({c.measured})")
 
 
+def _print_nav(r: RunResult) -> None:
+    m = r.metrics
+    if m.get("nav") != "cnn":
+        return
+    print(f"  navigation: {m.get('nav_cycles', 0)} cycles, {m.get('nav_hold_cycles', 0)} held; "
+          f"range error median {m.get('nav_range_err_m_median', float('nan')) * 100:.1f} cm, "
+          f"lateral error median {m.get('nav_lateral_err_m_median', float('nan')) * 100:.1f} cm "
+          f"(p99 {m.get('nav_lateral_err_m_p99', float('nan')) * 100:.1f} cm), "
+          f"misalignment error median {m.get('nav_misalign_err_deg_median', float('nan')):.2f} deg")
+    print(f"  navigator time per cycle (frame in -> solution out, render excluded): median "
+          f"{m.get('nav_ms_median', float('nan')):.1f} ms, p99 {m.get('nav_ms_p99', float('nan')):.1f} ms; "
+          f"render median {m.get('render_ms_median', float('nan')):.1f} ms")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m oibar_hil.rig", description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="report folder root")
     ap.add_argument("--mcu", type=Path, default=None, help=f"simulated MCU (default {default_mcu_path()})")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--nav", choices=("truth", "cnn"), default=None,
+                    help="navigation source (default: cnn for demo, truth for run/all)")
+    ap.add_argument("--model", type=Path, default=None, help="ONNX model for --nav cnn (default models/oibarnet_lite.onnx)")
+    ap.add_argument("--scene", default="seq01", help="rendered scene for --nav cnn (a dataset sequence, default seq01)")
+    ap.add_argument("--start-range-m", type=float, default=None, help="override the scenario's start range")
+    ap.add_argument("--json", type=Path, default=None, help="also write the results' metrics as JSON here")
     sub = ap.add_subparsers(dest="cmd", required=True)
     sub.add_parser("demo", help="the nominal mission from 10 m")
     p_run = sub.add_parser("run", help="run the given scenario files")
@@ -72,18 +99,40 @@ def main(argv: list[str] | None = None) -> int:
         paths = args.scenarios
     else:
         paths = sorted(args.dir.glob("*.yaml"))
+    nav = args.nav or "truth"  # the demo switches to cnn with the shipped model
+    nav_options = {"model_path": args.model, "scene": args.scene} if nav == "cnn" else None
     results = []
     t0 = time.perf_counter()
     for path in paths:
-        r = run_scenario(path, out_root=args.out, progress=not args.no_progress, mcu_path=args.mcu)
+        sc = load_scenario(path)
+        if args.start_range_m is not None:
+            sc.start.range_m = args.start_range_m
+        try:
+            r = run_scenario(sc, out_root=args.out, progress=not args.no_progress, mcu_path=args.mcu,
+                             nav=nav, nav_options=nav_options)
+        except Exception as exc:
+            from oibar.nav.pose import ModelFileError
+            if not isinstance(exc, ModelFileError) and type(exc).__name__ != "RigCameraError":
+                raise
+            print(f"error: {exc}\n(--nav truth runs the mission on ground-truth navigation)", file=sys.stderr)
+            return 2
         results.append(r)
         print(f"{r.scenario.name}: {r.outcome}, {'PASS' if r.passed else 'FAIL'} "
-              f"({r.sim_time_s:.1f} s simulated in {r.wall_time_s:.2f} s, {r.speed_factor:.0f}x real time)")
+              f"({r.sim_time_s:.1f} s simulated in {r.wall_time_s:.2f} s, {r.speed_factor:.1f}x real time, "
+              f"navigation: {nav})")
+        _print_nav(r)
         if args.cmd != "all" or not r.passed:
             _print_checks(r)
         print(f"  report: {r.report_path}")
     print()
     print_summary(results)
+    if args.json:
+        import json
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps([{"scenario": r.scenario.name, "outcome": r.outcome, "passed": r.passed,
+                                           "sim_time_s": r.sim_time_s, "wall_time_s": r.wall_time_s,
+                                           "speed_factor": r.speed_factor, "metrics": r.metrics}
+                                          for r in results], indent=1, default=str) + "\n")
     if len(results) > 1:
         print(f"{sum(r.passed for r in results)}/{len(results)} scenarios passed "
               f"in {time.perf_counter() - t0:.1f} s")

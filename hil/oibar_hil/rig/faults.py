@@ -3,7 +3,7 @@
 A scenario lists faults, each with a trigger (``at_s`` simulated seconds, or ``at_state``: the
 first time the MCU enters that state, plus ``after_s``) and an optional ``duration_s`` (the
 fault clears by itself afterwards; without it the fault stays). docs/hil.md lists every type
-with the outcome the firmware and the stand-in controller should produce.
+with the outcome the firmware and the host guidance should produce.
 """
 
 from __future__ import annotations

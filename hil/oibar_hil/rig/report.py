@@ -139,6 +139,41 @@ def _plot_fluid(result: Any, path: Path) -> None:
     plt.close(fig)
 
 
+def _plot_navigation(result: Any, path: Path) -> None:
+    """The navigator's estimate beside the truth (CNN in the loop)."""
+    log = result.nav_log
+    t = np.array([r["t_s"] for r in log])
+    def col(k):
+        return np.array([r.get(k, np.nan) for r in log], dtype=float)
+    hold = np.array([bool(r["hold_reason"]) for r in log])
+    fig, axs = plt.subplots(4, 1, figsize=(11, 9), sharex=True)
+    axs[0].plot(t, col("range_true_m"), color="k", lw=1.2, label="true")
+    axs[0].plot(t, col("range_est_m"), color="tab:blue", lw=0.9, label="navigator")
+    axs[0].set_ylabel("probe range [m]")
+    axs[0].legend(fontsize=8)
+    axs[1].semilogy(t, np.maximum(col("lateral_err_m") * 100, 1e-2), color="tab:red", lw=0.9)
+    axs[1].axhline(2.0, color="gray", ls=":", label="gate 2 cm")
+    axs[1].set_ylabel("lateral error [cm]")
+    axs[1].legend(fontsize=8)
+    axs[2].plot(t, col("misalign_true_deg"), color="k", lw=1.2, label="true")
+    axs[2].plot(t, col("misalign_est_deg"), color="tab:blue", lw=0.9, label="navigator")
+    axs[2].set_ylabel("misalignment [deg]")
+    axs[2].legend(fontsize=8)
+    axs[3].plot(t, col("nav_ms"), color="tab:purple", lw=0.8, label="navigator (estimate + filter)")
+    axs[3].plot(t, col("render_ms"), color="tab:gray", lw=0.6, alpha=0.7, label="render (rig only)")
+    axs[3].set_ylabel("time per cycle [ms]")
+    axs[3].legend(fontsize=8)
+    for ax in axs:
+        for th in t[hold]:
+            ax.axvline(th, color="orange", alpha=0.15, lw=0.8)
+        ax.grid(alpha=0.3)
+    axs[-1].set_xlabel("simulated time [s]")
+    axs[0].set_title("navigation: estimate vs truth (orange: cycles that held)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def summary_dict(result: Any) -> dict[str, Any]:
     return {
         "scenario": result.scenario.name,
@@ -158,6 +193,8 @@ def write_report(result: Any, out_dir: Path) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
     plots = [("timeline.png", _plot_timeline), ("approach.png", _plot_approach),
              ("mechanism.png", _plot_mechanism), ("fluid.png", _plot_fluid)]
+    if getattr(result, "nav_log", None) and result.metrics.get("nav") == "cnn":
+        plots.insert(2, ("navigation.png", _plot_navigation))
     for name, fn in plots:
         fn(result, out_dir / name)
     (out_dir / "summary.json").write_text(json.dumps(summary_dict(result), indent=2, default=str))
@@ -185,6 +222,14 @@ def write_report(result: Any, out_dir: Path) -> Path:
         "CRC errors host / MCU": f"{m['host_rx_crc_errors']} / {m['mcu_rx_crc_errors']}",
         "wire": ", ".join(f"{k} {v}" for k, v in m["wire"].items()),
     }
+    if m.get("nav") == "cnn":
+        key_metrics["navigation (CNN) cycles / held"] = f"{m.get('nav_cycles')} / {m.get('nav_hold_cycles')}"
+        key_metrics["navigation errors (median)"] = (
+            f"range {m.get('nav_range_err_m_median', float('nan')) * 100:.1f} cm, lateral "
+            f"{m.get('nav_lateral_err_m_median', float('nan')) * 100:.1f} cm, misalignment "
+            f"{m.get('nav_misalign_err_deg_median', float('nan')):.2f} deg")
+        key_metrics["navigator time per cycle median / p99 [ms]"] = (
+            f"{m.get('nav_ms_median', float('nan')):.1f} / {m.get('nav_ms_p99', float('nan')):.1f}")
     km = "".join(f"<tr><td>{e(k)}</td><td>{e(str(v))}</td></tr>" for k, v in key_metrics.items())
     imgs = "".join(f"<p><img src='{name}' alt='{name}'></p>" for name, _ in plots)
     page = f"""<!doctype html><html><head><meta charset="utf-8">
@@ -198,7 +243,8 @@ tr.bad td:last-child{{background:#fbb}} tr.na td:last-child{{background:#eee}} i
 <p class="verdict">{verdict}: outcome <i>{e(result.outcome)}</i></p>
 <p>Simulated {result.sim_time_s:.1f} s in {result.wall_time_s:.2f} s wall time:
 <b>{result.speed_factor:.0f}x real time</b> (the real firmware on the simulated MCU, lockstep plant,
-ground-truth navigation, stand-in mission controller). Seed {sc.seed}.</p>
+{"the CNN in the loop on the rendered camera" if m.get("nav") == "cnn" else "ground-truth navigation"},
+the host's guidance). Seed {sc.seed}.</p>
 <h2>Requirements and expected outcome</h2>
 <table><tr><th>id</th><th>requirement</th><th>measured</th><th>verdict</th></tr>{rows}</table>
 <h2>Key numbers</h2><table>{km}</table>

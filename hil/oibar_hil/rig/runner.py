@@ -25,11 +25,11 @@ import numpy as np
 
 from oibar import pb
 from oibar.link.session import LinkSession
-from oibar_hil.rig.controller import (MechRequest, Observation, RequestResult,
-                                      StandInController)
+from oibar.nav.guidance import Guidance, MechRequest, Observation, RequestResult
 from oibar_hil.rig.faults import FaultInjector
 from oibar_hil.rig.lockstep import FLAG_HANG_MAIN_LOOP, RESET_CAUSES, SimMcu
 from oibar_hil.rig.mechanism import Mechanism, MechanismParams
+from oibar_hil.rig.navigation import make_nav
 from oibar_hil.rig.scenario import FIRMWARE_PARAM_IDS, Scenario
 from oibar_hil.rig.wire import Wire
 from oibar_hil.rig.world import VehicleParams, World, WorldState
@@ -58,6 +58,7 @@ class RunResult:
     capture_attempts: list
     metrics: dict[str, Any]
     checks: list = field(default_factory=list)  # filled by checks.evaluate
+    nav_log: list = field(default_factory=list)  # per guidance cycle: estimate beside truth
     report_path: Path | None = None
 
     @property
@@ -73,7 +74,8 @@ class Rig:
     def __init__(self, scenario: Scenario, *, mcu_path: Path | None = None,
                  out_dir: Path | None = None, progress: bool = False,
                  controller_factory: Callable[..., Any] | None = None,
-                 between_missions: Callable[["Rig"], bool] | None = None) -> None:
+                 between_missions: Callable[["Rig"], bool] | None = None,
+                 nav: str | Any = "truth", nav_options: dict | None = None) -> None:
         self.sc = scenario
         # Called once per exchange while the controller reports the mission finished; it
         # returns True to keep the run going (it may install a new controller and world:
@@ -85,9 +87,10 @@ class Rig:
         self.progress = progress
         self.rng = np.random.default_rng(scenario.seed)
         self.controller_factory = controller_factory or (
-            lambda: StandInController(scenario.mission,
-                                      {FIRMWARE_PARAM_IDS[k]: float(v)
-                                       for k, v in scenario.firmware_params.items()}))
+            lambda: Guidance(scenario.mission,
+                             {FIRMWARE_PARAM_IDS[k]: float(v) for k, v in scenario.firmware_params.items()}))
+        # navigation: "truth" (reference) or "cnn" (rendered camera + the host's Navigator)
+        self.nav = make_nav(nav, **(nav_options or {})) if isinstance(nav, str) else nav
         st = scenario.start
         world_state = WorldState(
             r_D_m=np.array([st.lateral_m[0], st.lateral_m[1], st.range_m], dtype=float),
@@ -168,19 +171,53 @@ class Rig:
         self.requests_log.append((self.t_s, req.label, verdict + (f" -> {res.state}" if res.state else "")))
 
     def _observe(self) -> Observation:
-        w = self.world
-        t_ct, q_ct = w.pose_cam_target()
         events = self.session.take_events()
         for ev in events:
             self.events_log.append((self.t_s, self._event_text(ev)))
-        obs = Observation(
-            t_s=self.t_s, r_D_m=w.s.r_D_m.copy(), v_D_mps=w.s.v_D_mps.copy(),
-            att_rad=w.s.att_rad.copy(), range_m=w.range_m, closing_speed_mps=w.closing_speed_mps,
-            misalignment_deg=w.misalignment_deg, t_cam_target_m=t_ct, q_cam_target=q_ct,
-            link_up=self.session.link_up, telemetry=self.session.telemetry, events=events,
-            results=self.results)
+        sol = self.nav.solve(self.t_s, self.world)
+        self._record_nav(sol)
+        obs = Observation(t_s=self.t_s, nav=sol, link_up=self.session.link_up,
+                          telemetry=self.session.telemetry, events=events, results=self.results)
         self.results = []
         return obs
+
+    def _record_nav(self, sol: Any) -> None:
+        """The estimate beside the truth, per guidance cycle (report plots, metrics)."""
+        w = self.world
+        est_lat = sol.r_D_m[:2] if sol.valid else np.full(2, np.nan)
+        self.nav_log.append({
+            "t_s": self.t_s, "valid": bool(sol.valid), "hold_reason": sol.hold_reason,
+            "range_true_m": w.range_m, "range_est_m": sol.range_m if sol.valid else float("nan"),
+            "lateral_err_m": float(np.linalg.norm(est_lat - w.s.r_D_m[:2])),
+            "closing_true_mps": w.closing_speed_mps,
+            "closing_est_mps": sol.closing_speed_mps if sol.valid else float("nan"),
+            "misalign_true_deg": w.misalignment_deg,
+            "misalign_est_deg": sol.misalignment_deg if sol.valid else float("nan"),
+            "confidence": sol.confidence, **getattr(self.nav, "last_timings_ms", {})})
+
+    def nav_metrics(self) -> dict[str, Any]:
+        log = self.nav_log
+        if not log:
+            return {}
+        valid = [r for r in log if r["valid"]]
+        out: dict[str, Any] = {"nav": self.nav.name, "nav_cycles": len(log),
+                               "nav_hold_cycles": sum(1 for r in log if r["hold_reason"])}
+        if valid:
+            rng = np.array([abs(r["range_est_m"] - r["range_true_m"]) for r in valid])
+            rel = rng / np.maximum(np.array([abs(r["range_true_m"]) for r in valid]) + 0.57, 0.3)
+            lat = np.array([r["lateral_err_m"] for r in valid])
+            mis = np.array([abs(r["misalign_est_deg"] - r["misalign_true_deg"]) for r in valid])
+            out.update({"nav_range_err_m_median": float(np.median(rng)), "nav_range_err_pct_median": float(np.median(rel) * 100),
+                        "nav_lateral_err_m_median": float(np.median(lat)), "nav_lateral_err_m_p99": float(np.percentile(lat, 99)),
+                        "nav_misalign_err_deg_median": float(np.median(mis))})
+        ms = [r["nav_ms"] for r in log if "nav_ms" in r]
+        if ms:
+            out.update({"nav_ms_median": float(np.median(ms)), "nav_ms_p99": float(np.percentile(ms, 99)),
+                        "nav_ms_max": float(np.max(ms))})
+        rend = [r["render_ms"] for r in log if "render_ms" in r]
+        if rend:
+            out["render_ms_median"] = float(np.median(rend))
+        return out
 
     @staticmethod
     def _event_text(ev: Any) -> str:
@@ -202,6 +239,7 @@ class Rig:
         self.events_log: list[tuple[float, str]] = []
         self._new_host()
         samples: dict[str, list]
+        self.nav_log: list[dict] = []
         self.samples = samples = {k: [] for k in (
             "t_s", "state", "range_m", "lateral_m", "closing_mps", "lat_speed_mps", "misalign_deg",
             "v_sp_closing_mps", "force_n", "latch_steps", "latch_engaged", "plane_mm",
@@ -298,6 +336,8 @@ class Rig:
                         bar.update(int(self.t_s) - bar.n)
             final = mcu.last
         wall = time.perf_counter() - wall0
+        self.nav.close()
+        metrics.update(self.nav_metrics())
         if bar is not None:
             bar.close()
         self._record(samples, state, out)
@@ -338,7 +378,7 @@ class Rig:
         notes = sorted(self.notes + self.controller.notes + self.faults.log)
         return RunResult(sc, self.controller.outcome, self.t_s, wall, samples, states,
                          self.requests_log, self.events_log, notes, self.mech.capture_record,
-                         self.mech.capture_attempts, metrics)
+                         self.mech.capture_attempts, metrics, nav_log=list(self.nav_log))
 
     @staticmethod
     def _flags_to_faults(flags: int) -> set[str]:

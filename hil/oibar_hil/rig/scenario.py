@@ -9,6 +9,7 @@ from typing import Any
 
 import yaml
 
+from oibar.nav.guidance import MissionParams as MissionSpec  # the host's mission parameters
 from oibar_hil.rig.faults import FaultSpec
 
 # Firmware parameter ids by name (firmware/app/src/params.c; ids are part of the host contract).
@@ -39,13 +40,6 @@ class StartCondition:
     misalignment_deg: tuple[float, float] = (2.0, -1.5)  # about camera x (pitch), y (yaw)
     closing_speed_mps: float = 0.0
 
-
-@dataclass
-class MissionSpec:
-    target_kpa: float = 1200.0
-    arm_range_m: float = 2.0
-    retreat_to_m: float = 2.0
-    final_closing_mps: float = 0.03
 
 
 @dataclass

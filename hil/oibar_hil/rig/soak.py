@@ -8,7 +8,7 @@ soft and hard dock, fill 300 -> 600 kPa, unmate, separate, back off). Between mi
 rig's ``between_missions`` hook records the mission, samples memory, then turns the plant
 around for the next one without touching the MCU or the link: the tanks are brought back to
 their initial pressures slowly (300 kPa/s, inside the firmware's rate check: "the next target
-vehicle, the supply topped up"), and a fresh world (the SV back at 1.2 m) and stand-in
+vehicle, the supply topped up"), and a fresh world (the SV back at 1.2 m) and guidance
 controller are installed. The firmware never restarts, so whatever it leaks accumulates.
 
 Measured:
@@ -146,7 +146,7 @@ class Soak:
         # What a long-running host would rotate: the per-mission recorder and logs.
         for v in rig.samples.values():
             v.clear()
-        for log in (rig.states, rig.requests_log, rig.events_log, rig.notes):
+        for log in (rig.states, rig.requests_log, rig.events_log, rig.notes, rig.nav_log):
             log.clear()
         m["max_force_n"] = m["max_force_soft_n"] = 0.0
         mech.capture_record = None

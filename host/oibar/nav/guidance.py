@@ -1,20 +1,29 @@
-"""STAND-IN mission controller for the rig: ground-truth guidance plus the mechanism command
-sequence. The navigation-daemon issue replaces it with the real host daemon (camera, OibarNet,
-filter, guidance); keep the interface so that swap is one line in the runner:
+"""Guidance: which phase, what relative velocity to command, when to send which mechanism
+command, when to hold or retreat (SPEC sections 2 and 5). It runs on the companion computer
+inside the navigation daemon (oibar.nav.core) and, unchanged, in the HIL rig.
 
-    output = controller.step(t_s, observation)   # -> ControllerOutput
+    output = guidance.step(t_s, observation)   # -> GuidanceOutput
 
-``Observation`` carries the relative pose (here ground truth; later the navigation filter's
-estimate), the latest MCU telemetry, new MCU events and the results of the commands this
-controller asked for. ``ControllerOutput`` carries the relative-velocity setpoint for the
-vehicle interface, a NavUpdate for the MCU, and at most one mechanism request (stop and wait).
+``Observation`` carries the navigation solution (the filtered CNN estimate, or ground truth in
+the rig's reference runs), the latest MCU telemetry, new MCU events and the results of the
+commands this guidance asked for. ``GuidanceOutput`` carries the relative-velocity setpoint for
+the vehicle interface, a NavUpdate for the MCU, and at most one mechanism request (stop and wait).
 
-Mission (SPEC section 2): approach in phases with closing-speed limits below the capture
-envelope, hold at a gate until the MCU is armed and the alignment is good, push gently into the
+Mission: approach in phases with closing-speed limits below the capture envelope (50 mm/s,
+10 deg), hold at a gate until the MCU is armed and the alignment is good, push gently into the
 drogue until the latches engage, then DOCK, HARD_DOCK, ARM_TRANSFER, START_TRANSFER(target),
-wait for the fill, SEPARATE, back away. Abort paths: any FAULT -> try CLEAR_FAULT (the MCU then
-safes through ABORTING) -> SEPARATE -> retreat; a fill that stops progressing -> ABORT; a
-capture the MCU will not confirm -> ABORT. A fault that cannot be cleared -> hold ("safed").
+wait for the fill, SEPARATE, back away.
+
+Hold and abort rules:
+- navigation not trustworthy this cycle (no fresh frame, low confidence, gated outlier):
+  hold (zero relative velocity) in free flight;
+- navigation lost for ``nav_lost_abort_s``: abort the mission and back off blind along the
+  docking axis for ``blind_retreat_s``, then hold;
+- link down: no mechanism command is sent, and the vehicle holds in free flight;
+- any MCU FAULT -> CLEAR_FAULT (the MCU safes through ABORTING) -> SEPARATE -> retreat; a fill
+  that stops progressing -> ABORT; a capture the MCU will not confirm -> ABORT; a fault that
+  cannot be cleared -> hold ("safed").
+All numbers are assumptions, named below with their units.
 """
 
 from __future__ import annotations
@@ -40,6 +49,7 @@ SEPARATION_BACKOFF_MPS = 0.03  # helps the spring-damper pre-load extract the pr
 VALVES_CLOSED_BEFORE_SEPARATE_S = 0.5  # host-side guard: never unmate with a valve reading open
 RECEPTION_PUSH_MPS = 0.05   # thrust demand after contact: ~7.5 N, enough to seat the latches
 
+FREE_FLIGHT_STATES = {"STATE_UNSPECIFIED", "STATE_BOOT", "STATE_IDLE", "STATE_APPROACH_READY"}
 DOCKED_STATES = {"STATE_RECEPTION", "STATE_SOFT_DOCKED", "STATE_HARD_DOCKING", "STATE_HARD_DOCKED",
                  "STATE_TRANSFER_ARMED", "STATE_TRANSFERRING", "STATE_UNMATING",
                  "STATE_LATCH_RELEASE", "STATE_ABORTING", "STATE_FAULT"}
@@ -66,16 +76,46 @@ class RequestResult:
 
 
 @dataclass
+class MissionParams:
+    target_kpa: float = 1200.0       # TV tank fill target
+    arm_range_m: float = 2.0         # send APPROACH_ARM inside this range
+    retreat_to_m: float = 2.0        # back off to here after separation or an abort
+    final_closing_mps: float = 0.03  # closing speed into the drogue (capture envelope: 0.05)
+    nav_lost_abort_s: float = 5.0    # no trustworthy navigation this long in free flight: abort
+    blind_retreat_s: float = 10.0    # then back off along +z_D this long without navigation
+
+
+@dataclass
+class NavSolution:
+    """What guidance needs from navigation, in the docking frame D (oibar.nav.frames)."""
+
+    valid: bool
+    r_D_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    v_D_mps: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    att_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    misalignment_deg: float = 0.0
+    t_cam_target_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    q_cam_target: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+    confidence: float = 0.0
+    hold_reason: str = ""            # non-empty: do not move on this solution (why)
+
+    @property
+    def range_m(self) -> float:
+        return float(self.r_D_m[2])
+
+    @property
+    def closing_speed_mps(self) -> float:
+        return float(-self.v_D_mps[2])
+
+    @property
+    def lateral_m(self) -> float:
+        return float(np.hypot(self.r_D_m[0], self.r_D_m[1]))
+
+
+@dataclass
 class Observation:
     t_s: float
-    r_D_m: np.ndarray
-    v_D_mps: np.ndarray
-    att_rad: np.ndarray
-    range_m: float
-    closing_speed_mps: float
-    misalignment_deg: float
-    t_cam_target_m: np.ndarray
-    q_cam_target: np.ndarray
+    nav: NavSolution
     link_up: bool
     telemetry: Any
     events: list = field(default_factory=list)
@@ -83,7 +123,7 @@ class Observation:
 
 
 @dataclass
-class ControllerOutput:
+class GuidanceOutput:
     v_sp_D_mps: np.ndarray
     w_sp_rad_s: np.ndarray
     nav: Any
@@ -95,12 +135,12 @@ def _name(enum: Any, value: int) -> str:
     return pb.enum_name(enum, value)
 
 
-class StandInController:
+class Guidance:
     """Telemetry-driven: each step looks at the MCU's state and decides, so a restarted host
     (a new instance) picks the mission up where the MCU is."""
 
-    def __init__(self, mission: Any, firmware_params: dict[int, float] | None = None) -> None:
-        self.m = mission
+    def __init__(self, mission: MissionParams | None = None, firmware_params: dict[int, float] | None = None) -> None:
+        self.m = mission or MissionParams()
         self.param_queue = [MechRequest("param_set", param_id=i, value=v, label=f"PARAM_SET {i}={v:g}")
                             for i, v in (firmware_params or {}).items()]
         self.awaiting: MechRequest | None = None
@@ -119,6 +159,8 @@ class StandInController:
         self._frame_id = 0
         self._dock_sent = False
         self._valves_closed_since: float | None = None
+        self._nav_bad_since: float | None = None
+        self._blind_retreat_until: float | None = None
 
     # -- bookkeeping --------------------------------------------------------------------
 
@@ -175,7 +217,8 @@ class StandInController:
             return self.param_queue.pop(0)
         done_docking = self.filled or self.mission_aborted
         if state == "STATE_IDLE":
-            if not self.contacted and not self.mission_aborted and obs.range_m <= self.m.arm_range_m:
+            if not self.contacted and not self.mission_aborted and self._trusted(obs) \
+                    and obs.nav.range_m <= self.m.arm_range_m:
                 return self._cmd(pb.CMD_APPROACH_ARM)
         elif state == "STATE_APPROACH_READY":
             if self.mission_aborted:
@@ -235,22 +278,40 @@ class StandInController:
             return 0.04, "ALIGNMENT"
         return self.m.final_closing_mps, "SOFT_DOCK"
 
+    @staticmethod
+    def _trusted(obs: Observation) -> bool:
+        return bool(obs.nav.valid and not obs.nav.hold_reason)
+
     def _guidance(self, obs: Observation, state: str, tm: Any) -> tuple[np.ndarray, np.ndarray, str]:
-        r = obs.range_m
-        lat = obs.r_D_m[:2]
+        nav = obs.nav
+        trusted = self._trusted(obs)
+        r = nav.range_m
+        lat = nav.r_D_m[:2]
         v_lat = np.clip(-0.3 * lat, -0.05, 0.05)
-        w = np.clip(-0.5 * obs.att_rad, -np.radians(0.5), np.radians(0.5))
+        w = np.clip(-0.5 * nav.att_rad, -np.radians(0.5), np.radians(0.5))
         contact = bool(tm.contact) if tm is not None else False
+        hold = (np.zeros(3), np.zeros(3), "HOLD")
         if self.finished:
-            return np.zeros(3), np.zeros(3), "HOLD"
+            return hold
+        if self._blind_retreat_until is not None and obs.t_s < self._blind_retreat_until \
+                and state not in DOCKED_STATES:
+            # Navigation lost: back off along the docking axis, the one direction that cannot
+            # hit the target, without attitude commands.
+            return np.array([0.0, 0.0, RETREAT_SPEED_MPS]), np.zeros(3), "RETREAT"
         if state in ("STATE_SEPARATING", "STATE_LATCH_RESET") or (
                 (self.contacted or self.mission_aborted) and state == "STATE_IDLE"):
-            if contact or r < 0.0:
+            if contact or (trusted and r < 0.0):
                 return np.array([0.0, 0.0, SEPARATION_BACKOFF_MPS]), np.zeros(3), "RETREAT"
+            if not trusted:
+                return hold
             vz = RETREAT_SPEED_MPS if r < self.m.retreat_to_m else 0.0
             return np.array([0.0, 0.0, vz]), w, "RETREAT"
         if state == "STATE_RECEPTION" and not (tm and tm.latch_engaged) and not self.mission_aborted:
             return np.array([0.0, 0.0, -RECEPTION_PUSH_MPS]), np.zeros(3), "SOFT_DOCK"
+        if not trusted or not obs.link_up:
+            # Free flight (or docked) on navigation we may not act on, or with the MCU out of
+            # reach: hold. Docked, holding is what the mechanism needs anyway.
+            return hold
         if contact or state in DOCKED_STATES or self.mission_aborted:
             if not contact and r > 0.0 and state not in DOCKED_STATES:
                 vz = RETREAT_SPEED_MPS if r < self.m.retreat_to_m else 0.0
@@ -258,7 +319,7 @@ class StandInController:
             return np.zeros(3), np.zeros(3), "HOLD"
         closing, phase = self._closing_speed_for(r)
         gate_ok = (state == "STATE_APPROACH_READY" and float(np.hypot(*lat)) <= GATE_MAX_LATERAL_M
-                   and obs.misalignment_deg <= GATE_MAX_MISALIGN_DEG)
+                   and nav.misalignment_deg <= GATE_MAX_MISALIGN_DEG)
         if r <= HOLD_GATE_RANGE_M + 0.05 and not gate_ok:
             # Hold at the gate: a proportional brake onto the gate range.
             closing = float(np.clip(0.2 * (r - HOLD_GATE_RANGE_M), -0.02, closing))
@@ -266,24 +327,43 @@ class StandInController:
         return np.array([v_lat[0], v_lat[1], -closing]), w, phase
 
     def _nav(self, obs: Observation, phase: str) -> Any:
+        n = obs.nav
         self._frame_id += 1
         nav = pb.NavUpdate()
         nav.frame_id = self._frame_id
         nav.stamp_ms = int(obs.t_s * 1000.0) & 0xFFFFFFFF
         nav.t_cam_target_m.x, nav.t_cam_target_m.y, nav.t_cam_target_m.z = (
-            float(v) for v in obs.t_cam_target_m)
-        q = obs.q_cam_target
+            float(v) for v in n.t_cam_target_m)
+        q = n.q_cam_target
         nav.q_cam_target.w, nav.q_cam_target.x, nav.q_cam_target.y, nav.q_cam_target.z = (
             float(v) for v in q)
-        nav.range_m = float(obs.range_m)
-        nav.closing_speed_mps = float(obs.closing_speed_mps)
+        nav.range_m = float(n.range_m)
+        nav.closing_speed_mps = float(n.closing_speed_mps)
         nav.phase = pb.NavPhase.Value("NAV_PHASE_" + ("SOFT_DOCK" if phase == "SOFT_DOCK" else phase))
-        nav.confidence = 1.0  # ground truth
+        nav.confidence = float(n.confidence) if n.valid else 0.0
         return nav
 
     # -- the interface ------------------------------------------------------------------
 
-    def step(self, t_s: float, obs: Observation) -> ControllerOutput:
+    def _watch_navigation(self, t_s: float, obs: Observation, state: str, tm: Any) -> None:
+        """Navigation lost in free flight for too long: abort and back off blind."""
+        free_flight = state in FREE_FLIGHT_STATES and not (tm is not None and tm.contact)
+        if self._trusted(obs) or not free_flight:
+            self._nav_bad_since = None
+            return
+        if self._nav_bad_since is None:
+            self._nav_bad_since = t_s
+            self._note(t_s, f"holding: navigation {obs.nav.hold_reason or 'invalid'}")
+        if t_s - self._nav_bad_since >= self.m.nav_lost_abort_s and self._blind_retreat_until is None:
+            self._abort_mission(t_s, f"navigation lost for {self.m.nav_lost_abort_s:.0f} s "
+                                     f"({obs.nav.hold_reason or 'invalid'})")
+            self._blind_retreat_until = t_s + self.m.blind_retreat_s
+        if self._blind_retreat_until is not None and t_s >= self._blind_retreat_until and not self.finished:
+            self.finished = True
+            self.outcome = "aborted"
+            self._note(t_s, "blind retreat done, navigation still lost: holding; mission aborted")
+
+    def step(self, t_s: float, obs: Observation) -> GuidanceOutput:
         tm = obs.telemetry
         state = _name(pb.State, tm.state) if tm is not None else "STATE_UNSPECIFIED"
         self._on_results(t_s, obs.results)
@@ -292,19 +372,20 @@ class StandInController:
                 self._note(t_s, f"MCU event: fault {_name(pb.FaultCode, ev.fault)}")
         if tm is not None:
             self._on_state(t_s, state, tm)
+        self._watch_navigation(t_s, obs, state, tm)
         v_sp, w_sp, phase = self._guidance(obs, state, tm)
         request = None
         if not self.finished and obs.link_up and tm is not None and self.awaiting is None:
             request = self._next_request(t_s, obs, state, tm)
             self.awaiting = request
         self._check_finished(t_s, obs, state)
-        return ControllerOutput(v_sp, w_sp, self._nav(obs, phase), request, phase)
+        return GuidanceOutput(v_sp, w_sp, self._nav(obs, phase), request, phase)
 
     def _check_finished(self, t_s: float, obs: Observation, state: str) -> None:
         if self.finished:
             return
-        if state == "STATE_IDLE" and (self.contacted or self.mission_aborted) \
-                and obs.range_m >= self.m.retreat_to_m - 0.01:
+        if state == "STATE_IDLE" and (self.contacted or self.mission_aborted) and self._trusted(obs) \
+                and obs.nav.range_m >= self.m.retreat_to_m - 0.01:
             self.finished = True
             self.outcome = "completed" if self.filled and not self.mission_aborted else "aborted"
         elif self.gave_up_at is not None and t_s - self.gave_up_at >= SAFED_HOLD_S:

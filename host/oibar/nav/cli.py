@@ -1,0 +1,177 @@
+"""``oibar nav`` (the navigation daemon) and ``oibar replay`` (re-run estimation on a log)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+EXIT_OK = 0
+EXIT_ERROR = 2
+
+_NAV_DESCRIPTION = """\
+Run the OIBAR navigation daemon: every 100 ms take the newest camera frame, estimate the
+relative pose of the berthing fixture with OibarNet (ONNX), filter it, decide the guidance
+(phase, velocity setpoint, hold or retreat) and command the docking mechanism's MCU over the
+serial link. One status line shows what it is doing; Ctrl-C stops it cleanly (vehicle hold,
+link and camera closed, log footer written).
+
+Every cycle is logged as one JSON line (--log); with --record-frames the frames are kept too,
+so `oibar replay` can re-run the estimation on exactly what the daemon saw.
+"""
+
+_NAV_EPILOG = """\
+camera (--camera):
+  0, 1, ...            an OpenCV camera device index (/dev/video0, ...)
+  /dev/video2          a V4L2 device path
+  approach.mp4         a video file (played at its frame rate)
+  frames/              a folder of images (frames.csv with times if present, else --camera-rate-hz)
+
+port (--port):
+  /dev/ttyACM0, COM3   the MCU's serial port (115200 baud)
+  socket://HOST:PORT   a TCP bridge, e.g. the STM32 image under QEMU
+  none                 no MCU: navigation and logging only; guidance holds
+
+vehicle (--vehicle), where velocity setpoints go:
+  none                 keep them in the log only (default)
+  udp://HOST:PORT      one JSON datagram per cycle for the vehicle's GNC computer
+  python:MOD:CLASS     your own oibar.nav.vehicle.VehicleInterface subclass
+
+examples:
+  oibar nav --camera 0 --port /dev/ttyACM0 --model models/oibarnet_lite.onnx
+  oibar nav --camera data/synthetic/seq01/frames --port none --record-frames --duration-s 60
+  oibar replay runs/nav/20261122-101500/cycles.jsonl --model models/other.onnx
+
+exit status: 0 on a finished mission or Ctrl-C, 2 on a start-up error (model, camera spec,
+vehicle), with one line saying what is wrong.
+"""
+
+
+def default_model_path() -> Path:
+    env = os.environ.get("OIBAR_MODEL")
+    if env:
+        return Path(env)
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        cand = parent / "models" / "oibarnet_lite.onnx"
+        if cand.is_file():
+            return cand
+    return Path("models/oibarnet_lite.onnx")
+
+
+def register(sub) -> None:
+    nav = sub.add_parser("nav", help="run the navigation daemon (camera -> OibarNet -> guidance -> MCU)",
+                         description=_NAV_DESCRIPTION, epilog=_NAV_EPILOG,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    nav.add_argument("--camera", required=True, metavar="SPEC", help="camera device, video file or frame folder")
+    nav.add_argument("--port", required=True, metavar="URL", help="MCU serial port, socket://HOST:PORT, or none")
+    nav.add_argument("--model", type=Path, default=None, metavar="ONNX",
+                     help="OibarNet ONNX model (default: $OIBAR_MODEL or models/oibarnet_lite.onnx)")
+    nav.add_argument("--vehicle", default="none", metavar="SPEC", help="where velocity setpoints go (default: none)")
+    nav.add_argument("--log", type=Path, default=None, metavar="DIR",
+                     help="log folder (default: runs/nav/<date-time>); cycles.jsonl is written there")
+    nav.add_argument("--no-log", action="store_true", help="do not write a cycle log")
+    nav.add_argument("--record-frames", action="store_true", help="also keep every frame used (for oibar replay)")
+    nav.add_argument("--rate-hz", type=float, default=10.0, help="navigation rate (default: 10)")
+    nav.add_argument("--camera-rate-hz", type=float, default=10.0,
+                     help="pace for frame folders without time stamps (default: 10)")
+    nav.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default: 2)")
+    nav.add_argument("--duration-s", type=float, default=None, metavar="S", help="stop after S seconds")
+    nav.add_argument("--target-pressure-kpa", type=float, default=1200.0, help="fill target (default: 1200)")
+    nav.add_argument("--baudrate", type=int, default=115200)
+    nav.set_defaults(handler=cmd_nav, run=run)
+
+    rp = sub.add_parser("replay", help="re-run pose estimation and the filter on a recorded cycle log",
+                        description="Feed the frames recorded by `oibar nav --record-frames` through a fresh "
+                                    "navigator (optionally another model) and compare with the recorded estimates.")
+    rp.add_argument("log", type=Path, help="cycles.jsonl written by oibar nav")
+    rp.add_argument("--model", type=Path, default=None, metavar="ONNX", help="model (default: as for oibar nav)")
+    rp.add_argument("--out", type=Path, default=None, help="write the replayed estimates here (JSON lines)")
+    rp.add_argument("--threads", type=int, default=2)
+    rp.set_defaults(handler=cmd_replay, run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Start-up errors become one line and exit 2."""
+    from oibar.camera import CameraError
+    from oibar.nav.cyclelog import CycleLogError
+    from oibar.nav.pose import ModelFileError
+    from oibar.nav.vehicle import VehicleError
+
+    try:
+        return args.handler(args)
+    except (ModelFileError, CameraError, VehicleError, CycleLogError, OSError) as exc:
+        print(f"oibar: error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_ERROR
+
+
+def _status_printer():
+    tty = sys.stderr.isatty()
+
+    def show(line: str) -> None:
+        if tty:
+            width = max(40, os.get_terminal_size(sys.stderr.fileno()).columns - 1)
+            sys.stderr.write("\r" + line[:width].ljust(width))
+        else:
+            sys.stderr.write(line + "\n")
+        sys.stderr.flush()
+    return show
+
+
+def cmd_nav(a) -> int:
+    from oibar.camera import open_source
+    from oibar.nav.cyclelog import CycleLog
+    from oibar.nav.daemon import DaemonParams, NavDaemon, connect_in_background, install_sigint, load_navigator
+    from oibar.nav.guidance import Guidance, MissionParams
+    from oibar.nav.vehicle import open_vehicle
+
+    model = a.model or default_model_path()
+    navigator = load_navigator(model, threads=a.threads)       # model errors first, nothing opened yet
+    print(f"model {model} (version {navigator.estimator.meta.get('model_version', '?')}), "
+          f"input {navigator.estimator.size_wh[0]}x{navigator.estimator.size_wh[1]}", file=sys.stderr)
+    camera = open_source(a.camera, rate_hz=a.camera_rate_hz, realtime=True)
+    vehicle = open_vehicle(a.vehicle)
+    log = None
+    if not a.no_log:
+        log_dir = a.log or Path("runs") / "nav" / time.strftime("%Y%m%d-%H%M%S")
+        log = CycleLog(log_dir / "cycles.jsonl", frames_dir=(log_dir / "frames") if a.record_frames else None)
+        print(f"log {log.path}", file=sys.stderr)
+    link = None
+    if a.port.lower() != "none":
+        from oibar.link.client import LinkClient
+
+        link = LinkClient(a.port, baudrate=a.baudrate)
+        connect_in_background(link, on_error=lambda m: print(f"\nlink: {m} (retrying)", file=sys.stderr))
+    guidance = Guidance(MissionParams(target_kpa=a.target_pressure_kpa))
+    daemon = NavDaemon(navigator, guidance, camera, link=link, vehicle=vehicle, log=log,
+                       params=DaemonParams(rate_hz=a.rate_hz), status=_status_printer())
+    install_sigint(daemon)
+    try:
+        summary = daemon.run(duration_s=a.duration_s)
+    finally:
+        if link is not None:
+            link.close()
+    print(file=sys.stderr)
+    p99 = summary.get("frame_to_command_ms_p99")
+    print(f"{summary['cycles']} cycles, {summary['missed_deadlines']} missed deadlines, "
+          f"frame-to-command p99 {p99:.1f} ms" if p99 is not None else
+          f"{summary['cycles']} cycles, {summary['missed_deadlines']} missed deadlines, no frame used",
+          file=sys.stderr)
+    print(f"mission: {guidance.outcome}", file=sys.stderr)
+    return EXIT_OK
+
+
+def cmd_replay(a) -> int:
+    from oibar.nav.daemon import load_navigator
+    from oibar.nav.replay import format_summary, replay
+
+    model = a.model or default_model_path()
+    navigator = load_navigator(model, threads=a.threads)
+    show = _status_printer()
+    res = replay(a.log, navigator, a.out,
+                 progress=lambda i, n: show(f"replay {i}/{n} cycles") if i % 50 == 0 or i == n else None)
+    print(file=sys.stderr)
+    print(format_summary(res))
+    return EXIT_OK

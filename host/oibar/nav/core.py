@@ -1,0 +1,95 @@
+"""One navigation cycle, independent of where frames and time come from: frame -> pose
+estimate -> checks -> filter -> navigation solution. The real-time daemon (oibar.nav.daemon)
+and the HIL rig (oibar_hil.rig) both run this same code; only the clock and the camera differ.
+
+A cycle never raises for bad input: a missing or stale frame, a malformed frame, a low
+confidence or a gated outlier each give a solution with ``hold_reason`` set, and guidance holds.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from oibar.nav.filter import NavFilter
+from oibar.nav.guidance import NavSolution
+from oibar.nav.pose import FrameError, PoseEstimate, PoseEstimator
+
+
+@dataclass
+class NavigatorParams:
+    confidence_min: float = 0.5      # below: do not act on the estimate (the filter coasts)
+    max_frame_age_s: float = 0.25    # an older frame is stale: 2.5 cycles at 10 Hz
+
+
+@dataclass
+class NavStep:
+    """Everything one cycle produced, for the log and the replay."""
+
+    t_s: float
+    solution: NavSolution
+    frame_seq: int | None = None
+    frame_t_s: float | None = None
+    estimate: PoseEstimate | None = None
+    update: Any = None               # the filter's UpdateResult, None when nothing was fed
+    hold_reason: str = ""
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class Navigator:
+    def __init__(self, estimator: PoseEstimator, nav_filter: NavFilter | None = None,
+                 params: NavigatorParams | None = None) -> None:
+        self.estimator = estimator
+        self.filter = nav_filter or NavFilter()
+        self.p = params or NavigatorParams()
+
+    def step(self, t_s: float, frame: Any | None, frame_t_s: float | None = None,
+             frame_seq: int | None = None) -> NavStep:
+        """``frame``: an RGB uint8 image, or None when no new frame arrived this cycle.
+        ``frame_t_s``: its capture time on the same clock as ``t_s`` (default: now)."""
+        timings: dict[str, float] = {}
+        reason = ""
+        est = None
+        upd = None
+        if frame is None:
+            reason = "no new frame"
+        else:
+            # a frame captured between the cycle's start and the poll is "now", not the future
+            ft = t_s if frame_t_s is None else min(frame_t_s, t_s)
+            if t_s - ft > self.p.max_frame_age_s:
+                reason = f"stale frame ({t_s - ft:.2f} s old)"
+            else:
+                t0 = time.perf_counter()
+                try:
+                    est = self.estimator.estimate(frame, t_s=ft)
+                except FrameError as exc:
+                    reason = f"malformed frame: {exc}"
+                timings["estimate_ms"] = (time.perf_counter() - t0) * 1e3
+                if est is not None:
+                    if not est.confidence >= self.p.confidence_min:    # NaN-safe
+                        reason = f"low confidence {est.confidence:.2f}"
+                    else:
+                        t0 = time.perf_counter()
+                        try:
+                            upd = self.filter.update(ft, est.T_cam_target_m, est.R_cam_target, est.confidence)
+                        except ValueError as exc:   # a frame older than the last one fused
+                            reason = f"frame out of order ({exc})"
+                        timings["filter_ms"] = (time.perf_counter() - t0) * 1e3
+                        if upd is not None and upd.gated:
+                            reason = "gated outlier"
+        st = self.filter.state(t_s)
+        if not st.valid and not reason:
+            reason = "filter not initialised"
+        sol = NavSolution(
+            valid=bool(st.valid), r_D_m=np.asarray(st.r_D_m, dtype=float).copy(),
+            v_D_mps=np.asarray(st.v_D_mps, dtype=float).copy(), att_rad=np.asarray(st.att_rad, dtype=float).copy(),
+            misalignment_deg=float(st.misalignment_deg), t_cam_target_m=np.asarray(st.T_cam_target_m, dtype=float),
+            q_cam_target=np.asarray(st.q_cam_target, dtype=float),
+            confidence=float(est.confidence) if est is not None else 0.0, hold_reason=reason)
+        return NavStep(t_s, sol, frame_seq, frame_t_s, est, upd, reason, timings)
+
+    def reset(self) -> None:
+        self.filter.reset()

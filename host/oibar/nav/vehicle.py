@@ -1,0 +1,98 @@
+"""The vehicle interface: where guidance's relative-velocity setpoints go (SPEC section 5).
+
+The service vehicle's own GNC is not ours; it takes a velocity and angular-rate setpoint in the
+docking frame D (oibar.nav.frames) at 10 Hz and flies it. Implement :class:`VehicleInterface`
+for your vehicle and pass it to the daemon (``oibar nav --vehicle python:mypkg.mod:MyVehicle``).
+
+Shipped sinks:
+- :class:`NullVehicle` (``--vehicle none``): keeps the last setpoint, for bench tests with a
+  camera and an MCU but no vehicle;
+- :class:`UdpJsonVehicle` (``--vehicle udp://HOST:PORT``): one JSON datagram per setpoint,
+  ``{"t_s", "v_D_mps": [x, y, z], "w_rad_s": [x, y, z], "phase", "hold"}``, for a GNC computer
+  on the network (fire and forget: a lost datagram is replaced 100 ms later);
+- the HIL rig's world (oibar_hil.rig), in simulation.
+
+Contract: ``send`` must not block for long (it runs inside the 10 Hz cycle); ``hold`` is called
+on shutdown and whenever guidance cannot steer (it must bring the relative velocity to zero).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import socket
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+
+class VehicleError(RuntimeError):
+    """A vehicle interface could not be created or reached."""
+
+
+class VehicleInterface(ABC):
+    @abstractmethod
+    def send(self, t_s: float, v_D_mps: np.ndarray, w_rad_s: np.ndarray, phase: str) -> None:
+        """A relative-velocity setpoint (D frame) and an attitude-rate setpoint (body)."""
+
+    def hold(self, t_s: float) -> None:
+        self.send(t_s, np.zeros(3), np.zeros(3), "HOLD")
+
+    def close(self) -> None:
+        """Release resources; the daemon calls hold() first."""
+
+
+class NullVehicle(VehicleInterface):
+    def __init__(self) -> None:
+        self.last: tuple[float, np.ndarray, np.ndarray, str] | None = None
+
+    def send(self, t_s, v_D_mps, w_rad_s, phase) -> None:
+        self.last = (t_s, np.asarray(v_D_mps, float).copy(), np.asarray(w_rad_s, float).copy(), phase)
+
+
+class UdpJsonVehicle(VehicleInterface):
+    def __init__(self, host: str, port: int) -> None:
+        self.addr = (host, int(port))
+        try:
+            self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self.sock.setblocking(False)
+        except OSError as exc:
+            raise VehicleError(f"udp://{host}:{port}: {exc}") from exc
+        self.errors = 0
+
+    def send(self, t_s, v_D_mps, w_rad_s, phase) -> None:
+        msg = {"t_s": float(t_s), "v_D_mps": [float(v) for v in v_D_mps],
+               "w_rad_s": [float(v) for v in w_rad_s], "phase": phase, "hold": phase == "HOLD"}
+        try:
+            self.sock.sendto(json.dumps(msg).encode(), self.addr)
+        except OSError:
+            self.errors += 1     # the next cycle sends a fresh setpoint
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def open_vehicle(spec: str) -> VehicleInterface:
+    """``none`` | ``udp://HOST:PORT`` | ``python:package.module:ClassName`` (no arguments)."""
+    if spec in ("", "none", "null"):
+        return NullVehicle()
+    if spec.startswith("udp://"):
+        hostport = spec[len("udp://"):]
+        host, sep, port = hostport.rpartition(":")
+        if not sep or not port.isdigit():
+            raise VehicleError(f"{spec!r}: expected udp://HOST:PORT")
+        return UdpJsonVehicle(host or "127.0.0.1", int(port))
+    if spec.startswith("python:"):
+        target = spec[len("python:"):]
+        mod_name, sep, cls_name = target.partition(":")
+        if not sep:
+            raise VehicleError(f"{spec!r}: expected python:package.module:ClassName")
+        try:
+            cls = getattr(importlib.import_module(mod_name), cls_name)
+        except (ImportError, AttributeError) as exc:
+            raise VehicleError(f"{spec!r}: cannot load ({exc})") from exc
+        obj = cls()
+        if not isinstance(obj, VehicleInterface):
+            raise VehicleError(f"{spec!r}: {cls_name} does not derive from oibar.nav.vehicle.VehicleInterface")
+        return obj
+    raise VehicleError(f"unknown vehicle {spec!r}: use none, udp://HOST:PORT or python:module:Class")

@@ -1,0 +1,287 @@
+"""The navigation daemon's failure behaviour (issue 8 "Failures", issue 11 host robustness):
+camera unplugged and replugged, link lost and back, low confidence, log disk full, model file
+missing or corrupt, a log cut by a kill, and the replay of a recorded run.
+
+The estimator here is a stand-in that reports a fixed true pose (the network itself is tested
+in test_nav_pose.py); everything else is the real daemon: threads, scheduler, filter, guidance,
+log.
+"""
+
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from oibar import pb
+from oibar.camera import CallableSource, FolderSource
+from oibar.cli import main
+from oibar.link.client import CommandResult
+from oibar.nav.core import Navigator
+from oibar.nav.cyclelog import CycleLog, CycleLogError, read_log
+from oibar.nav.daemon import DaemonParams, NavDaemon
+from oibar.nav.frames import camera_pose_from_docking
+from oibar.nav.guidance import Guidance, MissionParams
+from oibar.nav.pose import PoseEstimate
+from oibar.nav.replay import replay
+from oibar.nav.vehicle import NullVehicle, VehicleInterface, open_vehicle
+from oibar.rotations import matrix_to_quat
+
+R_TRUE_D_M = np.array([0.05, -0.02, 4.0])
+
+
+class TruthEstimator:
+    """Reports the pose the frame's mean brightness encodes (so replay can check it really
+    re-reads the frames) with a settable confidence."""
+
+    path = "truth-estimator"
+    meta = {"model_version": "test"}
+    size_wh = (64, 40)
+
+    def __init__(self, confidence=0.9):
+        self.confidence = confidence
+        self.calls = 0
+
+    def estimate(self, image, t_s=0.0):
+        self.calls += 1
+        r = R_TRUE_D_M.copy()
+        r[2] = 2.0 + float(np.asarray(image).mean()) / 64.0
+        T, R = camera_pose_from_docking(r, np.zeros(3))
+        return PoseEstimate(T, matrix_to_quat(R), R, t_s, 1.0, self.confidence, float(np.linalg.norm(T)), 0.0)
+
+
+class FakeLink:
+    def __init__(self):
+        self.alive = True
+        self.navs = []
+        self.commands = []
+        self.lock = threading.Lock()
+        tm = pb.Telemetry()
+        tm.state = pb.STATE_IDLE
+        self._tm = tm
+
+    @property
+    def link_alive(self):
+        return self.alive
+
+    @property
+    def telemetry(self):
+        return self._tm
+
+    def next_event(self, timeout_s=None):
+        return None
+
+    def send_nav(self, **kw):
+        with self.lock:
+            self.navs.append((self.alive, kw))
+        return True
+
+    def command(self, opcode, target_kpa=None):
+        with self.lock:
+            self.commands.append((self.alive, opcode))
+        return CommandResult(accepted=True, reason="NACK_NONE", state="STATE_APPROACH_READY")
+
+    def param_set(self, pid, value):
+        raise AssertionError("not used")
+
+
+class RecordingVehicle(VehicleInterface):
+    def __init__(self):
+        self.sent = []
+
+    def send(self, t_s, v, w, phase):
+        self.sent.append((t_s, np.asarray(v).copy(), phase))
+
+
+def grey(level=128):
+    return np.full((40, 64, 3), level, np.uint8)
+
+
+def tick(d, wait_s=0.05):
+    """One cycle as run() does it: wait (boundedly) for a new frame, then the cycle."""
+    return d.cycle(d.wait_frame(until=d.clock() + wait_s))
+
+
+def make_daemon(camera, link=None, log=None, vehicle=None, confidence=0.9, **params):
+    p = DaemonParams(rate_hz=50.0, camera_lost_timeout_s=0.2, camera_retry_s=0.1, status_every_s=10.0)
+    for k, v in params.items():
+        setattr(p, k, v)
+    est = TruthEstimator(confidence)
+    return NavDaemon(Navigator(est), Guidance(MissionParams(nav_lost_abort_s=60.0)), camera, link=link,
+                     vehicle=vehicle or RecordingVehicle(), log=log, params=p)
+
+
+def test_nominal_cycles_are_logged_and_commanded(tmp_path):
+    link = FakeLink()
+    log = CycleLog(tmp_path / "cycles.jsonl")
+    veh = RecordingVehicle()
+    d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=link, log=log, vehicle=veh)
+    summary = d.run(max_cycles=30)
+    assert summary["cycles"] == 30 and summary["frames_used"] >= 20
+    recs = list(read_log(tmp_path / "cycles.jsonl"))
+    assert recs[0]["kind"] == "header" and recs[-1]["kind"] == "footer"
+    cycles = [r for r in recs if r["kind"] == "cycle"]
+    assert len(cycles) == 30
+    moving = [v for _, v, ph in veh.sent if ph != "HOLD"]
+    assert moving and all(v[2] < 0 for v in moving), "approaching on a trusted solution"
+    assert link.navs, "navigation updates reach the MCU"
+    assert summary["frame_to_command_ms_p99"] is not None and summary["frame_to_command_ms_p99"] > 0
+    assert veh.sent[-1][2] == "HOLD", "shutdown holds the vehicle"
+
+
+def test_camera_unplugged_and_replugged(tmp_path):
+    state = {"plugged": True}
+
+    def render(t):
+        if not state["plugged"]:
+            raise OSError("camera unplugged")
+        return grey()
+
+    d = make_daemon(CallableSource(render, rate_hz=100.0))
+    steps = []
+    d._t0 = d.clock()
+    for k in range(60):
+        if k == 15:
+            state["plugged"] = False
+        if k == 35:
+            state["plugged"] = True
+        step, out = tick(d)
+        steps.append((k, step.hold_reason, out.phase))
+        d._stop.wait(0.02)
+    d.shutdown()
+    lost = [s for s in steps if s[1].startswith("camera:")]
+    assert lost, "the loss is reported as the hold reason"
+    assert all(ph == "HOLD" for _, _, ph in lost), "guidance holds while the camera is gone"
+    assert d.stats.camera_reopens >= 1
+    assert not steps[-1][1], f"frames flow again after the replug: {steps[-1]}"
+
+
+def test_link_lost_holds_the_vehicle_and_commands_nothing():
+    link = FakeLink()
+    veh = RecordingVehicle()
+    d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=link, vehicle=veh)
+    d._t0 = d.clock()
+    for k in range(40):
+        link.alive = not (10 <= k < 30)
+        tick(d)
+        d._stop.wait(0.02)
+    d.shutdown()
+    assert not [c for c in link.commands if not c[0]], "no mechanism command while the link is down"
+    assert not [n for n in link.navs if not n[0]], "no navigation update while the link is down"
+    down = veh.sent[11:29]
+    assert down and all(ph == "HOLD" and not v.any() for _, v, ph in down)
+    assert any(ph != "HOLD" for _, _, ph in veh.sent[31:]), "the approach resumes with the link"
+
+
+def test_low_confidence_holds():
+    link = FakeLink()
+    d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=link, confidence=0.1)
+    d._t0 = d.clock()
+    reasons = []
+    for _ in range(10):
+        step, out = tick(d)
+        reasons.append((step.hold_reason, out.phase))
+        d._stop.wait(0.02)
+    d.shutdown()
+    frames = [r for r in reasons if r[0].startswith("low confidence")]
+    assert frames and all(ph == "HOLD" for _, ph in frames)
+
+
+def test_log_disk_full_does_not_stop_navigation():
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full on this system")
+    log = CycleLog("/dev/full", flush_every=1)
+    d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=FakeLink(), log=log)
+    summary = d.run(max_cycles=15)
+    assert summary["cycles"] == 15
+    assert log.error and "space" in log.error.lower()
+    assert log.lines_lost >= 14
+    assert "LOG:" in d.status_line()
+
+
+def test_log_cut_by_a_kill_is_read_up_to_the_cut(tmp_path):
+    p = tmp_path / "cycles.jsonl"
+    p.write_text('{"kind":"header"}\n{"kind":"cycle","t_s":0.1}\n{"kind":"cycle","t_')
+    assert [r["kind"] for r in read_log(p)] == ["header", "cycle"]
+    p.write_text('{"kind":"header"}\nnot json\n{"kind":"cycle","t_s":0.1}\n')
+    with pytest.raises(CycleLogError, match=":2:"):
+        list(read_log(p))
+
+
+def test_replay_rereads_the_recorded_frames(tmp_path):
+    levels = iter(range(40, 240, 4))
+    d = make_daemon(CallableSource(lambda t: grey(next(levels, 200)), rate_hz=100.0), link=FakeLink(),
+                    log=CycleLog(tmp_path / "cycles.jsonl", frames_dir=tmp_path / "frames"))
+    d.run(max_cycles=20)
+    n_frames = len(list((tmp_path / "frames").glob("*.jpg")))
+    assert n_frames >= 10
+    res = replay(tmp_path / "cycles.jsonl", Navigator(TruthEstimator()), tmp_path / "replay.jsonl")
+    assert res.frames_replayed == n_frames and res.frames_missing == 0
+    # JPEG changes the mean level by at most a little: the replayed ranges match the record
+    assert res.dt_m and max(res.dt_m) < 0.02
+    # a missing frame is counted, not fatal
+    next((tmp_path / "frames").glob("*.jpg")).unlink()
+    res2 = replay(tmp_path / "cycles.jsonl", Navigator(TruthEstimator()))
+    assert res2.frames_missing == 1
+
+
+def test_replay_without_frames_says_how_to_record(tmp_path):
+    d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), log=CycleLog(tmp_path / "c.jsonl"))
+    d.run(max_cycles=3)
+    with pytest.raises(CycleLogError, match="--record-frames"):
+        replay(tmp_path / "c.jsonl", Navigator(TruthEstimator()))
+
+
+@pytest.mark.parametrize("content", [None, b"", b"\x00garbage" * 100])
+def test_cli_model_missing_or_corrupt_is_one_clear_line(tmp_path, capsys, content):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    from PIL import Image
+    Image.fromarray(grey()).save(frames / "000001.png")
+    model = tmp_path / "model.onnx"
+    if content is not None:
+        model.write_bytes(content)
+    rc = main(["nav", "--camera", str(frames), "--port", "none", "--model", str(model), "--no-log",
+               "--duration-s", "1"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "oibar: error:" in err and str(model) in err
+    assert "Traceback" not in err
+
+
+def test_cli_help_explains_the_options(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["nav", "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for word in ("--camera", "--port", "--model", "--vehicle", "--record-frames", "Ctrl-C", "udp://"):
+        assert word in out
+
+
+def test_vehicle_specs():
+    assert isinstance(open_vehicle("none"), NullVehicle)
+    v = open_vehicle("udp://127.0.0.1:9")
+    v.send(0.0, np.zeros(3), np.zeros(3), "HOLD")
+    v.close()
+    from oibar.nav.vehicle import VehicleError
+    for bad in ("udp://nohost", "python:nosuchmodule:X", "tcp://x", "python:os:getcwd"):
+        with pytest.raises(VehicleError):
+            open_vehicle(bad)
+
+
+def test_folder_camera_end_of_stream_is_a_lost_camera(tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    from PIL import Image
+    for k in range(3):
+        Image.fromarray(grey(100 + k)).save(frames / f"{k:06d}.png")
+    d = make_daemon(FolderSource(frames, rate_hz=100.0, realtime=True), link=FakeLink())
+    d._t0 = d.clock()
+    reasons = []
+    for _ in range(30):
+        step, _ = tick(d)
+        reasons.append(step.hold_reason)
+        d._stop.wait(0.02)
+    d.shutdown()
+    assert any(r.startswith("camera:") for r in reasons[5:]), reasons

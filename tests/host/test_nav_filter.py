@@ -1,0 +1,232 @@
+"""The navigation filter (oibar.nav.filter) on simulated measurements of a known motion in the
+docking frame: convergence, gating, re-initialisation, coasting, time checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from oibar.nav.filter import FilterParams, NavFilter
+from oibar.nav.frames import camera_pose_from_docking, docking_from_camera_pose
+from oibar.rotations import matrix_to_quat, rotvec_to_matrix
+
+DT_S = 0.1                                      # 10 Hz, as the camera
+R0_D_M = np.array([0.30, -0.20, 6.0])           # probe tip at the start
+V_D_MPS = np.array([-0.01, 0.005, -0.10])       # closing at 0.1 m/s
+ATT_RAD = np.radians([1.0, -0.5, 2.0])
+
+
+def truth(t_s):
+    return R0_D_M + V_D_MPS * t_s, ATT_RAD
+
+
+def noisy_measurement(t_s, rng, params=FilterParams()):
+    """Camera-frame pose with noise of the size the filter assumes (lateral/depth % of range,
+    constant attitude)."""
+    r, a = truth(t_s)
+    T, R = camera_pose_from_docking(r, a)
+    rng_m = np.linalg.norm(T)
+    T = T + rng.normal(0, 1, 3) * np.array([params.pos_sigma_lateral_frac, params.pos_sigma_lateral_frac,
+                                             params.pos_sigma_depth_frac]) * rng_m
+    R = R @ rotvec_to_matrix(rng.normal(0, np.radians(params.att_sigma_deg), 3))
+    return T, R
+
+
+def converged(n=150, seed=0):
+    """A filter after n good measurements; also the next frame time."""
+    f, rng = NavFilter(), np.random.default_rng(seed)
+    for k in range(n):
+        f.update(k * DT_S, *noisy_measurement(k * DT_S, rng))
+    return f, rng, n * DT_S
+
+
+def test_first_measurement_initialises_and_state_before_is_invalid():
+    f = NavFilter()
+    s0 = f.state(0.0)
+    assert not s0.valid and np.all(np.isinf(s0.pos_sigma_m)) and s0.since_update_s == np.inf
+    T, R = camera_pose_from_docking(*truth(0.0))
+    res = f.update(0.0, T, R, 1.0)
+    assert res.accepted and res.reinitialised and not res.gated and res.reason == "initialised"
+    s = f.state(0.0)
+    assert s.valid and s.since_update_s == 0.0
+    np.testing.assert_allclose(s.r_D_m, R0_D_M, atol=1e-9)
+    np.testing.assert_allclose(s.att_rad, ATT_RAD, atol=1e-9)
+    np.testing.assert_allclose(s.v_D_mps, 0.0)
+    # the same pose back in camera terms for the NavUpdate message
+    np.testing.assert_allclose(s.T_cam_target_m, T, atol=1e-9)
+    np.testing.assert_allclose(s.q_cam_target, matrix_to_quat(R), atol=1e-9)
+    assert s.range_m == pytest.approx(6.0) and s.shaft_distance_m == pytest.approx(6.0 + 0.27)
+    assert s.lateral_m == pytest.approx(np.hypot(0.3, 0.2))
+
+
+def test_converges_on_constant_velocity_and_beats_the_raw_measurements():
+    f, rng = NavFilter(), np.random.default_rng(1)
+    err_raw, err_filt, att_raw, att_filt, nis = [], [], [], [], []
+    for k in range(300):
+        t = k * DT_S
+        T, R = noisy_measurement(t, rng)
+        res = f.update(t, T, R, 1.0)
+        if k >= 50:                                   # after 5 s of convergence
+            r, a = truth(t)
+            s = f.state(t)
+            meas = docking_from_camera_pose(T, R)
+            err_raw.append(np.linalg.norm(meas.r_D_m - r))
+            err_filt.append(np.linalg.norm(s.r_D_m - r))
+            att_raw.append(np.linalg.norm(meas.att_rad - a))
+            att_filt.append(np.linalg.norm(s.att_rad - a))
+            nis.append(res.nis_pos)
+    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))  # noqa: E731
+    assert rms(err_filt) < 0.5 * rms(err_raw), (rms(err_filt), rms(err_raw))
+    assert rms(att_filt) < 0.5 * rms(att_raw), (rms(att_filt), rms(att_raw))
+    s = f.state(299 * DT_S)
+    assert s.closing_speed_mps == pytest.approx(0.10, abs=0.03)
+    np.testing.assert_allclose(s.v_D_mps, V_D_MPS, atol=0.03)
+    # the noise model is honest: innovations are chi-square(3)-sized on average
+    assert 1.5 < np.mean(nis) < 5.0, np.mean(nis)
+    assert f.counts["gated"] <= 3 and f.counts["reinitialised"] == 0
+
+
+@pytest.mark.parametrize("kind", ["position", "attitude"])
+def test_single_outlier_is_gated_and_does_not_move_the_state(kind):
+    f, rng, t = converged()
+    before = f.state(149 * DT_S)
+    T, R = noisy_measurement(t, rng)
+    if kind == "position":
+        T = T + np.array([0.0, 0.0, 1.5])                 # 1.5 m too far at ~4.6 m: 10 sigma in depth
+    else:                                                 # same probe tip, attitude 15 deg off
+        m = docking_from_camera_pose(T, R)
+        T, R = camera_pose_from_docking(m.r_D_m, m.att_rad + np.radians([0.0, 15.0, 0.0]))
+    res = f.update(t, T, R, 1.0)
+    assert res.gated and not res.accepted and not res.reinitialised and res.reason == "gated"
+    bad, good = (res.nis_pos, res.nis_att) if kind == "position" else (res.nis_att, res.nis_pos)
+    assert bad > f.params.gate_chi2 and good < f.params.gate_chi2     # each block's gate works on its own
+    after = f.state(t)
+    r_true, _ = truth(t)
+    assert np.linalg.norm(after.r_D_m - r_true) < 0.1
+    np.testing.assert_allclose(after.r_D_m, before.r_D_m + before.v_D_mps * DT_S, atol=1e-9)   # predicted only
+    res = f.update(t + DT_S, *noisy_measurement(t + DT_S, rng))
+    assert res.accepted and res.reason == "fused"
+
+
+def test_reinitialises_after_n_consecutive_outliers():
+    f, rng, t0 = converged()
+    jump_D_m = np.array([0.0, 0.0, 2.0])                  # e.g. the true range was badly tracked
+    n = f.params.reinit_after
+    results = []
+    for k in range(n + 2):
+        t = t0 + k * DT_S
+        r, a = truth(t)
+        T, R = camera_pose_from_docking(r + jump_D_m, a)
+        results.append(f.update(t, T, R, 1.0))
+    assert [r.gated for r in results[:n]] == [True] * n
+    assert not any(r.accepted for r in results[:n - 1])
+    assert results[n - 1].reinitialised and results[n - 1].accepted and results[n - 1].reason == "reinitialised"
+    assert results[n].reason == "fused" and results[n + 1].reason == "fused"
+    s = f.state(t0 + (n + 1) * DT_S)
+    np.testing.assert_allclose(s.r_D_m, truth(t0 + (n + 1) * DT_S)[0] + jump_D_m, atol=0.05)
+    np.testing.assert_allclose(s.v_D_mps, V_D_MPS, atol=0.03)   # the velocity survives the position jump
+
+
+def test_a_good_measurement_between_outliers_resets_the_count():
+    f, rng, t0 = converged()
+    n = f.params.reinit_after
+    for k in range(2 * n):
+        t = t0 + k * DT_S
+        T, R = noisy_measurement(t, rng)
+        if k % n != n - 1:                                # every n-th is good
+            T = T + np.array([0.0, 0.0, 2.0])
+        res = f.update(t, T, R, 1.0)
+        assert not res.reinitialised
+
+
+def test_covariance_grows_while_coasting_and_the_state_expires():
+    f, rng, t0 = converged()
+    t_last = 149 * DT_S
+    sig = [f.state(t_last + dt).pos_sigma_m[2] for dt in (0.0, 0.3, 0.6, 0.9)]
+    assert all(b > a for a, b in zip(sig, sig[1:])), sig
+    assert f.state(t_last + 0.9).valid and f.state(t_last + 0.9).since_update_s == pytest.approx(0.9)
+    assert not f.state(t_last + f.params.max_coast_s + 0.05).valid
+    f.predict(t_last + 5.0)                               # a long gap: no frames at all
+    s = f.state(t_last + 5.0)
+    assert not s.valid and s.pos_sigma_m[2] > 2 * sig[0]
+    # after expiry the next measurement restarts the filter, however far from the prediction
+    r, a = truth(t_last + 5.0)
+    T, R = camera_pose_from_docking(r + np.array([1.0, 0.0, 3.0]), a)
+    res = f.update(t_last + 5.0, T, R, 1.0)
+    assert res.reinitialised and not res.gated and res.reason == "reinitialised"
+    assert f.state(t_last + 5.0).valid
+
+
+def test_time_going_backwards_is_rejected():
+    f, rng, t = converged(20)
+    with pytest.raises(ValueError, match="backwards"):
+        f.update(t - 0.5, *noisy_measurement(t, rng))
+    with pytest.raises(ValueError, match="backwards"):
+        f.predict(t - 0.5)
+    with pytest.raises(ValueError, match="backwards"):
+        f.state(t - 0.5)
+    with pytest.raises(ValueError, match="finite"):
+        f.predict(float("nan"))
+    f.update(19 * DT_S, *noisy_measurement(19 * DT_S, rng))   # the same time as the last update is fine
+
+
+def test_low_confidence_and_non_finite_measurements_are_skipped():
+    f, rng, t = converged(30)
+    T, R = noisy_measurement(t, rng)
+    res = f.update(t, T, R, confidence=0.01)
+    assert not res.accepted and not res.gated and res.reason == "low_confidence"
+    res = f.update(t, np.array([np.nan, 0.0, 1.0]), R, 1.0)
+    assert res.reason == "non_finite" and not res.accepted
+    res = f.update(t, T, R, confidence=float("nan"))
+    assert res.reason == "low_confidence"
+    # low (but usable) confidence widens the noise: 0.25 -> 4x sigma
+    m = docking_from_camera_pose(T, R)
+    Rp1, Ra1 = f.measurement_noise(T, R, 1.0)
+    Rp4, Ra4 = f.measurement_noise(T, R, 0.25)
+    np.testing.assert_allclose(Rp4, 16 * Rp1)
+    np.testing.assert_allclose(Ra4, 16 * Ra1)
+
+
+def test_measurement_noise_grows_with_range_and_depth_is_noisiest():
+    aligned = np.eye(3)                                   # R_cam_target when the vehicles are aligned
+    f = NavFilter()
+    near, _ = f.measurement_noise(np.array([0.0, 0.0, 2.0]), aligned, 1.0)
+    far, att = f.measurement_noise(np.array([0.0, 0.0, 8.0]), aligned, 1.0)
+    assert far[2, 2] > 10 * near[2, 2] and far[0, 0] > 10 * near[0, 0]
+    np.testing.assert_allclose(np.sqrt(np.diag(att)), np.radians(f.params.att_sigma_deg))
+    # the camera's own position noise: boresight (z_D) worse than lateral
+    f_pos = NavFilter(FilterParams(att_sigma_deg=1e-9))
+    far_pos, _ = f_pos.measurement_noise(np.array([0.0, 0.0, 8.0]), aligned, 1.0)
+    assert far_pos[2, 2] > 4 * far_pos[0, 0]
+    # close in, the floor keeps it positive
+    tiny, _ = f_pos.measurement_noise(np.array([0.0, 0.0, 0.0]), aligned, 1.0)
+    assert np.sqrt(tiny[2, 2]) >= f.params.pos_sigma_floor_m
+
+
+def test_attitude_noise_reaches_the_probe_tip_as_the_model_says():
+    """Monte Carlo: attitude-only noise on (T, R), pushed through docking_from_camera_pose,
+    gives the probe-tip covariance the filter assumes (it grows with range: lateral)."""
+    params = FilterParams(pos_sigma_lateral_frac=1e-9, pos_sigma_depth_frac=1e-9, pos_sigma_floor_m=1e-9,
+                          att_sigma_deg=1.0)
+    f, rng = NavFilter(params), np.random.default_rng(3)
+    T, R = camera_pose_from_docking(np.array([0.4, -0.3, 7.0]), np.radians([2.0, -3.0, 5.0]))
+    model_cov, _ = f.measurement_noise(T, R, 1.0)
+    phis = rng.normal(0.0, np.radians(1.0), (4000, 3))
+    r = np.array([docking_from_camera_pose(T, rotvec_to_matrix(phi) @ R).r_D_m for phi in phis])
+    emp = np.cov(r.T)
+    np.testing.assert_allclose(np.sqrt(np.diag(emp)), np.sqrt(np.diag(model_cov)), rtol=0.1, atol=2e-3)
+    assert np.sqrt(model_cov[0, 0]) > 0.1                 # ~7 m x 1 deg: lateral, not negligible
+
+
+def test_reset_forgets_everything():
+    f, rng, t = converged(20)
+    f.reset()
+    assert not f.initialised and not f.state(0.0).valid
+    assert f.update(0.0, *noisy_measurement(0.0, rng)).reason == "initialised"   # time may restart
+
+
+@pytest.mark.parametrize("bad", [dict(pos_sigma_depth_frac=0.0), dict(att_sigma_deg=-1.0), dict(max_coast_s=np.inf),
+                                 dict(reinit_after=0), dict(min_confidence=1.0), dict(confidence_floor=2.0)])
+def test_bad_parameters_are_refused(bad):
+    with pytest.raises(ValueError, match=f"FilterParams.{next(iter(bad))}"):
+        FilterParams(**bad)

@@ -1,0 +1,93 @@
+"""Guidance's hold and abort rules (oibar.nav.guidance), on hand-made navigation solutions."""
+
+import numpy as np
+import pytest
+
+from oibar import pb
+from oibar.nav.guidance import Guidance, MissionParams, NavSolution, Observation
+
+
+def telemetry(state="STATE_IDLE", contact=False):
+    tm = pb.Telemetry()
+    tm.state = pb.State.Value(state)
+    tm.contact = contact
+    return tm
+
+
+def nav(range_m=5.0, lateral=(0.0, 0.0), valid=True, hold_reason=""):
+    return NavSolution(valid=valid, r_D_m=np.array([lateral[0], lateral[1], range_m]), confidence=0.9,
+                       hold_reason=hold_reason)
+
+
+def obs(t_s, n, link_up=True, tm=None):
+    return Observation(t_s, n, link_up, tm if tm is not None else telemetry())
+
+
+def test_approach_closes_on_a_trusted_solution_and_centres_laterally():
+    g = Guidance(MissionParams())
+    out = g.step(0.0, obs(0.0, nav(5.0, lateral=(0.2, -0.1))))
+    assert out.v_sp_D_mps[2] < 0, "closing"
+    assert out.v_sp_D_mps[0] < 0 and out.v_sp_D_mps[1] > 0, "steers towards the axis"
+    assert out.phase == "FORCED_TRANSLATION"
+
+
+@pytest.mark.parametrize("n", [nav(hold_reason="gated outlier"), nav(hold_reason="low confidence 0.20"),
+                               nav(valid=False, hold_reason="filter not initialised")])
+def test_untrusted_navigation_holds(n):
+    g = Guidance(MissionParams())
+    out = g.step(0.0, obs(0.0, n))
+    assert out.phase == "HOLD"
+    assert np.all(out.v_sp_D_mps == 0) and np.all(out.w_sp_rad_s == 0)
+    assert out.nav.confidence == (0.0 if not n.valid else pytest.approx(0.9))
+
+
+def test_link_down_holds_and_sends_no_command():
+    g = Guidance(MissionParams(arm_range_m=2.0))
+    out = g.step(0.0, obs(0.0, nav(1.5), link_up=False))
+    assert out.phase == "HOLD" and np.all(out.v_sp_D_mps == 0)
+    assert out.request is None
+    out = g.step(0.1, obs(0.1, nav(1.5), link_up=True))       # link back: arm
+    assert out.request is not None and out.request.label == "CMD_APPROACH_ARM"
+
+
+def test_no_arm_command_on_an_untrusted_range():
+    g = Guidance(MissionParams(arm_range_m=2.0))
+    out = g.step(0.0, obs(0.0, nav(1.5, hold_reason="gated outlier")))
+    assert out.request is None
+
+
+def test_navigation_lost_holds_then_aborts_with_a_blind_retreat():
+    m = MissionParams(nav_lost_abort_s=2.0, blind_retreat_s=3.0)
+    g = Guidance(m)
+    lost = nav(valid=False, hold_reason="camera: unplugged")
+    t = 0.0
+    while t < 1.95:
+        out = g.step(t, obs(t, lost))
+        assert out.phase == "HOLD" and not g.mission_aborted
+        t += 0.1
+    out = g.step(2.05, obs(2.05, lost))
+    assert g.mission_aborted
+    assert out.phase == "RETREAT" and out.v_sp_D_mps[2] > 0, "backs off along +z_D"
+    assert np.all(out.v_sp_D_mps[:2] == 0) and np.all(out.w_sp_rad_s == 0)
+    out = g.step(5.2, obs(5.2, lost))
+    assert g.finished and g.outcome == "aborted"
+    assert np.all(out.v_sp_D_mps == 0)
+
+
+def test_navigation_back_before_the_timeout_resumes_the_approach():
+    g = Guidance(MissionParams(nav_lost_abort_s=2.0))
+    g.step(0.0, obs(0.0, nav(valid=False, hold_reason="camera: gone")))
+    g.step(1.0, obs(1.0, nav(valid=False, hold_reason="camera: gone")))
+    out = g.step(1.5, obs(1.5, nav(4.0)))
+    assert not g.mission_aborted and out.v_sp_D_mps[2] < 0
+    g.step(3.0, obs(3.0, nav(valid=False, hold_reason="camera: gone")))   # the clock restarts
+    assert not g.mission_aborted
+
+
+def test_docked_states_do_not_abort_on_navigation_loss():
+    g = Guidance(MissionParams(nav_lost_abort_s=1.0))
+    for k in range(40):
+        t = k * 0.1
+        out = g.step(t, obs(t, nav(valid=False, hold_reason="camera: gone"), tm=telemetry("STATE_HARD_DOCKED", True)))
+    assert not g.mission_aborted, "docked, the camera is not needed: no abort"
+    assert np.all(out.v_sp_D_mps == 0)
