@@ -285,3 +285,34 @@ def test_folder_camera_end_of_stream_is_a_lost_camera(tmp_path):
         d._stop.wait(0.02)
     d.shutdown()
     assert any(r.startswith("camera:") for r in reasons[5:]), reasons
+
+
+def test_serial_port_unplugged_and_replugged_with_the_real_link_client(mcu, make_client):
+    """The real LinkClient against the fake MCU, whose port vanishes for a while: the daemon
+    sends nothing while it is gone, holds the vehicle, and carries on after the client has
+    reconnected by itself."""
+    from fake_mcu import wait_for
+
+    client = make_client(mcu.url)
+    client.connect()
+    veh = RecordingVehicle()
+    d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=client, vehicle=veh)
+    d._t0 = d.clock()
+    for _ in range(10):
+        tick(d)
+    navs_before = len(mcu.nav_updates)
+    assert navs_before >= 5
+    mcu.disappear()
+    assert wait_for(lambda: not client.link_alive, timeout_s=2.0)
+    n_sent = len(veh.sent)
+    for _ in range(10):
+        tick(d)
+    assert all(ph == "HOLD" and not v.any() for _, v, ph in veh.sent[n_sent:])
+    mcu.reappear()
+    assert wait_for(lambda: client.link_alive, timeout_s=5.0)
+    n_sent = len(veh.sent)
+    for _ in range(10):
+        tick(d)
+    d.shutdown()
+    assert len(mcu.nav_updates) > navs_before, "navigation updates flow again"
+    assert any(ph != "HOLD" for _, _, ph in veh.sent[n_sent:]), "the approach resumes"
