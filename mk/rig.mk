@@ -22,11 +22,12 @@ scenarios: hil ## same as `make hil`
 #   make soak           the mission looped for SOAK_S simulated seconds on one MCU process
 MATRIX_JOBS ?= 2
 SOAK_S      ?= 3600
+SOAK_NAV    ?= truth
 
 .PHONY: fault-matrix soak
 
 fault-matrix: firmware-host gen ## HIL fault matrix: every fault in every phase, checked; table in docs/reliability.md
 	@$(RIG_PY).matrix --jobs $(MATRIX_JOBS) --doc $(ROOT)/docs/reliability.md --json $(BUILD)/hil/fault_matrix.json
 
-soak: firmware-host gen ## soak: the mission looped for SOAK_S (3600) simulated s, memory and deadlines; figures in docs/reliability.md
-	@$(RIG_PY).soak --sim-s $(SOAK_S) --doc $(ROOT)/docs/reliability.md
+soak: firmware-host gen ## soak: the mission looped for SOAK_S (3600) simulated s, memory and deadlines (SOAK_NAV=cnn: CNN in the loop); docs/reliability.md
+	@$(RIG_PY).soak --sim-s $(SOAK_S) --nav $(SOAK_NAV) --doc $(ROOT)/docs/reliability.md

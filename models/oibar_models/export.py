@@ -39,7 +39,7 @@ def metadata_for(net: OibarNet, ck: dict, model_version: str) -> dict:
         "backbone": cfg["model"]["backbone"],
         "input_size_wh": [w, h],
         "input": "image: float32 (N, 3, H, W), RGB, values in [0, 1] = uint8 / 255, after resizing the "
-                 "camera frame with PIL bilinear (oibar_models.infer.resize_frame)",
+                 "camera frame with PIL bilinear (oibar.nav.pose.resize_frame)",
         "normalisation": {"mean": list(INPUT_MEAN), "std": list(INPUT_STD), "applied": "inside the graph"},
         "outputs": {
             "position_m": "T_cam_target: fixture origin in the camera frame (OpenCV axes: +X right, +Y down, "

@@ -41,7 +41,13 @@ from oibar_hil.rig.world import VehicleParams, World, WorldState
 BASE_SCENARIO = REPO_ROOT / "hil" / "scenarios" / "nominal_short.yaml"
 DOC_PATH = REPO_ROOT / "docs" / "reliability.md"
 BEGIN, END = "<!-- soak:begin -->", "<!-- soak:end -->"
+
+
+def markers(nav: str) -> tuple[str, str]:
+    """The page section a soak writes: one for ground truth, one for the CNN in the loop."""
+    return (BEGIN, END) if nav == "truth" else (f"<!-- soak-{nav}:begin -->", f"<!-- soak-{nav}:end -->")
 TURNAROUND_KPA_S = 300.0   # tank pressure change between missions (firmware rate limit 2000)
+NAV_HIST_MAX_MS = 250.0
 WARMUP_MISSIONS = 2        # memory growth is measured from the end of this mission on
 
 
@@ -85,6 +91,7 @@ class SoakResult:
     memory: list[MemSample]
     totals: dict[str, Any] = field(default_factory=dict)
     checks: list[tuple[str, bool, str]] = field(default_factory=list)
+    nav: str = "truth"
 
     @property
     def passed(self) -> bool:
@@ -111,7 +118,12 @@ class SoakResult:
 
 class Soak:
     def __init__(self, sim_s: float, *, mcu_path: Path | None = None, progress: bool = False,
-                 use_tracemalloc: bool = False) -> None:
+                 use_tracemalloc: bool = False, nav: str = "truth", nav_options: dict | None = None) -> None:
+        self.nav = nav
+        self.nav_options = nav_options
+        self.nav_hist = np.zeros(int(NAV_HIST_MAX_MS / 0.25), dtype=np.int64)
+        self.nav_max_ms = 0.0
+        self.nav_over_period = 0
         self.sim_s = sim_s
         self.sc = load_scenario(BASE_SCENARIO)
         self.sc.name = "soak"
@@ -126,6 +138,17 @@ class Soak:
         self._turning = False
         self._last_t = 0.0
         self._wall0 = 0.0
+
+    def _nav_totals(self) -> dict[str, Any]:
+        n = int(self.nav_hist.sum())
+        if n == 0:
+            return {}
+        cdf = np.cumsum(self.nav_hist) / n
+        width = NAV_HIST_MAX_MS / self.nav_hist.size
+        def pct(q):
+            return float((np.searchsorted(cdf, q) + 1) * width)
+        return {"nav_cycles": n, "nav_ms_median": pct(0.5), "nav_ms_p99": pct(0.99), "nav_ms_max": self.nav_max_ms,
+                "nav_over_100ms": self.nav_over_period}
 
     def _sample(self, rig: Rig) -> None:
         gc.collect()
@@ -143,6 +166,14 @@ class Soak:
             capture_ok=cap is not None and cap["closing_speed_mps"] <= 0.050 and cap["misalignment_deg"] <= 10.0,
             max_force_n=m["max_force_n"], max_force_soft_n=m["max_force_soft_n"],
             tv_final_kpa=mech.tv_true_kpa))
+        # Navigator time per cycle into a fixed histogram (0.25 ms bins): the soak keeps no
+        # per-cycle list, so its own bookkeeping cannot look like a leak.
+        ms = [r["nav_ms"] for r in rig.nav_log if "nav_ms" in r]
+        if ms:
+            self.nav_hist += np.histogram(np.clip(ms, 0, NAV_HIST_MAX_MS - 1e-6), bins=self.nav_hist.size,
+                                          range=(0.0, NAV_HIST_MAX_MS))[0]
+            self.nav_max_ms = max(self.nav_max_ms, max(ms))
+            self.nav_over_period += sum(1 for x in ms if x > 100.0)
         # What a long-running host would rotate: the per-mission recorder and logs.
         for v in rig.samples.values():
             v.clear()
@@ -190,7 +221,7 @@ class Soak:
     def run(self) -> SoakResult:
         if self.use_tracemalloc:
             tracemalloc.start()
-        rig = Rig(self.sc, mcu_path=self.mcu_path, progress=self.progress,
+        rig = Rig(self.sc, mcu_path=self.mcu_path, progress=self.progress, nav=self.nav, nav_options=self.nav_options,
                   between_missions=self.between_missions)
         self._wall0 = time.perf_counter()
         result = rig.run()
@@ -208,7 +239,7 @@ class Soak:
             "crc_errors": m["host_rx_crc_errors"] + m["mcu_rx_crc_errors"],
             "valve_violation_ms": m["valve_violation_ms"], "faults_seen": m["faults_seen"],
             "fuel_lost_kg": m["fuel_lost_kg"], "steps_total": m["steps_total"],
-            "watchdog_kicks": m["watchdog_kicks"]})
+            "watchdog_kicks": m["watchdog_kicks"], **self._nav_totals()}, nav=self.nav)
         soak.checks = base_checks(soak)
         return soak
 
@@ -231,7 +262,8 @@ def base_checks(s: SoakResult) -> list[tuple[str, bool, str]]:
         ("no fuel lost", t["fuel_lost_kg"] <= 1e-9, f"{t['fuel_lost_kg'] * 1000:.2f} g"),
         ("lockstep: every frame in order, step pulses accounted", True,
          f"{t['lockstep_frames']} frames, {t['steps_total']} step pulses"),
-    ]
+    ] + ([("navigator within the 100 ms period every cycle", t["nav_over_100ms"] == 0,
+           f"max {t['nav_ms_max']:.1f} ms over {t['nav_cycles']:,} cycles")] if "nav_cycles" in t else [])
 
 
 def memory_checks(s: SoakResult, *, mcu_kb: float, host_kb: float, py_blocks: float) -> list[tuple[str, bool, str]]:
@@ -253,12 +285,18 @@ def markdown(s: SoakResult) -> str:
         return (f"| {label} | {getattr(first, key):,} | {getattr(mem0, key):,} | {getattr(last, key):,} | "
                 f"{s.growth(key):+,.0f} {unit} | {s.slope_per_hour(key):+,.0f} {unit}/h |")
 
-    lines = [BEGIN, "",
+    begin, end = markers(s.nav)
+    nav_text = ("navigation: the CNN in the loop (rendered camera, OibarNet, filter; navigator time per cycle "
+                f"median {t.get('nav_ms_median', float('nan')):.1f} ms, p99 {t.get('nav_ms_p99', float('nan')):.1f} ms, "
+                f"max {t.get('nav_ms_max', float('nan')):.1f} ms over {t.get('nav_cycles', 0):,} cycles; "
+                f"{t.get('nav_over_100ms', 0)} over the 100 ms period)" if s.nav == "cnn" else
+                "navigation: ground truth")
+    lines = [begin, "",
              f"**{s.sim_s / 3600:.2f} h simulated** ({s.sim_s:,.0f} s) in {s.wall_s:,.0f} s wall "
              f"({s.sim_s / s.wall_s:.0f}x real time): **{len(s.missions)} missions** back to back on one "
              f"simulated-MCU process and one host link session, {t['exchanges']:,} lockstep exchanges "
              f"({t['exchanges_1ms']:,} of 1 ms), {t['steps_total']:,} latch step pulses, "
-             f"{t['watchdog_kicks']:,} watchdog kicks.", "",
+             f"{t['watchdog_kicks']:,} watchdog kicks; {nav_text}.", "",
              f"Memory, sampled at every mission end (after `gc.collect()`); growth from the end of "
              f"mission {WARMUP_MISSIONS} (warm-up) to the last sample, and the least-squares trend "
              f"over the same span:", "",
@@ -275,7 +313,7 @@ def markdown(s: SoakResult) -> str:
     lines += ["", "| check | verdict | measured |", "| --- | --- | --- |"]
     lines += [f"| {name} | {'pass' if ok else '**FAIL**'} | {meas} |" for name, ok, meas in s.checks]
     lines += ["", f"Host retransmissions: {t['host_retransmissions']}; CRC errors: {t['crc_errors']}.",
-              "", END]
+              "", end]
     return "\n".join(lines)
 
 
@@ -290,14 +328,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-host-growth-kb", type=float, default=4096.0)
     ap.add_argument("--max-py-blocks-growth", type=float, default=5000.0)
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--nav", choices=("truth", "cnn"), default="truth",
+                    help="navigation source (cnn: the rendered camera through the shipped model)")
+    ap.add_argument("--model", type=Path, default=None, help="ONNX model for --nav cnn")
     args = ap.parse_args(argv)
-    s = Soak(args.sim_s, progress=not args.no_progress, use_tracemalloc=args.tracemalloc).run()
+    s = Soak(args.sim_s, progress=not args.no_progress, use_tracemalloc=args.tracemalloc, nav=args.nav,
+             nav_options={"model_path": args.model} if args.nav == "cnn" else None).run()
     s.checks += memory_checks(s, mcu_kb=args.max_mcu_growth_kb, host_kb=args.max_host_growth_kb,
                               py_blocks=args.max_py_blocks_growth)
     text = markdown(s)
-    print(text.replace(BEGIN, "").replace(END, "").strip())
+    begin, end = markers(args.nav)
+    print(text.replace(begin, "").replace(end, "").strip())
     if args.doc:
-        write_doc(text, args.doc, BEGIN, END)
+        write_doc(text, args.doc, begin, end)
         print(f"\nfigures written to {args.doc}")
     json_path = REPO_ROOT / "build" / "soak" / "soak.json"
     json_path.parent.mkdir(parents=True, exist_ok=True)
