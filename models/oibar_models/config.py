@@ -61,6 +61,7 @@ class ModelConfig:
     #   metres: standardised (x, y, z);  uvlogz: (x/z, y/z, ln z), i.e. where the fixture is in
     #   the image and how far, which a convolutional net reads off far more directly
     pos_param: str = "metres"
+    keypoints: int = 0                       # >0: soft-argmax branch with this many heat maps (nets.py)
     temporal_layers: int = 0                 # >0: BiLSTM back-end on the CNN features (study)
 
 
@@ -78,6 +79,9 @@ class TrainConfig:
     # L_t over the batch: metres (the paper's ||t_hat - t||) or range_normalised (||t_hat - t|| /
     # ||t||, the paper's evaluation metric: otherwise the 10 m frames dominate the gradient)
     pos_loss: str = "metres"
+    # start from another run's weights (a checkpoint of the same backbone; heads widened when this
+    # config adds the keypoint branch): a second training stage
+    init_from: str = ""
     workers: int = 1                         # DataLoader worker processes
     threads: int = 0                         # torch intra-op threads (0: leave torch's default)
     seed: int = 0

@@ -25,7 +25,7 @@ from . import metrics
 from .data import build_splits, label_statistics
 from .geometry import matrix_from_rot6d, quat_from_matrix
 from .loss import UncertaintyPoseLoss
-from .nets import build_model, count_parameters
+from .nets import build_model, count_parameters, widen_heads_from
 
 
 def cyclical_lr(step: int, total_steps: int, cfg) -> float:
@@ -145,6 +145,15 @@ def train(cfg, progress: bool = True, log=print) -> dict:
 
     start_epoch, step, best = 0, 0, float("inf")
     last = run / "last.pt"
+    if not last.is_file() and cfg.train.init_from:
+        src = cfg.path(cfg.train.init_from)
+        if not src.is_file():
+            raise FileNotFoundError(f"train.init_from: {src} not found (train that stage first)")
+        state = torch.load(src, map_location=device, weights_only=False)["model"]
+        if state["head_t.weight"].shape != net.head_t.weight.shape:
+            state = widen_heads_from(net, state)
+        net.load_state_dict(state)
+        log(f"initialised from {src}")
     if last.is_file():
         ck = torch.load(last, map_location=device, weights_only=False)
         if ck["config"]["model"] != cfg.to_dict()["model"]:

@@ -158,7 +158,7 @@ class OibarNet(nn.Module):
     def __init__(self, backbone: str = "oibar_lite", width: float = 1.0, dropout: float = 0.2,
                  coord_channels: bool = False, pos_mean_m=(0.0, 0.1, 5.0), pos_std_m=(0.5, 0.5, 3.0),
                  rot6d_mean=(1.0, 0.0, 0.0, 0.0, 1.0, 0.0), pos_param: str = "metres",
-                 uvlogz_mean=(0.0, 0.0, 1.4), uvlogz_std=(0.1, 0.1, 0.8)):
+                 uvlogz_mean=(0.0, 0.0, 1.4), uvlogz_std=(0.1, 0.1, 0.8), keypoints: int = 0):
         super().__init__()
         if pos_param not in ("metres", "uvlogz"):
             raise ValueError(f"unknown pos_param {pos_param!r}; choose metres or uvlogz")
@@ -176,11 +176,23 @@ class OibarNet(nn.Module):
                 first = self.backbone[0][0]
                 self.backbone[0][0] = nn.Conv2d(in_ch, first.out_channels, first.kernel_size,
                                                 first.stride, first.padding, bias=False)
-        self.feature_dim = feat
+        # Optional soft-argmax branch (our addition, model.keypoints > 0): K heat maps on the
+        # stride-16 features, each reduced to its expected image position (u, v). Global average
+        # pooling keeps *what* is seen but blurs *where*; a GAP network trained on our data
+        # learned range well but barely followed lateral shifts (docs/model_card.md). The 2K
+        # coordinates join the pooled features in front of the same two heads.
+        self.keypoints = int(keypoints)
+        if self.keypoints:
+            if backbone == "oibar_lite":
+                self.kp_tap, mid_ch = 7, self.backbone[6].body[1][0].out_channels   # end of the stride-16 stage
+            else:
+                self.kp_tap, mid_ch = len(self.backbone), feat
+            self.kp_conv = nn.Sequential(conv_bn(mid_ch, mid_ch, 3), nn.Conv2d(mid_ch, self.keypoints, 1))
+        self.feature_dim = feat + 2 * self.keypoints
         self.dropout = nn.Dropout(dropout)      # the paper: dropout, then GAP
         self.pool = nn.AdaptiveAvgPool2d(1)
-        self.head_t = nn.Linear(feat, 3)
-        self.head_r = nn.Linear(feat, 6)
+        self.head_t = nn.Linear(self.feature_dim, 3)
+        self.head_r = nn.Linear(self.feature_dim, 6)
         self.register_buffer("input_mean", torch.tensor(INPUT_MEAN).view(1, 3, 1, 1))
         self.register_buffer("input_std", torch.tensor(INPUT_STD).view(1, 3, 1, 1))
         self.register_buffer("pos_mean_m", torch.tensor(pos_mean_m, dtype=torch.float32))
@@ -200,7 +212,11 @@ class OibarNet(nn.Module):
             v = torch.linspace(-1, 1, h, device=x.device, dtype=x.dtype).view(1, 1, h, 1).expand(n, 1, h, w)
             u = torch.linspace(-1, 1, w, device=x.device, dtype=x.dtype).view(1, 1, 1, w).expand(n, 1, h, w)
             x = torch.cat([x, u, v], 1)
-        return self.pool(self.dropout(self.backbone(x))).flatten(1)
+        if not self.keypoints:
+            return self.pool(self.dropout(self.backbone(x))).flatten(1)
+        mid = self.backbone[:self.kp_tap](x)
+        f = self.pool(self.dropout(self.backbone[self.kp_tap:](mid))).flatten(1)
+        return torch.cat([f, soft_argmax(self.kp_conv(mid))], 1)
 
     def decode_position(self, raw: torch.Tensor) -> torch.Tensor:
         """Position head output (standardised) -> T_cam_target in metres."""
@@ -215,6 +231,34 @@ class OibarNet(nn.Module):
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.heads(self.features(image))
+
+
+def soft_argmax(logits: torch.Tensor) -> torch.Tensor:
+    """(N, K, h, w) heat-map logits -> (N, 2K): the expected (u..., v...) of each map's softmax,
+    in [-1, 1] across the image (cell centres)."""
+    n, k, h, w = logits.shape
+    p = torch.softmax(logits.flatten(2), -1).view(n, k, h, w)
+    gu = torch.linspace(-1 + 1 / w, 1 - 1 / w, w, device=logits.device, dtype=logits.dtype)
+    gv = torch.linspace(-1 + 1 / h, 1 - 1 / h, h, device=logits.device, dtype=logits.dtype)
+    u = (p.sum(2) * gu).sum(-1)
+    v = (p.sum(3) * gv).sum(-1)
+    return torch.cat([u, v], 1)
+
+
+def widen_heads_from(net: "OibarNet", state: dict) -> dict:
+    """A checkpoint of the same net without the keypoint branch -> a state dict for ``net``:
+    the heads' extra input columns start at zero, so the widened net starts out computing
+    exactly what the old one did."""
+    out = dict(state)
+    for name in ("head_t", "head_r"):
+        w_old = state[f"{name}.weight"]
+        w_new = torch.zeros_like(getattr(net, name).weight)
+        w_new[:, :w_old.shape[1]] = w_old
+        out[f"{name}.weight"] = w_new
+    for k, v in net.state_dict().items():
+        if k.startswith("kp_conv.") and k not in out:
+            out[k] = v
+    return out
 
 
 class TemporalOibarNet(nn.Module):
@@ -260,7 +304,7 @@ class PoseOutputs(nn.Module):
 
 def build_model(mcfg, pos_mean_m=None, pos_std_m=None, rot6d_mean=None, uvlogz_mean=None,
                 uvlogz_std=None) -> OibarNet:
-    kw = {"pos_param": getattr(mcfg, "pos_param", "metres")}
+    kw = {"pos_param": getattr(mcfg, "pos_param", "metres"), "keypoints": getattr(mcfg, "keypoints", 0)}
     for name, val in (("uvlogz_mean", uvlogz_mean), ("uvlogz_std", uvlogz_std)):
         if val is not None:
             kw[name] = tuple(float(x) for x in val)
