@@ -91,3 +91,14 @@ def test_docked_states_do_not_abort_on_navigation_loss():
         out = g.step(t, obs(t, nav(valid=False, hold_reason="camera: gone"), tm=telemetry("STATE_HARD_DOCKED", True)))
     assert not g.mission_aborted, "docked, the camera is not needed: no abort"
     assert np.all(out.v_sp_D_mps == 0)
+
+
+def test_attitude_inside_the_deadband_is_left_alone_outside_it_is_corrected():
+    g = Guidance(MissionParams())
+    n = nav(5.0)
+    n.att_rad = np.radians([1.0, 0.0, 0.0])        # a typical network bias: no rate command
+    out = g.step(0.0, obs(0.0, n))
+    assert np.all(out.w_sp_rad_s == 0)
+    n.att_rad = np.radians([4.0, -3.0, 0.0])       # a real misalignment: turned back
+    out = g.step(0.1, obs(0.1, n))
+    assert out.w_sp_rad_s[0] < 0 and out.w_sp_rad_s[1] > 0
