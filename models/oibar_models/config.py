@@ -62,6 +62,10 @@ class ModelConfig:
     #   the image and how far, which a convolutional net reads off far more directly
     pos_param: str = "metres"
     keypoints: int = 0                       # >0: soft-argmax branch with this many heat maps (nets.py)
+    # points of the fixture (F_t, metres) whose projections supervise the first heat maps when
+    # train.kp_loss is on: the origin (drogue centre) and the four corners of the 0.50 x 0.36 m rim
+    keypoints_3d_m: list = field(default_factory=lambda: [[0.0, 0.0, 0.0], [-0.25, -0.18, 0.0], [0.25, -0.18, 0.0],
+                                                          [0.25, 0.18, 0.0], [-0.25, 0.18, 0.0]])
     temporal_layers: int = 0                 # >0: BiLSTM back-end on the CNN features (study)
 
 
@@ -82,6 +86,9 @@ class TrainConfig:
     # start from another run's weights (a checkpoint of the same backbone; heads widened when this
     # config adds the keypoint branch): a second training stage
     init_from: str = ""
+    # supervise heat maps with the projected fixture points (our addition): a direct, dense
+    # signal for *where* the fixture is, which the pose heads then read
+    kp_loss: bool = False
     workers: int = 1                         # DataLoader worker processes
     threads: int = 0                         # torch intra-op threads (0: leave torch's default)
     seed: int = 0

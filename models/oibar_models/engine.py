@@ -41,6 +41,36 @@ def cyclical_lr(step: int, total_steps: int, cfg) -> float:
     return t.lr_min + (peak - t.lr_min) * tri
 
 
+class KeypointSupervision:
+    """Projected fixture points (normalised image coordinates) as targets for the first heat
+    maps of the keypoint branch; points behind the camera or outside the image are masked."""
+
+    def __init__(self, cfg, K_input: np.ndarray, net) -> None:
+        pts = np.asarray(cfg.model.keypoints_3d_m, dtype=np.float32)
+        if not net.keypoints or len(pts) > net.keypoints:
+            raise ValueError(f"train.kp_loss needs model.keypoints >= {len(pts)} (the supervised points)")
+        self.X_t = torch.tensor(pts)
+        self.K = torch.tensor(K_input, dtype=torch.float32)
+        self.wh = (cfg.model.input_width_px, cfg.model.input_height_px)
+        self.n_pts = len(pts)
+        self.n_kp = net.keypoints
+        self.base = net.feature_dim - 2 * net.keypoints
+
+    def targets(self, T: torch.Tensor, r6: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        R = matrix_from_rot6d(r6)
+        p = torch.einsum("nij,pj->npi", R, self.X_t.to(T.device)) + T[:, None, :]
+        z = p[..., 2].clamp_min(1e-3)
+        u = self.K[0, 0] * p[..., 0] / z + self.K[0, 2]
+        v = self.K[1, 1] * p[..., 1] / z + self.K[1, 2]
+        uv = torch.stack([u / self.wh[0] * 2 - 1, v / self.wh[1] * 2 - 1], -1)
+        valid = ((p[..., 2] > 0.05) & (uv.abs() < 0.97).all(-1)).float()
+        return uv, valid
+
+    def predicted(self, feats: torch.Tensor) -> torch.Tensor:
+        k = feats[:, self.base:]
+        return torch.stack([k[:, :self.n_pts], k[:, self.n_kp:self.n_kp + self.n_pts]], -1)
+
+
 def pick_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -127,6 +157,8 @@ def train(cfg, progress: bool = True, log=print) -> dict:
     opt = torch.optim.Adam(list(net.parameters()) + list(crit.parameters()), lr=cfg.train.lr_max,
                            weight_decay=cfg.train.weight_decay)
 
+    kp_sup = KeypointSupervision(cfg, splits.K_input, net) if cfg.train.kp_loss else None
+
     g = torch.Generator()
     g.manual_seed(cfg.train.seed)
     workers = cfg.train.workers
@@ -159,8 +191,11 @@ def train(cfg, progress: bool = True, log=print) -> dict:
         if ck["config"]["model"] != cfg.to_dict()["model"]:
             raise RuntimeError(f"{last}: was trained with another model config; use a new run_dir or delete it")
         net.load_state_dict(ck["model"])
-        crit.load_state_dict(ck["loss"])
-        opt.load_state_dict(ck["optimizer"])
+        crit.load_state_dict(ck["loss"], strict=False)   # runs from before the keypoint term lack s_k
+        try:
+            opt.load_state_dict(ck["optimizer"])
+        except ValueError as exc:   # parameter groups changed with the loss: fresh moments
+            log(f"optimizer state not restored ({exc}); Adam restarts its moment estimates")
         start_epoch, step, best = ck["epoch"], ck["step"], ck["best_score"]
         torch.set_rng_state(ck["torch_rng"])
         log(f"resumed from {last}: {start_epoch} epoch(s) done, step {step}")
@@ -189,8 +224,15 @@ def train(cfg, progress: bool = True, log=print) -> dict:
             lr = cyclical_lr(step, total_steps, cfg)
             for pg in opt.param_groups:
                 pg["lr"] = lr
-            T_hat, r6_hat = net(b["image"].to(device).contiguous(memory_format=fmt))
-            out = crit(T_hat, r6_hat, b["T_cam_target"].to(device), b["rot6d"].to(device))
+            feats = net.features(b["image"].to(device).contiguous(memory_format=fmt))
+            T_hat, r6_hat = net.heads(feats)
+            T_true = b["T_cam_target"].to(device)
+            out = crit(T_hat, r6_hat, T_true, b["rot6d"].to(device))
+            if kp_sup is not None:
+                kp_true, valid = kp_sup.targets(T_true, b["rot6d"].to(device))
+                term, L_k = crit.keypoint_term(kp_sup.predicted(feats), kp_true, valid)
+                out["loss"] = out["loss"] + term
+                out["L_k"] = L_k
             opt.zero_grad(set_to_none=True)
             out["loss"].backward()
             opt.step()

@@ -64,3 +64,33 @@ def test_missing_first_stage_is_a_clear_error(tiny_dataset, tmp_path):
     cfg = tiny_config(tiny_dataset, tmp_path / "s2", init_from=str(tmp_path / "nope.pt"))
     with pytest.raises(FileNotFoundError, match="train that stage first"):
         train(cfg, progress=False, log=lambda m: None)
+
+
+def test_keypoint_supervision_targets_are_the_projected_fixture_points(tiny_dataset, tmp_path):
+    import numpy as np
+    from oibar_models.engine import KeypointSupervision
+    from oibar_models.geometry import rot6d_from_matrix
+
+    cfg = tiny_config(tiny_dataset, tmp_path / "r")
+    cfg.model.keypoints = 8
+    net = OibarNet(width=0.5, coord_channels=True, keypoints=8)
+    K = np.array([[50.0, 0, 46.5], [0, 50.0, 30.0], [0, 0, 1]])
+    sup = KeypointSupervision(cfg, K, net)
+    T = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 0.05]])
+    r6 = rot6d_from_matrix(torch.eye(3).expand(2, 3, 3))
+    uv, valid = sup.targets(T, r6)
+    assert torch.allclose(uv[0, 0], torch.tensor([0.0, 0.0]), atol=1e-6), "the origin on the optical axis"
+    # corner (-0.25, -0.18) at 2 m: u = 46.5 - 50 * 0.125 = 40.25 px of 93 -> 2 * 40.25 / 93 - 1
+    assert torch.allclose(uv[0, 1], torch.tensor([2 * 40.25 / 93 - 1, 2 * (30 - 4.5) / 60 - 1]), atol=1e-5)
+    assert valid[0].all() and not valid[1, 1:].any(), "corners out of view at 5 cm are masked"
+    feats = net.features(torch.rand(2, 3, 60, 93))
+    assert sup.predicted(feats).shape == (2, 5, 2)
+
+
+def test_training_with_keypoint_supervision_runs(tiny_dataset, tmp_path):
+    cfg = tiny_config(tiny_dataset, tmp_path / "kp", kp_loss=True, pos_loss="range_normalised")
+    cfg.model.keypoints = 8
+    cfg.model.pos_param = "uvlogz"
+    train(cfg, progress=False, log=lambda m: None)
+    ck = torch.load(tmp_path / "kp" / "last.pt", weights_only=False)
+    assert "s_k" in ck["loss"] and float(ck["loss"]["s_k"]) != 0.0, "the keypoint term was trained"
