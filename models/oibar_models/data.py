@@ -238,14 +238,32 @@ class Augmenter:
         return img.astype(np.float32) / 255.0, T, R
 
 
-def warp_homography(img: np.ndarray, H_old_to_new: np.ndarray) -> np.ndarray:
+def warp_homography(img: np.ndarray, H_old_to_new: np.ndarray, border: str = "reflect") -> np.ndarray:
     """Resample img so that old pixel x lands on H x (pixel-corner convention, as PIL's
-    transform uses); uncovered pixels are black (the space background)."""
-    Hinv = np.linalg.inv(H_old_to_new)
+    transform uses).
+
+    Uncovered pixels are filled by reflecting the image across its edges (``border="black"``:
+    zeros). Black bands were a shortcut: they told the network how far the image had been
+    shifted, it learned the band instead of the fixture and then ignored real lateral offsets in
+    the closed loop (docs/model_card.md, "lateral response")."""
+    if border == "black":
+        Hinv = np.linalg.inv(H_old_to_new)
+        Hinv = Hinv / Hinv[2, 2]
+        im = Image.fromarray(img)
+        out = im.transform(im.size, Image.Transform.PERSPECTIVE, tuple(Hinv.flatten()[:8]),
+                           Image.Resampling.BILINEAR)
+        return np.asarray(out)
+    h, w = img.shape[:2]
+    py, px = h // 2, w // 2
+    padded = np.pad(img, ((py, py), (px, px), (0, 0)), mode="reflect")
+    # the same mapping on the padded canvas: shift in, apply H, shift out
+    S = np.array([[1.0, 0.0, px], [0.0, 1.0, py], [0.0, 0.0, 1.0]])
+    H_pad = S @ H_old_to_new @ np.linalg.inv(S)
+    Hinv = np.linalg.inv(H_pad)
     Hinv = Hinv / Hinv[2, 2]
-    im = Image.fromarray(img)
+    im = Image.fromarray(padded)
     out = im.transform(im.size, Image.Transform.PERSPECTIVE, tuple(Hinv.flatten()[:8]), Image.Resampling.BILINEAR)
-    return np.asarray(out)
+    return np.asarray(out)[py:py + h, px:px + w]
 
 
 # ----------------------------------------------------------------------------- torch datasets

@@ -181,3 +181,16 @@ def test_manifest_camera_drives_intrinsics(tiny_dataset, tmp_path):
     m["config"]["camera"]["cx_px"] = 371.5
     (d / "manifest.json").write_text(json.dumps(m))
     assert load_sequence(d).K[0, 2] == 371.5
+
+
+def test_warp_leaves_no_black_band_that_would_give_the_shift_away():
+    # a bright frame (the station filling the view at close range) shifted sideways: the
+    # uncovered strip must not be black, or the network learns the band instead of the fixture
+    rng = np.random.default_rng(3)
+    img = (150 + rng.integers(0, 60, (60, 93, 3))).astype(np.uint8)
+    H = np.array([[1.0, 0.0, 12.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])    # 12 px to the right
+    out = warp_homography(img, H)
+    assert out[:, :12].min() > 100, "the uncovered strip is filled from the image"
+    assert np.array_equal(out[:, 20:60], img[:, 8:48]), "the rest is the shifted image"
+    black = warp_homography(img, H, border="black")
+    assert black[:, :11].max() == 0
