@@ -96,9 +96,9 @@ def test_docked_states_do_not_abort_on_navigation_loss():
 def test_attitude_inside_the_deadband_is_left_alone_outside_it_is_corrected():
     g = Guidance(MissionParams())
     n = nav(5.0)
-    n.att_rad = np.radians([1.0, 0.0, 0.0])        # a typical network bias: no rate command
+    n.att_rad = np.radians([2.5, 1.0, 0.0])        # a typical network error: no rate command
     out = g.step(0.0, obs(0.0, n))
     assert np.all(out.w_sp_rad_s == 0)
-    n.att_rad = np.radians([4.0, -3.0, 0.0])       # a real misalignment: turned back
+    n.att_rad = np.radians([5.0, -4.0, 0.0])       # a real misalignment: turned back
     out = g.step(0.1, obs(0.1, n))
     assert out.w_sp_rad_s[0] < 0 and out.w_sp_rad_s[1] > 0
