@@ -3,17 +3,30 @@
 MODEL_CONFIG ?= models/configs/oibarnet_lite.yaml
 TRAIN_ARGS   ?=
 EVAL_ARGS    ?=
+TEMPORAL_ARGS ?=
 
-.PHONY: train export eval
+.PHONY: train export eval temporal
 
-train: setup ## train OibarNet on `make dataset` output (resumes runs/<name>/; MODEL_CONFIG=..., TRAIN_ARGS="train.epochs=3")
-	@$(PY) -m oibar_models.train --config $(MODEL_CONFIG) $(TRAIN_ARGS)
+# The shipped model takes two stages: the base network, then the keypoint branch fine-tuned
+# from it (models/configs/oibarnet_lite.yaml says why). A MODEL_CONFIG given on the command
+# line trains that one config only.
+ifeq ($(origin MODEL_CONFIG),file)
+TRAIN_CONFIGS ?= models/configs/oibarnet_lite_base.yaml models/configs/oibarnet_lite.yaml
+else
+TRAIN_CONFIGS ?= $(MODEL_CONFIG)
+endif
+
+train: setup ## train OibarNet on `make dataset` output, both stages of the shipped model (resumes runs/<name>/; MODEL_CONFIG=... for one config)
+	@for c in $(TRAIN_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.train --config $$c $(TRAIN_ARGS) || exit 1; done
 
 export: setup ## export the best checkpoint to ONNX with metadata and check it against PyTorch (models/<name>.onnx)
 	@$(PY) -m oibar_models.export --config $(MODEL_CONFIG)
 
 eval: setup ## evaluate the ONNX model on test sequences 1 and 8: tables, error plots, overlays, latency (runs/<name>/eval)
 	@$(PY) -m oibar_models.evaluate --config $(MODEL_CONFIG) $(EVAL_ARGS)
+
+temporal: setup ## the paper's BiLSTM study: 1-3 BiLSTM layers on the frozen CNN's features vs the CNN alone (runs/temporal_bilstm; TEMPORAL_ARGS="--max-frames 300")
+	@$(PY) -m oibar_models.temporal --config $(MODEL_CONFIG) $(TEMPORAL_ARGS)
 
 ENVELOPE_DIR ?= $(ROOT)/data/envelope
 

@@ -40,16 +40,24 @@ def predict_sequence(est: OnnxPoseEstimator, frames: np.ndarray, batch: int = 32
 
 
 def plot_errors(path: Path, name: str, time_s, dt_pct, dq_deg, dt_pct_base=None, dq_deg_base=None) -> None:
+    series = {"OibarNet": (dt_pct, dq_deg)}
+    if dt_pct_base is not None:
+        series["mean-pose baseline"] = (dt_pct_base, dq_deg_base)
+    plot_error_series(path, name, time_s, series)
+
+
+def plot_error_series(path: Path, name: str, time_s, series: dict) -> None:
+    """Position (% of range) and attitude (deg) errors over time, one line per label in
+    ``series`` (label -> (dt_pct, dq_deg)), log scale, the requirements dashed."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True)
-    ax[0].plot(time_s, dt_pct, lw=0.8, label="OibarNet")
-    ax[1].plot(time_s, dq_deg, lw=0.8, label="OibarNet")
-    if dt_pct_base is not None:
-        ax[0].plot(time_s, dt_pct_base, lw=0.8, alpha=0.6, label="mean-pose baseline")
-        ax[1].plot(time_s, dq_deg_base, lw=0.8, alpha=0.6, label="mean-pose baseline")
+    for i, (label, (dt_pct, dq)) in enumerate(series.items()):
+        alpha = 0.85 if i == 0 else 0.6
+        ax[0].plot(time_s, dt_pct, lw=0.8, alpha=alpha, label=label)
+        ax[1].plot(time_s, dq, lw=0.8, alpha=alpha, label=label)
     ax[0].axhline(metrics.POS_REQ_PCT, color="r", ls="--", lw=0.8, label="requirement")
     ax[1].axhline(metrics.ATT_REQ_DEG, color="r", ls="--", lw=0.8, label="requirement")
     ax[0].set_ylabel("position error (% of range)")
