@@ -93,8 +93,15 @@ def test_docked_states_do_not_abort_on_navigation_loss():
     assert np.all(out.v_sp_D_mps == 0)
 
 
-def test_attitude_inside_the_deadband_is_left_alone_outside_it_is_corrected():
+def test_attitude_is_left_to_the_vehicle_unless_steering_is_enabled():
     g = Guidance(MissionParams())
+    n = nav(5.0)
+    n.att_rad = np.radians([5.0, -4.0, 0.0])
+    assert np.all(g.step(0.0, obs(0.0, n)).w_sp_rad_s == 0)
+
+
+def test_attitude_inside_the_deadband_is_left_alone_outside_it_is_corrected():
+    g = Guidance(MissionParams(steer_attitude=True))
     n = nav(5.0)
     n.att_rad = np.radians([2.5, 1.0, 0.0])        # a typical network error: no rate command
     out = g.step(0.0, obs(0.0, n))

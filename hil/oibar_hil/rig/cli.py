@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         paths = args.scenarios
     else:
         paths = sorted(args.dir.glob("*.yaml"))
-    nav = args.nav or "truth"  # the demo switches to cnn with the shipped model
+    nav = args.nav or ("cnn" if args.cmd == "demo" else "truth")
     nav_options = {"model_path": args.model, "scene": args.scene} if nav == "cnn" else None
     results = []
     t0 = time.perf_counter()

@@ -84,6 +84,12 @@ class MissionParams:
     final_closing_mps: float = 0.03  # closing speed into the drogue (capture envelope: 0.05)
     nav_lost_abort_s: float = 5.0    # no trustworthy navigation this long in free flight: abort
     blind_retreat_s: float = 10.0    # then back off along +z_D this long without navigation
+    # Attitude rates from the navigation solution. Off: the vehicle's own GNC holds the relative
+    # attitude (both vehicles hold their attitude from their own sensors, as automated dockings
+    # do) and the camera gives position. The shipped network's attitude follows the truth only
+    # partly (slope 0.5-0.7, 1.2-1.8 deg RMS on the rig probe): closing the loop on it turned the
+    # vehicle from 2.5 to 10.4 deg in the 10 m mission and the probe bounced off the drogue.
+    steer_attitude: bool = False
 
 
 @dataclass
@@ -298,7 +304,7 @@ class Guidance:
         att_err = np.asarray(nav.att_rad, dtype=float)
         excess = max(0.0, float(np.linalg.norm(att_err)) - np.radians(ATT_DEADBAND_DEG))
         att_cmd = att_err * (excess / max(float(np.linalg.norm(att_err)), 1e-12))
-        w = np.clip(-0.5 * att_cmd, -np.radians(0.5), np.radians(0.5))
+        w = np.clip(-0.5 * att_cmd, -np.radians(0.5), np.radians(0.5)) if self.m.steer_attitude else np.zeros(3)
         contact = bool(tm.contact) if tm is not None else False
         hold = (np.zeros(3), np.zeros(3), "HOLD")
         if self.finished:
