@@ -109,3 +109,16 @@ def test_attitude_inside_the_deadband_is_left_alone_outside_it_is_corrected():
     n.att_rad = np.radians([5.0, -4.0, 0.0])       # a real misalignment: turned back
     out = g.step(0.1, obs(0.1, n))
     assert out.w_sp_rad_s[0] < 0 and out.w_sp_rad_s[1] > 0
+
+
+def test_approach_corridor_stops_closing_outside_and_backs_off_far_outside():
+    from oibar.nav.guidance import corridor_half_width_m
+
+    assert corridor_half_width_m(5.0) == pytest.approx(0.5) and corridor_half_width_m(0.1) == pytest.approx(0.05)
+    g = Guidance(MissionParams())
+    inside = g.step(0.0, obs(0.0, nav(3.0, lateral=(0.2, 0.0))))
+    assert inside.v_sp_D_mps[2] < 0, "inside the corridor: closing"
+    outside = g.step(0.1, obs(0.1, nav(3.0, lateral=(0.4, 0.0))))
+    assert outside.v_sp_D_mps[2] == 0 and outside.v_sp_D_mps[0] < 0 and outside.phase == "HOLD"
+    far = g.step(0.2, obs(0.2, nav(3.0, lateral=(0.7, 0.0))))
+    assert far.v_sp_D_mps[2] > 0 and far.v_sp_D_mps[0] < 0 and far.phase == "RETREAT"

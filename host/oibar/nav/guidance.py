@@ -44,6 +44,8 @@ FILL_STALL_MIN_RISE_KPA = 5.0
 HOLD_GATE_RANGE_M = 0.5     # wait here until armed and aligned
 GATE_MAX_LATERAL_M = 0.02
 GATE_MAX_MISALIGN_DEG = 5.0  # half the 10 deg capture envelope: the CNN's attitude is good to ~2 deg
+CORRIDOR_SLOPE = 0.10        # approach corridor half-width per metre of range (a 5.7 deg cone)
+CORRIDOR_MIN_HALF_WIDTH_M = 0.05
 RETREAT_SPEED_MPS = 0.05
 SEPARATION_BACKOFF_MPS = 0.03  # helps the spring-damper pre-load extract the probe
 VALVES_CLOSED_BEFORE_SEPARATE_S = 0.5  # host-side guard: never unmate with a valve reading open
@@ -136,6 +138,13 @@ class GuidanceOutput:
     nav: Any
     request: MechRequest | None
     phase: str
+
+
+def corridor_half_width_m(range_m: float) -> float:
+    """The approach corridor's half-width at a probe range: 10 % of the range (a 5.7 deg cone,
+    comfortably wider than the network's lateral error, 1-3 % of range), never under the 5 cm
+    near the drogue that its 10 cm funnel forgives."""
+    return max(CORRIDOR_MIN_HALF_WIDTH_M, CORRIDOR_SLOPE * max(range_m, 0.0))
 
 
 def _name(enum: Any, value: int) -> str:
@@ -334,6 +343,14 @@ class Guidance:
                 return np.array([0.0, 0.0, vz]), w, "RETREAT"
             return np.zeros(3), np.zeros(3), "HOLD"
         closing, phase = self._closing_speed_for(r)
+        # Approach corridor: a cone around the docking axis. Outside it the vehicle stops closing
+        # and centres first; well outside it (twice the half-width) it backs off while centring.
+        half_width = corridor_half_width_m(r)
+        lateral = float(np.hypot(*lat))
+        if lateral > 2.0 * half_width:
+            return np.array([v_lat[0], v_lat[1], RETREAT_SPEED_MPS]), w, "RETREAT"
+        if lateral > half_width:
+            closing, phase = 0.0, "HOLD"
         gate_ok = (state == "STATE_APPROACH_READY" and float(np.hypot(*lat)) <= GATE_MAX_LATERAL_M
                    and nav.misalignment_deg <= GATE_MAX_MISALIGN_DEG)
         if r <= HOLD_GATE_RANGE_M + 0.05 and not gate_ok:
