@@ -70,7 +70,8 @@ def _print_nav(r: RunResult) -> None:
           f"(p99 {m.get('nav_lateral_err_m_p99', float('nan')) * 100:.1f} cm), "
           f"misalignment error median {m.get('nav_misalign_err_deg_median', float('nan')):.2f} deg")
     print(f"  navigator time per cycle (frame in -> solution out, render excluded): median "
-          f"{m.get('nav_ms_median', float('nan')):.1f} ms, p99 {m.get('nav_ms_p99', float('nan')):.1f} ms; "
+          f"{m.get('nav_ms_median', float('nan')):.1f} ms, p99 {m.get('nav_ms_p99', float('nan')):.1f} ms, "
+          f"max {m.get('nav_ms_max', float('nan')):.1f} ms of the 100 ms period; "
           f"render median {m.get('render_ms_median', float('nan')):.1f} ms")
 
 
