@@ -94,7 +94,7 @@ def _runs(ctx: Context, opts: list[str], scenario: Path, n: int, label: str) -> 
             runs)
 
 
-@measurement("hil.ground_truth", "Ground-truth navigation (the rig's stand-in)", COLUMNS)
+@measurement("hil.ground_truth", "Ground-truth navigation (the host guidance on the true pose)", COLUMNS)
 def ground_truth(ctx: Context) -> Result:
     known, why = rig_options(ctx)
     if why:
