@@ -19,10 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from oibar_hil.rotations import matrix_to_quat, rotvec_to_matrix
-
-# Camera axes expressed in D when perfectly aligned: looking down -z_D, x shared.
-R_D_CAM_ALIGNED = np.diag([1.0, -1.0, -1.0])
+from oibar.nav.frames import R_D_CAM_ALIGNED  # camera axes in D when aligned (one definition)
+from oibar_hil.rotations import rotvec_to_matrix
 
 
 @dataclass
@@ -103,12 +101,6 @@ class World:
         """Combined yaw/pitch: angle between the camera boresight and -z_D (roll excluded)."""
         z_cam_D = self.R_D_cam()[:, 2]
         return float(np.degrees(np.arccos(np.clip(-z_cam_D[2], -1.0, 1.0))))
-
-    def pose_cam_target(self) -> tuple[np.ndarray, np.ndarray]:
-        """(t_cam_target_m, q_cam_target wxyz): the drogue frame D seen from the camera."""
-        R_cam_D = self.R_D_cam().T
-        t_cam_target = R_cam_D @ (-self.s.r_D_m)
-        return t_cam_target, matrix_to_quat(R_cam_D)
 
     def clamp_lateral(self, radius_m: float) -> None:
         r = self.lateral_m

@@ -30,7 +30,7 @@ from typing import Any, Callable
 import numpy as np
 
 from oibar import pb
-from oibar.camera import CameraError, CameraSource, LatestFrame
+from oibar.camera import CameraError, CameraLost, CameraSource, LatestFrame
 from oibar.nav.core import Navigator, NavStep
 from oibar.nav.cyclelog import CycleLog
 from oibar.nav.guidance import Guidance, GuidanceOutput, MechRequest, Observation, RequestResult
@@ -180,7 +180,7 @@ class NavDaemon:
                 frame = cam.poll() if remaining <= 0 else cam.get(timeout_s=remaining)
             except CameraError as exc:
                 if cam.seconds_since_last_capture <= self.p.camera_lost_timeout_s and \
-                        type(exc).__name__ == "CameraLost" and cam.running:
+                        isinstance(exc, CameraLost) and cam.running:
                     return None          # just no frame before `until`: the camera is fine
                 self._drop_camera(exc, self.clock())
                 return None
@@ -378,6 +378,8 @@ def connect_in_background(link: Any, retry_s: float = 2.0, on_error: Callable[[s
     client's own supervisor reconnects."""
     stop = stop or threading.Event()
 
+    from oibar.link.errors import LinkClosed
+
     def run() -> None:
         last = ""
         while not stop.is_set():
@@ -389,7 +391,7 @@ def connect_in_background(link: Any, retry_s: float = 2.0, on_error: Callable[[s
                 if on_error and msg != last:
                     on_error(msg)
                 last = msg
-                if "closed" in msg.lower() and type(exc).__name__ == "LinkClosed":
+                if isinstance(exc, LinkClosed):   # closed by the daemon: stop trying
                     return
             stop.wait(retry_s)
 
