@@ -76,7 +76,9 @@ class QemuBoard:
                 # A reset of the firmware (fatal-error handler) ends QEMU, so the test sees it.
                 "-no-reboot",
                 "-kernel", str(IMAGE),
-                "-chardev", f"socket,id=link,host=127.0.0.1,port={self.port},server=on,wait=off",
+                # nodelay: without it Nagle holds the UART's byte-by-byte output for a delayed
+                # ACK (~40 ms a round trip), which on a loaded CI runner made handshakes retry.
+                "-chardev", f"socket,id=link,host=127.0.0.1,port={self.port},server=on,wait=off,nodelay=on",
                 "-serial", "chardev:link",
             ]
             log = open(self.log_path, "wb")
