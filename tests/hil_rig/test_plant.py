@@ -109,3 +109,31 @@ def test_valve_follows_its_coil_after_the_stroke_time():
     v.stuck = "open"
     v.step(0.1, False, 0.05)
     assert v.open
+
+
+def _drift(params, seed=4, steps=500):
+    world = World(params, WorldState(r_D_m=np.array([0.0, 0.0, 2.0]), v_D_mps=np.array([0.0, 0.0, -0.03])),
+                  np.random.default_rng(seed))
+    world.set_setpoint(np.array([0.01, 0.0, -0.03]), np.zeros(3))
+    odo = []
+    for k in range(steps):
+        world.step(0.01, np.zeros(3))
+        if k % 10 == 0:
+            m = world.relative_velocity(k * 0.01)
+            odo.append(None if m is None else (m, world.s.v_D_mps.copy()))
+    return world, odo
+
+
+def test_the_vehicles_odometry_is_the_truth_plus_its_noise_and_leaves_the_world_alone():
+    p = VehicleParams()
+    world, odo = _drift(p)
+    errs = np.array([m.v_D_mps - v for m, v in odo])
+    assert all(m.sigma_mps == p.odometry_sigma_mps and m.t_s >= 0 for m, _ in odo)
+    # white part ~ the reported sigma, around a constant per-approach error of ~odometry_bias_mps
+    assert np.std(errs, axis=0) == pytest.approx(np.full(3, p.odometry_sigma_mps), rel=0.35)
+    assert np.all(np.abs(np.mean(errs, axis=0)) < 4 * p.odometry_bias_mps + 0.003)
+    # switched off: no measurement, and the world moves exactly as with it (own noise stream)
+    quiet, odo_off = _drift(VehicleParams(odometry=False))
+    assert all(m is None for m in odo_off)
+    np.testing.assert_array_equal(quiet.s.r_D_m, world.s.r_D_m)
+    np.testing.assert_array_equal(quiet.s.v_D_mps, world.s.v_D_mps)

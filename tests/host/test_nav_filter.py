@@ -230,3 +230,120 @@ def test_reset_forgets_everything():
 def test_bad_parameters_are_refused(bad):
     with pytest.raises(ValueError, match=f"FilterParams.{next(iter(bad))}"):
         FilterParams(**bad)
+
+
+# --- the vehicle's own velocity (odometry) --------------------------------------------------
+
+def closing_approach(t_s):
+    """A docking-like approach: 3 m out, closing at 80 mm/s slowing to 30 mm/s (tau 8 s)."""
+    v_z = -(0.03 + 0.05 * np.exp(-t_s / 8.0))
+    z = 3.0 - 0.03 * t_s - 0.05 * 8.0 * (1.0 - np.exp(-t_s / 8.0))
+    return np.array([0.02, -0.01, z]), np.array([0.0, 0.0, v_z])
+
+
+def biased_camera(t_s, rng):
+    """The network's kind of error: a range bias proportional to range (15 %, the shipped model's
+    order on unseen scenes) plus noise. Its derivative is a closing-speed bias of 15 % (4.5 mm/s at
+    30 mm/s) that no smoother removes; the rig measures 10 mm/s at contact."""
+    r, _ = closing_approach(t_s)
+    r_meas = r.copy()
+    r_meas[2] = r[2] * 1.15 + 0.02 + rng.normal(0.0, 0.01 + 0.01 * r[2])
+    r_meas[:2] += rng.normal(0.0, 0.003, 2)
+    T, R = camera_pose_from_docking(r_meas, np.zeros(3))
+    return T, R
+
+
+def run_closing(odometry_sigma_mps=None, seed=5, n=500):
+    f, rng = NavFilter(), np.random.default_rng(seed)
+    odo_rng = np.random.default_rng(seed + 100)
+    errs = []
+    for k in range(n):
+        t = k * DT_S
+        f.update(t, *biased_camera(t, rng))
+        if odometry_sigma_mps is not None:
+            v_true = closing_approach(t)[1]
+            f.update_velocity(t, v_true + odo_rng.normal(0.0, odometry_sigma_mps, 3), odometry_sigma_mps)
+        if k >= 50:
+            errs.append(f.state(t).closing_speed_mps - (-closing_approach(t)[1][2]))
+    return f, np.array(errs)
+
+
+def test_odometry_shrinks_the_closing_speed_error_of_a_biased_camera():
+    _, camera_only = run_closing(None)
+    f, fused = run_closing(0.005)
+    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))  # noqa: E731
+    # camera only: the range bias's derivative shows as a closing-speed bias of several mm/s
+    assert rms(camera_only) > 0.006, rms(camera_only)
+    assert rms(fused) < 0.4 * rms(camera_only), (rms(fused), rms(camera_only))
+    # the white 5 mm/s odometry against the process noise (1 cm/s per second): ~3 mm/s, unbiased
+    assert rms(fused) < 0.004 and abs(np.mean(fused)) < 0.001 and np.max(np.abs(fused)) < 0.015
+    assert f.velocity_counts["fused"] == 500 and f.velocity_counts["gated"] <= 3
+    assert f.counts["gated"] == 0, "the camera's frames still pass their gate beside the odometry"
+
+
+def test_an_inconsistent_velocity_is_gated_then_a_persistent_one_reseats_the_velocity():
+    f, rng, t0 = converged()
+    for k in range(20):                                   # settle on good odometry
+        t = t0 + k * DT_S
+        f.update(t, *noisy_measurement(t, rng))
+        f.update_velocity(t, V_D_MPS + rng.normal(0, 0.005, 3), 0.005)
+    t = t0 + 20 * DT_S
+    before = f.state(t)
+    res = f.update_velocity(t, V_D_MPS + np.array([0.0, 0.0, 0.2]), 0.005)   # a 0.2 m/s glitch
+    assert res.gated and not res.accepted and res.reason == "gated" and res.nis > f.params.vel_gate_chi2
+    after = f.state(t)
+    np.testing.assert_allclose(after.v_D_mps, before.v_D_mps, atol=1e-12)
+    np.testing.assert_allclose(after.r_D_m, before.r_D_m, atol=1e-12)
+    # a real change the odometry keeps reporting: after vel_reset_after in a row the velocity follows
+    new_v = V_D_MPS + np.array([0.0, 0.0, 0.08])
+    n = f.params.vel_reset_after
+    results = [f.update_velocity(t + k * DT_S, new_v, 0.005) for k in range(1, n)]
+    assert all(r.reason == "gated" for r in results[:n - 2]) and results[-1].reason == "reset"
+    np.testing.assert_allclose(f.state(t + (n - 1) * DT_S).v_D_mps, new_v, atol=1e-9)
+    assert f.update_velocity(t + n * DT_S, new_v, 0.005).reason == "fused"
+
+
+def test_velocity_alone_neither_starts_nor_keeps_the_filter_and_bad_input_is_skipped():
+    f = NavFilter()
+    assert f.update_velocity(0.0, V_D_MPS, 0.005).reason == "not_initialised"
+    assert not f.initialised and not f.state(0.0).valid
+    f.update(0.1, *camera_pose_from_docking(*truth(0.1)))
+    for k in range(2, 40):                                 # the camera goes, the odometry stays
+        f.update_velocity(k * DT_S, V_D_MPS, 0.005)
+    assert not f.state(39 * DT_S).valid, "validity is the camera's"
+    assert f.velocity_counts["not_initialised"] > 20
+    f2, rng, t = converged(30)
+    before = f2.state(t)
+    assert f2.update_velocity(t, [np.nan, 0.0, 0.0], 0.005).reason == "non_finite"
+    assert f2.update_velocity(t, V_D_MPS, float("inf")).reason == "non_finite"
+    for bad_v, bad_sigma in ((V_D_MPS, -0.005), (V_D_MPS, None), ("fast", 0.005), (None, 0.005), (V_D_MPS[:2], 0.005)):
+        assert f2.update_velocity(t, bad_v, bad_sigma).reason == "non_finite"
+    np.testing.assert_allclose(f2.state(t).v_D_mps, before.v_D_mps)
+    with pytest.raises(ValueError, match="backwards"):
+        f2.update_velocity(t - 1.0, V_D_MPS, 0.005)
+    # a sensor claiming perfection is held to the floor, not trusted absolutely
+    res = f2.update_velocity(t, V_D_MPS, 0.0)
+    assert res.accepted and np.all(f2.state(t).vel_sigma_mps >= 0.5 * f2.params.vel_sigma_floor_mps)
+
+
+def test_without_odometry_the_filter_is_unchanged():
+    """Odometry that is never fused (before the first frame) leaves no trace: camera-only runs
+    give the same states, bit for bit up to rounding, as a filter never offered any."""
+    a, b = NavFilter(), NavFilter()
+    rng_a, rng_b = np.random.default_rng(9), np.random.default_rng(9)
+    b.update_velocity(0.0, V_D_MPS, 0.005)
+    for k in range(1, 80):
+        t = k * DT_S
+        a.update(t, *noisy_measurement(t, rng_a))
+        b.update(t, *noisy_measurement(t, rng_b))
+    sa, sb = a.state(8.0), b.state(8.0)
+    np.testing.assert_allclose(sb.r_D_m, sa.r_D_m, atol=1e-12)
+    np.testing.assert_allclose(sb.v_D_mps, sa.v_D_mps, atol=1e-12)
+    np.testing.assert_allclose(sb.pos_sigma_m, sa.pos_sigma_m, rtol=1e-9)
+    assert a.counts == b.counts and a.velocity_counts["fused"] == 0
+
+
+@pytest.mark.parametrize("bad", [dict(vel_sigma_floor_mps=0.0), dict(vel_gate_chi2=-1.0), dict(vel_reset_after=0)])
+def test_bad_odometry_parameters_are_refused(bad):
+    with pytest.raises(ValueError, match=f"FilterParams.{next(iter(bad))}"):
+        FilterParams(**bad)

@@ -5,7 +5,9 @@
 - ``cnn``: the flight path. The rig's camera renders the scene for the world's current pose
   (oibar_hil.rig.camera), and the host's Navigator (oibar.nav.core: OibarNet on onnxruntime, the
   checks, the filter) turns the frame into the solution, exactly as the daemon does on a real
-  camera. Frames are rendered at the guidance rate only.
+  camera, with the vehicle's own relative velocity (the world's ``relative_velocity``: truth plus
+  the GNC's noise) as the daemon gets it from the vehicle interface. Frames are rendered at the
+  guidance rate only.
 
 Both record their estimate beside the truth so the report can plot navigation errors.
 """
@@ -73,7 +75,8 @@ class CnnNav:
             self.frames += 1
         render_ms = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
-        step = self.navigator.step(t_s, frame, frame_t_s=t_s, frame_seq=self.frames)
+        odometry = world.relative_velocity(t_s) if hasattr(world, "relative_velocity") else None
+        step = self.navigator.step(t_s, frame, frame_t_s=t_s, frame_seq=self.frames, odometry=odometry)
         nav_ms = (time.perf_counter() - t0) * 1e3
         self.last_timings_ms = {"render_ms": render_ms, "nav_ms": nav_ms, **step.timings_ms}
         self.last_step = step

@@ -11,6 +11,11 @@ velocity and angular-rate setpoints that guidance sends, with a first-order resp
 thrust limits and actuator noise. Orbital (Clohessy-Wiltshire) terms are left out: over the
 last 10 m and a few minutes they are millimetres, far below the guidance corrections.
 All numbers here are assumptions (docs/hil.md, "Plant parameters").
+
+The SV's GNC also knows its own relative velocity (IMU and its navigation) and reports it to
+ours (oibar.nav.vehicle ``relative_velocity``): here the true one plus a constant error per
+approach (calibration, not reported) and white noise (reported as its sigma), from a generator
+spawned off the rig's seeded one (the world's own noise stream is unchanged).
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oibar.nav.frames import R_D_CAM_ALIGNED  # camera axes in D when aligned (one definition)
+from oibar.nav.vehicle import RelativeVelocity
 from oibar_hil.rotations import rotvec_to_matrix
 
 
@@ -33,6 +39,9 @@ class VehicleParams:
     accel_noise_mps2: float = 4e-4    # actuator noise (1 sigma), thruster quantisation
     ang_noise_rad_s2: float = 2e-4
     noise_period_s: float = 0.1       # noise is held for one thruster cycle
+    odometry: bool = True             # the SV's GNC reports its relative velocity to ours
+    odometry_sigma_mps: float = 0.005  # assumption: white, per axis, reported as its 1-sigma
+    odometry_bias_mps: float = 0.002   # assumption: 1-sigma per axis of a constant error per approach, unreported
 
 
 @dataclass
@@ -56,6 +65,17 @@ class World:
         self._noise_a = np.zeros(3)
         self._noise_w = np.zeros(3)
         self._noise_left_s = 0.0
+        if params.odometry:
+            self._odo_rng = rng.spawn(1)[0]
+            self._odo_bias_mps = self._odo_rng.normal(0.0, params.odometry_bias_mps, 3)
+
+    def relative_velocity(self, t_s: float) -> RelativeVelocity | None:
+        """What the SV's GNC reports of its relative velocity at t_s (VehicleInterface's odometry)."""
+        p = self.p
+        if not p.odometry:
+            return None
+        v = self.s.v_D_mps + self._odo_bias_mps + self._odo_rng.normal(0.0, p.odometry_sigma_mps, 3)
+        return RelativeVelocity(float(t_s), v, p.odometry_sigma_mps)
 
     def set_setpoint(self, v_sp_mps: np.ndarray, w_sp_rad_s: np.ndarray) -> None:
         self.v_sp_mps = np.asarray(v_sp_mps, dtype=float)

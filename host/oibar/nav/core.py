@@ -4,6 +4,11 @@ and the HIL rig (oibar_hil.rig) both run this same code; only the clock and the 
 
 A cycle never raises for bad input: a missing or stale frame, a malformed frame, a low
 confidence or a gated outlier each give a solution with ``hold_reason`` set, and guidance holds.
+
+``odometry``: the vehicle's own relative velocity in D, ``(t_s, v_D_mps, sigma_mps)``
+(oibar.nav.vehicle.RelativeVelocity) or None, fused into the filter's velocity after the frame
+(before it when older). It sharpens the closing speed the MCU checks the capture against; it
+does not make the solution trustworthy without a frame, and a bad or gated one does not hold.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ class NavStep:
     update: Any = None               # the filter's UpdateResult, None when nothing was fed
     hold_reason: str = ""
     timings_ms: dict[str, float] = field(default_factory=dict)
+    velocity_update: Any = None      # the filter's VelocityUpdateResult, None without odometry
 
 
 class Navigator:
@@ -47,13 +53,27 @@ class Navigator:
         self.p = params or NavigatorParams()
 
     def step(self, t_s: float, frame: Any | None, frame_t_s: float | None = None,
-             frame_seq: int | None = None) -> NavStep:
+             frame_seq: int | None = None, odometry: Any = None) -> NavStep:
         """``frame``: an RGB uint8 image, or None when no new frame arrived this cycle.
-        ``frame_t_s``: its capture time on the same clock as ``t_s`` (default: now)."""
+        ``frame_t_s``: its capture time on the same clock as ``t_s`` (default: now).
+        ``odometry``: ``(t_s, v_D_mps, sigma_mps)`` on the same clock, or None."""
         timings: dict[str, float] = {}
         reason = ""
         est = None
         upd = None
+        vel_upd = None
+        odo_t_s = None
+        if odometry is not None:
+            try:
+                odo_t_s = min(float(odometry[0]), t_s)
+            except (TypeError, ValueError, IndexError):
+                odo_t_s = float("nan")
+            if not np.isfinite(odo_t_s):
+                odo_t_s, odometry = None, None
+            # older than the frame: fuse it first, so the filter's clock only goes forward
+            elif frame is not None and odo_t_s < (t_s if frame_t_s is None else min(frame_t_s, t_s)):
+                vel_upd = self._fuse_velocity(odo_t_s, odometry)
+                odometry = None
         if frame is None:
             reason = "no new frame"
         else:
@@ -80,6 +100,8 @@ class Navigator:
                         timings["filter_ms"] = (time.perf_counter() - t0) * 1e3
                         if upd is not None and upd.gated:
                             reason = "gated outlier"
+        if odometry is not None:
+            vel_upd = self._fuse_velocity(odo_t_s, odometry)
         st = self.filter.state(t_s)
         if not st.valid and not reason:
             reason = "filter not initialised"
@@ -89,7 +111,13 @@ class Navigator:
             misalignment_deg=float(st.misalignment_deg), t_cam_target_m=np.asarray(st.T_cam_target_m, dtype=float),
             q_cam_target=np.asarray(st.q_cam_target, dtype=float),
             confidence=float(est.confidence) if est is not None else 0.0, hold_reason=reason)
-        return NavStep(t_s, sol, frame_seq, frame_t_s, est, upd, reason, timings)
+        return NavStep(t_s, sol, frame_seq, frame_t_s, est, upd, reason, timings, velocity_update=vel_upd)
+
+    def _fuse_velocity(self, t_s: float, odometry: Any) -> Any:
+        try:
+            return self.filter.update_velocity(t_s, odometry[1], odometry[2])
+        except (ValueError, TypeError, IndexError):   # older than the last fused frame, or malformed
+            return None
 
     def reset(self) -> None:
         self.filter.reset()

@@ -13,6 +13,8 @@ Failure behaviour (each has a test in tests/host/test_nav_daemon.py):
 - link lost: no mechanism command is sent (the request fails with LinkDown, guidance retries when
   the MCU is back), navigation updates are skipped, the vehicle holds; LinkClient reconnects;
 - low confidence or a gated outlier: that cycle holds;
+- the vehicle's odometry (VehicleInterface.relative_velocity) raising: camera only that cycle,
+  counted in ``odometry_errors``; a gated or malformed one is simply not fused;
 - log disk full: logging stops with one warning, navigation goes on.
 """
 
@@ -54,12 +56,14 @@ class DaemonStats:
     frames_used: int = 0
     camera_reopens: int = 0
     holds: int = 0
+    odometry_errors: int = 0          # the vehicle's relative_velocity raised
 
     def summary(self) -> dict:
         def pct(xs, q):
             return float(np.percentile(xs, q)) if xs else None
         return {"cycles": self.cycles, "missed_deadlines": self.missed_deadlines, "frames_used": self.frames_used,
                 "camera_reopens": self.camera_reopens, "hold_cycles": self.holds,
+                "odometry_errors": self.odometry_errors,
                 "cycle_ms_median": pct(self.cycle_ms, 50), "cycle_ms_p99": pct(self.cycle_ms, 99),
                 "frame_to_command_ms_median": pct(self.frame_to_command_ms, 50),
                 "frame_to_command_ms_p99": pct(self.frame_to_command_ms, 99),
@@ -196,11 +200,13 @@ class NavDaemon:
         """One cycle on ``frame`` (None: no new frame this time)."""
         start = self.clock()
         t_s = start - self._t0
+        odometry = self._odometry(t_s)
         if frame is not None:
-            step = self.nav.step(t_s, frame.image, frame_t_s=frame.t_host - self._t0, frame_seq=frame.seq)
+            step = self.nav.step(t_s, frame.image, frame_t_s=frame.t_host - self._t0, frame_seq=frame.seq,
+                                 odometry=odometry)
             self.stats.frames_used += 1
         else:
-            step = self.nav.step(t_s, None)
+            step = self.nav.step(t_s, None, odometry=odometry)
             if self._cam_error:
                 step.hold_reason = step.solution.hold_reason = f"camera: {self._cam_error}"
         link_up = bool(self.link is not None and self.link.link_alive)
@@ -237,11 +243,32 @@ class NavDaemon:
             st.frame_to_command_ms.append((sent - frame.t_host) * 1e3)
         if step.hold_reason:
             st.holds += 1
-        self._log_cycle(t_s, frame, step, out, link_up, telemetry, (end - start) * 1e3)
+        self._log_cycle(t_s, frame, step, out, link_up, telemetry, (end - start) * 1e3, odometry)
         self._last_out, self._last_step = out, step
         return step, out
 
-    def _log_cycle(self, t_s, frame, step: NavStep, out: GuidanceOutput, link_up, tm, cycle_ms) -> None:
+    def _odometry(self, t_s: float) -> Any:
+        """The vehicle's own relative velocity, if it reports one (VehicleInterface.relative_velocity)."""
+        try:
+            return self.vehicle.relative_velocity(t_s)
+        except Exception:  # a failing vehicle sensor must not stop navigation: camera only this cycle
+            self.stats.odometry_errors += 1
+            return None
+
+    @staticmethod
+    def _odometry_record(odometry: Any, upd: Any) -> dict | None:
+        """The vehicle's measurement as fed (replay feeds it again) and the filter's verdict."""
+        if odometry is None:
+            return None
+        try:
+            rec = {"t_s": float(odometry[0]), "v_D_mps": [float(v) for v in odometry[1]],
+                   "sigma_mps": float(odometry[2])}
+        except (TypeError, ValueError, IndexError):
+            rec = {"malformed": repr(odometry)[:80]}
+        return {**rec, "reason": upd.reason if upd is not None else "dropped"}
+
+    def _log_cycle(self, t_s, frame, step: NavStep, out: GuidanceOutput, link_up, tm, cycle_ms,
+                   odometry: Any = None) -> None:
         if self.log is None:
             return
         est = step.estimate
@@ -255,6 +282,7 @@ class NavDaemon:
                                                   "confidence": est.confidence, "latency_ms": est.latency_ms},
             "filter": None if upd is None else {"accepted": upd.accepted, "gated": upd.gated,
                                                 "reinitialised": getattr(upd, "reinitialised", False)},
+            "odometry": self._odometry_record(odometry, step.velocity_update),
             "nav": {"valid": sol.valid, "r_D_m": sol.r_D_m, "v_D_mps": sol.v_D_mps, "att_rad": sol.att_rad,
                     "hold_reason": sol.hold_reason},
             "guidance": {"phase": out.phase, "v_sp_D_mps": out.v_sp_D_mps, "w_sp_rad_s": out.w_sp_rad_s,

@@ -17,6 +17,15 @@ a chi-square threshold; after ``reinit_after`` consecutive gated measurements th
 restarts from the latest one (a real jump, e.g. after a re-acquisition, must not be ignored
 for ever). Without accepted measurements for ``max_coast_s`` the state is invalid, and the
 next measurement starts the filter afresh.
+
+Optional second sensor (``update_velocity``): the service vehicle's own relative-velocity
+measurement in D (IMU/GNC odometry, oibar.nav.vehicle), a direct measurement of the velocity
+states. The camera's velocity is a difference of positions whose error is a slowly varying,
+range-dependent bias, so at 30 mm/s the closing speed it gives can be off by 10-20 mm/s; the
+odometry pins it to a few mm/s. It has its own gate; after ``vel_reset_after`` consecutive
+gated ones the velocity is re-seated on the odometry (the vehicle's velocity sensor is the
+better judge of a real change, e.g. the contact). It never starts the filter nor keeps it valid:
+position, and so validity, comes from the camera. Without odometry nothing here changes.
 """
 
 from __future__ import annotations
@@ -62,16 +71,23 @@ class FilterParams:
     max_coast_s: float = 1.0               # at 0.15 m/s that is 0.15 m dead-reckoned; beyond, guidance must hold
     min_confidence: float = 0.05           # below: the frame is skipped (not an update, not an outlier)
     confidence_floor: float = 0.1          # noise is scaled by 1 / max(confidence, floor): at most 10x
+    # Vehicle odometry (update_velocity): the sigma is the vehicle's own, per axis, never below
+    # this floor (a sensor claiming 0 would freeze the velocity against everything else).
+    vel_sigma_floor_mps: float = 0.001
+    vel_gate_chi2: float = CHI2_3DOF_P001  # on the velocity innovation alone
+    vel_reset_after: int = 5               # consecutive gated velocities: 0.5 s at 10 Hz
 
     def __post_init__(self):
         for name in ("pos_sigma_lateral_frac", "pos_sigma_depth_frac", "pos_sigma_floor_m", "att_sigma_deg",
                      "accel_psd_m2_s3", "ang_accel_psd_rad2_s3", "init_vel_sigma_mps", "init_rate_sigma_deg_s",
-                     "gate_chi2", "max_coast_s", "confidence_floor"):
+                     "gate_chi2", "max_coast_s", "confidence_floor", "vel_sigma_floor_mps", "vel_gate_chi2"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"FilterParams.{name} must be a finite positive number, got {v!r}")
-        if not (isinstance(self.reinit_after, int) and self.reinit_after >= 1):
-            raise ValueError(f"FilterParams.reinit_after must be an integer >= 1, got {self.reinit_after!r}")
+        for name in ("reinit_after", "vel_reset_after"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                raise ValueError(f"FilterParams.{name} must be an integer >= 1, got {v!r}")
         if not 0.0 <= self.min_confidence < 1.0:
             raise ValueError(f"FilterParams.min_confidence must be in [0, 1), got {self.min_confidence!r}")
         if not self.confidence_floor <= 1.0:
@@ -86,6 +102,14 @@ class UpdateResult:
     nis_att: float            # same, attitude block
     reinitialised: bool       # the state was (re)started from this measurement
     reason: str               # initialised | fused | gated | reinitialised | low_confidence | non_finite
+
+
+@dataclass
+class VelocityUpdateResult:
+    accepted: bool            # the velocity measurement changed the state (fused or reset)
+    gated: bool               # it failed the velocity gate
+    nis: float                # normalised innovation squared (nan when not tested)
+    reason: str               # fused | gated | reset | not_initialised | non_finite (also malformed, sigma < 0)
 
 
 @dataclass
@@ -145,6 +169,27 @@ class _CvBlock:
         self.P = I_KH @ self.P @ I_KH.T + K @ Rm @ K.T
         self.P = 0.5 * (self.P + self.P.T)
 
+    def rate_innovation(self, z: np.ndarray, Rm: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        y = z - self.x[3:]
+        S = self.P[3:, 3:] + Rm
+        return y, S, float(y @ np.linalg.solve(S, y))
+
+    def fuse_rate(self, y: np.ndarray, S: np.ndarray, Rm: np.ndarray) -> None:
+        K = np.linalg.solve(S, self.P[3:, :]).T          # P H^T S^-1 with H = [0 I]
+        self.x = self.x + K @ y
+        I_KH = np.eye(6)
+        I_KH[:, 3:] -= K
+        self.P = I_KH @ self.P @ I_KH.T + K @ Rm @ K.T
+        self.P = 0.5 * (self.P + self.P.T)
+
+    def reseat_rate(self, z: np.ndarray, Rm: np.ndarray) -> None:
+        """The rate becomes z with covariance Rm; its correlation with p is dropped."""
+        self.x = np.concatenate([self.x[:3], z])
+        P = np.zeros((6, 6))
+        P[:3, :3] = self.P[:3, :3]
+        P[3:, 3:] = Rm
+        self.P = P
+
     @staticmethod
     def started(z: np.ndarray, Rm: np.ndarray, rate_sigma: float, rate: np.ndarray | None = None) -> _CvBlock:
         """At the measurement; rate zero, or ``rate`` (kept from before a jump) with the same
@@ -157,8 +202,9 @@ class _CvBlock:
 
 class NavFilter:
     """predict(t_s), update(t_s, T_cam_target_m, R_cam_target, confidence) -> UpdateResult,
-    state(t_s) -> NavState, reset(). Times in seconds on one monotonic clock (the frames'
-    capture times); going backwards is a ValueError."""
+    update_velocity(t_s, v_D_mps, sigma_mps) -> VelocityUpdateResult, state(t_s) -> NavState,
+    reset(). Times in seconds on one monotonic clock (the frames' capture times); going
+    backwards is a ValueError."""
 
     def __init__(self, params: FilterParams | None = None, geometry: DockingGeometry = GEOMETRY):
         self.params = params or FilterParams()
@@ -176,6 +222,8 @@ class NavFilter:
         self._gated_run = 0
         self.counts = {"initialised": 0, "fused": 0, "gated": 0, "reinitialised": 0, "low_confidence": 0,
                        "non_finite": 0}
+        self._vel_gated_run = 0
+        self.velocity_counts = {"fused": 0, "gated": 0, "reset": 0, "not_initialised": 0, "non_finite": 0}
 
     @property
     def initialised(self) -> bool:
@@ -259,6 +307,40 @@ class NavFilter:
         self._gated_run = 0
         self._t_accepted_s = t_s
         return self._count(UpdateResult(True, False, nis_p, nis_a, False, "fused"))
+
+    def update_velocity(self, t_s: float, v_D_mps, sigma_mps: float) -> VelocityUpdateResult:
+        """Fuse the vehicle's own relative velocity in D (m/s), 1-sigma ``sigma_mps`` per axis,
+        measured at t_s. Skipped before the camera has started the filter or after it expired
+        (nothing to correct: the next frame restarts it); never raises for a bad measurement,
+        only ValueError for time going backwards."""
+        p = self.params
+        self.predict(t_s)
+        nan = float("nan")
+        try:
+            v = np.asarray(v_D_mps, float).reshape(-1)
+            sigma = float(sigma_mps)
+        except (TypeError, ValueError):
+            v, sigma = np.full(1, nan), nan
+        if v.shape != (3,) or not (np.all(np.isfinite(v)) and np.isfinite(sigma) and sigma >= 0.0):
+            return self._count_vel(VelocityUpdateResult(False, False, nan, "non_finite"))
+        if not self.initialised or self._coasted_too_long(t_s):
+            return self._count_vel(VelocityUpdateResult(False, False, nan, "not_initialised"))
+        Rm = max(sigma, p.vel_sigma_floor_mps) ** 2 * np.eye(3)
+        y, S, nis = self._pos.rate_innovation(v, Rm)
+        if nis > p.vel_gate_chi2:
+            self._vel_gated_run += 1
+            if self._vel_gated_run >= p.vel_reset_after:
+                self._pos.reseat_rate(v, Rm)
+                self._vel_gated_run = 0
+                return self._count_vel(VelocityUpdateResult(True, True, nis, "reset"))
+            return self._count_vel(VelocityUpdateResult(False, True, nis, "gated"))
+        self._pos.fuse_rate(y, S, Rm)
+        self._vel_gated_run = 0
+        return self._count_vel(VelocityUpdateResult(True, False, nis, "fused"))
+
+    def _count_vel(self, r: VelocityUpdateResult) -> VelocityUpdateResult:
+        self.velocity_counts[r.reason] += 1
+        return r
 
     def _start(self, meas: DockingState, R_pos: np.ndarray, R_att: np.ndarray, t_s: float,
                keep_rates: bool = False) -> None:

@@ -1,10 +1,11 @@
 """``oibar replay``: re-run pose estimation and the filter on a recorded cycle log.
 
 The daemon's log (oibar.nav.cyclelog) names the frame of every cycle when it ran with
-``--record-frames``. Replay feeds those frames, at their recorded times, through a fresh
-Navigator (any model: compare two networks on the same flight) and reports how the new
-estimates differ from the recorded ones. Guidance is not re-run: its inputs (MCU telemetry,
-link state) were those of the flight and are in the log for reading.
+``--record-frames``. Replay feeds those frames, at their recorded times, with the vehicle's
+recorded odometry, through a fresh Navigator (any model: compare two networks on the same
+flight) and reports how the new estimates differ from the recorded ones. Guidance is not
+re-run: its inputs (MCU telemetry, link state) were those of the flight and are in the log for
+reading.
 """
 
 from __future__ import annotations
@@ -73,7 +74,10 @@ def replay(log_path: str | Path, navigator, out_path: str | Path | None = None,
                         image = np.asarray(im.convert("RGB"))
                 except OSError:
                     res.frames_missing += 1
-            step = navigator.step(float(rec["t_s"]), image, frame_t_s=fr.get("t_s"), frame_seq=fr.get("seq"))
+            odo = rec.get("odometry") or {}
+            odometry = (odo["t_s"], np.asarray(odo["v_D_mps"], float), odo["sigma_mps"]) if "v_D_mps" in odo else None
+            step = navigator.step(float(rec["t_s"]), image, frame_t_s=fr.get("t_s"), frame_seq=fr.get("seq"),
+                                  odometry=odometry)
             if image is not None:
                 res.frames_replayed += 1
             if step.hold_reason:

@@ -14,6 +14,16 @@ Shipped sinks:
 
 Contract: ``send`` must not block for long (it runs inside the 10 Hz cycle); ``hold`` is called
 on shutdown and whenever guidance cannot steer (it must bring the relative velocity to zero).
+
+Optional odometry: ``relative_velocity(t_s)`` returns the vehicle's own measurement of the
+relative velocity in D, :class:`RelativeVelocity` ``(t_s, v_D_mps, sigma_mps)`` (time of
+validity on the daemon's clock, i.e. the ``t_s`` that ``send`` receives, not after the asked
+``t_s``; velocity in m/s; 1-sigma per axis in m/s), or None when it has none (the default: the
+shipped sinks, NullVehicle and UdpJsonVehicle, report none). The daemon asks once per cycle and
+the navigation filter fuses it with the camera (oibar.nav.filter ``update_velocity``): the
+camera's closing speed has a bias of 10 mm/s and more at contact, the vehicle's IMU/GNC knows it
+to a few mm/s, and the MCU records the capture against it (<= 50 mm/s). It must not block
+either; an exception from it counts as no measurement.
 """
 
 from __future__ import annotations
@@ -22,6 +32,7 @@ import importlib
 import json
 import socket
 from abc import ABC, abstractmethod
+from typing import NamedTuple
 
 import numpy as np
 
@@ -30,10 +41,22 @@ class VehicleError(RuntimeError):
     """A vehicle interface could not be created or reached."""
 
 
+class RelativeVelocity(NamedTuple):
+    """The vehicle's own relative-velocity measurement (odometry), docking frame D."""
+
+    t_s: float                # time of validity, daemon clock
+    v_D_mps: np.ndarray       # (3,)
+    sigma_mps: float          # 1-sigma per axis
+
+
 class VehicleInterface(ABC):
     @abstractmethod
     def send(self, t_s: float, v_D_mps: np.ndarray, w_rad_s: np.ndarray, phase: str) -> None:
         """A relative-velocity setpoint (D frame) and an attitude-rate setpoint (body)."""
+
+    def relative_velocity(self, t_s: float) -> RelativeVelocity | None:
+        """The latest own relative-velocity measurement at or before t_s, or None (no odometry)."""
+        return None
 
     def hold(self, t_s: float) -> None:
         self.send(t_s, np.zeros(3), np.zeros(3), "HOLD")
