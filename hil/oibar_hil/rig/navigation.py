@@ -75,7 +75,7 @@ class CnnNav:
             self.frames += 1
         render_ms = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
-        odometry = world.relative_velocity(t_s) if hasattr(world, "relative_velocity") else None
+        odometry = world.relative_velocity(t_s)   # None when the scenario turns it off
         step = self.navigator.step(t_s, frame, frame_t_s=t_s, frame_seq=self.frames, odometry=odometry)
         nav_ms = (time.perf_counter() - t0) * 1e3
         self.last_timings_ms = {"render_ms": render_ms, "nav_ms": nav_ms, **step.timings_ms}
