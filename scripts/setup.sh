@@ -44,6 +44,50 @@ apt_packages() {
 }
 
 # --- 2. Python virtual environment -------------------------------------------------------
+# PyTorch's Linux wheels on PyPI come with the CUDA libraries (PyPI has no CPU-only build): of
+# the 7.1 GB the venv takes, 6 GB are torch, triton and nvidia-*. Installed in one pip call, pip
+# keeps every downloaded wheel beside the unpacked files until the end: a measured peak of
+# 11.1 GB. So we resolve first (metadata only), then install the big wheels one at a time, then
+# the rest; never into pip's cache, and with pip's scratch space on the venv's own disk.
+PIP_NEED_MB=${PIP_NEED_MB:-8000}   # measured peak of the staged install (7.35 GB), plus a margin
+
+pip_q() { "$VENV/bin/pip" install -q --disable-pip-version-check --no-cache-dir "$@"; }
+
+pip_install_staged() {
+  local plan="$CACHE/pip-plan.json" tmp="$CACHE/pip-tmp"
+  rm -rf "$tmp" && mkdir -p "$tmp"
+  say "resolving the pinned Python packages (requirements/*.txt)"
+  TMPDIR="$tmp" pip_q --dry-run --report "$plan" "$@" \
+    || die "pip could not resolve requirements/*.txt (see the messages above)"
+  local big=() line
+  while read -r line; do big+=("$line"); done < <("$VENV/bin/python" - "$plan" <<'PY'
+import json, sys
+plan = json.load(open(sys.argv[1]))["install"]
+heavy = [(m["name"].lower(), m["version"]) for m in (p["metadata"] for p in plan)
+         if m["name"].lower().startswith("nvidia-") or m["name"].lower() in ("triton", "torch")]
+# torch last: it is the one that depends on the others.
+for name, ver in sorted(heavy, key=lambda nv: (nv[0] == "torch", nv[0])):
+    print(f"{name}=={ver}")
+PY
+)
+  local free_mb
+  free_mb=$(df --output=avail -B1M "$CACHE" | tail -1 | tr -d ' ')
+  if [ ${#big[@]} -gt 0 ] && [ "$free_mb" -lt "$PIP_NEED_MB" ]; then
+    die "the Python packages need about $((PIP_NEED_MB / 1000)) GB free on the disk of $ROOT while they install
+  (7.1 GB stay; PyTorch's wheels carry the CUDA libraries), but only $((free_mb / 1000)).$(( (free_mb % 1000) / 100 )) GB are free.
+  Free some space and run this again; nothing was installed."
+  fi
+  local i=0 n=$(( ${#big[@]} + 1 ))
+  for line in "${big[@]}"; do
+    i=$((i + 1))
+    say "installing Python packages $i/$n: $line"
+    TMPDIR="$tmp" pip_q --no-deps "$line" || die "pip could not install $line (see the messages above)"
+  done
+  say "installing Python packages $n/$n: the rest of requirements/*.txt"
+  TMPDIR="$tmp" pip_q "$@" || die "pip install failed (see the messages above)"
+  rm -rf "$tmp" "$plan"
+}
+
 venv() {
   local reqs stamp want have=""
   reqs=$(ls requirements/*.txt)
@@ -58,18 +102,16 @@ venv() {
     say "creating the virtual environment in .venv"
     "$PYTHON" -m venv "$VENV" || die "could not create .venv (is python3-venv installed?)"
   fi
-  say "installing pinned Python packages (requirements/*.txt)"
   local args=()
   for r in $reqs; do args+=(-r "$r"); done
-  "$VENV/bin/pip" install -q --disable-pip-version-check "${args[@]}" \
-    || die "pip install failed (see the messages above)"
+  pip_install_staged "${args[@]}"
   # Our own packages, editable, without touching the pins.
   local pkgs=()
   for d in host hil models; do
     [ -f "$d/pyproject.toml" ] && pkgs+=(-e "$d")
   done
   if [ ${#pkgs[@]} -gt 0 ]; then
-    "$VENV/bin/pip" install -q --disable-pip-version-check --no-deps --no-build-isolation "${pkgs[@]}" \
+    pip_q --no-deps --no-build-isolation "${pkgs[@]}" \
       || die "installing the project's packages into .venv failed"
   fi
   echo "$want" > "$stamp"
