@@ -278,6 +278,65 @@ def test_vehicles_report_no_odometry_by_default():
     v.close()
 
 
+def test_udp_vehicle_takes_the_gnc_odometry_back():
+    """A GNC computer on UDP: it receives the setpoints and answers with its odometry on the same
+    socket. Each measurement is reported once, the newest wins, stale / malformed / future ones
+    are dropped and counted, and nothing raises."""
+    import json
+    import socket
+    import time as _time
+    gnc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gnc.bind(("127.0.0.1", 0))
+    gnc.settimeout(2.0)
+    v = open_vehicle(f"udp://127.0.0.1:{gnc.getsockname()[1]}")
+    try:
+        v.send(10.0, np.array([0.0, 0.0, -0.03]), np.zeros(3), "SOFT_DOCK")
+        setpoint, daemon_addr = gnc.recvfrom(2048)
+        assert json.loads(setpoint)["phase"] == "SOFT_DOCK"
+
+        def reply(**msg):
+            gnc.sendto(json.dumps(msg).encode(), daemon_addr)
+
+        def drained(t_s, n):
+            """relative_velocity(t_s) once the socket has seen n more datagrams (loopback is fast
+            but not synchronous)."""
+            want = v.odometry_received + v.odometry_rejected + n
+            deadline = _time.monotonic() + 2.0
+            while v.odometry_received + v.odometry_rejected < want and _time.monotonic() < deadline:
+                v.drain(t_s)
+                _time.sleep(0.005)
+            return v.relative_velocity(t_s)
+
+        reply(v_D_mps=[0.0, 0.0, -0.028], sigma_mps=0.004, t_s=10.02)
+        reply(v_D_mps=[0.001, 0.0, -0.030], sigma_mps=0.003, t_s=10.05)   # newer: this one wins
+        odo = drained(10.1, 2)
+        assert isinstance(odo, RelativeVelocity)
+        assert odo.t_s == pytest.approx(10.05) and odo.sigma_mps == pytest.approx(0.003)
+        assert odo.v_D_mps == pytest.approx([0.001, 0.0, -0.030])
+        assert v.relative_velocity(10.2) is None            # reported once, not again
+
+        reply(v_D_mps=[0.0, 0.0, -0.03], sigma_mps=0.003)     # no t_s: valid when read
+        odo = drained(10.3, 1)
+        assert odo is not None and odo.t_s == pytest.approx(10.3)
+
+        bad = [{"v_D_mps": [0.0, 0.0], "sigma_mps": 0.003, "t_s": 10.3},          # not 3 axes
+               {"v_D_mps": [0.0, 0.0, float("nan")], "sigma_mps": 0.003},
+               {"v_D_mps": [0.0, 0.0, -0.03], "sigma_mps": 0.0},
+               {"v_D_mps": [0.0, 0.0, -0.03], "sigma_mps": 0.003, "t_s": 99.0}]   # from the future
+        for m in bad:
+            gnc.sendto(json.dumps(m).encode(), daemon_addr)
+        gnc.sendto(b"not json", daemon_addr)
+        assert drained(10.4, 5) is None
+        assert v.odometry_rejected == 5 and v.odometry_received == 3
+
+        reply(v_D_mps=[0.0, 0.0, -0.03], sigma_mps=0.003, t_s=9.0)   # 1.5 s old: stale
+        assert drained(10.5, 1) is None
+        assert v.odometry_received == 4
+    finally:
+        v.close()
+        gnc.close()
+
+
 class OdometryVehicle(RecordingVehicle):
     """A vehicle whose GNC knows the relative velocity (here: closing at 20 mm/s)."""
 

@@ -9,7 +9,8 @@ Shipped sinks:
   camera and an MCU but no vehicle;
 - :class:`UdpJsonVehicle` (``--vehicle udp://HOST:PORT``): one JSON datagram per setpoint,
   ``{"t_s", "v_D_mps": [x, y, z], "w_rad_s": [x, y, z], "phase", "hold"}``, for a GNC computer
-  on the network (fire and forget: a lost datagram is replaced 100 ms later);
+  on the network (fire and forget: a lost datagram is replaced 100 ms later). The GNC computer
+  may send its odometry back to the address the setpoints come from (see the class);
 - the HIL rig's world (oibar_hil.rig), in simulation.
 
 Contract: ``send`` must not block for long (it runs inside the 10 Hz cycle); ``hold`` is called
@@ -18,8 +19,9 @@ on shutdown and whenever guidance cannot steer (it must bring the relative veloc
 Optional odometry: ``relative_velocity(t_s)`` returns the vehicle's own measurement of the
 relative velocity in D, :class:`RelativeVelocity` ``(t_s, v_D_mps, sigma_mps)`` (time of
 validity on the daemon's clock, i.e. the ``t_s`` that ``send`` receives, not after the asked
-``t_s``; velocity in m/s; 1-sigma per axis in m/s), or None when it has none (the default: the
-shipped sinks, NullVehicle and UdpJsonVehicle, report none). The daemon asks once per cycle and
+``t_s``; velocity in m/s; 1-sigma per axis in m/s), or None when it has none (the default;
+NullVehicle reports none, UdpJsonVehicle what the GNC computer sends back). Report each
+measurement once: the filter treats every one it gets as new information. The daemon asks once per cycle and
 the navigation filter fuses it with the camera (oibar.nav.filter ``update_velocity``): the
 camera's closing speed has a bias of 10 mm/s and more at contact, the vehicle's IMU/GNC knows it
 to a few mm/s, and the MCU records the capture against it (<= 50 mm/s). It must not block
@@ -74,6 +76,21 @@ class NullVehicle(VehicleInterface):
 
 
 class UdpJsonVehicle(VehicleInterface):
+    """Setpoints out as JSON datagrams; the GNC computer's odometry back on the same socket.
+
+    Odometry datagram (optional; send it to the address the setpoints come from):
+    ``{"v_D_mps": [x, y, z], "sigma_mps": s, "t_s": t}``: relative velocity in the docking frame
+    D (m/s), its 1-sigma per axis (m/s), and its time of validity on the daemon's clock, which the
+    GNC computer has from the setpoints: the ``t_s`` of the last setpoint it received plus its own
+    time elapsed since then. Without ``t_s`` the measurement counts as valid when the daemon reads
+    it (up to one cycle late: give ``t_s`` when you can). The newest measurement is fused once;
+    one older than ``max_age_s`` is dropped; a malformed one, or one from the future, is counted
+    in ``odometry_rejected`` and ignored, never raised.
+    """
+
+    max_age_s = 0.5            # odometry older than this is stale (5 cycles)
+    future_tolerance_s = 0.05  # clock jitter allowed between the GNC's t_s and ours
+
     def __init__(self, host: str, port: int) -> None:
         self.addr = (host, int(port))
         try:
@@ -82,6 +99,9 @@ class UdpJsonVehicle(VehicleInterface):
         except OSError as exc:
             raise VehicleError(f"udp://{host}:{port}: {exc}") from exc
         self.errors = 0
+        self.odometry_received = 0
+        self.odometry_rejected = 0
+        self._latest: RelativeVelocity | None = None
 
     def send(self, t_s, v_D_mps, w_rad_s, phase) -> None:
         msg = {"t_s": float(t_s), "v_D_mps": [float(v) for v in v_D_mps],
@@ -90,6 +110,44 @@ class UdpJsonVehicle(VehicleInterface):
             self.sock.sendto(json.dumps(msg).encode(), self.addr)
         except OSError:
             self.errors += 1     # the next cycle sends a fresh setpoint
+
+    def relative_velocity(self, t_s: float) -> RelativeVelocity | None:
+        """The newest valid measurement not yet reported (never blocks)."""
+        self.drain(t_s)
+        odo, self._latest = self._latest, None
+        if odo is None or t_s - odo.t_s > self.max_age_s:
+            return None
+        return odo
+
+    def drain(self, now_s: float) -> None:
+        """Read every datagram waiting on the socket; keep the newest valid measurement."""
+        while True:
+            try:
+                data, _ = self.sock.recvfrom(2048)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:      # socket-level error: try again next cycle
+                break
+            odo = self._parse(data, now_s)
+            if odo is None:
+                self.odometry_rejected += 1
+                continue
+            self.odometry_received += 1
+            if self._latest is None or odo.t_s >= self._latest.t_s:
+                self._latest = odo
+
+    def _parse(self, data: bytes, now_s: float) -> RelativeVelocity | None:
+        try:
+            msg = json.loads(data)
+            v = np.asarray(msg["v_D_mps"], dtype=float)
+            sigma = float(msg["sigma_mps"])
+            t = float(msg["t_s"]) if msg.get("t_s") is not None else now_s
+        except (ValueError, TypeError, KeyError, IndexError):
+            return None
+        if v.shape != (3,) or not np.all(np.isfinite(v)) or not (np.isfinite(sigma) and sigma > 0) \
+                or not np.isfinite(t) or t > now_s + self.future_tolerance_s:
+            return None
+        return RelativeVelocity(min(t, now_s), v, sigma)
 
     def close(self) -> None:
         self.sock.close()
