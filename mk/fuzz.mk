@@ -6,6 +6,7 @@
 # Campaigns resume: tests/fuzz/campaign.py keeps a ledger per target in build/fuzz/ and runs only
 # the executions still missing (FUZZ_FRESH=1 starts a new ledger).
 # `make test` runs a short bounded campaign through tests/fuzz/test_fuzz_short.py.
+# `make fuzz-corpus` folds a campaign's corpus, minimised, into the committed seeds.
 FUZZ_BUILD   := $(BUILD)/fuzz
 FUZZ_OBJ     := $(FUZZ_BUILD)/obj
 FUZZ_RUNS    ?= 10000000
@@ -53,17 +54,23 @@ $(foreach s,$(FUZZ_NONE_SRCS),$(eval $(call FUZZ_OBJ_RULE,none,$(s),)))
 
 TEST_DEPS += fuzz-build
 
-.PHONY: fuzz-build fuzz
+.PHONY: fuzz-build fuzz fuzz-corpus
 
 $(FUZZ_BUILD)/%: tests/fuzz/%.c $(FUZZ_OBJS) | setup
 	@mkdir -p $(FUZZ_BUILD)
 	@clang $(FUZZ_CFLAGS) -fsanitize=fuzzer -o $@ $< $(FUZZ_OBJS)
 
-$(FUZZ_BUILD)/seeds/.stamp: tests/fuzz/make_seeds.py $(wildcard tests/golden/*/*.hex) $(GEN_PY)/oibar_pb2.py
+$(FUZZ_BUILD)/seeds/.stamp: tests/fuzz/make_seeds.py tests/fuzz/corpus.py tests/fuzz/corpus.tar.gz \
+                            $(wildcard tests/golden/*/*.hex) $(GEN_PY)/oibar_pb2.py
+	@rm -rf $(FUZZ_BUILD)/seeds
 	@$(PY) tests/fuzz/make_seeds.py --out $(FUZZ_BUILD)/seeds
 	@touch $@
 
 fuzz-build: gen $(addprefix $(FUZZ_BUILD)/,fuzz_frame fuzz_dispatch) $(FUZZ_BUILD)/seeds/.stamp ## build the libFuzzer targets and their seed corpora
+
+# After a campaign: fold what it found into the committed seeds (tests/fuzz/corpus.tar.gz).
+fuzz-corpus: fuzz-build ## merge build/fuzz/corpus into tests/fuzz/corpus.tar.gz (libFuzzer -merge=1)
+	@$(PY) tests/fuzz/corpus.py pack --build $(FUZZ_BUILD)
 
 fuzz: fuzz-build ## fuzz the firmware (FUZZ_RUNS executions per target on FUZZ_JOBS processes; resumes)
 	@for t in $(FUZZ_TARGETS); do \

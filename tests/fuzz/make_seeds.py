@@ -5,12 +5,16 @@ frame/    every golden wire frame (both directions) as raw bytes, and all of the
 dispatch/ record programs for fuzz_dispatch.c (see its header): each golden host->MCU packet after
           a handshake, and one walk through the nominal docking command sequence with the plant
           events that let it progress, so the fuzzer starts from deep states.
+Both also get the committed, minimised corpus of the long campaigns (tests/fuzz/corpus.py).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
+
+import corpus  # tests/fuzz/corpus.py, beside this script
 
 from oibar.link import cobs
 from oibar.pb import oibar_pb2 as pb
@@ -116,6 +120,12 @@ def main() -> None:
         walk.packet(lambda seq: command(seq, opcode, target_kpa))
         walk.wait(wait_ms)
     (dispatch_dir / "nominal_walk").write_bytes(walk.data)
+
+    try:
+        counts = corpus.unpack(args.out)
+    except corpus.CorpusError as exc:
+        sys.exit(f"make_seeds: error: {exc}")
+    print("make_seeds: committed corpus:", ", ".join(f"{k} {n} units" for k, n in counts.items()))
 
 
 if __name__ == "__main__":

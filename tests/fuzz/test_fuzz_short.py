@@ -36,6 +36,58 @@ def test_short_fuzz_campaign_finds_nothing(target, seeds, runs, tmp_path):
     assert done and int(done.group(1)) >= runs
 
 
+def _inited_cov(exe: Path, *dirs: Path) -> int:
+    """Edges covered after libFuzzer has run every unit of ``dirs`` once (no fuzzing)."""
+    proc = subprocess.run([str(exe), "-runs=0", *map(str, dirs)], capture_output=True, text=True, timeout=300)
+    found = re.search(r"INITED cov: (\d+)", proc.stderr)
+    assert proc.returncode == 0 and found, proc.stderr[-2000:]
+    return int(found.group(1))
+
+
+@pytest.mark.parametrize("target,seeds,runs", CAMPAIGNS, ids=[c[0] for c in CAMPAIGNS])
+def test_committed_corpus_starts_deeper_than_the_golden_seeds(target, seeds, runs, tmp_path):
+    """tests/fuzz/corpus.tar.gz (the long campaigns, minimised) is unpacked into the seeds and
+    reaches code the golden vectors alone do not (dispatcher: 588 -> 846 edges when packed)."""
+    exe, seed_dir = FUZZ / target, FUZZ / "seeds" / seeds
+    if not exe.exists() or not seed_dir.is_dir():
+        pytest.fail(f"{exe} or its seeds are missing: run `make fuzz-build`")
+    committed = [f for f in seed_dir.iterdir() if f.name.startswith("corpus-")]
+    assert len(committed) > 100, "the committed corpus was not unpacked into the seeds"
+    golden = tmp_path / "golden"
+    golden.mkdir()
+    for f in seed_dir.iterdir():
+        if not f.name.startswith("corpus-"):
+            (golden / f.name).write_bytes(f.read_bytes())
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    cov_golden = _inited_cov(exe, tmp_path / "a", golden)
+    cov_all = _inited_cov(exe, tmp_path / "b", seed_dir)
+    assert cov_all > cov_golden, (cov_all, cov_golden)
+
+
+def test_corpus_archive_round_trip_and_bad_archives(tmp_path):
+    sys.path.insert(0, str(ROOT / "tests" / "fuzz"))
+    import corpus
+    counts = corpus.unpack(tmp_path / "out")
+    assert counts["dispatch"] > 100 and counts["frame"] > 100
+    assert len(list((tmp_path / "out" / "dispatch").iterdir())) <= counts["dispatch"]
+
+    cut = tmp_path / "cut.tar.gz"
+    cut.write_bytes(corpus.ARCHIVE.read_bytes()[:5000])          # truncated download
+    with pytest.raises(corpus.CorpusError):
+        corpus.unpack(tmp_path / "o2", cut)
+    import io
+    import tarfile
+    evil = tmp_path / "evil.tar.gz"
+    with tarfile.open(evil, "w:gz") as tar:
+        info = tarfile.TarInfo("dispatch/../../escape")
+        info.size = 1
+        tar.addfile(info, io.BytesIO(b"x"))
+    with pytest.raises(corpus.CorpusError, match="unexpected member"):
+        corpus.unpack(tmp_path / "o3", evil)
+    assert not (tmp_path / "escape").exists()
+
+
 # --- the resumable campaign runner (tests/fuzz/campaign.py) ---------------------------------
 
 def _campaign(build: Path, *args: str) -> subprocess.CompletedProcess:
