@@ -87,3 +87,30 @@ def test_the_shipped_model_follows_lateral_offsets_and_attitude(cnn_nav_factory)
     assert rows[1.0]["lateral_slope"] > LATERAL_SLOPE_MIN_1M, rows[1.0]
     assert all(r["attitude_slope"] > ATTITUDE_SLOPE_MIN for r in rows.values()), rows
     assert rows[0.5]["lateral_err_rms_m"] < 0.05, rows[0.5]
+
+
+def test_a_new_approach_starts_with_a_fresh_track(cnn_nav_factory):
+    """The soak flies approach after approach: the vehicle jumps from contact back to 1.2 m.
+    Without CnnNav.reset the filter gates the new approach's first frames as outliers of the
+    old track (5 cycles here); reset() makes the first frame of the new approach count."""
+    from oibar_hil.rig.world import VehicleParams, World, WorldState
+
+    def world_at(range_m):
+        return World(VehicleParams(odometry=False), WorldState(r_D_m=np.array([0.0, 0.0, range_m])),
+                     np.random.default_rng(0))
+
+    def reasons_after_jump(reset):
+        nav = cnn_nav_factory()
+        try:
+            near = world_at(0.35)
+            for i in range(30):
+                assert nav.solve(0.1 * i, near).hold_reason == ""
+            if reset:
+                nav.reset()
+            far = world_at(1.2)
+            return [nav.solve(3.0 + 0.1 * i, far).hold_reason for i in range(10)]
+        finally:
+            nav.close()
+
+    assert "gated outlier" in reasons_after_jump(reset=False)   # the case reset is for
+    assert reasons_after_jump(reset=True) == [""] * 10

@@ -25,12 +25,13 @@ from typing import Any
 
 import numpy as np
 
+from oibar_hil.rig.checks import REQ_CAPTURE_MAX_SPEED_MPS
 from oibar_hil.rig.navigation import CnnNav
 from oibar_hil.rig.runner import REPO_ROOT, Rig
 from oibar_hil.rig.scenario import load_scenario
 
 SCENARIO = REPO_ROOT / "hil" / "scenarios" / "nominal_short.yaml"
-ENVELOPE_MPS = 0.050   # PARAM_CAPTURE_MAX_CLOSING_SPEED_MM_S
+ENVELOPE_MPS = REQ_CAPTURE_MAX_SPEED_MPS   # the MCU's PARAM_CAPTURE_MAX_CLOSING_SPEED_MM_S default
 
 
 class RecordingNav:
@@ -46,6 +47,9 @@ class RecordingNav:
     @property
     def last_timings_ms(self) -> dict:
         return self.inner.last_timings_ms
+
+    def reset(self) -> None:
+        self.inner.reset()
 
     def solve(self, t_s: float, world: Any):
         sol = self.inner.solve(t_s, world)

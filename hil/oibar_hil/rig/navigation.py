@@ -41,6 +41,9 @@ class TruthNav:
                            misalignment_deg=world.misalignment_deg, t_cam_target_m=T,
                            q_cam_target=matrix_to_quat(R), confidence=1.0)
 
+    def reset(self) -> None:
+        """A new approach begins (nothing to forget: the truth has no memory)."""
+
     def close(self) -> None:
         pass
 
@@ -81,6 +84,12 @@ class CnnNav:
         self.last_timings_ms = {"render_ms": render_ms, "nav_ms": nav_ms, **step.timings_ms}
         self.last_step = step
         return step.solution
+
+    def reset(self) -> None:
+        """A new approach begins: forget the last one's track, or the first frames of the new
+        one (the vehicle back at its start) would be gated as outliers of the old state."""
+        self.navigator.reset()
+        self.last_step = None
 
     def close(self) -> None:
         self.camera.close()

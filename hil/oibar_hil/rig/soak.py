@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from oibar_hil.rig.checks import capture_in_envelope
 from oibar_hil.rig.runner import REPO_ROOT, Rig
 from oibar_hil.rig.scenario import load_scenario
 from oibar_hil.rig.world import VehicleParams, World, WorldState
@@ -177,7 +178,7 @@ class Soak:
         self.missions.append(MissionRecord(
             index=len(self.missions), start_s=self._mission_start, end_s=rig.t_s,
             outcome=rig.controller.outcome,
-            capture_ok=cap is not None and cap["closing_speed_mps"] <= 0.050 and cap["misalignment_deg"] <= 10.0,
+            capture_ok=capture_in_envelope(cap),
             max_force_n=m["max_force_n"], max_force_soft_n=m["max_force_soft_n"],
             tv_final_kpa=mech.tv_true_kpa))
         # Navigator time per cycle into a fixed histogram (0.25 ms bins): the soak keeps no
@@ -225,6 +226,7 @@ class Soak:
             r_D_m=np.array([st.lateral_m[0], st.lateral_m[1], st.range_m], dtype=float),
             v_D_mps=np.array([0.0, 0.0, -st.closing_speed_mps]),
             att_rad=np.radians([st.misalignment_deg[0], st.misalignment_deg[1], 0.0])), rig.rng)
+        rig.nav.reset()
         old = rig.controller
         rig.controller = rig.controller_factory()
         rig.controller._frame_id = old._frame_id
