@@ -24,7 +24,7 @@ from oibar.link import (
     PortError,
     ProtocolVersionError,
 )
-from oibar.link.client import SEQ_MAX
+from oibar.link.seq import SEQ_MAX
 
 
 def connected(make_client, mcu, **overrides) -> LinkClient:

@@ -38,15 +38,10 @@ from oibar.link.errors import (
     ProtocolVersionError,
 )
 from oibar.link.framing import FrameDecoder, Packet, check_link_settings, encode_frame
+from oibar.link.seq import follow_peer_seq, next_seq
 
 _log = logging.getLogger(__name__)
 
-SEQ_MAX = 0xFFFFFFFF
-"""Largest seq; the next one is 1 (0 means "none")."""
-
-STALE_SEQ_WINDOW = 1024
-"""A peer seq at most this far *behind* the newest one is an old packet sent again (an
-MCU re-sending a cached response), not a restart: it is neither counted nor tracked."""
 
 _RESPONSE_BODIES = frozenset({"handshake_reply", "ack", "param_value"})
 _READ_TIMEOUT_S = 0.05  # bounds how long the reader takes to notice close()
@@ -578,7 +573,7 @@ class LinkClient:
                 if new_session:
                     self._tx_seq = 0
                     self._peer_seq = None
-                self._tx_seq = self._tx_seq % SEQ_MAX + 1
+                self._tx_seq = next_seq(self._tx_seq)
                 packet.seq = self._tx_seq
                 if pending is not None:
                     pending.seq = packet.seq
@@ -804,22 +799,9 @@ class LinkClient:
             _log.debug("ignoring %s from the peer", kind)  # host-bound bodies, e.g. on loop://
 
     def _track_peer_seq_locked(self, seq: int) -> None:
-        """Count gaps in the peer's numbering as lost packets."""
-        if seq == 0:
-            return
-        last = self._peer_seq
-        if last is None:
-            self._peer_seq = seq
-            return
-        expected = last % SEQ_MAX + 1
-        ahead = (seq - expected) % SEQ_MAX  # packets skipped, modulo the wrap from SEQ_MAX to 1
-        behind = (last - seq) % SEQ_MAX
-        if seq == last or behind <= STALE_SEQ_WINDOW:
-            return  # a packet sent again; nothing new about the peer's numbering
-        if ahead < SEQ_MAX // 2:
-            self._counters.lost_peer_packets += ahead
-        # else: far behind, the peer restarted its numbering; just follow it
-        self._peer_seq = seq
+        """Count gaps in the peer's numbering as lost packets (oibar.link.seq)."""
+        self._peer_seq, lost = follow_peer_seq(self._peer_seq, seq)
+        self._counters.lost_peer_packets += lost
 
     def _trim_telemetry_times(self, now: float) -> None:
         times = self._telemetry_times_s

@@ -30,11 +30,10 @@ from typing import Any, Protocol
 from oibar import pb
 from oibar.link.errors import LinkDown, LinkError, LinkTimeout, ProtocolVersionError
 from oibar.link.framing import FrameDecoder, Packet, check_link_settings, encode_frame
+from oibar.link.seq import follow_peer_seq, next_seq
 
 _log = logging.getLogger(__name__)
 
-SEQ_MAX = 0xFFFFFFFF
-STALE_SEQ_WINDOW = 1024
 _RESPONSE_BODIES = frozenset({"handshake_reply", "ack", "param_value"})
 
 
@@ -210,7 +209,7 @@ class LinkSession:
             self._set_down(now_s, "no valid packet from the MCU within the link timeout")
         if self.link_up and now_s - self._last_heartbeat_s >= self.heartbeat_period_s:
             packet = Packet()
-            packet.heartbeat.uptime_ms = int(now_s * 1000.0) & SEQ_MAX
+            packet.heartbeat.uptime_ms = int(now_s * 1000.0) & 0xFFFFFFFF   # uint32 field
             self._send(packet, now_s)
             self._last_heartbeat_s = now_s
         if (not self.link_up and self.auto_connect and self._pending is None
@@ -240,7 +239,7 @@ class LinkSession:
 
     def _send(self, packet: Packet, now_s: float, *, resend: bool = False) -> None:
         if not resend:
-            self._tx_seq = self._tx_seq % SEQ_MAX + 1
+            self._tx_seq = next_seq(self._tx_seq)
             packet.seq = self._tx_seq
         self.transport.write(encode_frame(packet))
         self.counters.tx_packets += 1
@@ -280,19 +279,8 @@ class LinkSession:
         self.notices.append(SessionNotice(now_s, "link_down", detail=why))
 
     def _track_peer_seq(self, seq: int) -> None:
-        if seq == 0:
-            return
-        last = self._peer_seq
-        if last is None:
-            self._peer_seq = seq
-            return
-        ahead = (seq - last) & SEQ_MAX
-        behind = (last - seq) & SEQ_MAX
-        if seq == last or behind <= STALE_SEQ_WINDOW:
-            return  # a repeat (re-sent cached response), not news
-        if ahead > 1:
-            self.counters.lost_peer_packets += ahead - 1
-        self._peer_seq = seq
+        self._peer_seq, lost = follow_peer_seq(self._peer_seq, seq)
+        self.counters.lost_peer_packets += lost
 
     def _dispatch(self, packet: Packet, now_s: float) -> None:
         kind = packet.WhichOneof("body")
