@@ -121,6 +121,7 @@ def test_nominal_cycles_are_logged_and_commanded(tmp_path):
     assert summary["cycles"] == 30 and summary["frames_used"] >= 20
     recs = list(read_log(tmp_path / "cycles.jsonl"))
     assert recs[0]["kind"] == "header" and recs[-1]["kind"] == "footer"
+    assert recs[-1]["vehicle"] == {}          # a sink without counters (VehicleInterface default)
     cycles = [r for r in recs if r["kind"] == "cycle"]
     assert len(cycles) == 30
     moving = [v for _, v, ph in veh.sent if ph != "HOLD"]
@@ -331,7 +332,7 @@ def test_udp_vehicle_takes_the_gnc_odometry_back():
 
         reply(v_D_mps=[0.0, 0.0, -0.03], sigma_mps=0.003, t_s=9.0)   # 1.5 s old: stale
         assert drained(10.5, 1) is None
-        assert v.odometry_received == 4
+        assert v.statistics() == {"send_errors": 0, "odometry_received": 4, "odometry_rejected": 5}
     finally:
         v.close()
         gnc.close()

@@ -378,9 +378,13 @@ class NavDaemon:
             self._cam.stop()
             self._cam = None
         if self.log is not None:
+            try:
+                vehicle = self.vehicle.statistics()
+            except Exception as exc:   # a user's vehicle class: its counters must not lose the footer
+                vehicle = {"error": repr(exc)[:80]}
             self.log.write({"kind": "footer", "summary": self.stats.summary(), "outcome": self.guidance.outcome,
                             "notes": self.guidance.notes, "log_lines_lost": self.log.lines_lost,
-                            "log_error": self.log.error})
+                            "log_error": self.log.error, "vehicle": vehicle})
             self.log.close()
 
 

@@ -63,6 +63,10 @@ class VehicleInterface(ABC):
     def hold(self, t_s: float) -> None:
         self.send(t_s, np.zeros(3), np.zeros(3), "HOLD")
 
+    def statistics(self) -> dict:
+        """Counters worth keeping in the log's footer (send errors, odometry taken / refused)."""
+        return {}
+
     def close(self) -> None:
         """Release resources; the daemon calls hold() first."""
 
@@ -148,6 +152,10 @@ class UdpJsonVehicle(VehicleInterface):
                 or not np.isfinite(t) or t > now_s + self.future_tolerance_s:
             return None
         return RelativeVelocity(min(t, now_s), v, sigma)
+
+    def statistics(self) -> dict:
+        return {"send_errors": self.errors, "odometry_received": self.odometry_received,
+                "odometry_rejected": self.odometry_rejected}
 
     def close(self) -> None:
         self.sock.close()
