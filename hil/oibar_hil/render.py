@@ -350,8 +350,24 @@ class Renderer:
         tex.repeat_x, tex.repeat_y = True, False
         return tex
 
+    # The public GL entry points make this renderer's context current first: a process may hold
+    # several (the dataset writer's cached one, a rig camera, a test's), and GL calls issued
+    # while another one, or none, is current crash inside the driver instead of raising.
     def load_scene(self, parts: list[Part], background: str, focus_lvlh: np.ndarray, perlin_seed: int | None = None):
         """Upload the meshes; `focus_lvlh` centres the shadow map (the target port)."""
+        with self.ctx:
+            self._load_scene(parts, background, focus_lvlh, perlin_seed)
+
+    def render(self, R_lvlh_cam: np.ndarray, p_lvlh_cam: np.ndarray, sun_lvlh: np.ndarray,
+               R_ecef_lvlh: np.ndarray | None = None, earth_center_lvlh_km: np.ndarray | None = None,
+               mode: str = "shaded", rng: np.random.Generator | None = None) -> np.ndarray:
+        """One frame as (H, W, 3) uint8, row 0 at the top. mode 'id' returns part ids in
+        channel 0 and no background, lighting, noise or blur."""
+        with self.ctx:
+            return self._render(R_lvlh_cam, p_lvlh_cam, sun_lvlh, R_ecef_lvlh, earth_center_lvlh_km, mode, rng)
+
+    def _load_scene(self, parts: list[Part], background: str, focus_lvlh: np.ndarray,
+                    perlin_seed: int | None) -> None:
         for obj in (self.mesh_vao, self.depth_vao, self.id_vao, self._vbo, self._ibo):
             if obj is not None:
                 obj.release()
@@ -401,11 +417,9 @@ class Renderer:
         self.ctx.polygon_offset = (0.0, 0.0)
         self._shadow_key = key
 
-    def render(self, R_lvlh_cam: np.ndarray, p_lvlh_cam: np.ndarray, sun_lvlh: np.ndarray,
-               R_ecef_lvlh: np.ndarray | None = None, earth_center_lvlh_km: np.ndarray | None = None,
-               mode: str = "shaded", rng: np.random.Generator | None = None) -> np.ndarray:
-        """One frame as (H, W, 3) uint8, row 0 at the top. mode 'id' returns part ids in
-        channel 0 and no background, lighting, noise or blur."""
+    def _render(self, R_lvlh_cam: np.ndarray, p_lvlh_cam: np.ndarray, sun_lvlh: np.ndarray,
+                R_ecef_lvlh: np.ndarray | None, earth_center_lvlh_km: np.ndarray | None,
+                mode: str, rng: np.random.Generator | None) -> np.ndarray:
         if self.mesh_vao is None:
             raise RuntimeError("load_scene() first")
         cam, s, ctx = self.camera, self.settings, self.ctx

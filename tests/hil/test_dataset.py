@@ -113,3 +113,27 @@ def test_custom_spec_png_envelope(tmp_path, gl_renderer):
     generate_dataset(tmp_path, [spec], frames_limit=2, workers=1, progress=False)
     m = verify_sequence(tmp_path / "custom")
     assert "frames/000001.png" in m["files"] and m["spec"]["envelope"] is True
+
+
+def test_renderers_survive_other_gl_contexts_in_the_process(gl_renderer, tmp_path):
+    """The dataset writer caches its renderer per process. Another GL context made and released
+    in between (a test's, a rig camera's) used to leave none current, and the next frame crashed
+    inside the driver (SIGSEGV). Run in a child so a crash is a failure, not a dead test run."""
+    import subprocess
+    import sys
+    script = f"""
+from pathlib import Path
+from oibar_hil.dataset import PAPER_SEQUENCES, generate_dataset
+from oibar_hil.render import Renderer
+def gen(name):
+    return generate_dataset(Path({str(tmp_path)!r}) / name, [PAPER_SEQUENCES[2]], frames_limit=2,
+                            workers=1, progress=False).rendered
+assert gen("a") == 2
+Renderer().release()
+other = Renderer()          # and one left alive, current
+assert gen("b") == 2
+other.release()
+print("ok")
+"""
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.strip().endswith("ok"), (proc.returncode, proc.stderr[-2000:])

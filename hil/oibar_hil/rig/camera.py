@@ -186,8 +186,7 @@ class RigCamera:
             self._frames += 1
             rng = (np.random.default_rng([self.seed, n])
                    if self.sensor_effects and self.spec.noise_sigma_dn > 0 else None)
-            with r.ctx:
-                img = r.render(R_lvlh_cam, p_lvlh_cam, sun_lvlh, R_ecef_lvlh, self.clock.earth_center_lvlh_km, rng=rng)
+            img = r.render(R_lvlh_cam, p_lvlh_cam, sun_lvlh, R_ecef_lvlh, self.clock.earth_center_lvlh_km, rng=rng)
         if self.sensor_effects:
             img = self._through_image_format(img)
         return RenderedFrame(image=img, T_cam_target_m=T_cam_t, R_cam_target=R_cam_t, t_s=float(t_s), frame=n)
@@ -198,8 +197,7 @@ class RigCamera:
         R_lvlh_cam, p_lvlh_cam, _, _ = pose_to_lvlh(r_D_m, att_rad, self.port, self.geometry)
         with self._lock:
             r = self._live()
-            with r.ctx:
-                ids = r.render(R_lvlh_cam, p_lvlh_cam, np.array([0.0, 0.0, -1.0]), mode="id")
+            ids = r.render(R_lvlh_cam, p_lvlh_cam, np.array([0.0, 0.0, -1.0]), mode="id")
         return np.ascontiguousarray(ids[:, :, 0])
 
     def _through_image_format(self, img: np.ndarray) -> np.ndarray:
