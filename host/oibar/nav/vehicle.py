@@ -123,14 +123,14 @@ class UdpJsonVehicle(VehicleInterface):
             return None
         return odo
 
+    max_datagrams_per_cycle = 256   # bounds the work a flooding sender can put in the 10 Hz cycle
+
     def drain(self, now_s: float) -> None:
-        """Read every datagram waiting on the socket; keep the newest valid measurement."""
-        while True:
+        """Read the datagrams waiting on the socket; keep the newest valid measurement."""
+        for _ in range(self.max_datagrams_per_cycle):
             try:
                 data, _ = self.sock.recvfrom(2048)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:      # socket-level error: try again next cycle
+            except OSError:      # nothing waiting (BlockingIOError) or a socket error: next cycle
                 break
             odo = self._parse(data, now_s)
             if odo is None:
