@@ -184,6 +184,29 @@ static void test_connector_and_latch_loss_while_transferring(void)
     assert_faulted(oibar_v1_FAULT_LATCH_LOST, "latch");
 }
 
+/* SAFETY_RULE_LATCH_SENSE_PAIR through the application: a short or a broken
+ * wire on the latch switch pair closes the valves and holds FAULT; the fault
+ * cannot be cleared while the pair stays implausible. */
+static void test_SAFETY_RULE_LATCH_SENSE_PAIR_wire_fault_while_transferring(void)
+{
+    const hal_di_t contact[2] = { HAL_DI_LATCH_NOT_ENGAGED, HAL_DI_LATCH_ENGAGED };
+    const int level[2] = { 1, 0 }; /* NC shorted to ground; NO wire broken */
+    for (unsigned k = 0; k < 2; k++) {
+        TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_TRANSFERRING));
+        TEST_ASSERT_TRUE(bench_any_valve_driven());
+        fake_plant_override_di(contact[k], level[k]);
+        fake_hal_advance_ms(11);
+        TEST_ASSERT_FALSE(bench_any_valve_driven());
+        TEST_ASSERT_EQUAL_INT(oibar_v1_STATE_FAULT, oibar_app_state());
+        fake_hal_advance_ms(100);
+        assert_faulted(oibar_v1_FAULT_LATCH_SENSOR, "latch pair");
+        TEST_ASSERT_EQUAL(oibar_v1_NACK_PRECONDITION_FAILED,
+                          oibar_app_command(oibar_v1_CMD_CLEAR_FAULT, 0.0f));
+        TEST_ASSERT_EQUAL_INT(oibar_v1_STATE_FAULT, oibar_app_state());
+        fake_plant_clear_overrides();
+    }
+}
+
 static void test_contact_overload(void)
 {
     TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_SOFT_DOCKED));
@@ -262,6 +285,7 @@ int main(void)
     RUN_TEST(test_transfer_timeout);
     RUN_TEST(test_link_loss_in_every_active_state);
     RUN_TEST(test_connector_and_latch_loss_while_transferring);
+    RUN_TEST(test_SAFETY_RULE_LATCH_SENSE_PAIR_wire_fault_while_transferring);
     RUN_TEST(test_contact_overload);
     RUN_TEST(test_event_queue_overflow_is_a_fault);
     RUN_TEST(test_watchdog_reset_boots_into_fault);

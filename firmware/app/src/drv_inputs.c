@@ -1,20 +1,47 @@
 #include "oibar/drv_inputs.h"
 
 #include "oibar/app_events.h"
+#include "oibar/app_faults.h"
 #include "oibar/app_params.h"
+#include "oibar/app_time.h"
 
 static volatile bool s_level[HAL_DI_COUNT];
-static uint16_t s_count_ms[HAL_DI_COUNT]; /* how long raw has differed */
+static bool s_differs[HAL_DI_COUNT];        /* raw differs from the debounced level */
+static uint32_t s_differs_since_ms[HAL_DI_COUNT]; /* first tick that saw it differ */
+static volatile bool s_latch_engaged;      /* the pair says engaged, plausibly */
+static volatile bool s_latch_plausible;    /* exactly one contact of the pair closed */
+static bool s_latch_odd;                   /* both or neither contact closed */
+static uint32_t s_latch_odd_since_ms;      /* first tick that saw it */
+static bool s_latch_reported;
 static float s_force_n;
 static float s_plane_mm;
 static bool s_force_valid;
 
+/* SAFETY_RULE_LATCH_SENSE_PAIR: engaged only when the NO contact is closed
+ * and the NC contact open; any other combination reads "not engaged". */
+static bool pair_engaged(void)
+{
+    return s_level[HAL_DI_LATCH_ENGAGED] && !s_level[HAL_DI_LATCH_NOT_ENGAGED];
+}
+
+static bool pair_plausible(void)
+{
+    return s_level[HAL_DI_LATCH_ENGAGED] != s_level[HAL_DI_LATCH_NOT_ENGAGED];
+}
+
 void oibar_inputs_init(void)
 {
+    uint32_t now = hal_time_ms();
     for (unsigned i = 0; i < (unsigned)HAL_DI_COUNT; i++) {
         s_level[i] = hal_di_read((hal_di_t)i);
-        s_count_ms[i] = 0;
+        s_differs[i] = false;
+        s_differs_since_ms[i] = now;
     }
+    s_latch_engaged = pair_engaged();
+    s_latch_plausible = pair_plausible();
+    s_latch_odd = false;
+    s_latch_odd_since_ms = now;
+    s_latch_reported = false;
     s_force_n = 0.0f;
     s_plane_mm = 0.0f;
     s_force_valid = false;
@@ -27,42 +54,80 @@ static void post_edge(hal_di_t di, bool level)
     case HAL_DI_CONTACT:
         sig = level ? SIG_CONTACT : SIG_CONTACT_LOST;
         break;
-    case HAL_DI_LATCH_ENGAGED:
-        sig = level ? SIG_LATCH_ENGAGED : SIG_LATCH_DISENGAGED;
-        break;
     case HAL_DI_CONNECTOR_MATED:
         sig = level ? SIG_CONNECTOR_MATED : SIG_CONNECTOR_LOST;
         break;
     default:
-        break; /* end switches and valve sensors are read as levels */
+        break; /* the latch pair is judged as a pair; the rest are levels */
     }
     if (sig != SIG_NONE) {
         (void)oibar_evtq_post(sig, 0u);
     }
 }
 
-void oibar_inputs_tick_isr(void)
+/* The latch pair after debouncing: edges of the combined level, and the
+ * plausibility check (both or neither contact closed for longer than a
+ * switch transit can take is a broken wire or a short). */
+static void latch_pair_update(uint32_t now_ms)
 {
-    uint32_t debounce_ms = oibar_param_u32(PARAM_DEBOUNCE_MS);
-    for (unsigned i = 0; i < (unsigned)HAL_DI_COUNT; i++) {
-        bool raw = hal_di_read((hal_di_t)i);
-        if (raw == s_level[i]) {
-            s_count_ms[i] = 0;
-            continue;
-        }
-        s_count_ms[i]++;
-        if (s_count_ms[i] >= debounce_ms) {
-            s_level[i] = raw;
-            s_count_ms[i] = 0;
-            post_edge((hal_di_t)i, raw);
+    bool engaged = pair_engaged();
+    if (engaged != s_latch_engaged) {
+        s_latch_engaged = engaged;
+        (void)oibar_evtq_post(engaged ? SIG_LATCH_ENGAGED : SIG_LATCH_DISENGAGED, 0u);
+    }
+    if (pair_plausible()) {
+        s_latch_plausible = true;
+        s_latch_odd = false;
+        s_latch_reported = false;
+        return;
+    }
+    if (!s_latch_odd) {
+        s_latch_odd = true;
+        s_latch_odd_since_ms = now_ms;
+    }
+    if (oibar_held_for(now_ms, s_latch_odd_since_ms, OIBAR_LATCH_PAIR_TRANSIT_MAX_MS)) {
+        s_latch_plausible = false;
+        if (!s_latch_reported) {
+            s_latch_reported = true; /* once per episode */
+            oibar_fault_raise(oibar_v1_FAULT_LATCH_SENSOR);
         }
     }
 }
 
+void oibar_inputs_tick_isr(void)
+{
+    /* Elapsed time, not a count of calls: a late or missed tick does not
+     * stretch the debounce. */
+    uint32_t now = hal_time_ms();
+    uint32_t debounce_ms = oibar_param_u32(PARAM_DEBOUNCE_MS);
+    for (unsigned i = 0; i < (unsigned)HAL_DI_COUNT; i++) {
+        bool raw = hal_di_read((hal_di_t)i);
+        if (raw == s_level[i]) {
+            s_differs[i] = false;
+            continue;
+        }
+        if (!s_differs[i]) {
+            s_differs[i] = true;
+            s_differs_since_ms[i] = now;
+        }
+        if (oibar_held_for(now, s_differs_since_ms[i], debounce_ms)) {
+            s_level[i] = raw;
+            s_differs[i] = false;
+            post_edge((hal_di_t)i, raw);
+        }
+    }
+    latch_pair_update(now);
+}
+
 bool oibar_input(hal_di_t di)
 {
+    if (di == HAL_DI_LATCH_ENGAGED) {
+        return s_latch_engaged;
+    }
     return ((unsigned)di < (unsigned)HAL_DI_COUNT) ? s_level[di] : false;
 }
+
+bool oibar_latch_sensor_plausible(void) { return s_latch_plausible; }
 
 void oibar_inputs_analog_update(void)
 {

@@ -42,6 +42,8 @@ oibar_v1_FaultCode oibar_fault_take_pending(void)
     return code;
 }
 
+bool oibar_fault_any_pending(void) { return s_pending != 0u; }
+
 uint32_t oibar_fault_flags(void) { return s_latched; }
 
 void oibar_fault_latch(oibar_v1_FaultCode code)

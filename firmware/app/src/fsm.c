@@ -250,7 +250,8 @@ static oibar_v1_NackReason guard(oibar_guard_t g)
     }
     case GUARD_FAULT_CAUSES_GONE:
         return pre(oibar_pressure_all_ok() && !oibar_pressure_over() && !oibar_valves_mismatch() &&
-                   !oibar_valves_any_sensed_open() && oibar_app_host_link_alive());
+                   !oibar_valves_any_sensed_open() && oibar_app_host_link_alive() &&
+                   oibar_latch_sensor_plausible());
     case GUARD_VALVES_CLOSED:
         /* SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN: the valve monitor needs its
          * debounce time to call a stuck valve a fault; until then a valve that

@@ -49,6 +49,7 @@ static int p_adc_ovr[HAL_ADC_COUNT];
 void fake_hal_reset(void)
 {
     memset(s_di, 0, sizeof s_di);
+    s_di[HAL_DI_LATCH_NOT_ENGAGED] = true; /* a healthy latch switch at rest */
     memset(s_do, 0, sizeof s_do);
     memset(s_do_writes, 0, sizeof s_do_writes);
     for (unsigned i = 0; i < HAL_ADC_COUNT; i++) {
@@ -164,7 +165,13 @@ void hal_critical_exit(uint32_t saved)
 hal_reset_cause_t hal_reset_cause(void) { return s_reset_cause; }
 
 /* --- knobs ------------------------------------------------------------- */
-void fake_hal_set_di(hal_di_t di, bool level) { s_di[di] = level; }
+void fake_hal_set_di(hal_di_t di, bool level)
+{
+    s_di[di] = level;
+    if (di == HAL_DI_LATCH_ENGAGED) {
+        s_di[HAL_DI_LATCH_NOT_ENGAGED] = !level; /* the changeover switch's other contact */
+    }
+}
 bool fake_hal_do(hal_do_t out) { return s_do[out]; }
 uint32_t fake_hal_do_writes(hal_do_t out) { return s_do_writes[out]; }
 void fake_hal_set_adc(hal_adc_t ch, uint16_t counts) { s_adc[ch] = counts; }
@@ -286,6 +293,7 @@ static void plant_step_1ms(void)
 
     s_di[HAL_DI_CONTACT] = p_probe;
     s_di[HAL_DI_LATCH_ENGAGED] = engaged;
+    s_di[HAL_DI_LATCH_NOT_ENGAGED] = !engaged;
     s_di[HAL_DI_LATCH_HOME] = p_latch_steps <= 0;
     s_di[HAL_DI_PLANE_EXTENDED] = extended;
     s_di[HAL_DI_PLANE_RETRACTED] = p_plane_mm <= 0.05f;

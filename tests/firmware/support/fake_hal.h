@@ -22,6 +22,9 @@
 void fake_hal_reset(void);
 
 /* --- raw inputs/outputs (plant off) ----------------------------------- */
+/* Setting HAL_DI_LATCH_ENGAGED also sets HAL_DI_LATCH_NOT_ENGAGED to the
+ * opposite (a healthy changeover switch); set HAL_DI_LATCH_NOT_ENGAGED
+ * afterwards to model a broken wire or a short. */
 void fake_hal_set_di(hal_di_t di, bool level);
 bool fake_hal_do(hal_do_t out);
 uint32_t fake_hal_do_writes(hal_do_t out);

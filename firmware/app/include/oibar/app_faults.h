@@ -13,13 +13,16 @@
 #include "oibar.pb.h"
 
 #define OIBAR_FAULT_BIT(code) (1u << ((unsigned)(code) - 1u))
-#define OIBAR_FAULT_CODE_MAX 15u
+#define OIBAR_FAULT_CODE_MAX 16u
 
 void oibar_faults_init(void);
 /* ISR-safe. */
 void oibar_fault_raise(oibar_v1_FaultCode code);
 /* Main loop: take the next pending fault, FAULT_NONE when none. */
 oibar_v1_FaultCode oibar_fault_take_pending(void);
+/* True while some raised fault has not been taken by the main loop yet.
+ * ISR-safe; the valve driver refuses to open while one is pending. */
+bool oibar_fault_any_pending(void);
 /* Latched flags (Telemetry.fault_flags layout). */
 uint32_t oibar_fault_flags(void);
 void oibar_fault_latch(oibar_v1_FaultCode code);

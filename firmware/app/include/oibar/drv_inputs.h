@@ -1,8 +1,14 @@
 /*
  * Contact, latch, connector and end-switch inputs: debounced in the 1 kHz
- * tick (a level counts once it held for debounce_ms), edges of the
- * mechanism sensors posted as events. Analog contact force and plane
+ * tick (a level counts once it held for debounce_ms of elapsed time), edges
+ * of the mechanism sensors posted as events. Analog contact force and plane
  * position are converted in the main loop.
+ *
+ * The latch switch is a changeover pair (HAL_DI_LATCH_ENGAGED = NO contact,
+ * HAL_DI_LATCH_NOT_ENGAGED = NC contact). oibar_input(HAL_DI_LATCH_ENGAGED)
+ * is the pair's verdict: engaged only with NO closed and NC open. Both or
+ * neither closed for longer than OIBAR_LATCH_PAIR_TRANSIT_MAX_MS raises
+ * FAULT_LATCH_SENSOR (a broken wire or a short), once per episode.
  */
 #ifndef OIBAR_DRV_INPUTS_H
 #define OIBAR_DRV_INPUTS_H
@@ -12,13 +18,20 @@
 
 #include "oibar/hal.h"
 
+/* Longest time a healthy changeover switch shows neither contact (its
+ * transit), after debouncing. Compile-time: not a tunable. */
+#define OIBAR_LATCH_PAIR_TRANSIT_MAX_MS 100u
+
 /* Take the raw levels as the debounced ones, without events (power-up). */
 void oibar_inputs_init(void);
 /* 1 kHz tick (ISR context): debounce, post SIG_CONTACT/_LOST,
  * SIG_LATCH_ENGAGED/_DISENGAGED, SIG_CONNECTOR_MATED/_LOST on edges. */
 void oibar_inputs_tick_isr(void);
-/* Debounced level. */
+/* Debounced level (HAL_DI_LATCH_ENGAGED: the pair's verdict, see above). */
 bool oibar_input(hal_di_t di);
+/* False while the latch pair has been implausible for longer than the
+ * transit time (the FAULT_LATCH_SENSOR condition). */
+bool oibar_latch_sensor_plausible(void);
 
 /* Main loop: convert the analog inputs. */
 void oibar_inputs_analog_update(void);

@@ -26,13 +26,19 @@ extern "C" {
  * (the port handles active-low wiring). Debouncing is the application's. */
 typedef enum {
     HAL_DI_CONTACT = 0,        /* probe is in contact with the drogue */
-    HAL_DI_LATCH_ENGAGED,      /* soft-dock latches popped out behind the cavity */
+    HAL_DI_LATCH_ENGAGED,      /* latch switch NO contact closed: latches popped out */
     HAL_DI_LATCH_HOME,         /* latch stepper at its home (default) position */
     HAL_DI_PLANE_EXTENDED,     /* fluidic plane at its extended end switch */
     HAL_DI_PLANE_RETRACTED,    /* fluidic plane at its retracted end switch */
     HAL_DI_CONNECTOR_MATED,    /* electrical connector mated (sense loop closed) */
     HAL_DI_SV_VALVE_OPEN,      /* service-vehicle valve position switch: open */
     HAL_DI_TV_VALVE_OPEN,      /* target-vehicle valve position switch: open */
+    /* Latch switch NC contact closed: latches not engaged. With
+     * HAL_DI_LATCH_ENGAGED it makes a changeover pair: exactly one of the two
+     * holds on a healthy switch, so a broken wire (or a short) shows as
+     * "both" or "neither" (drv_inputs faults on it). Appended last so the
+     * other indices, and the sim's di_bits, keep their numbers. */
+    HAL_DI_LATCH_NOT_ENGAGED,
     HAL_DI_COUNT
 } hal_di_t;
 

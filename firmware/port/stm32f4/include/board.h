@@ -36,17 +36,22 @@ typedef struct {
 /* Indexed by hal_di_t. Switches are normally closed to ground with the
  * internal pull-up, so "actuated" (and a broken wire) reads high. The
  * connector sense loop is closed to ground through the mated connector, so
- * "mated" reads low and a broken wire reads "not mated". */
+ * "mated" reads low and a broken wire reads "not mated". The latch switch
+ * is a changeover (SPDT, common to ground) on two pins, both active low:
+ * PC7 its NO contact (closed = engaged), PC10 its NC contact (closed = not
+ * engaged). A broken wire then reads "not engaged" on its pin, and the pair
+ * reads "neither" or "both", which the application faults on. */
 #define BOARD_DI_PINS                                         \
     {                                                         \
         [HAL_DI_CONTACT] = { GPIOC, 6u, false },              \
-        [HAL_DI_LATCH_ENGAGED] = { GPIOC, 7u, false },        \
+        [HAL_DI_LATCH_ENGAGED] = { GPIOC, 7u, true },         \
         [HAL_DI_LATCH_HOME] = { GPIOC, 8u, false },           \
         [HAL_DI_PLANE_EXTENDED] = { GPIOC, 9u, false },       \
         [HAL_DI_PLANE_RETRACTED] = { GPIOB, 12u, false },     \
         [HAL_DI_CONNECTOR_MATED] = { GPIOB, 13u, true },      \
         [HAL_DI_SV_VALVE_OPEN] = { GPIOB, 14u, false },       \
         [HAL_DI_TV_VALVE_OPEN] = { GPIOB, 15u, false },       \
+        [HAL_DI_LATCH_NOT_ENGAGED] = { GPIOC, 10u, true },    \
     }
 
 /* Indexed by hal_do_t. The stepper driver's enable input is active low
