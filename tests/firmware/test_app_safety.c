@@ -51,6 +51,20 @@ static void test_SAFETY_RULE_VALVES_ONLY_WHEN_TRANSFERRING(void)
     }
 }
 
+/* SAFETY_RULE_VALVE_OPEN_ATOMIC: a fault raised (by an interrupt) and not
+ * yet taken by the main loop blocks the interlock like a latched one. */
+static void test_SAFETY_RULE_VALVE_OPEN_ATOMIC_pending_fault_blocks_interlock(void)
+{
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_TRANSFERRING));
+    TEST_ASSERT_TRUE(oibar_safety_valves_permitted());
+    oibar_fault_raise(oibar_v1_FAULT_PRESSURE_SENSOR_RATE);
+    TEST_ASSERT_FALSE(oibar_safety_valves_permitted());
+    TEST_ASSERT_TRUE((oibar_safety_valve_blockers() &
+                      OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_NO_FAULT)) != 0u);
+    TEST_ASSERT_FALSE(oibar_valves_open_both());
+    TEST_ASSERT_FALSE(bench_any_valve_driven());
+}
+
 static void test_SAFETY_RULE_VALVES_NEED_ARM_THEN_START(void)
 {
     TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKED));
@@ -297,6 +311,7 @@ int main(void)
     RUN_TEST(test_SAFETY_RULE_SAFE_START);
     RUN_TEST(test_SAFETY_RULE_VALVES_ONLY_WHEN_TRANSFERRING);
     RUN_TEST(test_SAFETY_RULE_VALVES_NEED_ARM_THEN_START);
+    RUN_TEST(test_SAFETY_RULE_VALVE_OPEN_ATOMIC_pending_fault_blocks_interlock);
     RUN_TEST(test_SAFETY_RULE_VALVES_NEED_CONNECTOR_MATED);
     RUN_TEST(test_SAFETY_RULE_VALVES_NEED_LATCH_ENGAGED);
     RUN_TEST(test_SAFETY_RULE_VALVES_NEED_SENSORS_HEALTHY);

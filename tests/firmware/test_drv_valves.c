@@ -7,7 +7,12 @@
 #include "unity.h"
 
 static bool s_permit;
-static bool permit(void) { return s_permit; }
+static int s_permit_depth; /* critical-section depth seen by the interlock */
+static bool permit(void)
+{
+    s_permit_depth = fake_hal_critical_depth();
+    return s_permit;
+}
 static void loop_1ms(void) { oibar_valves_tick(); }
 
 void setUp(void)
@@ -75,6 +80,44 @@ static void test_stuck_open_detected_while_closed(void)
     TEST_ASSERT_TRUE(oibar_valves_any_sensed_open());
 }
 
+/* --- SAFETY_RULE_VALVE_OPEN_ATOMIC (issue 16 item 8) ---------------------- */
+static void isr_raises_fault(void) { oibar_fault_raise(oibar_v1_FAULT_OVERPRESSURE); }
+
+static void test_SAFETY_RULE_VALVE_OPEN_ATOMIC_isr_fault_between_permit_and_coils(void)
+{
+    /* The interrupt is taken at the driver's first HAL access after the
+     * interlock said yes. Before the fix that was the first coil write: the
+     * ISR closed the (still closed) valves, then the coils went on with a
+     * fault pending. */
+    fake_hal_irq_at_next_window(isr_raises_fault);
+    bool opened = oibar_valves_open_both();
+    TEST_ASSERT_FALSE(fake_hal_irq_armed()); /* the ISR ran inside the call */
+    TEST_ASSERT_FALSE(opened);
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_SV_VALVE) || fake_hal_do(HAL_DO_TV_VALVE));
+    TEST_ASSERT_FALSE(oibar_valves_any_cmd_open());
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_OVERPRESSURE, oibar_fault_take_pending());
+    TEST_ASSERT_EQUAL_INT(0, fake_hal_critical_depth());
+}
+
+static void test_SAFETY_RULE_VALVE_OPEN_ATOMIC_interlock_asked_with_interrupts_masked(void)
+{
+    s_permit_depth = 0;
+    TEST_ASSERT_TRUE(oibar_valves_open_both());
+    TEST_ASSERT_TRUE(s_permit_depth > 0);
+    TEST_ASSERT_EQUAL_INT(0, fake_hal_critical_depth());
+}
+
+static void test_SAFETY_RULE_VALVE_OPEN_ATOMIC_pending_fault_refuses_open(void)
+{
+    /* Raised (by an ISR) but not yet taken by the main loop: the permit
+     * would still say yes; the driver must not. */
+    oibar_fault_raise(oibar_v1_FAULT_CONNECTOR_LOST);
+    TEST_ASSERT_FALSE(oibar_valves_open_both());
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_SV_VALVE) || fake_hal_do(HAL_DO_TV_VALVE));
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_CONNECTOR_LOST, oibar_fault_take_pending());
+    TEST_ASSERT_TRUE(oibar_valves_open_both()); /* taken (and handled): no longer pending */
+}
+
 int main(void)
 {
     UNITY_BEGIN();
@@ -83,5 +126,8 @@ int main(void)
     RUN_TEST(test_open_follow_close);
     RUN_TEST(test_stuck_closed_after_mismatch_time);
     RUN_TEST(test_stuck_open_detected_while_closed);
+    RUN_TEST(test_SAFETY_RULE_VALVE_OPEN_ATOMIC_isr_fault_between_permit_and_coils);
+    RUN_TEST(test_SAFETY_RULE_VALVE_OPEN_ATOMIC_interlock_asked_with_interrupts_masked);
+    RUN_TEST(test_SAFETY_RULE_VALVE_OPEN_ATOMIC_pending_fault_refuses_open);
     return UNITY_END();
 }

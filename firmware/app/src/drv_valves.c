@@ -25,16 +25,24 @@ void oibar_valves_init(void)
 
 void oibar_valves_set_permit(oibar_valve_permit_fn permit) { s_permit = permit; }
 
+/* SAFETY_RULE_VALVE_OPEN_ATOMIC: the interlock is asked and the coils are
+ * driven in one critical section, and a fault raised but not yet taken by
+ * the main loop refuses the opening. A fault raised from an interrupt thus
+ * either lands before the check (and is seen) or after the coils are on
+ * (and its oibar_fault_raise closes them): never in between. */
 bool oibar_valves_open_both(void)
 {
-    if (s_permit == 0 || !s_permit()) {
-        return false;
+    bool opened = false;
+    uint32_t cs = hal_critical_enter();
+    if (s_permit != 0 && !oibar_fault_any_pending() && s_permit()) {
+        for (unsigned v = 0; v < (unsigned)OIBAR_VALVE_COUNT; v++) {
+            s_cmd_open[v] = true;
+            hal_do_write(k_coil[v], true);
+        }
+        opened = true;
     }
-    for (unsigned v = 0; v < (unsigned)OIBAR_VALVE_COUNT; v++) {
-        s_cmd_open[v] = true;
-        hal_do_write(k_coil[v], true);
-    }
-    return true;
+    hal_critical_exit(cs);
+    return opened;
 }
 
 void oibar_valves_close_all(void)

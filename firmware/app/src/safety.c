@@ -56,7 +56,7 @@ uint32_t oibar_safety_valve_blockers(void)
     if (!oibar_app_host_link_alive()) {
         b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_HOST_LINK_ALIVE);
     }
-    if (oibar_fault_flags() != 0u) {
+    if (oibar_fault_flags() != 0u || oibar_fault_any_pending()) { /* raised counts, not only latched */
         b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_NO_FAULT);
     }
     return b;

@@ -24,6 +24,7 @@ static uint32_t s_step_acc_us;
 static uint32_t s_step_pulses;
 static uint32_t s_max_isr_per_ms;
 static int s_crit_depth;
+static void (*s_irq_fn)(void); /* armed interrupt: fires at the next unmasked HAL call */
 static uint8_t s_tx[TX_CAP];
 static size_t s_tx_len;
 
@@ -70,6 +71,7 @@ void fake_hal_reset(void)
     s_step_pulses = 0;
     s_max_isr_per_ms = 0;
     s_crit_depth = 0;
+    s_irq_fn = NULL;
     s_tx_len = 0;
 
     p_on = false;
@@ -92,14 +94,38 @@ void fake_hal_reset(void)
     fake_plant_clear_overrides();
 }
 
+/* An armed interrupt is taken at the first HAL call made with interrupts
+ * enabled (outside every critical section): the finest interleaving the
+ * application can observe. */
+static void irq_window(void)
+{
+    if (s_irq_fn != NULL && s_crit_depth == 0) {
+        void (*fn)(void) = s_irq_fn;
+        s_irq_fn = NULL;
+        fn();
+    }
+}
+
+void fake_hal_irq_at_next_window(void (*isr)(void)) { s_irq_fn = isr; }
+bool fake_hal_irq_armed(void) { return s_irq_fn != NULL; }
+
 /* --- HAL implementation ------------------------------------------------ */
 void hal_init(void) {}
-uint32_t hal_time_ms(void) { return s_now_ms; }
+uint32_t hal_time_ms(void)
+{
+    irq_window();
+    return s_now_ms;
+}
 void hal_control_tick_attach(hal_isr_fn tick) { s_tick_fn = tick; }
-bool hal_di_read(hal_di_t di) { return ((unsigned)di < HAL_DI_COUNT) ? s_di[di] : false; }
+bool hal_di_read(hal_di_t di)
+{
+    irq_window();
+    return ((unsigned)di < HAL_DI_COUNT) ? s_di[di] : false;
+}
 
 void hal_do_write(hal_do_t out, bool on)
 {
+    irq_window();
     if ((unsigned)out < HAL_DO_COUNT) {
         s_do[out] = on;
         s_do_writes[out]++;
@@ -131,6 +157,7 @@ void hal_step_pulse(void)
 
 bool hal_adc_read(hal_adc_t ch, uint16_t *counts)
 {
+    irq_window();
     if ((unsigned)ch >= HAL_ADC_COUNT || s_adc_fail[ch]) {
         return false;
     }
@@ -152,6 +179,7 @@ void hal_watchdog_kick(void) { s_kicks++; }
 
 uint32_t hal_critical_enter(void)
 {
+    irq_window(); /* taken before the mask goes on */
     s_crit_depth++;
     return (uint32_t)s_crit_depth;
 }
@@ -160,6 +188,7 @@ void hal_critical_exit(uint32_t saved)
 {
     (void)saved;
     s_crit_depth--;
+    irq_window(); /* a pending interrupt runs as soon as the mask comes off */
 }
 
 hal_reset_cause_t hal_reset_cause(void) { return s_reset_cause; }

@@ -42,6 +42,11 @@ uint32_t fake_hal_step_pulses(void);
 bool fake_hal_step_timer_running(void);
 uint32_t fake_hal_step_period_us(void);
 int fake_hal_critical_depth(void);
+/* Arm an "interrupt": `isr` runs once, at the first HAL call made outside
+ * every critical section (hal_critical_enter runs it before masking). Used
+ * to place an ISR between two statements of the code under test. */
+void fake_hal_irq_at_next_window(void (*isr)(void));
+bool fake_hal_irq_armed(void);
 /* Longest step ISR burst seen in one ms (to check the ISR stays bounded). */
 uint32_t fake_hal_max_step_isr_per_ms(void);
 
