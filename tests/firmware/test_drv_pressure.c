@@ -12,8 +12,8 @@
 static bool permit(void) { return true; }
 static void loop_1ms(void)
 {
-    oibar_pressure_tick();
-    oibar_valves_tick();
+    oibar_pressure_tick(hal_time_ms());
+    oibar_valves_tick(hal_time_ms());
     oibar_ploop_tick(hal_time_ms());
 }
 
@@ -52,14 +52,16 @@ static void test_range_fault_after_debounce(void)
 {
     fake_hal_advance_ms(20);
     fake_hal_set_adc(HAL_ADC_LINE, 100); /* open wire */
+    fake_hal_advance_ms(OIBAR_PRESSURE_BAD_RUN_MS - 1u);
+    TEST_ASSERT_TRUE(oibar_pressure_sensor_ok(OIBAR_PSENS_LINE)); /* a glitch so far */
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
     fake_hal_advance_ms(1);
-    TEST_ASSERT_FALSE(oibar_pressure_sensor_ok(OIBAR_PSENS_LINE)); /* unhealthy at once */
-    TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending()); /* fault after debounce */
-    fake_hal_advance_ms(10);
+    TEST_ASSERT_FALSE(oibar_pressure_sensor_ok(OIBAR_PSENS_LINE));
     TEST_ASSERT_EQUAL(oibar_v1_FAULT_PRESSURE_SENSOR_RANGE, oibar_fault_take_pending());
     fake_hal_set_adc(HAL_ADC_LINE, 4000); /* short */
     fake_hal_advance_ms(20);
     TEST_ASSERT_FALSE(oibar_pressure_sensor_ok(OIBAR_PSENS_LINE));
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending()); /* same episode */
     fake_hal_set_adc(HAL_ADC_LINE, 1000);
     fake_hal_advance_ms(2);
     TEST_ASSERT_TRUE(oibar_pressure_sensor_ok(OIBAR_PSENS_LINE));
@@ -69,8 +71,81 @@ static void test_failed_conversion_is_range_fault(void)
 {
     fake_hal_advance_ms(20);
     fake_hal_set_adc_fail(HAL_ADC_SV_TANK, true);
-    fake_hal_advance_ms(11);
+    fake_hal_advance_ms(OIBAR_PRESSURE_BAD_RUN_MS);
     TEST_ASSERT_EQUAL(oibar_v1_FAULT_PRESSURE_SENSOR_RANGE, oibar_fault_take_pending());
+}
+
+/* --- SAFETY_RULE_ADC_GLITCH_BOUNDED (issue 16 item 9) --------------------- */
+static void test_SAFETY_RULE_ADC_GLITCH_BOUNDED_one_bad_sample_does_not_trip(void)
+{
+    fake_hal_advance_ms(20);
+    const float before = oibar_pressure_kpa(OIBAR_PSENS_TV);
+    const hal_adc_t ch[2] = { HAL_ADC_TV_TANK, HAL_ADC_TV_TANK };
+    for (unsigned k = 0; k < 2; k++) {
+        if (k == 0) {
+            fake_hal_set_adc(ch[k], 0); /* one conversion out of range */
+        } else {
+            fake_hal_set_adc_fail(ch[k], true); /* one conversion failed */
+        }
+        fake_hal_advance_ms(1);
+        TEST_ASSERT_TRUE(oibar_pressure_sensor_ok(OIBAR_PSENS_TV));
+        TEST_ASSERT_TRUE(oibar_pressure_all_ok());
+        TEST_ASSERT_FLOAT_WITHIN(0.01f, before, oibar_pressure_kpa(OIBAR_PSENS_TV)); /* held */
+        fake_hal_set_adc(ch[k], 1000);
+        fake_hal_set_adc_fail(ch[k], false);
+        fake_hal_advance_ms(50);
+    }
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
+    TEST_ASSERT_TRUE(oibar_pressure_all_ok());
+}
+
+static void test_SAFETY_RULE_ADC_GLITCH_BOUNDED_a_run_trips_within_the_bound(void)
+{
+    fake_hal_advance_ms(20);
+    /* Runs shorter than the bound, again and again: never a fault. */
+    for (unsigned i = 0; i < 20; i++) {
+        fake_hal_set_adc(HAL_ADC_SV_TANK, 0);
+        fake_hal_advance_ms(OIBAR_PRESSURE_BAD_RUN_MS - 1u);
+        fake_hal_set_adc(HAL_ADC_SV_TANK, 1000);
+        fake_hal_advance_ms(1);
+    }
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
+    /* A run of the bound: trips on its last sample. */
+    fake_hal_set_adc(HAL_ADC_SV_TANK, 0);
+    fake_hal_advance_ms(OIBAR_PRESSURE_BAD_RUN_MS);
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_PRESSURE_SENSOR_RANGE, oibar_fault_take_pending());
+    TEST_ASSERT_FALSE(oibar_pressure_all_ok());
+}
+
+static void slow_loop_pass(void)
+{
+    /* A main loop that gets round only every third tick. */
+    if (hal_time_ms() % 3u == 0u) {
+        loop_1ms();
+    }
+}
+
+static void test_SAFETY_RULE_ADC_GLITCH_BOUNDED_slow_loop_still_trips_on_time(void)
+{
+    fake_hal_set_main_loop(slow_loop_pass);
+    fake_hal_advance_ms(30);
+    /* One bad sample in a slow loop is still one glitch. */
+    fake_hal_set_adc(HAL_ADC_LINE, 0);
+    fake_hal_advance_ms(3);
+    fake_hal_set_adc(HAL_ADC_LINE, 1000);
+    fake_hal_advance_ms(30);
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
+    /* A lasting one trips at the first pass at or after the bound in
+     * elapsed time (counting passes it would take three times as long). */
+    fake_hal_set_adc(HAL_ADC_LINE, 0);
+    uint32_t t0 = hal_time_ms();
+    oibar_v1_FaultCode f = oibar_v1_FAULT_NONE;
+    while (f == oibar_v1_FAULT_NONE && hal_time_ms() - t0 < 100u) {
+        fake_hal_advance_ms(1);
+        f = oibar_fault_take_pending();
+    }
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_PRESSURE_SENSOR_RANGE, f);
+    TEST_ASSERT_TRUE(hal_time_ms() - t0 <= OIBAR_PRESSURE_BAD_RUN_MS + 3u);
 }
 
 static void test_rate_fault_on_jump_not_on_fill(void)
@@ -143,6 +218,9 @@ int main(void)
     RUN_TEST(test_conversion_with_calibration);
     RUN_TEST(test_range_fault_after_debounce);
     RUN_TEST(test_failed_conversion_is_range_fault);
+    RUN_TEST(test_SAFETY_RULE_ADC_GLITCH_BOUNDED_one_bad_sample_does_not_trip);
+    RUN_TEST(test_SAFETY_RULE_ADC_GLITCH_BOUNDED_a_run_trips_within_the_bound);
+    RUN_TEST(test_SAFETY_RULE_ADC_GLITCH_BOUNDED_slow_loop_still_trips_on_time);
     RUN_TEST(test_rate_fault_on_jump_not_on_fill);
     RUN_TEST(test_overpressure_trip);
     RUN_TEST(test_loop_fills_to_target_and_closes);

@@ -13,7 +13,7 @@ static bool permit(void)
     s_permit_depth = fake_hal_critical_depth();
     return s_permit;
 }
-static void loop_1ms(void) { oibar_valves_tick(); }
+static void loop_1ms(void) { oibar_valves_tick(hal_time_ms()); }
 
 void setUp(void)
 {

@@ -117,14 +117,18 @@ void oibar_app_tick_1khz(void)
     oibar_inputs_tick_isr();
 }
 
+/* Once per main-loop pass that saw at least one control tick. A pass may
+ * cover several ticks (a slow pass); every duration below is therefore
+ * measured as elapsed time on `now` (the 1 kHz tick clock), never as a
+ * count of these calls (SAFETY_RULE_TIMES_ARE_ELAPSED). */
 static void per_ms(uint32_t now)
 {
     oibar_inputs_analog_update();
-    oibar_pressure_tick();
-    oibar_valves_tick();
+    oibar_pressure_tick(now);
+    oibar_valves_tick(now);
     oibar_plane_tick(now);
     oibar_ploop_tick(now);
-    oibar_safety_force_tick();
+    oibar_safety_force_tick(now);
     oibar_fsm_tick(now);
 }
 

@@ -2,6 +2,7 @@
 
 #include "oibar/app_faults.h"
 #include "oibar/app_params.h"
+#include "oibar/app_time.h"
 #include "oibar/drv_inputs.h"
 #include "oibar/hal.h"
 
@@ -9,7 +10,8 @@ static const hal_do_t k_coil[OIBAR_VALVE_COUNT] = { HAL_DO_SV_VALVE, HAL_DO_TV_V
 static const hal_di_t k_sense[OIBAR_VALVE_COUNT] = { HAL_DI_SV_VALVE_OPEN, HAL_DI_TV_VALVE_OPEN };
 
 static volatile bool s_cmd_open[OIBAR_VALVE_COUNT];
-static uint32_t s_mismatch_ms[OIBAR_VALVE_COUNT];
+static bool s_mismatch[OIBAR_VALVE_COUNT];
+static uint32_t s_mismatch_since_ms[OIBAR_VALVE_COUNT]; /* first tick that saw it */
 static bool s_reported[OIBAR_VALVE_COUNT];
 static oibar_valve_permit_fn s_permit;
 
@@ -17,7 +19,8 @@ void oibar_valves_init(void)
 {
     oibar_valves_close_all();
     for (unsigned v = 0; v < (unsigned)OIBAR_VALVE_COUNT; v++) {
-        s_mismatch_ms[v] = 0;
+        s_mismatch[v] = false;
+        s_mismatch_since_ms[v] = 0;
         s_reported[v] = false;
     }
     s_permit = 0;
@@ -73,21 +76,23 @@ bool oibar_valves_any_sensed_open(void)
     return oibar_valve_sensed_open(OIBAR_VALVE_SV) || oibar_valve_sensed_open(OIBAR_VALVE_TV);
 }
 
-void oibar_valves_tick(void)
+void oibar_valves_tick(uint32_t now_ms)
 {
     uint32_t limit_ms = oibar_param_u32(PARAM_VALVE_MISMATCH_MS);
     for (unsigned v = 0; v < (unsigned)OIBAR_VALVE_COUNT; v++) {
         if (s_cmd_open[v] == oibar_valve_sensed_open((oibar_valve_t)v)) {
-            s_mismatch_ms[v] = 0;
+            s_mismatch[v] = false;
             s_reported[v] = false;
             continue;
         }
         /* A valve needs its stroke time to follow; only a lasting
-         * disagreement is a stuck valve. */
-        if (s_mismatch_ms[v] < limit_ms) {
-            s_mismatch_ms[v]++;
+         * disagreement (elapsed time, not main-loop passes) is a stuck
+         * valve. */
+        if (!s_mismatch[v]) {
+            s_mismatch[v] = true;
+            s_mismatch_since_ms[v] = now_ms;
         }
-        if (s_mismatch_ms[v] >= limit_ms && !s_reported[v]) {
+        if (oibar_held_for(now_ms, s_mismatch_since_ms[v], limit_ms) && !s_reported[v]) {
             s_reported[v] = true; /* once per episode */
             oibar_fault_raise(oibar_v1_FAULT_VALVE_MISMATCH);
         }

@@ -6,6 +6,7 @@
 #include "oibar/app_faults.h"
 #include "oibar/app_fsm.h"
 #include "oibar/app_params.h"
+#include "oibar/app_time.h"
 #include "oibar/drv_inputs.h"
 #include "oibar/drv_pressure.h"
 #include "oibar/drv_valves.h"
@@ -108,29 +109,34 @@ float oibar_safety_force_limit_n(unsigned state)
     }
 }
 
-/* SAFETY_RULE_CONTACT_FORCE_LIMIT: over the limit for debounce_ms. */
-static uint32_t s_over_ms;
+/* SAFETY_RULE_CONTACT_FORCE_LIMIT: over the limit for debounce_ms of
+ * elapsed time (not main-loop passes). */
+static bool s_over;
+static uint32_t s_over_since_ms;
 static bool s_force_reported;
 
 void oibar_safety_init(void)
 {
-    s_over_ms = 0;
+    s_over = false;
+    s_over_since_ms = 0;
     s_force_reported = false;
 }
 
-void oibar_safety_force_tick(void)
+void oibar_safety_force_tick(uint32_t now_ms)
 {
     float limit = oibar_safety_force_limit_n((unsigned)oibar_fsm_state());
     bool over = limit > 0.0f && oibar_contact_force_valid() && oibar_contact_force_n() > limit;
     if (!over) {
-        s_over_ms = 0;
+        s_over = false;
         s_force_reported = false;
         return;
     }
-    if (s_over_ms < oibar_param_u32(PARAM_DEBOUNCE_MS)) {
-        s_over_ms++;
+    if (!s_over) {
+        s_over = true;
+        s_over_since_ms = now_ms;
     }
-    if (s_over_ms >= oibar_param_u32(PARAM_DEBOUNCE_MS) && !s_force_reported) {
+    if (oibar_held_for(now_ms, s_over_since_ms, oibar_param_u32(PARAM_DEBOUNCE_MS)) &&
+        !s_force_reported) {
         s_force_reported = true;
         oibar_fault_raise(oibar_v1_FAULT_CONTACT_OVERLOAD);
     }

@@ -46,8 +46,9 @@ bool oibar_safety_valves_permitted(void);
 /* Main loop, every pass: close valves and raise a fault when a valve is
  * commanded open while a blocker exists. */
 void oibar_safety_enforce(void);
-/* Main loop, once per ms: contact force limit of the current state. */
-void oibar_safety_force_tick(void);
+/* Main loop, once per control tick seen (now_ms: hal_time_ms()): contact
+ * force limit of the current state, over elapsed time. */
+void oibar_safety_force_tick(uint32_t now_ms);
 /* Force limit in N for a state (0 = not monitored). */
 float oibar_safety_force_limit_n(unsigned state);
 

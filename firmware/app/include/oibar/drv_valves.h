@@ -26,8 +26,9 @@ bool oibar_valve_cmd_open(oibar_valve_t v);
 bool oibar_valve_sensed_open(oibar_valve_t v);
 bool oibar_valves_any_cmd_open(void);
 bool oibar_valves_any_sensed_open(void);
-/* Main loop, once per ms: commanded vs sensed check. */
-void oibar_valves_tick(void);
+/* Main loop, once per control tick seen (now_ms: hal_time_ms()):
+ * commanded vs sensed check over elapsed time. */
+void oibar_valves_tick(uint32_t now_ms);
 /* True while a valve disagrees with its command (for clearing a fault). */
 bool oibar_valves_mismatch(void);
 
