@@ -1,4 +1,4 @@
-"""The short version of the HIL fault matrix (`make fault-matrix` runs all 66 cells): one
+"""The short version of the HIL fault matrix (`make fault-matrix` runs every cell): one
 phase per fault and one fault per phase, each cell checked by the same code as the full
 matrix (generic invariants + the cell's expected outcome), plus the matrix's bookkeeping."""
 
@@ -15,6 +15,9 @@ SUBSET = [
     ("pressure_sensor_stuck", "hard_docked"), ("actuator_jam", "hard_docked"),
     ("valve_stuck_closed", "transferring"),
     ("overpressure", "unmating"),
+    # issue 16 (fw-drv): valve preconditions and sensor glitches, mid-fill
+    ("latch_wire_break", "transferring"), ("adc_glitch", "transferring"),
+    ("adc_glitch_run", "transferring"),
 ]
 
 
@@ -25,7 +28,7 @@ def test_subset_covers_every_fault_and_every_phase():
 
 def test_every_cell_has_an_expected_outcome_or_a_reason():
     cells = mx.all_cells()
-    assert len(cells) == len(FAULT_TYPES) * len(mx.PHASES) == 66
+    assert len(cells) == len(FAULT_TYPES) * len(mx.PHASES) >= 84
     for f, p in cells:
         e = mx.expectation(f, p)
         if isinstance(e, str):
@@ -65,3 +68,23 @@ def test_valve_failing_open_while_unmating_is_reseated_not_left_venting(sim_mcu_
     r = mx.run_cell("valve_stuck_open", "unmating", str(sim_mcu_path))
     assert r.status == "pass", r.reason
     assert r.fuel_lost_kg < 0.010
+
+
+def test_one_adc_glitch_mid_fill_is_not_a_fault_but_a_run_is(sim_mcu_path):
+    # Issue 16 item 9: one bad conversion used to close the valves and latch a range fault
+    # mid-transfer; a run of them must still trip (bound 10 ms).
+    one = mx.run_cell("adc_glitch", "transferring", str(sim_mcu_path))
+    assert one.status == "pass" and one.outcome == "completed" and not one.faults_seen, one.reason
+    run = mx.run_cell("adc_glitch_run", "transferring", str(sim_mcu_path))
+    assert run.status == "pass" and "FAULT_PRESSURE_SENSOR_RANGE" in run.faults_seen, run.reason
+    assert run.detect_s is not None and run.detect_s <= 0.05
+    assert one.fuel_lost_kg == run.fuel_lost_kg == 0.0
+
+
+def test_broken_latch_wire_is_detected_in_every_phase(sim_mcu_path):
+    # Issue 16 item 4: the broken wire reads "not engaged" (never "engaged") and the pair's
+    # implausible state is a fault that holds; nothing vents.
+    for phase in mx.PHASE_KEYS:
+        r = mx.run_cell("latch_wire_break", phase, str(sim_mcu_path))
+        assert r.status == "pass", f"{phase}: {r.reason}"
+        assert "FAULT_LATCH_SENSOR" in r.faults_seen and r.fuel_lost_kg == 0.0

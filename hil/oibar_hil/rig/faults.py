@@ -15,6 +15,7 @@ FAULT_TYPES = (
     "link_loss", "bit_errors", "pressure_sensor_stuck", "pressure_sensor_range",
     "valve_stuck_open", "valve_stuck_closed", "latch_stall", "actuator_jam",
     "overpressure", "watchdog_reset", "host_crash",
+    "latch_wire_break", "adc_glitch", "adc_glitch_run",
 )
 
 
@@ -114,6 +115,15 @@ class FaultInjector:
                 rig.request_hang()
         elif kind == "host_crash":
             rig.host_crash(on)
+        elif kind == "latch_wire_break":
+            # One wire of the latch switch's changeover pair: "no" (engaged contact, the
+            # default), "nc" (not-engaged contact) or "common" (the ground return).
+            mech.latch_wire_broken = spec.args.get("wire", "no") if on else None
+        elif kind in ("adc_glitch", "adc_glitch_run"):
+            # `samples` consecutive conversions of one transducer read 0 counts (open wire),
+            # then the sensor is fine again: one sample must not trip, a run must.
+            n = int(spec.args.get("samples", 1 if kind == "adc_glitch" else 20))
+            mech.adc_glitch_samples[spec.args.get("sensor", "tv")] = n if on else 0
 
     @staticmethod
     def _overpressure(fault: ActiveFault, t_s: float, dt_s: float, rig: Any) -> None:

@@ -84,6 +84,10 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
     "overpressure": {"tank": "sv", "rate_kpa_s": 300, "peak_kpa": 2700, "hold_s": 3.0},
     "watchdog_reset": {},
     "host_crash": {"duration_s": 4.0},
+    # issue 16 (fw-drv): latch switch pair, ADC glitches
+    "latch_wire_break": {"wire": "no"},                 # the engaged contact's wire, for good
+    "adc_glitch": {"sensor": "tv", "samples": 1},       # one bad conversion
+    "adc_glitch_run": {"sensor": "tv", "samples": 20},  # 20 in a row (bound: 10 ms)
 }
 FAULT_TITLES = {
     "link_loss": "link loss 3 s", "bit_errors": "bit errors (BER 2e-4)",
@@ -91,6 +95,8 @@ FAULT_TITLES = {
     "valve_stuck_open": "SV valve stuck open", "valve_stuck_closed": "TV valve stuck closed",
     "latch_stall": "latch stall", "actuator_jam": "plane actuator jam", "overpressure": "SV over-pressure 2700 kPa",
     "watchdog_reset": "watchdog reset (main loop hang)", "host_crash": "host crash 4 s",
+    "latch_wire_break": "latch switch wire broken", "adc_glitch": "TV pressure: 1 bad ADC sample",
+    "adc_glitch_run": "TV pressure: 20 bad ADC samples",
 }
 assert set(FAULT_ARGS) == set(FAULT_TYPES), "a fault type of the rig is missing from the matrix"
 
@@ -108,6 +114,9 @@ VALVES_CLOSED_BOUND_S: dict[str, float | None] = {
     "overpressure": 3.0,            # ramp 300 kPa/s to the 2600 kPa trip (~1.7 s) + stroke
     "watchdog_reset": 0.3,          # watchdog 100 ms, outputs off at reset + stroke
     "host_crash": 1.5,              # link timeout 1 s + stroke
+    "latch_wire_break": 0.1,        # debounce 10 ms (the pair reads "not engaged") + stroke
+    "adc_glitch": None,             # one sample is not a fault: the fill goes on
+    "adc_glitch_run": 0.1,          # bad-run bound 10 ms + stroke
 }
 
 NOT_APPLICABLE: dict[tuple[str, str], str] = {
@@ -181,6 +190,19 @@ def expectation(fault: str, phase: str) -> Expect | str:
     elif fault == "watchdog_reset":
         e = Expect("aborted", ["FAULT_WATCHDOG_RESET"], extra={"reset_cause": "RESET_WATCHDOG"},
                    why="reset after 100 ms, outputs off, FAULT; host re-handshakes, clears, separates")
+    elif fault == "latch_wire_break":
+        e = Expect("safed", ["FAULT_LATCH_SENSOR"],
+                   why=("latent until the latches engage; " if phase == "approach" else
+                        "the pair reads 'not engaged' at once (valves closed, FAULT_LATCH_LOST "
+                        "where engaged was required); ") +
+                       "neither contact for 100 ms: FAULT_LATCH_SENSOR, not clearable: hold")
+    elif fault == "adc_glitch":
+        e = Expect("completed", [], extra={"tv_min_kpa": 595},
+                   why="one bad conversion is skipped (last good value held): nominal")
+    elif fault == "adc_glitch_run":
+        e = Expect("aborted", ["FAULT_PRESSURE_SENSOR_RANGE"],
+                   why="a run of bad samples lasting 10 ms is a range fault; the sensor is back: "
+                       "clear, abort, separate")
     else:
         raise ValueError(f"no expectation for fault {fault!r}")
     if e.final_state is None:

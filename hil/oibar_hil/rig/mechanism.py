@@ -139,6 +139,11 @@ class Mechanism:
     sensor_faults: dict = field(default_factory=lambda: {"sv": SensorFault(), "tv": SensorFault(),
                                                            "line": SensorFault()})
     adc_fail_bits: int = 0
+    # latch switch wiring (a changeover pair, common to ground): None, or the broken wire
+    # "no" (engaged contact), "nc" (not-engaged contact) or "common"
+    latch_wire_broken: str | None = None
+    # pressure transducers: bad ADC samples still to come, per sensor (one per 1 ms exchange)
+    adc_glitch_samples: dict = field(default_factory=lambda: {"sv": 0, "tv": 0, "line": 0})
 
     def __post_init__(self) -> None:
         self.sv_kpa = self.p.sv_initial_kpa
@@ -171,6 +176,11 @@ class Mechanism:
     @property
     def latch_released(self) -> bool:
         return self.latch_steps >= self.p.latch_release_steps
+
+    @property
+    def adc_glitch_pending(self) -> bool:
+        """A glitch is being played: the rig then runs 1 ms exchanges, one sample each."""
+        return any(n > 0 for n in self.adc_glitch_samples.values())
 
     @property
     def contact(self) -> bool:
@@ -335,6 +345,9 @@ class Mechanism:
     def _press_counts(self, name: str, kpa: float) -> int:
         p = self.p
         fault = self.sensor_faults[name]
+        if self.adc_glitch_samples[name] > 0:
+            self.adc_glitch_samples[name] -= 1
+            return 0  # one conversion reads like an open wire (EMI, a loose crimp)
         if fault.forced_counts is not None:
             return fault.forced_counts
         if fault.stuck_counts is not None:
@@ -350,7 +363,8 @@ class Mechanism:
     def di_bits(self) -> int:
         levels = {
             "CONTACT": self.contact,
-            "LATCH_ENGAGED": self.latched,
+            "LATCH_ENGAGED": self.latched and self.latch_wire_broken not in ("no", "common"),
+            "LATCH_NOT_ENGAGED": not self.latched and self.latch_wire_broken not in ("nc", "common"),
             "LATCH_HOME": self.latch_home,
             "PLANE_EXTENDED": self.plane_extended,
             "PLANE_RETRACTED": self.plane_retracted,

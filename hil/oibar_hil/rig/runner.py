@@ -133,6 +133,8 @@ class Rig:
             return 1
         if reply.step_timer_running or reply.do("LATCH_ENABLE") and self.mech.latch_steps > 0:
             return 1
+        if self.mech.adc_glitch_pending:  # one bad ADC sample per exchange (faults.adc_glitch)
+            return 1
         m = self.mech
         busy = (m.contact or self.world.range_m < 0.3 or reply.do_bits & 0b111100
                 or m.sv_valve.open or m.tv_valve.open
