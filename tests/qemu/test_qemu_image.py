@@ -214,6 +214,8 @@ def test_telemetry_streams_with_the_state_the_emulated_sensors_cause(board: Qemu
         assert not later.sv_valve_cmd_open and not later.tv_valve_cmd_open
         # GPIO reads 0: switches not actuated, connector sense (active low) reads mated.
         assert not later.contact and not later.latch_engaged
+        # Both latch contacts (active low) read closed: an implausible pair, a sensor fault.
+        assert later.fault_flags & fault_bit("FAULT_LATCH_SENSOR")
         assert later.connector_mated
 
 
