@@ -374,8 +374,11 @@ static void entry_transfer_armed(uint32_t now_ms) { (void)now_ms; }
 
 static void entry_transferring(uint32_t now_ms)
 {
-    if (!oibar_ploop_start(s_target_kpa, now_ms)) {
-        /* The guard said yes and the interlock says no: a broken contract. */
+    if (!oibar_ploop_start(s_target_kpa, now_ms) && !oibar_fault_any_pending()) {
+        /* The guard said yes and the interlock says no: a broken contract
+         * (unless an interrupt raised a fault in between: the valve driver
+         * refuses then, SAFETY_RULE_VALVE_OPEN_ATOMIC, and that fault is
+         * the one to report). */
         oibar_fault_raise(oibar_v1_FAULT_ASSERTION);
     }
 }

@@ -24,7 +24,8 @@ static uint32_t s_step_acc_us;
 static uint32_t s_step_pulses;
 static uint32_t s_max_isr_per_ms;
 static int s_crit_depth;
-static void (*s_irq_fn)(void); /* armed interrupt: fires at the next unmasked HAL call */
+static void (*s_irq_fn)(void); /* armed interrupt: fires at an unmasked HAL call */
+static uint32_t s_irq_windows;  /* ... at this one (1 = the next) */
 static uint8_t s_tx[TX_CAP];
 static size_t s_tx_len;
 
@@ -99,14 +100,20 @@ void fake_hal_reset(void)
  * application can observe. */
 static void irq_window(void)
 {
-    if (s_irq_fn != NULL && s_crit_depth == 0) {
+    if (s_irq_fn != NULL && s_crit_depth == 0 && --s_irq_windows == 0u) {
         void (*fn)(void) = s_irq_fn;
         s_irq_fn = NULL;
         fn();
     }
 }
 
-void fake_hal_irq_at_next_window(void (*isr)(void)) { s_irq_fn = isr; }
+void fake_hal_irq_at_window(uint32_t n, void (*isr)(void))
+{
+    s_irq_windows = (n == 0u) ? 1u : n;
+    s_irq_fn = isr;
+}
+
+void fake_hal_irq_at_next_window(void (*isr)(void)) { fake_hal_irq_at_window(1u, isr); }
 bool fake_hal_irq_armed(void) { return s_irq_fn != NULL; }
 
 /* --- HAL implementation ------------------------------------------------ */

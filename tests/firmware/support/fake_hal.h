@@ -46,6 +46,8 @@ int fake_hal_critical_depth(void);
  * every critical section (hal_critical_enter runs it before masking). Used
  * to place an ISR between two statements of the code under test. */
 void fake_hal_irq_at_next_window(void (*isr)(void));
+/* The same at the n-th such call (1 = the next); NULL disarms. */
+void fake_hal_irq_at_window(uint32_t n, void (*isr)(void));
 bool fake_hal_irq_armed(void);
 /* Longest step ISR burst seen in one ms (to check the ISR stays bounded). */
 uint32_t fake_hal_max_step_isr_per_ms(void);
