@@ -84,6 +84,7 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
     "overpressure": {"tank": "sv", "rate_kpa_s": 300, "peak_kpa": 2700, "hold_s": 3.0},
     "watchdog_reset": {},
     "host_crash": {"duration_s": 4.0},
+    "replay": {"period_s": 0.25},                       # until the end of the mission
 }
 FAULT_TITLES = {
     "link_loss": "link loss 3 s", "bit_errors": "bit errors (BER 2e-4)",
@@ -91,6 +92,7 @@ FAULT_TITLES = {
     "valve_stuck_open": "SV valve stuck open", "valve_stuck_closed": "TV valve stuck closed",
     "latch_stall": "latch stall", "actuator_jam": "plane actuator jam", "overpressure": "SV over-pressure 2700 kPa",
     "watchdog_reset": "watchdog reset (main loop hang)", "host_crash": "host crash 4 s",
+    "replay": "replayed ARM/START",
 }
 assert set(FAULT_ARGS) == set(FAULT_TYPES), "a fault type of the rig is missing from the matrix"
 
@@ -108,6 +110,7 @@ VALVES_CLOSED_BOUND_S: dict[str, float | None] = {
     "overpressure": 3.0,            # ramp 300 kPa/s to the 2600 kPa trip (~1.7 s) + stroke
     "watchdog_reset": 0.3,          # watchdog 100 ms, outputs off at reset + stroke
     "host_crash": 1.5,              # link timeout 1 s + stroke
+    "replay": None,                 # refused frames: the fill goes on
 }
 
 NOT_APPLICABLE: dict[tuple[str, str], str] = {
@@ -181,6 +184,10 @@ def expectation(fault: str, phase: str) -> Expect | str:
     elif fault == "watchdog_reset":
         e = Expect("aborted", ["FAULT_WATCHDOG_RESET"], extra={"reset_cause": "RESET_WATCHDOG"},
                    why="reset after 100 ms, outputs off, FAULT; host re-handshakes, clears, separates")
+    elif fault == "replay":
+        e = Expect("completed", [], extra={"max_replays_executed": 0, "min_replays": 1, "tv_min_kpa": 595},
+                   why="recorded ARM/START resent every 0.25 s to the end: refused as stale "
+                       "(or answered from the duplicate cache): none runs again")
     else:
         raise ValueError(f"no expectation for fault {fault!r}")
     if e.final_state is None:
