@@ -12,5 +12,5 @@ BENCH_PY   := OIBAR_FW_BUILD=$(FW_HOST) OIBAR_GEN_C=$(GEN_C) OIBAR_NANOPB_DIR=$(
 
 .PHONY: bench
 
-bench: firmware-host firmware-arm gen ## measure every figure into docs/benchmarks.md (~15 min; BENCH_ARGS=--quick for ~1 min)
+bench: firmware-host firmware-arm firmware-arm-qemu gen ## measure every figure into docs/benchmarks.md (~15 min; BENCH_ARGS=--quick for ~1 min)
 	@$(BENCH_PY) $(BENCH_ARGS)

@@ -18,7 +18,7 @@ hil: firmware-host gen ## run every HIL scenario (nominal + faults), summary tab
 scenarios: hil ## same as `make hil`
 
 # Issue 11 (docs/reliability.md): the fault matrix and the soak.
-#   make fault-matrix   every fault x every mission phase (14 x 6 cells), table -> docs/reliability.md
+#   make fault-matrix   every fault x every mission phase, table -> docs/reliability.md
 #   make soak           the mission looped for SOAK_S simulated seconds on one MCU process
 MATRIX_JOBS ?= 2
 SOAK_S      ?= 3600

@@ -77,9 +77,9 @@ def qemu_board(log: Path) -> Iterator[str]:
     qemu = shutil.which("qemu-system-arm")
     if qemu is None:
         raise FileNotFoundError("qemu-system-arm is not installed: run `make setup`")
-    image = BUILD / "fw-arm" / "oibar_stm32f4.elf"
+    image = BUILD / "fw-arm-qemu" / "oibar_stm32f4.elf"
     if not image.is_file():
-        raise FileNotFoundError(f"{image} is missing: run `make firmware-arm`")
+        raise FileNotFoundError(f"{image} is missing: run `make firmware-arm-qemu`")
     port = _free_tcp_port()
     # nodelay=on: no Nagle on QEMU's side, or each byte-by-byte UART reply waits for a delayed ACK.
     chardev = f"socket,id=link,host=127.0.0.1,port={port},server=on,wait=off,nodelay=on"
@@ -218,7 +218,7 @@ def over_qemu(ctx: Context) -> Result:
         rows, extra = measure(ctx, url, "QEMU", param_id=1)
     for r in rows:
         r["link"] = "QEMU netduinoplus2"
-    notes = ["The real image (build/fw-arm) under qemu-system-arm; the emulated board has no ADC, so the firmware "
+    notes = ["The emulator image (build/fw-arm-qemu, OIBAR_QEMU=ON) under qemu-system-arm; the emulated board has no ADC, so the firmware "
              "sits in STATE_FAULT (tests/qemu): NOOP is still accepted and parameters read, which is what is timed. "
              "QEMU's USART does not pace bytes at 115200 baud either, and its CPU is emulated, not timed. The "
              "chardev socket has nodelay=on: with Nagle's algorithm the firmware's byte-by-byte UART output "

@@ -435,27 +435,154 @@ static void test_duplicate_command_answered_from_cache_not_reexecuted(void)
     TEST_ASSERT_EQUAL_UINT32(12, nth_body(oibar_v1_Packet_ack_tag, 2)->ack_seq);
 }
 
-/* Only the last request is remembered, and seq 0 (no seq) never is. */
-static void test_duplicate_memory_holds_one_request(void)
+static oibar_v1_NackReason ack_reason(size_t k) { return nth_body(oibar_v1_Packet_ack_tag, k)->body.ack.reason; }
+
+/* SAFETY_RULE (issue 16, item 5): a request runs only if its seq is newer
+ * than the newest request of this session. An old seq (a replay, a reordered
+ * packet) and seq 0 are refused with NACK_STALE_SEQ and never reach the
+ * application. */
+static void test_SAFETY_RULE_REPLAYED_OR_REORDERED_REQUEST_REFUSED(void)
 {
     start(0);
     connect(1, 0);
     send_command(2, oibar_v1_CMD_NOOP);
-    send_command(3, oibar_v1_CMD_NOOP);
-    send_command(2, oibar_v1_CMD_NOOP); /* older than the last one: executed again */
-    send_command(0, oibar_v1_CMD_NOOP);
-    send_command(0, oibar_v1_CMD_NOOP);
+    send_command(3, oibar_v1_CMD_APPROACH_ARM);
+    send_command(2, oibar_v1_CMD_NOOP);          /* older than the last one */
+    send_command(1, oibar_v1_CMD_APPROACH_ARM);  /* the handshake's seq */
+    send_command(0, oibar_v1_CMD_NOOP);          /* no seq */
+    oibar_v1_Packet g = mk(2, oibar_v1_Packet_param_set_tag);
+    g.body.param_set.param_id = 3;
+    g.body.param_set.value = 1.0f;
+    host_send(&g);                               /* old seq, other body type */
     oibar_link_poll(&link, 10);
-    TEST_ASSERT_EQUAL_INT(5, app.commands);
+    TEST_ASSERT_EQUAL_INT(2, app.commands);
+    TEST_ASSERT_EQUAL_INT(0, app.param_sets);
     TEST_ASSERT_EQUAL_UINT32(0, counters().rx_duplicates);
-    /* Same seq, other body: not the same request. */
-    oibar_v1_Packet g = mk(0x55, oibar_v1_Packet_param_get_tag);
-    g.body.param_get.param_id = 3;
-    host_send(&g);
-    send_command(0x55, oibar_v1_CMD_NOOP);
+    TEST_ASSERT_EQUAL_UINT32(4, counters().rx_stale);
+    TEST_ASSERT_EQUAL_size_t(6, count_body(oibar_v1_Packet_ack_tag) + count_body(oibar_v1_Packet_param_value_tag));
+    for (size_t k = 2; k < 5; ++k) {
+        TEST_ASSERT_FALSE(nth_body(oibar_v1_Packet_ack_tag, k)->body.ack.accepted);
+        TEST_ASSERT_EQUAL(oibar_v1_NACK_STALE_SEQ, ack_reason(k));
+    }
+    TEST_ASSERT_EQUAL_UINT32(2, nth_body(oibar_v1_Packet_ack_tag, 2)->ack_seq);
+    TEST_ASSERT_EQUAL_UINT32(0, nth_body(oibar_v1_Packet_ack_tag, 4)->ack_seq);
+    /* The refusal of a param request is an Ack too (the request never ran). */
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_STALE_SEQ, ack_reason(5));
+    /* The newest request is still answered from the cache... */
+    send_command(3, oibar_v1_CMD_APPROACH_ARM);
     oibar_link_poll(&link, 20);
-    TEST_ASSERT_EQUAL_INT(6, app.commands);
-    TEST_ASSERT_EQUAL_INT(1, app.param_gets);
+    TEST_ASSERT_EQUAL_UINT32(1, counters().rx_duplicates);
+    TEST_ASSERT_EQUAL_INT(2, app.commands);
+    /* ...and the next one runs. */
+    send_command(4, oibar_v1_CMD_NOOP);
+    oibar_link_poll(&link, 30);
+    TEST_ASSERT_EQUAL_INT(3, app.commands);
+}
+
+/* The last request's seq with another body (type or content) is not a
+ * retransmission: refused with NACK_SEQ_REUSED, not given the old ack. */
+static void test_reused_seq_with_another_body_refused(void)
+{
+    start(0);
+    connect(1, 0);
+    send_command(5, oibar_v1_CMD_APPROACH_ARM);
+    send_command(5, oibar_v1_CMD_ABORT);          /* same type, other content */
+    oibar_v1_Packet g = mk(5, oibar_v1_Packet_param_get_tag);
+    g.body.param_get.param_id = 3;
+    host_send(&g);                                /* other type */
+    oibar_v1_Packet c = mk(5, oibar_v1_Packet_command_tag);
+    c.body.command.opcode = oibar_v1_CMD_APPROACH_ARM;
+    c.body.command.target_pressure_kpa = 1.0f;    /* other argument */
+    host_send(&c);
+    oibar_link_poll(&link, 10);
+    TEST_ASSERT_EQUAL_INT(1, app.commands);
+    TEST_ASSERT_EQUAL_INT(0, app.param_gets);
+    TEST_ASSERT_EQUAL_UINT32(0, counters().rx_duplicates);
+    TEST_ASSERT_EQUAL_size_t(4, count_body(oibar_v1_Packet_ack_tag));
+    for (size_t k = 1; k < 4; ++k) {
+        TEST_ASSERT_EQUAL_UINT32(5, nth_body(oibar_v1_Packet_ack_tag, k)->ack_seq);
+        TEST_ASSERT_EQUAL(oibar_v1_NACK_SEQ_REUSED, ack_reason(k));
+    }
+    send_command(5, oibar_v1_CMD_APPROACH_ARM);  /* the exact request: the cached ack */
+    oibar_link_poll(&link, 20);
+    TEST_ASSERT_EQUAL_UINT32(1, counters().rx_duplicates);
+    TEST_ASSERT_TRUE(nth_body(oibar_v1_Packet_ack_tag, 4)->body.ack.accepted);
+}
+
+/* The host resends a request whose original was lost after heartbeats and
+ * NavUpdates with later seqs: the window follows requests, so it runs. */
+static void test_retransmission_after_later_heartbeats_runs(void)
+{
+    start(0);
+    connect(1, 0);
+    send_command(2, oibar_v1_CMD_NOOP);
+    /* seq 3 (a command) is lost on the wire */
+    send_heartbeat(4);
+    oibar_v1_Packet nav = mk(5, oibar_v1_Packet_nav_update_tag);
+    host_send(&nav);
+    send_command(3, oibar_v1_CMD_APPROACH_ARM); /* its retransmission */
+    oibar_link_poll(&link, 10);
+    TEST_ASSERT_EQUAL_INT(2, app.commands);
+    TEST_ASSERT_EQUAL(oibar_v1_CMD_APPROACH_ARM, app.last_command.opcode);
+    TEST_ASSERT_EQUAL_UINT32(0, counters().rx_stale);
+}
+
+/* A handshake starts a new window: a host that restarted numbers from 1. */
+static void test_handshake_starts_a_new_window(void)
+{
+    start(0);
+    connect(1, 0);
+    send_command(500, oibar_v1_CMD_NOOP);
+    oibar_link_poll(&link, 10);
+    connect(1, 20);
+    send_command(2, oibar_v1_CMD_NOOP);
+    oibar_link_poll(&link, 30);
+    TEST_ASSERT_EQUAL_INT(2, app.commands);
+    send_command(500, oibar_v1_CMD_NOOP); /* from the old session: newer, so it runs */
+    send_command(3, oibar_v1_CMD_NOOP);   /* now behind */
+    oibar_link_poll(&link, 40);
+    TEST_ASSERT_EQUAL_INT(3, app.commands);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_STALE_SEQ, ack_reason(2));
+}
+
+/* The window follows the numbering across its wrap, SEQ_MAX -> 1 (0 skipped),
+ * like oibar/link/seq.py. */
+static void test_request_window_across_wrap(void)
+{
+    start(0);
+    connect(UINT32_MAX - 1u, 0);
+    send_command(UINT32_MAX, oibar_v1_CMD_NOOP);
+    send_command(1, oibar_v1_CMD_NOOP);
+    send_command(UINT32_MAX, oibar_v1_CMD_ARM_TRANSFER); /* behind 1 */
+    send_command(0x80000001u, oibar_v1_CMD_NOOP);        /* over half the numbering ahead of 1: behind */
+    send_command(0x80000000u, oibar_v1_CMD_NOOP);        /* SEQ_MAX / 2 ahead: newer */
+    oibar_link_poll(&link, 10);
+    TEST_ASSERT_EQUAL_INT(3, app.commands);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_STALE_SEQ, ack_reason(2));
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_STALE_SEQ, ack_reason(3));
+    TEST_ASSERT_TRUE(nth_body(oibar_v1_Packet_ack_tag, 4)->body.ack.accepted);
+}
+
+/* NavUpdates are not acknowledged but replayed or reordered ones are dropped:
+ * the newest solution wins. */
+static void test_stale_nav_update_dropped(void)
+{
+    start(0);
+    connect(1, 0);
+    oibar_v1_Packet nav = mk(5, oibar_v1_Packet_nav_update_tag);
+    host_send(&nav);
+    nav.seq = 4; /* overtaken */
+    host_send(&nav);
+    nav.seq = 5; /* replayed */
+    host_send(&nav);
+    nav.seq = 0;
+    host_send(&nav);
+    nav.seq = 6;
+    host_send(&nav);
+    oibar_link_poll(&link, 10);
+    TEST_ASSERT_EQUAL_INT(2, app.nav_updates);
+    TEST_ASSERT_EQUAL_UINT32(3, counters().rx_stale);
+    TEST_ASSERT_EQUAL_size_t(0, count_body(oibar_v1_Packet_ack_tag));
 }
 
 static void test_param_get_and_set(void)
@@ -906,7 +1033,12 @@ int main(void)
     RUN_TEST(test_requests_before_handshake_are_not_connected);
     RUN_TEST(test_command_accepted_and_refused);
     RUN_TEST(test_duplicate_command_answered_from_cache_not_reexecuted);
-    RUN_TEST(test_duplicate_memory_holds_one_request);
+    RUN_TEST(test_SAFETY_RULE_REPLAYED_OR_REORDERED_REQUEST_REFUSED);
+    RUN_TEST(test_reused_seq_with_another_body_refused);
+    RUN_TEST(test_retransmission_after_later_heartbeats_runs);
+    RUN_TEST(test_handshake_starts_a_new_window);
+    RUN_TEST(test_request_window_across_wrap);
+    RUN_TEST(test_stale_nav_update_dropped);
     RUN_TEST(test_param_get_and_set);
     RUN_TEST(test_nav_update_delivered_when_connected_not_acked);
     RUN_TEST(test_unknown_message_nacked);

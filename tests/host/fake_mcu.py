@@ -2,7 +2,9 @@
 
 It implements the MCU rules of docs/link.md on top of the host's own framing module:
 handshake with version check, requests refused with NACK_NOT_CONNECTED before it,
-duplicate suppression (the last request's seq and cached response), NACK_UNKNOWN_MESSAGE
+duplicate suppression (the last request's seq and body, and its cached response), the
+replay window (seq 0 or at or behind the newest request: NACK_STALE_SEQ; the last seq
+with another body: NACK_SEQ_REUSED; a handshake starts a new window), NACK_UNKNOWN_MESSAGE
 for packets without a known body, heartbeats, periodic telemetry and a link-loss timeout.
 
 The "serial line" is a TCP socket on 127.0.0.1 (ephemeral port), which the client opens
@@ -34,6 +36,20 @@ from oibar.link.framing import FrameDecoder, Packet, encode_frame
 SEQ_MAX = 0xFFFFFFFF
 _STALE_SEQ_WINDOW = 1024
 _CALL_TIMEOUT_S = 5.0
+
+
+def _seq_is_newer(newest: int, seq: int) -> bool:
+    """The MCU's replay window (docs/link.md): ``seq`` is ahead of ``newest`` by 1 .. SEQ_MAX // 2
+    along the numbering that wraps SEQ_MAX -> 1. No request yet (0): anything is newer."""
+    if newest == 0:
+        return True
+    return 1 <= (seq - newest) % SEQ_MAX <= SEQ_MAX // 2
+
+
+def _body_bytes(packet: Packet) -> bytes:
+    """A request's body type and content, which a retransmission repeats exactly."""
+    kind = packet.WhichOneof("body")
+    return kind.encode() + b":" + getattr(packet, kind).SerializeToString(deterministic=True)
 
 
 @dataclass
@@ -113,7 +129,9 @@ class FakeMcu:
         self._boot_s = time.monotonic()
         self._last_rx_s = 0.0
         self._last_request_seq = 0
+        self._last_request_body = b""
         self._cached_response: Packet | None = None
+        self.rx_stale = 0
         self._host_seq: int | None = None
 
         self._decoder = FrameDecoder(on_unknown_type=self._on_unknown_type)
@@ -384,6 +402,7 @@ class FakeMcu:
         self.handshakes_accepted += 1
         self._host_seq = packet.seq
         self._last_request_seq = packet.seq
+        self._last_request_body = _body_bytes(packet)
         self._cached_response = reply
         self._respond(reply)
         self._send_event(pb.EVT_LINK_UP, severity=pb.SEVERITY_ACTIVITY_HI)
@@ -396,16 +415,33 @@ class FakeMcu:
             reply.ack.state = self.state
             self._respond(reply)
             return
+        body = _body_bytes(packet)
         if packet.seq != 0 and packet.seq == self._last_request_seq and self._cached_response:
-            self.rx_duplicates += 1
-            self._respond(self._cached_response)  # the very same packet, same seq once sent
+            if body == self._last_request_body:
+                self.rx_duplicates += 1
+                self._respond(self._cached_response)  # the very same packet, same seq once sent
+                return
+            self._refuse_seq(packet, pb.NACK_SEQ_REUSED)
+            return
+        if packet.seq == 0 or not _seq_is_newer(self._last_request_seq, packet.seq):
+            self._refuse_seq(packet, pb.NACK_STALE_SEQ)  # a replay or a reordered request
             return
         if kind == "command":
             reply = self._command(packet)
         else:
             reply = self._param(packet, kind)
         self._last_request_seq = packet.seq
+        self._last_request_body = body
         self._cached_response = reply
+        self._respond(reply)
+
+    def _refuse_seq(self, packet: Packet, reason: int) -> None:
+        """The replay window's refusal: never executed, never cached."""
+        self.rx_stale += 1
+        reply = self._packet(packet.seq)
+        reply.ack.accepted = False
+        reply.ack.reason = reason
+        reply.ack.state = self.state
         self._respond(reply)
 
     def _respond(self, reply: Packet) -> None:
@@ -475,6 +511,7 @@ class FakeMcu:
     def _forget_host_now(self) -> None:
         self.connected = False
         self._last_request_seq = 0
+        self._last_request_body = b""
         self._cached_response = None
 
     def _send_event(self, event_id: int, **fields: object) -> None:
@@ -509,6 +546,7 @@ class FakeMcu:
         ):
             setattr(t.link, name, getattr(counters, name))
         t.link.rx_duplicates = self.rx_duplicates
+        t.link.rx_stale = self.rx_stale
         t.link.link_losses = self.link_losses
         self._send_packet(packet)
 

@@ -1,6 +1,7 @@
 """The flashable STM32F405 image itself, booted on QEMU's ``netduinoplus2`` board.
 
-QEMU runs ``build/fw-arm/oibar_stm32f4.elf`` (built by ``make firmware-arm``) with USART1 bound
+QEMU runs ``build/fw-arm-qemu/oibar_stm32f4.elf`` (the emulator image, built by ``make
+firmware-arm-qemu`` with OIBAR_QEMU=ON: the flight image has no emulator workaround) with USART1 bound
 to a loopback TCP socket; the host's own :class:`oibar.link.LinkClient` talks to it over
 ``socket://127.0.0.1:PORT`` exactly as it would talk to a board on a serial port.
 
@@ -36,7 +37,7 @@ from oibar.link import LinkClient
 from oibar.link.errors import LinkError
 
 ROOT = Path(__file__).resolve().parents[2]
-FW_ARM = ROOT / "build" / "fw-arm"
+FW_ARM = ROOT / "build" / "fw-arm-qemu"
 IMAGE = FW_ARM / "oibar_stm32f4.elf"
 
 # QEMU's clock is the host's, but a loaded CI machine can stall it: generous bounds.

@@ -4,6 +4,7 @@
 #include <stddef.h>
 
 #include "oibar/app.h"
+#include "oibar/app_events.h"
 #include "oibar/hal.h"
 
 static uint32_t s_unsent;
@@ -37,6 +38,7 @@ static void fill_telemetry(void *ctx, oibar_v1_Telemetry *out)
 {
     (void)ctx;
     oibar_app_fill_telemetry(out);
+    out->events_lost = oibar_evlog_dropped();
 }
 
 static void on_link_state(void *ctx, bool up)
@@ -66,16 +68,19 @@ const oibar_link_app_t *oibar_app_link_callbacks(void) { return &k_callbacks; }
 
 uint32_t oibar_app_link_forward_events(oibar_link_t *link)
 {
-    uint32_t failed = 0;
     oibar_v1_Event ev;
-    /* Bounded by the log's length. */
-    while (oibar_app_next_event(&ev)) {
+    /* Oldest first, bounded by the log's length. An event leaves the log only
+     * once the port took it: when the UART queue is full it stays, in order,
+     * for the next pass. Only a full log loses events (oldest first, counted
+     * in Telemetry.events_lost). */
+    for (unsigned n = oibar_evlog_count(); n > 0u && oibar_evlog_peek(&ev); --n) {
         if (!oibar_link_send_event(link, &ev)) {
-            failed++; /* e.g. not connected: the host learns the state from telemetry */
+            s_unsent++;
+            break;
         }
+        (void)oibar_evlog_pop(&ev);
     }
-    s_unsent += failed;
-    return failed;
+    return oibar_evlog_count();
 }
 
 void oibar_app_link_run_once(oibar_link_t *link)

@@ -105,6 +105,17 @@ void oibar_evlog_push(const oibar_v1_Event *ev)
     s_log_count++;
 }
 
+bool oibar_evlog_peek(oibar_v1_Event *out)
+{
+    if (s_log_count == 0u) {
+        return false;
+    }
+    *out = s_log[s_log_head];
+    return true;
+}
+
+unsigned oibar_evlog_count(void) { return s_log_count; }
+
 bool oibar_evlog_pop(oibar_v1_Event *out)
 {
     if (s_log_count == 0u) {

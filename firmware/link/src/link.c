@@ -8,10 +8,34 @@
 /* ------------------------------------------------------------------------- */
 /* Small helpers                                                             */
 
-/* 1, 2, ..., 2^32 - 1, 1, ...: 0 means "no seq" and is never used. */
+/* Sequence numbers run 1, 2, ..., 2^32 - 1 (SEQ_MAX), 1, ...: 0 means "no seq"
+ * and is never used. The same rule as the host's oibar/link/seq.py. */
+#define SEQ_HALF 0x7FFFFFFFu /* SEQ_MAX / 2: further ahead than this is behind */
+/* A seq this close behind the newest one is a re-send; further behind, the
+ * peer restarted its numbering (oibar.link.seq.STALE_SEQ_WINDOW). */
+#define SEQ_STALE_WINDOW 1024u
+
 static uint32_t seq_next(uint32_t seq)
 {
     return (seq == UINT32_MAX) ? 1u : seq + 1u;
+}
+
+/* How many steps `seq` is ahead of `from` along the numbering (0 skipped):
+ * 0 when equal, SEQ_MAX - 1 when one behind. Both must be non-zero. */
+static uint32_t seq_distance(uint32_t from, uint32_t seq)
+{
+    uint32_t d = seq - from;
+    if (seq < from) {
+        d -= 1u; /* the numbering wrapped and skipped 0 */
+    }
+    return d;
+}
+
+/* True if `seq` is newer than `newest`: ahead of it by 1 .. SEQ_MAX / 2. */
+static bool seq_is_newer(uint32_t newest, uint32_t seq)
+{
+    const uint32_t d = seq_distance(newest, seq);
+    return (d != 0u) && (d <= SEQ_HALF);
 }
 
 /* Wrap-safe: true once `period_ms` has passed since `since_ms`. */
@@ -53,6 +77,8 @@ static void app_link_state(const oibar_link_t *link, bool up)
         link->app.on_link_state(link->app.ctx, up);
     }
 }
+
+static void request_key(const oibar_v1_Packet *req, uint32_t key[2]);
 
 /* ------------------------------------------------------------------------- */
 /* Transmit                                                                  */
@@ -99,13 +125,20 @@ static void send_response(oibar_link_t *link, oibar_v1_Packet *resp, const oibar
     link->cache_valid = (req->seq != 0u);
     link->cache_seq = req->seq;
     link->cache_body = req->which_body;
+    request_key(req, link->cache_key);
     link->cache_len = len;
     (void)port_send(link, link->cache_frame, len);
 }
 
+/* The exact request answered last: same seq, same body type, same content. */
 static bool is_duplicate(const oibar_link_t *link, const oibar_v1_Packet *req)
 {
-    return link->cache_valid && req->seq == link->cache_seq && req->which_body == link->cache_body;
+    if (!link->cache_valid || req->seq != link->cache_seq || req->which_body != link->cache_body) {
+        return false;
+    }
+    uint32_t key[2];
+    request_key(req, key);
+    return key[0] == link->cache_key[0] && key[1] == link->cache_key[1];
 }
 
 static void send_nack(oibar_link_t *link, const oibar_v1_Packet *req, oibar_v1_NackReason reason,
@@ -152,8 +185,10 @@ static void link_lost(oibar_link_t *link, uint32_t now_ms)
     app_link_state(link, false);
 }
 
-/* Count packets missing from the peer's numbering. A seq at or behind the
- * newest one (a retransmission) is not a gap and does not move the mark. */
+/* Count packets missing from the peer's numbering (oibar.link.seq
+ * follow_peer_seq): a seq at or a little behind the newest one (a
+ * retransmission) is not a gap and does not move the mark; one far behind
+ * means the peer restarted its numbering. */
 static void track_peer_seq(oibar_link_t *link, uint32_t seq)
 {
     if (seq == 0u) {
@@ -164,16 +199,57 @@ static void track_peer_seq(oibar_link_t *link, uint32_t seq)
         link->peer_seq = seq;
         return;
     }
-    const uint32_t expected = seq_next(link->peer_seq);
-    uint32_t missing = seq - expected;
-    if (missing >= 0x80000000u) {
-        return;
+    if (seq_distance(seq, link->peer_seq) <= SEQ_STALE_WINDOW) {
+        return; /* equal, or a re-send */
     }
-    if (seq < expected) {
-        --missing; /* the numbering wrapped and skipped 0 */
+    if (seq_is_newer(link->peer_seq, seq)) {
+        link->stats.rx_seq_lost += seq_distance(link->peer_seq, seq) - 1u;
     }
-    link->stats.rx_seq_lost += missing;
     link->peer_seq = seq;
+}
+
+/* What identifies a request besides its seq: body type and content. Two
+ * requests with the same seq and key are the same request (a retransmission).
+ * The handshake's host_version is left out: it changes nothing. */
+static void request_key(const oibar_v1_Packet *req, uint32_t key[2])
+{
+    key[0] = 0u;
+    key[1] = 0u;
+    switch (req->which_body) {
+    case oibar_v1_Packet_command_tag:
+        key[0] = (uint32_t)req->body.command.opcode;
+        memcpy(&key[1], &req->body.command.target_pressure_kpa, sizeof(key[1]));
+        break;
+    case oibar_v1_Packet_param_get_tag:
+        key[0] = req->body.param_get.param_id;
+        break;
+    case oibar_v1_Packet_param_set_tag:
+        key[0] = req->body.param_set.param_id;
+        memcpy(&key[1], &req->body.param_set.value, sizeof(key[1]));
+        break;
+    case oibar_v1_Packet_handshake_tag:
+        key[0] = req->body.handshake.protocol_version;
+        break;
+    default:
+        break;
+    }
+}
+
+/* The replay window (docs/link.md): NACK_NONE if `req` (not a handshake, not
+ * the cached duplicate) may run. Seq 0, a seq at or behind the newest request
+ * of this session, and the last request's seq with another body are refused. */
+static oibar_v1_NackReason check_request_seq(const oibar_link_t *link, const oibar_v1_Packet *req)
+{
+    if (req->seq == 0u) {
+        return oibar_v1_NACK_STALE_SEQ;
+    }
+    if (link->cache_valid && req->seq == link->cache_seq) {
+        return oibar_v1_NACK_SEQ_REUSED;
+    }
+    if (link->req_seq_valid && !seq_is_newer(link->req_seq, req->seq)) {
+        return oibar_v1_NACK_STALE_SEQ;
+    }
+    return oibar_v1_NACK_NONE;
 }
 
 /* ------------------------------------------------------------------------- */
@@ -193,9 +269,13 @@ static void handle_handshake(oibar_link_t *link, const oibar_v1_Packet *req, uin
     reply->reset_cause = link->cfg.reset_cause;
     reply->uptime_ms = now_ms;
 
-    /* A new session: restart the peer's numbering from this packet. */
+    /* A new session: restart the peer's numbering and the replay window
+     * from this packet. */
     link->peer_seq_valid = (req->seq != 0u);
     link->peer_seq = req->seq;
+    link->req_seq_valid = (req->seq != 0u);
+    link->req_seq = req->seq;
+    link->nav_seq_valid = false;
     send_response(link, &resp, req); /* replaces the duplicate memory */
 
     if (ok && !link->connected) {
@@ -279,8 +359,26 @@ static void handle_packet(oibar_link_t *link, const oibar_v1_Packet *pkt, uint32
     }
     track_peer_seq(link, pkt->seq);
     if (request) {
+        /* Unconnected, every request is refused with NACK_NOT_CONNECTED. */
+        const oibar_v1_NackReason bad_seq =
+            link->connected ? check_request_seq(link, pkt) : oibar_v1_NACK_NONE;
+        if (bad_seq != oibar_v1_NACK_NONE) {
+            /* A replay, a reordered or a malformed request: never run it. Not
+             * cached, so the last request's retransmission still matches. */
+            ++link->rx_stale;
+            send_nack(link, pkt, bad_seq, false);
+            return;
+        }
+        link->req_seq_valid = true;
+        link->req_seq = pkt->seq;
         handle_request(link, pkt);
     } else if (body == oibar_v1_Packet_nav_update_tag) {
+        if (pkt->seq == 0u || (link->nav_seq_valid && !seq_is_newer(link->nav_seq, pkt->seq))) {
+            ++link->rx_stale; /* an old solution: the newest one already arrived */
+            return;
+        }
+        link->nav_seq_valid = true;
+        link->nav_seq = pkt->seq;
         if (link->connected && link->app.on_nav_update != NULL) {
             link->app.on_nav_update(link->app.ctx, &pkt->body.nav_update);
         }
@@ -441,6 +539,7 @@ void oibar_link_get_counters(const oibar_link_t *link, oibar_v1_LinkCounters *ou
     out->rx_ring_overflows = link->rx_ring_overflows;
     out->tx_packets = link->tx_packets;
     out->link_losses = link->link_losses;
+    out->rx_stale = link->rx_stale;
 }
 
 void oibar_link_get_stats(const oibar_link_t *link, oibar_link_stats_t *out)

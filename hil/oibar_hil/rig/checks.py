@@ -102,6 +102,14 @@ def _expectation(key: str, want: Any, result: Any) -> Check:
         return Check(cid, f"at least {want} CRC errors detected (host + MCU)", n >= int(want), str(n))
     if key == "captured":
         return Check(cid, f"probe captured: {want}", m["captured"] == bool(want), str(m["captured"]))
+    if key == "max_replays_executed":
+        n = m["wire"]["replays_executed"]
+        return Check(cid, f"replayed ARM/START frames executed at most {want} times", n <= int(want),
+                     f"{n} executed, {m['wire']['replays_sent']} sent, {m['mcu_rx_stale']} refused stale")
+    if key == "min_replays":
+        n = m["wire"]["replays_sent"]
+        return Check(cid, f"at least {want} recorded ARM/START frames replayed", n >= int(want),
+                     f"{n} sent, {m['mcu_rx_stale']} refused stale")
     if key == "max_sim_time_s":
         return Check(cid, f"mission over within {want} s (sim)", result.sim_time_s <= float(want),
                      f"{result.sim_time_s:.1f} s")

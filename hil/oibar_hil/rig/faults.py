@@ -15,7 +15,7 @@ FAULT_TYPES = (
     "link_loss", "bit_errors", "pressure_sensor_stuck", "pressure_sensor_range",
     "valve_stuck_open", "valve_stuck_closed", "latch_stall", "actuator_jam",
     "overpressure", "watchdog_reset", "host_crash",
-    "latch_wire_break", "adc_glitch", "adc_glitch_run",
+    "latch_wire_break", "adc_glitch", "adc_glitch_run", "replay",
 )
 
 
@@ -79,6 +79,8 @@ class FaultInjector:
         for fault in list(self.active):
             if fault.spec.type == "overpressure":
                 self._overpressure(fault, t_s, dt_s, rig)
+            if fault.spec.type == "replay":
+                self._replay(fault, t_s, rig)
             if fault.end_s is not None and t_s >= fault.end_s:
                 self.active.remove(fault)
                 self._apply(fault, rig, False)
@@ -124,6 +126,16 @@ class FaultInjector:
             # then the sensor is fine again: one sample must not trip, a run must.
             n = int(spec.args.get("samples", 1 if kind == "adc_glitch" else 20))
             mech.adc_glitch_samples[spec.args.get("sensor", "tv")] = n if on else 0
+
+    @staticmethod
+    def _replay(fault: ActiveFault, t_s: float, rig: Any) -> None:
+        """An attacker on the wire sends the host's recorded ARM_TRANSFER and START_TRANSFER
+        frames again every ``period_s`` (once the host has sent them): before, during and
+        after the transfer, so also after it stopped. None may reopen the valves."""
+        st = fault.state
+        if t_s >= st.get("next_s", t_s):
+            rig.wire.replay()
+            st["next_s"] = t_s + float(fault.spec.args.get("period_s", 0.25))
 
     @staticmethod
     def _overpressure(fault: ActiveFault, t_s: float, dt_s: float, rig: Any) -> None:

@@ -88,6 +88,7 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
     "latch_wire_break": {"wire": "no"},                 # the engaged contact's wire, for good
     "adc_glitch": {"sensor": "tv", "samples": 1},       # one bad conversion
     "adc_glitch_run": {"sensor": "tv", "samples": 20},  # 20 in a row (bound: 10 ms)
+    "replay": {"period_s": 0.25},                       # until the end of the mission
 }
 FAULT_TITLES = {
     "link_loss": "link loss 3 s", "bit_errors": "bit errors (BER 2e-4)",
@@ -97,6 +98,7 @@ FAULT_TITLES = {
     "watchdog_reset": "watchdog reset (main loop hang)", "host_crash": "host crash 4 s",
     "latch_wire_break": "latch switch wire broken", "adc_glitch": "TV pressure: 1 bad ADC sample",
     "adc_glitch_run": "TV pressure: 20 bad ADC samples",
+    "replay": "replayed ARM/START",
 }
 assert set(FAULT_ARGS) == set(FAULT_TYPES), "a fault type of the rig is missing from the matrix"
 
@@ -117,6 +119,7 @@ VALVES_CLOSED_BOUND_S: dict[str, float | None] = {
     "latch_wire_break": 0.1,        # debounce 10 ms (the pair reads "not engaged") + stroke
     "adc_glitch": None,             # one sample is not a fault: the fill goes on
     "adc_glitch_run": 0.1,          # bad-run bound 10 ms + stroke
+    "replay": None,                 # refused frames: the fill goes on
 }
 
 NOT_APPLICABLE: dict[tuple[str, str], str] = {
@@ -203,6 +206,10 @@ def expectation(fault: str, phase: str) -> Expect | str:
         e = Expect("aborted", ["FAULT_PRESSURE_SENSOR_RANGE"],
                    why="a run of bad samples lasting 10 ms is a range fault; the sensor is back: "
                        "clear, abort, separate")
+    elif fault == "replay":
+        e = Expect("completed", [], extra={"max_replays_executed": 0, "min_replays": 1, "tv_min_kpa": 595},
+                   why="recorded ARM/START resent every 0.25 s to the end: refused as stale "
+                       "(or answered from the duplicate cache): none runs again")
     else:
         raise ValueError(f"no expectation for fault {fault!r}")
     if e.final_state is None:

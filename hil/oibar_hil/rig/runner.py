@@ -368,6 +368,7 @@ class Rig:
             "host_rx_errors": dec.errors,
             "mcu_rx_crc_errors": tm.link.rx_crc_errors if tm else 0,
             "mcu_link_losses": tm.link.link_losses if tm else 0,
+            "mcu_rx_stale": tm.link.rx_stale if tm else 0,
             "host_retransmissions": self.session.counters.retransmissions,
             "host_link_losses": self.session.counters.link_losses,
             "wire": vars(self.wire.counters).copy(),

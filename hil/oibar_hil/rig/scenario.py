@@ -29,7 +29,7 @@ FIRMWARE_PARAM_IDS = {name: i + 1 for i, name in enumerate((
 EXPECT_KEYS = {
     "outcome", "final_state", "faults", "valves_closed_within_s", "coils_off_within_s_of_fault",
     "fuel_lost_max_kg", "tv_min_kpa", "reset_cause", "min_crc_errors", "captured",
-    "max_sim_time_s",
+    "max_sim_time_s", "max_replays_executed", "min_replays",
 }
 
 

@@ -4,6 +4,12 @@ The host's session writes to and reads from :attr:`Wire.host_end` (a non-blockin
 once per lockstep exchange the rig moves the bytes across, so the MCU learns exactly how many
 bytes to expect and every run is reproducible. Faults: the cable cut (link loss), bit errors
 at a given bit-error rate (both directions), and a host that is not there (host crash).
+
+The wire also taps the host's frames like an eavesdropper would: it keeps the last
+ARM_TRANSFER and START_TRANSFER frames byte for byte, which the ``replay`` fault sends again,
+and reads the MCU's answers to them: a response with a new seq and a reason other than the
+replay window's (NACK_STALE_SEQ / NACK_SEQ_REUSED) means the request reached the application
+again (``replays_executed``; the cached answer to a retransmission keeps its original seq).
 """
 
 from __future__ import annotations
@@ -12,6 +18,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oibar import pb
+from oibar.link.framing import FrameDecoder
+
+# Commands the tap records for the replay fault, by opcode.
+RECORDED_OPCODES = (pb.CMD_ARM_TRANSFER, pb.CMD_START_TRANSFER)
+# Answers that say the request did not reach the application.
+_NOT_RUN = (pb.NACK_STALE_SEQ, pb.NACK_SEQ_REUSED, pb.NACK_NOT_CONNECTED)
+
 
 @dataclass
 class WireCounters:
@@ -19,6 +33,8 @@ class WireCounters:
     bytes_to_host: int = 0
     bytes_dropped: int = 0
     bits_flipped: int = 0
+    replays_sent: int = 0
+    replays_executed: int = 0
 
 
 class _HostEnd:
@@ -30,6 +46,7 @@ class _HostEnd:
     def write(self, data: bytes) -> None:
         if self._wire.host_attached:
             self._wire.to_mcu += data
+            self._wire.tap(data)
 
     def read(self) -> bytes:
         out = bytes(self._wire.to_host)
@@ -47,6 +64,34 @@ class Wire:
         self.host_attached = True
         self.counters = WireCounters()
         self.host_end = _HostEnd(self)
+        self.recorded: dict[int, bytes] = {}  # opcode -> the last such frame the host sent
+        self._tap = FrameDecoder()
+        self._ack_tap = FrameDecoder()
+        self._runs: dict[int, set[int]] = {}  # recorded request seq -> seqs of responses that ran it
+
+    def tap(self, data: bytes) -> None:
+        """Record the host's ARM/START frames (the session writes one whole frame per call)."""
+        packets = self._tap.feed(data)
+        if len(packets) == 1 and packets[0].WhichOneof("body") == "command" \
+                and packets[0].command.opcode in RECORDED_OPCODES:
+            self.recorded[packets[0].command.opcode] = bytes(data)
+            self._runs.setdefault(packets[0].seq, set())
+
+    def _tap_answers(self, data: bytes) -> None:
+        for p in self._ack_tap.feed(data):
+            if p.WhichOneof("body") == "ack" and p.ack_seq in self._runs \
+                    and p.ack.reason not in _NOT_RUN:
+                runs = self._runs[p.ack_seq]
+                runs.add(p.seq)
+                self.counters.replays_executed = sum(max(0, len(r) - 1) for r in self._runs.values())
+
+    def replay(self) -> int:
+        """Send the recorded frames again, as they were; returns how many."""
+        frames = [self.recorded[op] for op in RECORDED_OPCODES if op in self.recorded]
+        for frame in frames:
+            self.to_mcu += frame
+        self.counters.replays_sent += len(frames)
+        return len(frames)
 
     def _corrupt(self, data: bytes) -> bytes:
         if self.ber <= 0.0 or not data:
@@ -79,3 +124,5 @@ class Wire:
         data = self._corrupt(data)
         self.counters.bytes_to_host += len(data)
         self.to_host += data
+        if self._runs:
+            self._tap_answers(data)

@@ -56,9 +56,13 @@ const char *oibar_sig_name(oibar_sig_t sig);
 
 void oibar_evlog_init(void);
 /* Main loop only. When full the oldest entry is overwritten (the host
- * learns of the loss from the drop counter) so the newest facts survive. */
+ * learns of the loss from the drop counter, Telemetry.events_lost) so the
+ * newest facts survive. An entry leaves the log only once it is sent: peek,
+ * send, then pop. */
 void oibar_evlog_push(const oibar_v1_Event *ev);
+bool oibar_evlog_peek(oibar_v1_Event *out);
 bool oibar_evlog_pop(oibar_v1_Event *out);
+unsigned oibar_evlog_count(void);
 uint32_t oibar_evlog_dropped(void);
 
 #endif

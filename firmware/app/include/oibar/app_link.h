@@ -14,10 +14,12 @@
 #include "oibar/link.h"
 
 const oibar_link_app_t *oibar_app_link_callbacks(void);
-/* Send every queued application event; returns how many could not be sent. */
+/* Send the queued application events, oldest first, until the port refuses
+ * one (it stays queued for the next pass); returns how many still wait. */
 uint32_t oibar_app_link_forward_events(oibar_link_t *link);
 /* One main-loop pass: link poll, application pass, events out. */
 void oibar_app_link_run_once(oibar_link_t *link);
+/* How many times a send was refused and the event kept for later. */
 uint32_t oibar_app_link_events_unsent(void);
 
 #endif

@@ -7,6 +7,17 @@
  * loop; the step interrupt only looks periods up (short and bounded, GRBL
  * style).
  *
+ * Profile (docs/firmware.md): accelerate along the ramp table, cruise,
+ * decelerate to the creep speed before the switch is expected, creep on until
+ * it trips. The table holds OIBAR_STEPPER_RAMP_MAX steps; a speed the table
+ * cannot reach at the given acceleration is clamped to the fastest entry, so
+ * the motor never jumps to a speed it was not ramped to.
+ *
+ * Homing is GRBL's: seek the home switch, pull off it by
+ * OIBAR_STEPPER_PULLOFF_STEPS, then re-locate it at the slow speed (no
+ * faster than the ramp's first step, so no ramp is needed) and zero there.
+ * A switch that does not clear on the pull-off is a stall.
+ *
  * Completion posts SIG_STEPPER_DONE (arg = move id); an exhausted budget
  * stops the motor and raises FAULT_LATCH_STALL.
  */
@@ -19,6 +30,11 @@
 #include "oibar/hal.h"
 
 #define OIBAR_STEPPER_RAMP_MAX 256u
+/* Homing: steps off the home switch before the slow re-locate. */
+#define OIBAR_STEPPER_PULLOFF_STEPS 40u
+/* Homing: the re-locate runs at home speed / this (and no faster than the
+ * ramp's first step). */
+#define OIBAR_STEPPER_LOCATE_DIVISOR 4u
 
 typedef struct {
     int8_t dir;              /* +1 towards release, -1 towards home */
@@ -28,6 +44,8 @@ typedef struct {
     uint32_t budget_steps;   /* give up (stall) after this many steps */
     uint32_t max_speed_steps_s;
     uint32_t accel_steps_s2;
+    uint32_t expect_steps;        /* where the switch should trip; 0: plan to stop at the budget */
+    uint32_t creep_speed_steps_s; /* speed on reaching expect_steps; 0: the ramp's first step */
 } oibar_seek_t;
 
 void oibar_stepper_init(void);
@@ -51,5 +69,11 @@ uint16_t oibar_stepper_move_id(void);
 unsigned oibar_stepper_ramp_len(void);
 uint32_t oibar_stepper_ramp_period_us(unsigned i);
 uint32_t oibar_stepper_cruise_period_us(void);
+/* Step at which deceleration starts, and the creep period after it. */
+uint32_t oibar_stepper_decel_at_step(void);
+uint32_t oibar_stepper_creep_period_us(void);
+/* True once a homing run has zeroed the position (and the motor stayed
+ * energised since). */
+bool oibar_stepper_pos_known(void);
 
 #endif

@@ -94,8 +94,11 @@ void hal_do_write(hal_do_t out, bool on);   /* ISR-safe */
 
 /* --- step-pulse timer -------------------------------------------------- */
 /* The timer calls `isr` once per period; the ISR emits one pulse with
- * hal_step_pulse(). The period may be changed from inside the ISR; it takes
- * effect from the next period. */
+ * hal_step_pulse(). The period may be changed from inside the ISR: the new
+ * value is the time from this call of the ISR to the next one (not one period
+ * later). Outside the ISR it applies to the period running. Ports: the fake
+ * HAL (tests/firmware/support) and the sim port count down the new value
+ * from the last call; the STM32F4 port writes TIM2's ARR unbuffered. */
 void hal_step_timer_attach(hal_isr_fn isr);
 void hal_step_timer_start(uint32_t period_us);
 void hal_step_timer_set_period(uint32_t period_us);  /* ISR-safe */

@@ -134,16 +134,25 @@ typedef struct {
     oibar_v1_Packet rx_packet;              /* the packet being handled */
     uint8_t tx_frame[OIBAR_FRAME_MAX_WIRE_BYTES];
 
-    /* Duplicate memory: the last request handled and its response, on the wire. */
+    /* Duplicate memory: the last request handled (seq, body type, content)
+     * and its response, on the wire. */
     bool cache_valid;
     uint32_t cache_seq;
     pb_size_t cache_body;
+    uint32_t cache_key[2];
     size_t cache_len;
     uint8_t cache_frame[OIBAR_FRAME_MAX_WIRE_BYTES];
 
     uint32_t tx_seq;         /* seq of the next packet sent: 1, 2, ... wraps to 1 */
     bool peer_seq_valid;
     uint32_t peer_seq;       /* newest seq seen from the peer */
+    /* Replay window (docs/link.md), restarted by each handshake: a request
+     * runs only if its seq is newer than req_seq, a NavUpdate only if newer
+     * than nav_seq. */
+    bool req_seq_valid;
+    uint32_t req_seq;        /* newest request (or handshake) seq accepted */
+    bool nav_seq_valid;
+    uint32_t nav_seq;        /* newest NavUpdate seq accepted */
     bool connected;
     bool started;            /* the first poll has set the timers */
     uint32_t last_rx_ms;     /* last valid packet from the peer */
@@ -151,6 +160,7 @@ typedef struct {
     uint32_t last_telemetry_ms;
 
     uint32_t rx_duplicates;
+    uint32_t rx_stale;       /* requests refused and NavUpdates dropped by the replay window */
     uint32_t tx_packets;
     uint32_t link_losses;
     oibar_link_stats_t stats;

@@ -27,6 +27,8 @@ typedef struct {
 
 /* Bring the core to 168 MHz; every wait is bounded, failures fall back. */
 void clock_init(clock_info_t *out);
+/* Program the brown-out reset to level 3 (2.70 V) if it is not; true when set. */
+bool clock_bor_level3(void);
 const clock_info_t *clock_info(void);
 
 /* Per-module init, called by hal_init() in this order. */

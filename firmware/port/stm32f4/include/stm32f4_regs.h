@@ -102,6 +102,15 @@ typedef struct {
 #define FLASH ((flash_regs_t *)(PERIPH_BASE_AHB1 + 0x3C00u))
 
 #define FLASH_ACR_LATENCY_MASK 0x7u
+#define FLASH_OPTKEY1 0x08192A3Bu
+#define FLASH_OPTKEY2 0x4C5D6E7Fu
+#define FLASH_SR_BSY (1u << 16)
+#define FLASH_OPTCR_OPTLOCK (1u << 0)
+#define FLASH_OPTCR_OPTSTRT (1u << 1)
+#define FLASH_OPTCR_BOR_LEV_POS 2u
+#define FLASH_OPTCR_BOR_LEV_MASK (3u << FLASH_OPTCR_BOR_LEV_POS)
+/* BOR_LEV = 00: BOR level 3, reset below 2.70 V (the factory value 11 is off). */
+#define FLASH_OPTCR_BOR_LEVEL3 (0u << FLASH_OPTCR_BOR_LEV_POS)
 #define FLASH_ACR_PRFTEN (1u << 8)
 #define FLASH_ACR_ICEN (1u << 9)
 #define FLASH_ACR_DCEN (1u << 10)
@@ -114,6 +123,10 @@ typedef struct {
 #define PWR ((pwr_regs_t *)(PERIPH_BASE_APB1 + 0x7000u))
 
 #define PWR_CR_VOS (1u << 14) /* regulator scale 1: needed above 144 MHz */
+
+/* --- DBGMCU (RM0090 section 38.16) ------------------------------------- */
+#define DBGMCU_APB1_FZ (*(REG32 *)0xE0042008u)
+#define DBGMCU_APB1_FZ_DBG_IWDG_STOP (1u << 12) /* IWDG stops while the core is halted */
 
 /* --- GPIO (RM0090 section 8.4) ----------------------------------------- */
 typedef struct {

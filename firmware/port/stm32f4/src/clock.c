@@ -8,6 +8,14 @@
  * accurate baud rate); if the PLL does not lock or the switch does not take,
  * the core stays on the 16 MHz RC and every divider below is computed from
  * what is actually running, so the link still works at the right baud rate.
+ *
+ * Five flash wait states at 168 MHz hold only for a 2.7-3.6 V supply, so the
+ * brown-out reset is programmed to level 3 (2.70 V) before the clock goes
+ * up: below that the chip is held in reset instead of misreading flash.
+ *
+ * Built with OIBAR_QEMU (the emulator image of `make qemu-test` only): an RCC
+ * that reports nothing is taken to run the nominal 168 MHz (QEMU's stub).
+ * The flight image never assumes a clock it cannot see.
  */
 #include "board.h"
 #include "port.h"
@@ -23,6 +31,9 @@
 /* PLLP = 0b00: SYSCLK = VCO / 2 = 168 MHz (the field stays 0 below). */
 #define PLL_Q 7u               /* 48 MHz for USB/SDIO (unused, but must be <= 48) */
 #define FLASH_WAIT_STATES_168MHZ 5u /* 2.7-3.6 V supply, RM0090 table 10 */
+/* Option-byte programming takes milliseconds at most (datasheet tPROG);
+ * this bound is far beyond it and still short of the watchdog's start. */
+#define OPTION_WAIT_LOOPS 2000000u
 
 static clock_info_t s_info;
 
@@ -53,15 +64,47 @@ static void info_168(clock_info_t *out, clock_source_t src)
     out->tim_apb1_hz = 2u * (BOARD_SYSCLK_TARGET_HZ / 4u);
 }
 
+/* Brown-out reset at level 3 (2.70 V), the supply range of 5 wait states at
+ * 168 MHz (RM0090 table 10 and section 3.7.1). The option byte is written
+ * only when it differs, so a board is programmed once, at its first boot
+ * (the factory value is BOR off). True when the level reads back as set. */
+bool clock_bor_level3(void)
+{
+    if ((FLASH->OPTCR & FLASH_OPTCR_BOR_LEV_MASK) == FLASH_OPTCR_BOR_LEVEL3) {
+        return true;
+    }
+    if (!wait_set(&FLASH->SR, FLASH_SR_BSY, 0u)) {
+        return false;
+    }
+    FLASH->OPTKEYR = FLASH_OPTKEY1;
+    FLASH->OPTKEYR = FLASH_OPTKEY2;
+    if ((FLASH->OPTCR & FLASH_OPTCR_OPTLOCK) != 0u) {
+        return false; /* the keys did not unlock it: leave it be */
+    }
+    FLASH->OPTCR = (FLASH->OPTCR & ~FLASH_OPTCR_BOR_LEV_MASK) | FLASH_OPTCR_BOR_LEVEL3;
+    FLASH->OPTCR |= FLASH_OPTCR_OPTSTRT;
+    for (uint32_t n = 0; n < OPTION_WAIT_LOOPS && (FLASH->SR & FLASH_SR_BSY) != 0u; n++) {
+    }
+    FLASH->OPTCR |= FLASH_OPTCR_OPTLOCK;
+    return (FLASH->OPTCR & FLASH_OPTCR_BOR_LEV_MASK) == FLASH_OPTCR_BOR_LEVEL3;
+}
+
 void clock_init(clock_info_t *out)
 {
+#if defined(OIBAR_QEMU) && OIBAR_QEMU
     /* Out of reset the core runs from the HSI, so HSIRDY reads 1 on any real
-     * chip. An RCC that does not even report that (an emulator's stub, e.g.
-     * QEMU's netduinoplus2) cannot be configured or verified: nothing is
-     * programmed and the nominal 168 MHz, which such a model provides, is
-     * assumed. */
+     * chip. QEMU's netduinoplus2 RCC stub does not even report that: nothing
+     * is programmed and the nominal 168 MHz, which the model provides, is
+     * assumed. Emulator image only. */
     if ((RCC->CR & RCC_CR_HSIRDY) == 0u) {
         info_168(out, CLOCK_SRC_UNVERIFIED);
+        s_info = *out;
+        return;
+    }
+#endif
+    /* No 168 MHz without the brown-out level that makes 5 wait states safe. */
+    if (!clock_bor_level3()) {
+        info_hsi(out, CLOCK_SRC_HSI);
         s_info = *out;
         return;
     }

@@ -60,7 +60,9 @@ void SysTick_Handler(void)
     uint32_t now = s_time_ms + 1u;
     s_time_ms = now;
     port_adc_service_isr(now);
-    port_uart_service_kick();
+#if defined(OIBAR_QEMU) && OIBAR_QEMU
+    port_uart_service_kick(); /* emulator image only (hal_uart.c) */
+#endif
     hal_isr_fn fn = s_tick_fn;
     if (fn != 0) {
         fn();
@@ -98,7 +100,9 @@ static void iwdg_wait_idle(void)
 void port_watchdog_init(void)
 {
     /* Started once and never stopped (nothing can stop the IWDG). LSI/32 =
-     * 1 ms per count. */
+     * 1 ms per count. It pauses while a debugger halts the core, so a
+     * breakpoint does not reset the board (no effect when running). */
+    DBGMCU_APB1_FZ |= DBGMCU_APB1_FZ_DBG_IWDG_STOP;
     IWDG->KR = IWDG_KEY_START;
     IWDG->KR = IWDG_KEY_UNLOCK;
     iwdg_wait_idle();

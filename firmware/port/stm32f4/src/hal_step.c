@@ -48,12 +48,23 @@ void hal_step_timer_start(uint32_t period_us)
     TIM2->EGR = TIM_EGR_UG; /* load PSC and ARR now; UG also raises UIF... */
     TIM2->SR = 0u;          /* ...which must not count as a step */
     TIM2->DIER = TIM_DIER_UIE;
-    TIM2->CR1 = TIM_CR1_ARPE | TIM_CR1_CEN; /* ARR buffered: new periods start clean */
+    /* ARR not buffered (no ARPE): a period written in the ISR is the time to
+     * the next interrupt, as hal.h promises. With ARPE it would load only at
+     * the next update, one period late. */
+    TIM2->CR1 = TIM_CR1_CEN;
 }
 
+/* hal.h: the new period runs from the last update event (the interrupt being
+ * handled, when called from the ISR). Should the counter already be past the
+ * new end (a much shorter period, written late), the update is forced now
+ * instead of the counter running round its 32 bits. */
 void hal_step_timer_set_period(uint32_t period_us)
 {
-    TIM2->ARR = ((period_us < 2u) ? 2u : period_us) - 1u;
+    const uint32_t arr = ((period_us < 2u) ? 2u : period_us) - 1u;
+    TIM2->ARR = arr;
+    if (TIM2->CNT >= arr) {
+        TIM2->EGR = TIM_EGR_UG; /* counter to 0 and UIF: the next step is due now */
+    }
 }
 
 void hal_step_timer_stop(void)

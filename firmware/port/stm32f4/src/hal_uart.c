@@ -116,11 +116,13 @@ void USART1_IRQHandler(void)
     }
 }
 
-/* Called by the 1 kHz tick: run the USART handler once from the NVIC, in
- * its own priority (so it never races itself). On silicon this finds
- * nothing to do; it covers USART models that drop a TXE or RXNE interrupt
- * (QEMU 7.2 raises none for TXE), so the link never stalls. */
+#if defined(OIBAR_QEMU) && OIBAR_QEMU
+/* Emulator image only: called by the 1 kHz tick, it runs the USART handler
+ * once from the NVIC, in its own priority (so it never races itself). QEMU
+ * 7.2's USART raises no TXE interrupt, so without it nothing would go out.
+ * Silicon raises its interrupts: the flight image has no such kick. */
 void port_uart_service_kick(void)
 {
     NVIC_ISPR[IRQN_USART1 >> 5] = 1u << (IRQN_USART1 & 31u);
 }
+#endif
