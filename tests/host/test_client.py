@@ -438,6 +438,21 @@ def test_not_connected_answer_triggers_a_new_handshake(mcu, make_client):
     assert wait_for(lambda: states == [True, False, True])
 
 
+def test_mcu_reboot_is_noticed_without_a_request_and_the_link_comes_back(mcu, make_client):
+    """Issue 17: the MCU restarts (watchdog) behind a port that stays open. Its uptime goes back
+    and its telemetry says the host link is down; the client must see that by itself (not wait
+    for a refused command) and handshake again."""
+    states: list[bool] = []
+    client = make_client(mcu.url, on_link_state=states.append)
+    client.connect()
+    assert wait_for(lambda: client.statistics.rx_packets >= 3)
+    mcu.reboot()
+    assert wait_for(lambda: states == [True, False, True], timeout_s=3.0), states
+    assert mcu.handshakes_accepted == 2 and client.link_alive
+    assert client.statistics.mcu_restarts >= 1
+    assert client.command("NOOP").accepted
+
+
 # -- shutdown -----------------------------------------------------------------------------------
 
 
