@@ -17,7 +17,7 @@ import pytest
 from oibar import pb
 from oibar.camera import CallableSource, FolderSource
 from oibar.cli import main
-from oibar.link.client import CommandResult
+from oibar.link.core import Request
 from oibar.nav.core import Navigator
 from oibar.nav.cyclelog import CycleLog, CycleLogError, read_log
 from oibar.nav.daemon import DaemonParams, NavDaemon
@@ -56,6 +56,7 @@ class FakeLink:
         self.alive = True
         self.navs = []
         self.commands = []
+        self.beats = 0
         self.lock = threading.Lock()
         tm = pb.Telemetry()
         tm.state = pb.STATE_IDLE
@@ -72,17 +73,23 @@ class FakeLink:
     def next_event(self, timeout_s=None):
         return None
 
-    def send_nav(self, **kw):
+    def send_nav_update(self, nav):
         with self.lock:
-            self.navs.append((self.alive, kw))
+            self.navs.append((self.alive, {"closing_speed_mps": nav.closing_speed_mps, "valid": nav.valid,
+                                           "nav": nav}))
         return True
 
-    def command(self, opcode, target_kpa=None):
+    def heartbeat(self, force=False):
+        self.beats += 1
+        return True
+
+    def submit_command(self, opcode, target_kpa=None):
         with self.lock:
             self.commands.append((self.alive, opcode))
-        return CommandResult(accepted=True, reason="NACK_NONE", state="STATE_APPROACH_READY")
+        ack = pb.Ack(accepted=True, reason=pb.NACK_NONE, state=pb.STATE_APPROACH_READY)
+        return Request("command", pb.Packet(), done=True, response=ack, response_kind="ack")
 
-    def param_set(self, pid, value):
+    def submit_param_set(self, pid, value):
         raise AssertionError("not used")
 
 
@@ -454,3 +461,37 @@ def test_navigator_orders_odometry_and_frame_in_time_and_skips_malformed_odometr
         s = nav.step(0.5, grey(), frame_t_s=0.5, odometry=bad)
         assert s.solution.valid and s.update is not None
         assert s.velocity_update is None or s.velocity_update.reason == "non_finite"
+
+
+def test_heartbeats_stop_when_the_navigation_loop_hangs(mcu, make_client):
+    """Issue 17: heartbeats came from their own thread, so a hung navigation loop still looked
+    alive to the MCU. The daemon's link (oibar nav's, open_link) sends them only from the cycle:
+    cycling keeps the MCU's link up; a loop that stops cycling lets its link timeout expire."""
+    from fake_mcu import wait_for
+    from oibar.nav.cli import open_link
+    from conftest import FAST
+
+    client = open_link(mcu.url, **FAST)
+    try:
+        client.connect()
+        d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=client)
+        d._t0 = d.clock()
+        for _ in range(8):                      # cycling: 0.05 s apart, link timeout 0.3 s
+            tick(d)
+            d._stop.wait(0.05)
+        assert mcu.link_losses == 0 and mcu.connected
+        assert mcu.requests("heartbeat"), "the cycle sends heartbeats"
+        beats = len(mcu.requests("heartbeat"))
+        assert wait_for(lambda: mcu.link_losses >= 1, timeout_s=2.0), "a hung loop must fall silent"
+        assert len(mcu.requests("heartbeat")) == beats
+        d._stop.wait(0.6)                       # still hung: no re-handshake behind its back
+        assert mcu.handshakes_accepted == 1
+        for _ in range(20):                     # the loop cycles again: the link comes back
+            tick(d)
+            d._stop.wait(0.05)
+            if client.link_alive and mcu.connected:
+                break
+        assert client.link_alive and mcu.handshakes_accepted == 2
+        d.shutdown()
+    finally:
+        client.close()

@@ -138,6 +138,7 @@ class LinkCore:
         self._last_heartbeat_s = -1e18
         self._next_connect_s = 0.0
         self._ever_up = False
+        self._caller_alive_s = -1e18  # last heartbeat() call, sent or not
 
     # -- state ------------------------------------------------------------
 
@@ -208,7 +209,9 @@ class LinkCore:
     def heartbeat(self, now_s: float, *, force: bool = False) -> bool:
         """Queue a Heartbeat if the link is up and one is due (or ``force``). With
         ``auto_heartbeat`` off this is the only way heartbeats go out: the caller's loop proves
-        it is alive by calling it."""
+        it is alive by calling it (every cycle, link up or not: without a call within
+        ``link_timeout_s`` the core does not re-handshake either)."""
+        self._caller_alive_s = now_s
         if not self.link_up:
             return False
         # 1 ms of slack: a caller on a fixed period must not skip a beat on float rounding
@@ -235,8 +238,11 @@ class LinkCore:
             self._set_down(now_s, f"no valid packet from the MCU for {now_s - self._last_rx_s:.2f} s")
         if self.link_up and self.auto_heartbeat:
             self.heartbeat(now_s)
+        # With caller heartbeats, the caller's loop must be alive to re-handshake too: a hung
+        # navigation loop must not be revived on the MCU's side by the link alone.
+        caller_alive = self.auto_heartbeat or now_s - self._caller_alive_s < self.link_timeout_s
         if (not self.link_up and self.auto_connect and self.port_open and self._pending is None
-                and now_s >= self._next_connect_s):
+                and caller_alive and now_s >= self._next_connect_s):
             self.connect(now_s)
 
     def port_lost(self, now_s: float, why: str) -> None:

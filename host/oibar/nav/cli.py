@@ -121,6 +121,15 @@ def _status_printer():
     return show
 
 
+def open_link(port: str, **settings):
+    """The navigation daemon's link client: heartbeats only from the navigation cycle
+    (``heartbeats="caller"``), so when the loop hangs the MCU's link timeout sees a silent host
+    and holds or retreats, instead of a heartbeat thread keeping a dead navigator alive."""
+    from oibar.link.client import LinkClient
+
+    return LinkClient(port, heartbeats="caller", **settings)
+
+
 def cmd_nav(a) -> int:
     from oibar.camera import open_source
     from oibar.nav.cyclelog import CycleLog
@@ -141,9 +150,7 @@ def cmd_nav(a) -> int:
         print(f"log {log.path}", file=sys.stderr)
     link = None
     if a.port.lower() != "none":
-        from oibar.link.client import LinkClient
-
-        link = LinkClient(a.port, baudrate=a.baudrate)
+        link = open_link(a.port, baudrate=a.baudrate)
         connect_in_background(link, on_error=lambda m: print(f"\nlink: {m} (retrying)", file=sys.stderr))
     guidance = Guidance(MissionParams(target_kpa=a.target_pressure_kpa))
     daemon = NavDaemon(navigator, guidance, camera, link=link, vehicle=vehicle, log=log,

@@ -1,17 +1,30 @@
 """The navigation daemon: camera -> OibarNet -> filter -> guidance -> vehicle and MCU, at 10 Hz.
 
 Threads: the camera reader (oibar.camera.LatestFrame: the cycle only ever sees the newest
-frame), the link client's reader and supervisor (oibar.link.LinkClient), and one mechanism
-worker that runs the stop-and-wait mechanism requests (a command can take up to the link's
-retry budget, ~1 s; it must not stall the 10 Hz cycle). Everything else runs in the cycle, on
-absolute deadlines (``next = start + k * period``), so one slow cycle does not shift the rest.
+frame) and the link client's I/O thread (oibar.link.LinkClient). Everything else runs in the
+cycle. Mechanism requests are stop and wait and can take up to the link's retry budget (~1 s),
+so the cycle never waits for one: it submits it (``link.submit_command``) and reads the handle's
+verdict in a later cycle. Heartbeats go out from the cycle (``link.heartbeat()``, the client is
+opened with ``heartbeats="caller"``), so a hung navigation loop falls silent and the MCU sees it.
+
+The HIL rig drives this same ``cycle`` on simulated time (oibar_hil.rig.runner) with a
+:class:`~oibar.link.session.SessionLink` over the same link core; the real program drives it
+from :meth:`NavDaemon.run` with a :class:`~oibar.link.client.LinkClient`.
+
+The link object needs: ``link_alive``, ``telemetry``, ``next_event(timeout_s)``,
+``send_nav_update(NavUpdate)``, ``heartbeat()``, ``submit_command(opcode, target_kpa)`` and
+``submit_param_set(param_id, value)`` returning a handle with ``done``, ``error``,
+``response`` and ``response_kind`` (oibar.link.core.Request).
 
 Failure behaviour (each has a test in tests/host/test_nav_daemon.py):
 - model file missing or corrupt: ModelFileError at start, before the camera or the port is opened;
 - camera lost (unplugged, stream ended): the cycle gets no frame, guidance holds; the daemon
   reopens the camera every ``camera_retry_s``; after ``nav_lost_abort_s`` guidance aborts;
 - link lost: no mechanism command is sent (the request fails with LinkDown, guidance retries when
-  the MCU is back), navigation updates are skipped, the vehicle holds; LinkClient reconnects;
+  the MCU is back), navigation updates and heartbeats are skipped, the vehicle holds; the link
+  client reconnects (also after an MCU reboot, which it notices by itself);
+- navigation not trustworthy (filter not initialised, hold): the NavUpdate says ``valid = false``
+  and carries no pose data (guidance.Guidance._nav);
 - low confidence or a gated outlier: that cycle holds;
 - the vehicle's odometry (VehicleInterface.relative_velocity) raising: camera only that cycle,
   counted in ``odometry_errors``; a gated or malformed one is simply not fused;
@@ -20,7 +33,7 @@ Failure behaviour (each has a test in tests/host/test_nav_daemon.py):
 
 from __future__ import annotations
 
-import queue
+import collections
 import signal
 import sys
 import threading
@@ -47,12 +60,16 @@ class DaemonParams:
     status_every_s: float = 0.5       # live status line refresh
 
 
+STATS_WINDOW = 36_000  # timing samples kept for the percentiles: one hour at 10 Hz
+
+
 @dataclass
 class DaemonStats:
     cycles: int = 0
     missed_deadlines: int = 0
-    cycle_ms: list[float] = field(default_factory=list)           # cycle start -> end of work
-    frame_to_command_ms: list[float] = field(default_factory=list)  # capture -> setpoint sent
+    # cycle start -> end of work; capture -> setpoint sent (the newest STATS_WINDOW cycles)
+    cycle_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=STATS_WINDOW))
+    frame_to_command_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=STATS_WINDOW))
     frames_used: int = 0
     camera_reopens: int = 0
     holds: int = 0
@@ -70,54 +87,23 @@ class DaemonStats:
                 "frame_to_command_ms_max": max(self.frame_to_command_ms) if self.frame_to_command_ms else None}
 
 
-class MechanismWorker:
-    """Runs one mechanism request at a time on its own thread; results come back in order."""
-
-    def __init__(self, link: Any) -> None:
-        self.link = link
-        self._jobs: queue.Queue = queue.Queue(maxsize=1)
-        self._results: list[RequestResult] = []
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="oibar-mech", daemon=True)
-        self._thread.start()
-
-    def submit(self, req: MechRequest) -> None:
-        self._jobs.put_nowait(req)   # guidance sends at most one at a time (stop and wait)
-
-    def take_results(self) -> list[RequestResult]:
-        with self._lock:
-            out, self._results = self._results, []
-        return out
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                req = self._jobs.get(timeout=0.1)
-            except queue.Empty:
-                continue
-            try:
-                if req.kind == "param_set":
-                    r = self.link.param_set(req.param_id, req.value)
-                    res = RequestResult(req, r.ok, r.reason)
-                else:
-                    r = self.link.command(req.opcode, req.target_kpa if req.target_kpa else None)
-                    res = RequestResult(req, r.accepted, r.reason, r.state)
-            except Exception as exc:  # LinkDown, LinkTimeout, closed port: guidance hears it
-                res = RequestResult(req, False, type(exc).__name__)
-            with self._lock:
-                self._results.append(res)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
+def request_result(req: MechRequest, handle: Any) -> RequestResult:
+    """Guidance's view of a completed link request handle (oibar.link.core.Request)."""
+    if handle.error is not None:  # LinkDown, LinkTimeout, closed: guidance hears it and retries
+        return RequestResult(req, False, type(handle.error).__name__)
+    body = handle.response
+    reason = pb.enum_name(pb.NackReason, body.reason)
+    if handle.response_kind == "ack":
+        return RequestResult(req, bool(body.accepted), reason, pb.enum_name(pb.State, body.state))
+    return RequestResult(req, body.reason == pb.NACK_NONE, reason)
 
 
 class NavDaemon:
     def __init__(self, navigator: Navigator, guidance: Guidance, camera: CameraSource,
                  link: Any | None = None, vehicle: VehicleInterface | None = None,
                  log: CycleLog | None = None, params: DaemonParams | None = None,
-                 status: Callable[[str], None] | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+                 status: Callable[[str], None] | None = None, clock: Callable[[], float] = time.monotonic,
+                 t0_s: float | None = None) -> None:
         self.nav = navigator
         self.guidance = guidance
         self.camera_source = camera
@@ -132,9 +118,12 @@ class NavDaemon:
         self._cam: LatestFrame | None = None
         self._cam_error = ""
         self._next_cam_try = 0.0
-        self._worker = MechanismWorker(link) if link is not None else None
         self._awaiting: MechRequest | None = None
-        self._t0 = clock()
+        self._handle: Any = None            # the link's handle of the request in flight
+        self._failed: list[RequestResult] = []  # requests the link refused to send
+        self._t0 = clock() if t0_s is None else t0_s
+        self._t0_fixed = t0_s is not None
+        self.last_observation: Observation | None = None
         self._last_status = -1e9
         self._opened_once = False
         self._last_out: GuidanceOutput | None = None
@@ -215,26 +204,23 @@ class NavDaemon:
         if self.link is not None:
             while (ev := self.link.next_event(0)) is not None:
                 events.append(ev)
-        results = self._worker.take_results() if self._worker else []
-        for r in results:
-            if r.request is self._awaiting:
-                self._awaiting = None
-        out = self.guidance.step(t_s, Observation(t_s, step.solution, link_up, telemetry, events, results))
+        results = self._take_results()
+        obs = Observation(t_s, step.solution, link_up, telemetry, events, results)
+        out = self.guidance.step(t_s, obs)
+        self.last_observation = obs
         self.vehicle.send(t_s, out.v_sp_D_mps, out.w_sp_rad_s, out.phase)
         sent = self.clock()
-        if link_up:
-            n = out.nav
+        if self.link is not None:
             try:
-                self.link.send_nav(frame_id=n.frame_id, t_cam_target_m=(n.t_cam_target_m.x, n.t_cam_target_m.y,
-                                                                         n.t_cam_target_m.z),
-                                   q_cam_target=(n.q_cam_target.w, n.q_cam_target.x, n.q_cam_target.y, n.q_cam_target.z),
-                                   range_m=n.range_m, closing_speed_mps=n.closing_speed_mps, phase=n.phase,
-                                   confidence=n.confidence)
+                # this cycle ran: say so (the MCU's link timeout sees a hung loop; a link client
+                # with caller heartbeats re-handshakes only while we call), then the update
+                self.link.heartbeat()
+                if link_up:
+                    self.link.send_nav_update(out.nav)
             except Exception:  # link dropped between the check and the send: next cycle
                 pass
-            if out.request is not None and self._worker is not None:
-                self._awaiting = out.request
-                self._worker.submit(out.request)
+        if out.request is not None:
+            self._submit(out.request)
         end = self.clock()
         st = self.stats
         st.cycles += 1
@@ -246,6 +232,27 @@ class NavDaemon:
         self._log_cycle(t_s, frame, step, out, link_up, telemetry, (end - start) * 1e3, odometry)
         self._last_out, self._last_step = out, step
         return step, out
+
+    def _submit(self, req: MechRequest) -> None:
+        """Hand guidance's request to the link without waiting (stop and wait is the link's)."""
+        if self.link is None:
+            self._failed.append(RequestResult(req, False, "NoLink"))
+            return
+        try:
+            if req.kind == "param_set":
+                self._handle = self.link.submit_param_set(req.param_id, req.value)
+            else:
+                self._handle = self.link.submit_command(req.opcode, req.target_kpa or None)
+            self._awaiting = req
+        except Exception as exc:  # LinkDown, another request still out: guidance hears it
+            self._failed.append(RequestResult(req, False, type(exc).__name__))
+
+    def _take_results(self) -> list[RequestResult]:
+        results, self._failed = self._failed, []
+        if self._handle is not None and self._handle.done:
+            results.append(request_result(self._awaiting, self._handle))
+            self._handle = self._awaiting = None
+        return results
 
     def _odometry(self, t_s: float) -> Any:
         """The vehicle's own relative velocity, if it reports one (VehicleInterface.relative_velocity)."""
@@ -324,7 +331,8 @@ class NavDaemon:
         frames are coming."""
         period = 1.0 / self.p.rate_hz
         t_start = self.clock()
-        self._t0 = t_start
+        if not self._t0_fixed:
+            self._t0 = t_start
         if self.log is not None:
             self.log.write({"kind": "header", "rate_hz": self.p.rate_hz, "camera": self.camera_source.name,
                             "model": str(getattr(self.nav.estimator, "path", "")),
@@ -371,9 +379,6 @@ class NavDaemon:
             self.vehicle.close()
         except Exception:
             pass
-        if self._worker is not None:
-            self._worker.close()
-            self._worker = None
         if self._cam is not None:
             self._cam.stop()
             self._cam = None
