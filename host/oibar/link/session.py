@@ -31,7 +31,7 @@ from oibar.link.core import CoreCounters, LinkCore, Notice, Request
 SessionCounters = CoreCounters
 SessionNotice = Notice
 
-__all__ = ["LinkSession", "Request", "SessionCounters", "SessionNotice", "Transport"]
+__all__ = ["LinkSession", "Request", "SessionCounters", "SessionLink", "SessionNotice", "Transport"]
 
 
 class Transport(Protocol):
@@ -75,3 +75,36 @@ class LinkSession(LinkCore):
         sent = super().heartbeat(now_s, force=force)
         self.flush()
         return sent
+
+
+class SessionLink:
+    """A :class:`LinkSession` seen through the calls the navigation daemon makes on a
+    :class:`~oibar.link.client.LinkClient` (oibar.nav.daemon), at the session's last ``step``
+    time. The rig drives ``NavDaemon.cycle`` with it on simulated time."""
+
+    def __init__(self, session: LinkSession) -> None:
+        self.session = session
+
+    @property
+    def link_alive(self) -> bool:
+        return self.session.link_up
+
+    @property
+    def telemetry(self) -> Any:
+        return self.session.telemetry
+
+    def next_event(self, timeout_s: float | None = 0) -> Any:
+        events = self.session.events
+        return events.popleft() if events else None
+
+    def send_nav_update(self, nav: Any) -> bool:
+        return self.session.nav_update(nav, now_s=self.session.now_s)
+
+    def heartbeat(self, *, force: bool = False) -> bool:
+        return self.session.heartbeat(self.session.now_s, force=force)
+
+    def submit_command(self, opcode: int, target_pressure_kpa: float | None = None) -> Request:
+        return self.session.command(opcode, target_pressure_kpa, now_s=self.session.now_s)
+
+    def submit_param_set(self, param_id: int, value: float) -> Request:
+        return self.session.param_set(param_id, value, now_s=self.session.now_s)

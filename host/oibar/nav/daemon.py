@@ -58,18 +58,16 @@ class DaemonParams:
     camera_lost_timeout_s: float = 1.0
     camera_retry_s: float = 2.0       # reopen a lost camera this often
     status_every_s: float = 0.5       # live status line refresh
-
-
-STATS_WINDOW = 36_000  # timing samples kept for the percentiles: one hour at 10 Hz
+    stats_window: int = 36_000        # cycle timings kept for the percentiles (1 h at 10 Hz)
 
 
 @dataclass
 class DaemonStats:
     cycles: int = 0
     missed_deadlines: int = 0
-    # cycle start -> end of work; capture -> setpoint sent (the newest STATS_WINDOW cycles)
-    cycle_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=STATS_WINDOW))
-    frame_to_command_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=STATS_WINDOW))
+    # cycle start -> end of work; capture -> setpoint sent (the newest DaemonParams.stats_window)
+    cycle_ms: collections.deque = field(default_factory=collections.deque)
+    frame_to_command_ms: collections.deque = field(default_factory=collections.deque)
     frames_used: int = 0
     camera_reopens: int = 0
     holds: int = 0
@@ -113,7 +111,8 @@ class NavDaemon:
         self.p = params or DaemonParams()
         self.status = status
         self.clock = clock
-        self.stats = DaemonStats()
+        self.stats = DaemonStats(cycle_ms=collections.deque(maxlen=self.p.stats_window),
+                                 frame_to_command_ms=collections.deque(maxlen=self.p.stats_window))
         self._stop = threading.Event()
         self._cam: LatestFrame | None = None
         self._cam_error = ""
