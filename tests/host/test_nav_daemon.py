@@ -396,7 +396,10 @@ def test_a_failing_odometry_leaves_navigation_on_the_camera():
     assert link.navs and any(ph != "HOLD" for _, _, ph in veh.sent), "the approach goes on"
 
 
-def test_folder_camera_end_of_stream_is_a_lost_camera(tmp_path):
+def test_end_of_a_recorded_stream_is_not_a_lost_camera(tmp_path):
+    """Issue 17: a finished frame folder (or video) was handled as a lost camera and reopened,
+    so navigation started again from frame 0. End of stream: each frame is used once, nothing
+    is reopened, the cycle holds saying why, and run() ends."""
     frames = tmp_path / "frames"
     frames.mkdir()
     from PIL import Image
@@ -410,7 +413,77 @@ def test_folder_camera_end_of_stream_is_a_lost_camera(tmp_path):
         reasons.append(step.hold_reason)
         d._stop.wait(0.02)
     d.shutdown()
-    assert any(r.startswith("camera:") for r in reasons[5:]), reasons
+    # at most the 3 frames (the newest-frame reader may skip one), never the folder again
+    assert d.stats.frames_used <= 3 and d.stats.camera_reopens == 0, (d.stats.frames_used, reasons)
+    assert any("end of stream" in r for r in reasons[5:]), reasons
+    d2 = make_daemon(FolderSource(frames, rate_hz=100.0, realtime=True), link=FakeLink())
+    summary = d2.run(duration_s=5.0)
+    assert d2.camera_ended and summary["frames_used"] <= 3 and summary["cycles"] < 20
+
+
+def test_recorded_frames_survive_a_camera_reopen(tmp_path):
+    """Issue 17: recorded frames were named by the camera's frame counter, which restarts when
+    the camera is reopened, so the frames before the reopen were overwritten."""
+    log = CycleLog(tmp_path / "cycles.jsonl", frames_dir=tmp_path / "frames")
+    d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=FakeLink(), log=log)
+    d._t0 = d.clock()
+    for _ in range(6):
+        tick(d)
+    from oibar.camera import CameraLost
+    d._drop_camera(CameraLost("unplugged for the test"), d.clock())
+    d._next_cam_try = 0.0
+    for _ in range(6):
+        tick(d)
+    d.shutdown()
+    assert d.stats.camera_reopens == 1
+    files = [r["frame"]["file"] for r in read_log(tmp_path / "cycles.jsonl")
+             if r.get("kind") == "cycle" and r.get("frame")]
+    assert len(files) == d.stats.frames_used and len(set(files)) == len(files)
+    assert len(list((tmp_path / "frames").glob("*.jpg"))) == len(files)
+
+
+def test_a_reader_stuck_in_read_is_never_doubled():
+    """Issue 17: after a read that hung past the join timeout, the daemon reopened the camera
+    while the old reader was still inside read(): two threads reading one device. Now it waits
+    for the stuck reader to leave before reopening."""
+    from oibar.camera import CameraSource
+
+    class HangingSource(CameraSource):
+        name = "hanging"
+
+        def __init__(self):
+            super().__init__()
+            self.lock = threading.Lock()
+            self.active = self.max_active = self.reads = 0
+
+        def _open(self):
+            pass
+
+        def _close(self):
+            pass
+
+        def _read(self):
+            with self.lock:
+                self.active += 1
+                self.max_active = max(self.max_active, self.active)
+                self.reads += 1
+                n = self.reads
+            try:
+                threading.Event().wait(0.8 if n == 5 else 0.01)   # the 5th read hangs
+            finally:
+                with self.lock:
+                    self.active -= 1
+            return grey(), __import__("time").monotonic()
+
+    src = HangingSource()
+    d = make_daemon(src, link=FakeLink(), camera_lost_timeout_s=0.15, camera_retry_s=0.05, camera_join_s=0.05)
+    d._t0 = d.clock()
+    t_end = d.clock() + 1.6
+    while d.clock() < t_end:
+        tick(d)
+    d.shutdown()
+    assert src.reads > 10, "the camera came back after the hang"
+    assert src.max_active == 1, f"{src.max_active} readers at once on one source"
 
 
 def test_serial_port_unplugged_and_replugged_with_the_real_link_client(mcu, make_client):

@@ -139,8 +139,12 @@ def cmd_nav(a) -> int:
 
     model = a.model or default_model_path()
     navigator = load_navigator(model, threads=a.threads)       # model errors first, nothing opened yet
-    print(f"model {model} (version {navigator.estimator.meta.get('model_version', '?')}), "
-          f"input {navigator.estimator.size_wh[0]}x{navigator.estimator.size_wh[1]}", file=sys.stderr)
+    est = navigator.estimator
+    lo, hi = est.range_limits_m
+    origin = "from the model's oibar.train_range_m" if "train_range_m" in est.meta else \
+        "default: the model states no oibar.train_range_m"
+    print(f"model {model} (version {est.meta.get('model_version', '?')}), "
+          f"input {est.size_wh[0]}x{est.size_wh[1]}, range check {lo:g}-{hi:g} m ({origin})", file=sys.stderr)
     camera = open_source(a.camera, rate_hz=a.camera_rate_hz, realtime=True)
     vehicle = open_vehicle(a.vehicle)
     log = None

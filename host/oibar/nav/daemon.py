@@ -18,8 +18,13 @@ The link object needs: ``link_alive``, ``telemetry``, ``next_event(timeout_s)``,
 
 Failure behaviour (each has a test in tests/host/test_nav_daemon.py):
 - model file missing or corrupt: ModelFileError at start, before the camera or the port is opened;
-- camera lost (unplugged, stream ended): the cycle gets no frame, guidance holds; the daemon
-  reopens the camera every ``camera_retry_s``; after ``nav_lost_abort_s`` guidance aborts;
+- camera lost (unplugged, stalled): the cycle gets no frame, guidance holds; the daemon
+  reopens the camera every ``camera_retry_s``; after ``nav_lost_abort_s`` guidance aborts.
+  A reader stuck inside the source's read is waited for, never doubled: no reopen until it
+  has left (two readers on one device would interleave its frames);
+- end of a finite stream (video file, frame folder): not a lost camera. Nothing is reopened
+  (that would start the recording again from frame 0), the cycle holds with reason
+  "camera: end of stream", and ``run`` ends;
 - link lost: no mechanism command is sent (the request fails with LinkDown, guidance retries when
   the MCU is back), navigation updates and heartbeats are skipped, the vehicle holds; the link
   client reconnects (also after an MCU reboot, which it notices by itself);
@@ -45,7 +50,7 @@ from typing import Any, Callable
 import numpy as np
 
 from oibar import pb
-from oibar.camera import CameraError, CameraLost, CameraSource, LatestFrame
+from oibar.camera import CameraError, CameraLost, CameraSource, EndOfStream, LatestFrame
 from oibar.nav.core import Navigator, NavStep
 from oibar.nav.cyclelog import CycleLog
 from oibar.nav.guidance import Guidance, GuidanceOutput, MechRequest, Observation, RequestResult
@@ -57,6 +62,7 @@ class DaemonParams:
     rate_hz: float = 10.0             # SPEC section 5
     camera_lost_timeout_s: float = 1.0
     camera_retry_s: float = 2.0       # reopen a lost camera this often
+    camera_join_s: float = 2.0        # how long stopping a lost camera waits for its reader
     status_every_s: float = 0.5       # live status line refresh
     stats_window: int = 36_000        # cycle timings kept for the percentiles (1 h at 10 Hz)
 
@@ -115,6 +121,8 @@ class NavDaemon:
                                  frame_to_command_ms=collections.deque(maxlen=self.p.stats_window))
         self._stop = threading.Event()
         self._cam: LatestFrame | None = None
+        self._stuck_cam: LatestFrame | None = None  # a reader still blocked in read(): not reopened under it
+        self.camera_ended = False                    # a finite source delivered its last frame
         self._cam_error = ""
         self._next_cam_try = 0.0
         self._awaiting: MechRequest | None = None
@@ -132,11 +140,18 @@ class NavDaemon:
 
     def _ensure_camera(self, now: float) -> LatestFrame | None:
         if self._cam is None:
-            if now < self._next_cam_try:
+            if self.camera_ended or now < self._next_cam_try:
                 return None
             self._next_cam_try = now + self.p.camera_retry_s
+            if self._stuck_cam is not None:
+                if self._stuck_cam.running:
+                    self._cam_error = "reader still blocked in the source's read(); not reopened under it"
+                    return None
+                self._stuck_cam.stop()      # it has left read(): now the source can be closed
+                self._stuck_cam = None
             try:
-                self._cam = LatestFrame(self.camera_source, lost_timeout_s=self.p.camera_lost_timeout_s).start()
+                self._cam = LatestFrame(self.camera_source, lost_timeout_s=self.p.camera_lost_timeout_s,
+                                        join_timeout_s=self.p.camera_join_s).start()
                 if self._opened_once:
                     self.stats.camera_reopens += 1
                 self._opened_once = True
@@ -148,9 +163,12 @@ class NavDaemon:
 
     def _drop_camera(self, exc: BaseException, now: float) -> None:
         self._cam_error = str(exc)
-        if self._cam is not None:
-            self._cam.stop()
-        self._cam = None
+        cam, self._cam = self._cam, None
+        if isinstance(exc, EndOfStream):
+            self.camera_ended = True
+            self._cam_error = f"end of stream ({exc})"
+        if cam is not None and not cam.stop():
+            self._stuck_cam = cam            # LatestFrame.stop left it running and the source open
         self._next_cam_try = now + self.p.camera_retry_s
 
     def wait_frame(self, until: float, min_capture_host: float = -1e18):
@@ -278,7 +296,8 @@ class NavDaemon:
         if self.log is None:
             return
         est = step.estimate
-        frame_file = self.log.save_frame(frame.image, frame.seq) if frame is not None else None
+        # named by the cycle, not the camera's seq: that restarts at 0 when the camera is reopened
+        frame_file = self.log.save_frame(frame.image, self.stats.cycles) if frame is not None else None
         sol = step.solution
         upd = step.update
         self.log.write({
@@ -341,7 +360,7 @@ class NavDaemon:
         last_capture = -1e18
         k = 0
         try:
-            while not self._stop.is_set() and not self.guidance.finished:
+            while not self._stop.is_set() and not self.guidance.finished and not self.camera_ended:
                 if duration_s is not None and self.clock() - t_start >= duration_s:
                     break
                 if max_cycles is not None and k >= max_cycles:
