@@ -28,6 +28,8 @@ camera (--camera):
   /dev/video2          a V4L2 device path
   approach.mp4         a video file (played at its frame rate)
   frames/              a folder of images (frames.csv with times if present, else --camera-rate-hz)
+  frames+tcp://H:P     RGB frames from another process over a local TCP socket
+                       (oibar.camera.stream; `make sitl` feeds the rig's renderer this way)
 
 port (--port):
   /dev/ttyACM0, COM3   the MCU's serial port (115200 baud)
