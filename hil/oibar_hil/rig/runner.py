@@ -126,12 +126,34 @@ class Rig:
         self.faults = FaultInjector(scenario.faults)
         self._hang = False
         self._host_alive = True
+        self._nav_hung = False
         self.t_s = 0.0
 
     # -- hooks for the faults -----------------------------------------------------------
 
     def request_hang(self) -> None:
         self._hang = True
+
+    def nav_hang(self, hung: bool) -> None:
+        """The host's navigation loop stops cycling (a hung inference, a deadlock): its link
+        client stays open but sends nothing, not even heartbeats."""
+        self._nav_hung = hung
+        self.notes.append((self.t_s, "navigation loop hung" if hung else "navigation loop cycling again"))
+
+    def _host_finished(self) -> bool:
+        return self.controller.finished
+
+    def _host_step(self, out: Any) -> Any:
+        """The host after one exchange: its link steps; every guidance period the daemon cycles."""
+        self.session.step(self.t_s)
+        self.session.take_notices()  # results come through the handles; drain
+        if self.session.telemetry is not None:
+            self.host_fault_flags |= self.session.telemetry.fault_flags
+        if self.t_s >= self._next_guidance:
+            self._next_guidance += self.sc.rig.guidance_period_s
+            if not self._nav_hung:  # a hung loop: no cycle, so no heartbeat or update either
+                out = self._cycle()
+        return out
 
     def host_crash(self, crashed: bool) -> None:
         self._host_alive = not crashed
@@ -276,10 +298,10 @@ class Rig:
         reply = None
         first_fault_s = None
         fault_flags_seen = 0
-        host_fault_flags = 0  # fault_flags in the telemetry the host received
+        self.host_fault_flags = 0  # fault_flags in the telemetry the host received
+        self._next_guidance = 0.0
         coils_off_after_fault_s = None
         valves_closed_after_injection_s = None
-        next_guidance = 0.0
         next_record = 0.0
         out = None
         wall0 = time.perf_counter()
@@ -287,8 +309,8 @@ class Rig:
                     stderr_path=stderr_path) as mcu:
             self.mcu = mcu
             while self.t_s < sc.rig.max_time_s:
-                if self.controller.finished and (self.between_missions is None
-                                                 or not self.between_missions(self)):
+                if self._host_finished() and (self.between_missions is None
+                                              or not self.between_missions(self)):
                     break
                 adv = self._advance_ms(reply, state)
                 flags = FLAG_HANG_MAIN_LOOP if self._hang else 0
@@ -329,13 +351,7 @@ class Rig:
                     valves_closed_after_injection_s = self.t_s - inj
                 # the host
                 if self._host_alive:
-                    self.session.step(self.t_s)
-                    self.session.take_notices()  # results come through the handles; drain
-                    if self.session.telemetry is not None:
-                        host_fault_flags |= self.session.telemetry.fault_flags
-                    if self.t_s >= next_guidance:
-                        next_guidance += sc.rig.guidance_period_s
-                        out = self._cycle()
+                    out = self._host_step(out)
                 else:
                     self.world.set_setpoint(np.zeros(3), np.zeros(3))  # vehicle holds
                 if self.t_s >= next_record:
@@ -358,7 +374,7 @@ class Rig:
             "faults_seen": sorted(self._flags_to_faults(fault_flags_seen)),
             "faults_reported_to_host": sorted({t.split()[-1] for _, t in self.events_log
                                                if t.startswith("EVT_FAULT ")}),
-            "faults_in_host_telemetry": sorted(self._flags_to_faults(host_fault_flags)),
+            "faults_in_host_telemetry": sorted(self._flags_to_faults(self.host_fault_flags)),
             "fuel_lost_kg": self.mech.fuel_lost_kg,
             "tv_final_kpa": self.mech.tv_true_kpa,
             "sv_final_kpa": self.mech.sv_true_kpa,
