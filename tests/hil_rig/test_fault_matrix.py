@@ -1,4 +1,4 @@
-"""The short version of the HIL fault matrix (`make fault-matrix` runs all 66 cells): one
+"""The short version of the HIL fault matrix (`make fault-matrix` runs every cell): one
 phase per fault and one fault per phase, each cell checked by the same code as the full
 matrix (generic invariants + the cell's expected outcome), plus the matrix's bookkeeping."""
 
@@ -15,6 +15,8 @@ SUBSET = [
     ("pressure_sensor_stuck", "hard_docked"), ("actuator_jam", "hard_docked"),
     ("valve_stuck_closed", "transferring"),
     ("overpressure", "unmating"),
+    ("camera_unplugged", "approach"), ("slow_inference", "approach"),
+    ("nav_hang", "hard_docked"), ("serial_unplugged", "unmating"),
 ]
 
 
@@ -25,7 +27,7 @@ def test_subset_covers_every_fault_and_every_phase():
 
 def test_every_cell_has_an_expected_outcome_or_a_reason():
     cells = mx.all_cells()
-    assert len(cells) == len(FAULT_TYPES) * len(mx.PHASES) == 66
+    assert len(cells) == len(FAULT_TYPES) * len(mx.PHASES)
     for f, p in cells:
         e = mx.expectation(f, p)
         if isinstance(e, str):

@@ -15,6 +15,8 @@ FAULT_TYPES = (
     "link_loss", "bit_errors", "pressure_sensor_stuck", "pressure_sensor_range",
     "valve_stuck_open", "valve_stuck_closed", "latch_stall", "actuator_jam",
     "overpressure", "watchdog_reset", "host_crash",
+    # the host's own failures, through the real daemon cycle and link core (issue 17)
+    "camera_unplugged", "serial_unplugged", "nav_hang", "slow_inference",
 )
 
 
@@ -114,6 +116,14 @@ class FaultInjector:
                 rig.request_hang()
         elif kind == "host_crash":
             rig.host_crash(on)
+        elif kind == "camera_unplugged":
+            rig.camera_unplugged(on)
+        elif kind == "serial_unplugged":
+            rig.serial_unplugged(on)
+        elif kind == "nav_hang":
+            rig.nav_hang(on)
+        elif kind == "slow_inference":
+            rig.slow_inference(float(spec.args.get("latency_s", 0.3)) if on else 0.0)
 
     @staticmethod
     def _overpressure(fault: ActiveFault, t_s: float, dt_s: float, rig: Any) -> None:

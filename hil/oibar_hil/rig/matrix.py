@@ -84,6 +84,11 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
     "overpressure": {"tank": "sv", "rate_kpa_s": 300, "peak_kpa": 2700, "hold_s": 3.0},
     "watchdog_reset": {},
     "host_crash": {"duration_s": 4.0},
+    # the host's own failures (issue 17), through NavDaemon.cycle and the link core
+    "camera_unplugged": {"duration_s": 3.0},
+    "serial_unplugged": {"duration_s": 3.0},
+    "nav_hang": {"duration_s": 3.0},
+    "slow_inference": {"duration_s": 3.0, "latency_s": 0.3},
 }
 FAULT_TITLES = {
     "link_loss": "link loss 3 s", "bit_errors": "bit errors (BER 2e-4)",
@@ -91,6 +96,8 @@ FAULT_TITLES = {
     "valve_stuck_open": "SV valve stuck open", "valve_stuck_closed": "TV valve stuck closed",
     "latch_stall": "latch stall", "actuator_jam": "plane actuator jam", "overpressure": "SV over-pressure 2700 kPa",
     "watchdog_reset": "watchdog reset (main loop hang)", "host_crash": "host crash 4 s",
+    "camera_unplugged": "camera unplugged 3 s", "serial_unplugged": "serial port unplugged 3 s",
+    "nav_hang": "navigation loop hung 3 s", "slow_inference": "inference 300 ms (3 periods) for 3 s",
 }
 assert set(FAULT_ARGS) == set(FAULT_TYPES), "a fault type of the rig is missing from the matrix"
 
@@ -108,6 +115,10 @@ VALVES_CLOSED_BOUND_S: dict[str, float | None] = {
     "overpressure": 3.0,            # ramp 300 kPa/s to the 2600 kPa trip (~1.7 s) + stroke
     "watchdog_reset": 0.3,          # watchdog 100 ms, outputs off at reset + stroke
     "host_crash": 1.5,              # link timeout 1 s + stroke
+    "camera_unplugged": None,       # navigation only: the mechanism goes on
+    "serial_unplugged": 1.5,        # as a link loss: the MCU's link timeout 1 s + stroke
+    "nav_hang": 1.5,                # no heartbeat from a hung loop: link timeout 1 s + stroke
+    "slow_inference": None,         # late cycles still beat the link timeout: the fill goes on
 }
 
 NOT_APPLICABLE: dict[tuple[str, str], str] = {
@@ -178,6 +189,21 @@ def expectation(fault: str, phase: str) -> Expect | str:
     elif fault == "overpressure":
         e = Expect("aborted", ["FAULT_OVERPRESSURE"], extra={"coils_off_within_s_of_fault": 0.05},
                    why="trip at 2600 kPa, coils off; clear once below, abort, separate")
+    elif fault == "serial_unplugged":
+        e = Expect("aborted", ["FAULT_HOST_LINK_LOSS"],
+                   why="host port gone: MCU link timeout 1 s, safes; the port back, re-handshake, clear, separate")
+    elif fault == "nav_hang":
+        e = Expect("aborted", ["FAULT_HOST_LINK_LOSS"],
+                   why="no heartbeat or update from the hung cycle: MCU link timeout, safes; "
+                       "the loop back, re-handshake, clear, separate")
+    elif fault == "camera_unplugged":
+        e = Expect("completed", [],
+                   why=("free flight: hold 3 s on no frame, then on" if phase == "approach" else
+                        "docked: navigation not needed; the mission goes on"))
+    elif fault == "slow_inference":
+        e = Expect("completed", [],
+                   why="cycles every 300 ms on 300 ms old frames: stale, held, never acted on; "
+                       "heartbeats still within the link timeout; on time again after 3 s")
     elif fault == "watchdog_reset":
         e = Expect("aborted", ["FAULT_WATCHDOG_RESET"], extra={"reset_cause": "RESET_WATCHDOG"},
                    why="reset after 100 ms, outputs off, FAULT; host re-handshakes, clears, separates")

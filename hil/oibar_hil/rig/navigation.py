@@ -28,6 +28,7 @@ from oibar.nav.guidance import NavSolution
 from oibar.rotations import matrix_to_quat
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
+_TOKEN_IMAGE = np.zeros((1, 1, 3), np.uint8)
 DEFAULT_MODEL = REPO_ROOT / "models" / "oibarnet_lite.onnx"
 
 
@@ -40,17 +41,35 @@ class TruthNav:
     def __init__(self) -> None:
         self.last_timings_ms: dict[str, float] = {}
         self.world_of: Any = None  # set by the rig: () -> World (the soak swaps worlds)
+        self._seq = 0
+        self._last: NavSolution | None = None
 
     @property
     def navigator(self) -> "TruthNav":
         return self
 
-    def frame(self, t_s: float, world: Any) -> None:
-        return None  # no camera: the cycle runs without a frame, the truth needs none
+    max_frame_age_s = 0.25  # as oibar.nav.core.NavigatorParams: an older frame is stale
+
+    def frame(self, t_s: float, world: Any) -> Frame:
+        """A token frame (the truth needs no pixels): it says a camera frame arrived this cycle,
+        so a rig fault can take it away (camera unplugged) or make it late (slow inference)."""
+        self._seq += 1
+        return Frame(image=_TOKEN_IMAGE, seq=self._seq, t_s=t_s, t_host=t_s, source="truth")
 
     def step(self, t_s: float, image: Any = None, frame_t_s: float | None = None,
              frame_seq: int | None = None, odometry: Any = None) -> NavStep:
-        return NavStep(t_s, self.solve(t_s, self.world_of()))
+        """The truth now when a fresh frame came; else, like a coasting filter, the last solution
+        with the reason to hold (no new frame, stale frame) and no confidence."""
+        if image is not None and (frame_t_s is None or t_s - frame_t_s <= self.max_frame_age_s):
+            self._last = self.solve(t_s, self.world_of())
+            return NavStep(t_s, self._last)
+        reason = "no new frame" if image is None else f"stale frame ({t_s - frame_t_s:.2f} s old)"
+        last = self._last or NavSolution(valid=False)
+        sol = NavSolution(valid=last.valid, r_D_m=last.r_D_m, v_D_mps=last.v_D_mps, att_rad=last.att_rad,
+                          misalignment_deg=last.misalignment_deg, t_cam_target_m=last.t_cam_target_m,
+                          q_cam_target=last.q_cam_target, confidence=0.0,
+                          hold_reason=reason if last.valid else "filter not initialised")
+        return NavStep(t_s, sol, hold_reason=sol.hold_reason)
 
     def solve(self, t_s: float, world: Any) -> NavSolution:
         s = world.s

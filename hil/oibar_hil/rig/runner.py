@@ -19,6 +19,7 @@ and ``coast_exchange_ms`` (20) in free flight with the mechanism idle.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from dataclasses import dataclass, field
@@ -127,6 +128,9 @@ class Rig:
         self._hang = False
         self._host_alive = True
         self._nav_hung = False
+        self._camera_out = False
+        self._inference_s = 0.0
+        self._busy_until = 0.0
         self.t_s = 0.0
 
     # -- hooks for the faults -----------------------------------------------------------
@@ -140,6 +144,27 @@ class Rig:
         self._nav_hung = hung
         self.notes.append((self.t_s, "navigation loop hung" if hung else "navigation loop cycling again"))
 
+    def camera_unplugged(self, out: bool) -> None:
+        """The daemon's camera is gone: its cycles run without a frame, saying why."""
+        self._camera_out = out
+        self.notes.append((self.t_s, "camera unplugged" if out else "camera plugged back"))
+
+    def serial_unplugged(self, out: bool) -> None:
+        """The host's serial port disappears (USB cable out): no byte either way, and the
+        host's link sees its port fail (LinkClient: the read raises) until it is back."""
+        self.wire.cut = out
+        if out:
+            self.session.port_lost(self.t_s, "serial port unplugged (rig)")
+        else:
+            self.session.port_opened(self.t_s)
+        self.notes.append((self.t_s, "serial port unplugged" if out else "serial port back"))
+
+    def slow_inference(self, latency_s: float) -> None:
+        """Each cycle takes ``latency_s`` (0: back to normal): cycles one at a time, each on a
+        frame captured ``latency_s`` earlier."""
+        self._inference_s = latency_s
+        self.notes.append((self.t_s, f"inference takes {latency_s:.2f} s" if latency_s else "inference on time"))
+
     def _host_finished(self) -> bool:
         return self.controller.finished
 
@@ -151,7 +176,13 @@ class Rig:
             self.host_fault_flags |= self.session.telemetry.fault_flags
         if self.t_s >= self._next_guidance:
             self._next_guidance += self.sc.rig.guidance_period_s
-            if not self._nav_hung:  # a hung loop: no cycle, so no heartbeat or update either
+            if self._nav_hung:  # a hung loop: no cycle, so no heartbeat or update either
+                pass
+            elif self._inference_s > 0.0:
+                if self.t_s >= self._busy_until:  # the previous slow cycle has finished
+                    out = self._cycle(frame_age_s=self._inference_s)
+                    self._busy_until = self.t_s + self._inference_s
+            else:
                 out = self._cycle()
         return out
 
@@ -198,11 +229,13 @@ class Rig:
                 or state not in ("STATE_IDLE", "STATE_APPROACH_READY", "STATE_BOOT"))
         return rs.exchange_ms if busy else rs.coast_exchange_ms
 
-    def _cycle(self) -> Any:
+    def _cycle(self, frame_age_s: float = 0.0) -> Any:
         """One cycle of the host's navigation daemon on this cycle's frame; log what it saw."""
-        frame = self.nav.frame(self.t_s, self.world)
+        frame = None if self._camera_out else self.nav.frame(self.t_s, self.world)
+        if frame is not None and frame_age_s > 0.0:  # captured when the slow cycle began
+            frame = dataclasses.replace(frame, t_host=self.t_s - frame_age_s)
         t0 = time.perf_counter()
-        step, out = self.daemon.cycle(frame)
+        step, out = self.daemon.cycle(frame, camera_error="unplugged (rig fault)" if self._camera_out else "")
         cycle_ms = (time.perf_counter() - t0) * 1e3
         obs = self.daemon.last_observation
         for ev in obs.events:

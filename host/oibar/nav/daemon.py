@@ -202,8 +202,12 @@ class NavDaemon:
 
     # -- one cycle ----------------------------------------------------------------------
 
-    def cycle(self, frame: Any = None) -> tuple[NavStep, GuidanceOutput]:
-        """One cycle on ``frame`` (None: no new frame this time)."""
+    def cycle(self, frame: Any = None, camera_error: str | None = None) -> tuple[NavStep, GuidanceOutput]:
+        """One cycle on ``frame`` (None: no new frame this time). ``camera_error``: why there is
+        none, from a caller that runs the camera itself (the HIL rig); default: the daemon's own
+        camera state."""
+        if camera_error is None:
+            camera_error = self._cam_error
         start = self.clock()
         t_s = start - self._t0
         odometry = self._odometry(t_s)
@@ -213,8 +217,8 @@ class NavDaemon:
             self.stats.frames_used += 1
         else:
             step = self.nav.step(t_s, None, odometry=odometry)
-            if self._cam_error:
-                step.hold_reason = step.solution.hold_reason = f"camera: {self._cam_error}"
+            if camera_error:
+                step.hold_reason = step.solution.hold_reason = f"camera: {camera_error}"
         link_up = bool(self.link is not None and self.link.link_alive)
         telemetry = self.link.telemetry if self.link is not None else None
         events = []
