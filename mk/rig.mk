@@ -7,7 +7,7 @@ RIG_PY := PYTHONPATH=$(ROOT)/hil:$(ROOT)/host $(PY) -m oibar_hil.rig
 # The rig's pytest suite (tests/hil_rig) runs the simulated MCU built by firmware-host.
 TEST_DEPS += firmware-host
 
-.PHONY: mission-demo hil scenarios
+.PHONY: mission-demo hil scenarios sitl
 
 mission-demo: firmware-host gen ## the nominal refuelling mission on the HIL rig (10 m to separation), summary + report
 	@$(RIG_PY) demo
@@ -16,6 +16,12 @@ hil: firmware-host gen ## run every HIL scenario (nominal + faults), summary tab
 	@$(RIG_PY) all
 
 scenarios: hil ## same as `make hil`
+
+# Issue 17: the program that flies in the loop. `oibar nav` as its own process, its serial port
+# on a pty bridged to the simulated MCU, its camera the rig's renderer over frames+tcp://, its
+# vehicle the rig's world over udp:// (all loopback). Real time: about 4 minutes.
+sitl: firmware-host gen ## `oibar nav` itself (own process, real time) flies the nominal mission from 10 m on the rig
+	@$(RIG_PY).sitl
 
 # Issue 11 (docs/reliability.md): the fault matrix and the soak.
 #   make fault-matrix   every fault x every mission phase, table -> docs/reliability.md

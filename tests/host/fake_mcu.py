@@ -202,6 +202,16 @@ class FakeMcu:
         """Drop back to unconnected without telling the host (as after a quick reset)."""
         self._call(self._forget_host_now)
 
+    def reboot(self) -> None:
+        """Restart as after a watchdog reset: uptime and seq from zero, host forgotten, the
+        connection kept (a USB-serial adapter outlives the MCU behind it)."""
+        def now() -> None:
+            self._forget_host_now()
+            self._boot_s = time.monotonic()
+            self._seq = 0
+            self._host_seq = None
+        self._call(now)
+
     def send_raw(self, data: bytes) -> None:
         """Write arbitrary bytes to the host."""
         self._call(lambda: self._transmit(data))

@@ -24,6 +24,7 @@ from oibar.link import (
     PortError,
     ProtocolVersionError,
 )
+from oibar.link.core import LinkCore
 from oibar.link.seq import SEQ_MAX
 
 
@@ -348,26 +349,26 @@ def test_requests_from_a_callback_are_refused(mcu, make_client):
 
 
 def test_peer_seq_tracking_handles_wrap_stale_and_restart():
-    client = LinkClient("loop://")
-    track = client._track_peer_seq_locked
+    core = LinkCore()  # the one place the rule is applied, for LinkClient and LinkSession alike
+    track = core._track_peer_seq
     for seq in (SEQ_MAX - 1, SEQ_MAX, 1, 2):  # wrap: SEQ_MAX is followed by 1
         track(seq)
-    assert client._counters.lost_peer_packets == 0
+    assert core.counters.lost_peer_packets == 0
     track(5)  # 3 and 4 lost
-    assert client._counters.lost_peer_packets == 2
+    assert core.counters.lost_peer_packets == 2
     track(4)  # an old packet sent again (cached response): neither counted nor tracked
     track(6)
-    assert client._counters.lost_peer_packets == 2
+    assert core.counters.lost_peer_packets == 2
     track(0)  # seq 0 means none
     for seq in (SEQ_MAX - 1, 2):  # gap across the wrap: SEQ_MAX and 1 lost
-        client._peer_seq = None
+        core._peer_seq = None
         track(SEQ_MAX - 1)
         track(2)
-    assert client._counters.lost_peer_packets == 2 + 2 * 2
-    client._peer_seq = 50_000
+    assert core.counters.lost_peer_packets == 2 + 2 * 2
+    core._peer_seq = 50_000
     track(1)  # far behind: the peer restarted its numbering
     track(2)
-    assert client._counters.lost_peer_packets == 6 and client._peer_seq == 2
+    assert core.counters.lost_peer_packets == 6 and core._peer_seq == 2
 
 
 # -- link loss and recovery ---------------------------------------------------------------------
@@ -435,6 +436,21 @@ def test_not_connected_answer_triggers_a_new_handshake(mcu, make_client):
     assert wait_for(lambda: client.link_alive and mcu.handshakes_accepted == 2, timeout_s=3.0)
     assert client.command("NOOP").accepted
     assert wait_for(lambda: states == [True, False, True])
+
+
+def test_mcu_reboot_is_noticed_without_a_request_and_the_link_comes_back(mcu, make_client):
+    """Issue 17: the MCU restarts (watchdog) behind a port that stays open. Its uptime goes back
+    and its telemetry says the host link is down; the client must see that by itself (not wait
+    for a refused command) and handshake again."""
+    states: list[bool] = []
+    client = make_client(mcu.url, on_link_state=states.append)
+    client.connect()
+    assert wait_for(lambda: client.statistics.rx_packets >= 3)
+    mcu.reboot()
+    assert wait_for(lambda: states == [True, False, True], timeout_s=3.0), states
+    assert mcu.handshakes_accepted == 2 and client.link_alive
+    assert client.statistics.mcu_restarts >= 1
+    assert client.command("NOOP").accepted
 
 
 # -- shutdown -----------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ import pytest
 from oibar import pb
 from oibar.camera import CallableSource, FolderSource
 from oibar.cli import main
-from oibar.link.client import CommandResult
+from oibar.link.core import Request
 from oibar.nav.core import Navigator
 from oibar.nav.cyclelog import CycleLog, CycleLogError, read_log
 from oibar.nav.daemon import DaemonParams, NavDaemon
@@ -56,6 +56,7 @@ class FakeLink:
         self.alive = True
         self.navs = []
         self.commands = []
+        self.beats = 0
         self.lock = threading.Lock()
         tm = pb.Telemetry()
         tm.state = pb.STATE_IDLE
@@ -72,17 +73,23 @@ class FakeLink:
     def next_event(self, timeout_s=None):
         return None
 
-    def send_nav(self, **kw):
+    def send_nav_update(self, nav):
         with self.lock:
-            self.navs.append((self.alive, kw))
+            self.navs.append((self.alive, {"closing_speed_mps": nav.closing_speed_mps, "valid": nav.valid,
+                                           "nav": nav}))
         return True
 
-    def command(self, opcode, target_kpa=None):
+    def heartbeat(self, force=False):
+        self.beats += 1
+        return True
+
+    def submit_command(self, opcode, target_kpa=None):
         with self.lock:
             self.commands.append((self.alive, opcode))
-        return CommandResult(accepted=True, reason="NACK_NONE", state="STATE_APPROACH_READY")
+        ack = pb.Ack(accepted=True, reason=pb.NACK_NONE, state=pb.STATE_APPROACH_READY)
+        return Request("command", pb.Packet(), done=True, response=ack, response_kind="ack")
 
-    def param_set(self, pid, value):
+    def submit_param_set(self, pid, value):
         raise AssertionError("not used")
 
 
@@ -389,7 +396,10 @@ def test_a_failing_odometry_leaves_navigation_on_the_camera():
     assert link.navs and any(ph != "HOLD" for _, _, ph in veh.sent), "the approach goes on"
 
 
-def test_folder_camera_end_of_stream_is_a_lost_camera(tmp_path):
+def test_end_of_a_recorded_stream_is_not_a_lost_camera(tmp_path):
+    """Issue 17: a finished frame folder (or video) was handled as a lost camera and reopened,
+    so navigation started again from frame 0. End of stream: each frame is used once, nothing
+    is reopened, the cycle holds saying why, and run() ends."""
     frames = tmp_path / "frames"
     frames.mkdir()
     from PIL import Image
@@ -403,7 +413,77 @@ def test_folder_camera_end_of_stream_is_a_lost_camera(tmp_path):
         reasons.append(step.hold_reason)
         d._stop.wait(0.02)
     d.shutdown()
-    assert any(r.startswith("camera:") for r in reasons[5:]), reasons
+    # at most the 3 frames (the newest-frame reader may skip one), never the folder again
+    assert d.stats.frames_used <= 3 and d.stats.camera_reopens == 0, (d.stats.frames_used, reasons)
+    assert any("end of stream" in r for r in reasons[5:]), reasons
+    d2 = make_daemon(FolderSource(frames, rate_hz=100.0, realtime=True), link=FakeLink())
+    summary = d2.run(duration_s=5.0)
+    assert d2.camera_ended and summary["frames_used"] <= 3 and summary["cycles"] < 20
+
+
+def test_recorded_frames_survive_a_camera_reopen(tmp_path):
+    """Issue 17: recorded frames were named by the camera's frame counter, which restarts when
+    the camera is reopened, so the frames before the reopen were overwritten."""
+    log = CycleLog(tmp_path / "cycles.jsonl", frames_dir=tmp_path / "frames")
+    d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=FakeLink(), log=log)
+    d._t0 = d.clock()
+    for _ in range(6):
+        tick(d)
+    from oibar.camera import CameraLost
+    d._drop_camera(CameraLost("unplugged for the test"), d.clock())
+    d._next_cam_try = 0.0
+    for _ in range(6):
+        tick(d)
+    d.shutdown()
+    assert d.stats.camera_reopens == 1
+    files = [r["frame"]["file"] for r in read_log(tmp_path / "cycles.jsonl")
+             if r.get("kind") == "cycle" and r.get("frame")]
+    assert len(files) == d.stats.frames_used and len(set(files)) == len(files)
+    assert len(list((tmp_path / "frames").glob("*.jpg"))) == len(files)
+
+
+def test_a_reader_stuck_in_read_is_never_doubled():
+    """Issue 17: after a read that hung past the join timeout, the daemon reopened the camera
+    while the old reader was still inside read(): two threads reading one device. Now it waits
+    for the stuck reader to leave before reopening."""
+    from oibar.camera import CameraSource
+
+    class HangingSource(CameraSource):
+        name = "hanging"
+
+        def __init__(self):
+            super().__init__()
+            self.lock = threading.Lock()
+            self.active = self.max_active = self.reads = 0
+
+        def _open(self):
+            pass
+
+        def _close(self):
+            pass
+
+        def _read(self):
+            with self.lock:
+                self.active += 1
+                self.max_active = max(self.max_active, self.active)
+                self.reads += 1
+                n = self.reads
+            try:
+                threading.Event().wait(0.8 if n == 5 else 0.01)   # the 5th read hangs
+            finally:
+                with self.lock:
+                    self.active -= 1
+            return grey(), __import__("time").monotonic()
+
+    src = HangingSource()
+    d = make_daemon(src, link=FakeLink(), camera_lost_timeout_s=0.15, camera_retry_s=0.05, camera_join_s=0.05)
+    d._t0 = d.clock()
+    t_end = d.clock() + 1.6
+    while d.clock() < t_end:
+        tick(d)
+    d.shutdown()
+    assert src.reads > 10, "the camera came back after the hang"
+    assert src.max_active == 1, f"{src.max_active} readers at once on one source"
 
 
 def test_serial_port_unplugged_and_replugged_with_the_real_link_client(mcu, make_client):
@@ -454,3 +534,37 @@ def test_navigator_orders_odometry_and_frame_in_time_and_skips_malformed_odometr
         s = nav.step(0.5, grey(), frame_t_s=0.5, odometry=bad)
         assert s.solution.valid and s.update is not None
         assert s.velocity_update is None or s.velocity_update.reason == "non_finite"
+
+
+def test_heartbeats_stop_when_the_navigation_loop_hangs(mcu, make_client):
+    """Issue 17: heartbeats came from their own thread, so a hung navigation loop still looked
+    alive to the MCU. The daemon's link (oibar nav's, open_link) sends them only from the cycle:
+    cycling keeps the MCU's link up; a loop that stops cycling lets its link timeout expire."""
+    from fake_mcu import wait_for
+    from oibar.nav.cli import open_link
+    from conftest import FAST
+
+    client = open_link(mcu.url, **FAST)
+    try:
+        client.connect()
+        d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=client)
+        d._t0 = d.clock()
+        for _ in range(8):                      # cycling: 0.05 s apart, link timeout 0.3 s
+            tick(d)
+            d._stop.wait(0.05)
+        assert mcu.link_losses == 0 and mcu.connected
+        assert mcu.requests("heartbeat"), "the cycle sends heartbeats"
+        beats = len(mcu.requests("heartbeat"))
+        assert wait_for(lambda: mcu.link_losses >= 1, timeout_s=2.0), "a hung loop must fall silent"
+        assert len(mcu.requests("heartbeat")) == beats
+        d._stop.wait(0.6)                       # still hung: no re-handshake behind its back
+        assert mcu.handshakes_accepted == 1
+        for _ in range(20):                     # the loop cycles again: the link comes back
+            tick(d)
+            d._stop.wait(0.05)
+            if client.link_alive and mcu.connected:
+                break
+        assert client.link_alive and mcu.handshakes_accepted == 2
+        d.shutdown()
+    finally:
+        client.close()

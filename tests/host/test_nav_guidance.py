@@ -41,6 +41,44 @@ def test_untrusted_navigation_holds(n):
     assert out.nav.confidence == (0.0 if not n.valid else pytest.approx(0.9))
 
 
+def test_an_invalid_solution_says_so_and_carries_no_data():
+    """Issue 17: an uninitialised filter (zeros everywhere) went out as a perfect NavUpdate:
+    closing speed 0, misalignment 0, only the confidence 0. It must say valid = false and carry
+    none of those fields; a valid one says valid = true."""
+    g = Guidance(MissionParams())
+    n = NavSolution(valid=False, hold_reason="filter not initialised")
+    out = g.step(0.0, obs(0.0, n))
+    sent = {f.name for f, _ in out.nav.ListFields()}
+    assert not out.nav.valid
+    assert sent <= {"frame_id", "stamp_ms", "phase"}, sent
+    assert not out.nav.HasField("t_cam_target_m") and not out.nav.HasField("q_cam_target")
+    good = g.step(0.1, obs(0.1, nav(5.0)))
+    assert good.nav.valid and good.nav.range_m == pytest.approx(5.0)
+    assert good.nav.HasField("q_cam_target")
+
+
+def test_a_dock_lost_on_the_link_is_sent_again():
+    """Issue 17: the "DOCK sent" latch was set before sending and never cleared when the request
+    came back LinkDown / LinkTimeout: one lost DOCK left the MCU in RECEPTION until its capture
+    timeout, a good capture turned into a fault. After a lost DOCK, guidance sends it again."""
+    from oibar.nav.guidance import RequestResult
+
+    tm = telemetry("STATE_RECEPTION", contact=True)
+    tm.latch_engaged = True
+    g = Guidance(MissionParams())
+    g.contacted = True
+    first = g.step(0.0, obs(0.0, nav(0.0), tm=tm)).request
+    assert first is not None and first.opcode == pb.CMD_DOCK
+    for t, reason in ((0.1, "LinkTimeout"), (0.3, "LinkDown")):
+        res = RequestResult(first, False, reason)
+        again = g.step(t, Observation(t, nav(0.0), True, tm, results=[res])).request
+        assert again is not None and again.opcode == pb.CMD_DOCK, reason
+        first = again
+    # a DOCK the MCU accepted is not sent twice
+    ok = RequestResult(first, True, "NACK_NONE", "STATE_SOFT_DOCKED")
+    assert g.step(0.5, Observation(0.5, nav(0.0), True, tm, results=[ok])).request is None
+
+
 def test_link_down_holds_and_sends_no_command():
     g = Guidance(MissionParams(arm_range_m=2.0))
     out = g.step(0.0, obs(0.0, nav(1.5), link_up=False))

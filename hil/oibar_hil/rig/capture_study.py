@@ -51,10 +51,22 @@ class RecordingNav:
     def reset(self) -> None:
         self.inner.reset()
 
-    def solve(self, t_s: float, world: Any):
-        sol = self.inner.solve(t_s, world)
+    world_of: Any = None  # set by the rig: () -> World
+
+    def frame(self, t_s: float, world: Any):
+        return self.inner.frame(t_s, world)
+
+    @property
+    def navigator(self) -> "RecordingNav":
+        return self
+
+    def step(self, t_s: float, image: Any, **kw: Any):
+        """The daemon's navigator call, recorded beside the truth."""
+        step = self.inner.navigator.step(t_s, image, **kw)
+        world = self.world_of()
+        sol = step.solution
         self.cycles.append((id(world), t_s, sol.closing_speed_mps, world.closing_speed_mps, world.range_m))
-        return sol
+        return step
 
     def at_contact(self, world_id: int) -> tuple[float, float] | None:
         """(nav, true) closing speed of the last cycle before the probe tip reached the drogue."""

@@ -16,6 +16,8 @@ FAULT_TYPES = (
     "valve_stuck_open", "valve_stuck_closed", "latch_stall", "actuator_jam",
     "overpressure", "watchdog_reset", "host_crash",
     "latch_wire_break", "adc_glitch", "adc_glitch_run", "replay",
+    # the host's own failures, through the real daemon cycle and link core (issue 17)
+    "camera_unplugged", "serial_unplugged", "nav_hang", "slow_inference",
 )
 
 
@@ -126,6 +128,14 @@ class FaultInjector:
             # then the sensor is fine again: one sample must not trip, a run must.
             n = int(spec.args.get("samples", 1 if kind == "adc_glitch" else 20))
             mech.adc_glitch_samples[spec.args.get("sensor", "tv")] = n if on else 0
+        elif kind == "camera_unplugged":
+            rig.camera_unplugged(on)
+        elif kind == "serial_unplugged":
+            rig.serial_unplugged(on)
+        elif kind == "nav_hang":
+            rig.nav_hang(on)
+        elif kind == "slow_inference":
+            rig.slow_inference(float(spec.args.get("latency_s", 0.3)) if on else 0.0)
 
     @staticmethod
     def _replay(fault: ActiveFault, t_s: float, rig: Any) -> None:

@@ -89,6 +89,11 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
     "adc_glitch": {"sensor": "tv", "samples": 1},       # one bad conversion
     "adc_glitch_run": {"sensor": "tv", "samples": 20},  # 20 in a row (bound: 10 ms)
     "replay": {"period_s": 0.25},                       # until the end of the mission
+    # the host's own failures (issue 17), through NavDaemon.cycle and the link core
+    "camera_unplugged": {"duration_s": 3.0},
+    "serial_unplugged": {"duration_s": 3.0},
+    "nav_hang": {"duration_s": 3.0},
+    "slow_inference": {"duration_s": 3.0, "latency_s": 0.3},
 }
 FAULT_TITLES = {
     "link_loss": "link loss 3 s", "bit_errors": "bit errors (BER 2e-4)",
@@ -99,6 +104,8 @@ FAULT_TITLES = {
     "latch_wire_break": "latch switch wire broken", "adc_glitch": "TV pressure: 1 bad ADC sample",
     "adc_glitch_run": "TV pressure: 20 bad ADC samples",
     "replay": "replayed ARM/START",
+    "camera_unplugged": "camera unplugged 3 s", "serial_unplugged": "serial port unplugged 3 s",
+    "nav_hang": "navigation loop hung 3 s", "slow_inference": "inference 300 ms (3 periods) for 3 s",
 }
 assert set(FAULT_ARGS) == set(FAULT_TYPES), "a fault type of the rig is missing from the matrix"
 
@@ -120,6 +127,10 @@ VALVES_CLOSED_BOUND_S: dict[str, float | None] = {
     "adc_glitch": None,             # one sample is not a fault: the fill goes on
     "adc_glitch_run": 0.1,          # bad-run bound 10 ms + stroke
     "replay": None,                 # refused frames: the fill goes on
+    "camera_unplugged": None,       # navigation only: the mechanism goes on
+    "serial_unplugged": 1.5,        # as a link loss: the MCU's link timeout 1 s + stroke
+    "nav_hang": 1.5,                # no heartbeat from a hung loop: link timeout 1 s + stroke
+    "slow_inference": None,         # late cycles still beat the link timeout: the fill goes on
 }
 
 NOT_APPLICABLE: dict[tuple[str, str], str] = {
@@ -190,6 +201,21 @@ def expectation(fault: str, phase: str) -> Expect | str:
     elif fault == "overpressure":
         e = Expect("aborted", ["FAULT_OVERPRESSURE"], extra={"coils_off_within_s_of_fault": 0.05},
                    why="trip at 2600 kPa, coils off; clear once below, abort, separate")
+    elif fault == "serial_unplugged":
+        e = Expect("aborted", ["FAULT_HOST_LINK_LOSS"],
+                   why="host port gone: MCU link timeout 1 s, safes; the port back, re-handshake, clear, separate")
+    elif fault == "nav_hang":
+        e = Expect("aborted", ["FAULT_HOST_LINK_LOSS"],
+                   why="no heartbeat or update from the hung cycle: MCU link timeout, safes; "
+                       "the loop back, re-handshake, clear, separate")
+    elif fault == "camera_unplugged":
+        e = Expect("completed", [],
+                   why=("free flight: hold 3 s on no frame, then on" if phase == "approach" else
+                        "docked: navigation not needed; the mission goes on"))
+    elif fault == "slow_inference":
+        e = Expect("completed", [],
+                   why="cycles every 300 ms on 300 ms old frames: stale, held, never acted on; "
+                       "heartbeats still within the link timeout; on time again after 3 s")
     elif fault == "watchdog_reset":
         e = Expect("aborted", ["FAULT_WATCHDOG_RESET"], extra={"reset_cause": "RESET_WATCHDOG"},
                    why="reset after 100 ms, outputs off, FAULT; host re-handshakes, clears, separates")

@@ -1,15 +1,16 @@
-"""Navigation sources for the rig: what the host's guidance is told about the relative pose.
+"""Navigation sources for the rig: the camera frame and the navigator the daemon's cycle uses.
 
-- ``truth``: the world's ground truth (reference runs, the fault matrix and the soak: they
-  test the mechanism and the link, not the CNN);
+The rig runs the host's own ``NavDaemon.cycle`` (oibar.nav.daemon) every guidance period; a
+source gives it two things: ``frame(t_s, world)`` (the camera frame of this cycle, or None) and
+``navigator`` (what the daemon calls ``step`` on).
+
+- ``truth``: no camera; the navigator reports the world's ground truth (reference runs, the
+  fault matrix and the soak: they test the mechanism, the link and the daemon, not the CNN);
 - ``cnn``: the flight path. The rig's camera renders the scene for the world's current pose
   (oibar_hil.rig.camera), and the host's Navigator (oibar.nav.core: OibarNet on onnxruntime, the
-  checks, the filter) turns the frame into the solution, exactly as the daemon does on a real
-  camera, with the vehicle's own relative velocity (the world's ``relative_velocity``: truth plus
-  the GNC's noise) as the daemon gets it from the vehicle interface. Frames are rendered at the
-  guidance rate only.
-
-Both record their estimate beside the truth so the report can plot navigation errors.
+  checks, the filter) turns the frame into the solution inside the daemon's cycle, with the
+  vehicle's own relative velocity (the rig's vehicle interface: the world's
+  ``relative_velocity``, truth plus the GNC's noise). Frames are rendered at the guidance rate.
 """
 
 from __future__ import annotations
@@ -20,19 +21,55 @@ from typing import Any
 
 import numpy as np
 
+from oibar.camera import Frame
+from oibar.nav.core import NavStep
 from oibar.nav.frames import camera_pose_from_docking
 from oibar.nav.guidance import NavSolution
 from oibar.rotations import matrix_to_quat
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
+_TOKEN_IMAGE = np.zeros((1, 1, 3), np.uint8)
 DEFAULT_MODEL = REPO_ROOT / "models" / "oibarnet_lite.onnx"
 
 
 class TruthNav:
+    """The world's ground truth as a navigator (``step`` as oibar.nav.core.Navigator's)."""
+
     name = "truth"
+    estimator = None
 
     def __init__(self) -> None:
         self.last_timings_ms: dict[str, float] = {}
+        self.world_of: Any = None  # set by the rig: () -> World (the soak swaps worlds)
+        self._seq = 0
+        self._last: NavSolution | None = None
+
+    @property
+    def navigator(self) -> "TruthNav":
+        return self
+
+    max_frame_age_s = 0.25  # as oibar.nav.core.NavigatorParams: an older frame is stale
+
+    def frame(self, t_s: float, world: Any) -> Frame:
+        """A token frame (the truth needs no pixels): it says a camera frame arrived this cycle,
+        so a rig fault can take it away (camera unplugged) or make it late (slow inference)."""
+        self._seq += 1
+        return Frame(image=_TOKEN_IMAGE, seq=self._seq, t_s=t_s, t_host=t_s, source="truth")
+
+    def step(self, t_s: float, image: Any = None, frame_t_s: float | None = None,
+             frame_seq: int | None = None, odometry: Any = None) -> NavStep:
+        """The truth now when a fresh frame came; else, like a coasting filter, the last solution
+        with the reason to hold (no new frame, stale frame) and no confidence."""
+        if image is not None and (frame_t_s is None or t_s - frame_t_s <= self.max_frame_age_s):
+            self._last = self.solve(t_s, self.world_of())
+            return NavStep(t_s, self._last)
+        reason = "no new frame" if image is None else f"stale frame ({t_s - frame_t_s:.2f} s old)"
+        last = self._last or NavSolution(valid=False)
+        sol = NavSolution(valid=last.valid, r_D_m=last.r_D_m, v_D_mps=last.v_D_mps, att_rad=last.att_rad,
+                          misalignment_deg=last.misalignment_deg, t_cam_target_m=last.t_cam_target_m,
+                          q_cam_target=last.q_cam_target, confidence=0.0,
+                          hold_reason=reason if last.valid else "filter not initialised")
+        return NavStep(t_s, sol, hold_reason=sol.hold_reason)
 
     def solve(self, t_s: float, world: Any) -> NavSolution:
         s = world.s
@@ -69,19 +106,24 @@ class CnnNav:
         self.last_timings_ms: dict[str, float] = {}
         self.last_step = None
 
-    def solve(self, t_s: float, world: Any) -> NavSolution:
+    def frame(self, t_s: float, world: Any) -> Frame | None:
+        """This cycle's camera frame, rendered for the world's pose (None during a blackout)."""
+        self.last_timings_ms = {}
+        if self.blackout is not None and self.blackout(t_s):
+            return None
         s = world.s
-        frame = None
         t0 = time.perf_counter()
-        if self.blackout is None or not self.blackout(t_s):
-            frame = self.camera.render(s.r_D_m, s.att_rad, t_s=t_s).image
-            self.frames += 1
-        render_ms = (time.perf_counter() - t0) * 1e3
-        t0 = time.perf_counter()
-        odometry = world.relative_velocity(t_s)   # None when the scenario turns it off
-        step = self.navigator.step(t_s, frame, frame_t_s=t_s, frame_seq=self.frames, odometry=odometry)
-        nav_ms = (time.perf_counter() - t0) * 1e3
-        self.last_timings_ms = {"render_ms": render_ms, "nav_ms": nav_ms, **step.timings_ms}
+        image = self.camera.render(s.r_D_m, s.att_rad, t_s=t_s).image
+        self.last_timings_ms["render_ms"] = (time.perf_counter() - t0) * 1e3
+        self.frames += 1
+        return Frame(image=image, seq=self.frames, t_s=t_s, t_host=t_s, source="rig-camera")
+
+    def solve(self, t_s: float, world: Any) -> NavSolution:
+        """Frame and navigator on their own, without the daemon (tests and studies of the
+        navigation alone): what the daemon's cycle would compute for this world."""
+        frame = self.frame(t_s, world)
+        step = self.navigator.step(t_s, None if frame is None else frame.image, frame_t_s=t_s,
+                                   frame_seq=self.frames, odometry=world.relative_velocity(t_s))
         self.last_step = step
         return step.solution
 

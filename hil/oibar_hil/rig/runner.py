@@ -1,4 +1,4 @@
-"""The rig: simulated MCU + plant + wire + host session + controller, in lockstep.
+"""The rig: simulated MCU + plant + wire + the host's navigation daemon, in lockstep.
 
 One loop iteration is one lockstep exchange (docs/hil.md):
 
@@ -6,7 +6,11 @@ One loop iteration is one lockstep exchange (docs/hil.md):
 2. the MCU runs ``advance_ms`` of firmware time with the current sensor values;
 3. its UART bytes cross the wire to the host; its outputs drive the plant for the same
    interval (world + mechanism), then faults are updated;
-4. the host session steps on simulated time; at 10 Hz the controller runs.
+4. the host's link (oibar.link.session.LinkSession: the link core that LinkClient runs too)
+   steps on simulated time; every guidance period the host's own ``NavDaemon.cycle``
+   (oibar.nav.daemon) runs on this cycle's frame: navigator, guidance, the vehicle interface
+   (the rig's world), the NavUpdate, the heartbeat and the mechanism request, in the daemon's
+   order. Nothing here re-implements a cycle, guidance's call order or a link rule.
 
 ``advance_ms`` is 1 ms while the latch stepper runs (its home/release switches must be seen
 within a step or two), ``exchange_ms`` (10) while anything mechanical or the contact is active,
@@ -15,6 +19,7 @@ and ``coast_exchange_ms`` (20) in free flight with the mechanism idle.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from dataclasses import dataclass, field
@@ -24,8 +29,10 @@ from typing import Any, Callable
 import numpy as np
 
 from oibar import pb
-from oibar.link.session import LinkSession
-from oibar.nav.guidance import Guidance, MechRequest, Observation, RequestResult
+from oibar.link.session import LinkSession, SessionLink
+from oibar.nav.daemon import DaemonParams, NavDaemon
+from oibar.nav.guidance import Guidance
+from oibar.nav.vehicle import VehicleInterface
 from oibar_hil.rig.faults import FaultInjector
 from oibar_hil.rig.lockstep import FLAG_HANG_MAIN_LOOP, RESET_CAUSES, SimMcu
 from oibar_hil.rig.mechanism import Mechanism, MechanismParams
@@ -70,6 +77,22 @@ class RunResult:
         return all(c.ok is not False for c in self.checks)
 
 
+class RigVehicle(VehicleInterface):
+    """The daemon's vehicle interface on the rig's world (whichever world the rig holds now:
+    the soak installs a new one per mission)."""
+
+    def __init__(self, rig: "Rig") -> None:
+        self.rig = rig
+
+    def send(self, t_s: float, v_D_mps: np.ndarray, w_rad_s: np.ndarray, phase: str) -> None:
+        self.rig.world.set_setpoint(v_D_mps, w_rad_s)
+
+    def relative_velocity(self, t_s: float) -> Any:
+        if self.rig.nav.name == "truth":
+            return None  # the truth needs no odometry (and its noise would use the rig's rng)
+        return self.rig.world.relative_velocity(t_s)
+
+
 class Rig:
     def __init__(self, scenario: Scenario, *, mcu_path: Path | None = None,
                  out_dir: Path | None = None, progress: bool = False,
@@ -91,6 +114,8 @@ class Rig:
                              {FIRMWARE_PARAM_IDS[k]: float(v) for k, v in scenario.firmware_params.items()}))
         # navigation: "truth" (reference) or "cnn" (rendered camera + the host's Navigator)
         self.nav = make_nav(nav, **(nav_options or {})) if isinstance(nav, str) else nav
+        if hasattr(self.nav, "world_of"):
+            self.nav.world_of = lambda: self.world
         st = scenario.start
         world_state = WorldState(
             r_D_m=np.array([st.lateral_m[0], st.lateral_m[1], st.range_m], dtype=float),
@@ -102,12 +127,64 @@ class Rig:
         self.faults = FaultInjector(scenario.faults)
         self._hang = False
         self._host_alive = True
+        self._nav_hung = False
+        self._camera_out = False
+        self._inference_s = 0.0
+        self._busy_until = 0.0
         self.t_s = 0.0
 
     # -- hooks for the faults -----------------------------------------------------------
 
     def request_hang(self) -> None:
         self._hang = True
+
+    def nav_hang(self, hung: bool) -> None:
+        """The host's navigation loop stops cycling (a hung inference, a deadlock): its link
+        client stays open but sends nothing, not even heartbeats."""
+        self._nav_hung = hung
+        self.notes.append((self.t_s, "navigation loop hung" if hung else "navigation loop cycling again"))
+
+    def camera_unplugged(self, out: bool) -> None:
+        """The daemon's camera is gone: its cycles run without a frame, saying why."""
+        self._camera_out = out
+        self.notes.append((self.t_s, "camera unplugged" if out else "camera plugged back"))
+
+    def serial_unplugged(self, out: bool) -> None:
+        """The host's serial port disappears (USB cable out): no byte either way, and the
+        host's link sees its port fail (LinkClient: the read raises) until it is back."""
+        self.wire.cut = out
+        if out:
+            self.session.port_lost(self.t_s, "serial port unplugged (rig)")
+        else:
+            self.session.port_opened(self.t_s)
+        self.notes.append((self.t_s, "serial port unplugged" if out else "serial port back"))
+
+    def slow_inference(self, latency_s: float) -> None:
+        """Each cycle takes ``latency_s`` (0: back to normal): cycles one at a time, each on a
+        frame captured ``latency_s`` earlier."""
+        self._inference_s = latency_s
+        self.notes.append((self.t_s, f"inference takes {latency_s:.2f} s" if latency_s else "inference on time"))
+
+    def _host_finished(self) -> bool:
+        return self.controller.finished
+
+    def _host_step(self, out: Any) -> Any:
+        """The host after one exchange: its link steps; every guidance period the daemon cycles."""
+        self.session.step(self.t_s)
+        self.session.take_notices()  # results come through the handles; drain
+        if self.session.telemetry is not None:
+            self.host_fault_flags |= self.session.telemetry.fault_flags
+        if self.t_s >= self._next_guidance:
+            self._next_guidance += self.sc.rig.guidance_period_s
+            if self._nav_hung:  # a hung loop: no cycle, so no heartbeat or update either
+                pass
+            elif self._inference_s > 0.0:
+                if self.t_s >= self._busy_until:  # the previous slow cycle has finished
+                    out = self._cycle(frame_age_s=self._inference_s)
+                    self._busy_until = self.t_s + self._inference_s
+            else:
+                out = self._cycle()
+        return out
 
     def host_crash(self, crashed: bool) -> None:
         self._host_alive = not crashed
@@ -120,10 +197,23 @@ class Rig:
             self.notes.append((self.t_s, "host process restarted: new session, new controller"))
 
     def _new_host(self) -> None:
-        self.session = LinkSession(self.wire.host_end, host_version=HOST_VERSION)
-        self.controller = self.controller_factory()
-        self.awaiting: tuple[MechRequest, Any] | None = None
-        self.results: list[RequestResult] = []
+        """A host process: its link session (caller heartbeats, as oibar nav opens its link) and
+        its navigation daemon with a fresh guidance."""
+        self.session = LinkSession(self.wire.host_end, host_version=HOST_VERSION, auto_heartbeat=False)
+        self.daemon = NavDaemon(self.nav.navigator, self.controller_factory(), camera=None,
+                                link=SessionLink(self.session), vehicle=RigVehicle(self),
+                                params=DaemonParams(rate_hz=1.0 / self.sc.rig.guidance_period_s,
+                                                    stats_window=64),   # its timings are simulated
+                                clock=lambda: self.t_s, t0_s=0.0)
+
+    @property
+    def controller(self) -> Guidance:
+        """The daemon's guidance (the soak installs a new one per mission)."""
+        return self.daemon.guidance
+
+    @controller.setter
+    def controller(self, guidance: Guidance) -> None:
+        self.daemon.guidance = guidance
 
     # -- the loop -----------------------------------------------------------------------
 
@@ -141,49 +231,28 @@ class Rig:
                 or state not in ("STATE_IDLE", "STATE_APPROACH_READY", "STATE_BOOT"))
         return rs.exchange_ms if busy else rs.coast_exchange_ms
 
-    def _send_request(self, req: MechRequest) -> None:
-        s = self.session
-        try:
-            if req.kind == "param_set":
-                handle = s.param_set(req.param_id, req.value, now_s=self.t_s)
-            else:
-                handle = s.command(req.opcode, req.target_kpa, now_s=self.t_s)
-        except Exception as exc:  # link down or busy: the controller hears about it
-            self.results.append(RequestResult(req, False, type(exc).__name__))
-            self.requests_log.append((self.t_s, req.label, type(exc).__name__))
-            return
-        self.awaiting = (req, handle)
-
-    def _collect_result(self) -> None:
-        if self.awaiting is None:
-            return
-        req, handle = self.awaiting
-        if not handle.done:
-            return
-        self.awaiting = None
-        if handle.error is not None:
-            res = RequestResult(req, False, type(handle.error).__name__)
-        elif req.kind == "param_set":
-            res = RequestResult(req, handle.accepted, pb.enum_name(pb.NackReason, handle.response.reason))
-        else:
-            res = RequestResult(req, handle.accepted, pb.enum_name(pb.NackReason, handle.response.reason),
-                                pb.enum_name(pb.State, handle.response.state))
-        self.results.append(res)
-        verdict = "accepted" if res.accepted else f"refused ({res.reason})"
-        self.requests_log.append((self.t_s, req.label, verdict + (f" -> {res.state}" if res.state else "")))
-
-    def _observe(self) -> Observation:
-        events = self.session.take_events()
-        for ev in events:
+    def _cycle(self, frame_age_s: float = 0.0) -> Any:
+        """One cycle of the host's navigation daemon on this cycle's frame; log what it saw."""
+        frame = None if self._camera_out else self.nav.frame(self.t_s, self.world)
+        if frame is not None and frame_age_s > 0.0:  # captured when the slow cycle began
+            frame = dataclasses.replace(frame, t_host=self.t_s - frame_age_s)
+        t0 = time.perf_counter()
+        step, out = self.daemon.cycle(frame, camera_error="unplugged (rig fault)" if self._camera_out else "")
+        cycle_ms = (time.perf_counter() - t0) * 1e3
+        obs = self.daemon.last_observation
+        for ev in obs.events:
             self.events_log.append((self.t_s, self._event_text(ev)))
-        sol = self.nav.solve(self.t_s, self.world)
-        self._record_nav(sol)
-        obs = Observation(t_s=self.t_s, nav=sol, link_up=self.session.link_up,
-                          telemetry=self.session.telemetry, events=events, results=self.results)
-        self.results = []
-        return obs
+        for res in obs.results:
+            verdict = "accepted" if res.accepted else f"refused ({res.reason})"
+            self.requests_log.append((self.t_s, res.request.label,
+                                      verdict + (f" -> {res.state}" if res.state else "")))
+        timings = dict(getattr(self.nav, "last_timings_ms", {}))
+        if frame is not None:
+            timings.update(step.timings_ms, nav_ms=cycle_ms)
+        self._record_nav(step.solution, timings)
+        return out
 
-    def _record_nav(self, sol: Any) -> None:
+    def _record_nav(self, sol: Any, timings: dict) -> None:
         """The estimate beside the truth, per guidance cycle (report plots, metrics)."""
         w = self.world
         est_lat = sol.r_D_m[:2] if sol.valid else np.full(2, np.nan)
@@ -195,7 +264,7 @@ class Rig:
             "closing_est_mps": sol.closing_speed_mps if sol.valid else float("nan"),
             "misalign_true_deg": w.misalignment_deg,
             "misalign_est_deg": sol.misalignment_deg if sol.valid else float("nan"),
-            "confidence": sol.confidence, **getattr(self.nav, "last_timings_ms", {})})
+            "confidence": sol.confidence, **timings})
 
     def nav_metrics(self) -> dict[str, Any]:
         log = self.nav_log
@@ -264,10 +333,10 @@ class Rig:
         reply = None
         first_fault_s = None
         fault_flags_seen = 0
-        host_fault_flags = 0  # fault_flags in the telemetry the host received
+        self.host_fault_flags = 0  # fault_flags in the telemetry the host received
+        self._next_guidance = 0.0
         coils_off_after_fault_s = None
         valves_closed_after_injection_s = None
-        next_guidance = 0.0
         next_record = 0.0
         out = None
         wall0 = time.perf_counter()
@@ -275,8 +344,8 @@ class Rig:
                     stderr_path=stderr_path) as mcu:
             self.mcu = mcu
             while self.t_s < sc.rig.max_time_s:
-                if self.controller.finished and (self.between_missions is None
-                                                 or not self.between_missions(self)):
+                if self._host_finished() and (self.between_missions is None
+                                              or not self.between_missions(self)):
                     break
                 adv = self._advance_ms(reply, state)
                 flags = FLAG_HANG_MAIN_LOOP if self._hang else 0
@@ -317,18 +386,7 @@ class Rig:
                     valves_closed_after_injection_s = self.t_s - inj
                 # the host
                 if self._host_alive:
-                    self.session.step(self.t_s)
-                    self._collect_result()
-                    self.session.take_notices()  # results come through the handles; drain
-                    if self.session.telemetry is not None:
-                        host_fault_flags |= self.session.telemetry.fault_flags
-                    if self.t_s >= next_guidance:
-                        next_guidance += sc.rig.guidance_period_s
-                        out = self.controller.step(self.t_s, self._observe())
-                        self.world.set_setpoint(out.v_sp_D_mps, out.w_sp_rad_s)
-                        self.session.nav_update(out.nav, now_s=self.t_s)
-                        if out.request is not None:
-                            self._send_request(out.request)
+                    out = self._host_step(out)
                 else:
                     self.world.set_setpoint(np.zeros(3), np.zeros(3))  # vehicle holds
                 if self.t_s >= next_record:
@@ -351,7 +409,7 @@ class Rig:
             "faults_seen": sorted(self._flags_to_faults(fault_flags_seen)),
             "faults_reported_to_host": sorted({t.split()[-1] for _, t in self.events_log
                                                if t.startswith("EVT_FAULT ")}),
-            "faults_in_host_telemetry": sorted(self._flags_to_faults(host_fault_flags)),
+            "faults_in_host_telemetry": sorted(self._flags_to_faults(self.host_fault_flags)),
             "fuel_lost_kg": self.mech.fuel_lost_kg,
             "tv_final_kpa": self.mech.tv_true_kpa,
             "sv_final_kpa": self.mech.sv_true_kpa,

@@ -72,7 +72,8 @@ class LatestFrame:
     def stop(self) -> bool:
         """Stop the reader and close the source. Returns False when the reader is stuck inside
         the source's read (it is a daemon thread; the source is then left open rather than
-        closed under it). Safe to call twice."""
+        closed under it, and :attr:`running` stays True until the thread leaves read(); call
+        stop() again then). Safe to call twice."""
         thread = self._thread
         if thread is None:
             return True
@@ -80,11 +81,13 @@ class LatestFrame:
         with self._cond:
             self._cond.notify_all()
         thread.join(self.join_timeout_s)
-        self._thread = None
         if thread.is_alive():
+            # Kept: ``running`` stays True until it leaves read(), so an owner can wait for it
+            # instead of opening the source again under it (two readers on one device).
             log.warning("%s: reader thread still blocked in read() after %.1f s; leaving it",
                         self.source.name, self.join_timeout_s)
             return False
+        self._thread = None
         self.source.close()
         return True
 

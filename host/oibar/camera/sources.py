@@ -535,10 +535,16 @@ class CallableSource(CameraSource):
 def open_source(spec: str | int, *, rate_hz: float = DEFAULT_RATE_HZ, realtime: bool = False) -> CameraSource:
     """A source from a command-line value (not yet opened): an integer or ``/dev/video*`` ->
     :class:`DeviceSource`; an existing folder -> :class:`FolderSource`; an existing file ->
-    :class:`VideoFileSource`; anything with ``://`` -> :class:`DeviceSource` (stream URL)."""
+    :class:`VideoFileSource`; ``frames+tcp://HOST:PORT`` -> :class:`~oibar.camera.stream.FrameStreamSource`
+    (frames from another process, oibar.camera.stream); anything else with ``://`` ->
+    :class:`DeviceSource` (stream URL)."""
     if isinstance(spec, int) or str(spec).strip().isdigit():
         return DeviceSource(int(spec))
     s = str(spec)
+    if s.startswith("frames+tcp://"):
+        from oibar.camera.stream import FrameStreamSource
+
+        return FrameStreamSource(s)
     if s.startswith("/dev/") or "://" in s:
         return DeviceSource(s)
     p = Path(s)

@@ -1,19 +1,23 @@
-"""The companion computer's end of the link: handshake, requests, heartbeats, link loss.
+"""The companion computer's end of the link: a thin threaded pyserial driver around the core.
 
-:class:`LinkClient` implements the host rules of docs/link.md:
+Every link rule (handshake verdict, stop and wait with retransmission of the same seq, sequence
+tracking, heartbeats, link loss, MCU reboot detection, re-handshake) lives in
+:class:`oibar.link.core.LinkCore`; the HIL rig runs the same core on simulated time
+(:class:`oibar.link.session.LinkSession`). :class:`LinkClient` only adds what a real port needs:
 
-- one request outstanding at a time (stop and wait), matched to its response by
-  ``ack_seq``, retransmitted with the *same* seq after ``retransmit_timeout_s`` at most
-  ``max_retries`` times, so the MCU can answer a duplicate from its cache instead of
-  moving hardware twice;
-- a ``Heartbeat`` every ``heartbeat_period_s`` while the link is up;
-- link loss when no valid packet arrived for ``link_timeout_s``: the user is told, requests
-  fail fast with :class:`LinkDown`, and a supervisor re-opens the port if it failed and
-  handshakes again (a new seq numbering session) until the link is back.
+- one I/O thread (``oibar-link-io``) that reads the port, feeds the core, steps its timers on
+  the wall clock, writes what it queued, re-opens a port that failed (every
+  ``reconnect_period_s``) and runs the callbacks, in order;
+- blocking requests (:meth:`LinkClient.command`, :meth:`~LinkClient.param_set`, ...) for tools,
+  and non-blocking ones (:meth:`LinkClient.submit_command`, :meth:`~LinkClient.submit_param_set`:
+  a :class:`~oibar.link.core.Request` handle) for a loop that must not stall, like the
+  navigation daemon;
+- ``heartbeats="auto"`` (the core sends them every ``heartbeat_period_s``: tools, the console)
+  or ``"caller"`` (only :meth:`LinkClient.heartbeat` sends them: the navigation daemon calls it
+  once per cycle, so the MCU sees a hung navigation loop as a silent host).
 
-Threads: a reader (feeds the decoder, dispatches packets, runs the callbacks), a heartbeat
-sender and a supervisor. All are daemons, so a forgotten client cannot keep the process
-alive, but :meth:`LinkClient.close` stops and joins them.
+The thread is a daemon, so a forgotten client cannot keep the process alive, but
+:meth:`LinkClient.close` stops and joins it.
 """
 
 from __future__ import annotations
@@ -37,14 +41,13 @@ from oibar.link.errors import (
     PortError,
     ProtocolVersionError,
 )
-from oibar.link.framing import FrameDecoder, Packet, check_link_settings, encode_frame
-from oibar.link.seq import follow_peer_seq, next_seq
+from oibar.link.core import LinkCore, Request
+from oibar.link.framing import Packet
 
 _log = logging.getLogger(__name__)
 
 
-_RESPONSE_BODIES = frozenset({"handshake_reply", "ack", "param_value"})
-_READ_TIMEOUT_S = 0.05  # bounds how long the reader takes to notice close()
+_READ_TIMEOUT_S = 0.01  # the I/O thread steps the core's timers at least this often
 _WRITE_TIMEOUT_S = 1.0  # a port that cannot take a 247-byte frame in 1 s has failed
 _JOIN_TIMEOUT_S = 2.0
 _TELEMETRY_RATE_WINDOW_S = 2.0
@@ -122,6 +125,8 @@ class LinkStatistics:
     reconnects: int
     unmatched_responses: int
     events_dropped: int
+    link_losses: int = 0
+    mcu_restarts: int = 0  # link losses because the MCU rebooted (uptime back, host link down)
 
 
 def parse_opcode(opcode: int | str) -> int:
@@ -139,32 +144,7 @@ def parse_opcode(opcode: int | str) -> int:
 
 
 # ---------------------------------------------------------------------------
-# Internals
-
-
-class _Pending:
-    """The one outstanding request; the reader completes it, close/link loss fail it."""
-
-    __slots__ = ("seq", "done", "response", "error")
-
-    def __init__(self) -> None:
-        self.seq = 0
-        self.done = threading.Event()
-        self.response: Packet | None = None
-        self.error: LinkError | None = None
-
-
-class _Counters:
-    """The client's own counters, guarded by the client's condition lock."""
-
-    def __init__(self) -> None:
-        self.tx_packets = 0
-        self.retransmissions = 0
-        self.timeouts = 0
-        self.lost_peer_packets = 0
-        self.reconnects = 0
-        self.unmatched_responses = 0
-        self.events_dropped = 0
+# The driver
 
 
 class LinkClient:
@@ -177,9 +157,9 @@ class LinkClient:
             result = link.command("NOOP")
 
     Callbacks (``on_telemetry(Telemetry)``, ``on_event(Event)``, ``on_link_state(alive)``)
-    run on the client's threads: keep them short, and do not issue requests from them
-    (that would wait for a response only the calling thread could deliver; it raises
-    :class:`LinkError` instead). Exceptions they raise are logged and swallowed.
+    run on the client's I/O thread, in order: keep them short, and do not issue blocking
+    requests from them (that would wait for a response only that thread could deliver; it
+    raises :class:`LinkError` instead). Exceptions they raise are logged and swallowed.
     """
 
     def __init__(
@@ -198,9 +178,10 @@ class LinkClient:
         *,
         protocol_version: int = pb.PROTOCOL_VERSION,
         event_queue_size: int = 256,
+        heartbeats: str = "auto",
     ) -> None:
-        check_link_settings(host_version, max_retries, heartbeat_period_s, link_timeout_s,
-                            retransmit_timeout_s, reconnect_period_s)
+        if heartbeats not in ("auto", "caller"):
+            raise ValueError("heartbeats is 'auto' or 'caller'")
         self.url = url
         self.baudrate = baudrate
         self.host_version = host_version
@@ -210,41 +191,36 @@ class LinkClient:
         self.retransmit_timeout_s = retransmit_timeout_s
         self.max_retries = max_retries
         self.reconnect_period_s = reconnect_period_s
+        self.heartbeats = heartbeats
         self._on_telemetry = on_telemetry
         self._on_event = on_event
         self._on_link_state = on_link_state
-
-        # _cond guards every field below that more than one thread touches.
+        self._clock_origin_s = time.monotonic()
+        # The core, with every link rule. _cond's lock guards it and every field below.
+        self._core = LinkCore(
+            host_version=host_version, heartbeat_period_s=heartbeat_period_s,
+            link_timeout_s=link_timeout_s, retransmit_timeout_s=retransmit_timeout_s,
+            max_retries=max_retries, reconnect_period_s=reconnect_period_s,
+            auto_connect=False, auto_heartbeat=heartbeats == "auto",
+            protocol_version=protocol_version, event_queue_size=event_queue_size)
         self._cond = threading.Condition()
-        self._request_busy = False  # stop and wait: one request at a time (under _cond)
-        self._write_lock = threading.Lock()  # frames never interleave; seq order == wire order
         self._stop = threading.Event()
-        self._wake_supervisor = threading.Event()
-
-        self._decoder = FrameDecoder()
-        self._counters = _Counters()
         self._port: serial.SerialBase | None = None
-        self._threads: list[threading.Thread] = []
-        self._reader_thread: threading.Thread | None = None
+        self._thread: threading.Thread | None = None
         self._started = False
         self._closed = False
-        self._link_up = False
-        self._notified_alive = False  # what on_link_state last said (supervisor-owned)
-        self._last_retry_problem = ""  # supervisor-owned: log each new problem once
-        self._last_rx_s = 0.0
-        self._tx_seq = 0
-        self._peer_seq: int | None = None
-        self._pending: _Pending | None = None
-        self._handshake_info: HandshakeInfo | None = None
-        self._telemetry: Any = None
+        self._notified_alive = False  # what on_link_state last said (I/O thread)
+        self._last_retry_problem = ""  # I/O thread: log each new problem once
+        self._next_open_s = 0.0
         self._telemetry_times_s: collections.deque[float] = collections.deque()
-        self._events: collections.deque[Any] = collections.deque(maxlen=event_queue_size)
-        self._clock_origin_s = time.monotonic()
+
+    def _now(self) -> float:
+        return time.monotonic() - self._clock_origin_s
 
     # -- lifecycle ---------------------------------------------------------
 
     def connect(self) -> HandshakeInfo:
-        """Open the port and handshake; start the heartbeat and supervisor threads.
+        """Open the port and handshake; start the I/O thread.
 
         Raises :class:`PortError` (cannot open), :class:`LinkTimeout` (no answer),
         :class:`ProtocolVersionError` or :class:`Nack` (handshake refused). On failure
@@ -261,30 +237,39 @@ class LinkClient:
             port = self._open_port()
             with self._cond:
                 self._port = port
-            self._start_thread("reader", self._reader_loop, reader=True)
-            info = self._handshake()
+                self._core.port_opened(self._now())
+                req = self._core.connect(self._now())
+                self._flush_locked()
+            self._thread = threading.Thread(target=self._io_loop, name="oibar-link-io", daemon=True)
+            self._thread.start()
+            self._wait(req)
+            if req.error is not None:
+                raise req.error
+            with self._cond:
+                # from now on the core re-handshakes by itself after a loss
+                self._core.auto_connect = True
+                while not self._notified_alive and self._core.link_up and not self._stop.is_set():
+                    self._cond.wait(0.05)
         except BaseException:
             self._shutdown()
             with self._cond:
                 self._started = False
+                self._core.auto_connect = False
+                self._core.link_up = False
             raise
-        self._start_thread("heartbeat", self._heartbeat_loop)
-        self._notified_alive = True
-        self._notify_link_state(True)
-        self._start_thread("supervisor", self._supervisor_loop)
-        return info
+        return self._info(req.response)
 
     def close(self) -> None:
-        """Stop every thread, fail a waiting request with :class:`LinkClosed`, close the
-        port. Idempotent; safe from any thread, including a callback."""
+        """Stop the thread, fail a waiting request with :class:`LinkClosed`, close the port.
+        Idempotent; safe from any thread, including a callback."""
         with self._cond:
             if self._closed:
                 return
             self._closed = True
-        self._shutdown()  # joins the supervisor, so _notified_alive is ours now
+        self._shutdown()
         if self._notified_alive:
             self._notified_alive = False
-            self._notify_link_state(False)
+            self._call_back(self._on_link_state, False)
 
     def __enter__(self) -> "LinkClient":
         return self
@@ -298,24 +283,25 @@ class LinkClient:
     def link_alive(self) -> bool:
         """True between a successful handshake and the next link loss."""
         with self._cond:
-            return self._link_up
+            return self._core.link_up
 
     @property
     def handshake_info(self) -> HandshakeInfo | None:
         """The reply of the latest successful handshake."""
         with self._cond:
-            return self._handshake_info
+            reply = self._core.handshake_info
+        return None if reply is None else self._info(reply)
 
     @property
     def telemetry(self) -> Any:
         """The newest ``Telemetry`` message, or None before the first."""
         with self._cond:
-            return self._telemetry
+            return self._core.telemetry
 
     @property
     def telemetry_rate_hz(self) -> float:
         """Telemetry packets per second over the last couple of seconds."""
-        now = time.monotonic()
+        now = self._now()
         with self._cond:
             self._trim_telemetry_times(now)
             times = list(self._telemetry_times_s)
@@ -325,42 +311,47 @@ class LinkClient:
 
     @property
     def statistics(self) -> LinkStatistics:
-        """Snapshot of the decoder's and the client's counters."""
-        decoder = self._decoder.counters
+        """Snapshot of the decoder's and the core's counters."""
         with self._cond:
-            c = self._counters
+            d = self._core.decoder.counters
+            c = self._core.counters
             return LinkStatistics(
-                rx_packets=decoder.rx_packets,
-                rx_crc_errors=decoder.rx_crc_errors,
-                rx_framing_errors=decoder.rx_framing_errors,
-                rx_oversize=decoder.rx_oversize,
-                rx_bad_header=decoder.rx_bad_header,
-                rx_decode_errors=decoder.rx_decode_errors,
-                rx_unknown_type=decoder.rx_unknown_type,
-                tx_packets=c.tx_packets,
-                retransmissions=c.retransmissions,
-                timeouts=c.timeouts,
-                lost_peer_packets=c.lost_peer_packets,
-                reconnects=c.reconnects,
-                unmatched_responses=c.unmatched_responses,
-                events_dropped=c.events_dropped,
-            )
+                rx_packets=d.rx_packets, rx_crc_errors=d.rx_crc_errors,
+                rx_framing_errors=d.rx_framing_errors, rx_oversize=d.rx_oversize,
+                rx_bad_header=d.rx_bad_header, rx_decode_errors=d.rx_decode_errors,
+                rx_unknown_type=d.rx_unknown_type, tx_packets=c.tx_packets,
+                retransmissions=c.retransmissions, timeouts=c.timeouts,
+                lost_peer_packets=c.lost_peer_packets, reconnects=c.reconnects,
+                unmatched_responses=c.unmatched_responses, events_dropped=c.events_dropped,
+                link_losses=c.link_losses, mcu_restarts=c.mcu_restarts)
 
     def next_event(self, timeout_s: float | None = None) -> Any:
         """Pop the oldest queued ``Event``; wait up to ``timeout_s`` (None: forever).
         Returns None on timeout or when the client is closed."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         with self._cond:
-            while not self._events:
+            while not self._core.events:
                 if self._closed:
                     return None
                 remaining = None if deadline is None else deadline - time.monotonic()
                 if remaining is not None and remaining <= 0:
                     return None
                 self._cond.wait(remaining)
-            return self._events.popleft()
+            return self._core.events.popleft()
 
     # -- requests ----------------------------------------------------------
+
+    def submit_command(self, opcode: int | str, target_pressure_kpa: float | None = None) -> Request:
+        """Send a mechanism command without waiting: the handle's ``done`` turns True when the
+        MCU answered, the retries ran out or the link dropped (``error`` says which).
+        Raises :class:`LinkDown` at once while the link is down, :class:`LinkError` while
+        another request is outstanding (stop and wait)."""
+        code = parse_opcode(opcode)
+        return self._submit(lambda now: self._core.command(code, target_pressure_kpa, now_s=now))
+
+    def submit_param_set(self, param_id: int, value: float) -> Request:
+        """Like :meth:`submit_command`, for a parameter write."""
+        return self._submit(lambda now: self._core.param_set(param_id, value, now_s=now))
 
     def command(self, opcode: int | str, target_pressure_kpa: float | None = None) -> CommandResult:
         """Send a mechanism command and return the MCU's verdict.
@@ -369,20 +360,8 @@ class LinkClient:
         Raises :class:`LinkDown` / :class:`LinkTimeout`, never for a refusal.
         """
         code = parse_opcode(opcode)
-        packet = Packet()
-        packet.command.opcode = code
-        if target_pressure_kpa is not None:
-            packet.command.target_pressure_kpa = target_pressure_kpa
-        response = self._request(packet)
-        kind = response.WhichOneof("body")
-        if kind != "ack":
-            raise LinkError(f"unexpected {kind} in answer to a command")
-        ack = response.ack
-        return CommandResult(
-            accepted=ack.accepted,
-            reason=pb.enum_name(pb.NackReason, ack.reason),
-            state=pb.enum_name(pb.State, ack.state),
-        )
+        req = self._request(lambda now: self._core.command(code, target_pressure_kpa, now_s=now))
+        return command_result(req)
 
     def command_checked(
         self, opcode: int | str, target_pressure_kpa: float | None = None
@@ -394,16 +373,21 @@ class LinkClient:
 
     def param_get(self, param_id: int) -> ParamValue:
         """Read a parameter; a failure is reported in ``ParamValue.reason``."""
-        packet = Packet()
-        packet.param_get.param_id = param_id
-        return self._param_value(self._request(packet), param_id)
+        req = self._request(lambda now: self._core.param_get(param_id, now_s=now))
+        return param_value(req, param_id)
 
     def param_set(self, param_id: int, value: float) -> ParamValue:
         """Write a parameter; returns the value the MCU now holds (or why it refused)."""
-        packet = Packet()
-        packet.param_set.param_id = param_id
-        packet.param_set.value = value
-        return self._param_value(self._request(packet), param_id)
+        req = self._request(lambda now: self._core.param_set(param_id, value, now_s=now))
+        return param_value(req, param_id)
+
+    def send_nav_update(self, nav: Any) -> bool:
+        """Send a ready ``NavUpdate`` message, fire and forget (the newest one wins on the MCU).
+        Returns False (and sends nothing) while the link is down."""
+        with self._cond:
+            if not self._core.nav_update(nav, now_s=self._now()):
+                return False
+            return self._flush_locked()
 
     def send_nav(
         self,
@@ -416,15 +400,14 @@ class LinkClient:
         closing_speed_mps: float = 0.0,
         phase: int | str = 0,
         confidence: float = 0.0,
+        valid: bool = False,
     ) -> bool:
-        """Send a NavUpdate, fire and forget (the newest one wins on the MCU).
+        """Build and send a NavUpdate (see :meth:`send_nav_update`).
 
-        ``q_cam_target`` is (w, x, y, z); ``stamp_ms`` defaults to the host clock.
-        Returns False (and sends nothing) while the link is down, so a 10 Hz navigation
-        loop keeps running through a link loss.
+        ``q_cam_target`` is (w, x, y, z); ``stamp_ms`` defaults to the host clock. ``valid``
+        must be said: without it the MCU takes none of the fields as data.
         """
-        packet = Packet()
-        nav = packet.nav_update
+        nav = pb.NavUpdate()
         nav.frame_id = frame_id
         nav.stamp_ms = self._host_clock_ms() if stamp_ms is None else stamp_ms
         nav.t_cam_target_m.x, nav.t_cam_target_m.y, nav.t_cam_target_m.z = t_cam_target_m
@@ -434,321 +417,180 @@ class LinkClient:
         nav.closing_speed_mps = closing_speed_mps
         nav.phase = pb.NavPhase.Value(phase) if isinstance(phase, str) else phase
         nav.confidence = confidence
-        if not self.link_alive:
-            return False
-        try:
-            self._send(packet)
-        except LinkError as exc:
-            _log.debug("nav update not sent: %s", exc)
-            return False
-        return True
+        nav.valid = bool(valid)
+        return self.send_nav_update(nav)
+
+    def heartbeat(self, *, force: bool = False) -> bool:
+        """Send a Heartbeat if one is due (``heartbeats="caller"``: the caller's loop says it is
+        alive). False while the link is down or when none was due."""
+        with self._cond:
+            if not self._core.heartbeat(self._now(), force=force):
+                return False
+            return self._flush_locked()
 
     # -- request machinery -------------------------------------------------
 
-    def _request(self, packet: Packet, *, handshake: bool = False) -> Packet:
-        """Send ``packet`` as the one outstanding request; return its response packet."""
-        if threading.current_thread() is self._reader_thread:
-            raise LinkError("requests cannot be issued from a link callback")
-        pending = _Pending()
+    def _submit(self, make: Callable[[float], Request]) -> Request:
         with self._cond:
-            # Wait for our turn, but give up at once if the link goes down meanwhile:
-            # the turn may belong to a re-handshake that can take a while.
+            self._check_open_locked()
+            req = make(self._now())
+            self._flush_locked()
+            return req
+
+    def _request(self, make: Callable[[float], Request]) -> Request:
+        """Wait for our turn (stop and wait), send, wait for the handle to complete."""
+        if threading.current_thread() is self._thread:
+            raise LinkError("requests cannot be issued from a link callback")
+        with self._cond:
             while True:
-                if self._closed or self._stop.is_set():
-                    raise LinkClosed("the link client is closed")
-                if not handshake and not self._link_up:
-                    raise LinkDown("the link is down; waiting for the MCU to answer again")
-                if not self._request_busy:
+                self._check_open_locked()
+                if not self._core.busy:
                     break
                 self._cond.wait()
-            self._request_busy = True
-            self._pending = pending
-        try:
-            return self._exchange(packet, pending)
-        finally:
-            with self._cond:
-                self._request_busy = False
-                if self._pending is pending:
-                    self._pending = None
-                self._cond.notify_all()
+            req = make(self._now())
+            self._flush_locked()
+        self._wait(req)
+        if req.error is not None:
+            raise req.error
+        return req
 
-    def _exchange(self, packet: Packet, pending: _Pending) -> Packet:
-        frame = self._send(packet, pending=pending, new_session=packet.HasField("handshake"))
-        for attempt in range(self.max_retries + 1):
-            if attempt:
-                self._write_frame(frame)  # same bytes, same seq: the MCU answers from cache
-                with self._cond:
-                    self._counters.retransmissions += 1
-                _log.debug("retransmission %d of seq %d", attempt, pending.seq)
-            if pending.done.wait(self.retransmit_timeout_s):
-                break
-        else:
-            with self._cond:
-                self._counters.timeouts += 1
-            kind = packet.WhichOneof("body")
-            raise LinkTimeout(
-                f"{kind} (seq {pending.seq}) got no response after {self.max_retries + 1} "
-                f"attempts {self.retransmit_timeout_s:g} s apart"
-            )
-        if pending.error is not None:
-            raise pending.error
-        assert pending.response is not None
-        response = pending.response
-        if (
-            not packet.HasField("handshake")
-            and response.HasField("ack")
-            and response.ack.reason == pb.NACK_NOT_CONNECTED
-        ):
-            # The MCU dropped our session (reset, or it saw a link loss we did not):
-            # report this request as refused and let the supervisor handshake again.
-            self._link_lost("the MCU answered NACK_NOT_CONNECTED")
-        return response
+    def _check_open_locked(self) -> None:
+        if self._closed or self._stop.is_set():
+            raise LinkClosed("the link client is closed")
+        if not self._core.link_up:
+            raise LinkDown("the link is down; waiting for the MCU to answer again")
 
-    def _param_value(self, response: Packet, param_id: int) -> ParamValue:
-        kind = response.WhichOneof("body")
-        if kind == "ack":  # e.g. NACK_NOT_CONNECTED or NACK_UNKNOWN_MESSAGE
-            return ParamValue(
-                param_id, 0.0, 0.0, 0.0, 0.0, "", "", pb.enum_name(pb.NackReason, response.ack.reason)
-            )
-        if kind != "param_value":
-            raise LinkError(f"unexpected {kind} in answer to a parameter request")
-        v = response.param_value
-        return ParamValue(
-            param_id=v.param_id,
-            value=v.value,
-            min=v.min,
-            max=v.max,
-            default_value=v.default_value,
-            name=v.name,
-            unit=v.unit,
-            reason=pb.enum_name(pb.NackReason, v.reason),
-        )
+    def _wait(self, req: Request) -> None:
+        with self._cond:
+            while not req.done:
+                if self._thread is None or not self._thread.is_alive():
+                    if not req.done:
+                        self._core.fail_pending(self._now(), LinkClosed("the link client was closed"))
+                    break
+                self._cond.wait(0.1)
 
-    def _handshake(self) -> HandshakeInfo:
-        """Open a new session: seq numbering restarts at 1 with the Handshake itself."""
-        packet = Packet()
-        packet.handshake.protocol_version = self.protocol_version
-        packet.handshake.host_version = self.host_version
-        response = self._request(packet, handshake=True)
-        kind = response.WhichOneof("body")
-        if kind == "ack":  # an MCU that does not know Handshake at all
-            raise Nack(pb.enum_name(pb.NackReason, response.ack.reason), "handshake")
-        if kind != "handshake_reply":
-            raise LinkError(f"unexpected {kind} in answer to the handshake")
-        reply = response.handshake_reply
-        if reply.reason == pb.NACK_VERSION_MISMATCH or (
-            reply.accepted and reply.protocol_version != self.protocol_version
-        ):
-            raise ProtocolVersionError(self.protocol_version, reply.protocol_version)
-        if not reply.accepted:
-            raise Nack(pb.enum_name(pb.NackReason, reply.reason), "handshake")
-        info = HandshakeInfo(
+    @staticmethod
+    def _info(reply: Any) -> HandshakeInfo:
+        return HandshakeInfo(
             firmware_version=reply.firmware_version,
             build_id=reply.build_id,
             protocol_version=reply.protocol_version,
             reset_cause=pb.enum_name(pb.ResetCause, reply.reset_cause),
             uptime_ms=reply.uptime_ms,
         )
-        with self._cond:
-            self._handshake_info = info
-            self._link_up = True
-            self._last_rx_s = time.monotonic()
-        _log.info(
-            "link up on %s: firmware %s (build %s), protocol %d, reset cause %s",
-            self.url, info.firmware_version, info.build_id, info.protocol_version, info.reset_cause,
-        )
-        return info
 
-    # -- sending -----------------------------------------------------------
+    # -- the port ------------------------------------------------------------
 
-    def _send(
-        self, packet: Packet, *, pending: _Pending | None = None, new_session: bool = False
-    ) -> bytes:
-        """Number ``packet``, frame it and write it; return the frame for retransmission.
-
-        Numbering happens under the write lock so that seq order is wire order.
-        """
-        with self._write_lock:
-            with self._cond:
-                if new_session:
-                    self._tx_seq = 0
-                    self._peer_seq = None
-                self._tx_seq = next_seq(self._tx_seq)
-                packet.seq = self._tx_seq
-                if pending is not None:
-                    pending.seq = packet.seq
-            frame = encode_frame(packet)
-            failure = self._write_frame_locked(frame)
-        if failure is not None:
-            self._raise_write_failure(*failure)
-        return frame
-
-    def _write_frame(self, frame: bytes) -> None:
-        with self._write_lock:
-            failure = self._write_frame_locked(frame)
-        if failure is not None:
-            self._raise_write_failure(*failure)
-
-    def _write_frame_locked(self, frame: bytes) -> tuple[Any, Exception] | None:
-        """Write one frame; return (port, exception) on failure, to be handled after the
-        write lock is released (closing a port can take a while)."""
-        with self._cond:
-            port = self._port
+    def _flush_locked(self) -> bool:
+        """Write the frames the core queued; a failing port is dropped (the I/O thread re-opens
+        it). True when everything was written."""
+        frames = self._core.take_output()
+        port = self._port
+        if not frames:
+            return True
         if port is None:
-            return None, LinkDown("the serial port is not open")
+            return False
         try:
-            port.write(frame)
+            for frame in frames:
+                port.write(frame)
         except Exception as exc:  # SerialException, OSError, or a port closed under us
-            return port, exc
-        with self._cond:
-            self._counters.tx_packets += 1
-        return None
-
-    def _raise_write_failure(self, port: Any, exc: Exception) -> None:
-        if port is None:
-            raise exc
-        self._port_failed(port, exc)
-        raise LinkDown(f"writing to {self.url} failed: {exc}") from exc
-
-    # -- threads -----------------------------------------------------------
-
-    def _start_thread(self, role: str, target: Callable[[], None], reader: bool = False) -> None:
-        thread = threading.Thread(target=target, name=f"oibar-link-{role}", daemon=True)
-        if reader:
-            self._reader_thread = thread
-        self._threads.append(thread)
-        thread.start()
-
-    def _shutdown(self) -> None:
-        """Stop and join the threads, fail the waiting request, close the port."""
-        with self._cond:
-            self._stop.set()
-            self._link_up = False
-            port, self._port = self._port, None
-            if self._pending is not None:
-                self._fail_pending_locked(LinkClosed("the link client was closed"))
-            self._cond.notify_all()
-        self._wake_supervisor.set()
-        if port is not None:
-            self._close_port_quietly(port)
-        current = threading.current_thread()
-        for thread in self._threads:
-            if thread is not current:
-                thread.join(_JOIN_TIMEOUT_S)
-                if thread.is_alive():
-                    _log.warning("thread %s did not stop within %.1f s", thread.name, _JOIN_TIMEOUT_S)
-        self._threads = []
-        self._reader_thread = None
-        self._wake_supervisor.clear()
-
-    def _reader_loop(self) -> None:
-        """Feed the decoder with whatever the port delivers and dispatch the packets."""
-        previous_port = None
-        while True:
-            with self._cond:
-                while self._port is None and not self._stop.is_set():
-                    self._cond.wait()
-                if self._stop.is_set():
-                    return
-                port = self._port
-            if port is not previous_port:
-                self._decoder.reset()  # a frame cut by the old port's failure is not news
-                previous_port = port
-            try:
-                data = port.read(1)  # blocks up to _READ_TIMEOUT_S
-                if data:
-                    waiting = port.in_waiting
-                    if waiting:
-                        data += port.read(waiting)
-            except Exception as exc:  # unplugged device, socket closed, port closed by close()
-                if self._stop.is_set():
-                    return
-                self._port_failed(port, exc)
-                continue
-            if data:
-                for packet in self._decoder.feed(data):
-                    self._dispatch(packet)
-
-    def _heartbeat_loop(self) -> None:
-        """Send a Heartbeat every period while the link is up."""
-        while not self._stop.wait(self.heartbeat_period_s):
-            if not self.link_alive:
-                continue
-            packet = Packet()
-            packet.heartbeat.uptime_ms = self._host_clock_ms()
-            try:
-                self._send(packet)
-            except LinkError as exc:
-                _log.debug("heartbeat not sent: %s", exc)
-
-    def _supervisor_loop(self) -> None:
-        """Declare the link lost after link_timeout_s of silence; re-establish it.
-
-        This thread also delivers every on_link_state change after connect(), so the
-        callback never runs with a client lock held and a loss is always reported before
-        the link comes back.
-        """
-        check_period_s = min(0.05, self.link_timeout_s / 4)
-        next_attempt_s = 0.0
-        while not self._stop.is_set():
-            self._wake_supervisor.wait(check_period_s)
-            self._wake_supervisor.clear()
-            if self._stop.is_set():
-                return
-            now = time.monotonic()
-            with self._cond:
-                up, silent_s, port = self._link_up, now - self._last_rx_s, self._port
-            if up and silent_s > self.link_timeout_s:
-                self._link_lost(f"no valid packet for {silent_s:.2f} s")
-                up = False
-                next_attempt_s = now  # the port is still open: try a handshake at once
-            self._sync_link_state()
-            if up or now < next_attempt_s:
-                continue
-            try:
-                if self._reestablish(port):
-                    self._sync_link_state()
-            finally:
-                next_attempt_s = time.monotonic() + self.reconnect_period_s
-
-    def _sync_link_state(self) -> None:
-        with self._cond:
-            alive = self._link_up
-        if alive != self._notified_alive:
-            self._notified_alive = alive
-            self._notify_link_state(alive)
-
-    def _reestablish(self, port: serial.SerialBase | None) -> bool:
-        """One attempt: re-open the port if it failed, then handshake. True on success."""
-        if port is None:
-            try:
-                port = self._open_port()
-            except PortError as exc:
-                self._retry_problem(logging.INFO, f"waiting for the port to come back: {exc}")
-                return False
-            with self._cond:
-                if self._stop.is_set():
-                    stale = True
-                else:
-                    stale = False
-                    self._port = port
-                    self._cond.notify_all()
-            if stale:
-                self._close_port_quietly(port)
-                return False
-            _log.info("re-opened %s", self.url)
-        try:
-            self._handshake()
-        except ProtocolVersionError as exc:
-            self._retry_problem(logging.ERROR, f"cannot re-establish the link: {exc}")
+            self._port_failed_locked(port, exc)
             return False
-        except LinkError as exc:
-            self._retry_problem(logging.INFO, f"handshake failed, retrying: {exc}")
-            return False
-        self._last_retry_problem = ""
-        with self._cond:
-            self._counters.reconnects += 1
         return True
+
+    def _port_failed_locked(self, port: Any, exc: BaseException) -> None:
+        if self._port is not port:
+            return
+        self._port = None
+        self._core.port_lost(self._now(), str(exc))
+        self._next_open_s = self._now() + self.reconnect_period_s
+        _log.warning("port %s failed: %s", self.url, exc)
+        self._close_port_quietly(port)
+        self._cond.notify_all()
+
+    def _io_loop(self) -> None:
+        """Read, feed the core, step its timers, write, re-open a failed port, call back."""
+        while not self._stop.is_set():
+            with self._cond:
+                port = self._port
+            if port is None:
+                self._try_reopen()
+                self._stop.wait(0.01)
+            else:
+                data = b""
+                try:
+                    data = port.read(1)  # blocks up to _READ_TIMEOUT_S
+                    if data:
+                        waiting = port.in_waiting
+                        if waiting:
+                            data += port.read(waiting)
+                except Exception as exc:  # unplugged device, socket closed, port closed by close()
+                    if self._stop.is_set():
+                        return
+                    with self._cond:
+                        self._port_failed_locked(port, exc)
+            with self._cond:
+                now = self._now()
+                if data:
+                    self._core.receive(data, now)
+                self._core.step(now)
+                self._flush_locked()
+                notices = self._core.take_notices()
+                self._cond.notify_all()
+            self._deliver(notices)
+
+    def _try_reopen(self) -> None:
+        now = self._now()
+        with self._cond:
+            if now < self._next_open_s or not self._core.auto_connect:
+                return
+            self._next_open_s = now + self.reconnect_period_s
+        try:
+            port = self._open_port()
+        except PortError as exc:
+            self._retry_problem(logging.INFO, f"waiting for the port to come back: {exc}")
+            return
+        with self._cond:
+            if self._stop.is_set():
+                self._close_port_quietly(port)
+                return
+            self._port = port
+            self._core.port_opened(self._now())
+        _log.info("re-opened %s", self.url)
+
+    def _deliver(self, notices: list) -> None:
+        """Log and call back, in the order the core saw things (I/O thread, no lock held)."""
+        for n in notices:
+            if n.what == "telemetry":
+                with self._cond:
+                    self._telemetry_times_s.append(n.t_s)
+                    self._trim_telemetry_times(n.t_s)
+                self._call_back(self._on_telemetry, n.body)
+            elif n.what == "event":
+                self._call_back(self._on_event, n.body)
+            elif n.what == "link_down":
+                _log.warning("link lost on %s: %s", self.url, n.detail)
+                self._set_notified(False)
+            elif n.what == "link_up":
+                self._last_retry_problem = ""
+                info = self._core.handshake_info
+                _log.info("link up on %s: firmware %s (build %s), protocol %d, reset cause %s",
+                          self.url, info.firmware_version, info.build_id, info.protocol_version,
+                          pb.enum_name(pb.ResetCause, info.reset_cause))
+                self._set_notified(True)
+            elif n.what == "request_done" and n.request.kind == "handshake" and n.request.error:
+                with self._cond:
+                    retrying = self._core.auto_connect
+                if retrying:
+                    level = logging.ERROR if isinstance(n.request.error, ProtocolVersionError) else logging.INFO
+                    self._retry_problem(level, f"handshake failed, retrying: {n.request.error}")
+
+    def _set_notified(self, alive: bool) -> None:
+        if alive != self._notified_alive:
+            self._call_back(self._on_link_state, alive)
+            with self._cond:
+                self._notified_alive = alive
+                self._cond.notify_all()
 
     def _retry_problem(self, level: int, message: str) -> None:
         """Log a re-establishment problem at ``level`` once, then at DEBUG while it
@@ -757,91 +599,28 @@ class LinkClient:
         _log.log(level if kind != self._last_retry_problem else logging.DEBUG, "%s", message)
         self._last_retry_problem = kind
 
-    # -- receiving ---------------------------------------------------------
-
-    def _dispatch(self, packet: Packet) -> None:
-        """Route one valid packet (reader thread)."""
-        now = time.monotonic()
-        kind = packet.WhichOneof("body")
+    def _shutdown(self) -> None:
+        """Stop and join the thread, fail the waiting request, close the port."""
         with self._cond:
-            self._last_rx_s = now
-            self._track_peer_seq_locked(packet.seq)
-            if kind in _RESPONSE_BODIES:
-                pending = self._pending
-                if (
-                    pending is not None
-                    and packet.ack_seq != 0
-                    and packet.ack_seq == pending.seq
-                    and not pending.done.is_set()
-                ):
-                    pending.response = packet
-                    pending.done.set()
-                else:
-                    # a late answer to a request that already timed out, or the cached
-                    # answer to a retransmission after the first answer got through
-                    self._counters.unmatched_responses += 1
-                    _log.debug("unmatched %s ack_seq=%d", kind, packet.ack_seq)
-                return
-            if kind == "telemetry":
-                self._telemetry = packet.telemetry
-                self._telemetry_times_s.append(now)
-                self._trim_telemetry_times(now)
-            elif kind == "event":
-                if len(self._events) == self._events.maxlen:
-                    self._counters.events_dropped += 1
-                self._events.append(packet.event)
-                self._cond.notify_all()
-        if kind == "telemetry":
-            self._call_back(self._on_telemetry, packet.telemetry)
-        elif kind == "event":
-            self._call_back(self._on_event, packet.event)
-        elif kind != "heartbeat":
-            _log.debug("ignoring %s from the peer", kind)  # host-bound bodies, e.g. on loop://
-
-    def _track_peer_seq_locked(self, seq: int) -> None:
-        """Count gaps in the peer's numbering as lost packets (oibar.link.seq)."""
-        self._peer_seq, lost = follow_peer_seq(self._peer_seq, seq)
-        self._counters.lost_peer_packets += lost
+            self._stop.set()
+            port, self._port = self._port, None
+            self._core.fail_pending(self._now(), LinkClosed("the link client was closed"))
+            self._core.link_up = False
+            self._core.auto_connect = False
+            self._cond.notify_all()
+        if port is not None:
+            self._close_port_quietly(port)
+        thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(_JOIN_TIMEOUT_S)
+            if thread.is_alive():
+                _log.warning("thread %s did not stop within %.1f s", thread.name, _JOIN_TIMEOUT_S)
+        self._thread = None
 
     def _trim_telemetry_times(self, now: float) -> None:
         times = self._telemetry_times_s
         while times and now - times[0] > _TELEMETRY_RATE_WINDOW_S:
             times.popleft()
-
-    # -- failures ----------------------------------------------------------
-
-    def _link_lost(self, why: str) -> None:
-        """Up -> down: fail the waiting request; the supervisor tells the user and
-        re-establishes the link."""
-        with self._cond:
-            if not self._link_up:
-                return
-            self._link_up = False
-            if self._pending is not None:
-                self._fail_pending_locked(LinkDown(f"link lost: {why}"))
-            self._cond.notify_all()  # queued requests fail fast
-        _log.warning("link lost on %s: %s", self.url, why)
-        self._wake_supervisor.set()
-
-    def _port_failed(self, port: serial.SerialBase, exc: BaseException) -> None:
-        """The port raised (unplugged, socket gone): drop it; the supervisor re-opens it."""
-        with self._cond:
-            if self._port is not port:
-                return  # already handled, or an old port
-            self._port = None
-            self._link_up = False
-            if self._pending is not None:
-                self._fail_pending_locked(LinkDown(f"port failed: {exc}"))
-            self._cond.notify_all()
-        _log.warning("port %s failed: %s", self.url, exc)
-        self._close_port_quietly(port)  # before the supervisor tries to re-open it
-        self._wake_supervisor.set()
-
-    def _fail_pending_locked(self, error: LinkError) -> None:
-        pending = self._pending
-        if pending is not None and not pending.done.is_set():
-            pending.error = error
-            pending.done.set()
 
     # -- helpers -----------------------------------------------------------
 
@@ -869,9 +648,6 @@ class LinkClient:
         except Exception as exc:
             _log.debug("closing the port: %s", exc)
 
-    def _notify_link_state(self, alive: bool) -> None:
-        self._call_back(self._on_link_state, alive)
-
     @staticmethod
     def _call_back(callback: Callable[[Any], None] | None, arg: Any) -> None:
         if callback is None:
@@ -882,4 +658,39 @@ class LinkClient:
             _log.exception("link callback %r failed", callback)
 
     def _host_clock_ms(self) -> int:
-        return int((time.monotonic() - self._clock_origin_s) * 1000) & 0xFFFFFFFF
+        return int(self._now() * 1000) & 0xFFFFFFFF
+
+
+# ---------------------------------------------------------------------------
+# Request handles -> results (shared with the navigation daemon)
+
+
+def command_result(req: Request) -> CommandResult:
+    """The verdict in a completed command handle (raises its link error, if any)."""
+    if req.error is not None:
+        raise req.error
+    if req.response_kind != "ack":
+        raise LinkError(f"unexpected {req.response_kind} in answer to a command")
+    ack = req.response
+    return CommandResult(
+        accepted=ack.accepted,
+        reason=pb.enum_name(pb.NackReason, ack.reason),
+        state=pb.enum_name(pb.State, ack.state),
+    )
+
+
+def param_value(req: Request, param_id: int) -> ParamValue:
+    """The answer in a completed parameter handle (raises its link error, if any)."""
+    if req.error is not None:
+        raise req.error
+    if req.response_kind == "ack":  # e.g. NACK_NOT_CONNECTED or NACK_UNKNOWN_MESSAGE
+        return ParamValue(param_id, 0.0, 0.0, 0.0, 0.0, "", "",
+                          pb.enum_name(pb.NackReason, req.response.reason))
+    if req.response_kind != "param_value":
+        raise LinkError(f"unexpected {req.response_kind} in answer to a parameter request")
+    v = req.response
+    return ParamValue(
+        param_id=v.param_id, value=v.value, min=v.min, max=v.max,
+        default_value=v.default_value, name=v.name, unit=v.unit,
+        reason=pb.enum_name(pb.NackReason, v.reason),
+    )

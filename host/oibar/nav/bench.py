@@ -38,17 +38,21 @@ class _InstantLink:
     def next_event(self, timeout_s=None):
         return None
 
-    def send_nav(self, **kw) -> bool:
+    def send_nav_update(self, nav) -> bool:
         with self._lock:
             self.navs += 1
         return True
 
-    def command(self, opcode, target_kpa=None):
-        from oibar.link.client import CommandResult
+    def heartbeat(self, force=False) -> bool:
+        return True
 
-        return CommandResult(accepted=True, reason="NACK_NONE", state="STATE_IDLE")
+    def submit_command(self, opcode, target_kpa=None):
+        from oibar.link.core import Request
 
-    def param_set(self, pid, value):
+        ack = pb.Ack(accepted=True, reason=pb.NACK_NONE, state=pb.STATE_IDLE)
+        return Request("command", pb.Packet(), done=True, response=ack, response_kind="ack")
+
+    def submit_param_set(self, pid, value):
         raise RuntimeError("not used")
 
 

@@ -28,6 +28,8 @@ camera (--camera):
   /dev/video2          a V4L2 device path
   approach.mp4         a video file (played at its frame rate)
   frames/              a folder of images (frames.csv with times if present, else --camera-rate-hz)
+  frames+tcp://H:P     RGB frames from another process over a local TCP socket
+                       (oibar.camera.stream; `make sitl` feeds the rig's renderer this way)
 
 port (--port):
   /dev/ttyACM0, COM3   the MCU's serial port (115200 baud)
@@ -121,6 +123,15 @@ def _status_printer():
     return show
 
 
+def open_link(port: str, **settings):
+    """The navigation daemon's link client: heartbeats only from the navigation cycle
+    (``heartbeats="caller"``), so when the loop hangs the MCU's link timeout sees a silent host
+    and holds or retreats, instead of a heartbeat thread keeping a dead navigator alive."""
+    from oibar.link.client import LinkClient
+
+    return LinkClient(port, heartbeats="caller", **settings)
+
+
 def cmd_nav(a) -> int:
     from oibar.camera import open_source
     from oibar.nav.cyclelog import CycleLog
@@ -130,8 +141,12 @@ def cmd_nav(a) -> int:
 
     model = a.model or default_model_path()
     navigator = load_navigator(model, threads=a.threads)       # model errors first, nothing opened yet
-    print(f"model {model} (version {navigator.estimator.meta.get('model_version', '?')}), "
-          f"input {navigator.estimator.size_wh[0]}x{navigator.estimator.size_wh[1]}", file=sys.stderr)
+    est = navigator.estimator
+    lo, hi = est.range_limits_m
+    origin = "from the model's oibar.train_range_m" if "train_range_m" in est.meta else \
+        "default: the model states no oibar.train_range_m"
+    print(f"model {model} (version {est.meta.get('model_version', '?')}), "
+          f"input {est.size_wh[0]}x{est.size_wh[1]}, range check {lo:g}-{hi:g} m ({origin})", file=sys.stderr)
     camera = open_source(a.camera, rate_hz=a.camera_rate_hz, realtime=True)
     vehicle = open_vehicle(a.vehicle)
     log = None
@@ -141,9 +156,7 @@ def cmd_nav(a) -> int:
         print(f"log {log.path}", file=sys.stderr)
     link = None
     if a.port.lower() != "none":
-        from oibar.link.client import LinkClient
-
-        link = LinkClient(a.port, baudrate=a.baudrate)
+        link = open_link(a.port, baudrate=a.baudrate)
         connect_in_background(link, on_error=lambda m: print(f"\nlink: {m} (retrying)", file=sys.stderr))
     guidance = Guidance(MissionParams(target_kpa=a.target_pressure_kpa))
     daemon = NavDaemon(navigator, guidance, camera, link=link, vehicle=vehicle, log=log,

@@ -1,17 +1,35 @@
 """The navigation daemon: camera -> OibarNet -> filter -> guidance -> vehicle and MCU, at 10 Hz.
 
 Threads: the camera reader (oibar.camera.LatestFrame: the cycle only ever sees the newest
-frame), the link client's reader and supervisor (oibar.link.LinkClient), and one mechanism
-worker that runs the stop-and-wait mechanism requests (a command can take up to the link's
-retry budget, ~1 s; it must not stall the 10 Hz cycle). Everything else runs in the cycle, on
-absolute deadlines (``next = start + k * period``), so one slow cycle does not shift the rest.
+frame) and the link client's I/O thread (oibar.link.LinkClient). Everything else runs in the
+cycle. Mechanism requests are stop and wait and can take up to the link's retry budget (~1 s),
+so the cycle never waits for one: it submits it (``link.submit_command``) and reads the handle's
+verdict in a later cycle. Heartbeats go out from the cycle (``link.heartbeat()``, the client is
+opened with ``heartbeats="caller"``), so a hung navigation loop falls silent and the MCU sees it.
+
+The HIL rig drives this same ``cycle`` on simulated time (oibar_hil.rig.runner) with a
+:class:`~oibar.link.session.SessionLink` over the same link core; the real program drives it
+from :meth:`NavDaemon.run` with a :class:`~oibar.link.client.LinkClient`.
+
+The link object needs: ``link_alive``, ``telemetry``, ``next_event(timeout_s)``,
+``send_nav_update(NavUpdate)``, ``heartbeat()``, ``submit_command(opcode, target_kpa)`` and
+``submit_param_set(param_id, value)`` returning a handle with ``done``, ``error``,
+``response`` and ``response_kind`` (oibar.link.core.Request).
 
 Failure behaviour (each has a test in tests/host/test_nav_daemon.py):
 - model file missing or corrupt: ModelFileError at start, before the camera or the port is opened;
-- camera lost (unplugged, stream ended): the cycle gets no frame, guidance holds; the daemon
-  reopens the camera every ``camera_retry_s``; after ``nav_lost_abort_s`` guidance aborts;
+- camera lost (unplugged, stalled): the cycle gets no frame, guidance holds; the daemon
+  reopens the camera every ``camera_retry_s``; after ``nav_lost_abort_s`` guidance aborts.
+  A reader stuck inside the source's read is waited for, never doubled: no reopen until it
+  has left (two readers on one device would interleave its frames);
+- end of a finite stream (video file, frame folder): not a lost camera. Nothing is reopened
+  (that would start the recording again from frame 0), the cycle holds with reason
+  "camera: end of stream", and ``run`` ends;
 - link lost: no mechanism command is sent (the request fails with LinkDown, guidance retries when
-  the MCU is back), navigation updates are skipped, the vehicle holds; LinkClient reconnects;
+  the MCU is back), navigation updates and heartbeats are skipped, the vehicle holds; the link
+  client reconnects (also after an MCU reboot, which it notices by itself);
+- navigation not trustworthy (filter not initialised, hold): the NavUpdate says ``valid = false``
+  and carries no pose data (guidance.Guidance._nav);
 - low confidence or a gated outlier: that cycle holds;
 - the vehicle's odometry (VehicleInterface.relative_velocity) raising: camera only that cycle,
   counted in ``odometry_errors``; a gated or malformed one is simply not fused;
@@ -20,7 +38,7 @@ Failure behaviour (each has a test in tests/host/test_nav_daemon.py):
 
 from __future__ import annotations
 
-import queue
+import collections
 import signal
 import sys
 import threading
@@ -32,7 +50,7 @@ from typing import Any, Callable
 import numpy as np
 
 from oibar import pb
-from oibar.camera import CameraError, CameraLost, CameraSource, LatestFrame
+from oibar.camera import CameraError, CameraLost, CameraSource, EndOfStream, LatestFrame
 from oibar.nav.core import Navigator, NavStep
 from oibar.nav.cyclelog import CycleLog
 from oibar.nav.guidance import Guidance, GuidanceOutput, MechRequest, Observation, RequestResult
@@ -44,15 +62,18 @@ class DaemonParams:
     rate_hz: float = 10.0             # SPEC section 5
     camera_lost_timeout_s: float = 1.0
     camera_retry_s: float = 2.0       # reopen a lost camera this often
+    camera_join_s: float = 2.0        # how long stopping a lost camera waits for its reader
     status_every_s: float = 0.5       # live status line refresh
+    stats_window: int = 36_000        # cycle timings kept for the percentiles (1 h at 10 Hz)
 
 
 @dataclass
 class DaemonStats:
     cycles: int = 0
     missed_deadlines: int = 0
-    cycle_ms: list[float] = field(default_factory=list)           # cycle start -> end of work
-    frame_to_command_ms: list[float] = field(default_factory=list)  # capture -> setpoint sent
+    # cycle start -> end of work; capture -> setpoint sent (the newest DaemonParams.stats_window)
+    cycle_ms: collections.deque = field(default_factory=collections.deque)
+    frame_to_command_ms: collections.deque = field(default_factory=collections.deque)
     frames_used: int = 0
     camera_reopens: int = 0
     holds: int = 0
@@ -70,54 +91,23 @@ class DaemonStats:
                 "frame_to_command_ms_max": max(self.frame_to_command_ms) if self.frame_to_command_ms else None}
 
 
-class MechanismWorker:
-    """Runs one mechanism request at a time on its own thread; results come back in order."""
-
-    def __init__(self, link: Any) -> None:
-        self.link = link
-        self._jobs: queue.Queue = queue.Queue(maxsize=1)
-        self._results: list[RequestResult] = []
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="oibar-mech", daemon=True)
-        self._thread.start()
-
-    def submit(self, req: MechRequest) -> None:
-        self._jobs.put_nowait(req)   # guidance sends at most one at a time (stop and wait)
-
-    def take_results(self) -> list[RequestResult]:
-        with self._lock:
-            out, self._results = self._results, []
-        return out
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                req = self._jobs.get(timeout=0.1)
-            except queue.Empty:
-                continue
-            try:
-                if req.kind == "param_set":
-                    r = self.link.param_set(req.param_id, req.value)
-                    res = RequestResult(req, r.ok, r.reason)
-                else:
-                    r = self.link.command(req.opcode, req.target_kpa if req.target_kpa else None)
-                    res = RequestResult(req, r.accepted, r.reason, r.state)
-            except Exception as exc:  # LinkDown, LinkTimeout, closed port: guidance hears it
-                res = RequestResult(req, False, type(exc).__name__)
-            with self._lock:
-                self._results.append(res)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
+def request_result(req: MechRequest, handle: Any) -> RequestResult:
+    """Guidance's view of a completed link request handle (oibar.link.core.Request)."""
+    if handle.error is not None:  # LinkDown, LinkTimeout, closed: guidance hears it and retries
+        return RequestResult(req, False, type(handle.error).__name__)
+    body = handle.response
+    reason = pb.enum_name(pb.NackReason, body.reason)
+    if handle.response_kind == "ack":
+        return RequestResult(req, bool(body.accepted), reason, pb.enum_name(pb.State, body.state))
+    return RequestResult(req, body.reason == pb.NACK_NONE, reason)
 
 
 class NavDaemon:
     def __init__(self, navigator: Navigator, guidance: Guidance, camera: CameraSource,
                  link: Any | None = None, vehicle: VehicleInterface | None = None,
                  log: CycleLog | None = None, params: DaemonParams | None = None,
-                 status: Callable[[str], None] | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+                 status: Callable[[str], None] | None = None, clock: Callable[[], float] = time.monotonic,
+                 t0_s: float | None = None) -> None:
         self.nav = navigator
         self.guidance = guidance
         self.camera_source = camera
@@ -127,14 +117,20 @@ class NavDaemon:
         self.p = params or DaemonParams()
         self.status = status
         self.clock = clock
-        self.stats = DaemonStats()
+        self.stats = DaemonStats(cycle_ms=collections.deque(maxlen=self.p.stats_window),
+                                 frame_to_command_ms=collections.deque(maxlen=self.p.stats_window))
         self._stop = threading.Event()
         self._cam: LatestFrame | None = None
+        self._stuck_cam: LatestFrame | None = None  # a reader still blocked in read(): not reopened under it
+        self.camera_ended = False                    # a finite source delivered its last frame
         self._cam_error = ""
         self._next_cam_try = 0.0
-        self._worker = MechanismWorker(link) if link is not None else None
         self._awaiting: MechRequest | None = None
-        self._t0 = clock()
+        self._handle: Any = None            # the link's handle of the request in flight
+        self._failed: list[RequestResult] = []  # requests the link refused to send
+        self._t0 = clock() if t0_s is None else t0_s
+        self._t0_fixed = t0_s is not None
+        self.last_observation: Observation | None = None
         self._last_status = -1e9
         self._opened_once = False
         self._last_out: GuidanceOutput | None = None
@@ -144,11 +140,18 @@ class NavDaemon:
 
     def _ensure_camera(self, now: float) -> LatestFrame | None:
         if self._cam is None:
-            if now < self._next_cam_try:
+            if self.camera_ended or now < self._next_cam_try:
                 return None
             self._next_cam_try = now + self.p.camera_retry_s
+            if self._stuck_cam is not None:
+                if self._stuck_cam.running:
+                    self._cam_error = "reader still blocked in the source's read(); not reopened under it"
+                    return None
+                self._stuck_cam.stop()      # it has left read(): now the source can be closed
+                self._stuck_cam = None
             try:
-                self._cam = LatestFrame(self.camera_source, lost_timeout_s=self.p.camera_lost_timeout_s).start()
+                self._cam = LatestFrame(self.camera_source, lost_timeout_s=self.p.camera_lost_timeout_s,
+                                        join_timeout_s=self.p.camera_join_s).start()
                 if self._opened_once:
                     self.stats.camera_reopens += 1
                 self._opened_once = True
@@ -160,9 +163,12 @@ class NavDaemon:
 
     def _drop_camera(self, exc: BaseException, now: float) -> None:
         self._cam_error = str(exc)
-        if self._cam is not None:
-            self._cam.stop()
-        self._cam = None
+        cam, self._cam = self._cam, None
+        if isinstance(exc, EndOfStream):
+            self.camera_ended = True
+            self._cam_error = f"end of stream ({exc})"
+        if cam is not None and not cam.stop():
+            self._stuck_cam = cam            # LatestFrame.stop left it running and the source open
         self._next_cam_try = now + self.p.camera_retry_s
 
     def wait_frame(self, until: float, min_capture_host: float = -1e18):
@@ -196,8 +202,12 @@ class NavDaemon:
 
     # -- one cycle ----------------------------------------------------------------------
 
-    def cycle(self, frame: Any = None) -> tuple[NavStep, GuidanceOutput]:
-        """One cycle on ``frame`` (None: no new frame this time)."""
+    def cycle(self, frame: Any = None, camera_error: str | None = None) -> tuple[NavStep, GuidanceOutput]:
+        """One cycle on ``frame`` (None: no new frame this time). ``camera_error``: why there is
+        none, from a caller that runs the camera itself (the HIL rig); default: the daemon's own
+        camera state."""
+        if camera_error is None:
+            camera_error = self._cam_error
         start = self.clock()
         t_s = start - self._t0
         odometry = self._odometry(t_s)
@@ -207,34 +217,31 @@ class NavDaemon:
             self.stats.frames_used += 1
         else:
             step = self.nav.step(t_s, None, odometry=odometry)
-            if self._cam_error:
-                step.hold_reason = step.solution.hold_reason = f"camera: {self._cam_error}"
+            if camera_error:
+                step.hold_reason = step.solution.hold_reason = f"camera: {camera_error}"
         link_up = bool(self.link is not None and self.link.link_alive)
         telemetry = self.link.telemetry if self.link is not None else None
         events = []
         if self.link is not None:
             while (ev := self.link.next_event(0)) is not None:
                 events.append(ev)
-        results = self._worker.take_results() if self._worker else []
-        for r in results:
-            if r.request is self._awaiting:
-                self._awaiting = None
-        out = self.guidance.step(t_s, Observation(t_s, step.solution, link_up, telemetry, events, results))
+        results = self._take_results()
+        obs = Observation(t_s, step.solution, link_up, telemetry, events, results)
+        out = self.guidance.step(t_s, obs)
+        self.last_observation = obs
         self.vehicle.send(t_s, out.v_sp_D_mps, out.w_sp_rad_s, out.phase)
         sent = self.clock()
-        if link_up:
-            n = out.nav
+        if self.link is not None:
             try:
-                self.link.send_nav(frame_id=n.frame_id, t_cam_target_m=(n.t_cam_target_m.x, n.t_cam_target_m.y,
-                                                                         n.t_cam_target_m.z),
-                                   q_cam_target=(n.q_cam_target.w, n.q_cam_target.x, n.q_cam_target.y, n.q_cam_target.z),
-                                   range_m=n.range_m, closing_speed_mps=n.closing_speed_mps, phase=n.phase,
-                                   confidence=n.confidence)
+                # this cycle ran: say so (the MCU's link timeout sees a hung loop; a link client
+                # with caller heartbeats re-handshakes only while we call), then the update
+                self.link.heartbeat()
+                if link_up:
+                    self.link.send_nav_update(out.nav)
             except Exception:  # link dropped between the check and the send: next cycle
                 pass
-            if out.request is not None and self._worker is not None:
-                self._awaiting = out.request
-                self._worker.submit(out.request)
+        if out.request is not None:
+            self._submit(out.request)
         end = self.clock()
         st = self.stats
         st.cycles += 1
@@ -246,6 +253,27 @@ class NavDaemon:
         self._log_cycle(t_s, frame, step, out, link_up, telemetry, (end - start) * 1e3, odometry)
         self._last_out, self._last_step = out, step
         return step, out
+
+    def _submit(self, req: MechRequest) -> None:
+        """Hand guidance's request to the link without waiting (stop and wait is the link's)."""
+        if self.link is None:
+            self._failed.append(RequestResult(req, False, "NoLink"))
+            return
+        try:
+            if req.kind == "param_set":
+                self._handle = self.link.submit_param_set(req.param_id, req.value)
+            else:
+                self._handle = self.link.submit_command(req.opcode, req.target_kpa or None)
+            self._awaiting = req
+        except Exception as exc:  # LinkDown, another request still out: guidance hears it
+            self._failed.append(RequestResult(req, False, type(exc).__name__))
+
+    def _take_results(self) -> list[RequestResult]:
+        results, self._failed = self._failed, []
+        if self._handle is not None and self._handle.done:
+            results.append(request_result(self._awaiting, self._handle))
+            self._handle = self._awaiting = None
+        return results
 
     def _odometry(self, t_s: float) -> Any:
         """The vehicle's own relative velocity, if it reports one (VehicleInterface.relative_velocity)."""
@@ -272,7 +300,8 @@ class NavDaemon:
         if self.log is None:
             return
         est = step.estimate
-        frame_file = self.log.save_frame(frame.image, frame.seq) if frame is not None else None
+        # named by the cycle, not the camera's seq: that restarts at 0 when the camera is reopened
+        frame_file = self.log.save_frame(frame.image, self.stats.cycles) if frame is not None else None
         sol = step.solution
         upd = step.update
         self.log.write({
@@ -324,7 +353,8 @@ class NavDaemon:
         frames are coming."""
         period = 1.0 / self.p.rate_hz
         t_start = self.clock()
-        self._t0 = t_start
+        if not self._t0_fixed:
+            self._t0 = t_start
         if self.log is not None:
             self.log.write({"kind": "header", "rate_hz": self.p.rate_hz, "camera": self.camera_source.name,
                             "model": str(getattr(self.nav.estimator, "path", "")),
@@ -334,7 +364,7 @@ class NavDaemon:
         last_capture = -1e18
         k = 0
         try:
-            while not self._stop.is_set() and not self.guidance.finished:
+            while not self._stop.is_set() and not self.guidance.finished and not self.camera_ended:
                 if duration_s is not None and self.clock() - t_start >= duration_s:
                     break
                 if max_cycles is not None and k >= max_cycles:
@@ -371,9 +401,6 @@ class NavDaemon:
             self.vehicle.close()
         except Exception:
             pass
-        if self._worker is not None:
-            self._worker.close()
-            self._worker = None
         if self._cam is not None:
             self._cam.stop()
             self._cam = None

@@ -197,8 +197,13 @@ class Guidance:
                     self._note(t_s, f"{r.request.label} refused: {r.reason}")
                 continue
             op = _name(pb.CommandOpcode, r.request.opcode)
-            if op == "CMD_DOCK" and not r.accepted and r.reason == "NACK_PRECONDITION_FAILED":
-                self._abort_mission(t_s, "the MCU did not confirm the capture")
+            if op == "CMD_DOCK" and not r.accepted:
+                if r.reason == "NACK_PRECONDITION_FAILED":
+                    self._abort_mission(t_s, "the MCU did not confirm the capture")
+                else:
+                    # lost on the link (LinkDown, LinkTimeout) or refused for now: the capture
+                    # is still good, so DOCK goes out again while the latches hold
+                    self._dock_sent = False
             if op == "CMD_CLEAR_FAULT" and r.accepted:
                 self.recoveries += 1
 
@@ -360,11 +365,20 @@ class Guidance:
         return np.array([v_lat[0], v_lat[1], -closing]), w, phase
 
     def _nav(self, obs: Observation, phase: str) -> Any:
+        """The NavUpdate for the MCU. ``valid`` says the filter has a solution (initialised, not
+        diverged); an invalid one carries no pose, range, speed or confidence at all, so the
+        defaults of an uninitialised filter never read as data. A valid solution on a cycle
+        guidance holds (gated outlier, no new frame) goes out with this cycle's estimate
+        confidence (0 without a frame): the MCU's capture check wants it above its parameter."""
         n = obs.nav
         self._frame_id += 1
         nav = pb.NavUpdate()
         nav.frame_id = self._frame_id
         nav.stamp_ms = int(obs.t_s * 1000.0) & 0xFFFFFFFF
+        nav.phase = pb.NavPhase.Value("NAV_PHASE_" + ("SOFT_DOCK" if phase == "SOFT_DOCK" else phase))
+        nav.valid = bool(n.valid)
+        if not nav.valid:
+            return nav
         nav.t_cam_target_m.x, nav.t_cam_target_m.y, nav.t_cam_target_m.z = (
             float(v) for v in n.t_cam_target_m)
         q = n.q_cam_target
@@ -372,8 +386,7 @@ class Guidance:
             float(v) for v in q)
         nav.range_m = float(n.range_m)
         nav.closing_speed_mps = float(n.closing_speed_mps)
-        nav.phase = pb.NavPhase.Value("NAV_PHASE_" + ("SOFT_DOCK" if phase == "SOFT_DOCK" else phase))
-        nav.confidence = float(n.confidence) if n.valid else 0.0
+        nav.confidence = float(n.confidence)
         return nav
 
     # -- the interface ------------------------------------------------------------------
