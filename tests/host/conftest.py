@@ -28,6 +28,14 @@ def mcu():
 
 
 @pytest.fixture
+def fast_timings() -> dict:
+    """The FAST timings, for tests that open a link some other way than make_client (a test
+    module cannot `from conftest import FAST`: in one pytest run over tests/ that name may be
+    another folder's conftest)."""
+    return dict(FAST)
+
+
+@pytest.fixture
 def make_client():
     """Factory for LinkClients with fast timings; every client is closed after the test."""
     clients: list[LinkClient] = []

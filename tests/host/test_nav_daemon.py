@@ -536,15 +536,14 @@ def test_navigator_orders_odometry_and_frame_in_time_and_skips_malformed_odometr
         assert s.velocity_update is None or s.velocity_update.reason == "non_finite"
 
 
-def test_heartbeats_stop_when_the_navigation_loop_hangs(mcu, make_client):
+def test_heartbeats_stop_when_the_navigation_loop_hangs(mcu, fast_timings):
     """Issue 17: heartbeats came from their own thread, so a hung navigation loop still looked
     alive to the MCU. The daemon's link (oibar nav's, open_link) sends them only from the cycle:
     cycling keeps the MCU's link up; a loop that stops cycling lets its link timeout expire."""
     from fake_mcu import wait_for
     from oibar.nav.cli import open_link
-    from conftest import FAST
 
-    client = open_link(mcu.url, **FAST)
+    client = open_link(mcu.url, **fast_timings)
     try:
         client.connect()
         d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=client)

@@ -199,7 +199,9 @@ def test_handshake_reports_build_id_version_and_reset_cause(board: QemuBoard) ->
 
 def test_telemetry_streams_with_the_state_the_emulated_sensors_cause(board: QemuBoard) -> None:
     with connected(board) as link:
-        first = wait_telemetry(link)
+        # host_link_alive: sent after the MCU took our handshake, so its counters already hold
+        # whatever the switch from the previous test's client cost (see below).
+        first = wait_telemetry(link, host_link_alive=True)
         time.sleep(1.5)
         later = wait_telemetry(link, first.uptime_ms)
         # 10 Hz nominal; QEMU on a busy machine may lag, so only a floor.
@@ -207,7 +209,12 @@ def test_telemetry_streams_with_the_state_the_emulated_sensors_cause(board: Qemu
         # The firmware clock runs at about real time (SysTick at the nominal 168 MHz).
         assert 500 <= later.uptime_ms - first.uptime_ms <= 5000
         assert later.host_link_alive
-        assert later.link.rx_crc_errors == 0 and later.link.rx_framing_errors == 0
+        # The MCU's counters are cumulative over the module's one board. A client that connects
+        # within milliseconds of the previous test's close() can lose its first handshake frame
+        # in QEMU's chardev socket hand-over (one framing error, then the retransmission is
+        # answered); what this session streams must be clean.
+        assert later.link.rx_crc_errors == first.link.rx_crc_errors
+        assert later.link.rx_framing_errors == first.link.rx_framing_errors
         # The ADC never converts under QEMU: stale transducers -> sensor fault -> FAULT.
         assert state_name(later.state) == "STATE_FAULT"
         assert later.fault_flags & fault_bit("FAULT_PRESSURE_SENSOR_RANGE")
