@@ -41,7 +41,7 @@ def test_handshake_reports_the_mcu_info(mcu, make_client):
     info = client.connect()
     assert info.firmware_version == "fake-1.2.3"
     assert info.build_id == "fake-build-0001"
-    assert info.protocol_version == pb.PROTOCOL_VERSION == 1
+    assert info.protocol_version == pb.PROTOCOL_VERSION == 2
     assert info.reset_cause == "RESET_POWER_ON"
     assert 0 <= info.uptime_ms < 60_000
     assert client.link_alive and client.handshake_info == info

@@ -9,6 +9,7 @@
 #include "oibar/app_assert.h"
 #include "oibar/app_faults.h"
 #include "oibar/app_params.h"
+#include "oibar/app_safety.h"
 #include "oibar/drv_inputs.h"
 #include "oibar/drv_plane.h"
 #include "oibar/drv_pressure.h"
@@ -30,7 +31,7 @@
 static const oibar_fsm_row_t k_table[] = {
     /* state              event                  guard                 next               action */
     { S(BOOT),            E(TIMEOUT),            G(AT_HOME),           S(IDLE),           A(NONE) },
-    { S(BOOT),            E(TIMEOUT),            G(NOT_AT_HOME),       S(ABORTING),       A(NONE) },
+    { S(BOOT),            E(TIMEOUT),            G(NOT_AT_HOME),       S(FAULT),          A(FAULT_RESET_AWAY_FROM_HOME) },
     { S(BOOT),            C(ABORT),              G(NONE),              STAY,              A(NONE) },
     { S(BOOT),            E(LINK_DOWN),          G(NONE),              STAY,              A(NONE) },
 
@@ -94,6 +95,8 @@ static const oibar_fsm_row_t k_table[] = {
     { S(LATCH_RESET),     E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_LATCH_TIMEOUT) },
     { S(LATCH_RESET),     C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
+    { S(ABORTING),        E(VALVES_CLOSED),      G(NONE),              STAY,              A(RETRACT_PLANE) },
+    { S(ABORTING),        E(VALVES_STUCK),       G(NONE),              S(FAULT),          A(FAULT_VALVE_MISMATCH) },
     { S(ABORTING),        E(PLANE_RETRACTED),    G(LATCH_ENGAGED),     S(SOFT_DOCKED),    A(NONE) },
     { S(ABORTING),        E(PLANE_RETRACTED),    G(LATCH_NOT_ENGAGED), S(LATCH_RESET),    A(NONE) },
     { S(ABORTING),        E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_PLANE_TIMEOUT) },
@@ -139,7 +142,8 @@ static const char *const k_guard_names[GUARD_COUNT] = {
 static const char *const k_action_names[ACT_COUNT] = {
     "-", "record_capture", "arm", "start_transfer", "report_transfer_complete",
     "latch_fault", "fault_latch_timeout", "fault_plane_timeout", "fault_connector_lost",
-    "fault_latch_lost", "fault_host_link_loss", "clear_faults",
+    "fault_latch_lost", "fault_host_link_loss", "clear_faults", "retract_plane",
+    "fault_valve_mismatch", "fault_reset_away_from_home",
 };
 
 const char *oibar_fsm_state_name(unsigned state)
@@ -183,6 +187,8 @@ static float s_target_kpa;
 static bool s_capture_ok;
 static float s_cmd_target_kpa; /* argument of the command being dispatched */
 static uint16_t s_sig_arg;      /* argument of the signal being dispatched */
+static bool s_valve_wait;       /* ABORTING: plane held until the valves read closed */
+static uint32_t s_valve_wait_since_ms;
 
 oibar_v1_State oibar_fsm_state(void) { return s_state; }
 bool oibar_fsm_transfer_armed(void) { return s_armed; }
@@ -236,8 +242,11 @@ static oibar_v1_NackReason guard(oibar_guard_t g)
         return pre(oibar_input(HAL_DI_LATCH_ENGAGED));
     case GUARD_LATCH_NOT_ENGAGED:
         return pre(!oibar_input(HAL_DI_LATCH_ENGAGED));
-    case GUARD_TRANSFER_READY:
-        return pre(transfer_ready());
+    case GUARD_TRANSFER_READY: {
+        /* SAFETY_RULE_PREARM_CHECKS: the reason names the failed check. */
+        oibar_v1_NackReason r = oibar_safety_prearm();
+        return (r != oibar_v1_NACK_NONE) ? r : pre(transfer_ready());
+    }
     case GUARD_START_OK: {
         float t = s_cmd_target_kpa;
         /* The argument first: a bad target is the host's error whatever
@@ -310,6 +319,15 @@ static void action(oibar_action_t a, uint32_t now_ms)
         break;
     case ACT_FAULT_HOST_LINK_LOSS:
         fault_now(oibar_v1_FAULT_HOST_LINK_LOSS);
+        break;
+    case ACT_RETRACT_PLANE:
+        oibar_plane_retract(now_ms);
+        break;
+    case ACT_FAULT_VALVE_MISMATCH:
+        fault_now(oibar_v1_FAULT_VALVE_MISMATCH);
+        break;
+    case ACT_FAULT_RESET_AWAY_FROM_HOME:
+        fault_now(oibar_v1_FAULT_RESET_AWAY_FROM_HOME);
         break;
     case ACT_CLEAR_FAULTS:
         oibar_fault_clear_all();
@@ -403,11 +421,28 @@ static void entry_latch_reset(uint32_t now_ms)
     (void)oibar_stepper_home();
 }
 
-/* Safing: valves closed, stepper off, plane back. */
+/* Could the fluid couplings be engaged (poppets pushed open)? */
+static bool plane_coupled(void)
+{
+    return oibar_plane_is_extended() ||
+           oibar_plane_pos_mm() >= oibar_param_f(PARAM_PLANE_COUPLING_MM);
+}
+
+/* Safing: valves closed (by enter()), stepper off, plane back -- but
+ * SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN: while the couplings may be engaged
+ * the plane holds until both valves read closed (SIG_VALVES_CLOSED, then the
+ * retract_plane action). A valve still reading open after valve_mismatch_ms
+ * (SIG_VALVES_STUCK) is a fault, with the plane held where it is. */
 static void entry_aborting(uint32_t now_ms)
 {
     oibar_stepper_disable();
-    oibar_plane_retract(now_ms);
+    if (plane_coupled() && oibar_valves_any_sensed_open()) {
+        oibar_plane_stop();
+        s_valve_wait = true;
+        s_valve_wait_since_ms = now_ms;
+    } else {
+        oibar_plane_retract(now_ms);
+    }
 }
 
 /* Safe and still: valves closed, nothing driven -- except a plane that would
@@ -475,6 +510,7 @@ static void enter(oibar_v1_State next, uint32_t now_ms)
         oibar_ploop_stop(); /* valves open in TRANSFERRING only */
     }
     s_timer_armed = false;
+    s_valve_wait = false;
     const state_desc_t *d = &k_states[next];
     if (d->timeout_param != (oibar_param_id_t)0) {
         s_deadline_ms = now_ms + oibar_param_u32(d->timeout_param);
@@ -494,6 +530,8 @@ void oibar_fsm_init(uint32_t now_ms)
     s_capture_ok = false;
     s_cmd_target_kpa = 0.0f;
     s_sig_arg = 0;
+    s_valve_wait = false;
+    s_valve_wait_since_ms = 0;
     enter(oibar_v1_STATE_BOOT, now_ms);
 }
 
@@ -562,6 +600,17 @@ oibar_v1_NackReason oibar_fsm_command(oibar_v1_CommandOpcode op, float target_kp
 
 void oibar_fsm_tick(uint32_t now_ms)
 {
+    if (s_valve_wait) {
+        if (!oibar_valves_any_sensed_open()) {
+            s_valve_wait = false;
+            s_sig_arg = 0;
+            (void)dispatch((uint8_t)SIG_VALVES_CLOSED, now_ms);
+        } else if (now_ms - s_valve_wait_since_ms >= oibar_param_u32(PARAM_VALVE_MISMATCH_MS)) {
+            s_valve_wait = false;
+            s_sig_arg = 0;
+            (void)dispatch((uint8_t)SIG_VALVES_STUCK, now_ms);
+        }
+    }
     if (s_timer_armed && (int32_t)(now_ms - s_deadline_ms) >= 0) {
         s_timer_armed = false;
         s_sig_arg = 0;

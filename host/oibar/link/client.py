@@ -416,10 +416,13 @@ class LinkClient:
         closing_speed_mps: float = 0.0,
         phase: int | str = 0,
         confidence: float = 0.0,
+        valid: bool = False,
     ) -> bool:
         """Send a NavUpdate, fire and forget (the newest one wins on the MCU).
 
-        ``q_cam_target`` is (w, x, y, z); ``stamp_ms`` defaults to the host clock.
+        ``q_cam_target`` is (w, x, y, z); ``stamp_ms`` defaults to the host clock. ``valid``
+        says the navigation solution is initialised and trusted; the MCU ignores the data
+        of an update not marked valid (protocol 2).
         Returns False (and sends nothing) while the link is down, so a 10 Hz navigation
         loop keeps running through a link loss.
         """
@@ -434,6 +437,7 @@ class LinkClient:
         nav.closing_speed_mps = closing_speed_mps
         nav.phase = pb.NavPhase.Value(phase) if isinstance(phase, str) else phase
         nav.confidence = confidence
+        nav.valid = bool(valid)
         if not self.link_alive:
             return False
         try:

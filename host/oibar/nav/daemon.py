@@ -229,7 +229,7 @@ class NavDaemon:
                                                                          n.t_cam_target_m.z),
                                    q_cam_target=(n.q_cam_target.w, n.q_cam_target.x, n.q_cam_target.y, n.q_cam_target.z),
                                    range_m=n.range_m, closing_speed_mps=n.closing_speed_mps, phase=n.phase,
-                                   confidence=n.confidence)
+                                   confidence=n.confidence, valid=n.valid)
             except Exception:  # link dropped between the check and the send: next cycle
                 pass
             if out.request is not None and self._worker is not None:

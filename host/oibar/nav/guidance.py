@@ -374,6 +374,7 @@ class Guidance:
         nav.closing_speed_mps = float(n.closing_speed_mps)
         nav.phase = pb.NavPhase.Value("NAV_PHASE_" + ("SOFT_DOCK" if phase == "SOFT_DOCK" else phase))
         nav.confidence = float(n.confidence) if n.valid else 0.0
+        nav.valid = bool(n.valid)   # protocol 2: the MCU uses only updates marked valid
         return nav
 
     # -- the interface ------------------------------------------------------------------
