@@ -15,6 +15,7 @@ FAULT_TYPES = (
     "link_loss", "bit_errors", "pressure_sensor_stuck", "pressure_sensor_range",
     "valve_stuck_open", "valve_stuck_closed", "latch_stall", "actuator_jam",
     "overpressure", "watchdog_reset", "host_crash",
+    "valve_slow_close",
 )
 
 
@@ -114,6 +115,16 @@ class FaultInjector:
                 rig.request_hang()
         elif kind == "host_crash":
             rig.host_crash(on)
+        elif kind == "valve_slow_close":
+            # Both valves stroke in stroke_s (e.g. 300 ms, slower than valve_mismatch_ms), and
+            # the host sends ABORT at the injection: the plane must wait for the valves.
+            if on:
+                fault.state["stroke_s"] = mech.p.valve_stroke_s
+                mech.p.valve_stroke_s = float(spec.args.get("stroke_s", 0.3))
+                if spec.args.get("host_abort", True):
+                    rig.host_command("CMD_ABORT")
+            else:
+                mech.p.valve_stroke_s = fault.state.get("stroke_s", mech.p.valve_stroke_s)
 
     @staticmethod
     def _overpressure(fault: ActiveFault, t_s: float, dt_s: float, rig: Any) -> None:

@@ -84,6 +84,7 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
     "overpressure": {"tank": "sv", "rate_kpa_s": 300, "peak_kpa": 2700, "hold_s": 3.0},
     "watchdog_reset": {},
     "host_crash": {"duration_s": 4.0},
+    "valve_slow_close": {"stroke_s": 0.3, "host_abort": True},  # until the end of the mission
 }
 FAULT_TITLES = {
     "link_loss": "link loss 3 s", "bit_errors": "bit errors (BER 2e-4)",
@@ -91,6 +92,7 @@ FAULT_TITLES = {
     "valve_stuck_open": "SV valve stuck open", "valve_stuck_closed": "TV valve stuck closed",
     "latch_stall": "latch stall", "actuator_jam": "plane actuator jam", "overpressure": "SV over-pressure 2700 kPa",
     "watchdog_reset": "watchdog reset (main loop hang)", "host_crash": "host crash 4 s",
+    "valve_slow_close": "valves stroke 300 ms, host aborts",
 }
 assert set(FAULT_ARGS) == set(FAULT_TYPES), "a fault type of the rig is missing from the matrix"
 
@@ -108,6 +110,7 @@ VALVES_CLOSED_BOUND_S: dict[str, float | None] = {
     "overpressure": 3.0,            # ramp 300 kPa/s to the 2600 kPa trip (~1.7 s) + stroke
     "watchdog_reset": 0.3,          # watchdog 100 ms, outputs off at reset + stroke
     "host_crash": 1.5,              # link timeout 1 s + stroke
+    "valve_slow_close": 0.4,        # the 300 ms stroke + debounce
 }
 
 NOT_APPLICABLE: dict[tuple[str, str], str] = {
@@ -181,6 +184,19 @@ def expectation(fault: str, phase: str) -> Expect | str:
     elif fault == "watchdog_reset":
         e = Expect("aborted", ["FAULT_WATCHDOG_RESET"], extra={"reset_cause": "RESET_WATCHDOG"},
                    why="reset after 100 ms, outputs off, FAULT; host re-handshakes, clears, separates")
+    elif fault == "valve_slow_close":
+        if phase == "transferring":
+            e = Expect("aborted", ["FAULT_VALVE_MISMATCH"],
+                       why="host ABORT while filling: plane held mated while the valves close (300 ms "
+                           "> valve_mismatch_ms): FAULT, plane held; clear once closed, abort, separate")
+        elif phase == "reception":
+            e = Expect("aborted", [], why="valves closed: the host's ABORT safes at once; no second try")
+        elif phase == "unmating":
+            e = Expect("completed", [], why="valves closed: ABORT re-latches soft-docked, separation goes on")
+        else:
+            e = Expect("aborted", ["FAULT_VALVE_MISMATCH"],
+                       why="valves closed: ABORT safes at once; the retried fill's valves close slower "
+                           "than valve_mismatch_ms: FAULT with the plane held mated, nothing vented")
     else:
         raise ValueError(f"no expectation for fault {fault!r}")
     if e.final_state is None:

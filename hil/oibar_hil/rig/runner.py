@@ -119,6 +119,16 @@ class Rig:
             self._new_host()
             self.notes.append((self.t_s, "host process restarted: new session, new controller"))
 
+    def host_command(self, opcode_name: str) -> None:
+        """Fault injection: the host sends a command outside its guidance (e.g. an operator ABORT)."""
+        if not self._host_alive:
+            return
+        try:
+            self.session.command(pb.CommandOpcode.Value(opcode_name), 0.0, now_s=self.t_s)
+            self.notes.append((self.t_s, f"host sends {opcode_name} (injected)"))
+        except Exception as exc:  # link down or a request in flight: noted, not retried
+            self.notes.append((self.t_s, f"host could not send {opcode_name}: {type(exc).__name__}"))
+
     def _new_host(self) -> None:
         self.session = LinkSession(self.wire.host_end, host_version=HOST_VERSION)
         self.controller = self.controller_factory()
