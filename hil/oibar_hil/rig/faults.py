@@ -15,7 +15,7 @@ FAULT_TYPES = (
     "link_loss", "bit_errors", "pressure_sensor_stuck", "pressure_sensor_range",
     "valve_stuck_open", "valve_stuck_closed", "latch_stall", "actuator_jam",
     "overpressure", "watchdog_reset", "host_crash",
-    "valve_slow_close",
+    "valve_slow_close", "param_attack",
 )
 
 
@@ -115,6 +115,10 @@ class FaultInjector:
                 rig.request_hang()
         elif kind == "host_crash":
             rig.host_crash(on)
+        elif kind == "param_attack":
+            # The host tries to zero or loosen each protection (args: {name: value}).
+            if on:
+                rig.host_param_attack(dict(spec.args.get("values", {})))
         elif kind == "valve_slow_close":
             # Both valves stroke in stroke_s (e.g. 300 ms, slower than valve_mismatch_ms), and
             # the host sends ABORT at the injection: the plane must wait for the valves.

@@ -85,6 +85,14 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
     "watchdog_reset": {},
     "host_crash": {"duration_s": 4.0},
     "valve_slow_close": {"stroke_s": 0.3, "host_abort": True},  # until the end of the mission
+    # Each protection zeroed or loosened past its margin (docs/firmware.md, "Safety limits").
+    "param_attack": {"values": {
+        "soft_dock_max_force_n": 0, "hard_dock_max_force_n": 0, "overpressure_kpa": 3000,
+        "press_sv_kpa_per_count": 0.1, "press_tv_kpa_per_count": 0.1, "press_line_kpa_per_count": 10,
+        "press_zero_counts": 1000, "press_min_counts": 0, "press_max_counts": 4095,
+        "press_max_rate_kpa_s": 100000, "force_n_per_count": 0.001, "valve_mismatch_ms": 2000,
+        "plane_coupling_mm": 40, "nav_min_confidence": 0, "capture_max_speed_mm_s": 200,
+        "capture_max_misalign_deg": 45}},
 }
 FAULT_TITLES = {
     "link_loss": "link loss 3 s", "bit_errors": "bit errors (BER 2e-4)",
@@ -93,6 +101,7 @@ FAULT_TITLES = {
     "latch_stall": "latch stall", "actuator_jam": "plane actuator jam", "overpressure": "SV over-pressure 2700 kPa",
     "watchdog_reset": "watchdog reset (main loop hang)", "host_crash": "host crash 4 s",
     "valve_slow_close": "valves stroke 300 ms, host aborts",
+    "param_attack": "host loosens every protection",
 }
 assert set(FAULT_ARGS) == set(FAULT_TYPES), "a fault type of the rig is missing from the matrix"
 
@@ -111,6 +120,7 @@ VALVES_CLOSED_BOUND_S: dict[str, float | None] = {
     "watchdog_reset": 0.3,          # watchdog 100 ms, outputs off at reset + stroke
     "host_crash": 1.5,              # link timeout 1 s + stroke
     "valve_slow_close": 0.4,        # the 300 ms stroke + debounce
+    "param_attack": None,           # refused: nothing changes, the fill goes on
 }
 
 NOT_APPLICABLE: dict[tuple[str, str], str] = {
@@ -184,6 +194,9 @@ def expectation(fault: str, phase: str) -> Expect | str:
     elif fault == "watchdog_reset":
         e = Expect("aborted", ["FAULT_WATCHDOG_RESET"], extra={"reset_cause": "RESET_WATCHDOG"},
                    why="reset after 100 ms, outputs off, FAULT; host re-handshakes, clears, separates")
+    elif fault == "param_attack":
+        e = Expect("completed", [], why="every ParamSet refused (locked while active, out of bounds "
+                                        "in IDLE/FAULT): the mission goes on unchanged")
     elif fault == "valve_slow_close":
         if phase == "transferring":
             e = Expect("aborted", ["FAULT_VALVE_MISMATCH"],
@@ -273,6 +286,19 @@ def generic_checks(fault: str, result: Any) -> list[Check]:
                         (want <= events | flags) if want else None,
                         f"events: {', '.join(sorted(events)) or 'none'}; "
                         f"telemetry: {', '.join(sorted(flags)) or 'none'}"))
+    if fault == "param_attack":
+        attacks = [(label, verdict) for _, label, verdict in result.requests if label.startswith("ATTACK ")]
+        accepted = [label for label, verdict in attacks if not verdict.startswith("refused")]
+        names = {label.split()[1].split("=")[0] for label, _ in attacks}
+        bounded = {label.split()[1].split("=")[0] for label, verdict in attacks
+                   if verdict == "refused (NACK_PARAM_OUT_OF_BOUNDS)"}
+        want = set(FAULT_ARGS["param_attack"]["values"])
+        checks.append(Check(
+            "G-PARAMS", "every attempt to loosen a protection refused; each refused by its bounds once "
+            "parameters may change (IDLE/FAULT)",
+            not accepted and names == want and bounded == want,
+            f"{len(attacks)} attempts, not refused: {', '.join(accepted) or 'none'}; "
+            f"not tried in a settable state: {', '.join(sorted(want - bounded)) or 'none'}"))
     return checks
 
 

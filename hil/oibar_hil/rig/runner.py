@@ -102,6 +102,9 @@ class Rig:
         self.faults = FaultInjector(scenario.faults)
         self._hang = False
         self._host_alive = True
+        # Host-side parameter attacks (fault "param_attack"): (request, "now" | "settable").
+        self._attacks: list[tuple[MechRequest, str]] = []
+        self._attack_inflight: tuple[MechRequest, Any] | None = None
         self.t_s = 0.0
 
     # -- hooks for the faults -----------------------------------------------------------
@@ -128,6 +131,39 @@ class Rig:
             self.notes.append((self.t_s, f"host sends {opcode_name} (injected)"))
         except Exception as exc:  # link down or a request in flight: noted, not retried
             self.notes.append((self.t_s, f"host could not send {opcode_name}: {type(exc).__name__}"))
+
+    def host_param_attack(self, values: dict[str, float]) -> None:
+        """Fault injection: the host tries to set each parameter to a loosening value, once now
+        (whatever the MCU state) and once more when the MCU is next in a state where parameters
+        may change (BOOT, IDLE, FAULT), so that the bounds themselves are exercised."""
+        for when in ("now", "settable"):
+            for name, value in values.items():
+                req = MechRequest("param_set", param_id=FIRMWARE_PARAM_IDS[name], value=float(value),
+                                  label=f"ATTACK {name}={value:g}")
+                self._attacks.append((req, when))
+
+    def _step_attacks(self, state: str) -> None:
+        if self._attack_inflight is not None:
+            req, handle = self._attack_inflight
+            if not handle.done:
+                return
+            self._attack_inflight = None
+            if handle.error is not None:
+                verdict = f"no answer ({type(handle.error).__name__})"
+            else:
+                reason = pb.enum_name(pb.NackReason, handle.response.reason)
+                verdict = "accepted" if handle.accepted else f"refused ({reason})"
+            self.requests_log.append((self.t_s, req.label, verdict))
+        if not self._attacks or self.session.busy or self.awaiting is not None:
+            return
+        req, when = self._attacks[0]
+        if when == "settable" and state not in ("STATE_BOOT", "STATE_IDLE", "STATE_FAULT"):
+            return
+        self._attacks.pop(0)
+        try:
+            self._attack_inflight = (req, self.session.param_set(req.param_id, req.value, now_s=self.t_s))
+        except Exception as exc:  # link down: counted as not sent
+            self.requests_log.append((self.t_s, req.label, f"not sent ({type(exc).__name__})"))
 
     def _new_host(self) -> None:
         self.session = LinkSession(self.wire.host_end, host_version=HOST_VERSION)
@@ -283,7 +319,8 @@ class Rig:
                     stderr_path=stderr_path) as mcu:
             self.mcu = mcu
             while self.t_s < sc.rig.max_time_s:
-                if self.controller.finished and (self.between_missions is None
+                attacking = bool(self._attacks or self._attack_inflight) and self._host_alive
+                if self.controller.finished and not attacking and (self.between_missions is None
                                                  or not self.between_missions(self)):
                     break
                 adv = self._advance_ms(reply, state)
@@ -328,6 +365,7 @@ class Rig:
                     self.session.step(self.t_s)
                     self._collect_result()
                     self.session.take_notices()  # results come through the handles; drain
+                    self._step_attacks(state)
                     if self.session.telemetry is not None:
                         host_fault_flags |= self.session.telemetry.fault_flags
                     if self.t_s >= next_guidance:
