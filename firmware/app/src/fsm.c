@@ -24,10 +24,13 @@
 #define G(x) ((uint8_t)GUARD_##x)
 #define A(x) ((uint8_t)ACT_##x)
 #define ANY ((uint8_t)OIBAR_FSM_ANY)
+#define SUPER(x) ((uint8_t)OIBAR_FSM_SUPER_##x)
 #define STAY ((uint8_t)OIBAR_FSM_STAY)
 
 /* The table. docs/state_table.md is the same table, row for row, in this
- * order (test_app_state_table checks it). */
+ * order (test_app_state_table checks it). An event is looked up in the
+ * current state's rows, then in its superstates' (innermost first), then in
+ * the ANY rows; the first level with a row for the event handles it. */
 static const oibar_fsm_row_t k_table[] = {
     /* state              event                  guard                 next               action */
     { S(BOOT),            E(TIMEOUT),            G(AT_HOME),           S(IDLE),           A(NONE) },
@@ -41,59 +44,39 @@ static const oibar_fsm_row_t k_table[] = {
 
     { S(APPROACH_READY),  E(CONTACT),            G(NONE),              S(RECEPTION),      A(RECORD_CAPTURE) },
     { S(APPROACH_READY),  E(TIMEOUT),            G(NONE),              S(IDLE),           A(NONE) },
-    { S(APPROACH_READY),  C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(RECEPTION),       C(DOCK),               G(CAPTURE_CONFIRMED), S(SOFT_DOCKED),    A(NONE) },
     { S(RECEPTION),       E(CONTACT_LOST),       G(LATCH_NOT_ENGAGED), S(APPROACH_READY), A(NONE) },
     { S(RECEPTION),       E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_LATCH_TIMEOUT) },
-    { S(RECEPTION),       C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(SOFT_DOCKED),     C(HARD_DOCK),          G(SOFT_DOCK_HELD),    S(HARD_DOCKING),   A(NONE) },
     { S(SOFT_DOCKED),     C(SEPARATE),           G(NONE),              S(UNMATING),       A(NONE) },
-    { S(SOFT_DOCKED),     C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
-    { S(SOFT_DOCKED),     E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
 
     { S(HARD_DOCKING),    E(PLANE_EXTENDED),     G(CONNECTOR_MATED),   S(HARD_DOCKED),    A(NONE) },
     { S(HARD_DOCKING),    E(CONNECTOR_MATED),    G(PLANE_EXTENDED),    S(HARD_DOCKED),    A(NONE) },
     { S(HARD_DOCKING),    E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_PLANE_TIMEOUT) },
-    { S(HARD_DOCKING),    E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
     { S(HARD_DOCKING),    C(SEPARATE),           G(NONE),              S(UNMATING),       A(NONE) },
-    { S(HARD_DOCKING),    C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(HARD_DOCKED),     C(ARM_TRANSFER),       G(TRANSFER_READY),    S(TRANSFER_ARMED), A(ARM) },
     { S(HARD_DOCKED),     C(SEPARATE),           G(VALVES_CLOSED),     S(UNMATING),       A(NONE) },
-    { S(HARD_DOCKED),     C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
-    { S(HARD_DOCKED),     E(CONNECTOR_LOST),     G(NONE),              S(FAULT),          A(FAULT_CONNECTOR_LOST) },
-    { S(HARD_DOCKED),     E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
 
     { S(TRANSFER_ARMED),  C(START_TRANSFER),     G(START_OK),          S(TRANSFERRING),   A(START_TRANSFER) },
     { S(TRANSFER_ARMED),  C(DISARM_TRANSFER),    G(NONE),              S(HARD_DOCKED),    A(NONE) },
     { S(TRANSFER_ARMED),  E(TIMEOUT),            G(NONE),              S(HARD_DOCKED),    A(NONE) },
-    { S(TRANSFER_ARMED),  C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
-    { S(TRANSFER_ARMED),  E(CONNECTOR_LOST),     G(NONE),              S(FAULT),          A(FAULT_CONNECTOR_LOST) },
-    { S(TRANSFER_ARMED),  E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
 
     { S(TRANSFERRING),    E(TARGET_REACHED),     G(NONE),              S(HARD_DOCKED),    A(REPORT_TRANSFER_COMPLETE) },
     { S(TRANSFERRING),    C(STOP_TRANSFER),      G(NONE),              S(HARD_DOCKED),    A(NONE) },
-    { S(TRANSFERRING),    C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
-    { S(TRANSFERRING),    E(CONNECTOR_LOST),     G(NONE),              S(FAULT),          A(FAULT_CONNECTOR_LOST) },
-    { S(TRANSFERRING),    E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
 
     { S(UNMATING),        E(PLANE_RETRACTED),    G(NONE),              S(LATCH_RELEASE),  A(NONE) },
-    { S(UNMATING),        E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
-    { S(UNMATING),        C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(LATCH_RELEASE),   E(STEPPER_DONE),       G(NONE),              S(SEPARATING),     A(NONE) },
     { S(LATCH_RELEASE),   E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_LATCH_TIMEOUT) },
-    { S(LATCH_RELEASE),   C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(SEPARATING),      E(CONTACT_LOST),       G(NONE),              S(LATCH_RESET),    A(NONE) },
     { S(SEPARATING),      E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_LATCH_TIMEOUT) },
-    { S(SEPARATING),      C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(LATCH_RESET),     E(STEPPER_DONE),       G(NONE),              S(IDLE),           A(NONE) },
     { S(LATCH_RESET),     E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_LATCH_TIMEOUT) },
-    { S(LATCH_RESET),     C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(ABORTING),        E(VALVES_CLOSED),      G(NONE),              STAY,              A(RETRACT_PLANE) },
     { S(ABORTING),        E(VALVES_STUCK),       G(NONE),              S(FAULT),          A(FAULT_VALVE_MISMATCH) },
@@ -106,6 +89,11 @@ static const oibar_fsm_row_t k_table[] = {
     { S(FAULT),           C(ABORT),              G(NONE),              STAY,              A(NONE) },
     { S(FAULT),           E(FAULT),              G(NONE),              STAY,              A(LATCH_FAULT) },
     { S(FAULT),           E(LINK_DOWN),          G(NONE),              STAY,              A(NONE) },
+
+    /* Superstates (QP/C style): a row here applies to every state inside. */
+    { SUPER(ACTIVE),      C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
+    { SUPER(DOCKED),      E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
+    { SUPER(MATED),       E(CONNECTOR_LOST),     G(NONE),              S(FAULT),          A(FAULT_CONNECTOR_LOST) },
 
     { ANY,                C(NOOP),               G(NONE),              STAY,              A(NONE) },
     { ANY,                E(FAULT),              G(NONE),              S(FAULT),          A(LATCH_FAULT) },
@@ -123,12 +111,37 @@ const oibar_fsm_row_t *oibar_fsm_table(unsigned *rows)
 }
 
 /* --- names --------------------------------------------------------------- */
-static const char *const k_state_names[OIBAR_STATE_LAST + 1u] = {
+static const char *const k_state_names[OIBAR_FSM_NODE_LAST + 1u] = {
     "ANY", "STATE_BOOT", "STATE_IDLE", "STATE_APPROACH_READY", "STATE_RECEPTION",
     "STATE_SOFT_DOCKED", "STATE_HARD_DOCKING", "STATE_HARD_DOCKED", "STATE_TRANSFER_ARMED",
     "STATE_TRANSFERRING", "STATE_UNMATING", "STATE_LATCH_RELEASE", "STATE_SEPARATING",
-    "STATE_LATCH_RESET", "STATE_ABORTING", "STATE_FAULT",
+    "STATE_LATCH_RESET", "STATE_ABORTING", "STATE_FAULT", "ACTIVE", "DOCKED", "MATED",
 };
+
+/* Each node's superstate (ANY: none). ACTIVE: every state where the mechanism
+ * is doing something on the host's behalf (ABORT safes it); DOCKED: the
+ * soft-dock latch holds the target (losing it is a fault); MATED: the plane and
+ * the connector are mated (losing the connector is a fault). */
+static const uint8_t k_parent[OIBAR_FSM_NODE_LAST + 1u] = {
+    [oibar_v1_STATE_APPROACH_READY] = OIBAR_FSM_SUPER_ACTIVE,
+    [oibar_v1_STATE_RECEPTION] = OIBAR_FSM_SUPER_ACTIVE,
+    [oibar_v1_STATE_SOFT_DOCKED] = OIBAR_FSM_SUPER_DOCKED,
+    [oibar_v1_STATE_HARD_DOCKING] = OIBAR_FSM_SUPER_DOCKED,
+    [oibar_v1_STATE_HARD_DOCKED] = OIBAR_FSM_SUPER_MATED,
+    [oibar_v1_STATE_TRANSFER_ARMED] = OIBAR_FSM_SUPER_MATED,
+    [oibar_v1_STATE_TRANSFERRING] = OIBAR_FSM_SUPER_MATED,
+    [oibar_v1_STATE_UNMATING] = OIBAR_FSM_SUPER_DOCKED,
+    [oibar_v1_STATE_LATCH_RELEASE] = OIBAR_FSM_SUPER_ACTIVE,
+    [oibar_v1_STATE_SEPARATING] = OIBAR_FSM_SUPER_ACTIVE,
+    [oibar_v1_STATE_LATCH_RESET] = OIBAR_FSM_SUPER_ACTIVE,
+    [OIBAR_FSM_SUPER_DOCKED] = OIBAR_FSM_SUPER_ACTIVE,
+    [OIBAR_FSM_SUPER_MATED] = OIBAR_FSM_SUPER_DOCKED,
+};
+
+unsigned oibar_fsm_parent(unsigned node)
+{
+    return (node <= OIBAR_FSM_NODE_LAST) ? k_parent[node] : OIBAR_FSM_ANY;
+}
 static const char *const k_cmd_names[OIBAR_CMD_LAST + 1u] = {
     "CMD_UNSPECIFIED", "CMD_NOOP", "CMD_APPROACH_ARM", "CMD_DOCK", "CMD_HARD_DOCK",
     "CMD_ARM_TRANSFER", "CMD_START_TRANSFER", "CMD_STOP_TRANSFER", "CMD_SEPARATE",
@@ -148,7 +161,7 @@ static const char *const k_action_names[ACT_COUNT] = {
 
 const char *oibar_fsm_state_name(unsigned state)
 {
-    return (state <= OIBAR_STATE_LAST) ? k_state_names[state] : "?";
+    return (state <= OIBAR_FSM_NODE_LAST) ? k_state_names[state] : "?";
 }
 
 const char *oibar_fsm_next_name(unsigned next)
@@ -544,11 +557,14 @@ static oibar_v1_NackReason dispatch(uint8_t event, uint32_t now_ms)
 {
     oibar_v1_NackReason first_fail = NO_ROW;
     const oibar_fsm_row_t *hit = NULL;
-    for (int pass = 0; pass < 2 && hit == NULL && first_fail == NO_ROW; pass++) {
-        uint8_t want_state = (pass == 0) ? (uint8_t)s_state : ANY;
+    /* The state, its superstates outwards, then ANY: the first level with a
+     * row for the event decides (bounded: the hierarchy has no cycles). */
+    unsigned level = (unsigned)s_state;
+    for (unsigned depth = 0; depth <= OIBAR_FSM_NODE_LAST && hit == NULL && first_fail == NO_ROW;
+         depth++) {
         for (unsigned i = 0; i < TABLE_ROWS; i++) {
             const oibar_fsm_row_t *r = &k_table[i];
-            if (r->state != want_state || r->event != event) {
+            if (r->state != level || r->event != event) {
                 continue;
             }
             oibar_v1_NackReason g = guard((oibar_guard_t)r->guard);
@@ -560,6 +576,10 @@ static oibar_v1_NackReason dispatch(uint8_t event, uint32_t now_ms)
                 first_fail = g;
             }
         }
+        if (level == OIBAR_FSM_ANY) {
+            break;
+        }
+        level = oibar_fsm_parent(level);
     }
     if (hit == NULL) {
         return first_fail;
