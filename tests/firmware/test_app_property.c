@@ -1,11 +1,21 @@
 /* Seeded random-sequence property test: commands, sensor changes, hardware
- * faults and link drops in any order. Whatever happens, no valve is ever
- * driven open unless the machine is in STATE_TRANSFERRING with every
- * precondition of SPEC section 3 true. The preconditions are checked three
- * ways: the firmware's own view, the raw hardware (allowing only the
- * debounce time), and the command history seen by this test. */
+ * faults and link drops in any order. Whatever happens:
+ *  - no valve is ever driven open unless the machine is in
+ *    STATE_TRANSFERRING with every precondition of SPEC section 3 true. The
+ *    preconditions are checked three ways: the firmware's own view, the raw
+ *    hardware (allowing only the debounce time; the plane at full mate), and
+ *    the command history seen by this test;
+ *  - the plane is never driven back out of the coupling travel while a valve
+ *    reads open (raw switch, allowing only the debounce time).
+ *
+ * Each run draws a fresh seed and prints it; OIBAR_PROPERTY_SEED=<n> replays
+ * a run, OIBAR_PROPERTY_STEPS=<n> sets its length (default 100000; `make
+ * property-long` runs 10^7). */
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
+#include <time.h>
+#include <unistd.h>
 
 #include "fake_hal.h"
 #include "oibar/app.h"
@@ -14,11 +24,13 @@
 #include "oibar/app_safety.h"
 #include "unity.h"
 
-#define STEPS 100000u
-#define SEED 0x0B1A2u
+#define DEFAULT_STEPS 100000u
 #define DEBOUNCE_SLACK_MS 12u /* debounce_ms + the pass that acts on it */
+#define COUPLING_MM 30.0f     /* plane_coupling_mm default */
 
 static uint32_t s_rng;
+static uint32_t s_seed;
+static uint32_t s_valve_open_raw_ms, s_retract_checks;
 static unsigned s_phase;          /* 0: nothing, 1: arm accepted, 2: start accepted after arm */
 static bool s_link_up;
 static uint32_t s_conn_false_ms, s_latch_false_ms, s_press_bad_ms;
@@ -46,16 +58,36 @@ static void track_state(void)
     }
 }
 
+static bool valve_reads_open_raw(void)
+{
+    return hal_di_read(HAL_DI_SV_VALVE_OPEN) || hal_di_read(HAL_DI_TV_VALVE_OPEN);
+}
+
+/* SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN, from the outside. */
+static void check_no_unmate_with_valve_open(void)
+{
+    if (!fake_hal_do(HAL_DO_PLANE_RETRACT) || fake_plant_plane_mm() < COUPLING_MM) {
+        return;
+    }
+    s_retract_checks++;
+    char msg[160];
+    snprintf(msg, sizeof msg, "seed %u ms %u state %d: plane retracting at %.2f mm, valve open %u ms",
+             (unsigned)s_seed, (unsigned)s_ms, (int)oibar_app_state(), (double)fake_plant_plane_mm(),
+             (unsigned)s_valve_open_raw_ms);
+    TEST_ASSERT_TRUE_MESSAGE(s_valve_open_raw_ms <= DEBOUNCE_SLACK_MS, msg);
+}
+
 static void check_invariant(void)
 {
     char msg[160];
     track_state();
+    check_no_unmate_with_valve_open();
     if (!bench_any_valve_driven()) {
         return;
     }
     s_open_ms++;
-    snprintf(msg, sizeof msg, "ms %u state %d phase %u blockers 0x%x conn %u latch %u press %u",
-             (unsigned)s_ms, (int)oibar_app_state(), s_phase, (unsigned)oibar_safety_valve_blockers(),
+    snprintf(msg, sizeof msg, "seed %u ms %u state %d phase %u blockers 0x%x conn %u latch %u press %u",
+             (unsigned)s_seed, (unsigned)s_ms, (int)oibar_app_state(), s_phase, (unsigned)oibar_safety_valve_blockers(),
              (unsigned)s_conn_false_ms, (unsigned)s_latch_false_ms, (unsigned)s_press_bad_ms);
     TEST_ASSERT_EQUAL_INT_MESSAGE(oibar_v1_STATE_TRANSFERRING, oibar_app_state(), msg);
     TEST_ASSERT_EQUAL_UINT32_MESSAGE(0u, oibar_safety_valve_blockers(), msg);
@@ -65,6 +97,7 @@ static void check_invariant(void)
     TEST_ASSERT_TRUE_MESSAGE(s_conn_false_ms <= DEBOUNCE_SLACK_MS, msg);
     TEST_ASSERT_TRUE_MESSAGE(s_latch_false_ms <= DEBOUNCE_SLACK_MS, msg);
     TEST_ASSERT_TRUE_MESSAGE(s_press_bad_ms <= DEBOUNCE_SLACK_MS, msg);
+    TEST_ASSERT_TRUE_MESSAGE(fake_plant_plane_mm() > FAKE_PLANT_TRAVEL_MM - 0.5f, msg); /* mated */
 }
 
 static bool pressure_raw_ok(void)
@@ -87,6 +120,7 @@ static void run_ms(uint32_t ms)
         s_conn_false_ms = hal_di_read(HAL_DI_CONNECTOR_MATED) ? 0u : s_conn_false_ms + 1u;
         s_latch_false_ms = hal_di_read(HAL_DI_LATCH_ENGAGED) ? 0u : s_latch_false_ms + 1u;
         s_press_bad_ms = pressure_raw_ok() ? 0u : s_press_bad_ms + 1u;
+        s_valve_open_raw_ms = valve_reads_open_raw() ? s_valve_open_raw_ms + 1u : 0u;
         check_invariant();
     }
 }
@@ -167,17 +201,37 @@ static void guided(void)
     }
 }
 
+static uint32_t env_u32(const char *name, uint32_t fallback)
+{
+    const char *v = getenv(name);
+    if (v == NULL || *v == '\0') {
+        return fallback;
+    }
+    return (uint32_t)strtoul(v, NULL, 0);
+}
+
 static void test_no_valve_open_outside_a_legitimate_transfer(void)
 {
-    s_rng = SEED;
+    /* A fresh seed per run (time and pid), unless one is given to replay. */
+    uint32_t fresh = (uint32_t)time(NULL) * 2654435761u ^ (uint32_t)getpid() * 40503u;
+    s_seed = env_u32("OIBAR_PROPERTY_SEED", fresh);
+    if (s_seed == 0u) {
+        s_seed = 1u; /* xorshift needs a non-zero state */
+    }
+    const uint32_t steps = env_u32("OIBAR_PROPERTY_STEPS", DEFAULT_STEPS);
+    printf("property test: seed %u, %u steps (replay: OIBAR_PROPERTY_SEED=%u)\n", (unsigned)s_seed,
+           (unsigned)steps, (unsigned)s_seed);
+    fflush(stdout);
+    s_rng = s_seed;
     s_phase = 0;
     s_conn_false_ms = s_latch_false_ms = s_press_bad_ms = 0;
+    s_valve_open_raw_ms = s_retract_checks = 0;
     s_open_ms = s_starts = s_faults_seen = s_ms = 0;
     bench_start();
     s_link_up = true;
     TEST_ASSERT_EQUAL(oibar_v1_STATE_IDLE, oibar_app_state());
 
-    for (uint32_t step = 0; step < STEPS; step++) {
+    for (uint32_t step = 0; step < steps; step++) {
         uint32_t r = below(1000);
         if (r >= 800 && below(3) != 0) {
             r = 0; /* perturbations at a third of their nominal rate */
@@ -217,9 +271,10 @@ static void test_no_valve_open_outside_a_legitimate_transfer(void)
         }
         s_state_hist[oibar_app_state()]++;
     }
-    char msg[128];
-    snprintf(msg, sizeof msg, "coverage: %u starts, %u ms with valves open, %u ms simulated",
-             (unsigned)s_starts, (unsigned)s_open_ms, (unsigned)s_ms);
+    char msg[160];
+    snprintf(msg, sizeof msg, "seed %u coverage: %u starts, %u ms with valves open, %u ms retracting "
+             "in the coupling travel, %u ms simulated", (unsigned)s_seed, (unsigned)s_starts,
+             (unsigned)s_open_ms, (unsigned)s_retract_checks, (unsigned)s_ms);
     TEST_MESSAGE(msg);
     for (unsigned i = 1; i < 16; i++) {
         snprintf(msg, sizeof msg, "steps ending in %s: %u", oibar_fsm_state_name(i), (unsigned)s_state_hist[i]);
@@ -228,8 +283,9 @@ static void test_no_valve_open_outside_a_legitimate_transfer(void)
     snprintf(msg, sizeof msg, "coverage: %u starts, %u ms with valves open, %u ms simulated",
              (unsigned)s_starts, (unsigned)s_open_ms, (unsigned)s_ms);
     /* The walk must actually exercise the transfer, or it proves nothing. */
-    TEST_ASSERT_TRUE_MESSAGE(s_starts >= 100u, msg);
-    TEST_ASSERT_TRUE_MESSAGE(s_open_ms >= 10000u, msg);
+    TEST_ASSERT_TRUE_MESSAGE(s_starts >= steps / 1000u, msg);
+    TEST_ASSERT_TRUE_MESSAGE(s_open_ms >= steps / 10u, msg);
+    TEST_ASSERT_TRUE_MESSAGE(s_retract_checks >= steps / 100u, msg);
 }
 
 int main(void)

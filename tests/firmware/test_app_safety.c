@@ -1,12 +1,20 @@
 /* SPEC section 3: one test per named safety rule (oibar/app_safety.h). */
+#include <stdio.h>
 #include <string.h>
+#include "oibar/drv_pressure.h"
 
 #include "fake_hal.h"
 #include "oibar/app.h"
 #include "oibar/app_faults.h"
+#include "oibar/app_fsm.h"
+#include "oibar/app_link.h"
+#include "oibar/app_params.h"
 #include "oibar/app_safety.h"
+#include "oibar/drv_inputs.h"
 #include "oibar/drv_pressure.h"
 #include "oibar/drv_valves.h"
+#include "oibar/frame.h"
+#include "oibar/link.h"
 #include "unity.h"
 
 void setUp(void) {}
@@ -29,8 +37,8 @@ static void test_SAFETY_RULE_SAFE_START(void)
         }
         TEST_ASSERT_EQUAL(oibar_v1_STATE_BOOT, oibar_app_state());
     }
-    /* A restart with the mechanism docked safes it (plane back) rather
-     * than calling it idle. */
+    /* A restart with the mechanism docked is neither idle nor safed by
+     * itself: it waits in FAULT (SAFETY_RULE_NO_MOTION_AFTER_RESET). */
     fake_hal_reset();
     fake_plant_enable(true);
     fake_plant_set_probe(true);
@@ -39,7 +47,49 @@ static void test_SAFETY_RULE_SAFE_START(void)
     fake_hal_set_main_loop(oibar_app_run_once);
     oibar_app_link_state(true);
     fake_hal_advance_ms(150);
-    TEST_ASSERT_EQUAL(oibar_v1_STATE_SOFT_DOCKED, oibar_app_state());
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_FAULT, oibar_app_state());
+}
+
+/* Any reset cause, mechanism away from home (probe latched, plane at full
+ * mate): after the self test the firmware sits in FAULT and nothing moves,
+ * with or without a host, until the host clears the fault. */
+static void test_SAFETY_RULE_NO_MOTION_AFTER_RESET(void)
+{
+    const hal_reset_cause_t causes[] = { HAL_RESET_POWER_ON, HAL_RESET_PIN, HAL_RESET_SOFTWARE,
+                                         HAL_RESET_BROWNOUT, HAL_RESET_UNKNOWN, HAL_RESET_WATCHDOG,
+                                         HAL_RESET_LOCKUP };
+    for (unsigned i = 0; i < sizeof causes / sizeof causes[0]; i++) {
+        TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKED));
+        const float plane_mm = fake_plant_plane_mm();
+        /* The MCU restarts; the plant (the mechanism) stays where it is. */
+        fake_hal_set_main_loop(NULL);
+        fake_hal_set_reset_cause(causes[i]);
+        oibar_app_init();
+        fake_hal_set_main_loop(oibar_app_run_once);
+        if (i % 2u == 0u) {
+            oibar_app_link_state(true); /* with a host, or without one */
+        }
+        for (unsigned ms = 0; ms < 3000u; ms++) {
+            fake_hal_advance_ms(1);
+            TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+            TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_EXTEND));
+            TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_LATCH_ENABLE));
+            TEST_ASSERT_FALSE(bench_any_valve_driven());
+        }
+        TEST_ASSERT_EQUAL(oibar_v1_STATE_FAULT, oibar_app_state());
+        const bool wd = causes[i] == HAL_RESET_WATCHDOG || causes[i] == HAL_RESET_LOCKUP;
+        TEST_ASSERT_TRUE(oibar_fault_flags() & OIBAR_FAULT_BIT(wd ? oibar_v1_FAULT_WATCHDOG_RESET
+                                                                  : oibar_v1_FAULT_RESET_AWAY_FROM_HOME));
+        TEST_ASSERT_EQUAL_FLOAT(plane_mm, fake_plant_plane_mm());
+    }
+    /* The host clears the fault: only then does the mechanism safe itself. */
+    oibar_app_link_state(true);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_CLEAR_FAULT, 0));
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_ABORTING, oibar_app_state());
+    TEST_ASSERT_TRUE(bench_wait_state(oibar_v1_STATE_SOFT_DOCKED, 8000));
+    /* At home, an ordinary reset goes to IDLE as before. */
+    bench_start();
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_IDLE, oibar_app_state());
 }
 
 static void test_SAFETY_RULE_VALVES_ONLY_WHEN_TRANSFERRING(void)
@@ -142,18 +192,34 @@ static void test_SAFETY_RULE_VALVES_NEED_NO_FAULT(void)
     TEST_ASSERT_FALSE(oibar_valves_open_both());
 }
 
+/* The interlock itself, without the state machine: the main loop is held,
+ * so the debounced input changes (the tick runs) but no event is ever
+ * handled; oibar_safety_enforce() alone must close the valves and name the
+ * lost precondition, whatever the state machine still believes. */
+static void lost_precondition_interlock_only(hal_di_t di, oibar_v1_FaultCode want)
+{
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_TRANSFERRING));
+    TEST_ASSERT_TRUE(bench_any_valve_driven());
+    fake_hal_set_main_loop(NULL); /* the state machine sees nothing from here */
+    fake_plant_override_di(di, 0);
+    fake_hal_advance_ms(oibar_param_u32(PARAM_DEBOUNCE_MS) + 5u);
+    TEST_ASSERT_FALSE(oibar_input(di));          /* the firmware's view has changed */
+    TEST_ASSERT_TRUE(bench_any_valve_driven());  /* nobody acted on it yet */
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_TRANSFERRING, oibar_fsm_state());
+    TEST_ASSERT_NOT_EQUAL(0u, oibar_safety_valve_blockers());
+    oibar_safety_enforce();
+    TEST_ASSERT_FALSE(bench_any_valve_driven());
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_SV_VALVE));
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_TV_VALVE));
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_TRANSFERRING, oibar_fsm_state()); /* not the FSM's doing */
+    TEST_ASSERT_EQUAL(want, oibar_fault_take_pending());
+    fake_hal_set_main_loop(oibar_app_run_once);
+}
+
 static void test_SAFETY_RULE_LOST_PRECONDITION_CLOSES_VALVES(void)
 {
-    /* Even if the state machine missed the edge (the signal is never
-     * posted), the main-loop interlock closes the valves. */
-    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_TRANSFERRING));
-    fake_plant_override_di(HAL_DI_CONNECTOR_MATED, 0);
-    fake_hal_set_tick_enabled(false); /* no debounce, no edge event */
-    fake_hal_advance_ms(5);
-    TEST_ASSERT_TRUE(bench_any_valve_driven()); /* firmware has not seen it yet */
-    fake_hal_set_tick_enabled(true);
-    fake_hal_advance_ms(11);
-    TEST_ASSERT_FALSE(bench_any_valve_driven());
+    lost_precondition_interlock_only(HAL_DI_CONNECTOR_MATED, oibar_v1_FAULT_CONNECTOR_LOST);
+    lost_precondition_interlock_only(HAL_DI_LATCH_ENGAGED, oibar_v1_FAULT_LATCH_LOST);
 }
 
 static void test_SAFETY_RULE_FAULT_CLOSES_VALVES_AND_REPORTS(void)
@@ -193,14 +259,94 @@ static void test_SAFETY_RULE_INVALID_COMMAND_CHANGES_NOTHING(void)
     TEST_ASSERT_EQUAL_MEMORY(&a, &b, sizeof a);
 }
 
+/* --- the application behind the real link layer (malformed frames) --- */
+static oibar_link_t s_link;
+static size_t s_tx_bytes;
+
+static bool link_port_send(void *ctx, const uint8_t *bytes, size_t len)
+{
+    (void)ctx;
+    (void)bytes;
+    s_tx_bytes += len;
+    return true;
+}
+
+static void link_main_loop(void) { oibar_app_link_run_once(&s_link); }
+
+static size_t encode_command(uint32_t seq, oibar_v1_CommandOpcode op, uint8_t *wire, size_t cap)
+{
+    oibar_v1_Packet p = oibar_v1_Packet_init_zero;
+    p.seq = seq;
+    p.which_body = oibar_v1_Packet_command_tag;
+    p.body.command.opcode = op;
+    size_t n = oibar_frame_encode(&p, wire, cap);
+    TEST_ASSERT_TRUE(n > 4u);
+    return n;
+}
+
+static void inject(const uint8_t *wire, size_t n)
+{
+    for (size_t i = 0; i < n; i++) {
+        oibar_link_rx_isr(&s_link, wire[i]);
+    }
+    fake_hal_advance_ms(2);
+}
+
 static void test_SAFETY_RULE_MALFORMED_FRAME_DROPPED(void)
 {
-    /* The link layer drops malformed frames (its own suites); the
-     * application only ever sees decoded requests, and an opcode it does
-     * not know is refused without effect. */
-    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKED));
+    fake_hal_reset();
+    fake_plant_enable(true);
+    fake_hal_advance_ms(1);
+    oibar_app_init();
+    oibar_link_config_t cfg;
+    oibar_link_config_defaults(&cfg);
+    oibar_link_port_t port = { link_port_send, NULL };
+    oibar_link_init(&s_link, &cfg, &port, oibar_app_link_callbacks());
+    fake_hal_set_main_loop(link_main_loop);
+    fake_hal_advance_ms(200);
+    oibar_v1_Packet hs = oibar_v1_Packet_init_zero;
+    hs.seq = 1;
+    hs.which_body = oibar_v1_Packet_handshake_tag;
+    hs.body.handshake.protocol_version = oibar_v1_Protocol_PROTOCOL_VERSION;
+    uint8_t wire[OIBAR_FRAME_MAX_WIRE_BYTES];
+    size_t n = oibar_frame_encode(&hs, wire, sizeof wire);
+    inject(wire, n);
+    TEST_ASSERT_TRUE(oibar_app_host_link_alive());
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_IDLE, oibar_app_state());
+
+    oibar_v1_LinkCounters c0, c1;
+    oibar_link_get_counters(&s_link, &c0);
+    /* 1. A CMD_APPROACH_ARM frame with one payload byte corrupted (CRC). */
+    n = encode_command(2, oibar_v1_CMD_APPROACH_ARM, wire, sizeof wire);
+    uint8_t bad[OIBAR_FRAME_MAX_WIRE_BYTES];
+    memcpy(bad, wire, n);
+    bad[n / 2u] = (uint8_t)(bad[n / 2u] ^ 0x10u);
+    if (bad[n / 2u] == 0u) {
+        bad[n / 2u] = 0x5Au;
+    }
+    inject(bad, n);
+    /* 2. The same frame cut short (delimiter after half of it). */
+    memcpy(bad, wire, n / 2u);
+    bad[n / 2u] = 0x00;
+    inject(bad, n / 2u + 1u);
+    /* 3. Line noise: bytes that are no COBS frame at all. */
+    const uint8_t noise[] = { 0x01, 0x01, 0x01, 0x00, 0xFF, 0x00 };
+    inject(noise, sizeof noise);
+    oibar_link_get_counters(&s_link, &c1);
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_IDLE, oibar_app_state()); /* nothing executed */
+    TEST_ASSERT_EQUAL_UINT32(c0.rx_packets, c1.rx_packets);
+    const uint32_t dropped0 = c0.rx_crc_errors + c0.rx_framing_errors + c0.rx_bad_header +
+                              c0.rx_decode_errors;
+    const uint32_t dropped1 = c1.rx_crc_errors + c1.rx_framing_errors + c1.rx_bad_header +
+                              c1.rx_decode_errors;
+    TEST_ASSERT_TRUE_MESSAGE(dropped1 >= dropped0 + 3u, "malformed frames not counted");
+    TEST_ASSERT_TRUE(oibar_app_host_link_alive()); /* dropped, not fatal */
+    /* The intact frame is executed: the drops above were the frames' fault. */
+    inject(wire, n);
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_APPROACH_READY, oibar_app_state());
+    /* An opcode the application does not know is refused without effect. */
     TEST_ASSERT_EQUAL(oibar_v1_NACK_UNKNOWN_OPCODE, oibar_app_command((oibar_v1_CommandOpcode)77, 0));
-    TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKED, oibar_app_state());
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_APPROACH_READY, oibar_app_state());
 }
 
 static void test_SAFETY_RULE_WATCHDOG_NEEDS_BOTH_LOOPS(void)
@@ -301,6 +447,171 @@ static void test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN(void)
     TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
 }
 
+static bool any_valve_reads_open(void)
+{
+    return hal_di_read(HAL_DI_SV_VALVE_OPEN) || hal_di_read(HAL_DI_TV_VALVE_OPEN);
+}
+
+/* Issue 16, item 1: ABORT from the mated states with valves slower than the
+ * plane. Until both valves read closed, the plane must not be driven back. */
+static void test_abort_holds_the_plane_until_the_valves_read_closed(void)
+{
+    const oibar_v1_State from[] = { oibar_v1_STATE_TRANSFERRING, oibar_v1_STATE_TRANSFER_ARMED,
+                                    oibar_v1_STATE_HARD_DOCKED };
+    for (unsigned i = 0; i < 3u; i++) {
+        TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_TRANSFERRING));
+        fake_plant_set_valve_stroke_ms(150u); /* slow, but within valve_mismatch_ms */
+        if (from[i] != oibar_v1_STATE_TRANSFERRING) {
+            /* STOP then ARM again: the valves are still travelling shut. */
+            TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_STOP_TRANSFER, 0));
+        }
+        fake_hal_advance_ms(20);
+        TEST_ASSERT_TRUE(any_valve_reads_open());
+        TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_ABORT, 0));
+        TEST_ASSERT_EQUAL(oibar_v1_STATE_ABORTING, oibar_app_state());
+        unsigned held_ms = 0;
+        while (any_valve_reads_open()) {
+            TEST_ASSERT_FALSE_MESSAGE(fake_hal_do(HAL_DO_PLANE_RETRACT), oibar_fsm_state_name(from[i]));
+            TEST_ASSERT_TRUE(fake_plant_plane_mm() > FAKE_PLANT_TRAVEL_MM - 0.1f);
+            fake_hal_advance_ms(1);
+            TEST_ASSERT_TRUE(++held_ms < 400u);
+        }
+        /* Valves read closed: the abort goes on and safes the mechanism. */
+        TEST_ASSERT_TRUE(bench_wait_state(oibar_v1_STATE_SOFT_DOCKED, 8000));
+        TEST_ASSERT_EQUAL_UINT32(0u, oibar_fault_flags());
+    }
+}
+
+/* A valve that never reads closed: FAULT after valve_mismatch_ms, the plane
+ * still at full mate (where the couplings seal) and never driven back. */
+static void test_abort_with_a_valve_stuck_open_faults_with_the_plane_held(void)
+{
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_TRANSFERRING));
+    fake_plant_set_valve_mode(1, FAKE_VALVE_STUCK_OPEN);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_ABORT, 0));
+    const uint32_t limit_ms = oibar_param_u32(PARAM_VALVE_MISMATCH_MS);
+    for (uint32_t ms = 0; ms < limit_ms + 3000u; ms++) {
+        fake_hal_advance_ms(1);
+        TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+        if (ms > limit_ms + 5u) {
+            TEST_ASSERT_EQUAL(oibar_v1_STATE_FAULT, oibar_app_state());
+        }
+    }
+    TEST_ASSERT_TRUE(oibar_fault_flags() & OIBAR_FAULT_BIT(oibar_v1_FAULT_VALVE_MISMATCH));
+    TEST_ASSERT_TRUE(fake_plant_plane_mm() > FAKE_PLANT_TRAVEL_MM - 0.1f);
+    TEST_ASSERT_FALSE(bench_any_valve_driven());
+}
+
+/* Whatever the state machine commanded: a valve that starts reading open
+ * while the plane is leaving the coupling travel stops the plane now, not
+ * after the valve monitor's valve_mismatch_ms. */
+static void test_plane_stops_at_once_when_a_valve_reads_open_while_unmating(void)
+{
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKED));
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 50u);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
+    fake_hal_advance_ms(100);
+    TEST_ASSERT_TRUE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+    fake_plant_set_valve_mode(0, FAKE_VALVE_STUCK_OPEN);
+    unsigned open_ms = 0;
+    for (unsigned ms = 0; ms < 100u; ms++) {
+        fake_hal_advance_ms(1);
+        open_ms = any_valve_reads_open() ? open_ms + 1u : 0u;
+        if (open_ms > oibar_param_u32(PARAM_DEBOUNCE_MS) + 2u) {
+            TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+        }
+    }
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_FAULT, oibar_app_state());
+}
+
+/* Move an ADC reading slowly (1 count/ms, under the rate check). */
+static void ramp_adc(hal_adc_t ch, int to)
+{
+    uint16_t c = 0;
+    TEST_ASSERT_TRUE(hal_adc_read(ch, &c));
+    int v = (int)c;
+    while (v != to) {
+        v += (to > v) ? 1 : -1;
+        fake_plant_override_adc(ch, v);
+        fake_hal_advance_ms(1);
+    }
+    fake_hal_advance_ms(20);
+}
+
+/* Issue 16, item 2: ARM_TRANSFER refuses, with a reason, when the sensors
+ * disagree with the physics of a closed line or one is unhealthy. */
+static void test_SAFETY_RULE_PREARM_CHECKS(void)
+{
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKED));
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_safety_prearm());
+    /* Line reads far above both tanks (2000 / 200 kPa): a calibration error. */
+    ramp_adc(HAL_ADC_LINE, 410 + 2512); /* about 2300 kPa, below the trip */
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKED, oibar_app_state());
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_PREARM_IMPLAUSIBLE, oibar_app_command(oibar_v1_CMD_ARM_TRANSFER, 0));
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKED, oibar_app_state());
+    /* A tank reads below zero (offset wrong). */
+    ramp_adc(HAL_ADC_LINE, 410 + 109); /* back to the plant's 100 kPa */
+    fake_plant_clear_overrides();
+    ramp_adc(HAL_ADC_TV_TANK, 250); /* valid counts, about -147 kPa */
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_PREARM_IMPLAUSIBLE, oibar_app_command(oibar_v1_CMD_ARM_TRANSFER, 0));
+    /* A sensor out of its valid window: refused as a sensor. */
+    fake_plant_override_adc(HAL_ADC_TV_TANK, 100);
+    fake_hal_advance_ms(3);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_PREARM_SENSOR, oibar_app_command(oibar_v1_CMD_ARM_TRANSFER, 0));
+    fake_plant_override_adc(HAL_ADC_TV_TANK, 250);
+    fake_hal_advance_ms(20);
+    /* Consistent again: armed. */
+    ramp_adc(HAL_ADC_TV_TANK, 410 + 218); /* the plant's 200 kPa */
+    fake_plant_clear_overrides();
+    fake_hal_advance_ms(20);
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKED, oibar_app_state());
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_ARM_TRANSFER, 0));
+}
+
+/* Issue 16, item 2: no ParamSet in bounds switches a protection off. */
+static void test_SAFETY_RULE_LIMITS_NOT_TUNABLE(void)
+{
+    bench_start();
+    const struct {
+        oibar_param_id_t id;
+        float value;
+    } attacks[] = {
+        { PARAM_SOFT_DOCK_MAX_FORCE_N, 0.0f },      /* 0 read as "not monitored" */
+        { PARAM_HARD_DOCK_MAX_FORCE_N, 0.0f },
+        { PARAM_OVERPRESSURE_KPA, 3000.0f },        /* trip at the tank rating */
+        { PARAM_OVERPRESSURE_KPA, 2800.0f },
+        { PARAM_PRESS_TV_KPA_PER_COUNT, 0.1f },     /* gain hides an over-pressure */
+        { PARAM_PRESS_SV_KPA_PER_COUNT, 0.5f },
+        { PARAM_PRESS_LINE_KPA_PER_COUNT, 10.0f },
+        { PARAM_PRESS_ZERO_COUNTS, 1000.0f },       /* offset hides 540 kPa */
+        { PARAM_PRESS_VALID_MIN_COUNTS, 0.0f },     /* hides an open wire */
+        { PARAM_PRESS_VALID_MAX_COUNTS, 4095.0f },  /* hides a short */
+        { PARAM_PRESS_MAX_RATE_KPA_S, 100000.0f },
+        { PARAM_FORCE_N_PER_COUNT, 0.001f },        /* gain hides an overload */
+        { PARAM_VALVE_MISMATCH_MS, 2000.0f },
+        { PARAM_PLANE_COUPLING_MM, 40.0f },         /* no half-mated zone left */
+        { PARAM_NAV_MIN_CONFIDENCE, 0.0f },
+    };
+    for (unsigned i = 0; i < sizeof attacks / sizeof attacks[0]; i++) {
+        const oibar_param_def_t *d = oibar_param_def((uint32_t)attacks[i].id);
+        oibar_v1_ParamValue out;
+        oibar_app_param_set((uint32_t)attacks[i].id, attacks[i].value, &out);
+        TEST_ASSERT_EQUAL_MESSAGE(oibar_v1_NACK_PARAM_OUT_OF_BOUNDS, out.reason, d->name);
+        TEST_ASSERT_EQUAL_FLOAT_MESSAGE(d->default_value, out.value, d->name);
+    }
+    /* Every bound keeps its margin: the loosest value in bounds still trips
+     * below the rating, and the trip point is inside every sensor's valid
+     * window (the sensor does not saturate as "out of range" first). */
+    const oibar_param_def_t *op = oibar_param_def(PARAM_OVERPRESSURE_KPA);
+    TEST_ASSERT_TRUE(op->max <= 0.9f * OIBAR_TANK_RATING_KPA);
+    const oibar_param_def_t *g = oibar_param_def(PARAM_PRESS_TV_KPA_PER_COUNT);
+    const oibar_param_def_t *z = oibar_param_def(PARAM_PRESS_ZERO_COUNTS);
+    const oibar_param_def_t *mx = oibar_param_def(PARAM_PRESS_VALID_MAX_COUNTS);
+    TEST_ASSERT_TRUE(z->max + op->max / g->min < mx->min);
+    TEST_ASSERT_TRUE(oibar_param_def(PARAM_SOFT_DOCK_MAX_FORCE_N)->min > 0.0f);
+    TEST_ASSERT_TRUE(oibar_param_def(PARAM_HARD_DOCK_MAX_FORCE_N)->min > 0.0f);
+}
+
 static void test_rule_names_are_the_identifiers(void)
 {
     TEST_ASSERT_EQUAL_STRING("SAFETY_RULE_SAFE_START", oibar_safety_rule_name(SAFETY_RULE_SAFE_START));
@@ -331,6 +642,12 @@ int main(void)
     RUN_TEST(test_SAFETY_RULE_CONTACT_FORCE_LIMIT);
     RUN_TEST(test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN);
     RUN_TEST(test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN);
+    RUN_TEST(test_SAFETY_RULE_NO_MOTION_AFTER_RESET);
+    RUN_TEST(test_abort_holds_the_plane_until_the_valves_read_closed);
+    RUN_TEST(test_abort_with_a_valve_stuck_open_faults_with_the_plane_held);
+    RUN_TEST(test_plane_stops_at_once_when_a_valve_reads_open_while_unmating);
+    RUN_TEST(test_SAFETY_RULE_PREARM_CHECKS);
+    RUN_TEST(test_SAFETY_RULE_LIMITS_NOT_TUNABLE);
     RUN_TEST(test_rule_names_are_the_identifiers);
     return UNITY_END();
 }

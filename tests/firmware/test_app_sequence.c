@@ -3,6 +3,7 @@
 
 #include "fake_hal.h"
 #include "oibar/app.h"
+#include "oibar/app_params.h"
 #include "oibar/app_faults.h"
 #include "oibar/drv_stepper.h"
 #include "unity.h"
@@ -144,6 +145,38 @@ static void test_dock_refused_outside_capture_envelope(void)
     TEST_ASSERT_EQUAL(oibar_v1_STATE_RECEPTION, oibar_app_state());
 }
 
+/* Issue 16, item 12: the navigation contract. Data inside the envelope is
+ * not enough: the update must be marked valid, with a confidence of at least
+ * nav_min_confidence; anything else counts as no navigation at all. */
+static void dock_with_nav(bool valid, float confidence, oibar_v1_NackReason want)
+{
+    bench_start();
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_APPROACH_ARM, 0));
+    oibar_v1_NavUpdate nav;
+    memset(&nav, 0, sizeof nav);
+    nav.closing_speed_mps = 0.010f; /* inside the envelope */
+    nav.has_q_cam_target = true;
+    nav.q_cam_target.w = 1.0f;
+    nav.valid = valid;
+    nav.confidence = confidence;
+    oibar_app_nav_update(&nav);
+    fake_plant_set_probe(true);
+    TEST_ASSERT_TRUE(bench_wait_state(oibar_v1_STATE_RECEPTION, 50));
+    fake_hal_advance_ms(150);
+    TEST_ASSERT_EQUAL(want, oibar_app_command(oibar_v1_CMD_DOCK, 0));
+}
+
+static void test_dock_needs_a_valid_confident_nav_update(void)
+{
+    const float min_conf = oibar_param_f(PARAM_NAV_MIN_CONFIDENCE);
+    TEST_ASSERT_TRUE(min_conf > 0.0f);
+    dock_with_nav(false, 0.99f, oibar_v1_NACK_PRECONDITION_FAILED); /* an old host, or not initialised */
+    dock_with_nav(true, min_conf * 0.5f, oibar_v1_NACK_PRECONDITION_FAILED);
+    dock_with_nav(true, 0.0f, oibar_v1_NACK_PRECONDITION_FAILED);
+    dock_with_nav(true, min_conf, oibar_v1_NACK_NONE);
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_SOFT_DOCKED, oibar_app_state());
+}
+
 static void test_misalignment_from_quaternion(void)
 {
     oibar_v1_Quat q = { 1.0f, 0.0f, 0.0f, 0.0f };
@@ -190,6 +223,7 @@ int main(void)
     RUN_TEST(test_approach_ready_timeout_disarms);
     RUN_TEST(test_armed_timeout_disarms);
     RUN_TEST(test_dock_refused_outside_capture_envelope);
+    RUN_TEST(test_dock_needs_a_valid_confident_nav_update);
     RUN_TEST(test_misalignment_from_quaternion);
     RUN_TEST(test_telemetry_reflects_the_mechanism);
     return UNITY_END();

@@ -146,6 +146,35 @@ static void test_no_duplicate_rows(void)
     }
 }
 
+/* The superstates form a tree under ANY: every walk up ends at ANY, a
+ * superstate is never a transition's target, and the states with no
+ * superstate are exactly the ones outside any activity. */
+static void test_superstates_form_a_tree(void)
+{
+    for (unsigned node = OIBAR_STATE_FIRST; node <= OIBAR_FSM_NODE_LAST; node++) {
+        unsigned up = node, steps = 0;
+        while (up != OIBAR_FSM_ANY) {
+            up = oibar_fsm_parent(up);
+            TEST_ASSERT_TRUE(up == OIBAR_FSM_ANY || up > OIBAR_STATE_LAST); /* parents are superstates */
+            TEST_ASSERT_TRUE_MESSAGE(++steps <= OIBAR_FSM_NODE_LAST, oibar_fsm_state_name(node));
+        }
+        TEST_ASSERT_NOT_EQUAL(0, strcmp("?", oibar_fsm_state_name(node)));
+    }
+    const unsigned top[] = { oibar_v1_STATE_BOOT, oibar_v1_STATE_IDLE, oibar_v1_STATE_ABORTING,
+                             oibar_v1_STATE_FAULT };
+    for (unsigned i = 0; i < 4; i++) {
+        TEST_ASSERT_EQUAL_UINT(OIBAR_FSM_ANY, oibar_fsm_parent(top[i]));
+    }
+    TEST_ASSERT_EQUAL_UINT(OIBAR_FSM_SUPER_DOCKED, oibar_fsm_parent(OIBAR_FSM_SUPER_MATED));
+    TEST_ASSERT_EQUAL_UINT(OIBAR_FSM_SUPER_ACTIVE, oibar_fsm_parent(OIBAR_FSM_SUPER_DOCKED));
+    TEST_ASSERT_EQUAL_UINT(OIBAR_FSM_SUPER_MATED, oibar_fsm_parent(oibar_v1_STATE_TRANSFERRING));
+    unsigned n = 0;
+    const oibar_fsm_row_t *t = oibar_fsm_table(&n);
+    for (unsigned i = 0; i < n; i++) {
+        TEST_ASSERT_TRUE(t[i].next <= OIBAR_STATE_LAST);
+    }
+}
+
 int main(void)
 {
     UNITY_BEGIN();
@@ -153,5 +182,6 @@ int main(void)
     RUN_TEST(test_every_state_appears_and_names_are_known);
     RUN_TEST(test_every_timed_state_has_a_timeout_row);
     RUN_TEST(test_no_duplicate_rows);
+    RUN_TEST(test_superstates_form_a_tree);
     return UNITY_END();
 }

@@ -103,19 +103,22 @@ static oibar_v1_Packet read_host_frame(const char *name) {
 
 /* ---------------------------------------------------------------- host -> MCU (read) */
 
-static void test_reads_handshake_v1(void) {
-    oibar_v1_Packet p = read_host_frame("handshake_v1");
+static void test_reads_handshake_v2(void) {
+    oibar_v1_Packet p = read_host_frame("handshake_v2");
     TEST_ASSERT_EQUAL_UINT32(1, p.seq);
     TEST_ASSERT_EQUAL(oibar_v1_Packet_handshake_tag, p.which_body);
+    TEST_ASSERT_EQUAL_UINT32(2, oibar_v1_PROTOCOL_VERSION);
     TEST_ASSERT_EQUAL_UINT32(oibar_v1_PROTOCOL_VERSION, p.body.handshake.protocol_version);
     TEST_ASSERT_EQUAL_STRING("oibar-host 0.1.0", p.body.handshake.host_version);
 }
 
-static void test_reads_handshake_v2(void) {
-    oibar_v1_Packet p = read_host_frame("handshake_v2");
+/* An old host (version 1: it never sets NavUpdate.valid) is another version. */
+static void test_reads_handshake_v1(void) {
+    oibar_v1_Packet p = read_host_frame("handshake_v1");
     TEST_ASSERT_EQUAL(oibar_v1_Packet_handshake_tag, p.which_body);
-    TEST_ASSERT_EQUAL_UINT32(2, p.body.handshake.protocol_version);
-    TEST_ASSERT_EQUAL_STRING("future-host", p.body.handshake.host_version);
+    TEST_ASSERT_EQUAL_UINT32(1, p.body.handshake.protocol_version);
+    TEST_ASSERT_NOT_EQUAL(oibar_v1_PROTOCOL_VERSION, p.body.handshake.protocol_version);
+    TEST_ASSERT_EQUAL_STRING("old-host", p.body.handshake.host_version);
 }
 
 static void test_reads_heartbeat_host(void) {
@@ -157,6 +160,7 @@ static void test_reads_nav_update(void) {
     TEST_ASSERT_EQUAL_FLOAT(0.5f, n->q_cam_target.y);
     TEST_ASSERT_EQUAL_FLOAT(0.5f, n->q_cam_target.z);
     TEST_ASSERT_EQUAL_FLOAT(4.25f, n->range_m);
+    TEST_ASSERT_TRUE(n->valid);
     TEST_ASSERT_EQUAL_FLOAT(0.03125f, n->closing_speed_mps);
     TEST_ASSERT_EQUAL(oibar_v1_NAV_PHASE_FORCED_TRANSLATION, n->phase);
     TEST_ASSERT_EQUAL_FLOAT(0.875f, n->confidence);
@@ -301,8 +305,8 @@ static void test_writes_heartbeat_mcu_max_seq(void) {
 
 int main(void) {
     UNITY_BEGIN();
-    RUN_TEST(test_reads_handshake_v1);
     RUN_TEST(test_reads_handshake_v2);
+    RUN_TEST(test_reads_handshake_v1);
     RUN_TEST(test_reads_heartbeat_host);
     RUN_TEST(test_reads_command_start_transfer);
     RUN_TEST(test_reads_command_abort);

@@ -100,7 +100,7 @@ def main() -> None:
         (frame_dir / name).write_bytes(wire)
     (frame_dir / "all_in_one_stream").write_bytes(b"\x00garbage".join(wires.values()))
 
-    hello = rec_packet(packet_bytes_of(wires["handshake_v1"])) + rec_time(20)
+    hello = rec_packet(packet_bytes_of(wires["handshake_v2"])) + rec_time(20)
     for v in vectors:
         if v["direction"] == "host_to_mcu":
             (dispatch_dir / v["name"]).write_bytes(

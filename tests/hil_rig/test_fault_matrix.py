@@ -23,6 +23,8 @@ SUBSET = [
     # issue 17 (rig): the host's own failures
     ("camera_unplugged", "approach"), ("slow_inference", "approach"),
     ("nav_hang", "hard_docked"), ("serial_unplugged", "unmating"),
+    # issue 16 (fw-app): abort with slow valves, host-side parameter attack
+    ("valve_slow_close", "transferring"), ("param_attack", "hard_docked"),
 ]
 
 
@@ -33,7 +35,7 @@ def test_subset_covers_every_fault_and_every_phase():
 
 def test_every_cell_has_an_expected_outcome_or_a_reason():
     cells = mx.all_cells()
-    assert len(cells) == len(FAULT_TYPES) * len(mx.PHASES) >= 114
+    assert len(cells) == len(FAULT_TYPES) * len(mx.PHASES) >= 126
     for f, p in cells:
         e = mx.expectation(f, p)
         if isinstance(e, str):

@@ -42,13 +42,13 @@ def test_handshake_reports_the_mcu_info(mcu, make_client):
     info = client.connect()
     assert info.firmware_version == "fake-1.2.3"
     assert info.build_id == "fake-build-0001"
-    assert info.protocol_version == pb.PROTOCOL_VERSION == 1
+    assert info.protocol_version == pb.PROTOCOL_VERSION == 2
     assert info.reset_cause == "RESET_POWER_ON"
     assert 0 <= info.uptime_ms < 60_000
     assert client.link_alive and client.handshake_info == info
     (handshake,) = mcu.requests("handshake")
     assert handshake.seq == 1  # a new session starts numbering at 1
-    assert handshake.handshake.protocol_version == 1
+    assert handshake.handshake.protocol_version == pb.PROTOCOL_VERSION
     assert handshake.handshake.host_version == "test-host-9"
     assert mcu.connected
 
@@ -58,19 +58,19 @@ def test_mcu_with_another_protocol_version_is_refused(mcu, make_client):
     client = make_client(mcu.url)
     with pytest.raises(ProtocolVersionError) as caught:
         client.connect()
-    assert (caught.value.host_version, caught.value.mcu_version) == (1, 7)
-    assert "version 1" in str(caught.value) and "version 7" in str(caught.value)
+    assert (caught.value.host_version, caught.value.mcu_version) == (2, 7)
+    assert "version 2" in str(caught.value) and "version 7" in str(caught.value)
     assert not client.link_alive
     with pytest.raises(LinkDown):
         client.command("NOOP")
     # connect() may be retried once the firmware is right
     mcu.protocol_version = pb.PROTOCOL_VERSION
-    assert client.connect().protocol_version == 1
+    assert client.connect().protocol_version == 2
 
 
 def test_host_with_another_protocol_version_is_refused_by_the_mcu(mcu, make_client):
-    client = make_client(mcu.url, protocol_version=2)
-    with pytest.raises(ProtocolVersionError, match="version 2.*version 1"):
+    client = make_client(mcu.url, protocol_version=3)
+    with pytest.raises(ProtocolVersionError, match="version 3.*version 2"):
         client.connect()
     assert not mcu.connected
 
@@ -526,7 +526,7 @@ def test_cli_link_connects_sends_commands_and_shows_status(mcu, capsys):
     out, err = capsys.readouterr()
     assert code == 0, err
     lines = out.splitlines()
-    assert "firmware fake-1.2.3" in lines[0] and "protocol 1" in lines[0]
+    assert "firmware fake-1.2.3" in lines[0] and "protocol 2" in lines[0]
     assert lines[1] == "CMD_NOOP: accepted, reason NACK_NONE, state STATE_IDLE"
     assert lines[2] == "CMD_APPROACH_ARM: accepted, reason NACK_NONE, state STATE_APPROACH_READY"
     assert lines[3].startswith("CMD_APPROACH_ARM: REFUSED, reason NACK_INVALID_IN_STATE")
@@ -546,7 +546,7 @@ def test_cli_version_mismatch_is_exit_2(capsys):
     with FakeMcu(protocol_version=9) as mcu:
         code = cli.main(["link", "--port", mcu.url, "--seconds", "0"])
     _, err = capsys.readouterr()
-    assert code == 2 and "version 1" in err and "version 9" in err
+    assert code == 2 and "version 2" in err and "version 9" in err
 
 
 def test_cli_timeout_is_exit_2(capsys):

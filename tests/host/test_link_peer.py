@@ -115,12 +115,12 @@ def test_parameters_round_trip_with_bounds(peer_factory):
 
 
 def test_protocol_version_mismatch_is_a_clear_error(peer_factory):
-    peer = peer_factory("--protocol-version", "2")
+    peer = peer_factory("--protocol-version", "3")
     link = LinkClient(peer.pty)
     with pytest.raises(ProtocolVersionError) as err:
         link.connect()
     link.close()
-    assert "1" in str(err.value) and "2" in str(err.value)
+    assert str(pb.PROTOCOL_VERSION) in str(err.value) and "3" in str(err.value)
 
 
 def test_host_detects_a_silent_mcu(peer_factory):

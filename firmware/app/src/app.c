@@ -103,8 +103,12 @@ void oibar_app_init(void)
                    oibar_v1_STATE_BOOT, oibar_v1_FAULT_NONE, oibar_v1_NACK_NONE,
                    (uint32_t)s_reset_cause);
     oibar_fsm_init(now);
+    /* Restart policy: nothing moves by itself after a reset. Whatever the
+     * cause, BOOT's self test ends in FAULT (FAULT_RESET_AWAY_FROM_HOME) when
+     * the mechanism is not at home, and FAULT waits for the host's
+     * CLEAR_FAULT. A watchdog or lockup reset is also reported as its own
+     * fault, even at home: the firmware itself was stuck. */
     if (s_reset_cause == oibar_v1_RESET_WATCHDOG || s_reset_cause == oibar_v1_RESET_LOCKUP) {
-        /* The mechanism may be mid-sequence: wait in FAULT for the host. */
         oibar_fault_raise(oibar_v1_FAULT_WATCHDOG_RESET);
     }
     hal_control_tick_attach(oibar_app_tick_1khz);
@@ -211,7 +215,11 @@ void oibar_app_nav_update(const oibar_v1_NavUpdate *nav)
     if (nav == NULL) {
         return;
     }
-    s_nav_valid = isfinite(nav->closing_speed_mps) && nav->has_q_cam_target;
+    /* Navigation contract: only an update the host marks valid, with a
+     * confidence at or above nav_min_confidence and finite data, counts. */
+    s_nav_valid = nav->valid && isfinite(nav->confidence) &&
+                  nav->confidence >= oibar_param_f(PARAM_NAV_MIN_CONFIDENCE) &&
+                  isfinite(nav->closing_speed_mps) && nav->has_q_cam_target;
     s_nav_rx_ms = hal_time_ms();
     s_nav_closing_mm_s = nav->closing_speed_mps * 1000.0f;
     s_nav_misalign_deg = nav->has_q_cam_target ? oibar_app_misalignment_deg(&nav->q_cam_target)

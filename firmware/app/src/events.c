@@ -76,6 +76,7 @@ const char *oibar_sig_name(oibar_sig_t sig)
         "SIG_LATCH_ENGAGED", "SIG_LATCH_DISENGAGED", "SIG_CONNECTOR_MATED",
         "SIG_CONNECTOR_LOST", "SIG_PLANE_EXTENDED", "SIG_PLANE_RETRACTED",
         "SIG_STEPPER_DONE", "SIG_TARGET_REACHED", "SIG_LINK_DOWN", "SIG_FAULT",
+        "SIG_VALVES_CLOSED", "SIG_VALVES_STUCK",
     };
     return ((unsigned)sig < (unsigned)SIG_COUNT) ? names[sig] : "?";
 }

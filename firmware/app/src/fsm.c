@@ -9,6 +9,7 @@
 #include "oibar/app_assert.h"
 #include "oibar/app_faults.h"
 #include "oibar/app_params.h"
+#include "oibar/app_safety.h"
 #include "oibar/drv_inputs.h"
 #include "oibar/drv_plane.h"
 #include "oibar/drv_pressure.h"
@@ -23,14 +24,17 @@
 #define G(x) ((uint8_t)GUARD_##x)
 #define A(x) ((uint8_t)ACT_##x)
 #define ANY ((uint8_t)OIBAR_FSM_ANY)
+#define SUPER(x) ((uint8_t)OIBAR_FSM_SUPER_##x)
 #define STAY ((uint8_t)OIBAR_FSM_STAY)
 
 /* The table. docs/state_table.md is the same table, row for row, in this
- * order (test_app_state_table checks it). */
+ * order (test_app_state_table checks it). An event is looked up in the
+ * current state's rows, then in its superstates' (innermost first), then in
+ * the ANY rows; the first level with a row for the event handles it. */
 static const oibar_fsm_row_t k_table[] = {
     /* state              event                  guard                 next               action */
     { S(BOOT),            E(TIMEOUT),            G(AT_HOME),           S(IDLE),           A(NONE) },
-    { S(BOOT),            E(TIMEOUT),            G(NOT_AT_HOME),       S(ABORTING),       A(NONE) },
+    { S(BOOT),            E(TIMEOUT),            G(NOT_AT_HOME),       S(FAULT),          A(FAULT_RESET_AWAY_FROM_HOME) },
     { S(BOOT),            C(ABORT),              G(NONE),              STAY,              A(NONE) },
     { S(BOOT),            E(LINK_DOWN),          G(NONE),              STAY,              A(NONE) },
 
@@ -40,60 +44,42 @@ static const oibar_fsm_row_t k_table[] = {
 
     { S(APPROACH_READY),  E(CONTACT),            G(NONE),              S(RECEPTION),      A(RECORD_CAPTURE) },
     { S(APPROACH_READY),  E(TIMEOUT),            G(NONE),              S(IDLE),           A(NONE) },
-    { S(APPROACH_READY),  C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(RECEPTION),       C(DOCK),               G(CAPTURE_CONFIRMED), S(SOFT_DOCKED),    A(NONE) },
     { S(RECEPTION),       E(CONTACT_LOST),       G(LATCH_NOT_ENGAGED), S(APPROACH_READY), A(NONE) },
     { S(RECEPTION),       E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_LATCH_TIMEOUT) },
-    { S(RECEPTION),       C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(SOFT_DOCKED),     C(HARD_DOCK),          G(SOFT_DOCK_HELD),    S(HARD_DOCKING),   A(NONE) },
     { S(SOFT_DOCKED),     C(SEPARATE),           G(NONE),              S(UNMATING),       A(NONE) },
-    { S(SOFT_DOCKED),     C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
-    { S(SOFT_DOCKED),     E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
 
     { S(HARD_DOCKING),    E(PLANE_EXTENDED),     G(CONNECTOR_MATED),   S(HARD_DOCKED),    A(NONE) },
     { S(HARD_DOCKING),    E(CONNECTOR_MATED),    G(PLANE_EXTENDED),    S(HARD_DOCKED),    A(NONE) },
     { S(HARD_DOCKING),    E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_PLANE_TIMEOUT) },
-    { S(HARD_DOCKING),    E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
     { S(HARD_DOCKING),    C(SEPARATE),           G(NONE),              S(UNMATING),       A(NONE) },
-    { S(HARD_DOCKING),    C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(HARD_DOCKED),     C(ARM_TRANSFER),       G(TRANSFER_READY),    S(TRANSFER_ARMED), A(ARM) },
     { S(HARD_DOCKED),     C(SEPARATE),           G(VALVES_CLOSED),     S(UNMATING),       A(NONE) },
-    { S(HARD_DOCKED),     C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
-    { S(HARD_DOCKED),     E(CONNECTOR_LOST),     G(NONE),              S(FAULT),          A(FAULT_CONNECTOR_LOST) },
-    { S(HARD_DOCKED),     E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
 
     { S(TRANSFER_ARMED),  C(START_TRANSFER),     G(START_OK),          S(TRANSFERRING),   A(START_TRANSFER) },
     { S(TRANSFER_ARMED),  C(DISARM_TRANSFER),    G(NONE),              S(HARD_DOCKED),    A(NONE) },
     { S(TRANSFER_ARMED),  E(TIMEOUT),            G(NONE),              S(HARD_DOCKED),    A(NONE) },
-    { S(TRANSFER_ARMED),  C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
-    { S(TRANSFER_ARMED),  E(CONNECTOR_LOST),     G(NONE),              S(FAULT),          A(FAULT_CONNECTOR_LOST) },
-    { S(TRANSFER_ARMED),  E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
 
     { S(TRANSFERRING),    E(TARGET_REACHED),     G(NONE),              S(HARD_DOCKED),    A(REPORT_TRANSFER_COMPLETE) },
     { S(TRANSFERRING),    C(STOP_TRANSFER),      G(NONE),              S(HARD_DOCKED),    A(NONE) },
-    { S(TRANSFERRING),    C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
-    { S(TRANSFERRING),    E(CONNECTOR_LOST),     G(NONE),              S(FAULT),          A(FAULT_CONNECTOR_LOST) },
-    { S(TRANSFERRING),    E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
 
     { S(UNMATING),        E(PLANE_RETRACTED),    G(NONE),              S(LATCH_RELEASE),  A(NONE) },
-    { S(UNMATING),        E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
-    { S(UNMATING),        C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(LATCH_RELEASE),   E(STEPPER_DONE),       G(NONE),              S(SEPARATING),     A(NONE) },
     { S(LATCH_RELEASE),   E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_LATCH_TIMEOUT) },
-    { S(LATCH_RELEASE),   C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(SEPARATING),      E(CONTACT_LOST),       G(NONE),              S(LATCH_RESET),    A(NONE) },
     { S(SEPARATING),      E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_LATCH_TIMEOUT) },
-    { S(SEPARATING),      C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
     { S(LATCH_RESET),     E(STEPPER_DONE),       G(NONE),              S(IDLE),           A(NONE) },
     { S(LATCH_RESET),     E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_LATCH_TIMEOUT) },
-    { S(LATCH_RESET),     C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
 
+    { S(ABORTING),        E(VALVES_CLOSED),      G(NONE),              STAY,              A(RETRACT_PLANE) },
+    { S(ABORTING),        E(VALVES_STUCK),       G(NONE),              S(FAULT),          A(FAULT_VALVE_MISMATCH) },
     { S(ABORTING),        E(PLANE_RETRACTED),    G(LATCH_ENGAGED),     S(SOFT_DOCKED),    A(NONE) },
     { S(ABORTING),        E(PLANE_RETRACTED),    G(LATCH_NOT_ENGAGED), S(LATCH_RESET),    A(NONE) },
     { S(ABORTING),        E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_PLANE_TIMEOUT) },
@@ -103,6 +89,11 @@ static const oibar_fsm_row_t k_table[] = {
     { S(FAULT),           C(ABORT),              G(NONE),              STAY,              A(NONE) },
     { S(FAULT),           E(FAULT),              G(NONE),              STAY,              A(LATCH_FAULT) },
     { S(FAULT),           E(LINK_DOWN),          G(NONE),              STAY,              A(NONE) },
+
+    /* Superstates (QP/C style): a row here applies to every state inside. */
+    { SUPER(ACTIVE),      C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
+    { SUPER(DOCKED),      E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
+    { SUPER(MATED),       E(CONNECTOR_LOST),     G(NONE),              S(FAULT),          A(FAULT_CONNECTOR_LOST) },
 
     { ANY,                C(NOOP),               G(NONE),              STAY,              A(NONE) },
     { ANY,                E(FAULT),              G(NONE),              S(FAULT),          A(LATCH_FAULT) },
@@ -120,12 +111,37 @@ const oibar_fsm_row_t *oibar_fsm_table(unsigned *rows)
 }
 
 /* --- names --------------------------------------------------------------- */
-static const char *const k_state_names[OIBAR_STATE_LAST + 1u] = {
+static const char *const k_state_names[OIBAR_FSM_NODE_LAST + 1u] = {
     "ANY", "STATE_BOOT", "STATE_IDLE", "STATE_APPROACH_READY", "STATE_RECEPTION",
     "STATE_SOFT_DOCKED", "STATE_HARD_DOCKING", "STATE_HARD_DOCKED", "STATE_TRANSFER_ARMED",
     "STATE_TRANSFERRING", "STATE_UNMATING", "STATE_LATCH_RELEASE", "STATE_SEPARATING",
-    "STATE_LATCH_RESET", "STATE_ABORTING", "STATE_FAULT",
+    "STATE_LATCH_RESET", "STATE_ABORTING", "STATE_FAULT", "ACTIVE", "DOCKED", "MATED",
 };
+
+/* Each node's superstate (ANY: none). ACTIVE: every state where the mechanism
+ * is doing something on the host's behalf (ABORT safes it); DOCKED: the
+ * soft-dock latch holds the target (losing it is a fault); MATED: the plane and
+ * the connector are mated (losing the connector is a fault). */
+static const uint8_t k_parent[OIBAR_FSM_NODE_LAST + 1u] = {
+    [oibar_v1_STATE_APPROACH_READY] = OIBAR_FSM_SUPER_ACTIVE,
+    [oibar_v1_STATE_RECEPTION] = OIBAR_FSM_SUPER_ACTIVE,
+    [oibar_v1_STATE_SOFT_DOCKED] = OIBAR_FSM_SUPER_DOCKED,
+    [oibar_v1_STATE_HARD_DOCKING] = OIBAR_FSM_SUPER_DOCKED,
+    [oibar_v1_STATE_HARD_DOCKED] = OIBAR_FSM_SUPER_MATED,
+    [oibar_v1_STATE_TRANSFER_ARMED] = OIBAR_FSM_SUPER_MATED,
+    [oibar_v1_STATE_TRANSFERRING] = OIBAR_FSM_SUPER_MATED,
+    [oibar_v1_STATE_UNMATING] = OIBAR_FSM_SUPER_DOCKED,
+    [oibar_v1_STATE_LATCH_RELEASE] = OIBAR_FSM_SUPER_ACTIVE,
+    [oibar_v1_STATE_SEPARATING] = OIBAR_FSM_SUPER_ACTIVE,
+    [oibar_v1_STATE_LATCH_RESET] = OIBAR_FSM_SUPER_ACTIVE,
+    [OIBAR_FSM_SUPER_DOCKED] = OIBAR_FSM_SUPER_ACTIVE,
+    [OIBAR_FSM_SUPER_MATED] = OIBAR_FSM_SUPER_DOCKED,
+};
+
+unsigned oibar_fsm_parent(unsigned node)
+{
+    return (node <= OIBAR_FSM_NODE_LAST) ? k_parent[node] : OIBAR_FSM_ANY;
+}
 static const char *const k_cmd_names[OIBAR_CMD_LAST + 1u] = {
     "CMD_UNSPECIFIED", "CMD_NOOP", "CMD_APPROACH_ARM", "CMD_DOCK", "CMD_HARD_DOCK",
     "CMD_ARM_TRANSFER", "CMD_START_TRANSFER", "CMD_STOP_TRANSFER", "CMD_SEPARATE",
@@ -139,12 +155,13 @@ static const char *const k_guard_names[GUARD_COUNT] = {
 static const char *const k_action_names[ACT_COUNT] = {
     "-", "record_capture", "arm", "start_transfer", "report_transfer_complete",
     "latch_fault", "fault_latch_timeout", "fault_plane_timeout", "fault_connector_lost",
-    "fault_latch_lost", "fault_host_link_loss", "clear_faults",
+    "fault_latch_lost", "fault_host_link_loss", "clear_faults", "retract_plane",
+    "fault_valve_mismatch", "fault_reset_away_from_home",
 };
 
 const char *oibar_fsm_state_name(unsigned state)
 {
-    return (state <= OIBAR_STATE_LAST) ? k_state_names[state] : "?";
+    return (state <= OIBAR_FSM_NODE_LAST) ? k_state_names[state] : "?";
 }
 
 const char *oibar_fsm_next_name(unsigned next)
@@ -183,6 +200,8 @@ static float s_target_kpa;
 static bool s_capture_ok;
 static float s_cmd_target_kpa; /* argument of the command being dispatched */
 static uint16_t s_sig_arg;      /* argument of the signal being dispatched */
+static bool s_valve_wait;       /* ABORTING: plane held until the valves read closed */
+static uint32_t s_valve_wait_since_ms;
 
 oibar_v1_State oibar_fsm_state(void) { return s_state; }
 bool oibar_fsm_transfer_armed(void) { return s_armed; }
@@ -236,8 +255,11 @@ static oibar_v1_NackReason guard(oibar_guard_t g)
         return pre(oibar_input(HAL_DI_LATCH_ENGAGED));
     case GUARD_LATCH_NOT_ENGAGED:
         return pre(!oibar_input(HAL_DI_LATCH_ENGAGED));
-    case GUARD_TRANSFER_READY:
-        return pre(transfer_ready());
+    case GUARD_TRANSFER_READY: {
+        /* SAFETY_RULE_PREARM_CHECKS: the reason names the failed check. */
+        oibar_v1_NackReason r = oibar_safety_prearm();
+        return (r != oibar_v1_NACK_NONE) ? r : pre(transfer_ready());
+    }
     case GUARD_START_OK: {
         float t = s_cmd_target_kpa;
         /* The argument first: a bad target is the host's error whatever
@@ -311,6 +333,15 @@ static void action(oibar_action_t a, uint32_t now_ms)
         break;
     case ACT_FAULT_HOST_LINK_LOSS:
         fault_now(oibar_v1_FAULT_HOST_LINK_LOSS);
+        break;
+    case ACT_RETRACT_PLANE:
+        oibar_plane_retract(now_ms);
+        break;
+    case ACT_FAULT_VALVE_MISMATCH:
+        fault_now(oibar_v1_FAULT_VALVE_MISMATCH);
+        break;
+    case ACT_FAULT_RESET_AWAY_FROM_HOME:
+        fault_now(oibar_v1_FAULT_RESET_AWAY_FROM_HOME);
         break;
     case ACT_CLEAR_FAULTS:
         oibar_fault_clear_all();
@@ -407,11 +438,28 @@ static void entry_latch_reset(uint32_t now_ms)
     (void)oibar_stepper_home();
 }
 
-/* Safing: valves closed, stepper off, plane back. */
+/* Could the fluid couplings be engaged (poppets pushed open)? */
+static bool plane_coupled(void)
+{
+    return oibar_plane_is_extended() ||
+           oibar_plane_pos_mm() >= oibar_param_f(PARAM_PLANE_COUPLING_MM);
+}
+
+/* Safing: valves closed (by enter()), stepper off, plane back -- but
+ * SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN: while the couplings may be engaged
+ * the plane holds until both valves read closed (SIG_VALVES_CLOSED, then the
+ * retract_plane action). A valve still reading open after valve_mismatch_ms
+ * (SIG_VALVES_STUCK) is a fault, with the plane held where it is. */
 static void entry_aborting(uint32_t now_ms)
 {
     oibar_stepper_disable();
-    oibar_plane_retract(now_ms);
+    if (plane_coupled() && oibar_valves_any_sensed_open()) {
+        oibar_plane_stop();
+        s_valve_wait = true;
+        s_valve_wait_since_ms = now_ms;
+    } else {
+        oibar_plane_retract(now_ms);
+    }
 }
 
 /* Safe and still: valves closed, nothing driven -- except a plane that would
@@ -479,6 +527,7 @@ static void enter(oibar_v1_State next, uint32_t now_ms)
         oibar_ploop_stop(); /* valves open in TRANSFERRING only */
     }
     s_timer_armed = false;
+    s_valve_wait = false;
     const state_desc_t *d = &k_states[next];
     if (d->timeout_param != (oibar_param_id_t)0) {
         s_deadline_ms = now_ms + oibar_param_u32(d->timeout_param);
@@ -498,6 +547,8 @@ void oibar_fsm_init(uint32_t now_ms)
     s_capture_ok = false;
     s_cmd_target_kpa = 0.0f;
     s_sig_arg = 0;
+    s_valve_wait = false;
+    s_valve_wait_since_ms = 0;
     enter(oibar_v1_STATE_BOOT, now_ms);
 }
 
@@ -510,11 +561,14 @@ static oibar_v1_NackReason dispatch(uint8_t event, uint32_t now_ms)
 {
     oibar_v1_NackReason first_fail = NO_ROW;
     const oibar_fsm_row_t *hit = NULL;
-    for (int pass = 0; pass < 2 && hit == NULL && first_fail == NO_ROW; pass++) {
-        uint8_t want_state = (pass == 0) ? (uint8_t)s_state : ANY;
+    /* The state, its superstates outwards, then ANY: the first level with a
+     * row for the event decides (bounded: the hierarchy has no cycles). */
+    unsigned level = (unsigned)s_state;
+    for (unsigned depth = 0; depth <= OIBAR_FSM_NODE_LAST && hit == NULL && first_fail == NO_ROW;
+         depth++) {
         for (unsigned i = 0; i < TABLE_ROWS; i++) {
             const oibar_fsm_row_t *r = &k_table[i];
-            if (r->state != want_state || r->event != event) {
+            if (r->state != level || r->event != event) {
                 continue;
             }
             oibar_v1_NackReason g = guard((oibar_guard_t)r->guard);
@@ -526,6 +580,10 @@ static oibar_v1_NackReason dispatch(uint8_t event, uint32_t now_ms)
                 first_fail = g;
             }
         }
+        if (level == OIBAR_FSM_ANY) {
+            break;
+        }
+        level = oibar_fsm_parent(level);
     }
     if (hit == NULL) {
         return first_fail;
@@ -566,6 +624,17 @@ oibar_v1_NackReason oibar_fsm_command(oibar_v1_CommandOpcode op, float target_kp
 
 void oibar_fsm_tick(uint32_t now_ms)
 {
+    if (s_valve_wait) {
+        if (!oibar_valves_any_sensed_open()) {
+            s_valve_wait = false;
+            s_sig_arg = 0;
+            (void)dispatch((uint8_t)SIG_VALVES_CLOSED, now_ms);
+        } else if (now_ms - s_valve_wait_since_ms >= oibar_param_u32(PARAM_VALVE_MISMATCH_MS)) {
+            s_valve_wait = false;
+            s_sig_arg = 0;
+            (void)dispatch((uint8_t)SIG_VALVES_STUCK, now_ms);
+        }
+    }
     if (s_timer_armed && (int32_t)(now_ms - s_deadline_ms) >= 0) {
         s_timer_armed = false;
         s_sig_arg = 0;

@@ -14,16 +14,26 @@
 #define P_REAL(id_, name_, unit_, def_, min_, max_) \
     { (id_), (name_), (unit_), (float)(def_), (float)(min_), (float)(max_), false }
 
-/* Ordered by id: s_defs[i].id == i + 1 (checked by a test). */
+/* Safety limits (the force limits, the over-pressure trip, the sensor
+ * calibration and validity window, the valve mismatch time, the coupling
+ * travel) are parameters only so that a unit can be calibrated: their bounds
+ * keep a margin to the rating or the physical fault they protect against, so
+ * no value in bounds switches a protection off (docs/firmware.md, "Safety
+ * limits"). The ratings they are measured against are compile-time constants
+ * in app_params.h.
+ *
+ * Ordered by id: s_defs[i].id == i + 1 (checked by a test). */
 static const oibar_param_def_t s_defs[OIBAR_PARAM_COUNT] = {
     /* Paper: capture works up to 50 mm/s closing speed. */
     P_REAL(PARAM_CAPTURE_MAX_CLOSING_SPEED_MM_S, "capture_max_speed_mm_s", "mm/s", 50, 0, 50),
     /* Paper: combined yaw and pitch misalignment up to 10 deg. */
     P_REAL(PARAM_CAPTURE_MAX_MISALIGNMENT_DEG, "capture_max_misalign_deg", "deg", 10, 0, 10),
     /* Paper: soft-docking contact force under half the hard-docking one. */
-    P_REAL(PARAM_SOFT_DOCK_MAX_FORCE_N, "soft_dock_max_force_n", "N", 30, 0, 30),
+    /* Safety limit: never 0 (0 would read as "no limit"); at most the paper's value. */
+    P_REAL(PARAM_SOFT_DOCK_MAX_FORCE_N, "soft_dock_max_force_n", "N", 30, 10, 30),
     /* Paper: hard-docking contact force under 60 N. */
-    P_REAL(PARAM_HARD_DOCK_MAX_FORCE_N, "hard_dock_max_force_n", "N", 60, 0, 60),
+    /* Safety limit: above the 20 N mating force, at most the paper's value. */
+    P_REAL(PARAM_HARD_DOCK_MAX_FORCE_N, "hard_dock_max_force_n", "N", 60, 30, 60),
     /* Assumption: navigation updates arrive every 100 ms; 5 missed = stale. */
     P_INT(PARAM_NAV_MAX_AGE_MS, "nav_max_age_ms", "ms", 500, 100, 5000),
     /* Assumption: switch bounce of microswitches settles within 10 ms. */
@@ -56,34 +66,52 @@ static const oibar_param_def_t s_defs[OIBAR_PARAM_COUNT] = {
     /* Assumption: slower homing speed so the switch is not overrun. */
     P_INT(PARAM_LATCH_HOME_SPEED_STEPS_S, "latch_home_speed_steps_s", "steps/s", 400, 50, 2000),
     /* Assumption: solenoid valve stroke under 100 ms; 2x before a mismatch. */
-    P_INT(PARAM_VALVE_MISMATCH_MS, "valve_mismatch_ms", "ms", 200, 20, 2000),
+    /* Safety limit: also bounds how long an abort holds the plane mated
+     * waiting for the valves to read closed. */
+    P_INT(PARAM_VALVE_MISMATCH_MS, "valve_mismatch_ms", "ms", 200, 50, 500),
     /* Assumption: 0.5-4.5 V ratiometric transducers; 0.5 V = 410 counts. */
-    P_INT(PARAM_PRESS_ZERO_COUNTS, "press_zero_counts", "counts", 410, 0, 1000),
-    /* Assumption: 0..3000 kPa over 3276 counts (calibration per sensor). */
-    P_REAL(PARAM_PRESS_SV_KPA_PER_COUNT, "press_sv_kpa_per_count", "kPa/cnt", 0.9158, 0.1, 10),
-    P_REAL(PARAM_PRESS_TV_KPA_PER_COUNT, "press_tv_kpa_per_count", "kPa/cnt", 0.9158, 0.1, 10),
-    P_REAL(PARAM_PRESS_LINE_KPA_PER_COUNT, "press_line_kpa_per_count", "kPa/cnt", 0.9158, 0.1, 10),
-    /* Assumption: below 0.25 V = open wire, above 4.75 V = short. */
-    P_INT(PARAM_PRESS_VALID_MIN_COUNTS, "press_min_counts", "counts", 200, 0, 1000),
-    P_INT(PARAM_PRESS_VALID_MAX_COUNTS, "press_max_counts", "counts", 3900, 3000, 4095),
+    /* Safety limit (calibration): +-40 counts (+-37 kPa) around 0.5 V. */
+    P_INT(PARAM_PRESS_ZERO_COUNTS, "press_zero_counts", "counts", 410, 370, 450),
+    /* Assumption: 0..3000 kPa over 3276 counts (calibration per sensor).
+     * Safety limit (calibration): +-10 % of nominal, so a gain cannot scale
+     * an over-pressure below the trip. */
+    P_REAL(PARAM_PRESS_SV_KPA_PER_COUNT, "press_sv_kpa_per_count", "kPa/cnt", 0.9158, 0.82, 1.01),
+    P_REAL(PARAM_PRESS_TV_KPA_PER_COUNT, "press_tv_kpa_per_count", "kPa/cnt", 0.9158, 0.82, 1.01),
+    P_REAL(PARAM_PRESS_LINE_KPA_PER_COUNT, "press_line_kpa_per_count", "kPa/cnt", 0.9158, 0.82, 1.01),
+    /* Assumption: below 0.25 V = open wire, above 4.75 V = short.
+     * Safety limit: the window keeps a margin to 0 counts (open wire) and
+     * 4095 (short), and contains the rated pressure's counts (3686). */
+    P_INT(PARAM_PRESS_VALID_MIN_COUNTS, "press_min_counts", "counts", 200, 100, 300),
+    P_INT(PARAM_PRESS_VALID_MAX_COUNTS, "press_max_counts", "counts", 3900, 3750, 4000),
     /* Assumption: no real fill changes pressure faster than 2000 kPa/s. */
-    P_REAL(PARAM_PRESS_MAX_RATE_KPA_S, "press_max_rate_kpa_s", "kPa/s", 2000, 10, 100000),
-    /* Assumption: tanks and line rated 3000 kPa; trip at 2600 kPa. */
-    P_REAL(PARAM_OVERPRESSURE_KPA, "overpressure_kpa", "kPa", 2600, 100, 3000),
-    /* Assumption: accepted range of CMD_START_TRANSFER target pressure. */
-    P_REAL(PARAM_TARGET_MIN_KPA, "target_min_kpa", "kPa", 100, 0, 3000),
-    P_REAL(PARAM_TARGET_MAX_KPA, "target_max_kpa", "kPa", 2400, 0, 3000),
+    /* Safety limit: a sensor jump faster than this is a sensor fault. */
+    P_REAL(PARAM_PRESS_MAX_RATE_KPA_S, "press_max_rate_kpa_s", "kPa/s", 2000, 500, 5000),
+    /* Assumption: tanks and line rated 3000 kPa (OIBAR_TANK_RATING_KPA); trip
+     * at 2600 kPa. Safety limit: at most 90 % of the rating. */
+    P_REAL(PARAM_OVERPRESSURE_KPA, "overpressure_kpa", "kPa", 2600, 100,
+           OIBAR_OVERPRESSURE_MAX_KPA),
+    /* Assumption: accepted range of CMD_START_TRANSFER target pressure (and
+     * always below the trip, checked by START_TRANSFER). */
+    P_REAL(PARAM_TARGET_MIN_KPA, "target_min_kpa", "kPa", 100, 0, OIBAR_OVERPRESSURE_MAX_KPA),
+    P_REAL(PARAM_TARGET_MAX_KPA, "target_max_kpa", "kPa", 2400, 0, OIBAR_OVERPRESSURE_MAX_KPA),
     /* Assumption: a fill never takes longer than 10 min. */
     P_INT(PARAM_TRANSFER_MAX_MS, "transfer_max_ms", "ms", 600000, 1000, 3600000),
     /* Assumption: 50 mm potentiometer over the full ADC range. */
     P_REAL(PARAM_PLANE_MM_PER_COUNT, "plane_mm_per_count", "mm/cnt", 0.01221, 0.001, 1),
-    /* Assumption: load cell amplifier 0..204 N over the full ADC range. */
-    P_REAL(PARAM_FORCE_N_PER_COUNT, "force_n_per_count", "N/cnt", 0.05, 0.001, 1),
+    /* Assumption: load cell amplifier 0..204 N over the full ADC range.
+     * Safety limit (calibration): +-20 % of nominal, so a gain cannot hide
+     * an overload. */
+    P_REAL(PARAM_FORCE_N_PER_COUNT, "force_n_per_count", "N/cnt", 0.05, 0.04, 0.06),
     /* Assumption: abort retracts the plane (plane timeout) plus margin. */
     P_INT(PARAM_ABORT_TIMEOUT_MS, "abort_timeout_ms", "ms", 12000, 1000, 120000),
     /* Assumption: plane travel (mm from retracted) from which the fluid couplings' poppets
      * are pushed open; below it they are apart and self-sealed, at full travel sealed. */
-    P_REAL(PARAM_PLANE_COUPLING_MM, "plane_coupling_mm", "mm", 30, 0, 40),
+    /* Safety limit: at most 35 mm, so the re-seat and the abort's valve wait
+     * cannot be tuned away (smaller is the cautious side). */
+    P_REAL(PARAM_PLANE_COUPLING_MM, "plane_coupling_mm", "mm", 30, 0, 35),
+    /* Assumption: the host's confidence (0..1) below which a navigation
+     * update is not used for DOCK's capture check; never 0. */
+    P_REAL(PARAM_NAV_MIN_CONFIDENCE, "nav_min_confidence", "1", 0.5, 0.2, 1),
 };
 
 static float s_values[OIBAR_PARAM_COUNT];

@@ -8,6 +8,7 @@
 #include "oibar/app_params.h"
 #include "oibar/app_time.h"
 #include "oibar/drv_inputs.h"
+#include "oibar/drv_plane.h"
 #include "oibar/drv_pressure.h"
 #include "oibar/drv_valves.h"
 
@@ -29,6 +30,9 @@ static const char *const k_names[SAFETY_RULE_COUNT] = {
     "SAFETY_RULE_CONTACT_FORCE_LIMIT",
     "SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN",
     "SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN",
+    "SAFETY_RULE_NO_MOTION_AFTER_RESET",
+    "SAFETY_RULE_PREARM_CHECKS",
+    "SAFETY_RULE_LIMITS_NOT_TUNABLE",
 };
 
 const char *oibar_safety_rule_name(oibar_safety_rule_t rule)
@@ -68,8 +72,11 @@ bool oibar_safety_valves_permitted(void) { return oibar_safety_valve_blockers() 
 /* SAFETY_RULE_LOST_PRECONDITION_CLOSES_VALVES: whatever the state machine
  * believes, an open valve without every precondition is closed now, and the
  * loss is reported as the fault that names it. */
+static void enforce_plane(void);
+
 void oibar_safety_enforce(void)
 {
+    enforce_plane();
     if (!oibar_valves_any_cmd_open()) {
         return;
     }
@@ -92,6 +99,47 @@ void oibar_safety_enforce(void)
         return; /* the latched fault is already being handled */
     }
     oibar_fault_raise(code);
+}
+
+/* SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN, at run time: whatever the state
+ * machine commanded, the plane never moves back out of the coupling travel
+ * while a valve reads open. The motor stops at once and the valve that
+ * disagrees with its (closed) command is reported; FAULT then re-seats a
+ * half-mated plane (SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN). */
+static void enforce_plane(void)
+{
+    if (oibar_plane_motion() != OIBAR_PLANE_RETRACTING || !oibar_valves_any_sensed_open()) {
+        return;
+    }
+    if (oibar_plane_pos_mm() < oibar_param_f(PARAM_PLANE_COUPLING_MM)) {
+        return; /* couplings apart and self-sealed */
+    }
+    oibar_plane_stop();
+    oibar_fault_raise(oibar_v1_FAULT_VALVE_MISMATCH);
+}
+
+/* Pre-arm checks (ARM_TRANSFER), PX4 style: the sensors the transfer relies
+ * on are healthy and their readings agree with the physics of a closed
+ * line. With both valves closed the line holds what the last transfer left
+ * in it: never more than the higher tank, never below zero. A reading
+ * outside that (beyond OIBAR_PREARM_TOLERANCE_KPA) means a wrong
+ * calibration or a failing sensor. */
+oibar_v1_NackReason oibar_safety_prearm(void)
+{
+    for (unsigned i = 0; i < (unsigned)OIBAR_PSENS_COUNT; i++) {
+        if (!oibar_pressure_sensor_ok((oibar_psens_t)i)) {
+            return oibar_v1_NACK_PREARM_SENSOR;
+        }
+    }
+    const float tol = OIBAR_PREARM_TOLERANCE_KPA;
+    const float sv = oibar_pressure_kpa(OIBAR_PSENS_SV);
+    const float tv = oibar_pressure_kpa(OIBAR_PSENS_TV);
+    const float line = oibar_pressure_kpa(OIBAR_PSENS_LINE);
+    const float highest = (sv > tv) ? sv : tv;
+    if (!(sv >= -tol && tv >= -tol && line >= -tol && line <= highest + tol)) {
+        return oibar_v1_NACK_PREARM_IMPLAUSIBLE; /* also NaN */
+    }
+    return oibar_v1_NACK_NONE;
 }
 
 float oibar_safety_force_limit_n(unsigned state)

@@ -18,6 +18,8 @@ FAULT_TYPES = (
     "latch_wire_break", "adc_glitch", "adc_glitch_run", "replay",
     # the host's own failures, through the real daemon cycle and link core (issue 17)
     "camera_unplugged", "serial_unplugged", "nav_hang", "slow_inference",
+    # issue 16 (fw-app): abort with slow valves, host-side parameter attack
+    "valve_slow_close", "param_attack",
 )
 
 
@@ -136,6 +138,20 @@ class FaultInjector:
             rig.nav_hang(on)
         elif kind == "slow_inference":
             rig.slow_inference(float(spec.args.get("latency_s", 0.3)) if on else 0.0)
+        elif kind == "param_attack":
+            # The host tries to zero or loosen each protection (args: {name: value}).
+            if on:
+                rig.host_param_attack(dict(spec.args.get("values", {})))
+        elif kind == "valve_slow_close":
+            # Both valves stroke in stroke_s (e.g. 300 ms, slower than valve_mismatch_ms), and
+            # the host sends ABORT at the injection: the plane must wait for the valves.
+            if on:
+                fault.state["stroke_s"] = mech.p.valve_stroke_s
+                mech.p.valve_stroke_s = float(spec.args.get("stroke_s", 0.3))
+                if spec.args.get("host_abort", True):
+                    rig.host_command("CMD_ABORT")
+            else:
+                mech.p.valve_stroke_s = fault.state.get("stroke_s", mech.p.valve_stroke_s)
 
     @staticmethod
     def _replay(fault: ActiveFault, t_s: float, rig: Any) -> None:

@@ -94,6 +94,15 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
     "serial_unplugged": {"duration_s": 3.0},
     "nav_hang": {"duration_s": 3.0},
     "slow_inference": {"duration_s": 3.0, "latency_s": 0.3},
+    "valve_slow_close": {"stroke_s": 0.3, "host_abort": True},  # until the end of the mission
+    # Each protection zeroed or loosened past its margin (docs/firmware.md, "Safety limits").
+    "param_attack": {"values": {
+        "soft_dock_max_force_n": 0, "hard_dock_max_force_n": 0, "overpressure_kpa": 3000,
+        "press_sv_kpa_per_count": 0.1, "press_tv_kpa_per_count": 0.1, "press_line_kpa_per_count": 10,
+        "press_zero_counts": 1000, "press_min_counts": 0, "press_max_counts": 4095,
+        "press_max_rate_kpa_s": 100000, "force_n_per_count": 0.001, "valve_mismatch_ms": 2000,
+        "plane_coupling_mm": 40, "nav_min_confidence": 0, "capture_max_speed_mm_s": 200,
+        "capture_max_misalign_deg": 45}},
 }
 FAULT_TITLES = {
     "link_loss": "link loss 3 s", "bit_errors": "bit errors (BER 2e-4)",
@@ -106,6 +115,8 @@ FAULT_TITLES = {
     "replay": "replayed ARM/START",
     "camera_unplugged": "camera unplugged 3 s", "serial_unplugged": "serial port unplugged 3 s",
     "nav_hang": "navigation loop hung 3 s", "slow_inference": "inference 300 ms (3 periods) for 3 s",
+    "valve_slow_close": "valves stroke 300 ms, host aborts",
+    "param_attack": "host loosens every protection",
 }
 assert set(FAULT_ARGS) == set(FAULT_TYPES), "a fault type of the rig is missing from the matrix"
 
@@ -131,6 +142,8 @@ VALVES_CLOSED_BOUND_S: dict[str, float | None] = {
     "serial_unplugged": 1.5,        # as a link loss: the MCU's link timeout 1 s + stroke
     "nav_hang": 1.5,                # no heartbeat from a hung loop: link timeout 1 s + stroke
     "slow_inference": None,         # late cycles still beat the link timeout: the fill goes on
+    "valve_slow_close": 0.4,        # the 300 ms stroke + debounce
+    "param_attack": None,           # refused: nothing changes, the fill goes on
 }
 
 NOT_APPLICABLE: dict[tuple[str, str], str] = {
@@ -236,6 +249,22 @@ def expectation(fault: str, phase: str) -> Expect | str:
         e = Expect("completed", [], extra={"max_replays_executed": 0, "min_replays": 1, "tv_min_kpa": 595},
                    why="recorded ARM/START resent every 0.25 s to the end: refused as stale "
                        "(or answered from the duplicate cache): none runs again")
+    elif fault == "param_attack":
+        e = Expect("completed", [], why="every ParamSet refused (locked while active, out of bounds "
+                                        "in IDLE/FAULT): the mission goes on unchanged")
+    elif fault == "valve_slow_close":
+        if phase == "transferring":
+            e = Expect("aborted", ["FAULT_VALVE_MISMATCH"],
+                       why="host ABORT while filling: plane held mated while the valves close (300 ms "
+                           "> valve_mismatch_ms): FAULT, plane held; clear once closed, abort, separate")
+        elif phase == "reception":
+            e = Expect("aborted", [], why="valves closed: the host's ABORT safes at once; no second try")
+        elif phase == "unmating":
+            e = Expect("completed", [], why="valves closed: ABORT re-latches soft-docked, separation goes on")
+        else:
+            e = Expect("aborted", ["FAULT_VALVE_MISMATCH"],
+                       why="valves closed: ABORT safes at once; the retried fill's valves close slower "
+                           "than valve_mismatch_ms: FAULT with the plane held mated, nothing vented")
     else:
         raise ValueError(f"no expectation for fault {fault!r}")
     if e.final_state is None:
@@ -312,6 +341,19 @@ def generic_checks(fault: str, result: Any) -> list[Check]:
                         (want <= events | flags) if want else None,
                         f"events: {', '.join(sorted(events)) or 'none'}; "
                         f"telemetry: {', '.join(sorted(flags)) or 'none'}"))
+    if fault == "param_attack":
+        attacks = [(label, verdict) for _, label, verdict in result.requests if label.startswith("ATTACK ")]
+        accepted = [label for label, verdict in attacks if not verdict.startswith("refused")]
+        names = {label.split()[1].split("=")[0] for label, _ in attacks}
+        bounded = {label.split()[1].split("=")[0] for label, verdict in attacks
+                   if verdict == "refused (NACK_PARAM_OUT_OF_BOUNDS)"}
+        want = set(FAULT_ARGS["param_attack"]["values"])
+        checks.append(Check(
+            "G-PARAMS", "every attempt to loosen a protection refused; each refused by its bounds once "
+            "parameters may change (IDLE/FAULT)",
+            not accepted and names == want and bounded == want,
+            f"{len(attacks)} attempts, not refused: {', '.join(accepted) or 'none'}; "
+            f"not tried in a settable state: {', '.join(sorted(want - bounded)) or 'none'}"))
     return checks
 
 

@@ -31,7 +31,7 @@ import numpy as np
 from oibar import pb
 from oibar.link.session import LinkSession, SessionLink
 from oibar.nav.daemon import DaemonParams, NavDaemon
-from oibar.nav.guidance import Guidance
+from oibar.nav.guidance import Guidance, MechRequest
 from oibar.nav.vehicle import VehicleInterface
 from oibar_hil.rig.faults import FaultInjector
 from oibar_hil.rig.lockstep import FLAG_HANG_MAIN_LOOP, RESET_CAUSES, SimMcu
@@ -131,6 +131,9 @@ class Rig:
         self._camera_out = False
         self._inference_s = 0.0
         self._busy_until = 0.0
+        # Host-side parameter attacks (fault "param_attack"): (request, "now" | "settable").
+        self._attacks: list[tuple[MechRequest, str]] = []
+        self._attack_inflight: tuple[MechRequest, Any] | None = None
         self.t_s = 0.0
 
     # -- hooks for the faults -----------------------------------------------------------
@@ -195,6 +198,50 @@ class Rig:
         else:
             self._new_host()
             self.notes.append((self.t_s, "host process restarted: new session, new controller"))
+
+    def host_command(self, opcode_name: str) -> None:
+        """Fault injection: the host sends a command outside its guidance (e.g. an operator ABORT)."""
+        if not self._host_alive:
+            return
+        try:
+            self.session.command(pb.CommandOpcode.Value(opcode_name), 0.0, now_s=self.t_s)
+            self.notes.append((self.t_s, f"host sends {opcode_name} (injected)"))
+        except Exception as exc:  # link down or a request in flight: noted, not retried
+            self.notes.append((self.t_s, f"host could not send {opcode_name}: {type(exc).__name__}"))
+
+    def host_param_attack(self, values: dict[str, float]) -> None:
+        """Fault injection: the host tries to set each parameter to a loosening value, once now
+        (whatever the MCU state) and once more when the MCU is next in a state where parameters
+        may change (BOOT, IDLE, FAULT), so that the bounds themselves are exercised."""
+        for when in ("now", "settable"):
+            for name, value in values.items():
+                req = MechRequest("param_set", param_id=FIRMWARE_PARAM_IDS[name], value=float(value),
+                                  label=f"ATTACK {name}={value:g}")
+                self._attacks.append((req, when))
+
+    def _step_attacks(self, state: str) -> None:
+        if self._attack_inflight is not None:
+            req, handle = self._attack_inflight
+            if not handle.done:
+                return
+            self._attack_inflight = None
+            if handle.error is not None:
+                verdict = f"no answer ({type(handle.error).__name__})"
+            else:
+                reason = pb.enum_name(pb.NackReason, handle.response.reason)
+                verdict = "accepted" if handle.accepted else f"refused ({reason})"
+            self.requests_log.append((self.t_s, req.label, verdict))
+        # one request at a time on the link: not while the daemon's (or another attack's) is out
+        if not self._attacks or self.session.busy:
+            return
+        req, when = self._attacks[0]
+        if when == "settable" and state not in ("STATE_BOOT", "STATE_IDLE", "STATE_FAULT"):
+            return
+        self._attacks.pop(0)
+        try:
+            self._attack_inflight = (req, self.session.param_set(req.param_id, req.value, now_s=self.t_s))
+        except Exception as exc:  # link down: counted as not sent
+            self.requests_log.append((self.t_s, req.label, f"not sent ({type(exc).__name__})"))
 
     def _new_host(self) -> None:
         """A host process: its link session (caller heartbeats, as oibar nav opens its link) and
@@ -344,8 +391,9 @@ class Rig:
                     stderr_path=stderr_path) as mcu:
             self.mcu = mcu
             while self.t_s < sc.rig.max_time_s:
-                if self._host_finished() and (self.between_missions is None
-                                              or not self.between_missions(self)):
+                attacking = bool(self._attacks or self._attack_inflight) and self._host_alive
+                if self._host_finished() and not attacking and (self.between_missions is None
+                                                                or not self.between_missions(self)):
                     break
                 adv = self._advance_ms(reply, state)
                 flags = FLAG_HANG_MAIN_LOOP if self._hang else 0
@@ -387,6 +435,7 @@ class Rig:
                 # the host
                 if self._host_alive:
                     out = self._host_step(out)
+                    self._step_attacks(state)
                 else:
                     self.world.set_setpoint(np.zeros(3), np.zeros(3))  # vehicle holds
                 if self.t_s >= next_record:

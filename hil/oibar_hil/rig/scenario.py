@@ -23,7 +23,8 @@ FIRMWARE_PARAM_IDS = {name: i + 1 for i, name in enumerate((
     "valve_mismatch_ms", "press_zero_counts", "press_sv_kpa_per_count", "press_tv_kpa_per_count",
     "press_line_kpa_per_count", "press_min_counts", "press_max_counts", "press_max_rate_kpa_s",
     "overpressure_kpa", "target_min_kpa", "target_max_kpa", "transfer_max_ms",
-    "plane_mm_per_count", "force_n_per_count", "abort_timeout_ms",
+    "plane_mm_per_count", "force_n_per_count", "abort_timeout_ms", "plane_coupling_mm",
+    "nav_min_confidence",
 ))}
 
 EXPECT_KEYS = {

@@ -37,6 +37,7 @@ static uint32_t p_released_ms;    /* how long the latch has been released with t
 static fake_valve_mode_t p_valve_mode[2];
 static bool p_valve_open[2];
 static uint32_t p_valve_ms[2];    /* stroke progress */
+static uint32_t p_valve_stroke_ms; /* FAKE_PLANT_VALVE_STROKE_MS unless a test slows it */
 static bool p_plane_jam;
 static bool p_step_stall;
 static float p_plane_mm;
@@ -84,6 +85,7 @@ void fake_hal_reset(void)
         p_valve_open[v] = false;
         p_valve_ms[v] = 0;
     }
+    p_valve_stroke_ms = FAKE_PLANT_VALVE_STROKE_MS;
     p_plane_jam = false;
     p_step_stall = false;
     p_plane_mm = 0.0f;
@@ -237,6 +239,7 @@ void fake_plant_enable(bool on) { p_on = on; }
 void fake_plant_set_probe(bool inserted) { p_probe = inserted; }
 bool fake_plant_probe(void) { return p_probe; }
 void fake_plant_set_valve_mode(unsigned valve, fake_valve_mode_t mode) { p_valve_mode[valve & 1u] = mode; }
+void fake_plant_set_valve_stroke_ms(uint32_t ms) { p_valve_stroke_ms = (ms == 0u) ? 1u : ms; }
 void fake_plant_set_plane_jam(bool jam) { p_plane_jam = jam; }
 void fake_plant_set_stepper_stall(bool stall) { p_step_stall = stall; }
 void fake_plant_set_force_n(float force_n) { p_force_n = force_n; }
@@ -285,7 +288,7 @@ static void plant_step_1ms(void)
         } else if (p_valve_mode[v] == FAKE_VALVE_STUCK_OPEN) {
             p_valve_open[v] = true;
         } else if (s_do[coil[v]] != p_valve_open[v]) {
-            if (++p_valve_ms[v] >= FAKE_PLANT_VALVE_STROKE_MS) {
+            if (++p_valve_ms[v] >= p_valve_stroke_ms) {
                 p_valve_open[v] = s_do[coil[v]];
                 p_valve_ms[v] = 0;
             }
@@ -425,6 +428,7 @@ void bench_nav_good(void)
     nav.q_cam_target.w = 1.0f;
     nav.range_m = 0.05f;
     nav.confidence = 0.99f;
+    nav.valid = true;
     nav.phase = oibar_v1_NAV_PHASE_SOFT_DOCK;
     oibar_app_nav_update(&nav);
 }

@@ -70,6 +70,8 @@ void fake_plant_enable(bool on);
 void fake_plant_set_probe(bool inserted);
 bool fake_plant_probe(void);
 void fake_plant_set_valve_mode(unsigned valve /* 0 SV, 1 TV */, fake_valve_mode_t mode);
+/* Valve stroke time, both valves (FAKE_PLANT_VALVE_STROKE_MS after reset). */
+void fake_plant_set_valve_stroke_ms(uint32_t ms);
 void fake_plant_set_plane_jam(bool jam);
 void fake_plant_set_stepper_stall(bool stall);
 void fake_plant_set_tanks_kpa(float sv_kpa, float tv_kpa);

@@ -31,6 +31,8 @@ typedef enum {
     SIG_TARGET_REACHED,     /* pressure loop: target pressure, valves closed */
     SIG_LINK_DOWN,          /* host link lost */
     SIG_FAULT,              /* a fault was raised; arg = oibar_v1_FaultCode */
+    SIG_VALVES_CLOSED,      /* state machine: both valves read closed (ABORTING's wait) */
+    SIG_VALVES_STUCK,       /* state machine: a valve still reads open after valve_mismatch_ms */
     SIG_COUNT
 } oibar_sig_t;
 

@@ -6,8 +6,10 @@
  *
  * Rules the table does not spell out (also stated in the doc):
  *  - rows for the current state are tried in order, the first whose guard
- *    holds wins; only when the state has no row for the event are the ANY
- *    rows tried;
+ *    holds wins; only when the state has no row for the event are the rows
+ *    of its superstate tried (ACTIVE, DOCKED, MATED: QP/C-style hierarchical
+ *    states, see oibar_fsm_parent), then the superstate's superstate, and
+ *    last the ANY rows;
  *  - a command with no row is rejected with NACK_INVALID_IN_STATE
  *    (NACK_FAULT_ACTIVE in STATE_FAULT); a command whose guards all fail is
  *    rejected with the first guard's reason; a rejected command changes
@@ -27,6 +29,11 @@
 #define OIBAR_FSM_STAY 0u  /* next column: no transition (internal) */
 #define OIBAR_STATE_FIRST 1u
 #define OIBAR_STATE_LAST 15u
+/* Superstates: table nodes that are never the current state. */
+#define OIBAR_FSM_SUPER_ACTIVE 16u
+#define OIBAR_FSM_SUPER_DOCKED 17u
+#define OIBAR_FSM_SUPER_MATED 18u
+#define OIBAR_FSM_NODE_LAST 18u
 #define OIBAR_CMD_FIRST 1u
 #define OIBAR_CMD_LAST 11u
 /* Table event ids: signals keep their value, commands are offset. */
@@ -65,11 +72,14 @@ typedef enum {
     ACT_FAULT_LATCH_LOST,
     ACT_FAULT_HOST_LINK_LOSS,
     ACT_CLEAR_FAULTS,
+    ACT_RETRACT_PLANE,
+    ACT_FAULT_VALVE_MISMATCH,
+    ACT_FAULT_RESET_AWAY_FROM_HOME,
     ACT_COUNT
 } oibar_action_t;
 
 typedef struct {
-    uint8_t state;   /* oibar_v1_State or OIBAR_FSM_ANY */
+    uint8_t state;   /* oibar_v1_State, a superstate or OIBAR_FSM_ANY */
     uint8_t event;   /* oibar_sig_t or OIBAR_FSM_EV_CMD(opcode) */
     uint8_t guard;   /* oibar_guard_t */
     uint8_t next;    /* oibar_v1_State or OIBAR_FSM_STAY */
@@ -84,6 +94,8 @@ const char *oibar_fsm_next_name(unsigned next);     /* 0 -> "-" */
 const char *oibar_fsm_event_name(unsigned event);   /* "SIG_CONTACT", "CMD_DOCK" */
 const char *oibar_fsm_guard_name(unsigned guard);   /* GUARD_NONE -> "-" */
 const char *oibar_fsm_action_name(unsigned action); /* ACT_NONE -> "-" */
+/* Superstate of a state or superstate (OIBAR_FSM_ANY: none). */
+unsigned oibar_fsm_parent(unsigned node);
 /* Timeout parameter of a state (0 when it has none). */
 unsigned oibar_fsm_state_timeout_param(unsigned state);
 

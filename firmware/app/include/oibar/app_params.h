@@ -48,8 +48,16 @@ typedef enum {
     PARAM_FORCE_N_PER_COUNT,
     PARAM_ABORT_TIMEOUT_MS,
     PARAM_PLANE_COUPLING_MM,
+    PARAM_NAV_MIN_CONFIDENCE,
     PARAM_ID_END /* one past the last id */
 } oibar_param_id_t;
+
+/* Ratings the safety limits are bounded against: compile-time, not tunable. */
+#define OIBAR_TANK_RATING_KPA 3000.0f      /* tanks and line (assumption) */
+#define OIBAR_OVERPRESSURE_MAX_KPA 2700.0f /* trip at most 90 % of the rating */
+/* Pre-arm plausibility (ARM_TRANSFER): a reading below -tolerance, or a line
+ * above the higher tank by more than it, means a calibration or sensor error. */
+#define OIBAR_PREARM_TOLERANCE_KPA 100.0f
 
 #define OIBAR_PARAM_COUNT ((unsigned)PARAM_ID_END - 1u)
 

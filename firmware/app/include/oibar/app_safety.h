@@ -13,6 +13,8 @@
 #include <stdbool.h>
 #include <stdint.h>
 
+#include "oibar.pb.h"
+
 typedef enum {
     SAFETY_RULE_SAFE_START = 0,                 /* boot/restart: outputs safe */
     SAFETY_RULE_VALVES_ONLY_WHEN_TRANSFERRING,  /* hard-docked, in TRANSFERRING */
@@ -31,6 +33,9 @@ typedef enum {
     SAFETY_RULE_CONTACT_FORCE_LIMIT,            /* paper: <30 N soft, <60 N hard */
     SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN,      /* couplings stay mated while fluid can flow */
     SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN,  /* a fault re-seats a half-mated plane */
+    SAFETY_RULE_NO_MOTION_AFTER_RESET,          /* any reset away from home: FAULT, held */
+    SAFETY_RULE_PREARM_CHECKS,                  /* ARM_TRANSFER cross-checks the sensors */
+    SAFETY_RULE_LIMITS_NOT_TUNABLE,             /* no parameter in bounds disables a protection */
     SAFETY_RULE_COUNT
 } oibar_safety_rule_t;
 
@@ -46,6 +51,9 @@ bool oibar_safety_valves_permitted(void);
 /* Main loop, every pass: close valves and raise a fault when a valve is
  * commanded open while a blocker exists. */
 void oibar_safety_enforce(void);
+/* Pre-arm checks run by ARM_TRANSFER: NACK_PREARM_SENSOR,
+ * NACK_PREARM_IMPLAUSIBLE or NACK_NONE. */
+oibar_v1_NackReason oibar_safety_prearm(void);
 /* Main loop, once per control tick seen (now_ms: hal_time_ms()): contact
  * force limit of the current state, over elapsed time. */
 void oibar_safety_force_tick(uint32_t now_ms);
