@@ -554,10 +554,13 @@ static void test_SAFETY_RULE_PREARM_CHECKS(void)
     fake_plant_clear_overrides();
     ramp_adc(HAL_ADC_TV_TANK, 250); /* valid counts, about -147 kPa */
     TEST_ASSERT_EQUAL(oibar_v1_NACK_PREARM_IMPLAUSIBLE, oibar_app_command(oibar_v1_CMD_ARM_TRANSFER, 0));
-    /* A sensor out of its valid window: refused as a sensor. */
+    /* A few ms out of the valid window are a glitch, not a broken sensor
+     * (SAFETY_RULE_ADC_GLITCH_BOUNDED): the last good value is held, and that
+     * one (about -147 kPa) is still refused as implausible. */
     fake_plant_override_adc(HAL_ADC_TV_TANK, 100);
     fake_hal_advance_ms(3);
-    TEST_ASSERT_EQUAL(oibar_v1_NACK_PREARM_SENSOR, oibar_app_command(oibar_v1_CMD_ARM_TRANSFER, 0));
+    TEST_ASSERT_TRUE(oibar_pressure_sensor_ok(OIBAR_PSENS_TV));
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_PREARM_IMPLAUSIBLE, oibar_app_command(oibar_v1_CMD_ARM_TRANSFER, 0));
     fake_plant_override_adc(HAL_ADC_TV_TANK, 250);
     fake_hal_advance_ms(20);
     /* Consistent again: armed. */
@@ -566,6 +569,15 @@ static void test_SAFETY_RULE_PREARM_CHECKS(void)
     fake_hal_advance_ms(20);
     TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKED, oibar_app_state());
     TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_ARM_TRANSFER, 0));
+    /* Out of its window for longer than the bad-run bound, the sensor is
+     * unhealthy and the pre-arm check names it as a sensor (its range fault
+     * also takes the app to FAULT, which refuses ARM_TRANSFER by state). */
+    fake_plant_override_adc(HAL_ADC_TV_TANK, 100);
+    fake_hal_advance_ms(OIBAR_PRESSURE_BAD_RUN_MS + 5u);
+    TEST_ASSERT_FALSE(oibar_pressure_sensor_ok(OIBAR_PSENS_TV));
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_PREARM_SENSOR, oibar_safety_prearm());
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_FAULT, oibar_app_state());
+    fake_plant_clear_overrides();
 }
 
 /* Issue 16, item 2: no ParamSet in bounds switches a protection off. */
