@@ -13,7 +13,7 @@
 #include "oibar.pb.h"
 
 #define OIBAR_FAULT_BIT(code) (1u << ((unsigned)(code) - 1u))
-#define OIBAR_FAULT_CODE_MAX 16u
+#define OIBAR_FAULT_CODE_MAX 17u
 
 void oibar_faults_init(void);
 /* ISR-safe. */
