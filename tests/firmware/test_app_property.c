@@ -3,7 +3,8 @@
  *  - no valve is ever driven open unless the machine is in
  *    STATE_TRANSFERRING with every precondition of SPEC section 3 true. The
  *    preconditions are checked three ways: the firmware's own view, the raw
- *    hardware (allowing only the debounce time; the plane at full mate), and
+ *    hardware (allowing only the debounce time; the plane's end switch and
+ *    position sensor at full mate), and
  *    the command history seen by this test;
  *  - the plane is never driven back out of the coupling travel while a valve
  *    reads open (raw switch, allowing only the debounce time).
@@ -21,7 +22,9 @@
 #include "oibar/app.h"
 #include "oibar/app_faults.h"
 #include "oibar/app_fsm.h"
+#include "oibar/app_params.h"
 #include "oibar/app_safety.h"
+#include "oibar/drv_inputs.h"
 #include "unity.h"
 
 #define DEFAULT_STEPS 100000u
@@ -30,7 +33,7 @@
 
 static uint32_t s_rng;
 static uint32_t s_seed;
-static uint32_t s_valve_open_raw_ms, s_retract_checks;
+static uint32_t s_valve_open_raw_ms, s_retract_checks, s_plane_not_mated_raw_ms;
 static unsigned s_phase;          /* 0: nothing, 1: arm accepted, 2: start accepted after arm */
 static bool s_link_up;
 static uint32_t s_conn_false_ms, s_latch_false_ms, s_press_bad_ms;
@@ -56,6 +59,14 @@ static void track_state(void)
     if (st != oibar_v1_STATE_TRANSFER_ARMED && st != oibar_v1_STATE_TRANSFERRING) {
         s_phase = 0;
     }
+}
+
+/* The plane's end switch and its position sensor both at full mate (raw). */
+static bool plane_mated_raw(void)
+{
+    uint16_t c = 0;
+    return hal_di_read(HAL_DI_PLANE_EXTENDED) && hal_adc_read(HAL_ADC_PLANE_POS, &c) &&
+           (float)c * 0.01221f >= OIBAR_PLANE_MATED_MIN_MM;
 }
 
 static bool valve_reads_open_raw(void)
@@ -97,7 +108,7 @@ static void check_invariant(void)
     TEST_ASSERT_TRUE_MESSAGE(s_conn_false_ms <= DEBOUNCE_SLACK_MS, msg);
     TEST_ASSERT_TRUE_MESSAGE(s_latch_false_ms <= DEBOUNCE_SLACK_MS, msg);
     TEST_ASSERT_TRUE_MESSAGE(s_press_bad_ms <= DEBOUNCE_SLACK_MS, msg);
-    TEST_ASSERT_TRUE_MESSAGE(fake_plant_plane_mm() > FAKE_PLANT_TRAVEL_MM - 0.5f, msg); /* mated */
+    TEST_ASSERT_TRUE_MESSAGE(s_plane_not_mated_raw_ms <= DEBOUNCE_SLACK_MS, msg); /* switch and pot */
 }
 
 static bool pressure_raw_ok(void)
@@ -121,6 +132,7 @@ static void run_ms(uint32_t ms)
         s_latch_false_ms = hal_di_read(HAL_DI_LATCH_ENGAGED) ? 0u : s_latch_false_ms + 1u;
         s_press_bad_ms = pressure_raw_ok() ? 0u : s_press_bad_ms + 1u;
         s_valve_open_raw_ms = valve_reads_open_raw() ? s_valve_open_raw_ms + 1u : 0u;
+        s_plane_not_mated_raw_ms = plane_mated_raw() ? 0u : s_plane_not_mated_raw_ms + 1u;
         check_invariant();
     }
 }
@@ -225,7 +237,7 @@ static void test_no_valve_open_outside_a_legitimate_transfer(void)
     s_rng = s_seed;
     s_phase = 0;
     s_conn_false_ms = s_latch_false_ms = s_press_bad_ms = 0;
-    s_valve_open_raw_ms = s_retract_checks = 0;
+    s_valve_open_raw_ms = s_retract_checks = s_plane_not_mated_raw_ms = 0;
     s_open_ms = s_starts = s_faults_seen = s_ms = 0;
     bench_start();
     s_link_up = true;

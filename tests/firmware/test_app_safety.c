@@ -447,6 +447,24 @@ static void test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN(void)
     TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
 }
 
+/* Found by the property test: the end switch alone said "mated" (stuck) while
+ * the plane stood at 29 mm, and the valves opened. The position sensor must
+ * agree, at arming and all through the transfer. */
+static void test_SAFETY_RULE_VALVES_NEED_PLANE_MATED(void)
+{
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_TRANSFERRING));
+    TEST_ASSERT_TRUE(bench_any_valve_driven());
+    fake_plant_override_adc(HAL_ADC_PLANE_POS, (int)(29.0f / 0.01221f));
+    fake_hal_advance_ms(3);
+    TEST_ASSERT_TRUE(hal_di_read(HAL_DI_PLANE_EXTENDED)); /* the switch still says mated */
+    TEST_ASSERT_FALSE(bench_any_valve_driven());
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_FAULT, oibar_app_state());
+    TEST_ASSERT_TRUE(oibar_fault_flags() & OIBAR_FAULT_BIT(oibar_v1_FAULT_PLANE_POSITION));
+    TEST_ASSERT_TRUE(oibar_safety_valve_blockers() &
+                     OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_PLANE_MATED));
+    TEST_ASSERT_FALSE(oibar_valves_open_both());
+}
+
 static bool any_valve_reads_open(void)
 {
     return hal_di_read(HAL_DI_SV_VALVE_OPEN) || hal_di_read(HAL_DI_TV_VALVE_OPEN);
@@ -554,6 +572,12 @@ static void test_SAFETY_RULE_PREARM_CHECKS(void)
     fake_plant_clear_overrides();
     ramp_adc(HAL_ADC_TV_TANK, 250); /* valid counts, about -147 kPa */
     TEST_ASSERT_EQUAL(oibar_v1_NACK_PREARM_IMPLAUSIBLE, oibar_app_command(oibar_v1_CMD_ARM_TRANSFER, 0));
+    /* The plane's end switch says extended, its position sensor 29 mm. */
+    fake_plant_override_adc(HAL_ADC_PLANE_POS, (int)(29.0f / 0.01221f));
+    fake_hal_advance_ms(3);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_PREARM_IMPLAUSIBLE, oibar_app_command(oibar_v1_CMD_ARM_TRANSFER, 0));
+    fake_plant_override_adc(HAL_ADC_PLANE_POS, -1);
+    fake_hal_advance_ms(3);
     /* A few ms out of the valid window are a glitch, not a broken sensor
      * (SAFETY_RULE_ADC_GLITCH_BOUNDED): the last good value is held, and that
      * one (about -147 kPa) is still refused as implausible. */
@@ -603,6 +627,7 @@ static void test_SAFETY_RULE_LIMITS_NOT_TUNABLE(void)
         { PARAM_VALVE_MISMATCH_MS, 2000.0f },
         { PARAM_PLANE_COUPLING_MM, 40.0f },         /* no half-mated zone left */
         { PARAM_NAV_MIN_CONFIDENCE, 0.0f },
+        { PARAM_PLANE_MM_PER_COUNT, 0.02f },        /* a short plane reads as mated */
     };
     for (unsigned i = 0; i < sizeof attacks / sizeof attacks[0]; i++) {
         const oibar_param_def_t *d = oibar_param_def((uint32_t)attacks[i].id);
@@ -660,6 +685,7 @@ int main(void)
     RUN_TEST(test_plane_stops_at_once_when_a_valve_reads_open_while_unmating);
     RUN_TEST(test_SAFETY_RULE_PREARM_CHECKS);
     RUN_TEST(test_SAFETY_RULE_LIMITS_NOT_TUNABLE);
+    RUN_TEST(test_SAFETY_RULE_VALVES_NEED_PLANE_MATED);
     RUN_TEST(test_rule_names_are_the_identifiers);
     return UNITY_END();
 }

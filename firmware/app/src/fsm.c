@@ -438,22 +438,15 @@ static void entry_latch_reset(uint32_t now_ms)
     (void)oibar_stepper_home();
 }
 
-/* Could the fluid couplings be engaged (poppets pushed open)? */
-static bool plane_coupled(void)
-{
-    return oibar_plane_is_extended() ||
-           oibar_plane_pos_mm() >= oibar_param_f(PARAM_PLANE_COUPLING_MM);
-}
-
 /* Safing: valves closed (by enter()), stepper off, plane back -- but
- * SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN: while the couplings may be engaged
- * the plane holds until both valves read closed (SIG_VALVES_CLOSED, then the
- * retract_plane action). A valve still reading open after valve_mismatch_ms
+ * SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN: while any valve reads open (wherever
+ * the position sensor says the plane is) the plane holds until both read
+ * closed (SIG_VALVES_CLOSED, then the retract_plane action). A valve still reading open after valve_mismatch_ms
  * (SIG_VALVES_STUCK) is a fault, with the plane held where it is. */
 static void entry_aborting(uint32_t now_ms)
 {
     oibar_stepper_disable();
-    if (plane_coupled() && oibar_valves_any_sensed_open()) {
+    if (oibar_valves_any_sensed_open()) {
         oibar_plane_stop();
         s_valve_wait = true;
         s_valve_wait_since_ms = now_ms;

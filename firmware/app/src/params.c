@@ -96,8 +96,10 @@ static const oibar_param_def_t s_defs[OIBAR_PARAM_COUNT] = {
     P_REAL(PARAM_TARGET_MAX_KPA, "target_max_kpa", "kPa", 2400, 0, OIBAR_OVERPRESSURE_MAX_KPA),
     /* Assumption: a fill never takes longer than 10 min. */
     P_INT(PARAM_TRANSFER_MAX_MS, "transfer_max_ms", "ms", 600000, 1000, 3600000),
-    /* Assumption: 50 mm potentiometer over the full ADC range. */
-    P_REAL(PARAM_PLANE_MM_PER_COUNT, "plane_mm_per_count", "mm/cnt", 0.01221, 0.001, 1),
+    /* Assumption: 50 mm potentiometer over the full ADC range. Safety limit
+     * (calibration): +-5 %, so full mate (40 mm) always reads above
+     * OIBAR_PLANE_MATED_MIN_MM and a plane short of it cannot read as mated. */
+    P_REAL(PARAM_PLANE_MM_PER_COUNT, "plane_mm_per_count", "mm/cnt", 0.01221, 0.0116, 0.0128),
     /* Assumption: load cell amplifier 0..204 N over the full ADC range.
      * Safety limit (calibration): +-20 % of nominal, so a gain cannot hide
      * an overload. */

@@ -33,6 +33,7 @@ static const char *const k_names[SAFETY_RULE_COUNT] = {
     "SAFETY_RULE_NO_MOTION_AFTER_RESET",
     "SAFETY_RULE_PREARM_CHECKS",
     "SAFETY_RULE_LIMITS_NOT_TUNABLE",
+    "SAFETY_RULE_VALVES_NEED_PLANE_MATED",
 };
 
 const char *oibar_safety_rule_name(oibar_safety_rule_t rule)
@@ -54,6 +55,11 @@ uint32_t oibar_safety_valve_blockers(void)
     }
     if (!oibar_input(HAL_DI_LATCH_ENGAGED)) {
         b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_LATCH_ENGAGED);
+    }
+    /* The end switch alone is one stuck contact away from "mated": the
+     * position sensor must agree (found by the property test). */
+    if (!oibar_plane_is_extended() || oibar_plane_pos_mm() < OIBAR_PLANE_MATED_MIN_MM) {
+        b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_PLANE_MATED);
     }
     if (!oibar_pressure_all_ok() || oibar_pressure_over()) {
         b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_SENSORS_HEALTHY);
@@ -90,6 +96,8 @@ void oibar_safety_enforce(void)
         code = oibar_v1_FAULT_CONNECTOR_LOST;
     } else if (b & OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_LATCH_ENGAGED)) {
         code = oibar_v1_FAULT_LATCH_LOST;
+    } else if (b & OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_PLANE_MATED)) {
+        code = oibar_v1_FAULT_PLANE_POSITION;
     } else if (b & OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_SENSORS_HEALTHY)) {
         code = oibar_pressure_over() ? oibar_v1_FAULT_OVERPRESSURE
                                      : oibar_v1_FAULT_PRESSURE_SENSOR_RANGE;
@@ -102,17 +110,17 @@ void oibar_safety_enforce(void)
 }
 
 /* SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN, at run time: whatever the state
- * machine commanded, the plane never moves back out of the coupling travel
- * while a valve reads open. The motor stops at once and the valve that
- * disagrees with its (closed) command is reported; FAULT then re-seats a
- * half-mated plane (SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN). */
+ * machine commanded, the plane is never driven back while a valve reads
+ * open. Wherever the position sensor says the plane is: it may be wrong
+ * (the property test found a plane retracting at 36 mm with its sensor read
+ * low), and stopping is never the unsafe choice below the coupling travel.
+ * The motor stops at once and the valve that disagrees with its (closed)
+ * command is reported; FAULT then re-seats a half-mated plane
+ * (SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN). */
 static void enforce_plane(void)
 {
     if (oibar_plane_motion() != OIBAR_PLANE_RETRACTING || !oibar_valves_any_sensed_open()) {
         return;
-    }
-    if (oibar_plane_pos_mm() < oibar_param_f(PARAM_PLANE_COUPLING_MM)) {
-        return; /* couplings apart and self-sealed */
     }
     oibar_plane_stop();
     oibar_fault_raise(oibar_v1_FAULT_VALVE_MISMATCH);
@@ -123,7 +131,9 @@ static void enforce_plane(void)
  * line. With both valves closed the line holds what the last transfer left
  * in it: never more than the higher tank, never below zero. A reading
  * outside that (beyond OIBAR_PREARM_TOLERANCE_KPA) means a wrong
- * calibration or a failing sensor. */
+ * calibration or a failing sensor. Likewise a plane whose end switch reads
+ * extended must read at least OIBAR_PLANE_MATED_MIN_MM on its position
+ * sensor. */
 oibar_v1_NackReason oibar_safety_prearm(void)
 {
     for (unsigned i = 0; i < (unsigned)OIBAR_PSENS_COUNT; i++) {
@@ -138,6 +148,10 @@ oibar_v1_NackReason oibar_safety_prearm(void)
     const float highest = (sv > tv) ? sv : tv;
     if (!(sv >= -tol && tv >= -tol && line >= -tol && line <= highest + tol)) {
         return oibar_v1_NACK_PREARM_IMPLAUSIBLE; /* also NaN */
+    }
+    /* The plane's end switch says mated; its position sensor must agree. */
+    if (oibar_input(HAL_DI_PLANE_EXTENDED) && !(oibar_plane_pos_mm() >= OIBAR_PLANE_MATED_MIN_MM)) {
+        return oibar_v1_NACK_PREARM_IMPLAUSIBLE;
     }
     return oibar_v1_NACK_NONE;
 }

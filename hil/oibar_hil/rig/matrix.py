@@ -102,7 +102,7 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
         "press_zero_counts": 1000, "press_min_counts": 0, "press_max_counts": 4095,
         "press_max_rate_kpa_s": 100000, "force_n_per_count": 0.001, "valve_mismatch_ms": 2000,
         "plane_coupling_mm": 40, "nav_min_confidence": 0, "capture_max_speed_mm_s": 200,
-        "capture_max_misalign_deg": 45}},
+        "capture_max_misalign_deg": 45, "plane_mm_per_count": 0.02}},
 }
 FAULT_TITLES = {
     "link_loss": "link loss 3 s", "bit_errors": "bit errors (BER 2e-4)",

@@ -13,7 +13,7 @@
 #include "oibar.pb.h"
 
 #define OIBAR_FAULT_BIT(code) (1u << ((unsigned)(code) - 1u))
-#define OIBAR_FAULT_CODE_MAX 17u
+#define OIBAR_FAULT_CODE_MAX 18u /* 16: FAULT_LATCH_SENSOR on main (issue 16 item 4) */
 
 void oibar_faults_init(void);
 /* ISR-safe. */

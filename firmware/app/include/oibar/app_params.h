@@ -58,6 +58,9 @@ typedef enum {
 /* Pre-arm plausibility (ARM_TRANSFER): a reading below -tolerance, or a line
  * above the higher tank by more than it, means a calibration or sensor error. */
 #define OIBAR_PREARM_TOLERANCE_KPA 100.0f
+/* Plane position sensor reading below which the plane cannot be at full mate,
+ * whatever its end switch says: 40 mm travel, calibration within +-5 %. */
+#define OIBAR_PLANE_MATED_MIN_MM 37.5f
 
 #define OIBAR_PARAM_COUNT ((unsigned)PARAM_ID_END - 1u)
 

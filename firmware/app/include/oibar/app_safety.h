@@ -36,6 +36,7 @@ typedef enum {
     SAFETY_RULE_NO_MOTION_AFTER_RESET,          /* any reset away from home: FAULT, held */
     SAFETY_RULE_PREARM_CHECKS,                  /* ARM_TRANSFER cross-checks the sensors */
     SAFETY_RULE_LIMITS_NOT_TUNABLE,             /* no parameter in bounds disables a protection */
+    SAFETY_RULE_VALVES_NEED_PLANE_MATED,        /* end switch and position sensor both at full mate */
     SAFETY_RULE_COUNT
 } oibar_safety_rule_t;
 
