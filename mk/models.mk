@@ -5,7 +5,7 @@ TRAIN_ARGS   ?=
 EVAL_ARGS    ?=
 TEMPORAL_ARGS ?=
 
-.PHONY: train export eval temporal
+.PHONY: train export eval temporal train-kp export-kp eval-kp
 
 # The shipped model takes two stages: the base network, then the keypoint branch fine-tuned
 # from it (models/configs/oibarnet_lite.yaml says why). A MODEL_CONFIG given on the command
@@ -33,3 +33,17 @@ ENVELOPE_DIR ?= $(ROOT)/data/envelope
 .PHONY: dataset-envelope
 dataset-envelope: setup ## render the envelope-mode test sequence (seq01_envelope) that `make eval` also reports
 	@$(PY) -m oibar_hil.dataset --out $(ENVELOPE_DIR) --seqs 1 --envelope --workers $(JOBS)
+
+# The shipped model since 0.4.0 (issue 15): keypoints on a full-resolution crop + PnP, with the
+# direct model above as its first pass and cross-check. KP_CONFIG picks the experiment.
+KP_CONFIG ?= models/configs/oibarnet_kp.yaml
+KP_EVAL_ARGS ?= --sets val test
+
+train-kp: setup ## train the keypoint model on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
+	@$(PY) -m oibar_models.kp_train --config $(KP_CONFIG) $(TRAIN_ARGS)
+
+export-kp: setup ## export the keypoint model's best checkpoint to models/oibarnet.onnx (parity-checked)
+	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG)
+
+eval-kp: setup ## the flight estimator on validation and test scenes: tables, range bins, latency (runs/eval_kp)
+	@$(PY) -m oibar_models.kp_evaluate --models models/oibarnet.onnx models/oibarnet_lite.onnx $(KP_EVAL_ARGS)

@@ -301,6 +301,38 @@ def _render_chunk(task: dict) -> int:
     return len(task["frames"])
 
 
+# A render worker that dies (Mesa has been seen to crash with SIGSEGV inside libc, once in ~20k
+# frames) must not hang the writer, as multiprocessing.Pool does when a worker vanishes: the
+# executor reports a broken pool, and the chunks not yet done go to a fresh pool.
+POOL_RESTARTS = 3
+
+
+def _render_in_pool(tasks: list[dict], workers: int, cpu: int, bar, fn=None) -> str:
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    ctx = mp.get_context("spawn")   # never fork a process that may hold a GL context
+    todo = list(range(len(tasks)))
+    for attempt in range(POOL_RESTARTS + 1):
+        done = set()
+        try:
+            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
+                                     initargs=(max(1, cpu // workers),)) as pool:
+                futures = {pool.submit(fn or _render_chunk, tasks[i]): i for i in todo}
+                for fut in as_completed(futures):
+                    n = fut.result()
+                    done.add(futures[fut])
+                    if bar:
+                        bar.update(n)
+                return pool.submit(gl_renderer_name).result()
+        except BrokenProcessPool:
+            todo = [i for i in todo if i not in done]
+            print(f"\nwarning: a render worker died; restarting the pool for the {len(todo)} chunk(s) left "
+                  f"(attempt {attempt + 1} of {POOL_RESTARTS})", file=sys.stderr)
+    raise DatasetError(f"render workers kept dying ({POOL_RESTARTS + 1} pools); {len(todo)} chunk(s) not rendered. "
+                       "Run the same command again to resume.")
+
+
 def gl_renderer_name() -> str:
     r = _WORKER.get("renderer")
     return r.gl_renderer if r is not None else "unknown"
@@ -468,12 +500,7 @@ def generate_dataset(out_dir: Path, specs: list[SequenceSpec], frames_limit: int
                     bar.update(n)
             gl_name = gl_renderer_name()
         else:
-            ctx = mp.get_context("spawn")   # never fork a process that may hold a GL context
-            with ctx.Pool(workers, initializer=_worker_init, initargs=(max(1, cpu // workers),)) as pool:
-                for n in pool.imap_unordered(_render_chunk, tasks):
-                    if bar:
-                        bar.update(n)
-                gl_name = pool.apply(gl_renderer_name)
+            gl_name = _render_in_pool(tasks, workers, cpu, bar)
     if bar:
         bar.close()
     report.rendered = total
