@@ -29,7 +29,8 @@ CAMERA = {"fx_px": 583.3333333333334, "fy_px": 583.3333333333334, "cx_px": 372.0
           "pixel_convention": "continuous, origin at the top-left image corner, pixel centres at i + 0.5"}
 
 
-def metadata_for(cfg: KpConfig, ck: dict, first_pass: str, train_range_m: tuple[float, float]) -> dict:
+def metadata_for(cfg: KpConfig, ck: dict, first_pass: str, train_range_m: tuple[float, float],
+                 fusion: dict | None = None) -> dict:
     K = [[CAMERA["fx_px"], 0.0, CAMERA["cx_px"]], [0.0, CAMERA["fy_px"], CAMERA["cy_px"]], [0.0, 0.0, 1.0]]
     n = cfg.model.out_px
     return {
@@ -55,10 +56,11 @@ def metadata_for(cfg: KpConfig, ck: dict, first_pass: str, train_range_m: tuple[
         "steps_trained": ck.get("step"),
         "val": ck.get("val", {}),
         "camera": {**CAMERA, "K_frame": K},
+        **({"fusion": fusion} if fusion else {}),
     }
 
 
-def export_onnx(cfg: KpConfig, ck: dict, out_path: Path, first_pass: str, train_range_m) -> Path:
+def export_onnx(cfg: KpConfig, ck: dict, out_path: Path, first_pass: str, train_range_m, fusion: dict | None = None) -> Path:
     import onnx
 
     net = KeypointNet(len(FIXTURE_KEYPOINTS), cfg.model.width, pretrained=False)
@@ -74,7 +76,7 @@ def export_onnx(cfg: KpConfig, ck: dict, out_path: Path, first_pass: str, train_
                           dynamic_axes={k: {0: "batch"} for k in ["image"] + OUTPUT_NAMES},
                           opset_version=cfg.export.opset, dynamo=False)
     m = onnx.load(str(tmp))
-    for k, v in metadata_for(cfg, ck, first_pass, train_range_m).items():
+    for k, v in metadata_for(cfg, ck, first_pass, train_range_m, fusion).items():
         p = m.metadata_props.add()
         p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
     m.producer_name = "oibar_models.kp_export"
@@ -101,6 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help="ONNX path (default: the config's export.onnx_path)")
     ap.add_argument("--first-pass", default="oibarnet_lite.onnx",
                     help="the direct model that places the first crop, a file beside the exported one")
+    ap.add_argument("--fusion", type=Path, default=None,
+                    help="the JSON of `python -m oibar_models.kp_fusion` (weights chosen on validation scenes)")
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
     try:
@@ -115,7 +119,13 @@ def main(argv: list[str] | None = None) -> int:
     ck = torch.load(ck_path, map_location="cpu", weights_only=False)
     out = Path(a.out) if a.out else cfg.path(cfg.export.onnx_path)
     # The training scenes span camera ranges 0.3-10.6 m; the runtime flags answers well outside.
-    export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0))
+    fusion = None
+    if a.fusion:
+        best = json.loads(a.fusion.read_text())["best"]
+        if best.get("sigma_prior_deg") is not None:
+            fusion = {"sigma_crop_px": best["sigma_crop_px"], "sigma_prior_deg": best["sigma_prior_deg"],
+                      "chosen_on": "validation scenes", "val": {k: best[k] for k in ("dt_mean_pct", "dq_mean_deg")}}
+    export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0), fusion)
     print(f"exported {out} ({out.stat().st_size / 2 ** 20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0
 

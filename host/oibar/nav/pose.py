@@ -362,25 +362,31 @@ class KeypointPoseEstimator(PoseEstimator):
         uv[present < self.min_present] = np.nan
         return uv, spread, present
 
-    def solve(self, image: np.ndarray, R0: np.ndarray, T0: np.ndarray):
-        """Crop around the pose (R0, T0), keypoints, PnP; repeated `refine_passes` times from the
-        newest pose. Returns (PnpResult, the last window)."""
-        from .keypoints import project, solve_pnp, window_around
+    def solve(self, image: np.ndarray, R_direct: np.ndarray, T_direct: np.ndarray, fusion: dict | None = None):
+        """Crop around the current pose (first the direct model's), keypoints, pose
+        (keypoints.map_pose: PnP, and with the export's ``oibar.fusion`` weights the direct
+        attitude as a prior); `refine_passes` times from the newest pose. Returns (PnpResult or
+        None, the last window)."""
+        from .keypoints import map_pose, project, window_around
 
-        best, win = None, None
-        R, T = R0, T0
+        f = self.meta.get("fusion") if fusion is None else fusion
+        best = None
+        R, T = R_direct, T_direct
         for _ in range(self.refine_passes):
             uv0 = project(self.K_frame, self.points_m, R, T)
             if not np.all(np.isfinite(uv0)):
                 break
             win = window_around(uv0, self.out_px, self.margin)
             uv, _, _ = self.keypoints(image, win)
-            r = solve_pnp(uv, self.points_m, self.K_frame, self.reproj_crop_px / win.scale, R, T, MIN_INLIERS)
+            s_px = float(f["sigma_crop_px"]) / win.scale if f else None
+            s_rad = np.radians(float(f["sigma_prior_deg"])) if f else None
+            r = map_pose(uv, self.points_m, self.K_frame, self.reproj_crop_px / win.scale, R_direct, s_px, s_rad,
+                         MIN_INLIERS)
             if not r.ok:
                 break
             best = (r, win)
             R, T = r.R_cam_target, r.T_cam_target_m
-        return best if best else (None, win)
+        return best if best else (None, None)
 
     def estimate(self, image_rgb_uint8: np.ndarray, t_s: float = 0.0) -> PoseEstimate:
         if not np.isfinite(t_s):
@@ -397,16 +403,17 @@ class KeypointPoseEstimator(PoseEstimator):
             direct.flags = tuple(direct.flags) + ("no_first_pass",)
             return direct
         r, win = self.solve(image_rgb_uint8, direct.R_cam_target, direct.T_cam_target_m)
-        latency_ms = (time.perf_counter() - t0) * 1e3
         if r is None:
+            latency_ms = (time.perf_counter() - t0) * 1e3
             direct.latency_ms = latency_ms
             direct.confidence *= FALLBACK_FACTOR
             direct.flags = tuple(direct.flags) + ("pnp_failed", "fallback_direct")
             return direct
-        T, R = r.T_cam_target_m.astype(float), r.R_cam_target.astype(float)
+        R, T, rms_px = r.R_cam_target, r.T_cam_target_m, r.rms_px
+        latency_ms = (time.perf_counter() - t0) * 1e3
         conf, rng_m, _, flags = self.plausibility(T, R, None)
         flags = list(flags)
-        rms_crop = r.rms_px * win.scale
+        rms_crop = rms_px * win.scale
         conf *= float(np.exp(-0.5 * (rms_crop / REPROJ_SCALE_CROP_PX) ** 2))
         if rms_crop > REPROJ_SCALE_CROP_PX:
             flags.append("reprojection")
