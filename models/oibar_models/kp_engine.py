@@ -74,6 +74,7 @@ class KpTrain:
     seed: int = 0
     reproj_crop_px: float = 4.0            # PnP inlier threshold, crop pixels
     min_present: float = 0.5
+    init_from: str = ""                    # a checkpoint to start from (a second stage); ignored when resuming
 
 
 @dataclass
@@ -203,8 +204,11 @@ def validate(net, ds: CropDataset, device, t: KpTrain, batch: int = 32) -> dict:
     s["pnp_failed"] = failed
     s["frames_total"] = len(ds)
     s["kp_err_crop_px_mean"] = float(np.concatenate(kp_err).mean()) if kp_err else float("nan")
-    # failures count as a miss in the score: a model must not win by refusing hard frames
-    s["score"] = (metrics.score(s) if T_hat else 10.0) + failed / max(1, len(ds))
+    # Selection score: the keypoints' own error (crop pixels), what the network controls. PnP alone
+    # on far frames is dominated by mirrored poses that the flight estimator's attitude prior
+    # removes (keypoints.map_pose), so its pose error would pick checkpoints by chance. Failed
+    # frames count as a miss: a model must not win by finding nothing.
+    s["score"] = s["kp_err_crop_px_mean"] + 10.0 * failed / max(1, len(ds))
     return s
 
 
@@ -276,6 +280,13 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
     opt = torch.optim.AdamW(net.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     step, best = 0, {"score": float("inf")}
     last = run / "last.pt"
+    if not last.is_file() and t.init_from:
+        src = cfg.path(t.init_from)
+        if not src.is_file():
+            raise ConfigError(f"train.init_from: checkpoint not found: {src}")
+        net.load_state_dict(torch.load(src, map_location=device, weights_only=False)["model"])
+        if lead:
+            print(f"starting from {src}", file=sys.stderr)
     if last.is_file():
         ck = torch.load(last, map_location=device, weights_only=False)
         net.load_state_dict(ck["model"])
