@@ -30,7 +30,7 @@ from torch.nn import functional as F
 from oibar.nav.keypoints import CropWindow, solve_pnp
 
 from . import metrics
-from .config import REPO_ROOT, ConfigError, _build, _merge
+from .config import REPO_ROOT, ConfigError, _build, read_yaml
 from .geometry import quat_from_matrix_np
 from .kp_data import CropAugment, CropDataset, open_scenes, spread_frames
 from .kpnet import FIXTURE_KEYPOINTS, KeypointNet, soft_argmax
@@ -104,16 +104,9 @@ class KpConfig:
 
 
 def load_kp_config(path: str | Path, overrides: dict | None = None) -> KpConfig:
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"config file not found: {p}")
-    try:
-        data = yaml.safe_load(p.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: not valid YAML ({exc})") from exc
-    if overrides:
-        data = _merge(data, overrides)
-    cfg = _build(KpConfig, data, str(p))
+    """Read a keypoint experiment config; refuse it when its scene sets overlap."""
+    data = read_yaml(path, overrides)
+    cfg = _build(KpConfig, data, str(path))
     sets = {n: load_set(cfg.path(getattr(cfg.data, f"{n}_spec"))) for n in ("train", "val", "test")}
     check_disjoint(sets)
     return cfg
