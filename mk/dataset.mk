@@ -6,3 +6,15 @@ DATASET_ARGS ?=
 
 dataset: setup ## render the 12 synthetic sequences into data/synthetic (resumable; DATASET_ARGS="--seqs 1,8")
 	@$(PY) -m oibar_hil.dataset --out $(DATASET_DIR) --workers $(JOBS) $(DATASET_ARGS)
+
+# The keypoint model's scene sets (issue 15), from the committed spec files in models/scenes/:
+# train (48 scenes) and validation (12 scenes) are our own, disjoint from each other and from the
+# paper's test sequences 1 and 8 (`make dataset DATASET_ARGS="--seqs 1,8"` renders those).
+# SHARD=i/N renders every N-th scene from the i-th, for batch schedulers.
+SHARD ?=
+.PHONY: dataset-train dataset-val
+dataset-train: setup ## render the training scenes (models/scenes/train.json) into data/train (resumable; SHARD=i/N)
+	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/train --spec models/scenes/train.json --workers $(JOBS) $(if $(SHARD),--shard $(SHARD))
+
+dataset-val: setup ## render the validation scenes (models/scenes/val.json) into data/val (resumable; SHARD=i/N)
+	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/val --spec models/scenes/val.json --workers $(JOBS) $(if $(SHARD),--shard $(SHARD))

@@ -5,7 +5,7 @@ TRAIN_ARGS   ?=
 EVAL_ARGS    ?=
 TEMPORAL_ARGS ?=
 
-.PHONY: train export eval temporal
+.PHONY: train export eval temporal train-kp export-kp eval-kp
 
 # The shipped model takes two stages: the base network, then the keypoint branch fine-tuned
 # from it (models/configs/oibarnet_lite.yaml says why). A MODEL_CONFIG given on the command
@@ -33,3 +33,21 @@ ENVELOPE_DIR ?= $(ROOT)/data/envelope
 .PHONY: dataset-envelope
 dataset-envelope: setup ## render the envelope-mode test sequence (seq01_envelope) that `make eval` also reports
 	@$(PY) -m oibar_hil.dataset --out $(ENVELOPE_DIR) --seqs 1 --envelope --workers $(JOBS)
+
+# The shipped model since 0.4.0 (issue 15): keypoints on a full-resolution crop + PnP, with the
+# direct model above as its first pass and attitude prior. Two training stages; the export
+# chooses the prior's weights on the validation scenes (kp_fusion), then writes them into the file.
+KP_CONFIGS ?= models/configs/oibarnet_kp.yaml models/configs/oibarnet_kp_stage2.yaml
+KP_CONFIG ?= models/configs/oibarnet_kp_stage2.yaml
+KP_EVAL_ARGS ?= --sets val test
+
+train-kp: setup ## train the keypoint model, both stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
+	@for c in $(KP_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.kp_train --config $$c $(TRAIN_ARGS) || exit 1; done
+
+export-kp: setup ## export the keypoint model to models/oibarnet.onnx: best checkpoint, prior weights chosen on validation, parity-checked
+	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG)
+	@$(PY) -m oibar_models.kp_fusion --model models/oibarnet.onnx --out runs/oibarnet_kp_fusion.json
+	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --fusion runs/oibarnet_kp_fusion.json
+
+eval-kp: setup ## the flight estimator on validation and test scenes: tables, range bins, latency (runs/eval_kp)
+	@$(PY) -m oibar_models.kp_evaluate --models models/oibarnet.onnx models/oibarnet_lite.onnx $(KP_EVAL_ARGS)

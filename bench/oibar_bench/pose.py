@@ -27,6 +27,9 @@ SIZES_WH = [(248, 160), (372, 240)]
 FULL_WH = (744, 480)
 SHIPPED = "models/oibarnet_lite.onnx"
 SHIPPED_INT8 = "models/oibarnet_lite.int8.onnx"
+# The keypoint model (issue 15): its estimate() is the whole estimator, frame in to pose out
+# (first pass, two full-resolution crops, keypoint network, PnP), timed on a rendered frame.
+SHIPPED_KP = "models/oibarnet.onnx"
 
 # Issue 10 / model card: the shipped model must run >= 30 inferences/s single stream on 2 cores.
 RATE_TARGET = Target(">=", 30.0, "/s", "issue 10, model card")
@@ -198,7 +201,8 @@ def shipped_model(ctx: Context) -> Result:
 
     frames, _ = calibration_frames(ctx, 4 if ctx.quick else 12)
     frame = frames[0]
-    candidates = [(ctx.root / SHIPPED, SHIPPED), (ctx.root / SHIPPED_INT8, SHIPPED_INT8)]
+    candidates = [(ctx.root / SHIPPED_KP, SHIPPED_KP), (ctx.root / SHIPPED, SHIPPED),
+                  (ctx.root / SHIPPED_INT8, SHIPPED_INT8)]
     found = [(p, name) for p, name in candidates if p.is_file()]
     notes = []
     if not found:
@@ -211,8 +215,9 @@ def shipped_model(ctx: Context) -> Result:
     for path, name in found:
         est = OnnxPoseEstimator(path, threads=ctx.threads)
         small = batch_at([frame], est.size_wh)
-        for what, fn in (("model only", lambda: est.run(small)),
-                         ("744x480 frame -> pose (resize + model)", lambda: est(frame))):
+        whole = ("744x480 frame -> pose (first pass, 2 crops, keypoints, PnP)" if est.meta.get("kind") == "keypoints"
+                 else "744x480 frame -> pose (resize + model)")
+        for what, fn in (("model only", lambda: est.run(small)), (whole, lambda: est.estimate(frame))):
             box = dict(seconds=1.0, min_runs=5, max_runs=100) if ctx.quick else \
                 dict(seconds=5.0, min_runs=30, max_runs=500)
             lat = timed_runs(fn, **box)

@@ -68,8 +68,13 @@ class SequenceSpec:
     png_compress_level: int = 1
     noise_sigma_dn: float = 0.0
     blur_sigma_px: float = 0.0
+    # Render every n-th frame of the 10 Hz trajectory: consecutive frames are nearly identical,
+    # so a training set gains more from more scenes than from every frame of a few.
+    frame_stride: int = 1
 
     def validate(self) -> None:
+        if self.frame_stride < 1:
+            raise ValueError(f"{self.name}: frame_stride must be >= 1")
         if self.port not in PORTS:
             raise ValueError(f"{self.name}: port {self.port} not in 1..6")
         if PORTS[self.port].approach != self.approach:
@@ -78,6 +83,15 @@ class SequenceSpec:
             raise ValueError(f"{self.name}: background must be iss or perlin")
         if self.image_format not in ("jpg", "png"):
             raise ValueError(f"{self.name}: image_format must be jpg or png")
+
+
+def spec_dict(spec: SequenceSpec) -> dict:
+    """The spec as stored in spec.json and the manifest. Fields added after a dataset was written
+    are left out at their default, so existing datasets keep their identity."""
+    d = asdict(spec)
+    if d.get("frame_stride") == 1:
+        del d["frame_stride"]
+    return d
 
 
 def _paper(n: int, port: int, approach: str, sun: float, bg: str) -> SequenceSpec:
@@ -130,20 +144,23 @@ def plan_sequence(spec: SequenceSpec, frames_limit: int | None = None,
     traj = generate(spec.seed, envelope=spec.envelope, params=params)
     port = PORTS[spec.port]
     cp = camera_poses(traj, port)
-    n = len(traj) if frames_limit is None else min(len(traj), frames_limit)
+    keep = np.arange(0, len(traj), spec.frame_stride)
+    if frames_limit is not None:
+        keep = keep[:frames_limit]
+    n = len(keep)
     orbit = TargetOrbit(DEFAULT_TLE)
     start = orbit.time_for_sun_elevation(parse_utc(spec.epoch_utc), spec.sun_elevation_deg)
     jd0 = julian_date(start)
     sun = np.empty((n, 3))
     R_ecef = np.empty((n, 3, 3))
     cache: dict[float, np.ndarray] = {}
-    for k in range(n):
+    for j, k in enumerate(keep):
         t = float(traj.t_s[k])
         tq = np.floor(t / SUN_UPDATE_S + 1e-9) * SUN_UPDATE_S
         if tq not in cache:
             cache[tq] = orbit.state(jd0 + tq / 86400.0).sun_lvlh
-        sun[k] = cache[tq]
-        R_ecef[k] = orbit.state(jd0 + t / 86400.0).R_ecef_lvlh
+        sun[j] = cache[tq]
+        R_ecef[j] = orbit.state(jd0 + t / 86400.0).R_ecef_lvlh
     st0 = orbit.state(jd0)
     orbit_info = {
         "tle": list(DEFAULT_TLE),
@@ -154,9 +171,9 @@ def plan_sequence(spec: SequenceSpec, frames_limit: int | None = None,
         "lvlh": "ISS/NASA: +X V-bar (velocity), +Z R-bar (to Earth centre), +Y negative orbit normal",
     }
     return SequencePlan(
-        spec=spec, n_frames=n, t_s=traj.t_s[:n], phase=traj.phase[:n], distance_m=traj.distance_m[:n],
-        T_cam_target=cp.T_cam_target[:n], q_cam_target=cp.q_cam_target[:n],
-        R_lvlh_cam=cp.R_lvlh_cam[:n], p_lvlh_cam=cp.p_lvlh_cam[:n], sun_lvlh=sun, R_ecef_lvlh=R_ecef,
+        spec=spec, n_frames=n, t_s=traj.t_s[keep], phase=traj.phase[keep], distance_m=traj.distance_m[keep],
+        T_cam_target=cp.T_cam_target[keep], q_cam_target=cp.q_cam_target[keep],
+        R_lvlh_cam=cp.R_lvlh_cam[keep], p_lvlh_cam=cp.p_lvlh_cam[keep], sun_lvlh=sun, R_ecef_lvlh=R_ecef,
         earth_center_lvlh_km=st0.earth_center_lvlh_km, orbit_info=orbit_info,
         trajectory_info={**traj.info, "frames_total": len(traj), "params": asdict(traj.params)},
     )
@@ -284,6 +301,38 @@ def _render_chunk(task: dict) -> int:
     return len(task["frames"])
 
 
+# A render worker that dies (Mesa has been seen to crash with SIGSEGV inside libc, once in ~20k
+# frames) must not hang the writer, as multiprocessing.Pool does when a worker vanishes: the
+# executor reports a broken pool, and the chunks not yet done go to a fresh pool.
+POOL_RESTARTS = 3
+
+
+def _render_in_pool(tasks: list[dict], workers: int, cpu: int, bar, fn=None) -> str:
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    ctx = mp.get_context("spawn")   # never fork a process that may hold a GL context
+    todo = list(range(len(tasks)))
+    for attempt in range(POOL_RESTARTS + 1):
+        done = set()
+        try:
+            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
+                                     initargs=(max(1, cpu // workers),)) as pool:
+                futures = {pool.submit(fn or _render_chunk, tasks[i]): i for i in todo}
+                for fut in as_completed(futures):
+                    n = fut.result()
+                    done.add(futures[fut])
+                    if bar:
+                        bar.update(n)
+                return pool.submit(gl_renderer_name).result()
+        except BrokenProcessPool:
+            todo = [i for i in todo if i not in done]
+            print(f"\nwarning: a render worker died; restarting the pool for the {len(todo)} chunk(s) left "
+                  f"(attempt {attempt + 1} of {POOL_RESTARTS})", file=sys.stderr)
+    raise DatasetError(f"render workers kept dying ({POOL_RESTARTS + 1} pools); {len(todo)} chunk(s) not rendered. "
+                       "Run the same command again to resume.")
+
+
 def gl_renderer_name() -> str:
     r = _WORKER.get("renderer")
     return r.gl_renderer if r is not None else "unknown"
@@ -291,7 +340,7 @@ def gl_renderer_name() -> str:
 
 # ----------------------------------------------------------------------------- sequence bookkeeping
 def _spec_identity(spec: SequenceSpec) -> dict:
-    return {"generator_version": __version__, **asdict(spec)}
+    return {"generator_version": __version__, **spec_dict(spec)}
 
 
 def prepare_sequence_dir(seq_dir: Path, spec: SequenceSpec, force: bool = False) -> None:
@@ -336,7 +385,7 @@ def write_manifest(seq_dir: Path, plan: SequencePlan, frames_limit: int | None, 
         "generator": GENERATOR,
         "generator_version": __version__,
         "seed": s.seed,
-        "spec": asdict(s),
+        "spec": spec_dict(s),
         "frames": plan.n_frames,
         "frames_limit": frames_limit,
         "frames_total_in_trajectory": plan.trajectory_info["frames_total"],
@@ -413,7 +462,7 @@ def generate_dataset(out_dir: Path, specs: list[SequenceSpec], frames_limit: int
         if not force and (seq_dir / "manifest.json").exists():
             try:
                 m = verify_sequence(seq_dir)
-                if m["spec"] == asdict(spec) and m["frames"] == plan.n_frames:
+                if m["spec"] == spec_dict(spec) and m["frames"] == plan.n_frames:
                     report.skipped += plan.n_frames
                     report.per_sequence[spec.name] = {"rendered": 0, "skipped": plan.n_frames}
                     continue
@@ -451,12 +500,7 @@ def generate_dataset(out_dir: Path, specs: list[SequenceSpec], frames_limit: int
                     bar.update(n)
             gl_name = gl_renderer_name()
         else:
-            ctx = mp.get_context("spawn")   # never fork a process that may hold a GL context
-            with ctx.Pool(workers, initializer=_worker_init, initargs=(max(1, cpu // workers),)) as pool:
-                for n in pool.imap_unordered(_render_chunk, tasks):
-                    if bar:
-                        bar.update(n)
-                gl_name = pool.apply(gl_renderer_name)
+            gl_name = _render_in_pool(tasks, workers, cpu, bar)
     if bar:
         bar.close()
     report.rendered = total
@@ -489,10 +533,44 @@ def parse_seqs(text: str | None) -> list[int]:
     return out
 
 
+def shard(specs: list[SequenceSpec], text: str) -> list[SequenceSpec]:
+    """`I/N`: every N-th sequence starting at I. Sequences are the unit (each has its own folder and
+    manifest), so N jobs write disjoint folders and need no coordination."""
+    try:
+        i, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise ValueError(f"--shard {text!r}: expected I/N, e.g. 0/4") from None
+    if n < 1 or not 0 <= i < n:
+        raise ValueError(f"--shard {text!r}: need 0 <= I < N")
+    return specs[i::n]
+
+
 def load_spec_file(path: Path) -> list[SequenceSpec]:
-    """A JSON list of SequenceSpec fields, for sequences beyond the paper's 12."""
-    items = json.loads(Path(path).read_text())
-    return [SequenceSpec(**item) for item in (items if isinstance(items, list) else [items])]
+    """Sequences beyond the paper's 12: a JSON list of SequenceSpec fields, or an object whose
+    "scenes" holds that list (the committed scene sets, models/scenes/*.json). A paper sequence
+    can be named as {"paper": N}."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read the scene spec ({exc})") from exc
+    items = data.get("scenes", []) if isinstance(data, dict) else data
+    specs = []
+    for i, item in enumerate(items if isinstance(items, list) else [items]):
+        try:
+            if isinstance(item, dict) and set(item) == {"paper"}:
+                spec = PAPER_SEQUENCES[int(item["paper"])]
+            else:
+                spec = SequenceSpec(**item)
+            spec.validate()
+        except (TypeError, ValueError, KeyError) as exc:
+            raise DatasetError(f"{path}: scene {i}: {exc}") from exc
+        specs.append(spec)
+    names = [s.name for s in specs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise DatasetError(f"{path}: scene names used twice: {dup}")
+    return specs
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -506,17 +584,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--envelope", action="store_true", help="envelope mode (+-10 deg, <= 50 mm/s) for the paper sequences")
     ap.add_argument("--force", action="store_true", help="discard existing frames of the chosen sequences")
     ap.add_argument("--verify", action="store_true", help="only verify existing sequences against their manifests")
+    ap.add_argument("--shard", default=None, metavar="I/N",
+                    help="render only sequences I, I+N, I+2N, ... of the list (0 <= I < N): one shard per "
+                         "batch job, all writing into the same --out")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
 
     if args.spec:
-        specs = load_spec_file(args.spec)
+        try:
+            specs = load_spec_file(args.spec)
+        except DatasetError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     else:
         specs = [PAPER_SEQUENCES[n] for n in parse_seqs(args.seqs)]
     if args.format:
         specs = [replace(s, image_format=args.format) for s in specs]
     if args.envelope:
         specs = [replace(s, envelope=True, name=s.name + "_envelope") for s in specs]
+    if args.shard:
+        try:
+            specs = shard(specs, args.shard)
+        except ValueError as exc:
+            ap.error(str(exc))
 
     if args.verify:
         bad = 0

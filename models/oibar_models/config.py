@@ -166,8 +166,9 @@ def from_dict(data: dict, where: str = "config") -> ExperimentConfig:
     return _build(ExperimentConfig, data, where)
 
 
-def load_config(path: str | Path, overrides: dict | None = None) -> ExperimentConfig:
-    """Read a YAML experiment config. `overrides` (nested dict) wins over the file."""
+def read_yaml(path: str | Path, overrides: dict | None = None) -> dict:
+    """A YAML config file as a dict, `overrides` (nested dict) merged over it; ConfigError naming
+    the file when it is missing or not YAML."""
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"config file not found: {p}")
@@ -175,9 +176,12 @@ def load_config(path: str | Path, overrides: dict | None = None) -> ExperimentCo
         data = yaml.safe_load(p.read_text()) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: not valid YAML ({exc})") from exc
-    if overrides:
-        data = _merge(data, overrides)
-    return from_dict(data, where=str(p))
+    return _merge(data, overrides) if overrides else data
+
+
+def load_config(path: str | Path, overrides: dict | None = None) -> ExperimentConfig:
+    """Read a YAML experiment config. `overrides` (nested dict) wins over the file."""
+    return from_dict(read_yaml(path, overrides), where=str(path))
 
 
 def _merge(base: dict, over: dict) -> dict:

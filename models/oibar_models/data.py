@@ -363,7 +363,8 @@ def label_statistics(ds: PoseDataset) -> dict:
     return {"pos_mean_m": T.mean(0).tolist(), "pos_std_m": np.maximum(T.std(0), 0.05).tolist(),
             "uvlogz_mean": uvz.mean(0).tolist(), "uvlogz_std": np.maximum(uvz.std(0), 0.02).tolist(),
             "mean_T_cam_target": T_mean.tolist(), "mean_q_cam_target": q_mean.tolist(),
-            "rot6d_mean": rot6d_from_matrix_np(R_mean).tolist(), "frames": int(len(T))}
+            "rot6d_mean": rot6d_from_matrix_np(R_mean).tolist(), "frames": int(len(T)),
+            "range_m": [float(np.linalg.norm(T, axis=1).min()), float(np.linalg.norm(T, axis=1).max())]}
 
 
 def _per_seq(ds: PoseDataset):

@@ -54,6 +54,10 @@ def metadata_for(net: OibarNet, ck: dict, model_version: str) -> dict:
         "val": ck.get("val", {}),
         "pretrained_weights": "none: trained from scratch",
     }
+    if "range_m" in ck["labels"]:
+        # camera distances seen in training: the runtime flags answers far outside (pose.py)
+        lo, hi = ck["labels"]["range_m"]
+        meta["train_range_m"] = [round(0.8 * lo, 3), round(1.2 * hi, 3)]
     if cam:
         K = intrinsics(cam["fx_px"], cam["fy_px"], cam["cx_px"], cam["cy_px"])
         Ks = scale_intrinsics(K, w / cam["width_px"], h / cam["height_px"])

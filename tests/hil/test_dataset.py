@@ -137,3 +137,82 @@ print("ok")
 """
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0 and proc.stdout.strip().endswith("ok"), (proc.returncode, proc.stderr[-2000:])
+
+
+def _crash_once(task: dict) -> int:
+    """A render chunk whose worker dies the first time (as Mesa once did with SIGSEGV)."""
+    import os
+    from pathlib import Path
+    marker = Path(task["marker"])
+    if task["crash"] and not marker.exists():
+        marker.write_text("crashed")
+        os._exit(139)
+    (marker.parent / f"done_{task['i']}").write_text("ok")
+    return 1
+
+
+def test_a_dying_render_worker_does_not_hang_the_writer(tmp_path):
+    """multiprocessing.Pool waits forever for a chunk whose worker died; the writer must restart
+    the pool and finish every chunk, then stop with a clear error when workers keep dying."""
+    from oibar_hil.dataset import _render_in_pool
+
+    tasks = [{"i": i, "crash": i == 3, "marker": str(tmp_path / "marker")} for i in range(8)]
+    _render_in_pool(tasks, 2, 2, None, fn=_crash_once)
+    assert sorted(p.name for p in tmp_path.glob("done_*")) == [f"done_{i}" for i in range(8)]
+
+
+def _crash_always(task: dict) -> int:
+    import os
+    os._exit(139)
+
+
+def test_workers_that_keep_dying_give_a_clear_error(tmp_path):
+    from oibar_hil.dataset import POOL_RESTARTS, DatasetError, _render_in_pool
+
+    with pytest.raises(DatasetError, match=f"kept dying \\({POOL_RESTARTS + 1} pools\\); 1 chunk"):
+        _render_in_pool([{"i": 0}], 1, 1, None, fn=_crash_always)
+
+
+def test_frame_stride_keeps_every_nth_pose_and_old_specs_keep_their_identity():
+    from oibar_hil.dataset import spec_dict
+
+    full = plan_sequence(PAPER_SEQUENCES[2])
+    every8 = plan_sequence(replace(PAPER_SEQUENCES[2], frame_stride=8))
+    assert every8.n_frames == (full.n_frames + 7) // 8
+    assert np.allclose(every8.T_cam_target, full.T_cam_target[::8])
+    assert np.allclose(every8.t_s, full.t_s[::8]) and np.allclose(every8.sun_lvlh[1], full.sun_lvlh[8])
+    assert "frame_stride" not in spec_dict(PAPER_SEQUENCES[2])          # datasets written before it match
+    assert spec_dict(replace(PAPER_SEQUENCES[2], frame_stride=8))["frame_stride"] == 8
+    with pytest.raises(ValueError, match="frame_stride"):
+        replace(PAPER_SEQUENCES[2], frame_stride=0).validate()
+
+
+def test_shards_split_the_scene_list_disjointly():
+    from oibar_hil.dataset import shard
+
+    specs = [PAPER_SEQUENCES[n] for n in range(1, 13)]
+    parts = [shard(specs, f"{i}/5") for i in range(5)]
+    assert sorted(s.name for p in parts for s in p) == sorted(s.name for s in specs)
+    assert [s.name for s in parts[1]] == ["seq02", "seq07", "seq12"]
+    for bad in ("5/5", "x", "1/0", "-1/3"):
+        with pytest.raises(ValueError, match="--shard"):
+            shard(specs, bad)
+
+
+def test_scene_spec_files_name_paper_sequences_and_refuse_bad_entries(tmp_path):
+    from oibar_hil.dataset import load_spec_file
+
+    p = tmp_path / "s.json"
+    p.write_text(json.dumps({"scenes": [{"paper": 8}, {"name": "a", "port": 5, "approach": "+R-bar",
+                                                        "sun_elevation_deg": 90, "background": "iss", "seed": 3}]}))
+    assert [s.name for s in load_spec_file(p)] == ["seq08", "a"]
+    p.write_text(json.dumps({"scenes": [{"name": "a", "port": 5, "approach": "-V-bar", "sun_elevation_deg": 90,
+                                         "background": "iss", "seed": 3}]}))
+    with pytest.raises(DatasetError, match="scene 0: a: port 5 is a \\+R-bar port"):
+        load_spec_file(p)
+    p.write_text(json.dumps({"scenes": [{"paper": 2}, {"paper": 2}]}))
+    with pytest.raises(DatasetError, match="used twice"):
+        load_spec_file(p)
+    p.write_text("{not json")
+    with pytest.raises(DatasetError, match="cannot read"):
+        load_spec_file(p)

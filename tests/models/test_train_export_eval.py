@@ -62,8 +62,12 @@ def test_onnx_export_matches_pytorch(trained, tmp_path):
     K = np.array(meta["camera"]["K_input"])
     assert K[0, 2] == pytest.approx(372.0 / 8) and K[0, 0] == pytest.approx(583.333 / 8, rel=1e-4)
     assert "q_cam_target" in meta["outputs"] and len(meta["train_mean_q_cam_target"]) == 4
+    # the camera distances of training (1.5-4.1 m here) widened by 0.8x / 1.2x; the runtime's check uses them
+    lo, hi = meta["train_range_m"]
+    assert 1.1 < lo < 1.3 and 4.2 < hi < 5.2, (lo, hi)
     # a full-size frame through the torch-free runtime
     est = OnnxPoseEstimator(out)
+    assert est.range_limits_m == (lo, hi)
     t, q = est(np.zeros((480, 744, 3), np.uint8))
     assert t.shape == (3,) and q.shape == (4,) and abs(np.linalg.norm(q) - 1) < 1e-5 and q[0] >= 0
 

@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from ..rotations import matrix_to_quat
+
 METADATA_PREFIX = "oibar."
 REQUIRED_OUTPUTS = ("position_m", "q_cam_target", "R_cam_target")
 
@@ -143,9 +145,18 @@ def _session(path: Path, threads: int, allow_spinning: bool):
 class PoseEstimator:
     """frame (RGB uint8, the camera's aspect) -> :class:`PoseEstimate`.
 
+    ``PoseEstimator(path)`` opens whichever kind of OibarNet the file is: a direct model (this
+    class) or a keypoint model (:class:`KeypointPoseEstimator`, chosen from the file's
+    ``oibar.kind`` metadata), so callers never need to know which.
+
     Also offers the batch interface oibar_models uses: ``run`` (raw outputs for a prepared
     input), ``predict_batch`` (frames already at the input size) and ``__call__`` (one frame ->
     (T, q))."""
+
+    def __new__(cls, path=None, *args, **kwargs):
+        if cls is PoseEstimator and path is not None and read_metadata(path).get("kind") == "keypoints":
+            cls = KeypointPoseEstimator
+        return super().__new__(cls)
 
     def __init__(self, path: str | Path, threads: int = 2, warmup_runs: int = 3,
                  range_limits_m: tuple[float, float] | None = None, defect_scale: float = DEFAULT_DEFECT_SCALE,
@@ -269,6 +280,183 @@ class PoseEstimator:
 
 
 OnnxPoseEstimator = PoseEstimator   # the name oibar_models (export parity, evaluation) uses
+
+
+# ----------------------------------------------------------------------------- keypoints + PnP
+# A frame whose pixels barely vary (lens cap, black, saturated) carries no fixture: no answer.
+MIN_FRAME_STD_DN = 2.0
+# The PnP answer and the direct model's must agree this well (position difference / range,
+# attitude difference); the direct model's own error is ~10-15 % on unseen scenes, so only a
+# gross disagreement (a PnP on the wrong points) is flagged.
+DISAGREE_POS_FRACTION = 0.5
+DISAGREE_ATT_DEG = 20.0
+# Reprojection RMS (crop pixels) at which confidence falls to exp(-1/2): a few times the
+# keypoints' typical error on validation scenes.
+REPROJ_SCALE_CROP_PX = 3.0
+FALLBACK_FACTOR = 0.3          # confidence of the direct model's answer when PnP has none
+# Windows tried in turn until the keypoints give a consistent pose: (shift x, shift y) in window
+# sides and a size factor, around the direct model's window. The network was trained with the
+# fixture up to ~0.25 side off centre and +-25 % in size, so half-side steps leave no gap. Only
+# frames where the first window fails pay for the search (~6 % of far validation frames): up to
+# 11 passes, about 0.4 s on 2 busy cores. Measured on the validation scenes (every 16th frame):
+# mean position error 1.82 % with the first window only, 1.26 % without the diagonal steps,
+# 0.95 % with all 11.
+SEARCH_STEPS = ((0, 0, 1.0), (-0.5, 0, 1.0), (0.5, 0, 1.0), (0, -0.5, 1.0), (0, 0.5, 1.0), (-0.5, -0.5, 1.0),
+                (0.5, -0.5, 1.0), (-0.5, 0.5, 1.0), (0.5, 0.5, 1.0), (0, 0, 0.7), (0, 0, 1.4))
+MIN_INLIERS = 5
+
+
+class KeypointPoseEstimator(PoseEstimator):
+    """Keypoints + PnP (issue 15): the direct model (the first pass, a file beside this one named
+    by ``oibar.first_pass``) places a crop at full resolution around the fixture; the keypoint
+    network finds the fixture's known points in it; OpenCV's PnP (RANSAC, then Levenberg-Marquardt)
+    turns them into the pose. A second crop around that pose refines it. The direct answer stays
+    as the cross-check (gross disagreement lowers confidence) and the fallback (when PnP finds
+    no consistent pose, with low confidence and a flag saying so)."""
+
+    def __init__(self, path: str | Path, threads: int = 2, warmup_runs: int = 3,
+                 range_limits_m: tuple[float, float] | None = None, defect_scale: float = DEFAULT_DEFECT_SCALE,
+                 allow_spinning: bool = False, refine_passes: int = 2):
+        self.path = Path(path)
+        self.meta = read_metadata(self.path)
+        for key in ("keypoints_3d_m", "crop", "pnp", "camera", "first_pass"):
+            if key not in self.meta:
+                raise ModelFileError(f"{self.path}: keypoint model without oibar.{key} metadata")
+        first = self.path.parent / self.meta["first_pass"]
+        if not first.is_file():
+            raise ModelFileError(f"{self.path}: its first-pass model {first.name} is missing (it must lie beside it)")
+        self.first = PoseEstimator(first, threads, warmup_runs, range_limits_m, defect_scale, allow_spinning)
+        if isinstance(self.first, KeypointPoseEstimator):
+            raise ModelFileError(f"{first}: a first-pass model must be a direct model")
+        self.session = _session(self.path, threads, allow_spinning)
+        self.input_name = self.session.get_inputs()[0].name
+        self.output_names = [o.name for o in self.session.get_outputs()]
+        missing = [n for n in ("kp_crop_px", "kp_present") if n not in self.output_names]
+        if missing:
+            raise ModelFileError(f"{self.path}: outputs {missing} missing (has {self.output_names})")
+        self.size_wh = tuple(self.meta["input_size_wh"])
+        self.out_px = int(self.meta["crop"]["out_px"])
+        self.margin = float(self.meta["crop"]["margin"])
+        self.points_m = np.asarray(self.meta["keypoints_3d_m"], float)
+        self.reproj_crop_px = float(self.meta["pnp"]["reproj_crop_px"])
+        self.min_present = float(self.meta["pnp"]["min_present"])
+        cam = self.meta["camera"]
+        self.frame_wh = (int(cam["width_px"]), int(cam["height_px"]))
+        self.K_frame = np.array(cam["K_frame"], float)
+        if range_limits_m is None:
+            range_limits_m = tuple(self.meta.get("train_range_m", DEFAULT_RANGE_LIMITS_M))
+        self.range_limits_m = tuple(float(v) for v in range_limits_m)
+        self.defect_scale = float(defect_scale)
+        self.refine_passes = max(1, int(refine_passes))
+        zero = np.zeros((1, 3, self.out_px, self.out_px), np.float32)
+        for _ in range(warmup_runs):
+            self.run(zero)
+
+    def check_frame(self, image) -> None:
+        self.first.check_frame(image)
+        h, w = image.shape[:2]
+        if (w, h) != self.frame_wh:
+            raise FrameError(f"frame {w}x{h}: the keypoint model works in the camera's own pixels, "
+                             f"{self.frame_wh[0]}x{self.frame_wh[1]}")
+
+    def keypoints(self, image: np.ndarray, win) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One crop -> (frame pixels (K, 2) with NaN where absent, spread (K,) crop px, presence (K,))."""
+        from .keypoints import cut
+
+        out = self.run(to_input(cut(image, win)))
+        kp = out["kp_crop_px"][0].astype(float)
+        present = out["kp_present"][0].astype(float)
+        spread = out["kp_spread_px"][0].astype(float) if "kp_spread_px" in out else np.zeros(len(kp))
+        uv = win.to_frame(kp)
+        uv[present < self.min_present] = np.nan
+        return uv, spread, present
+
+    def solve(self, image: np.ndarray, R_direct: np.ndarray, T_direct: np.ndarray, fusion: dict | None = None):
+        """Crop around the current pose (first the direct model's), keypoints, pose
+        (keypoints.map_pose: PnP, and with the export's ``oibar.fusion`` weights the direct
+        attitude as a prior); then `refine_passes - 1` more times from the newest pose. When the
+        first window finds nothing, the windows of SEARCH_STEPS are tried in turn (the direct
+        model can be 1 m off sideways at 10 m on an unseen scene). Returns (PnpResult or None,
+        the last window)."""
+        from .keypoints import CropWindow, project, window_around
+
+        f = self.meta.get("fusion") if fusion is None else fusion
+        uv0 = project(self.K_frame, self.points_m, R_direct, T_direct)
+        if not np.all(np.isfinite(uv0)):
+            return None, None
+        base = window_around(uv0, self.out_px, self.margin)
+        best = None
+        for dx, dy, k in SEARCH_STEPS:
+            c = (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px)
+            r, win = self._one_pass(image, CropWindow(c, base.side_px * k, self.out_px), R_direct, f)
+            if r is not None:
+                best = (r, win)
+                break
+        if best is None:
+            return None, None
+        for _ in range(self.refine_passes - 1):
+            uv = project(self.K_frame, self.points_m, best[0].R_cam_target, best[0].T_cam_target_m)
+            r, win = self._one_pass(image, window_around(uv, self.out_px, self.margin), R_direct, f)
+            if r is None:
+                break
+            best = (r, win)
+        return best
+
+    def _one_pass(self, image, win, R_direct, f):
+        from .keypoints import map_pose
+
+        uv, _, _ = self.keypoints(image, win)
+        s_px = float(f["sigma_crop_px"]) / win.scale if f else None
+        s_rad = np.radians(float(f["sigma_prior_deg"])) if f else None
+        r = map_pose(uv, self.points_m, self.K_frame, self.reproj_crop_px / win.scale, R_direct, s_px, s_rad, MIN_INLIERS)
+        return (r, win) if r.ok else (None, None)
+
+    def estimate(self, image_rgb_uint8: np.ndarray, t_s: float = 0.0) -> PoseEstimate:
+        if not np.isfinite(t_s):
+            raise FrameError(f"frame time t_s must be finite, got {t_s}")
+        self.check_frame(image_rgb_uint8)
+        t0 = time.perf_counter()
+        if float(image_rgb_uint8[::4, ::4].std()) < MIN_FRAME_STD_DN:
+            nan = np.full(3, np.nan)
+            return PoseEstimate(nan, np.full(4, np.nan), np.full((3, 3), np.nan), float(t_s),
+                                (time.perf_counter() - t0) * 1e3, 0.0, float("nan"), 0.0, ("blank_frame",))
+        direct = self.first.estimate(image_rgb_uint8, t_s)
+        if not direct.finite or direct.confidence <= 0.0:
+            direct.latency_ms = (time.perf_counter() - t0) * 1e3
+            direct.flags = tuple(direct.flags) + ("no_first_pass",)
+            return direct
+        r, win = self.solve(image_rgb_uint8, direct.R_cam_target, direct.T_cam_target_m)
+        if r is None:
+            latency_ms = (time.perf_counter() - t0) * 1e3
+            direct.latency_ms = latency_ms
+            direct.confidence *= FALLBACK_FACTOR
+            direct.flags = tuple(direct.flags) + ("pnp_failed", "fallback_direct")
+            return direct
+        R, T, rms_px = r.R_cam_target, r.T_cam_target_m, r.rms_px
+        latency_ms = (time.perf_counter() - t0) * 1e3
+        conf, rng_m, _, flags = self.plausibility(T, R, None)
+        flags = list(flags)
+        rms_crop = rms_px * win.scale
+        conf *= float(np.exp(-0.5 * (rms_crop / REPROJ_SCALE_CROP_PX) ** 2))
+        if rms_crop > REPROJ_SCALE_CROP_PX:
+            flags.append("reprojection")
+        dpos = float(np.linalg.norm(T - direct.T_cam_target_m)) / max(rng_m, 1e-6)
+        datt = float(np.degrees(np.arccos(np.clip((np.trace(R.T @ direct.R_cam_target) - 1) / 2, -1, 1))))
+        if dpos > DISAGREE_POS_FRACTION or datt > DISAGREE_ATT_DEG:
+            conf *= FALLBACK_FACTOR
+            flags.append("direct_disagrees")
+        q = matrix_to_quat(R)
+        return PoseEstimate(T_cam_target_m=T, q_cam_target=q, R_cam_target=R, t_s=float(t_s), latency_ms=latency_ms,
+                            confidence=float(np.clip(conf, 0.0, 1.0)), camera_range_m=rng_m, ortho_defect=0.0,
+                            flags=tuple(flags))
+
+    def __call__(self, frame) -> tuple[np.ndarray, np.ndarray]:
+        e = self.estimate(np.asarray(frame))
+        return e.T_cam_target_m, e.q_cam_target
+
+    def predict_batch(self, frames_uint8_small: np.ndarray):
+        raise TypeError("a keypoint model has no batch interface on resized frames; use estimate(frame)")
+
 
 
 def benchmark(path: str | Path, threads: int = 2, seconds: float = 5.0, with_preprocess: bool = True) -> dict:

@@ -1,0 +1,238 @@
+"""Keypoint geometry of the pose estimator: crop windows at full resolution, and the pose from
+2-D keypoints by PnP. Shared by training (oibar_models) and flight (oibar.nav.pose), so both cut
+the same pixels and solve the same problem. numpy + OpenCV; no torch.
+
+Pixel convention: continuous coordinates with the origin at the image's top-left corner, pixel
+centres at i + 0.5 (docs/synthetic.md). OpenCV's warp and PnP count from pixel centres; the
+conversions are done here and nowhere else.
+
+A crop is a square window of side `side_px` (full-resolution pixels) centred at `center_px`,
+optionally turned by `angle_rad`, resampled to `out_px` x `out_px`. `A` (2x3) maps a frame
+pixel to a crop pixel; keypoints found in the crop map back through its inverse, so the PnP
+always runs in the frame's own pixels with the frame's own intrinsics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CropWindow:
+    center_px: tuple[float, float]
+    side_px: float
+    out_px: int
+    angle_rad: float = 0.0
+
+    @property
+    def scale(self) -> float:
+        """Crop pixels per frame pixel."""
+        return self.out_px / self.side_px
+
+    def matrix(self) -> np.ndarray:
+        """2x3 affine frame px -> crop px (corner convention)."""
+        s, c, a = self.scale, np.asarray(self.center_px, float), self.angle_rad
+        rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) * s
+        t = self.out_px / 2.0 - rot @ c
+        return np.hstack([rot, t[:, None]])
+
+    def to_crop(self, uv_px: np.ndarray) -> np.ndarray:
+        A = self.matrix()
+        return np.asarray(uv_px, float) @ A[:, :2].T + A[:, 2]
+
+    def to_frame(self, uv_crop: np.ndarray) -> np.ndarray:
+        A = self.matrix()
+        return (np.asarray(uv_crop, float) - A[:, 2]) @ np.linalg.inv(A[:, :2]).T
+
+
+def window_around(points_px: np.ndarray, out_px: int, margin: float, min_side_px: float = 24.0) -> CropWindow:
+    """The square window centred on the points' bounding box, `margin` times its larger side."""
+    p = np.asarray(points_px, float)
+    lo, hi = p.min(0), p.max(0)
+    side = max(float(np.max(hi - lo)) * margin, min_side_px)
+    return CropWindow(center_px=tuple((lo + hi) / 2.0), side_px=side, out_px=out_px)
+
+
+def cut(image: np.ndarray, win: CropWindow) -> np.ndarray:
+    """The crop (out_px, out_px, 3) uint8. Outside the frame reads black. When the window shrinks
+    the image more than 1.5x, the frame is first area-averaged by an integer factor (bilinear
+    alone would alias the fine rim edges of a close fixture)."""
+    import cv2
+
+    h, w = image.shape[:2]
+    A = win.matrix()
+    src = image
+    f = int(np.floor(1.0 / win.scale)) if win.scale < 1 / 1.5 else 1
+    if f > 1:
+        ws, hs = max(1, round(w / f)), max(1, round(h / f))
+        src = cv2.resize(image, (ws, hs), interpolation=cv2.INTER_AREA)
+        # corner convention: a resize by (ws/w, hs/h) scales coordinates exactly
+        A = A @ np.array([[w / ws, 0, 0], [0, h / hs, 0], [0, 0, 1.0]])
+    # corner -> centre convention on both sides: q_c = A p_c  <=>  q_n = A p_n + (A[:, :2] @ 0.5 - 0.5)
+    M = A.copy()
+    M[:, 2] += A[:, :2] @ np.array([0.5, 0.5]) - 0.5
+    return cv2.warpAffine(src, M, (win.out_px, win.out_px), flags=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+
+
+def project(K: np.ndarray, points_m: np.ndarray, R: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Target points (N, 3) -> pixels (N, 2), corner convention. Points behind the camera: NaN."""
+    p = np.asarray(points_m, float) @ np.asarray(R, float).T + np.asarray(T, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (p @ np.asarray(K, float).T)[:, :2] / p[:, 2:3]
+    uv[p[:, 2] <= 0] = np.nan
+    return uv
+
+
+@dataclass
+class PnpResult:
+    ok: bool
+    R_cam_target: np.ndarray | None = None
+    T_cam_target_m: np.ndarray | None = None
+    inliers: np.ndarray | None = None     # indices into the points given
+    rms_px: float = float("nan")          # reprojection RMS over the inliers, frame pixels
+    reason: str = ""
+
+
+def solve_pnp(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, reproj_px: float,
+              R_guess: np.ndarray | None = None, T_guess: np.ndarray | None = None,
+              min_points: int = 5) -> PnpResult:
+    """Pose of the target from its keypoints: RANSAC (SQPnP on minimal sets) against outliers, then
+    Levenberg-Marquardt refinement on the inliers. `reproj_px` is the inlier threshold in frame
+    pixels (the caller scales it with the crop: a keypoint's error grows with the window)."""
+    import cv2
+
+    uv = np.asarray(uv_px, np.float64)
+    P = np.asarray(points_m, np.float64)
+    good = np.all(np.isfinite(uv), axis=1)
+    if good.sum() < min_points:
+        return PnpResult(False, reason=f"only {int(good.sum())} keypoints (need {min_points})")
+    idx = np.flatnonzero(good)
+    Kc = np.asarray(K, np.float64).copy()
+    Kc[0, 2] -= 0.5   # OpenCV counts from pixel centres
+    Kc[1, 2] -= 0.5
+    uvc = uv[idx] - 0.5
+    dist = np.zeros(4)
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(P[idx], uvc, Kc, dist, iterationsCount=100,
+                                                  reprojectionError=float(reproj_px), confidence=0.999,
+                                                  flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error as exc:
+        return PnpResult(False, reason=f"PnP failed ({exc.err})")
+    if not ok or inl is None or len(inl) < min_points:
+        return PnpResult(False, reason=f"no consistent pose ({0 if inl is None else len(inl)} inliers)")
+    inl = inl.ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(P[idx][inl], uvc[inl], Kc, dist, rvec, tvec)
+    R = cv2.Rodrigues(rvec)[0]
+    T = tvec.ravel()
+    if T[2] <= 0:
+        return PnpResult(False, reason="pose behind the camera")
+    res = project(K, P[idx][inl], R, T) - uv[idx][inl]
+    rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+    return PnpResult(True, R, T, idx[inl], rms)
+
+
+def refine_with_prior(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, R: np.ndarray, T: np.ndarray,
+                      R_prior: np.ndarray, sigma_px: float, sigma_prior_rad: float, iterations: int = 8):
+    """The pose that best explains the keypoints *and* an independent attitude estimate (the
+    direct model's): Gauss-Newton on  sum |reprojection / sigma_px|^2 + |log(R R_prior^T) / sigma_prior|^2.
+
+    Why: the fixture is nearly planar and small. At 10 m a 1 deg tilt moves its keypoints by a
+    hundredth of a pixel, so PnP's attitude there is noise while its position is sharp; close in,
+    the keypoints pin the attitude far better than the direct model. Weighting both by their
+    errors lets each dominate where it is good, with no range switch to tune.
+    Returns (R, T, rms_px over the given points, cost)."""
+    from ..rotations import matrix_to_rotvec, rotvec_to_matrix
+
+    uv = np.asarray(uv_px, float)
+    good = np.all(np.isfinite(uv), axis=1)
+    P, uv = np.asarray(points_m, float)[good], uv[good]
+    R = np.asarray(R, float)
+    T = np.asarray(T, float)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        Rx = rotvec_to_matrix(x[:3]) @ R
+        r_img = ((project(K, P, Rx, T + x[3:]) - uv) / sigma_px).ravel()
+        r_att = matrix_to_rotvec(Rx @ R_prior.T) / sigma_prior_rad
+        return np.concatenate([r_img, r_att])
+
+    for _ in range(iterations):
+        x0 = np.zeros(6)
+        r0 = residuals(x0)
+        if not np.all(np.isfinite(r0)):
+            break
+        J = np.empty((len(r0), 6))
+        for j in range(6):
+            h = 1e-6 if j < 3 else 1e-6 * max(1.0, float(np.linalg.norm(T)))
+            d = np.zeros(6)
+            d[j] = h
+            J[:, j] = (residuals(d) - residuals(-d)) / (2 * h)
+        try:
+            step = -np.linalg.solve(J.T @ J + 1e-9 * np.eye(6), J.T @ r0)
+        except np.linalg.LinAlgError:
+            break
+        R = rotvec_to_matrix(step[:3]) @ R
+        T = T + step[3:]
+        if np.linalg.norm(step[:3]) < 1e-9 and np.linalg.norm(step[3:]) < 1e-9 * max(1.0, float(np.linalg.norm(T))):
+            break
+    res = project(K, P, R, T) - uv
+    rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+    cost = float(np.sum(res ** 2) / sigma_px ** 2 + np.sum(matrix_to_rotvec(R @ R_prior.T) ** 2) / sigma_prior_rad ** 2)
+    return R, T, rms, cost
+
+
+def translation_given_rotation(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, R: np.ndarray) -> np.ndarray | None:
+    """Least-squares T for a known R: each keypoint gives two equations linear in T
+    ((u - cx) / fx * z - x = 0, the same for v), so this has no local minima and no flips."""
+    uv = np.asarray(uv_px, float)
+    good = np.all(np.isfinite(uv), axis=1)
+    if good.sum() < 2:
+        return None
+    q = np.asarray(points_m, float)[good] @ np.asarray(R, float).T
+    a = (uv[good, 0] - K[0, 2]) / K[0, 0]
+    b = (uv[good, 1] - K[1, 2]) / K[1, 1]
+    A = np.concatenate([np.stack([-np.ones_like(a), np.zeros_like(a), a], 1),
+                        np.stack([np.zeros_like(b), -np.ones_like(b), b], 1)])
+    rhs = np.concatenate([q[:, 0] - a * q[:, 2], q[:, 1] - b * q[:, 2]])
+    T = np.linalg.lstsq(A, rhs, rcond=None)[0]
+    return T if T[2] > 0 else None
+
+
+def map_pose(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, reproj_px: float, R_prior: np.ndarray,
+             sigma_px: float | None, sigma_prior_rad: float | None, min_points: int = 5) -> PnpResult:
+    """The pose from keypoints and an attitude prior. Two starts, refined by refine_with_prior, the
+    lower cost kept: PnP (RANSAC + LM) and (R_prior, its least-squares T). The second start is what
+    saves far frames, where near-planar keypoints let PnP fall into a mirrored pose that fits the
+    pixels as well as the true one. Keypoints further than `reproj_px` from the chosen pose are
+    dropped and the pose refined again. Without a prior (sigma None): PnP alone."""
+    pnp = solve_pnp(uv_px, points_m, K, reproj_px, min_points=min_points)
+    if sigma_px is None or sigma_prior_rad is None:
+        return pnp
+    uv = np.asarray(uv_px, float)
+    starts = []
+    if pnp.ok:
+        used = np.full_like(uv, np.nan)
+        used[pnp.inliers] = uv[pnp.inliers]
+        starts.append((pnp.R_cam_target, pnp.T_cam_target_m, used))
+    T0 = translation_given_rotation(uv, points_m, K, R_prior)
+    if T0 is not None:
+        starts.append((np.asarray(R_prior, float), T0, uv))
+    best = None
+    for R0, T0, uv0 in starts:
+        if np.sum(np.all(np.isfinite(uv0), axis=1)) < min_points:
+            continue
+        R, T, _, _ = refine_with_prior(uv0, points_m, K, R0, T0, R_prior, sigma_px, sigma_prior_rad)
+        err = np.linalg.norm(project(K, points_m, R, T) - uv, axis=1)
+        keep = np.isfinite(err) & (err < reproj_px)
+        if keep.sum() < min_points:
+            continue
+        uv1 = np.where(keep[:, None], uv, np.nan)
+        R, T, rms, cost = refine_with_prior(uv1, points_m, K, R, T, R_prior, sigma_px, sigma_prior_rad)
+        cost += float((~keep & np.all(np.isfinite(uv), axis=1)).sum()) * (reproj_px / sigma_px) ** 2
+        if T[2] > 0 and (best is None or cost < best[0]):
+            best = (cost, PnpResult(True, R, T, np.flatnonzero(keep), rms))
+    if best is None:
+        return PnpResult(False, reason=pnp.reason or "no consistent pose with the attitude prior")
+    return best[1]

@@ -1,0 +1,128 @@
+"""Training samples for the keypoint network: a full-resolution crop around the fixture, with
+the keypoints' crop coordinates as labels.
+
+The window is the one flight cuts (oibar.nav.keypoints.window_around the projected keypoints of a
+rough pose), perturbed the way a rough pose is wrong: centre shifted, side scaled, turned a little.
+Any 2-D affine of the crop maps the labels exactly (they are image points), so the geometric
+augmentation needs no approximation. Photometric augmentation: brightness, contrast, gamma,
+colour gain, Gaussian noise, blur, JPEG re-encoding.
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from oibar.nav.keypoints import CropWindow, cut, project, window_around
+
+from .data import Sequence, load_sequence
+from .geometry import quat_to_matrix_np
+
+
+@dataclass
+class CropAugment:
+    center_jitter: float = 0.12      # std of the window centre shift, fraction of the side
+    scale_jitter: float = 0.25       # side scaled by exp(U(-a, a))
+    angle_deg: float = 15.0          # in-plane turn, uniform +-
+    margin: float = 1.25             # window side / keypoint bounding box (flight uses the same)
+    p_photometric: float = 0.8
+    p_noise: float = 0.4
+    noise_sigma_max: float = 0.04
+    p_blur: float = 0.3
+    blur_sigma_max_px: float = 1.2
+    p_jpeg: float = 0.3
+
+
+def open_scenes(root: Path, names: list[str] | None = None) -> list[Sequence]:
+    root = Path(root)
+    dirs = [root / n for n in names] if names else sorted(p for p in root.iterdir() if (p / "poses.csv").is_file())
+    return [load_sequence(d) for d in dirs]
+
+
+def visible(uv: np.ndarray, frame_wh: tuple[int, int], win: CropWindow) -> np.ndarray:
+    """Keypoints that the crop can show: in front of the camera, inside the frame and the crop."""
+    w, h = frame_wh
+    c = win.to_crop(np.nan_to_num(uv, nan=-1e9))
+    ok = np.all(np.isfinite(uv), axis=1)
+    ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= w) & (uv[:, 1] >= 0) & (uv[:, 1] <= h)
+    ok &= (c[:, 0] >= 0) & (c[:, 0] <= win.out_px) & (c[:, 1] >= 0) & (c[:, 1] <= win.out_px)
+    return ok
+
+
+def photometric(img: np.ndarray, rng: np.random.Generator, a: CropAugment) -> np.ndarray:
+    x = img.astype(np.float32) / 255.0
+    if rng.random() < a.p_photometric:
+        x = x * rng.uniform(0.6, 1.4) + rng.uniform(-0.1, 0.1)                    # gain, offset
+        m = x.mean()
+        x = (x - m) * rng.uniform(0.7, 1.3) + m                                   # contrast
+        x = x * rng.uniform(0.9, 1.1, size=3)[None, None, :]                      # colour
+        x = np.clip(x, 0, 1) ** rng.uniform(0.7, 1.4)                             # gamma
+    if rng.random() < a.p_blur:
+        import cv2
+        x = cv2.GaussianBlur(x, (0, 0), rng.uniform(0.3, a.blur_sigma_max_px))
+    if rng.random() < a.p_noise:
+        x = x + rng.normal(0, rng.uniform(0.005, a.noise_sigma_max), x.shape).astype(np.float32)
+    out = (np.clip(x, 0, 1) * 255 + 0.5).astype(np.uint8)
+    if rng.random() < a.p_jpeg:
+        buf = io.BytesIO()
+        Image.fromarray(out).save(buf, format="JPEG", quality=int(rng.integers(40, 95)))
+        out = np.asarray(Image.open(io.BytesIO(buf.getvalue())).convert("RGB"))
+    return out
+
+
+class CropDataset(torch.utils.data.Dataset):
+    """Index i -> one frame's crop. `train` draws a new perturbation each time; otherwise the
+    perturbation is fixed per index (seeded), so validation is repeatable."""
+
+    def __init__(self, scenes: list[Sequence], keypoints_m: np.ndarray, out_px: int, aug: CropAugment,
+                 train: bool, seed: int = 0, frames: list[tuple[int, int]] | None = None):
+        self.scenes, self.kp_m, self.out_px, self.aug, self.train, self.seed = scenes, keypoints_m, out_px, aug, train, seed
+        self.items = frames if frames is not None else [(s, k) for s, sc in enumerate(scenes) for k in range(len(sc))]
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def window(self, uv: np.ndarray, rng: np.random.Generator) -> CropWindow:
+        a = self.aug
+        base = window_around(uv[np.all(np.isfinite(uv), axis=1)], self.out_px, a.margin)
+        c = np.asarray(base.center_px) + rng.normal(0, a.center_jitter, 2) * base.side_px
+        side = base.side_px * float(np.exp(rng.uniform(-a.scale_jitter, a.scale_jitter)))
+        ang = np.radians(rng.uniform(-a.angle_deg, a.angle_deg))
+        return CropWindow(tuple(c), side, self.out_px, ang)
+
+    def __getitem__(self, i: int) -> dict:
+        s, k = self.items[i]
+        sc = self.scenes[s]
+        rng = np.random.default_rng(None if self.train else [self.seed, i])
+        img = np.asarray(Image.open(sc.dir / sc.files[k]).convert("RGB"))
+        R = quat_to_matrix_np(sc.q_cam_target[k])
+        T = sc.T_cam_target[k]
+        uv = project(sc.K, self.kp_m, R, T)
+        win = self.window(uv, rng)
+        crop = cut(img, win)
+        if self.train:
+            crop = photometric(crop, rng, self.aug)
+        vis = visible(uv, (sc.width_px, sc.height_px), win)
+        kp = win.to_crop(np.nan_to_num(uv, nan=0.0))
+        return {
+            "image": torch.from_numpy(np.ascontiguousarray(crop.transpose(2, 0, 1))).float().div_(255.0),
+            "kp_crop_px": torch.from_numpy(kp.astype(np.float32)),
+            "visible": torch.from_numpy(vis),
+            "A": torch.from_numpy(win.matrix().astype(np.float64)),
+            "T": torch.from_numpy(np.asarray(T, np.float64)),
+            "R": torch.from_numpy(R),
+            "scene": s, "frame": k,
+        }
+
+
+def spread_frames(scenes: list[Sequence], n: int) -> list[tuple[int, int]]:
+    """About n frames evenly over all scenes (repeatable validation subsets)."""
+    total = sum(len(s) for s in scenes)
+    step = max(1, total // max(1, n))
+    flat = [(s, k) for s, sc in enumerate(scenes) for k in range(len(sc))]
+    return flat[::step]

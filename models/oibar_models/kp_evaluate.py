@@ -1,0 +1,216 @@
+"""Evaluation through the flight estimator: every frame goes through
+`oibar.nav.pose.PoseEstimator(path).estimate(frame)` exactly as the navigation daemon calls it
+(first pass, crop, keypoints, PnP for a keypoint model; the direct model alone otherwise), so
+what is measured is what flies. Several models on the same frames, side by side with the paper
+and the mean-pose baseline; errors per range bin (table and plot); latency of the whole
+estimator, frame in to pose out.
+
+Test sequences (1 and 8) are read once per shipped model for its card: `--sets test`. Choices
+are made with `--sets val`.
+
+python -m oibar_models.kp_evaluate --models models/oibarnet.onnx models/oibarnet_lite.onnx \
+    --sets val test [--stride 2] [--out runs/eval_kp]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from . import metrics
+from .config import REPO_ROOT
+from .data import DatasetError, load_sequence
+from .scenes import load_set
+
+RANGE_BINS_M = (0.0, 1.0, 2.0, 3.0, 5.0, 8.0, 12.0)
+PAPER = {"seq01": {"dt_mean_pct": 1.81, "dt_median_pct": 1.39, "dq_mean_deg": 0.29, "dq_median_deg": 0.26,
+                   "compliance_pos_pct": 96.33, "compliance_att_pct": 100.0},
+         "seq08": {"dt_mean_pct": 0.56, "dt_median_pct": 0.43, "dq_mean_deg": 0.28, "dq_median_deg": 0.26,
+                   "compliance_pos_pct": 99.91, "compliance_att_pct": 100.0}}
+SETS = {"val": ("models/scenes/val.json", "data/val"), "test": ("models/scenes/test.json", "data/synthetic")}
+
+
+def model_label(path: Path, meta: dict) -> str:
+    return f"{path.stem} {meta.get('model_version', '?')}"
+
+
+def run_sequence(est, seq, stride: int, progress: bool) -> dict:
+    idx = np.arange(0, len(seq), stride)
+    T_hat = np.full((len(idx), 3), np.nan)
+    q_hat = np.full((len(idx), 4), np.nan)
+    conf = np.zeros(len(idx))
+    lat = np.zeros(len(idx))
+    it = enumerate(idx)
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(it, total=len(idx), desc=seq.name, unit="frame", leave=False, file=sys.stderr)
+    for j, k in it:
+        img = np.asarray(Image.open(seq.dir / seq.files[k]).convert("RGB"))
+        t0 = time.perf_counter()
+        e = est.estimate(img, float(seq.time_s[k]))
+        lat[j] = (time.perf_counter() - t0) * 1e3
+        T_hat[j], q_hat[j], conf[j] = e.T_cam_target_m, e.q_cam_target, e.confidence
+    return {"idx": idx, "T_hat": T_hat, "q_hat": q_hat, "confidence": conf, "latency_ms": lat}
+
+
+def summarise(seq, r) -> dict:
+    """The paper's metrics. A frame without an answer counts as failed (it is in neither
+    compliance share's numerator) and is excluded from the error means, which say so."""
+    T, q = seq.T_cam_target[r["idx"]], seq.q_cam_target[r["idx"]]
+    ok = np.all(np.isfinite(r["T_hat"]), axis=1)
+    s = metrics.summarize(r["T_hat"][ok], r["q_hat"][ok], T[ok], q[ok]) if ok.any() else {}
+    n = len(ok)
+    s["frames"] = n
+    s["answered_pct"] = float(100 * ok.mean())
+    if ok.any():
+        s["compliance_pos_pct"] *= ok.mean()
+        s["compliance_att_pct"] *= ok.mean()
+    s["latency_ms_mean"] = float(r["latency_ms"].mean())
+    s["latency_ms_p99"] = float(np.percentile(r["latency_ms"], 99))
+    return s
+
+
+def per_bin(seq, r) -> list[dict]:
+    T, q = seq.T_cam_target[r["idx"]], seq.q_cam_target[r["idx"]]
+    rng = np.linalg.norm(T, axis=1)
+    ok = np.all(np.isfinite(r["T_hat"]), axis=1)
+    dt = np.full(len(T), np.nan)
+    dq = np.full(len(T), np.nan)
+    dt[ok] = metrics.position_error_pct(r["T_hat"][ok], T[ok])
+    dq[ok] = metrics.attitude_error_deg(r["q_hat"][ok], q[ok])
+    rows = []
+    for lo, hi in zip(RANGE_BINS_M[:-1], RANGE_BINS_M[1:]):
+        m = (rng >= lo) & (rng < hi)
+        if m.sum() == 0:
+            continue
+        rows.append({"bin": f"{lo:g}-{hi:g} m", "frames": int(m.sum()),
+                     "dt_mean_pct": float(np.nanmean(dt[m])) if np.isfinite(dt[m]).any() else float("nan"),
+                     "dq_mean_deg": float(np.nanmean(dq[m])) if np.isfinite(dq[m]).any() else float("nan"),
+                     "answered_pct": float(100 * ok[m].mean())})
+    return rows
+
+
+def plot_bins(path: Path, title: str, bins: dict) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    for label, rows in bins.items():
+        x = np.arange(len(rows))
+        ax[0].plot(x, [r["dt_mean_pct"] for r in rows], "o-", label=label)
+        ax[1].plot(x, [r["dq_mean_deg"] for r in rows], "o-", label=label)
+        for a in ax:
+            a.set_xticks(x, [r["bin"] for r in rows], rotation=30, fontsize=8)
+    ax[0].axhline(1.0, ls="--", c="k", lw=0.8, label="target 1 %")
+    ax[1].axhline(0.5, ls="--", c="k", lw=0.8, label="target 0.5 deg")
+    ax[0].set_ylabel("mean position error (% of range)")
+    ax[1].set_ylabel("mean attitude error (deg)")
+    for a in ax:
+        a.set_yscale("log")
+        a.grid(alpha=0.3, which="both")
+    ax[0].legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def table(rows: list[tuple[str, str, dict]]) -> str:
+    cols = [("frames", "frames", "{:d}"), ("answered_pct", "answered (%)", "{:.1f}"),
+            ("dt_mean_pct", "dt mean (%)", "{:.2f}"), ("dt_median_pct", "dt median (%)", "{:.2f}"),
+            ("dq_mean_deg", "dq mean (deg)", "{:.2f}"), ("dq_median_deg", "dq median (deg)", "{:.2f}"),
+            ("compliance_pos_pct", "pos <= 5 % (%)", "{:.2f}"), ("compliance_att_pct", "att <= 5 deg (%)", "{:.2f}")]
+    out = ["| sequence | model | " + " | ".join(c[1] for c in cols) + " |",
+           "| --- | --- | " + " | ".join("---:" for _ in cols) + " |"]
+    for seq, model, s in rows:
+        cells = [fmt.format(s[k]) if k in s and s[k] is not None else "" for k, _, fmt in cols]
+        out.append(f"| {seq} | {model} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from oibar.nav.pose import ModelFileError, PoseEstimator, read_metadata
+
+    ap = argparse.ArgumentParser(prog="python -m oibar_models.kp_evaluate", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--models", nargs="+", type=Path, default=[REPO_ROOT / "models/oibarnet.onnx"])
+    ap.add_argument("--sets", nargs="+", choices=sorted(SETS), default=["val"])
+    ap.add_argument("--stride", type=int, default=2, help="every n-th frame of each sequence (default 2)")
+    ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/eval_kp")
+    ap.add_argument("--no-progress", action="store_true")
+    a = ap.parse_args(argv)
+    a.out.mkdir(parents=True, exist_ok=True)
+    results: dict = {}
+    rows, bins_by_set = [], {}
+    try:
+        ests = [(model_label(p, read_metadata(p)), PoseEstimator(p)) for p in a.models]
+    except ModelFileError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for set_name in a.sets:
+        spec, root = SETS[set_name]
+        try:
+            seqs = [load_sequence(REPO_ROOT / root / s.name) for s in load_set(REPO_ROOT / spec)]
+        except DatasetError as exc:
+            print(f"error: {exc}\n(render it: make dataset-{set_name})", file=sys.stderr)
+            return 2
+        for label, est in ests:
+            allr = {"T_hat": [], "q_hat": [], "T": [], "q": [], "idx": []}
+            bins_all = []
+            for seq in seqs:
+                r = run_sequence(est, seq, a.stride, not a.no_progress)
+                s = summarise(seq, r)
+                results.setdefault(set_name, {}).setdefault(label, {})[seq.name] = s
+                if set_name == "test":
+                    rows.append((seq.name, label, s))
+                bins_all.append((seq, r))
+                print(f"{set_name} {seq.name} {label}: dt {s.get('dt_mean_pct', float('nan')):.2f} % "
+                      f"dq {s.get('dq_mean_deg', float('nan')):.2f} deg answered {s['answered_pct']:.1f} %", file=sys.stderr)
+            # pooled over the set
+            pooled = {k: [] for k in ("T", "q", "T_hat", "q_hat", "lat")}
+            for seq, r in bins_all:
+                pooled["T"].append(seq.T_cam_target[r["idx"]])
+                pooled["q"].append(seq.q_cam_target[r["idx"]])
+                pooled["T_hat"].append(r["T_hat"])
+                pooled["q_hat"].append(r["q_hat"])
+                pooled["lat"].append(r["latency_ms"])
+
+            class _Seq:  # the pooled set, in the shape summarise/per_bin read
+                name = set_name
+                T_cam_target = np.concatenate(pooled["T"])
+                q_cam_target = np.concatenate(pooled["q"])
+            pr = {"idx": np.arange(len(_Seq.T_cam_target)), "T_hat": np.concatenate(pooled["T_hat"]),
+                  "q_hat": np.concatenate(pooled["q_hat"]), "latency_ms": np.concatenate(pooled["lat"])}
+            s = summarise(_Seq, pr)
+            results[set_name][label]["_all"] = s
+            if set_name == "val":
+                rows.append((f"val (all {len(seqs)})", label, s))
+            b = per_bin(_Seq, pr)
+            results[set_name][label]["_bins"] = b
+            bins_by_set.setdefault(set_name, {})[label] = b
+    for set_name, by_label in bins_by_set.items():
+        plot_bins(a.out / f"{set_name}_range_bins.png", f"{set_name} scenes: error per camera range", by_label)
+    md = [table(rows)]
+    if "test" in a.sets:
+        md.append("\nThe paper (ResNet-101):\n\n" + table([(k, "paper", {"frames": 0, **v}) for k, v in PAPER.items()]))
+    for set_name, by_label in bins_by_set.items():
+        md.append(f"\nPer range bin, {set_name} scenes:\n")
+        md.append("| model | bin | frames | dt mean (%) | dq mean (deg) | answered (%) |\n| --- | --- | ---: | ---: | ---: | ---: |")
+        for label, b in by_label.items():
+            md.extend(f"| {label} | {r['bin']} | {r['frames']} | {r['dt_mean_pct']:.2f} | {r['dq_mean_deg']:.2f} | "
+                      f"{r['answered_pct']:.1f} |" for r in b)
+    (a.out / "eval.md").write_text("\n".join(md) + "\n")
+    (a.out / "eval.json").write_text(json.dumps(results, indent=1) + "\n")
+    print("\n".join(md))
+    print(f"\nwritten: {a.out / 'eval.md'}, {a.out / 'eval.json'}, plots in {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

