@@ -118,9 +118,10 @@ def export_untrained(ctx: Context, backbone: str, size_wh: tuple[int, int]) -> t
 
 def nav_model(ctx: Context) -> tuple[Path, str]:
     """The model the navigation measurements load: the shipped one, else an untrained oibar_lite."""
-    shipped = ctx.root / SHIPPED
-    if shipped.is_file():
-        return shipped, f"{SHIPPED} (the shipped model)"
+    for name in (SHIPPED_KP, SHIPPED):
+        shipped = ctx.root / name
+        if shipped.is_file():
+            return shipped, f"{name} (the shipped model)"
     path, _ = export_untrained(ctx, "oibar_lite", SIZES_WH[0])
     return path, f"untrained oibar_lite at {SIZES_WH[0][0]}x{SIZES_WH[0][1]} ({SHIPPED} does not exist yet)"
 

@@ -29,7 +29,7 @@ from oibar.rotations import matrix_to_quat
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 _TOKEN_IMAGE = np.zeros((1, 1, 3), np.uint8)
-DEFAULT_MODEL = REPO_ROOT / "models" / "oibarnet_lite.onnx"
+DEFAULT_MODEL = REPO_ROOT / "models" / "oibarnet.onnx"
 
 
 class TruthNav:

@@ -6,7 +6,7 @@ camera renders the scene with the probe tip moved sideways (and, separately, the
 turned) at several ranges, and the probe fits the estimate against the truth: a slope of 1 is
 a network that follows; 0 is one that ignores it.
 
-    python -m oibar_hil.rig.probe --model models/oibarnet_lite.onnx [--scene seq01] [--md OUT.md]
+    python -m oibar_hil.rig.probe --model models/oibarnet.onnx [--scene seq01] [--md OUT.md]
 """
 
 from __future__ import annotations

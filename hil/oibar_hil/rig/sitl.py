@@ -42,7 +42,7 @@ from oibar_hil.rig.scenario import load_scenario
 
 DEFAULT_SCENARIO = REPO_ROOT / "hil" / "scenarios" / "nominal.yaml"
 DEFAULT_OUT = REPO_ROOT / "build" / "sitl"
-DEFAULT_MODEL = REPO_ROOT / "models" / "oibarnet_lite.onnx"
+DEFAULT_MODEL = REPO_ROOT / "models" / "oibarnet.onnx"
 SETPOINT_STALE_S = 0.5  # the GNC holds when the daemon's setpoints stop (a hung or dead daemon)
 
 

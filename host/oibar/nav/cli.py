@@ -43,7 +43,7 @@ vehicle (--vehicle), where velocity setpoints go:
   python:MOD:CLASS     your own oibar.nav.vehicle.VehicleInterface subclass
 
 examples:
-  oibar nav --camera 0 --port /dev/ttyACM0 --model models/oibarnet_lite.onnx
+  oibar nav --camera 0 --port /dev/ttyACM0 --model models/oibarnet.onnx
   oibar nav --camera data/synthetic/seq01/frames --port none --record-frames --duration-s 60
   oibar replay runs/nav/20261122-101500/cycles.jsonl --model models/other.onnx
 
@@ -58,10 +58,10 @@ def default_model_path() -> Path:
         return Path(env)
     here = Path(__file__).resolve()
     for parent in here.parents:
-        cand = parent / "models" / "oibarnet_lite.onnx"
+        cand = parent / "models" / "oibarnet.onnx"
         if cand.is_file():
             return cand
-    return Path("models/oibarnet_lite.onnx")
+    return Path("models/oibarnet.onnx")
 
 
 def register(sub) -> None:
@@ -71,7 +71,7 @@ def register(sub) -> None:
     nav.add_argument("--camera", required=True, metavar="SPEC", help="camera device, video file or frame folder")
     nav.add_argument("--port", required=True, metavar="URL", help="MCU serial port, socket://HOST:PORT, or none")
     nav.add_argument("--model", type=Path, default=None, metavar="ONNX",
-                     help="OibarNet ONNX model (default: $OIBAR_MODEL or models/oibarnet_lite.onnx)")
+                     help="OibarNet ONNX model (default: $OIBAR_MODEL or models/oibarnet.onnx)")
     nav.add_argument("--vehicle", default="none", metavar="SPEC", help="where velocity setpoints go (default: none)")
     nav.add_argument("--log", type=Path, default=None, metavar="DIR",
                      help="log folder (default: runs/nav/<date-time>); cycles.jsonl is written there")
