@@ -105,17 +105,12 @@ class ExportConfig:
     int8: bool = False                       # also write a statically quantised INT8 model
 
 
-@dataclass
-class ExperimentConfig:
-    name: str = "oibarnet_lite"
-    run_dir: str = ""                        # default: runs/<name>
-    data: DataConfig = field(default_factory=DataConfig)
-    augment: AugmentConfig = field(default_factory=AugmentConfig)
-    model: ModelConfig = field(default_factory=ModelConfig)
-    train: TrainConfig = field(default_factory=TrainConfig)
-    export: ExportConfig = field(default_factory=ExportConfig)
+class RunPaths:
+    """Paths of a config relative to the repository root, and its run folder (runs/<name>)."""
 
-    # --- resolved paths ---------------------------------------------------------------------
+    name: str
+    run_dir: str
+
     def path(self, p: str) -> Path:
         q = Path(p)
         return q if q.is_absolute() else REPO_ROOT / q
@@ -123,6 +118,17 @@ class ExperimentConfig:
     @property
     def run_path(self) -> Path:
         return self.path(self.run_dir or f"runs/{self.name}")
+
+
+@dataclass
+class ExperimentConfig(RunPaths):
+    name: str = "oibarnet_lite"
+    run_dir: str = ""                        # default: runs/<name>
+    data: DataConfig = field(default_factory=DataConfig)
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    export: ExportConfig = field(default_factory=ExportConfig)
 
     @property
     def onnx_file(self) -> Path:

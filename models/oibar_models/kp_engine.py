@@ -30,7 +30,7 @@ from torch.nn import functional as F
 from oibar.nav.keypoints import CropWindow, solve_pnp
 
 from . import metrics
-from .config import REPO_ROOT, ConfigError, _build, read_yaml
+from .config import ConfigError, RunPaths, _build, read_yaml
 from .geometry import quat_from_matrix_np
 from .kp_data import CropAugment, CropDataset, open_scenes, spread_frames
 from .kpnet import FIXTURE_KEYPOINTS, KeypointNet, soft_argmax
@@ -85,7 +85,7 @@ class KpExport:
 
 
 @dataclass
-class KpConfig:
+class KpConfig(RunPaths):
     name: str = "oibarnet_kp"
     run_dir: str = ""
     data: KpData = field(default_factory=KpData)
@@ -93,14 +93,6 @@ class KpConfig:
     augment: CropAugment = field(default_factory=CropAugment)
     train: KpTrain = field(default_factory=KpTrain)
     export: KpExport = field(default_factory=KpExport)
-
-    def path(self, p: str) -> Path:
-        q = Path(p)
-        return q if q.is_absolute() else REPO_ROOT / q
-
-    @property
-    def run_path(self) -> Path:
-        return self.path(self.run_dir or f"runs/{self.name}")
 
 
 def load_kp_config(path: str | Path, overrides: dict | None = None) -> KpConfig:
