@@ -1,6 +1,6 @@
 """Training engine of the keypoint network (OibarNet-KP).
 
-One YAML config per experiment (models/configs/oibarnet_kp*.yaml). The scene sets come from the
+One YAML config per experiment (models/configs/keypoints/oibarnet_kp*.yaml). The scene sets come from the
 committed spec files (models/scenes/); a config whose train, validation and test sets overlap is
 refused before anything runs. Every choice (the checkpoint shipped, thresholds) is made on the
 validation scenes; the test scenes are not opened here.

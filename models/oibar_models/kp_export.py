@@ -3,7 +3,7 @@
 PnP thresholds, the camera, the first-pass model to use beside it, the training range and the
 validation figures. Parity against PyTorch is checked before the file is written.
 
-python -m oibar_models.kp_export --config models/configs/oibarnet_kp.yaml [--checkpoint best|last]
+python -m oibar_models.kp_export --config models/configs/keypoints/oibarnet_kp.yaml [--checkpoint best|last]
 """
 
 from __future__ import annotations

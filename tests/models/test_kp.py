@@ -21,7 +21,7 @@ from oibar_models.kp_engine import keypoints_m, load_kp_config
 from oibar_models.scenes import check_disjoint, load_set
 
 REPO = Path(__file__).resolve().parents[2]
-CONFIG = REPO / "models/configs/oibarnet_kp.yaml"
+CONFIG = REPO / "models/configs/keypoints/oibarnet_kp.yaml"
 
 
 # ----------------------------------------------------------------------------- pretrained backbone
@@ -55,6 +55,12 @@ def test_a_damaged_weights_file_is_refused(tmp_path):
 
 
 # ----------------------------------------------------------------------------- honest split
+@pytest.mark.parametrize("path", sorted((REPO / "models/configs/keypoints").glob("*.yaml")), ids=lambda p: p.stem)
+def test_keypoint_configs_load(path):
+    cfg = load_kp_config(path)
+    assert cfg.model.out_px % 32 == 0 and cfg.train.steps > 0 and cfg.data.test_spec.endswith("test.json")
+
+
 def test_committed_scene_sets_are_disjoint():
     cfg = load_kp_config(CONFIG)
     sets = {n: load_set(cfg.path(getattr(cfg.data, f"{n}_spec"))) for n in ("train", "val", "test")}
