@@ -35,11 +35,14 @@ from pathlib import Path
 
 import numpy as np
 
+from oibar.geometry.camera import PinholeCamera
+from oibar.geometry.docking import MOUNT
+from oibar.geometry.fixture import FIXTURE
+
 from . import __version__
-from .camera import PinholeCamera
 from .orbit import DEFAULT_EPOCH_UTC, DEFAULT_TLE, TargetOrbit, julian_date, parse_utc
 from .ports import PORTS
-from .relpose import MOUNT, camera_poses
+from .relpose import camera_poses
 from .render import RenderSettings
 from .trajectory import PHASE_NAMES, TrajectoryParams, generate
 
@@ -371,8 +374,6 @@ def pending_frames(seq_dir: Path, plan: SequencePlan) -> list[int]:
 
 
 def write_manifest(seq_dir: Path, plan: SequencePlan, frames_limit: int | None, gl_renderer: str) -> dict:
-    from .meshes import FIXTURE
-
     files = {"poses.csv": sha256_file(seq_dir / "poses.csv")}
     for k in range(plan.n_frames):
         name = frame_name(k, plan.spec.image_format)

@@ -22,8 +22,13 @@ import numpy as np
 import torch
 from PIL import Image, ImageFilter
 
-from .geometry import (intrinsics, project_np, quat_from_matrix_np, quat_to_matrix_np, rot6d_from_matrix_np, rot_x, rot_y, rot_z,
-                       rotation_homography, scale_intrinsics)
+from oibar.geometry.camera import intrinsics, rotation_homography, scale_intrinsics
+from oibar.geometry.camera import project_camera_points as project_np
+from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
+from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
+from oibar.geometry.rotations import rot_x, rot_y, rot_z
+
+from .geometry import rot6d_from_matrix_np
 from .infer import resize_frame
 
 POSE_COLUMNS = ("frame", "file", "time_s", "phase", "tx_m", "ty_m", "tz_m", "qw", "qx", "qy", "qz", "range_m")

@@ -4,11 +4,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from oibar_hil.camera import PinholeCamera
-from oibar_hil.meshes import FIXTURE, ID_BOUNDARY, Part, fixture_at_port, fixture_corners_t
+from oibar.geometry.camera import PinholeCamera
+from oibar.geometry.fixture import FIXTURE, fixture_corners_t
+from oibar.geometry.rotations import rotvec_to_matrix
+from oibar.geometry.transforms import transform_points as target_points_in_camera
+from oibar_hil.meshes import ID_BOUNDARY, Part, fixture_at_port
 from oibar_hil.ports import PORTS
-from oibar_hil.relpose import target_points_in_camera
-from oibar_hil.rotations import rotvec_to_matrix
 
 CAM = PinholeCamera()
 PORT = PORTS[1]

@@ -4,10 +4,10 @@ and a shaded frame does not depend on what was rendered before it (GL state, sha
 import numpy as np
 import trimesh
 
-from oibar_hil.camera import PinholeCamera
+from oibar.geometry.camera import PinholeCamera
+from oibar.geometry.transforms import transform_points as target_points_in_camera
 from oibar_hil.meshes import Part
 from oibar_hil.ports import PORTS
-from oibar_hil.relpose import target_points_in_camera
 
 CAM = PinholeCamera()
 PORT = PORTS[1]

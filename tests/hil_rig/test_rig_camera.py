@@ -8,15 +8,16 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from oibar.nav.frames import GEOMETRY, docking_from_camera_pose
+from oibar.geometry.docking import GEOMETRY, MOUNT, docking_from_camera_pose
+from oibar.geometry.fixture import FIXTURE, fixture_corners_t
+from oibar.geometry.rotations import quat_to_matrix
+from oibar.geometry.transforms import transform_points as target_points_in_camera
 from oibar_hil import dataset
 from oibar_hil.dataset import PAPER_SEQUENCES, plan_sequence
-from oibar_hil.meshes import (FIXTURE, ID_ADAPTER, ID_BOUNDARY, ID_CONNECTOR, ID_COUPLING, ID_DROGUE, ID_PIN_GUIDE,
-                              ID_PLATE, end_effector, fixture_corners_t)
+from oibar_hil.meshes import (ID_ADAPTER, ID_BOUNDARY, ID_CONNECTOR, ID_COUPLING, ID_DROGUE, ID_PIN_GUIDE, ID_PLATE,
+                              end_effector)
 from oibar_hil.ports import PORTS
-from oibar_hil.relpose import MOUNT, target_points_in_camera
 from oibar_hil.rig.camera import OrbitClock, RigCamera, RigCameraError, pose_to_lvlh
-from oibar_hil.rotations import quat_to_matrix
 
 SEQ01 = PAPER_SEQUENCES[1]     # iss background, port 1 (+V-bar): the default scene
 SEQ07 = PAPER_SEQUENCES[7]     # perlin background, port 4 (-R-bar): another port, approach and backdrop

@@ -96,7 +96,7 @@ class MissionParams:
 
 @dataclass
 class NavSolution:
-    """What guidance needs from navigation, in the docking frame D (oibar.nav.frames)."""
+    """What guidance needs from navigation, in the docking frame D (oibar.geometry.docking)."""
 
     valid: bool
     r_D_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
