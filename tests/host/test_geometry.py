@@ -9,7 +9,7 @@ from dataclasses import asdict
 import numpy as np
 import pytest
 
-from oibar.geometry import camera, docking, fixture, metrics, rotations, transforms
+from oibar.geometry import camera, docking, fixture, metrics, transforms
 from oibar.geometry.camera import (CENTRE_MINUS_CORNER_PX, PIXEL_CENTRE, PIXEL_CORNER, PinholeCamera,
                                    centre_to_corner_px, corner_to_centre_px, intrinsics_corner_to_centre)
 from oibar.geometry.rotations import (angle_between_quats_deg, matrix_to_quat, matrix_to_rotvec, quat_to_matrix, rot_x,
