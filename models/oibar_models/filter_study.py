@@ -33,6 +33,7 @@ from oibar.geometry.docking import docking_from_camera_pose
 from oibar.geometry.rotations import quat_to_matrix
 from oibar.nav.filter import FilterParams, NavFilter
 from oibar.nav.pose import FrameError, ModelFileError, PoseEstimator
+from oibar_hil.sequence import DatasetError, read_pose_table
 
 from . import metrics
 
@@ -54,23 +55,13 @@ class Truth:
 
 
 def read_truth(seq_dir: Path, frames_limit: int | None = None) -> Truth:
-    """poses.csv of a synthetic sequence (docs/synthetic.md). Read here, torch-free, rather than
-    through oibar_models.data (which imports torch for its loaders)."""
-    path = seq_dir / "poses.csv"
-    if not path.is_file():
-        raise StudyError(f"{path}: missing (render the sequence with `make dataset`)")
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    if not rows:
-        raise StudyError(f"{path}: no rows")
-    missing = [c for c in TRUTH_COLUMNS if c not in rows[0]]
-    if missing:
-        raise StudyError(f"{path}: missing column(s) {missing}")
-    rows = rows[:frames_limit] if frames_limit else rows
+    """poses.csv of a synthetic sequence (docs/synthetic.md), through oibar_hil.sequence (torch-free,
+    unlike oibar_models.data's loaders); no manifest needed."""
     try:
-        num = np.array([[float(r[c]) for c in TRUTH_COLUMNS[1:]] for r in rows])
-    except ValueError as exc:
-        raise StudyError(f"{path}: non-numeric value ({exc})") from exc
+        rows, num = read_pose_table(seq_dir / "poses.csv", TRUTH_COLUMNS[1:], required=TRUTH_COLUMNS[:1],
+                                    frames_limit=frames_limit)
+    except DatasetError as exc:
+        raise StudyError(str(exc)) from exc
     return Truth(seq_dir.name, seq_dir, [r["file"] for r in rows], num[:, 0], num[:, 1:4], num[:, 4:8])
 
 
