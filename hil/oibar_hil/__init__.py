@@ -1,9 +1,11 @@
 """OIBAR simulated rig: synthetic world, camera renderer and dataset generator.
 
 Modules are one idea each: `orbit` (target state from a TLE), `sun` (low-precision almanac),
-`frames` (LVLH), `rotations`, `camera`, `trajectory`, `ports` (station layout), `meshes`,
-`textures`, `render`, `overlay`, `dataset`. The HIL rig (mechanism physics, sim-MCU runner)
-will be added beside them.
+`frames` (LVLH), `camera` (the renderer's OpenGL projection of oibar.geometry's camera),
+`trajectory`, `ports` (station layout), `meshes`, `textures`, `render`, `overlay`, `dataset`
+(the generator), `sequence` (reading a written sequence: numpy only). The HIL rig (mechanism
+physics, sim-MCU runner) is `oibar_hil.rig`. Rotations, the camera model, the docking frames and
+the fixture's numbers come from `oibar.geometry`, shared with flight and training.
 """
 
 __version__ = "0.1.0"

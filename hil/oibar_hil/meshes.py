@@ -2,8 +2,8 @@
 end-effector, and an ISS-like station with six ports. Nothing is downloaded.
 
 Fixture geometry is in the target frame F_t (see trajectory.py): front face of the rectangular
-boundary at z = 0, +Z into the port. Sizes are ours (the paper scales its CAD up to fit the
-ATV/ISS); they are assumptions collected in FixtureDims.
+boundary at z = 0, +Z into the port. Its dimensions are numbers in oibar.geometry.fixture
+(FixtureDims), shared with the pose estimator's keypoints and the lab toolbox's overlay.
 """
 
 from __future__ import annotations
@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import manifold3d as mf
 import numpy as np
 import trimesh
+
+from oibar.geometry.fixture import FIXTURE, FixtureDims
 
 from .ports import ADAPTER_LENGTH_M, MODULES_ALONG_X, PORTS, Port
 
@@ -30,34 +32,6 @@ ID_RADIATOR = 12
 ID_SOLAR_ARRAY = 13
 ID_OTHER_FIXTURE = 14
 ID_END_EFFECTOR = 20
-
-
-@dataclass(frozen=True)
-class FixtureDims:
-    width_m: float = 0.50          # along X_t (outer rectangle)
-    height_m: float = 0.36         # along Y_t
-    rim_width_m: float = 0.03
-    rim_depth_m: float = 0.02      # rim front face at z = 0, plate face recessed behind it
-    plate_thickness_m: float = 0.03
-    drogue_mouth_radius_m: float = 0.095
-    drogue_throat_radius_m: float = 0.025
-    drogue_depth_m: float = 0.16
-    pin_guide_x_m: float = 0.17
-    pin_guide_radius_m: float = 0.035
-    couplings_xy_m: tuple = ((-0.10, 0.115), (0.10, 0.115))
-    coupling_radius_m: float = 0.024
-    connector_xy_m: tuple = (0.0, -0.115)
-    connector_size_m: tuple = (0.09, 0.04)
-
-
-FIXTURE = FixtureDims()
-
-
-def fixture_corners_t(d: FixtureDims = FIXTURE) -> np.ndarray:
-    """The four corners of the rectangular boundary in F_t (z = 0), in image order for an
-    aligned camera: top-left, top-right, bottom-right, bottom-left."""
-    w, h = d.width_m / 2, d.height_m / 2
-    return np.array([[-w, -h, 0.0], [w, -h, 0.0], [w, h, 0.0], [-w, h, 0.0]])
 
 
 # ----------------------------------------------------------------------------- primitives

@@ -21,7 +21,7 @@ from PIL import Image
 from oibar.nav.keypoints import CropWindow, cut, project, window_around
 
 from .data import Sequence, load_sequence
-from .geometry import quat_to_matrix_np
+from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
 
 
 @dataclass

@@ -31,7 +31,7 @@ from oibar.nav.keypoints import CropWindow, solve_pnp
 
 from . import metrics
 from .config import ConfigError, RunPaths, _build, read_yaml
-from .geometry import quat_from_matrix_np
+from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
 from .kp_data import CropAugment, CropDataset, open_scenes, spread_frames
 from .kpnet import FIXTURE_KEYPOINTS, KeypointNet, soft_argmax
 from .scenes import check_disjoint, load_set

@@ -19,7 +19,7 @@ from PIL import Image
 from . import metrics
 from .config import REPO_ROOT
 from .data import load_sequence
-from .geometry import quat_from_matrix_np
+from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
 from .scenes import load_set
 
 SIGMA_CROP_PX = (0.5, 1.0, 2.0)

@@ -17,24 +17,10 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from oibar.geometry.fixture import FIXTURE_KEYPOINTS
+
 from .efficientnet_lite import EfficientNetLite, load_pretrained
 
-# name, (x, y, z) in the target frame F_t, metres (front faces; oibar_hil.meshes.FixtureDims)
-FIXTURE_KEYPOINTS = (
-    ("rim_top_left", (-0.25, -0.18, 0.0)),
-    ("rim_top_right", (0.25, -0.18, 0.0)),
-    ("rim_bottom_right", (0.25, 0.18, 0.0)),
-    ("rim_bottom_left", (-0.25, 0.18, 0.0)),
-    ("pin_guide_left", (-0.17, 0.0, 0.005)),
-    ("pin_guide_right", (0.17, 0.0, 0.005)),
-    ("coupling_left", (-0.10, 0.115, 0.002)),
-    ("coupling_right", (0.10, 0.115, 0.002)),
-    ("connector_top_left", (-0.045, -0.135, 0.0045)),
-    ("connector_top_right", (0.045, -0.135, 0.0045)),
-    ("connector_bottom_right", (0.045, -0.095, 0.0045)),
-    ("connector_bottom_left", (-0.045, -0.095, 0.0045)),
-    ("drogue_centre", (0.0, 0.0, 0.012)),
-)
 STRIDE = 4
 
 

@@ -10,9 +10,10 @@ import pytest
 
 from oibar.calib import io
 from oibar.calib.pnp import Detector, project
-from oibar.calib.synthetic import SynthConfig, T_target_cam_at, frame_times
-from oibar.calib.transforms import T_from_pose, inv_T, pose_error, rotation_angle_deg
 from oibar.cli import main
+from oibar.geometry.rotations import rotation_angle_deg
+from oibar.geometry.transforms import T_from_pose, inv_T, pose_error
+from oibar_hil.calib_synth import SynthConfig, T_target_cam_at, frame_times
 
 
 @pytest.fixture(scope="module")

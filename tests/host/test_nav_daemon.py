@@ -17,16 +17,16 @@ import pytest
 from oibar import pb
 from oibar.camera import CallableSource, FolderSource
 from oibar.cli import main
+from oibar.geometry.docking import camera_pose_from_docking
+from oibar.geometry.rotations import matrix_to_quat
 from oibar.link.core import Request
 from oibar.nav.core import Navigator
 from oibar.nav.cyclelog import CycleLog, CycleLogError, read_log
 from oibar.nav.daemon import DaemonParams, NavDaemon
-from oibar.nav.frames import camera_pose_from_docking
 from oibar.nav.guidance import Guidance, MissionParams
 from oibar.nav.pose import PoseEstimate
 from oibar.nav.replay import replay
 from oibar.nav.vehicle import NullVehicle, RelativeVelocity, VehicleInterface, open_vehicle
-from oibar.rotations import matrix_to_quat
 
 R_TRUE_D_M = np.array([0.05, -0.02, 4.0])
 

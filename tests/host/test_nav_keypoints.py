@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from oibar.nav.keypoints import CropWindow, cut, project, solve_pnp, window_around
-from oibar.rotations import rotvec_to_matrix
+from oibar.geometry.rotations import rotvec_to_matrix
 
 K = np.array([[583.3333, 0, 372.0], [0, 583.3333, 240.0], [0, 0, 1]])
 # a fixture-like point set (rim corners, pin guides, couplings, connector corners, centre)
@@ -123,5 +123,5 @@ def test_far_keypoints_with_an_attitude_prior_give_no_mirrored_pose():
         R_prior = rotvec_to_matrix(np.radians(rng.normal(0, 0.6, 3))) @ R
         r = map_pose(uv, POINTS, K, 1.0, R_prior, 0.15, np.radians(2.0))
         assert r.ok
-        att = np.degrees(np.linalg.norm(__import__("oibar.rotations", fromlist=["x"]).matrix_to_rotvec(r.R_cam_target @ R.T)))
+        att = np.degrees(np.linalg.norm(__import__("oibar.geometry.rotations", fromlist=["x"]).matrix_to_rotvec(r.R_cam_target @ R.T)))
         assert att < 3.0 and np.linalg.norm(r.T_cam_target_m - T) / np.linalg.norm(T) < 0.01, (att, T)

@@ -4,7 +4,9 @@
     oibar calib estimate --mocap M --frames F --pattern P --housing-body H --target-body T -o calib.json
     oibar calib apply --calib calib.json --mocap M --frames F -o poses.csv
     oibar calib overlay --poses poses.csv --out DIR [--every N]
-    oibar calib synth OUT_DIR                    a synthetic recording with known truth
+
+A synthetic recording with known truth (rendered, so it lives with the simulator):
+    python -m oibar_hil.calib_synth OUT_DIR
 
 Bad input ends with one line `oibar: error: ...` and exit status 2.
 """
@@ -12,7 +14,6 @@ Bad input ends with one line `oibar: error: ...` and exit status 2.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -64,12 +65,6 @@ def register(sub) -> None:
     ov.add_argument("--every", type=int, default=10, metavar="N", help="every N-th row (default 10)")
     ov.add_argument("--out", type=Path, required=True, help="output folder for the PNGs")
     ov.set_defaults(handler=cmd_overlay)
-
-    sy = cs.add_parser("synth", help="write a synthetic calibration recording with known truth")
-    sy.add_argument("out", type=Path)
-    sy.add_argument("--poses", type=int, default=200)
-    sy.add_argument("--seed", type=int, default=1)
-    sy.set_defaults(handler=cmd_synth)
 
 
 def _inputs(p) -> None:
@@ -141,7 +136,7 @@ def cmd_estimate(a) -> int:
 
 
 def summary(res: dict) -> str:
-    from .transforms import R_to_quat_wxyz
+    from oibar.geometry.rotations import matrix_to_quat as R_to_quat_wxyz
 
     lines = []
     for key in ("T_housing_cam", "T_tmarkers_target"):
@@ -203,13 +198,4 @@ def cmd_overlay(a) -> int:
         cv2.imwrite(str(a.out / f"overlay_{row['frame']:06d}.png"), img)
         n += 1
     print(f"{n} overlays -> {a.out}")
-    return EXIT_OK
-
-
-def cmd_synth(a) -> int:
-    from .synthetic import SynthConfig, write_recording
-
-    tr = write_recording(a.out, SynthConfig(n_frames=a.poses, seed=a.seed))
-    print(f"wrote {a.out}: mocap.csv, frames.csv, frames/, pattern.json, intrinsics.json, truth.json")
-    print(json.dumps({k: tr[k] for k in ("T_housing_cam", "T_tmarkers_target", "offset_s")}))
     return EXIT_OK

@@ -11,10 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
+from oibar.geometry.rotations import matrix_to_quat as R_to_quat_wxyz
+from oibar.geometry.transforms import T_from_pose
+
 from .errors import CalibError
 from .pnp import Intrinsics, Pattern
 from .timing import Track
-from .transforms import R_to_quat_wxyz, T_from_pose
 
 # Accepted header spellings (case-insensitive) for the long mocap layout.
 MOCAP_COLUMNS = {

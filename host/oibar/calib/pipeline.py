@@ -17,11 +17,14 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from oibar.geometry.docking import MOUNT
+from oibar.geometry.rotations import rotation_angle_deg
+from oibar.geometry.transforms import adjoint, inv_T, make_T
+
 from . import handeye, io, timing
 from .errors import CalibError
 from .pnp import Detector, Intrinsics, Observation, Pattern, project
 from .refine import MocapNoise, refine
-from .transforms import adjoint, inv_T, rotation_angle_deg
 
 OFFSET_FINE_WINDOW_S = 0.010
 
@@ -196,11 +199,7 @@ def estimate_from_observations(inp: EstimateInputs, housing: timing.Track, tmark
 
 def distance_m(T_cam_target: np.ndarray) -> float:
     """The dataset's distance_m: -z of the chaser docking frame F_s in F_t, with the camera
-    mount of docs/synthetic.md (oibar_hil.relpose.MOUNT)."""
-    from oibar_hil.relpose import MOUNT
-
-    from .transforms import make_T
-
+    mount of docs/synthetic.md (oibar.geometry.docking.MOUNT)."""
     T_s_cam = make_T(np.asarray(MOUNT.R_s_cam, float), np.asarray(MOUNT.p_s_cam_m, float))
     T_target_s = inv_T(T_cam_target) @ inv_T(T_s_cam)
     return float(-T_target_s[2, 3])

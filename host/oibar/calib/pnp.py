@@ -14,8 +14,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from oibar.geometry.camera import PinholeCamera
+from oibar.geometry.transforms import make_T
+
 from .errors import CalibError
-from .transforms import make_T
 
 MIN_CORNERS = 8
 
@@ -55,10 +57,8 @@ class Intrinsics:
 
     @classmethod
     def oibar_default(cls) -> "Intrinsics":
-        from oibar_hil.camera import PinholeCamera
-
         cam = PinholeCamera()
-        return cls(cam.width_px, cam.height_px, cam.K_opencv(), np.zeros(5))
+        return cls(cam.width_px, cam.height_px, cam.K_centre(), np.zeros(5))
 
 
 @dataclass

@@ -28,8 +28,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.stats import chi2
 
+from oibar.geometry.transforms import T_from_vec, adjoint, inv_T, log_T
+
 from .errors import CalibError
-from .transforms import T_from_vec, adjoint, inv_T, log_T
 
 OUTLIER_P = 0.999
 

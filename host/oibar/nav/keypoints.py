@@ -18,6 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oibar.geometry.camera import project_target_points as project  # noqa: F401  (target points -> px, corner convention)
+from oibar.geometry.fixture import FIXTURE_KEYPOINTS  # noqa: F401  (re-exported)
+
 
 @dataclass(frozen=True)
 class CropWindow:
@@ -75,15 +78,6 @@ def cut(image: np.ndarray, win: CropWindow) -> np.ndarray:
     M[:, 2] += A[:, :2] @ np.array([0.5, 0.5]) - 0.5
     return cv2.warpAffine(src, M, (win.out_px, win.out_px), flags=cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
-
-
-def project(K: np.ndarray, points_m: np.ndarray, R: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Target points (N, 3) -> pixels (N, 2), corner convention. Points behind the camera: NaN."""
-    p = np.asarray(points_m, float) @ np.asarray(R, float).T + np.asarray(T, float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = (p @ np.asarray(K, float).T)[:, :2] / p[:, 2:3]
-    uv[p[:, 2] <= 0] = np.nan
-    return uv
 
 
 @dataclass
@@ -144,7 +138,7 @@ def refine_with_prior(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, R:
     the keypoints pin the attitude far better than the direct model. Weighting both by their
     errors lets each dominate where it is good, with no range switch to tune.
     Returns (R, T, rms_px over the given points, cost)."""
-    from ..rotations import matrix_to_rotvec, rotvec_to_matrix
+    from oibar.geometry.rotations import matrix_to_rotvec, rotvec_to_matrix
 
     uv = np.asarray(uv_px, float)
     good = np.all(np.isfinite(uv), axis=1)

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from ..rotations import matrix_to_quat
+from oibar.geometry.rotations import matrix_to_quat
 
 METADATA_PREFIX = "oibar."
 REQUIRED_OUTPUTS = ("position_m", "q_cam_target", "R_cam_target")

@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from oibar.nav.cyclelog import CycleLog, CycleLogError, read_log
-from oibar.rotations import quat_to_matrix
+from oibar.geometry.rotations import angle_between_quats_deg
 
 
 @dataclass
@@ -40,11 +40,6 @@ class ReplayResult:
                 "holds_replayed": self.holds_replayed,
                 "position_diff_m_mean": stat(self.dt_m, np.mean), "position_diff_m_max": stat(self.dt_m, np.max),
                 "attitude_diff_deg_mean": stat(self.dq_deg, np.mean), "attitude_diff_deg_max": stat(self.dq_deg, np.max)}
-
-
-def _angle_deg(q_a, q_b) -> float:
-    R = quat_to_matrix(np.asarray(q_a)) @ quat_to_matrix(np.asarray(q_b)).T
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def replay(log_path: str | Path, navigator, out_path: str | Path | None = None,
@@ -85,7 +80,7 @@ def replay(log_path: str | Path, navigator, out_path: str | Path | None = None,
             old = rec.get("estimate")
             if step.estimate is not None and old:
                 res.dt_m.append(float(np.linalg.norm(step.estimate.T_cam_target_m - np.asarray(old["T_cam_target_m"]))))
-                res.dq_deg.append(_angle_deg(step.estimate.q_cam_target, old["q_cam_target"]))
+                res.dq_deg.append(angle_between_quats_deg(step.estimate.q_cam_target, old["q_cam_target"]))
             if out is not None:
                 e = step.estimate
                 out.write({"kind": "replay", "t_s": rec["t_s"], "cycle": rec.get("cycle"),
