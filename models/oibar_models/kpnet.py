@@ -6,9 +6,14 @@ turns it into one heat map per keypoint. Soft-argmax (the expectation of the sof
 gives sub-pixel positions, differentiable end to end; the softmax's spread is the keypoint's
 uncertainty. A second small head says, per keypoint, whether it is inside the crop at all.
 
-The keypoints are the fixture's own corners and centres (FIXTURE_KEYPOINTS), front faces only,
-chosen so that some stay in view down to contact (pin guides, connector corners, drogue centre)
-and the widest span sets the range at 10 m (rim corners).
+The keypoints are the fixture's own corners and centres (FIXTURE_KEYPOINTS), chosen so that
+some stay in view down to contact (pin guides, connector corners, drogue centre) and the widest
+span sets the range at 10 m (rim corners). All front-face points lie within 12 mm of one plane,
+so their tilt barely shows: at 1.5 m a 1 deg tilt moves the rim corners by ~0.15 crop px, less
+than the keypoints' own error. The drogue's throat, 0.18 m deep inside the funnel, moves ~0.6
+crop px per degree at any range: it is the one point that carries the attitude (model 0.5.0).
+It hides behind the funnel wall when seen more than ~29 deg off the fixture's axis
+(KEYPOINT_VIEW_LIMIT_DEG, used for the training labels' visibility).
 """
 
 from __future__ import annotations
@@ -34,7 +39,12 @@ FIXTURE_KEYPOINTS = (
     ("connector_bottom_right", (0.045, -0.095, 0.0045)),
     ("connector_bottom_left", (-0.045, -0.095, 0.0045)),
     ("drogue_centre", (0.0, 0.0, 0.012)),
+    ("drogue_throat", (0.0, 0.0, 0.18)),
 )
+# Keypoints seen only from within a cone around the fixture's axis (-Z_t, towards the chaser):
+# the throat's centre, 0.169 m behind the 95 mm-radius mouth, is seen through it up to
+# atan(0.095 / 0.169) = 29 deg; 25 keeps the labels off the funnel's lip.
+KEYPOINT_VIEW_LIMIT_DEG = {"drogue_throat": 25.0}
 STRIDE = 4
 
 
@@ -63,6 +73,11 @@ class KeypointNet(nn.Module):
         heat = self.head(y)
         present = self.present(taps[-1].mean(dim=(2, 3)))
         return heat, present
+
+
+def view_limits_deg(names: list[str] | tuple[str, ...]) -> "list[float]":
+    """Per keypoint, the largest angle off the fixture's axis it is seen from (inf: any)."""
+    return [KEYPOINT_VIEW_LIMIT_DEG.get(n, float("inf")) for n in names]
 
 
 def soft_argmax(heat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
