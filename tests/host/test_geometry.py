@@ -212,7 +212,7 @@ def test_fixture_numbers():
     np.testing.assert_array_equal(c, [[-0.25, -0.18, 0.0], [0.25, -0.18, 0.0], [0.25, 0.18, 0.0], [-0.25, 0.18, 0.0]])
     assert d.width_m > d.height_m
     kp = dict(fixture.FIXTURE_KEYPOINTS)
-    assert len(kp) == len(fixture.FIXTURE_KEYPOINTS) == 13
+    assert len(kp) == len(fixture.FIXTURE_KEYPOINTS) == 14
     np.testing.assert_array_equal(fixture.keypoints_m()[:4], c)          # the rim corners, bit for bit
     # the literal keypoints are the front faces of the default fixture's parts
     zp = d.rim_depth_m
@@ -224,9 +224,13 @@ def test_fixture_numbers():
         "connector_bottom_right": (d.connector_xy_m[0] + d.connector_size_m[0] / 2,
                                    d.connector_xy_m[1] + d.connector_size_m[1] / 2, zp - 0.0155),
         "drogue_centre": (0.0, 0.0, zp - 0.008),
+        "drogue_throat": (0.0, 0.0, zp + d.drogue_depth_m),
     }
     for name, p in expect.items():
         np.testing.assert_allclose(kp[name], p, atol=1e-12, err_msg=name)
+    # the throat's view cone stays inside what the mouth lets through
+    depth = kp["drogue_throat"][2] - kp["drogue_centre"][2]           # lip to throat, 0.168 m
+    assert fixture.KEYPOINT_VIEW_LIMIT_DEG["drogue_throat"] < np.degrees(np.arctan(d.drogue_mouth_radius_m / depth))
 
 
 def test_fixture_wireframe_outlines_the_rim():

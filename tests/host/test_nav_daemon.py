@@ -567,3 +567,35 @@ def test_heartbeats_stop_when_the_navigation_loop_hangs(mcu, fast_timings):
         d.shutdown()
     finally:
         client.close()
+
+
+class TrackingEstimator(TruthEstimator):
+    """A TruthEstimator that, like a keypoint model, takes the predicted pose."""
+
+    uses_prior = True
+
+    def __init__(self, confidence=0.9):
+        super().__init__(confidence)
+        self.priors = []
+
+    def estimate(self, image, t_s=0.0, prior=None):
+        self.priors.append(prior)
+        return super().estimate(image, t_s)
+
+
+def test_the_navigator_gives_a_tracking_estimator_the_filters_predicted_pose():
+    """No prediction before the filter has a track; then the filter's pose at the frame's time
+    (the keypoint model crops there); a direct model (uses_prior False) is never passed one."""
+    est = TrackingEstimator(0.9)
+    nav = Navigator(est)
+    nav.step(0.0, grey(), frame_t_s=0.0)
+    assert est.priors == [None]
+    s = nav.step(0.1, grey(), frame_t_s=0.1)
+    R, T = est.priors[-1]
+    st = nav.filter.state(0.1)
+    assert np.allclose(T, st.T_cam_target_m) and np.allclose(R @ R.T, np.eye(3), atol=1e-9)
+    assert np.linalg.norm(T - s.estimate.T_cam_target_m) < 0.05
+    plain = TruthEstimator(0.9)          # its estimate() takes no prior: a call with one would raise
+    nav = Navigator(plain)
+    for k in range(3):
+        assert nav.step(0.1 * k, grey(), frame_t_s=0.1 * k).update is not None

@@ -60,11 +60,19 @@ FIXTURE_KEYPOINTS: tuple[tuple[str, tuple[float, float, float]], ...] = (
     ("connector_bottom_right", (0.045, -0.095, 0.0045)),
     ("connector_bottom_left", (-0.045, -0.095, 0.0045)),
     ("drogue_centre", (0.0, 0.0, 0.012)),
+    ("drogue_throat", (0.0, 0.0, 0.18)),
 )
-"""The keypoints of the keypoint pose estimator: (name, (x, y, z) in F_t, metres), front faces
-of the default fixture (:data:`FIXTURE`): rim corners, pin-guide boss centres, coupling centres,
-connector corners and the drogue's outer lip centre. Written out as literals because the shipped
-models carry them bit for bit; tests/host/test_geometry.py checks them against FixtureDims."""
+"""The keypoints of the keypoint pose estimator: (name, (x, y, z) in F_t, metres) of the default
+fixture (:data:`FIXTURE`): rim corners, pin-guide boss centres, coupling centres, connector
+corners and the drogue's outer lip centre (front faces, all within 12 mm of one plane), and the
+drogue's throat 0.18 m deep, the one point whose image moves with tilt (model 0.5.0 on; earlier
+models carry the first 13). Written out as literals because the shipped models carry them bit
+for bit; tests/host/test_geometry.py checks them against FixtureDims."""
+
+KEYPOINT_VIEW_LIMIT_DEG: dict[str, float] = {"drogue_throat": 25.0}
+"""Keypoints seen only within a cone around the fixture's outward axis (-Z_t): the throat's
+centre, 0.169 m behind the 95 mm-radius mouth, shows through it up to atan(0.095 / 0.169) = 29 deg;
+25 keeps the training labels off the funnel's lip."""
 
 
 def keypoints_m() -> FloatArray:
