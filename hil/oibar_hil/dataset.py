@@ -71,6 +71,8 @@ class SequenceSpec:
     # Render every n-th frame of the 10 Hz trajectory: consecutive frames are nearly identical,
     # so a training set gains more from more scenes than from every frame of a few.
     frame_stride: int = 1
+    # A chaser that stays misaligned by this much from 10 m to contact (trajectory.generate).
+    turned_deg: float = 0.0
 
     def validate(self) -> None:
         if self.frame_stride < 1:
@@ -83,6 +85,9 @@ class SequenceSpec:
             raise ValueError(f"{self.name}: background must be iss or perlin")
         if self.image_format not in ("jpg", "png"):
             raise ValueError(f"{self.name}: image_format must be jpg or png")
+        if not 0.0 <= self.turned_deg <= 10.0:
+            raise ValueError(f"{self.name}: turned_deg must be 0-10 deg (the mechanism's capture limit), "
+                             f"got {self.turned_deg}")
 
 
 def spec_dict(spec: SequenceSpec) -> dict:
@@ -91,6 +96,8 @@ def spec_dict(spec: SequenceSpec) -> dict:
     d = asdict(spec)
     if d.get("frame_stride") == 1:
         del d["frame_stride"]
+    if d.get("turned_deg") == 0.0:
+        del d["turned_deg"]
     return d
 
 
@@ -141,7 +148,7 @@ class SequencePlan:
 def plan_sequence(spec: SequenceSpec, frames_limit: int | None = None,
                   params: TrajectoryParams | None = None) -> SequencePlan:
     spec.validate()
-    traj = generate(spec.seed, envelope=spec.envelope, params=params)
+    traj = generate(spec.seed, envelope=spec.envelope, params=params, turned_deg=spec.turned_deg)
     port = PORTS[spec.port]
     cp = camera_poses(traj, port)
     keep = np.arange(0, len(traj), spec.frame_stride)

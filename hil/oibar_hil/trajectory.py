@@ -128,7 +128,12 @@ def _segment(p0: np.ndarray, p1: np.ndarray, speed_mps: float, p: TrajectoryPara
     return pts, vel
 
 
-def generate(seed: int, envelope: bool = False, params: TrajectoryParams | None = None) -> Trajectory:
+def generate(seed: int, envelope: bool = False, params: TrajectoryParams | None = None,
+             turned_deg: float = 0.0) -> Trajectory:
+    """`turned_deg` > 0: the chaser keeps a constant misalignment of that size (about a random
+    axis in the berthing plane, from its own generator so the rest of the trajectory is the same
+    as without) from 10 m to contact, on top of everything else: the case of a vehicle that
+    never lines up, as in the rig's nominal mission (2.5 deg). The paper's phases align it."""
     p = params or TrajectoryParams()
     rng = np.random.default_rng(seed)
     dt = p.dt_s
@@ -235,6 +240,11 @@ def generate(seed: int, envelope: bool = False, params: TrajectoryParams | None 
         phase.append(PHASE_ALIGNMENT_SOFT_DOCK)
         z = z_new
 
+    if turned_deg:
+        a = np.random.default_rng([seed, 7]).uniform(0.0, 2 * np.pi)
+        turn = np.radians(turned_deg) * np.array([np.cos(a), np.sin(a), 0.0])
+        rot = [r + turn for r in rot]
+        misalign = [m + turn for m in misalign]
     n = len(pos)
     R = np.stack([rotvec_to_matrix(r) for r in rot])
     info = {
@@ -243,6 +253,7 @@ def generate(seed: int, envelope: bool = False, params: TrajectoryParams | None 
         "duration_s": round((n - 1) * dt, 3),
         "envelope_misalignment_deg": float(np.degrees(np.linalg.norm(env_rotvec))),
         "envelope_closing_speed_mps": float(env_speed) if envelope else None,
+        "turned_deg": float(turned_deg),
     }
     return Trajectory(
         t_s=np.round(np.arange(n) * dt, 6),

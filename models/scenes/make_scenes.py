@@ -3,7 +3,9 @@
 Deterministic: the same script writes the same files. Test is the paper's sequences 1 and 8, read
 once per shipped model. Train and validation are our own scenes: all six ports, both backgrounds,
 Sun angles over the sunlit part of the orbit, envelope runs (misalignment up to 10 deg), sensor
-noise and blur, each with its own trajectory seed. A scene that shares a test scene's port and
+noise and blur, each with its own trajectory seed. Validation also holds turned runs (the chaser
+misaligned by 1.5-5 deg from 10 m to contact, as in the rig's mission), appended after the
+others so the earlier scenes stay as they were. A scene that shares a test scene's port and
 background is kept at least 15 deg of Sun elevation away from it; validation scenes keep the same distance from training scenes, so validation figures are not
 test figures in disguise (oibar_models.scenes checks this again when a config is loaded).
 
@@ -56,13 +58,26 @@ def scenes(prefix: str, seed0: int, per_cell: int, rng: np.random.Generator, avo
     return out
 
 
+def turned(prefix: str, first: int, seed0: int, n: int, rng: np.random.Generator, avoid: list[tuple]) -> list[dict]:
+    """n nominal runs on n different ports, backgrounds alternating, each turned 1.5-5 deg."""
+    out = []
+    for j, port in enumerate(rng.choice(np.arange(1, 7), n, replace=False)):
+        port, bg = int(port), ("iss", "perlin")[j % 2]
+        out.append({"name": f"{prefix}{first + j:03d}", "port": port, "approach": PORT_APPROACH[port],
+                    "sun_elevation_deg": _sun(rng, port, bg, avoid), "background": bg, "seed": seed0 + j,
+                    "frame_stride": STRIDE, "turned_deg": float(np.round(rng.uniform(1.5, 5.0), 1))})
+    return out
+
+
 def main() -> None:
     rng = np.random.default_rng(20261123)
     train = scenes("tr", 20000, 4, rng, TEST_KEYS)
     taken = TEST_KEYS + [(s["port"], s["background"], s["sun_elevation_deg"]) for s in train]
+    val = scenes("va", 30000, 1, rng, taken)
+    val += turned("va", len(val), 30000 + len(val), 4, rng, taken)
     sets = {
         "train": {"set": "train", "scenes": train},
-        "val": {"set": "val", "scenes": scenes("va", 30000, 1, rng, taken)},
+        "val": {"set": "val", "scenes": val},
         "test": {"set": "test", "scenes": TEST},
     }
     for name, data in sets.items():

@@ -82,3 +82,25 @@ def test_envelope_mode_stays_inside_capture_limits(seed):
 def test_envelope_covers_the_range():
     mis = [generate(s, envelope=True).info["envelope_misalignment_deg"] for s in range(40)]
     assert max(mis) > 8.0 and min(mis) < 2.0
+
+
+@pytest.mark.parametrize("turn_deg", [2.5, 4.4])
+def test_a_turned_run_keeps_its_misalignment_from_10_m_to_contact(turn_deg):
+    """The validation set's turned runs (the rig mission's case): the same path as the plain run,
+    the chaser misaligned by the given angle throughout, phase 1 included."""
+    plain, turned = generate(30012), generate(30012, turned_deg=turn_deg)
+    np.testing.assert_array_equal(plain.p_t_s, turned.p_t_s)
+    mis = np.degrees(np.linalg.norm(turned.misalignment_rotvec_rad, axis=1))
+    np.testing.assert_allclose(mis, turn_deg, atol=1e-9)
+    att = np.array([rotation_angle_deg(R) for R in turned.R_t_s])
+    assert np.all(np.abs(att - turn_deg) <= P.pert_attitude_deg * 1.8 + 1e-9)
+    assert turned.info["turned_deg"] == turn_deg
+
+
+def test_a_turn_beyond_the_capture_limit_is_refused():
+    from oibar_hil.dataset import SequenceSpec
+
+    spec = SequenceSpec(name="x", port=1, approach="+V-bar", sun_elevation_deg=60.0, background="iss", seed=1,
+                        turned_deg=12.0)
+    with pytest.raises(ValueError, match="turned_deg"):
+        spec.validate()
