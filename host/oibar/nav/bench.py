@@ -16,13 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
+from oibar import pb
+from oibar.link.core import Request
+
 
 class _InstantLink:
     """Always up, IDLE, accepts everything at once: the MCU is not what is measured here."""
 
     def __init__(self) -> None:
-        from oibar import pb
-
         tm = pb.Telemetry()
         tm.state = pb.STATE_IDLE
         self._tm = tm
@@ -47,8 +48,6 @@ class _InstantLink:
         return True
 
     def submit_command(self, opcode, target_kpa=None):
-        from oibar.link.core import Request
-
         ack = pb.Ack(accepted=True, reason=pb.NACK_NONE, state=pb.STATE_IDLE)
         return Request("command", pb.Packet(), done=True, response=ack, response_kind="ack")
 
