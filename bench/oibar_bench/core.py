@@ -13,9 +13,10 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[2]
 BUILD = ROOT / "build"
@@ -138,7 +139,7 @@ class Measurement:
     key: str                                  # "section.name"
     title: str
     columns: list[tuple[str, str]]            # (row key, header)
-    fn: Callable[["Context"], Result]
+    fn: Callable[[Context], Result]
     order: int
 
     @property

@@ -13,11 +13,10 @@ import contextlib
 import os
 import shutil
 import socket
-import statistics
 import subprocess
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 from .core import BUILD, Context, Result, Target, measurement, summarize_ms
 

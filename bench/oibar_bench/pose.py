@@ -104,6 +104,7 @@ def export_untrained(ctx: Context, backbone: str, size_wh: tuple[int, int]) -> t
     if key in ctx.shared:
         return ctx.shared[key]
     import torch
+
     from oibar_models.export import export_onnx
     from oibar_models.nets import count_parameters
 

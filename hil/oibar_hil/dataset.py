@@ -30,7 +30,6 @@ import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
-from datetime import timedelta
 from pathlib import Path
 
 import numpy as np

@@ -19,6 +19,7 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
+
 from .camera import R_GL_CV, PinholeCamera
 from .meshes import ID_ADAPTER, ID_MODULE, Part
 from .textures import earth_texture, perlin_background

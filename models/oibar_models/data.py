@@ -22,8 +22,18 @@ import numpy as np
 import torch
 from PIL import Image, ImageFilter
 
-from .geometry import (intrinsics, project_np, quat_from_matrix_np, quat_to_matrix_np, rot6d_from_matrix_np, rot_x, rot_y, rot_z,
-                       rotation_homography, scale_intrinsics)
+from .geometry import (
+    intrinsics,
+    project_np,
+    quat_from_matrix_np,
+    quat_to_matrix_np,
+    rot6d_from_matrix_np,
+    rot_x,
+    rot_y,
+    rot_z,
+    rotation_homography,
+    scale_intrinsics,
+)
 from .infer import resize_frame
 
 POSE_COLUMNS = ("frame", "file", "time_s", "phase", "tx_m", "ty_m", "tz_m", "qw", "qx", "qy", "qz", "range_m")

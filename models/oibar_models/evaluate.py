@@ -75,6 +75,7 @@ def plot_error_series(path: Path, name: str, time_s, series: dict) -> None:
 
 def write_overlays(out: Path, seq, T_hat, q_hat, n: int) -> list[str]:
     from PIL import Image
+
     from oibar_hil.overlay import draw_overlay
 
     files = []

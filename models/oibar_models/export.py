@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from . import __version__
-from .geometry import scale_intrinsics, intrinsics
+from .geometry import intrinsics, scale_intrinsics
 from .infer import METADATA_PREFIX, OnnxPoseEstimator
 from .nets import INPUT_MEAN, INPUT_STD, OibarNet, PoseOutputs
 

@@ -245,7 +245,7 @@ def soft_argmax(logits: torch.Tensor) -> torch.Tensor:
     return torch.cat([u, v], 1)
 
 
-def widen_heads_from(net: "OibarNet", state: dict) -> dict:
+def widen_heads_from(net: OibarNet, state: dict) -> dict:
     """A checkpoint of the same net without the keypoint branch -> a state dict for ``net``:
     the heads' extra input columns start at zero, so the widened net starts out computing
     exactly what the old one did."""

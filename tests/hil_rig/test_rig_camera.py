@@ -11,8 +11,18 @@ from PIL import Image
 from oibar.nav.frames import GEOMETRY, docking_from_camera_pose
 from oibar_hil import dataset
 from oibar_hil.dataset import PAPER_SEQUENCES, plan_sequence
-from oibar_hil.meshes import (FIXTURE, ID_ADAPTER, ID_BOUNDARY, ID_CONNECTOR, ID_COUPLING, ID_DROGUE, ID_PIN_GUIDE,
-                              ID_PLATE, end_effector, fixture_corners_t)
+from oibar_hil.meshes import (
+    FIXTURE,
+    ID_ADAPTER,
+    ID_BOUNDARY,
+    ID_CONNECTOR,
+    ID_COUPLING,
+    ID_DROGUE,
+    ID_PIN_GUIDE,
+    ID_PLATE,
+    end_effector,
+    fixture_corners_t,
+)
 from oibar_hil.ports import PORTS
 from oibar_hil.relpose import MOUNT, target_points_in_camera
 from oibar_hil.rig.camera import OrbitClock, RigCamera, RigCameraError, pose_to_lvlh

@@ -11,8 +11,8 @@ import time
 from pathlib import Path
 
 import pytest
-
 from fake_mcu import FakeMcu, PtyBridge, wait_for
+
 from oibar import cli, pb
 from oibar.link import (
     LinkClient,

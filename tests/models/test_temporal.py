@@ -9,12 +9,11 @@ import json
 import numpy as np
 import pytest
 import torch
+from models_helpers import tiny_config
 
 from oibar_models import temporal as tm
 from oibar_models.data import PoseDataset, build_splits, open_sequences
 from oibar_models.engine import load_checkpoint, predict, train
-
-from models_helpers import tiny_config
 
 SETTINGS = dict(layers=(1, 2), hidden=8, clip_len=6, clip_stride=3, eval_stride=3, epochs=1, batch_size=4,
                 feature_batch=16, threads=1)

@@ -57,7 +57,7 @@ class RecordingNav:
         return self.inner.frame(t_s, world)
 
     @property
-    def navigator(self) -> "RecordingNav":
+    def navigator(self) -> RecordingNav:
         return self
 
     def step(self, t_s: float, image: Any, **kw: Any):

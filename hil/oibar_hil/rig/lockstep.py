@@ -195,7 +195,7 @@ class SimMcu:
         if self._stderr is not subprocess.DEVNULL:
             self._stderr.close()
 
-    def __enter__(self) -> "SimMcu":
+    def __enter__(self) -> SimMcu:
         return self
 
     def __exit__(self, *exc: object) -> None:

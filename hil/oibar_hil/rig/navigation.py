@@ -45,7 +45,7 @@ class TruthNav:
         self._last: NavSolution | None = None
 
     @property
-    def navigator(self) -> "TruthNav":
+    def navigator(self) -> TruthNav:
         return self
 
     max_frame_age_s = 0.25  # as oibar.nav.core.NavigatorParams: an older frame is stale

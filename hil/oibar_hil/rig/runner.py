@@ -22,9 +22,10 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -81,7 +82,7 @@ class RigVehicle(VehicleInterface):
     """The daemon's vehicle interface on the rig's world (whichever world the rig holds now:
     the soak installs a new one per mission)."""
 
-    def __init__(self, rig: "Rig") -> None:
+    def __init__(self, rig: Rig) -> None:
         self.rig = rig
 
     def send(self, t_s: float, v_D_mps: np.ndarray, w_rad_s: np.ndarray, phase: str) -> None:
@@ -97,7 +98,7 @@ class Rig:
     def __init__(self, scenario: Scenario, *, mcu_path: Path | None = None,
                  out_dir: Path | None = None, progress: bool = False,
                  controller_factory: Callable[..., Any] | None = None,
-                 between_missions: Callable[["Rig"], bool] | None = None,
+                 between_missions: Callable[[Rig], bool] | None = None,
                  nav: str | Any = "truth", nav_options: dict | None = None) -> None:
         self.sc = scenario
         # Called once per exchange while the controller reports the mission finished; it

@@ -27,9 +27,9 @@ import os
 import re
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 
@@ -110,7 +110,7 @@ class CameraSource(ABC):
         self._last_t = -math.inf
 
     # --- lifecycle -------------------------------------------------------------------------
-    def open(self) -> "CameraSource":
+    def open(self) -> CameraSource:
         """Open the source; raises a :class:`CameraOpenError` subclass when it cannot be used.
         Opening an open source does nothing."""
         if not self._opened:
@@ -130,7 +130,7 @@ class CameraSource(ABC):
     def is_open(self) -> bool:
         return self._opened
 
-    def __enter__(self) -> "CameraSource":
+    def __enter__(self) -> CameraSource:
         return self.open()
 
     def __exit__(self, *exc: object) -> None:

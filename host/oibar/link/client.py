@@ -26,23 +26,22 @@ import collections
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import serial
 
 from oibar import __version__, pb
+from oibar.link.core import LinkCore, Request
 from oibar.link.errors import (
     LinkClosed,
     LinkDown,
     LinkError,
-    LinkTimeout,
     Nack,
     PortError,
     ProtocolVersionError,
 )
-from oibar.link.core import LinkCore, Request
-from oibar.link.framing import Packet
 
 _log = logging.getLogger(__name__)
 
@@ -76,7 +75,7 @@ class CommandResult:
     reason: str  # NackReason name; "NACK_NONE" when accepted
     state: str  # State name after the command was handled
 
-    def raise_for_nack(self, what: str = "command") -> "CommandResult":
+    def raise_for_nack(self, what: str = "command") -> CommandResult:
         """Return self if accepted, else raise :class:`Nack`."""
         if not self.accepted:
             raise Nack(self.reason, what, self.state)
@@ -100,7 +99,7 @@ class ParamValue:
     def ok(self) -> bool:
         return self.reason == "NACK_NONE"
 
-    def raise_for_nack(self, what: str = "parameter request") -> "ParamValue":
+    def raise_for_nack(self, what: str = "parameter request") -> ParamValue:
         """Return self if the get/set succeeded, else raise :class:`Nack`."""
         if not self.ok:
             raise Nack(self.reason, what)
@@ -271,7 +270,7 @@ class LinkClient:
             self._notified_alive = False
             self._call_back(self._on_link_state, False)
 
-    def __enter__(self) -> "LinkClient":
+    def __enter__(self) -> LinkClient:
         return self
 
     def __exit__(self, *exc_info: object) -> None:

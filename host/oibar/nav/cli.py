@@ -135,7 +135,13 @@ def open_link(port: str, **settings):
 def cmd_nav(a) -> int:
     from oibar.camera import open_source
     from oibar.nav.cyclelog import CycleLog
-    from oibar.nav.daemon import DaemonParams, NavDaemon, connect_in_background, install_sigint, load_navigator
+    from oibar.nav.daemon import (
+        DaemonParams,
+        NavDaemon,
+        connect_in_background,
+        install_sigint,
+        load_navigator,
+    )
     from oibar.nav.guidance import Guidance, MissionParams
     from oibar.nav.vehicle import open_vehicle
 

@@ -16,8 +16,9 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -116,7 +117,7 @@ class CycleLog:
             except OSError as exc:
                 self._fail(exc)
 
-    def __enter__(self) -> "CycleLog":
+    def __enter__(self) -> CycleLog:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -34,8 +34,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from oibar.nav.frames import GEOMETRY, R_D_CAM_ALIGNED, DockingGeometry, DockingState, camera_pose_from_docking, \
-    docking_from_camera_pose
+from oibar.nav.frames import (
+    GEOMETRY,
+    R_D_CAM_ALIGNED,
+    DockingGeometry,
+    DockingState,
+    camera_pose_from_docking,
+    docking_from_camera_pose,
+)
 from oibar.rotations import matrix_to_quat, rotvec_to_matrix
 
 CHI2_3DOF_P001 = 16.266   # chi-square, 3 degrees of freedom, upper tail 0.001
