@@ -77,7 +77,8 @@ class SequenceSpec:
         if self.port not in PORTS:
             raise ValueError(f"{self.name}: port {self.port} not in 1..6")
         if PORTS[self.port].approach != self.approach:
-            raise ValueError(f"{self.name}: port {self.port} is a {PORTS[self.port].approach} port, not {self.approach}")
+            raise ValueError(f"{self.name}: port {self.port} is a {PORTS[self.port].approach} port, "
+                             f"not {self.approach}")
         if self.background not in ("iss", "perlin"):
             raise ValueError(f"{self.name}: background must be iss or perlin")
         if self.image_format not in ("jpg", "png"):
@@ -94,7 +95,8 @@ def spec_dict(spec: SequenceSpec) -> dict:
 
 
 def _paper(n: int, port: int, approach: str, sun: float, bg: str) -> SequenceSpec:
-    return SequenceSpec(name=f"seq{n:02d}", port=port, approach=approach, sun_elevation_deg=sun, background=bg, seed=1000 + n)
+    return SequenceSpec(name=f"seq{n:02d}", port=port, approach=approach, sun_elevation_deg=sun,
+                        background=bg, seed=1000 + n)
 
 
 # SPEC section 6 (the paper's table); seeds are ours.
@@ -283,7 +285,8 @@ def _renderer_for(spec: SequenceSpec):
         _WORKER["scene"] = None
     key = (spec.background, spec.port, spec.seed)
     if _WORKER.get("scene") != key:
-        r.load_scene(scene_parts(spec.background, spec.port), spec.background, PORTS[spec.port].p_lvlh_t, perlin_seed=spec.seed)
+        r.load_scene(scene_parts(spec.background, spec.port), spec.background, PORTS[spec.port].p_lvlh_t,
+                     perlin_seed=spec.seed)
         _WORKER["scene"] = key
     return r
 
@@ -580,7 +583,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames-limit", type=int, default=None, help="render only the first N frames of each sequence")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="render processes (default: CPU count)")
     ap.add_argument("--format", choices=("jpg", "png"), default=None, help="frame format (default jpg)")
-    ap.add_argument("--envelope", action="store_true", help="envelope mode (+-10 deg, <= 50 mm/s) for the paper sequences")
+    ap.add_argument("--envelope", action="store_true",
+                    help="envelope mode (+-10 deg, <= 50 mm/s) for the paper sequences")
     ap.add_argument("--force", action="store_true", help="discard existing frames of the chosen sequences")
     ap.add_argument("--verify", action="store_true", help="only verify existing sequences against their manifests")
     ap.add_argument("--shard", default=None, metavar="I/N",

@@ -378,7 +378,8 @@ class Renderer:
         vbo = self._vbo = self.ctx.buffer(data.tobytes())
         ibo = self._ibo = self.ctx.buffer(idx.tobytes())
         self.mesh_vao = self.ctx.vertex_array(
-            self.mesh_prog, [(vbo, "3f 3f 4f 4x", "in_pos", "in_nrm", "in_col")], index_buffer=ibo, index_element_size=4)
+            self.mesh_prog, [(vbo, "3f 3f 4f 4x", "in_pos", "in_nrm", "in_col")], index_buffer=ibo,
+            index_element_size=4)
         self.id_vao = self.ctx.vertex_array(
             self.id_prog, [(vbo, "3f 28x 1f", "in_pos", "in_id")], index_buffer=ibo, index_element_size=4)
         self.depth_vao = self.ctx.vertex_array(
@@ -428,7 +429,8 @@ class Renderer:
         sun = sun / np.linalg.norm(sun)
         if mode == "shaded":
             self._update_shadow(sun)
-        earth_c = np.array([0.0, 0.0, 6371.0 + 420.0]) if earth_center_lvlh_km is None else np.asarray(earth_center_lvlh_km, float)
+        earth_c = (np.array([0.0, 0.0, 6371.0 + 420.0]) if earth_center_lvlh_km is None
+                   else np.asarray(earth_center_lvlh_km, float))
         R_ecef = np.eye(3) if R_ecef_lvlh is None else R_ecef_lvlh
 
         self.fbo.use()

@@ -49,7 +49,7 @@ version, 130 on Ctrl-C.
 def build_parser() -> argparse.ArgumentParser:
     from oibar import pb
 
-    known_commands = " ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")
+    known_commands = " ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")  # noqa: SIM118
     parser = argparse.ArgumentParser(
         prog="oibar",
         description="OIBAR companion-computer tools (docking and refuelling mechanism).",

@@ -118,7 +118,8 @@ def evaluate(model_path: Path, seq_dirs: list[Path], out: Path, cache_dir: Path 
                 w.writerow([k, f"{seq.time_s[k]:.3f}", seq.phase[k], f"{seq.range_m[k]:.4f}", f"{dt[k]:.5f}",
                             f"{dt_pct[k]:.4f}", f"{dq[k]:.4f}", *(f"{x:.5f}" for x in T_hat[k]),
                             *(f"{x:.6f}" for x in q_hat[k])])
-        plot_errors(out / f"{seq.name}_errors.png", f"{seq.name}: errors over time", seq.time_s, dt_pct, dq, dt_pct_b, dq_b)
+        plot_errors(out / f"{seq.name}_errors.png", f"{seq.name}: errors over time", seq.time_s, dt_pct, dq,
+                    dt_pct_b, dq_b)
         ov = write_overlays(out, seq, T_hat, q_hat, overlays)
         result["sequences"][seq.name] = {"model": s_model, "baseline": s_base, "overlays": ov}
     if bench_s > 0:

@@ -319,9 +319,9 @@ def train_head(cnn, feats: list[np.ndarray], labels: list[dict], clips: np.ndarr
         idx = torch.from_numpy(rows[:, 2:])
         s = rows[:, 1]
         # clips of one batch may come from different sequences: gather per row
-        f = torch.stack([F[si][ix] for si, ix in zip(s, idx)])
-        t = torch.stack([T_lab[si][ix] for si, ix in zip(s, idx)])
-        r = torch.stack([r_lab[si][ix] for si, ix in zip(s, idx)])
+        f = torch.stack([F[si][ix] for si, ix in zip(s, idx, strict=True)])
+        t = torch.stack([T_lab[si][ix] for si, ix in zip(s, idx, strict=True)])
+        r = torch.stack([r_lab[si][ix] for si, ix in zip(s, idx, strict=True)])
         return f, t, r
 
     def val_predict(seg):
@@ -399,14 +399,14 @@ def run_study(cfg, checkpoint: Path, out: Path, st: StudySettings, progress: boo
     # features, once per sequence (the expensive part)
     t0 = time.perf_counter()
     feats, reused = [], []
-    for s, n in zip(seqs, n_frames):
+    for s, n in zip(seqs, n_frames, strict=True):
         f, r = sequence_features(cnn, s, size, n, ck_hash, out, cache_dir, st.feature_batch, progress)
         feats.append(f)
         reused.append(r)
     extract_s = time.perf_counter() - t0
     log(f"features: {sum(n_frames)} frames of {len(seqs)} sequences, dim {cnn.feature_dim}, "
         f"{'reused from ' + str(out) if all(reused) else f'{extract_s:.0f} s'}")
-    labels = [_labels(s, n) for s, n in zip(seqs, n_frames)]
+    labels = [_labels(s, n) for s, n in zip(seqs, n_frames, strict=True)]
 
     items = {"train": splits.train.items, "val": splits.val.items}
     segs = split_segments(splits.split_info, [s.name for s in train_seqs], items, n_frames[:len(train_seqs)])
@@ -485,8 +485,9 @@ def run_study(cfg, checkpoint: Path, out: Path, st: StudySettings, progress: boo
         t, r = preds[f"{s01.name}/{key}"]
         series[key] = (metrics.position_error_pct(t, labels[seq01]["T"]),
                        metrics.attitude_error_deg(quats_from_rot6d(r), labels[seq01]["q"]))
-    plot_error_series(out / f"{s01.name}_temporal_errors.png", f"{s01.name}: CNN alone, moving-average control, {best_key} (chosen on val)",
-                  s01.time_s[:n_frames[seq01]], series)
+    plot_error_series(out / f"{s01.name}_temporal_errors.png",
+                      f"{s01.name}: CNN alone, moving-average control, {best_key} (chosen on val)",
+                      s01.time_s[:n_frames[seq01]], series)
     np.savez_compressed(out / "predictions.npz", **{f"{k}/T_cam_target_m": v[0] for k, v in preds.items()},
                         **{f"{k}/rot6d": v[1] for k, v in preds.items()})
 

@@ -4,8 +4,9 @@ Deterministic: the same script writes the same files. Test is the paper's sequen
 once per shipped model. Train and validation are our own scenes: all six ports, both backgrounds,
 Sun angles over the sunlit part of the orbit, envelope runs (misalignment up to 10 deg), sensor
 noise and blur, each with its own trajectory seed. A scene that shares a test scene's port and
-background is kept at least 15 deg of Sun elevation away from it; validation scenes keep the same distance from training scenes, so validation figures are not
-test figures in disguise (oibar_models.scenes checks this again when a config is loaded).
+background is kept at least 15 deg of Sun elevation away from it; validation scenes keep the
+same distance from training scenes, so validation figures are not test figures in disguise
+(oibar_models.scenes checks this again when a config is loaded).
 
 Run: python models/scenes/make_scenes.py
 """

@@ -152,7 +152,7 @@ def run_leg(args: argparse.Namespace, runs_left: int) -> Leg:
     wall = time.monotonic() - t0
 
     total, cov, rss, findings = 0, 0, 0, []
-    for p, log in zip(procs, log_paths):
+    for p, log in zip(procs, log_paths, strict=True):
         text = log.read_text(errors="replace")
         stats = {k: int(v) for k, v in STAT.findall(text)}
         total += stats.get("number_of_executed_units", 0)

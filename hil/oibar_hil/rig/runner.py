@@ -326,8 +326,10 @@ class Rig:
             rel = rng / np.maximum(np.array([abs(r["range_true_m"]) for r in valid]) + 0.57, 0.3)
             lat = np.array([r["lateral_err_m"] for r in valid])
             mis = np.array([abs(r["misalign_est_deg"] - r["misalign_true_deg"]) for r in valid])
-            out.update({"nav_range_err_m_median": float(np.median(rng)), "nav_range_err_pct_median": float(np.median(rel) * 100),
-                        "nav_lateral_err_m_median": float(np.median(lat)), "nav_lateral_err_m_p99": float(np.percentile(lat, 99)),
+            out.update({"nav_range_err_m_median": float(np.median(rng)),
+                        "nav_range_err_pct_median": float(np.median(rel) * 100),
+                        "nav_lateral_err_m_median": float(np.median(lat)),
+                        "nav_lateral_err_m_p99": float(np.percentile(lat, 99)),
                         "nav_misalign_err_deg_median": float(np.median(mis))})
         ms = [r["nav_ms"] for r in log if "nav_ms" in r]
         if ms:

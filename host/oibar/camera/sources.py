@@ -427,7 +427,7 @@ class FolderSource(CameraSource):
                     f"e.g. {missing[0]} (pass use_table=False to use the nominal rate)"
                 )
             times = [by_name[p.name] for p in files]
-            for a, b, p in zip(times, times[1:], files[1:]):
+            for a, b, p in zip(times, times[1:], files[1:], strict=False):
                 if not b > a:
                     raise SourceUnreadable(
                         f"timestamp table {table}: time_s does not increase at {p.name} ({b} after {a})"

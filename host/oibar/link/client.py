@@ -138,7 +138,7 @@ def parse_opcode(opcode: int | str) -> int:
     try:
         return pb.CommandOpcode.Value(name)
     except ValueError:
-        known = ", ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")
+        known = ", ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")  # noqa: SIM118  (protobuf enum)
         raise ValueError(f"unknown command {opcode!r}; known commands: {known}") from None
 
 

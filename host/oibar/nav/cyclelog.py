@@ -59,7 +59,7 @@ class CycleLog:
         if self.frames_dir:
             self.frames_dir.mkdir(parents=True, exist_ok=True)
         # line buffered writes would cost a syscall per cycle; flush every few cycles instead
-        self._fh = open(self.path, "a", encoding="utf-8")
+        self._fh = open(self.path, "a", encoding="utf-8")  # noqa: SIM115  (closed by close())
 
     @property
     def ok(self) -> bool:

@@ -308,7 +308,8 @@ class NavDaemon:
         self.log.write({
             "kind": "cycle", "t_s": t_s, "cycle": self.stats.cycles,
             "frame": None if frame is None else {"seq": frame.seq, "t_s": frame.t_host - self._t0, "file": frame_file},
-            "estimate": None if est is None else {"T_cam_target_m": est.T_cam_target_m, "q_cam_target": est.q_cam_target,
+            "estimate": None if est is None else {"T_cam_target_m": est.T_cam_target_m,
+                                                  "q_cam_target": est.q_cam_target,
                                                   "confidence": est.confidence, "latency_ms": est.latency_ms},
             "filter": None if upd is None else {"accepted": upd.accepted, "gated": upd.gated,
                                                 "reinitialised": getattr(upd, "reinitialised", False)},

@@ -67,7 +67,7 @@ class VehicleInterface(ABC):
         """Counters worth keeping in the log's footer (send errors, odometry taken / refused)."""
         return {}
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027  (a default: only a vehicle with resources overrides it)
         """Release resources; the daemon calls hold() first."""
 
 
