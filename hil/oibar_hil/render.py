@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -332,13 +333,18 @@ class Renderer:
         self.shadow_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)   # 2x2 PCF in hardware
         self.shadow_tex.repeat_x = self.shadow_tex.repeat_y = False
         self.shadow_fbo = c.framebuffer(depth_attachment=self.shadow_tex)
-        self._shadow_key = None
+        self._shadow_key: tuple[object, ...] | None = None
         self._light_vp = [np.eye(4), np.eye(4)]
 
-        self._earth_tex = None   # built on first use: ~1 s of noise, not needed for `perlin`
-        self.bg_tex = None
+        self._earth_tex: Any = None   # built on first use: ~1 s of noise, not needed for `perlin`
+        self.bg_tex: Any = None
         self.background = "iss"
-        self.mesh_vao = self.depth_vao = self.id_vao = self._vbo = self._ibo = None
+        # moderngl objects, made by load_scene
+        self.mesh_vao: Any = None
+        self.depth_vao: Any = None
+        self.id_vao: Any = None
+        self._vbo: Any = None
+        self._ibo: Any = None
         self.focus = np.zeros(3)
         self.gl_renderer = c.info.get("GL_RENDERER", "unknown")
 

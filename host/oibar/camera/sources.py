@@ -30,6 +30,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -217,7 +218,7 @@ class DeviceSource(CameraSource):
         self.lost_timeout_s = float(lost_timeout_s)
         self.backend = backend
         self.name = f"device {device}"
-        self._cap = None
+        self._cap: Any = None  # cv2.VideoCapture once open
         self._last_frame_host = 0.0
 
     def _open(self) -> None:
@@ -276,7 +277,7 @@ class VideoFileSource(CameraSource):
         self.rate_hz = rate_hz
         self.name = f"video {self.path}"
         self._pacer = _Pacer(realtime)
-        self._cap = None
+        self._cap: Any = None  # cv2.VideoCapture once open
         self._index = 0
         self._fps = DEFAULT_RATE_HZ
 

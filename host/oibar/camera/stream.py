@@ -71,9 +71,11 @@ class FrameStreamSource(CameraSource):
 
     def _recv_exact(self, n: int) -> bytes:
         buf = bytearray()
+        sock = self._sock
+        assert sock is not None, "read before open"  # the base class opens before it reads
         while len(buf) < n:
             try:
-                chunk = self._sock.recv(n - len(buf))
+                chunk = sock.recv(n - len(buf))
             except TimeoutError:
                 raise CameraLost(f"{self.name}: no frame for {self.lost_timeout_s:.1f} s",
                                  seconds_without_frame=self.lost_timeout_s) from None

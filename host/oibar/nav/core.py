@@ -100,7 +100,7 @@ class Navigator:
                         timings["filter_ms"] = (time.perf_counter() - t0) * 1e3
                         if upd is not None and upd.gated:
                             reason = "gated outlier"
-        if odometry is not None:
+        if odometry is not None and odo_t_s is not None:  # (odometry kept: its time is finite)
             vel_upd = self._fuse_velocity(odo_t_s, odometry)
         st = self.filter.state(t_s)
         if not st.valid and not reason:

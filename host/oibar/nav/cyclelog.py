@@ -73,7 +73,7 @@ class CycleLog:
         except OSError:
             pass
 
-    def write(self, record: dict) -> bool:
+    def write(self, record: dict[str, Any]) -> bool:
         if self.error is not None:
             self.lines_lost += 1
             return False
@@ -120,11 +120,11 @@ class CycleLog:
     def __enter__(self) -> CycleLog:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
-def read_log(path: str | Path) -> Iterator[dict]:
+def read_log(path: str | Path) -> Iterator[dict[str, Any]]:
     """Yield the records of a cycle log. A truncated last line (the process was killed
     mid-write) is skipped; any other bad line raises CycleLogError naming the line."""
     path = Path(path)
