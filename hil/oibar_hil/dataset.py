@@ -488,8 +488,8 @@ def generate_dataset(out_dir: Path, specs: list[SequenceSpec], frames_limit: int
     total = sum(len(t["frames"]) for t in tasks)
     bar = None
     if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=total, unit="frame", desc="rendering", smoothing=0.05, file=sys.stderr)
+        from oibar.progress import Progress
+        bar = Progress("rendering", total=total, unit="frame")
     t_render = time.perf_counter()
     gl_name = "unknown"
     if total:

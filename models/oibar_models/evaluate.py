@@ -30,8 +30,8 @@ def predict_sequence(est: OnnxPoseEstimator, frames: np.ndarray, batch: int = 32
     T, q = [], []
     it = range(0, len(frames), batch)
     if progress:
-        from tqdm import tqdm
-        it = tqdm(it, desc="predict", unit="batch", leave=False, file=sys.stderr)
+        from oibar.progress import progress_iter
+        it = progress_iter(it, "predict", unit="batch", leave=False)
     for i in it:
         t_i, q_i = est.predict_batch(np.asarray(frames[i:i + batch]))
         T.append(t_i)
