@@ -353,7 +353,9 @@ class NavDaemon:
         """Frame-driven at ``rate_hz``: each cycle starts when a frame arrives that was captured
         at least 0.9 periods after the previous one used (a faster camera is decimated); with no
         frame by 1.5 periods after the previous cycle, the cycle runs without one (guidance
-        holds, the link and the MCU keep being served). A deadline is missed when a cycle's work
+        holds, the link and the MCU keep being served). There is no grid of absolute deadlines:
+        every wait counts from the previous cycle's start (or capture), so a late cycle moves
+        the ones after it instead of making them hurry. A deadline is missed when a cycle's work
         takes longer than one period, or when cycles are more than 1.5 periods apart while
         frames are coming."""
         period = 1.0 / self.p.rate_hz
@@ -397,7 +399,8 @@ class NavDaemon:
         return self.stats.summary()
 
     def shutdown(self) -> None:
-        """Vehicle hold, stop the worker, camera and link; write the footer."""
+        """Vehicle hold and close, camera stopped, log footer written. The link is its
+        opener's to close (oibar nav closes it after ``run``)."""
         try:
             self.vehicle.hold(self._last_t())
         except Exception:
