@@ -8,7 +8,7 @@
 # Also writes build/bench/benchmarks.json (every row with its raw numbers).
 BENCH_ARGS ?=
 BENCH_PY   := OIBAR_FW_BUILD=$(FW_HOST) OIBAR_GEN_C=$(GEN_C) OIBAR_NANOPB_DIR=$(NANOPB_SRC) \
-  PYTHONPATH=$(ROOT)/bench:$(ROOT)/hil:$(ROOT)/host $(PY) -m oibar_bench
+  PYTHONPATH=$(ROOT)/bench:$(ROOT)/models:$(ROOT)/hil:$(ROOT)/host $(PY) -m oibar_bench
 
 .PHONY: bench
 

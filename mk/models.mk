@@ -37,8 +37,8 @@ dataset-envelope: setup ## render the envelope-mode test sequence (seq01_envelop
 # The shipped model since 0.4.0 (issue 15): keypoints on a full-resolution crop + PnP, with the
 # direct model above as its first pass and attitude prior. Two training stages; the export
 # chooses the prior's weights on the validation scenes (kp_fusion), then writes them into the file.
-KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints/oibarnet_kp_stage2.yaml
-KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage2.yaml
+KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints/oibarnet_kp_stage2.yaml models/configs/keypoints/oibarnet_kp_stage3.yaml
+KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage3.yaml
 KP_EVAL_ARGS ?= --sets val test
 
 train-kp: setup ## train the keypoint model, both stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)

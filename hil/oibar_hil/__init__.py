@@ -1,10 +1,11 @@
 """OIBAR simulated rig: synthetic world, camera renderer, dataset generator and the HIL rig.
 
 Modules are one idea each: `orbit` (target state from a TLE), `sun` (low-precision almanac),
-`frames` (LVLH), `rotations`, `camera`, `trajectory`, `ports` (station layout), `relpose`
-(camera pose and labels), `meshes`, `textures`, `render`, `overlay`, `dataset`, `bench`
-(render throughput). The HIL rig (the real firmware as a simulated MCU in lockstep with the
-mechanism's physics and the host's navigation) is the `rig` subpackage.
+`frames` (LVLH), `camera` (the renderer's OpenGL projection of oibar.geometry's camera),
+`trajectory`, `ports` (station layout), `meshes`, `textures`, `render`, `overlay`, `dataset`
+(the generator), `sequence` (reading a written sequence: numpy only). The HIL rig (mechanism
+physics, sim-MCU runner) is `oibar_hil.rig`. Rotations, the camera model, the docking frames and
+the fixture's numbers come from `oibar.geometry`, shared with flight and training.
 """
 
 __version__ = "0.1.0"

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import hashlib
 import io
 import json
 import multiprocessing as mp
@@ -34,22 +33,29 @@ from pathlib import Path
 
 import numpy as np
 
+from oibar.geometry.camera import PinholeCamera
+from oibar.geometry.docking import MOUNT
+from oibar.geometry.fixture import FIXTURE
+
 from . import __version__
-from .camera import PinholeCamera
 from .orbit import DEFAULT_EPOCH_UTC, DEFAULT_TLE, TargetOrbit, julian_date, parse_utc
 from .ports import PORTS
-from .relpose import MOUNT, camera_poses
+from .relpose import camera_poses
 from .render import RenderSettings
+from .sequence import (  # noqa: F401  (DatasetError re-exported)
+    DatasetError,
+    check_image_trailer,
+    read_manifest,
+    read_pose_table,
+    sha256_file,
+    verify_files,
+)
 from .trajectory import PHASE_NAMES, TrajectoryParams, generate
 
 GENERATOR = "oibar_hil.dataset"
 SUN_UPDATE_S = 1.0          # Sun direction is sampled once a second (0.065 deg steps): lets the
                             # shadow map be reused for 10 frames, deterministically per frame
 CHUNK_FRAMES = 25
-
-
-class DatasetError(RuntimeError):
-    """A dataset on disk is inconsistent: missing, truncated or modified files, or a spec clash."""
 
 
 @dataclass(frozen=True)
@@ -185,43 +191,6 @@ def frame_name(k: int, fmt: str) -> str:
     return f"frames/{k:06d}.{fmt}"
 
 
-_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
-_JPG_END = b"\xff\xd9"
-
-
-def check_image_trailer(path: Path) -> str | None:
-    """None if the file looks complete, else a reason. Cheap: reads the last bytes only."""
-    try:
-        size = path.stat().st_size
-    except FileNotFoundError:
-        return "missing"
-    if size < 16:
-        return f"truncated ({size} bytes)"
-    with open(path, "rb") as fh:
-        head = fh.read(8)
-        fh.seek(-12, os.SEEK_END)
-        tail = fh.read(12)
-    if path.suffix == ".png":
-        if not head.startswith(b"\x89PNG"):
-            return "not a PNG file"
-        if tail != _PNG_END:
-            return "truncated (no PNG IEND chunk)"
-    elif path.suffix == ".jpg":
-        if not head.startswith(b"\xff\xd8"):
-            return "not a JPEG file"
-        if not tail.endswith(_JPG_END):
-            return "truncated (no JPEG end-of-image marker)"
-    return None
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def encode_image(img: np.ndarray, spec: SequenceSpec) -> bytes:
     from PIL import Image
 
@@ -258,8 +227,8 @@ def write_poses_csv(path: Path, plan: SequencePlan) -> None:
 
 
 def read_poses_csv(path: Path) -> list[dict]:
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
+    """The pose table's rows as dicts of strings (oibar_hil.sequence.read_pose_table)."""
+    return read_pose_table(path, ())[0]
 
 
 # ----------------------------------------------------------------------------- rendering workers
@@ -373,8 +342,6 @@ def pending_frames(seq_dir: Path, plan: SequencePlan) -> list[int]:
 
 
 def write_manifest(seq_dir: Path, plan: SequencePlan, frames_limit: int | None, gl_renderer: str) -> dict:
-    from .meshes import FIXTURE
-
     files = {"poses.csv": sha256_file(seq_dir / "poses.csv")}
     for k in range(plan.n_frames):
         name = frame_name(k, plan.spec.image_format)
@@ -411,29 +378,9 @@ def write_manifest(seq_dir: Path, plan: SequencePlan, frames_limit: int | None, 
 
 def verify_sequence(seq_dir: Path) -> dict:
     """Check every file listed in the manifest: present, complete, same SHA-256. Raises
-    DatasetError naming the bad files."""
-    seq_dir = Path(seq_dir)
-    mpath = seq_dir / "manifest.json"
-    if not mpath.exists():
-        raise DatasetError(f"{seq_dir}: no manifest.json (sequence incomplete; re-run the generator to resume)")
-    try:
-        manifest = json.loads(mpath.read_text())
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{mpath}: corrupt manifest ({exc})") from exc
-    problems = []
-    for name, digest in manifest["files"].items():
-        path = seq_dir / name
-        if not path.exists():
-            problems.append(f"{path}: missing")
-            continue
-        reason = check_image_trailer(path) if path.suffix in (".png", ".jpg") else None
-        if reason is not None:
-            problems.append(f"{path}: {reason}")
-        elif sha256_file(path) != digest:
-            problems.append(f"{path}: corrupt (SHA-256 differs from manifest)")
-    if problems:
-        more = f" (and {len(problems) - 10} more)" if len(problems) > 10 else ""
-        raise DatasetError(f"{len(problems)} bad file(s) in {seq_dir}:\n  " + "\n  ".join(problems[:10]) + more)
+    DatasetError naming the bad files. Returns the manifest."""
+    manifest = read_manifest(seq_dir)
+    verify_files(seq_dir, manifest)
     return manifest
 
 

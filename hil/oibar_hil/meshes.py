@@ -2,8 +2,8 @@
 end-effector, and an ISS-like station with six ports. Nothing is downloaded.
 
 Fixture geometry is in the target frame F_t (see trajectory.py): front face of the rectangular
-boundary at z = 0, +Z into the port. Sizes are ours (the paper scales its CAD up to fit the
-ATV/ISS); they are assumptions collected in FixtureDims.
+boundary at z = 0, +Z into the port. Its dimensions are numbers in oibar.geometry.fixture
+(FixtureDims), shared with the pose estimator's keypoints and the lab toolbox's overlay.
 """
 
 from __future__ import annotations
@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import manifold3d as mf
 import numpy as np
 import trimesh
+
+from oibar.geometry.fixture import FIXTURE, FixtureDims
 
 from .ports import ADAPTER_LENGTH_M, MODULES_ALONG_X, PORTS, Port
 
@@ -32,41 +34,14 @@ ID_OTHER_FIXTURE = 14
 ID_END_EFFECTOR = 20
 
 
-@dataclass(frozen=True)
-class FixtureDims:
-    width_m: float = 0.50          # along X_t (outer rectangle)
-    height_m: float = 0.36         # along Y_t
-    rim_width_m: float = 0.03
-    rim_depth_m: float = 0.02      # rim front face at z = 0, plate face recessed behind it
-    plate_thickness_m: float = 0.03
-    drogue_mouth_radius_m: float = 0.095
-    drogue_throat_radius_m: float = 0.025
-    drogue_depth_m: float = 0.16
-    pin_guide_x_m: float = 0.17
-    pin_guide_radius_m: float = 0.035
-    couplings_xy_m: tuple = ((-0.10, 0.115), (0.10, 0.115))
-    coupling_radius_m: float = 0.024
-    connector_xy_m: tuple = (0.0, -0.115)
-    connector_size_m: tuple = (0.09, 0.04)
-
-
-FIXTURE = FixtureDims()
-
-
-def fixture_corners_t(d: FixtureDims = FIXTURE) -> np.ndarray:
-    """The four corners of the rectangular boundary in F_t (z = 0), in image order for an
-    aligned camera: top-left, top-right, bottom-right, bottom-left."""
-    w, h = d.width_m / 2, d.height_m / 2
-    return np.array([[-w, -h, 0.0], [w, -h, 0.0], [w, h, 0.0], [-w, h, 0.0]])
-
-
 # ----------------------------------------------------------------------------- primitives
 SEGMENTS = 40
 
 
 def _to_trimesh(m: mf.Manifold) -> trimesh.Trimesh:
     mesh = m.to_mesh()
-    return trimesh.Trimesh(vertices=np.asarray(mesh.vert_properties)[:, :3], faces=np.asarray(mesh.tri_verts), process=False)
+    return trimesh.Trimesh(vertices=np.asarray(mesh.vert_properties)[:, :3], faces=np.asarray(mesh.tri_verts),
+                           process=False)
 
 
 def _box(size, center) -> mf.Manifold:
@@ -106,7 +81,8 @@ def berthing_fixture(d: FixtureDims = FIXTURE) -> list[Part]:
     plate = plate - cut
     bosses = None
     for sx in (-1, 1):
-        b = _frustum(d.pin_guide_radius_m, d.pin_guide_radius_m, z_plate0 - 0.015, z_plate0 + 0.001, (sx * d.pin_guide_x_m, 0.0))
+        b = _frustum(d.pin_guide_radius_m, d.pin_guide_radius_m, z_plate0 - 0.015, z_plate0 + 0.001,
+                     (sx * d.pin_guide_x_m, 0.0))
         bosses = b if bosses is None else bosses + b
     bosses = bosses - cut
 
@@ -206,7 +182,8 @@ def _transform_part(part: Part, R: np.ndarray, p: np.ndarray, part_id: int | Non
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = p
-    return Part(part.mesh.copy().apply_transform(T), part.rgb, part.specular, part.part_id if part_id is None else part_id)
+    return Part(part.mesh.copy().apply_transform(T), part.rgb, part.specular,
+                part.part_id if part_id is None else part_id)
 
 
 def fixture_at_port(port: Port, is_target: bool = True) -> list[Part]:
@@ -233,7 +210,8 @@ def station(target_port: int) -> list[Part]:
     for sy in (-1, 1):
         for k in range(3):
             y = sy * (11.0 + 4.0 * k)
-            parts.append(Part(_tbox((13.0, 3.2, 0.08), (truss_x - 8.0, y, truss_z + 0.3 * k)), (0.93, 0.93, 0.93), 0.15, ID_RADIATOR))
+            parts.append(Part(_tbox((13.0, 3.2, 0.08), (truss_x - 8.0, y, truss_z + 0.3 * k)), (0.93, 0.93, 0.93),
+                              0.15, ID_RADIATOR))
     # Solar array wings at the truss ends, extending along +-X.
     for sy in (-1, 1):
         for y in (sy * 31.0, sy * 37.0):
@@ -243,7 +221,8 @@ def station(target_port: int) -> list[Part]:
             parts.append(Part(_tbox((0.3, 0.3, 0.3), (truss_x, y, truss_z)), (0.5, 0.5, 0.5), 0.2, ID_TRUSS))
     # Adapters and fixtures on the six ports.
     for number, port in PORTS.items():
-        a = _to_trimesh(_frustum(0.30, 0.30, FIXTURE.rim_depth_m + FIXTURE.plate_thickness_m - 0.001, ADAPTER_LENGTH_M + 0.3))
+        a = _to_trimesh(_frustum(0.30, 0.30, FIXTURE.rim_depth_m + FIXTURE.plate_thickness_m - 0.001,
+                                 ADAPTER_LENGTH_M + 0.3))
         collar = _to_trimesh(_frustum(0.55, 0.55, ADAPTER_LENGTH_M - 0.15, ADAPTER_LENGTH_M + 0.3))
         for m in (a, collar):
             parts.append(_transform_part(Part(m, (0.80, 0.80, 0.78), 0.3, ID_ADAPTER), port.R_lvlh_t, port.p_lvlh_t))

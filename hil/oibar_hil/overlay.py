@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from .camera import PinholeCamera
-from .meshes import fixture_corners_t
-from .rotations import quat_to_matrix
+from oibar.geometry.camera import PinholeCamera
+from oibar.geometry.fixture import fixture_corners_t
+from oibar.geometry.rotations import quat_to_matrix
 
 AXIS_LENGTH_M = 0.15
 

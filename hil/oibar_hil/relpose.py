@@ -7,7 +7,8 @@ Label convention (used by the CNN and the navigation):
   q_cam_target  unit quaternion (w, x, y, z), w >= 0, of R_cam_target, the rotation that maps
                 vectors in F_t to the camera frame: p_cam = R_cam_target @ p_t + T_cam_target.
 When the chaser is aligned, R_cam_target = I (q = 1, 0, 0, 0) and T_cam_target = (0, 0.12, d+0.30)
-for a shaft-plane distance d, because of the camera mount below.
+for a shaft-plane distance d, because of the camera mount
+(oibar.geometry.docking.MOUNT).
 """
 
 from __future__ import annotations
@@ -16,26 +17,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oibar.nav.frames import GEOMETRY
+from oibar.geometry.docking import MOUNT, CameraMount
+from oibar.geometry.rotations import matrix_to_quat
 
 from .ports import Port
-from .rotations import matrix_to_quat
 from .trajectory import Trajectory
 
-
-@dataclass(frozen=True)
-class CameraMount:
-    """Camera pose in the chaser docking frame F_s (assumption): 0.12 m above the probe axis
-    (-Y_s) and 0.30 m behind the shaft plane, boresight parallel to the docking axis, so the
-    fixture stays in view down to soft-dock. The numbers come from oibar.nav.frames.GEOMETRY,
-    the one source shared with guidance and the HIL rig's rendered camera (plain tuples here so
-    the dataset manifest stays JSON)."""
-
-    p_s_cam_m: tuple = tuple(float(x) for x in GEOMETRY.p_s_cam_m)
-    R_s_cam: tuple = tuple(tuple(float(x) for x in row) for row in np.asarray(GEOMETRY.R_s_cam))
-
-
-MOUNT = CameraMount()
+# The camera mount (oibar.geometry.docking.MOUNT: 0.12 m above the probe axis, 0.30 m behind the
+# shaft plane, boresight parallel to the docking axis) is the one navigation and the rig use.
 
 
 @dataclass
@@ -62,7 +51,3 @@ def camera_poses(traj: Trajectory, port: Port, mount: CameraMount = MOUNT) -> Ca
     R_lvlh_cam = np.einsum("ij,njk->nik", port.R_lvlh_t, R_t_cam)
     p_lvlh_cam = port.p_lvlh_t[None, :] + p_t_cam @ port.R_lvlh_t.T
     return CameraPoses(T_cam_t, R_cam_t, q, R_lvlh_cam, p_lvlh_cam)
-
-
-def target_points_in_camera(points_t: np.ndarray, T_cam_target: np.ndarray, R_cam_target: np.ndarray) -> np.ndarray:
-    return np.asarray(points_t, float) @ np.asarray(R_cam_target, float).T + np.asarray(T_cam_target, float)

@@ -21,7 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from .camera import R_GL_CV, PinholeCamera
+from oibar.geometry.camera import PinholeCamera
+
+from .camera import R_GL_CV, gl_projection
 from .meshes import ID_ADAPTER, ID_MODULE, Part
 from .textures import earth_texture, perlin_background
 
@@ -445,7 +447,7 @@ class Renderer:
         ctx.enable(ctx.DEPTH_TEST | ctx.CULL_FACE)
         ctx.depth_func = "<="
         V = view_matrix(np.asarray(R_lvlh_cam, float), np.asarray(p_lvlh_cam, float))
-        vp = _m4(cam.gl_projection() @ V)
+        vp = _m4(gl_projection(cam) @ V)
         if mode == "id":
             self.id_prog["u_vp"].write(vp)
             self.id_vao.render()

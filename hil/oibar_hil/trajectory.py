@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from .rotations import rotvec_to_matrix
+from oibar.geometry.rotations import rotvec_to_matrix
 
 PHASE_ACQUISITION = 1
 PHASE_FORCED_TRANSLATION = 2

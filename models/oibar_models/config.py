@@ -13,6 +13,8 @@ from pathlib import Path
 
 import yaml
 
+from oibar.geometry.fixture import fixture_corners_t
+
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -64,8 +66,7 @@ class ModelConfig:
     keypoints: int = 0                       # >0: soft-argmax branch with this many heat maps (nets.py)
     # points of the fixture (F_t, metres) whose projections supervise the first heat maps when
     # train.kp_loss is on: the origin (drogue centre) and the four corners of the 0.50 x 0.36 m rim
-    keypoints_3d_m: list = field(default_factory=lambda: [[0.0, 0.0, 0.0], [-0.25, -0.18, 0.0], [0.25, -0.18, 0.0],
-                                                          [0.25, 0.18, 0.0], [-0.25, 0.18, 0.0]])
+    keypoints_3d_m: list = field(default_factory=lambda: [[0.0, 0.0, 0.0]] + fixture_corners_t().tolist())
     temporal_layers: int = 0                 # >0: BiLSTM back-end on the CNN features (study)
 
 

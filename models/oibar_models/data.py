@@ -12,9 +12,7 @@ more than the network itself.
 
 from __future__ import annotations
 
-import csv
 import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,25 +20,17 @@ import numpy as np
 import torch
 from PIL import Image, ImageFilter
 
-from .geometry import (
-    intrinsics,
-    project_np,
-    quat_from_matrix_np,
-    quat_to_matrix_np,
-    rot6d_from_matrix_np,
-    rot_x,
-    rot_y,
-    rot_z,
-    rotation_homography,
-    scale_intrinsics,
-)
+from oibar.geometry.camera import intrinsics, rotation_homography, scale_intrinsics
+from oibar.geometry.camera import project_camera_points as project_np
+from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
+from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
+from oibar.geometry.rotations import rot_x, rot_y, rot_z
+from oibar_hil.sequence import DatasetError, read_manifest, read_pose_table, verify_files  # noqa: F401  (DatasetError re-exported)
+
+from .geometry import rot6d_from_matrix_np
 from .infer import resize_frame
 
 POSE_COLUMNS = ("frame", "file", "time_s", "phase", "tx_m", "ty_m", "tz_m", "qw", "qx", "qy", "qz", "range_m")
-
-
-class DatasetError(RuntimeError):
-    """The dataset on disk is missing, incomplete or corrupt; the message names the file."""
 
 
 @dataclass
@@ -66,42 +56,21 @@ def seq_name(n: int) -> str:
 
 
 def load_sequence(seq_dir: str | Path, verify_hashes: bool = False) -> Sequence:
-    """Read one sequence's manifest and pose table; raises DatasetError with the file at fault."""
+    """Read one sequence's manifest and pose table (oibar_hil.sequence, the one reader of the
+    layout); raises DatasetError with the file at fault."""
     seq_dir = Path(seq_dir)
-    if not seq_dir.is_dir():
-        raise DatasetError(f"{seq_dir}: sequence folder not found (render it with `make dataset`)")
-    mpath = seq_dir / "manifest.json"
-    if not mpath.is_file():
-        raise DatasetError(f"{mpath}: missing, so the sequence is incomplete "
-                           "(re-run `python -m oibar_hil.dataset` with the same arguments to resume)")
-    try:
-        manifest = json.loads(mpath.read_text())
-        cam = manifest["config"]["camera"]
-        n_expected = int(manifest["frames"])
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise DatasetError(f"{mpath}: corrupt manifest ({type(exc).__name__}: {exc})") from exc
+    manifest = read_manifest(seq_dir, required=lambda m: (m["config"]["camera"], int(m["frames"])))
+    cam = manifest["config"]["camera"]
+    n_expected = int(manifest["frames"])
     ppath = seq_dir / "poses.csv"
     if not ppath.is_file():
         raise DatasetError(f"{ppath}: missing pose table")
     if verify_hashes:
-        _verify_hashes(seq_dir, manifest)
-    try:
-        with open(ppath, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise DatasetError(f"{ppath}: unreadable ({exc})") from exc
-    if not rows:
-        raise DatasetError(f"{ppath}: no rows")
-    missing = [c for c in POSE_COLUMNS if c not in rows[0]]
-    if missing:
-        raise DatasetError(f"{ppath}: missing column(s) {missing}")
+        verify_files(seq_dir, manifest, check_trailers=False)
+    rows, num = read_pose_table(ppath, ("time_s", "phase", "tx_m", "ty_m", "tz_m", "qw", "qx", "qy", "qz", "range_m"),
+                                required=POSE_COLUMNS)
     if len(rows) != n_expected:
         raise DatasetError(f"{ppath}: {len(rows)} rows but the manifest says {n_expected} frames (truncated?)")
-    try:
-        num = np.array([[float(r[c]) for c in ("time_s", "phase", "tx_m", "ty_m", "tz_m", "qw", "qx", "qy", "qz",
-                                               "range_m")] for r in rows])
-    except (TypeError, ValueError) as exc:
-        raise DatasetError(f"{ppath}: non-numeric value ({exc})") from exc
     if not np.all(np.isfinite(num)):
         raise DatasetError(f"{ppath}: non-finite values")
     q = num[:, 5:9]
@@ -113,18 +82,6 @@ def load_sequence(seq_dir: str | Path, verify_hashes: bool = False) -> Sequence:
         K=intrinsics(cam["fx_px"], cam["fy_px"], cam["cx_px"], cam["cy_px"]),
         width_px=int(cam["width_px"]), height_px=int(cam["height_px"]),
     )
-
-
-def _verify_hashes(seq_dir: Path, manifest: dict) -> None:
-    bad = []
-    for name, digest in manifest.get("files", {}).items():
-        p = seq_dir / name
-        if not p.is_file():
-            bad.append(f"{p}: missing")
-        elif hashlib.sha256(p.read_bytes()).hexdigest() != digest:
-            bad.append(f"{p}: SHA-256 differs from the manifest")
-    if bad:
-        raise DatasetError(f"{len(bad)} bad file(s) in {seq_dir}:\n  " + "\n  ".join(bad[:10]))
 
 
 def load_frame(seq: Sequence, k: int, size_wh: tuple[int, int]) -> np.ndarray:

@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from oibar.geometry.camera import intrinsics, scale_intrinsics
+
 from . import __version__
-from .geometry import intrinsics, scale_intrinsics
 from .infer import METADATA_PREFIX, OnnxPoseEstimator
 from .nets import INPUT_MEAN, INPUT_STD, OibarNet, PoseOutputs
 

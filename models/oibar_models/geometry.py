@@ -1,9 +1,10 @@
-"""Rotation and camera geometry shared by training, export and evaluation.
+"""The network's rotation geometry in torch (traceable, exported to ONNX): the 6D attitude
+representation and the matrix -> quaternion conversion inside the graph.
 
-Conventions follow oibar_hil (docs/synthetic.md): quaternions are scalar-first (w, x, y, z),
-Hamilton, w >= 0; R_a_b maps frame-b vectors into frame a; pixels are continuous with the origin
-at the image's top-left corner (pixel centres at i + 0.5), camera axes OpenCV (+X right, +Y down,
-+Z forward).
+Everything numpy (rotations, quaternions, the camera, projection, intrinsics) lives in
+oibar.geometry, shared with flight, the simulator and the lab toolbox; its conventions hold here:
+quaternions are scalar-first (w, x, y, z), Hamilton, w >= 0; R_a_b maps frame-b vectors into
+frame a; camera axes OpenCV (+X right, +Y down, +Z forward).
 
 The 6D attitude representation (Zhou et al. 2019) is the first two columns of R_cam_target,
 stacked as (r00, r10, r20, r01, r11, r21).
@@ -54,59 +55,7 @@ def quat_from_matrix(R: torch.Tensor) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------- numpy
-def quat_to_matrix_np(q: np.ndarray) -> np.ndarray:
-    """(..., 4) (w, x, y, z) -> (..., 3, 3)."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
-def quat_from_matrix_np(R: np.ndarray) -> np.ndarray:
-    with torch.no_grad():
-        return quat_from_matrix(torch.as_tensor(np.asarray(R, dtype=np.float64))).numpy()
-
-
 def rot6d_from_matrix_np(R: np.ndarray) -> np.ndarray:
+    """The numpy twin of rot6d_from_matrix: (..., 3, 3) -> (..., 6)."""
     R = np.asarray(R)
     return np.concatenate([R[..., :, 0], R[..., :, 1]], axis=-1)
-
-
-def rot_x(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=np.float64)
-
-
-def rot_y(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=np.float64)
-
-
-def rot_z(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
-
-
-def intrinsics(fx_px: float, fy_px: float, cx_px: float, cy_px: float) -> np.ndarray:
-    return np.array([[fx_px, 0, cx_px], [0, fy_px, cy_px], [0, 0, 1]], dtype=np.float64)
-
-
-def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """Intrinsics after resizing the image by (sx, sy). Exact in the pixel-corner convention."""
-    return np.diag([sx, sy, 1.0]) @ K
-
-
-def project_np(K: np.ndarray, p_cam_m: np.ndarray) -> np.ndarray:
-    """(N, 3) camera-frame points -> (N, 2) pixels (corner convention)."""
-    p = np.atleast_2d(p_cam_m) @ K.T
-    return p[:, :2] / p[:, 2:3]
-
-
-def rotation_homography(K: np.ndarray, R_new_old: np.ndarray) -> np.ndarray:
-    """Pixel map old -> new of a pure camera rotation: exact for any scene depth, which is why the
-    pose augmentations use it (new labels: T' = R T, R_cam_target' = R R_cam_target)."""
-    return K @ R_new_old @ np.linalg.inv(K)

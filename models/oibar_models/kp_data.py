@@ -21,7 +21,7 @@ from PIL import Image
 from oibar.nav.keypoints import CropWindow, cut, project, window_around
 
 from .data import Sequence, load_sequence
-from .geometry import quat_to_matrix_np
+from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
 
 
 @dataclass
@@ -44,13 +44,25 @@ def open_scenes(root: Path, names: list[str] | None = None) -> list[Sequence]:
     return [load_sequence(d) for d in dirs]
 
 
-def visible(uv: np.ndarray, frame_wh: tuple[int, int], win: CropWindow) -> np.ndarray:
-    """Keypoints that the crop can show: in front of the camera, inside the frame and the crop."""
+def off_axis_deg(points_m: np.ndarray, R: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Per target point, the angle (deg) between the fixture's outward axis (-Z_t) and the line
+    from the point to the camera: 0 looking straight down the funnel."""
+    to_cam_t = -(np.asarray(points_m, float) @ R.T + T) @ R      # camera - point, in F_t
+    cos = -to_cam_t[:, 2] / np.linalg.norm(to_cam_t, axis=1)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def visible(uv: np.ndarray, frame_wh: tuple[int, int], win: CropWindow, off_axis: np.ndarray | None = None,
+            limit_deg: np.ndarray | None = None) -> np.ndarray:
+    """Keypoints that the crop can show: in front of the camera, inside the frame and the crop,
+    and (with `off_axis`/`limit_deg`) not hidden inside the funnel."""
     w, h = frame_wh
     c = win.to_crop(np.nan_to_num(uv, nan=-1e9))
     ok = np.all(np.isfinite(uv), axis=1)
     ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= w) & (uv[:, 1] >= 0) & (uv[:, 1] <= h)
     ok &= (c[:, 0] >= 0) & (c[:, 0] <= win.out_px) & (c[:, 1] >= 0) & (c[:, 1] <= win.out_px)
+    if off_axis is not None and limit_deg is not None:
+        ok &= off_axis <= limit_deg
     return ok
 
 
@@ -80,8 +92,10 @@ class CropDataset(torch.utils.data.Dataset):
     perturbation is fixed per index (seeded), so validation is repeatable."""
 
     def __init__(self, scenes: list[Sequence], keypoints_m: np.ndarray, out_px: int, aug: CropAugment,
-                 train: bool, seed: int = 0, frames: list[tuple[int, int]] | None = None):
+                 train: bool, seed: int = 0, frames: list[tuple[int, int]] | None = None,
+                 view_limit_deg: list[float] | None = None):
         self.scenes, self.kp_m, self.out_px, self.aug, self.train, self.seed = scenes, keypoints_m, out_px, aug, train, seed
+        self.view_limit_deg = None if view_limit_deg is None else np.asarray(view_limit_deg, float)
         self.items = frames if frames is not None else [(s, k) for s, sc in enumerate(scenes) for k in range(len(sc))]
 
     def __len__(self) -> int:
@@ -107,7 +121,7 @@ class CropDataset(torch.utils.data.Dataset):
         crop = cut(img, win)
         if self.train:
             crop = photometric(crop, rng, self.aug)
-        vis = visible(uv, (sc.width_px, sc.height_px), win)
+        vis = visible(uv, (sc.width_px, sc.height_px), win, off_axis_deg(self.kp_m, R, T), self.view_limit_deg)
         kp = win.to_crop(np.nan_to_num(uv, nan=0.0))
         return {
             "image": torch.from_numpy(np.ascontiguousarray(crop.transpose(2, 0, 1))).float().div_(255.0),

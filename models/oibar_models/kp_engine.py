@@ -31,9 +31,10 @@ from oibar.nav.keypoints import CropWindow, solve_pnp
 
 from . import metrics
 from .config import ConfigError, RunPaths, _build, read_yaml
-from .geometry import quat_from_matrix_np
+from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
 from .kp_data import CropAugment, CropDataset, open_scenes, spread_frames
-from .kpnet import FIXTURE_KEYPOINTS, KeypointNet, soft_argmax
+from oibar.geometry.fixture import keypoints_m
+from .kpnet import FIXTURE_KEYPOINTS, KeypointNet, soft_argmax, view_limits_deg
 from .scenes import check_disjoint, load_set
 
 
@@ -104,8 +105,32 @@ def load_kp_config(path: str | Path, overrides: dict | None = None) -> KpConfig:
     return cfg
 
 
-def keypoints_m() -> np.ndarray:
-    return np.array([p for _, p in FIXTURE_KEYPOINTS], float)
+def view_limits() -> list[float]:
+    return view_limits_deg([n for n, _ in FIXTURE_KEYPOINTS])
+
+
+def load_grown(net: KeypointNet, state: dict, src_names: list[str] | None = None) -> list[str]:
+    """Load a checkpoint made with fewer keypoints (an earlier model version): the shared layers
+    as they are, each known keypoint's head row into its place, and each new keypoint's row
+    from its nearest known keypoint in F_t (a better start than noise). Returns the new names."""
+    names = [n for n, _ in FIXTURE_KEYPOINTS]
+    src_names = src_names or names[: state["present.weight"].shape[0]]
+    pts = dict(FIXTURE_KEYPOINTS)
+    rows = []
+    for n in names:
+        if n in src_names:
+            rows.append(src_names.index(n))
+        else:
+            near = min(src_names, key=lambda m: float(np.linalg.norm(np.subtract(pts[n], pts[m]))))
+            rows.append(src_names.index(near))
+    idx = torch.tensor(rows)
+    head_w = max(k for k in state if k.startswith("head.") and k.endswith(".weight"))
+    head_b = head_w[: -len("weight")] + "bias"
+    state = dict(state)
+    for k in (head_w, head_b, "present.weight", "present.bias"):
+        state[k] = state[k][idx].clone()
+    net.load_state_dict(state)
+    return [n for n in names if n not in src_names]
 
 
 # ----------------------------------------------------------------------------- distributed
@@ -253,12 +278,13 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         (run / "config.yaml").write_text(yaml.safe_dump(asdict(cfg), sort_keys=False))
     train_scenes = open_scenes(cfg.path(cfg.data.train_root), [s.name for s in load_set(cfg.path(cfg.data.train_spec))])
     kp = keypoints_m()
-    train_ds = CropDataset(train_scenes, kp, cfg.model.out_px, cfg.augment, train=True, seed=t.seed)
+    train_ds = CropDataset(train_scenes, kp, cfg.model.out_px, cfg.augment, train=True, seed=t.seed,
+                           view_limit_deg=view_limits())
     val_ds = None
     if lead:
         val_scenes = open_scenes(cfg.path(cfg.data.val_root), [s.name for s in load_set(cfg.path(cfg.data.val_spec))])
         val_ds = CropDataset(val_scenes, kp, cfg.model.out_px, cfg.augment, train=False, seed=12345,
-                             frames=None)
+                             frames=None, view_limit_deg=view_limits())
         val_ds.items = spread_frames(val_scenes, cfg.data.val_frames)
 
     net = KeypointNet(len(kp), cfg.model.width, pretrained=cfg.model.pretrained).to(device)
@@ -269,7 +295,13 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         src = cfg.path(t.init_from)
         if not src.is_file():
             raise ConfigError(f"train.init_from: checkpoint not found: {src}")
-        net.load_state_dict(torch.load(src, map_location=device, weights_only=False)["model"])
+        state = torch.load(src, map_location=device, weights_only=False)["model"]
+        if state["present.weight"].shape[0] < len(kp):     # an earlier model with fewer keypoints
+            grown = load_grown(net, state)
+            if lead:
+                print(f"keypoints {', '.join(grown)} start from their nearest known keypoint's head", file=sys.stderr)
+        else:
+            net.load_state_dict(state)
         if lead:
             print(f"starting from {src}", file=sys.stderr)
     if last.is_file():

@@ -5,6 +5,11 @@ what is measured is what flies. Several models on the same frames, side by side 
 and the mean-pose baseline; errors per range bin (table and plot); latency of the whole
 estimator, frame in to pose out.
 
+Two modes (`--modes`): `single`, every frame on its own (the paper's protocol), and `track`,
+where each frame also gets the pose predicted from the previous answers (constant velocity over
+the last two confident ones), as the daemon gives its filter's: a keypoint model then places its
+first crop there. Direct models ignore the prediction, so they run in `single` only.
+
 Test sequences (1 and 8) are read once per shipped model for its card: `--sets test`. Choices
 are made with `--sets val`.
 
@@ -40,8 +45,34 @@ def model_label(path: Path, meta: dict) -> str:
     return f"{path.stem} {meta.get('model_version', '?')}"
 
 
-def run_sequence(est, seq, stride: int, progress: bool) -> dict:
+TRACK_MIN_CONFIDENCE = 0.5      # the daemon's NavigatorParams.confidence_min: what its filter fuses
+TRACK_MAX_GAP_S = 3.0           # an older answer predicts nothing (the filter's coast limit)
+
+
+class Predictor:
+    """The pose predicted for time t from the last two confident answers (constant velocity in
+    translation, the latest attitude): what a filter gives a keypoint model, without the filter."""
+
+    def __init__(self):
+        self.hist: list[tuple[float, np.ndarray, np.ndarray]] = []
+
+    def add(self, t_s: float, e) -> None:
+        if e.finite and e.confidence >= TRACK_MIN_CONFIDENCE:
+            self.hist = (self.hist + [(t_s, e.T_cam_target_m, e.R_cam_target)])[-2:]
+
+    def predict(self, t_s: float):
+        if not self.hist or t_s - self.hist[-1][0] > TRACK_MAX_GAP_S:
+            return None
+        t1, T1, R1 = self.hist[-1]
+        if len(self.hist) == 2 and self.hist[1][0] > self.hist[0][0]:
+            t0, T0, _ = self.hist[0]
+            return R1, T1 + (T1 - T0) * (t_s - t1) / (t1 - t0)
+        return R1, T1
+
+
+def run_sequence(est, seq, stride: int, progress: bool, track: bool = False) -> dict:
     idx = np.arange(0, len(seq), stride)
+    pred = Predictor() if track else None
     T_hat = np.full((len(idx), 3), np.nan)
     q_hat = np.full((len(idx), 4), np.nan)
     conf = np.zeros(len(idx))
@@ -52,9 +83,12 @@ def run_sequence(est, seq, stride: int, progress: bool) -> dict:
         it = tqdm(it, total=len(idx), desc=seq.name, unit="frame", leave=False, file=sys.stderr)
     for j, k in it:
         img = np.asarray(Image.open(seq.dir / seq.files[k]).convert("RGB"))
+        t_s = float(seq.time_s[k])
         t0 = time.perf_counter()
-        e = est.estimate(img, float(seq.time_s[k]))
+        e = est.estimate(img, t_s, prior=pred.predict(t_s)) if pred else est.estimate(img, t_s)
         lat[j] = (time.perf_counter() - t0) * 1e3
+        if pred:
+            pred.add(t_s, e)
         T_hat[j], q_hat[j], conf[j] = e.T_cam_target_m, e.q_cam_target, e.confidence
     return {"idx": idx, "T_hat": T_hat, "q_hat": q_hat, "confidence": conf, "latency_ms": lat}
 
@@ -142,6 +176,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--models", nargs="+", type=Path, default=[REPO_ROOT / "models/oibarnet.onnx"])
     ap.add_argument("--sets", nargs="+", choices=sorted(SETS), default=["val"])
     ap.add_argument("--stride", type=int, default=2, help="every n-th frame of each sequence (default 2)")
+    ap.add_argument("--modes", nargs="+", choices=("single", "track"), default=["single", "track"],
+                    help="every frame alone, and/or with the predicted pose as the daemon gives it (default both)")
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/eval_kp")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
@@ -149,7 +185,14 @@ def main(argv: list[str] | None = None) -> int:
     results: dict = {}
     rows, bins_by_set = [], {}
     try:
-        ests = [(model_label(p, read_metadata(p)), PoseEstimator(p)) for p in a.models]
+        ests = []
+        for p in a.models:
+            est = PoseEstimator(p)
+            for mode in a.modes:
+                if mode == "single":
+                    ests.append((model_label(p, read_metadata(p)), est, False))
+                elif est.uses_prior:
+                    ests.append((model_label(p, read_metadata(p)) + " tracking", est, True))
     except ModelFileError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -160,11 +203,11 @@ def main(argv: list[str] | None = None) -> int:
         except DatasetError as exc:
             print(f"error: {exc}\n(render it: make dataset-{set_name})", file=sys.stderr)
             return 2
-        for label, est in ests:
+        for label, est, track in ests:
             allr = {"T_hat": [], "q_hat": [], "T": [], "q": [], "idx": []}
             bins_all = []
             for seq in seqs:
-                r = run_sequence(est, seq, a.stride, not a.no_progress)
+                r = run_sequence(est, seq, a.stride, not a.no_progress, track)
                 s = summarise(seq, r)
                 results.setdefault(set_name, {}).setdefault(label, {})[seq.name] = s
                 if set_name == "test":

@@ -125,6 +125,8 @@ def main(argv: list[str] | None = None) -> int:
         if best.get("sigma_prior_deg") is not None:
             fusion = {"sigma_crop_px": best["sigma_crop_px"], "sigma_prior_deg": best["sigma_prior_deg"],
                       "chosen_on": "validation scenes", "val": {k: best[k] for k in ("dt_mean_pct", "dq_mean_deg")}}
+            if best.get("kp_error_model"):
+                fusion["kp_error_model"] = best["kp_error_model"]
     export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0), fusion)
     print(f"exported {out} ({out.stat().st_size / 2 ** 20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0

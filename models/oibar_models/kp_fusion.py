@@ -1,7 +1,12 @@
 """Choose, on the validation scenes, how the keypoint estimator weighs the PnP keypoints against
 the direct model's attitude (oibar.nav.keypoints.refine_with_prior): a grid of (keypoint sigma in
-crop pixels, attitude-prior sigma in degrees), scored with the paper's metrics (metrics.score),
-"no prior" included. The winner goes into the export's metadata (`kp_export --fusion FILE`).
+crop pixels, attitude-prior sigma in degrees, with or without the per-keypoint error model),
+scored with the paper's metrics (metrics.score), "no prior" included. The winner goes into the
+export's metadata (`kp_export --fusion FILE`).
+
+The error model (oibar.nav.keypoints.KeypointErrorModel) is measured here too: each keypoint's
+RMS error per range bin, in crops cut around the true pose of the validation frames (errors past
+the PnP inlier threshold clipped to it: RANSAC drops those anyway).
 
 python -m oibar_models.kp_fusion --model models/oibarnet.onnx [--stride 16] [--out runs/oibarnet_kp/fusion.json]
 """
@@ -19,28 +24,61 @@ from PIL import Image
 from . import metrics
 from .config import REPO_ROOT
 from .data import load_sequence
-from .geometry import quat_from_matrix_np
+from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
+from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
 from .scenes import load_set
 
 SIGMA_CROP_PX = (0.5, 1.0, 2.0)
-SIGMA_PRIOR_DEG = (1.0, 2.0, 3.0, 5.0, None)     # None: PnP alone
+SIGMA_PRIOR_DEG = (1.0, 2.0, 3.0, 5.0, 8.0, None)     # None: PnP alone
+ERROR_RANGE_EDGES_M = (0.0, 1.0, 1.5, 2.0, 3.0, 5.0, 8.0, 100.0)
+MIN_RMS_CROP_PX = 0.1           # a floor: no keypoint is trusted beyond the heat map's resolution
 
 
 def collect(est, seqs, stride: int) -> list[dict]:
-    """Frames and the direct model's pose for each (the first pass does not depend on the weights)."""
+    """Frames, the direct model's pose for each (the first pass does not depend on the weights),
+    and the keypoints' errors in a crop around the true pose (crop pixels, NaN where not found)."""
+    from oibar.nav.keypoints import project, window_around
+
     rows = []
     for seq in seqs:
         for k in range(0, len(seq), stride):
             img = np.asarray(Image.open(seq.dir / seq.files[k]).convert("RGB"))
-            rows.append({"img": img, "T": seq.T_cam_target[k], "q": seq.q_cam_target[k], "direct": est.first.estimate(img)})
+            T, q = seq.T_cam_target[k], seq.q_cam_target[k]
+            uv_true = project(est.K_frame, est.points_m, quat_to_matrix_np(q), T)
+            win = window_around(uv_true, est.out_px, est.margin)
+            uv, _, _ = est.keypoints(img, win)
+            err = np.linalg.norm(uv - uv_true, axis=1) * win.scale
+            rows.append({"img": img, "T": T, "q": q, "direct": est.first.estimate(img), "kp_err_crop_px": err})
     return rows
 
 
-def score_grid(est, rows: list[dict], progress: bool) -> list[dict]:
+def error_model(rows: list[dict], clip_crop_px: float) -> dict:
+    """Per keypoint and range bin, the RMS of the (clipped) keypoint errors; a bin with fewer than
+    5 answers takes the keypoint's overall RMS."""
+    err = np.minimum(np.array([r["kp_err_crop_px"] for r in rows]), clip_crop_px)   # NaN stays NaN
+    rng = np.array([float(np.linalg.norm(r["T"])) for r in rows])
+    overall = np.sqrt(np.nanmean(err ** 2, axis=0))
+    edges = np.asarray(ERROR_RANGE_EDGES_M)
+    table = np.empty((err.shape[1], len(edges) - 1))
+    for b, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        e = err[(rng >= lo) & (rng < hi)]
+        n = np.sum(np.isfinite(e), axis=0)
+        with np.errstate(invalid="ignore"):
+            rms = np.sqrt(np.nanmean(e ** 2, axis=0)) if len(e) else np.full(err.shape[1], np.nan)
+        table[:, b] = np.where(n >= 5, rms, overall)
+    table = np.maximum(np.nan_to_num(table, nan=float(np.nanmax(overall))), MIN_RMS_CROP_PX)
+    return {"range_edges_m": list(ERROR_RANGE_EDGES_M), "rms_crop_px": np.round(table, 4).tolist()}
+
+
+def score_grid(est, rows: list[dict], progress: bool, err_model: dict | None = None) -> list[dict]:
     out = []
-    grid = [(p, d) for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None] + [(None, None)]
-    for s_px, s_deg in grid:
+    models = [None] if err_model is None else [None, err_model]
+    grid = [(p, d, m) for m in models for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None]
+    grid.append((None, None, None))
+    for s_px, s_deg, em in grid:
         fusion = {"sigma_crop_px": s_px, "sigma_prior_deg": s_deg} if s_deg is not None else {}
+        if em is not None:
+            fusion["kp_error_model"] = em
         T_hat, q_hat = [], []
         for row in rows:
             d = row["direct"]
@@ -50,10 +88,10 @@ def score_grid(est, rows: list[dict], progress: bool) -> list[dict]:
             q_hat.append(quat_from_matrix_np(R_))
         s = metrics.summarize(np.array(T_hat), np.array(q_hat), np.array([r["T"] for r in rows]),
                               np.array([r["q"] for r in rows]))
-        s.update(sigma_crop_px=s_px, sigma_prior_deg=s_deg, score=metrics.score(s))
+        s.update(sigma_crop_px=s_px, sigma_prior_deg=s_deg, error_model=em is not None, score=metrics.score(s))
         out.append(s)
         if progress:
-            print(f"sigma_kp {s_px} px, prior {s_deg} deg: dt {s['dt_mean_pct']:.3f} % (median {s['dt_median_pct']:.3f}) "
+            print(f"sigma_kp {s_px} px{' x error model' if em else ''}, prior {s_deg} deg: dt {s['dt_mean_pct']:.3f} % (median {s['dt_median_pct']:.3f}) "
                   f"dq {s['dq_mean_deg']:.3f} deg (median {s['dq_median_deg']:.3f}) score {s['score']:.4f}",
                   file=sys.stderr, flush=True)
     return out
@@ -74,13 +112,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     seqs = [load_sequence(REPO_ROOT / "data/val" / s.name) for s in load_set(REPO_ROOT / "models/scenes/val.json")]
     rows = collect(est, seqs, a.stride)
-    grid = score_grid(est, rows, not a.no_progress)
+    em = error_model(rows, float(est.reproj_crop_px))
+    grid = score_grid(est, rows, not a.no_progress, em)
     best = min(grid, key=lambda g: g["score"])
+    if best.get("error_model"):
+        best["kp_error_model"] = em
     a.out.parent.mkdir(parents=True, exist_ok=True)
     for g in grid:
         g.pop("img", None)
     a.out.write_text(json.dumps({"chosen_on": "validation scenes (models/scenes/val.json)", "frames": len(rows),
-                                 "stride": a.stride, "best": best, "grid": grid}, indent=1) + "\n")
+                                 "stride": a.stride, "best": best, "grid": grid, "kp_error_model": em}, indent=1) + "\n")
     print(f"best: sigma_kp {best['sigma_crop_px']} crop px, prior {best['sigma_prior_deg']} deg: "
           f"dt {best['dt_mean_pct']:.3f} %, dq {best['dq_mean_deg']:.3f} deg -> {a.out}")
     return 0

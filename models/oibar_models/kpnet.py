@@ -6,9 +6,14 @@ turns it into one heat map per keypoint. Soft-argmax (the expectation of the sof
 gives sub-pixel positions, differentiable end to end; the softmax's spread is the keypoint's
 uncertainty. A second small head says, per keypoint, whether it is inside the crop at all.
 
-The keypoints are the fixture's own corners and centres (FIXTURE_KEYPOINTS), front faces only,
-chosen so that some stay in view down to contact (pin guides, connector corners, drogue centre)
-and the widest span sets the range at 10 m (rim corners).
+The keypoints are the fixture's own corners and centres (FIXTURE_KEYPOINTS), chosen so that
+some stay in view down to contact (pin guides, connector corners, drogue centre) and the widest
+span sets the range at 10 m (rim corners). All front-face points lie within 12 mm of one plane,
+so their tilt barely shows: at 1.5 m a 1 deg tilt moves the rim corners by ~0.15 crop px, less
+than the keypoints' own error. The drogue's throat, 0.18 m deep inside the funnel, moves ~0.6
+crop px per degree at any range: it is the one point that carries the attitude (model 0.5.0).
+It hides behind the funnel wall when seen more than ~29 deg off the fixture's axis
+(KEYPOINT_VIEW_LIMIT_DEG, used for the training labels' visibility).
 """
 
 from __future__ import annotations
@@ -17,24 +22,10 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from oibar.geometry.fixture import FIXTURE_KEYPOINTS, KEYPOINT_VIEW_LIMIT_DEG
+
 from .efficientnet_lite import EfficientNetLite, load_pretrained
 
-# name, (x, y, z) in the target frame F_t, metres (front faces; oibar_hil.meshes.FixtureDims)
-FIXTURE_KEYPOINTS = (
-    ("rim_top_left", (-0.25, -0.18, 0.0)),
-    ("rim_top_right", (0.25, -0.18, 0.0)),
-    ("rim_bottom_right", (0.25, 0.18, 0.0)),
-    ("rim_bottom_left", (-0.25, 0.18, 0.0)),
-    ("pin_guide_left", (-0.17, 0.0, 0.005)),
-    ("pin_guide_right", (0.17, 0.0, 0.005)),
-    ("coupling_left", (-0.10, 0.115, 0.002)),
-    ("coupling_right", (0.10, 0.115, 0.002)),
-    ("connector_top_left", (-0.045, -0.135, 0.0045)),
-    ("connector_top_right", (0.045, -0.135, 0.0045)),
-    ("connector_bottom_right", (0.045, -0.095, 0.0045)),
-    ("connector_bottom_left", (-0.045, -0.095, 0.0045)),
-    ("drogue_centre", (0.0, 0.0, 0.012)),
-)
 STRIDE = 4
 
 
@@ -63,6 +54,11 @@ class KeypointNet(nn.Module):
         heat = self.head(y)
         present = self.present(taps[-1].mean(dim=(2, 3)))
         return heat, present
+
+
+def view_limits_deg(names: list[str] | tuple[str, ...]) -> "list[float]":
+    """Per keypoint, the largest angle off the fixture's axis it is seen from (inf: any)."""
+    return [KEYPOINT_VIEW_LIMIT_DEG.get(n, float("inf")) for n in names]
 
 
 def soft_argmax(heat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

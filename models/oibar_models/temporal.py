@@ -47,11 +47,13 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
+
 from . import metrics
 from .data import DatasetError, Sequence, build_splits, frame_cache, open_sequences, seq_name
 from .engine import load_checkpoint
 from .evaluate import plot_error_series
-from .geometry import matrix_from_rot6d, quat_from_matrix, quat_to_matrix_np, rot6d_from_matrix_np
+from .geometry import matrix_from_rot6d, quat_from_matrix, rot6d_from_matrix_np
 from .loss import UncertaintyPoseLoss
 
 # The fields of the data config that define the split: the study must cut the sequences exactly

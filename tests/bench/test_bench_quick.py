@@ -127,7 +127,7 @@ def test_budget_frames_are_the_framing_codes():
 def quick_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
     page, js = out / "benchmarks.md", out / "benchmarks.json"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT / "bench"), str(ROOT / "hil"), str(ROOT / "host")]))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT / p) for p in ("bench", "models", "hil", "host")]))
     proc = subprocess.run([sys.executable, "-m", "oibar_bench", "--quick", "--out", str(page), "--json", str(js)],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=QUICK_TIMEOUT_S)
     assert page.is_file() and js.is_file(), f"no page written:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"

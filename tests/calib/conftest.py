@@ -15,7 +15,7 @@ if str(_HIL) not in sys.path:
 def recording(tmp_path_factory):
     """One synthetic recording (200 rendered frames, 100 Hz mocap with 0.2 mm / 0.5 deg noise)
     shared by the end-to-end tests; rendering is most of the suite's time."""
-    from oibar.calib.synthetic import SynthConfig, write_recording
+    from oibar_hil.calib_synth import SynthConfig, write_recording
     from oibar_hil.render import create_context
 
     try:

@@ -7,9 +7,9 @@ import pytest
 
 from oibar.calib import handeye, io
 from oibar.calib.errors import CalibError
-from oibar.calib.synthetic import SynthConfig, T_target_cam_at, frame_times, mocap_samples, write_mocap_csv
-from oibar.calib.transforms import T_from_vec, inv_T, make_T
 from oibar.cli import main
+from oibar.geometry.transforms import T_from_vec, inv_T, make_T
+from oibar_hil.calib_synth import SynthConfig, T_target_cam_at, frame_times, mocap_samples, write_mocap_csv
 
 GOOD_HEADER = "time_s,body,x_m,y_m,z_m,qw,qx,qy,qz\n"
 

@@ -13,8 +13,8 @@ import numpy as np
 
 from oibar.calib import pipeline
 from oibar.calib.pnp import Intrinsics
-from oibar.calib.synthetic import SynthConfig, frame_times, simulate_observations, simulated_tracks
-from oibar.calib.transforms import pose_error
+from oibar.geometry.transforms import pose_error
+from oibar_hil.calib_synth import SynthConfig, frame_times, simulate_observations, simulated_tracks
 
 SEEDS = range(101, 117)       # not the seeds the estimator was tuned on (1-20); ~2 s each
 

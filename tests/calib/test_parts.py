@@ -4,24 +4,27 @@ import numpy as np
 import pytest
 
 from oibar.calib import handeye, refine, timing
-from oibar.calib.synthetic import SynthConfig, T_target_cam_at, frame_times, mocap_samples
-from oibar.calib.transforms import (
-    R_to_quat_wxyz,
-    T_from_vec,
-    adjoint,
-    inv_T,
-    log_T,
-    pose_error,
-    quat_wxyz_to_R,
-)
+from oibar.geometry.rotations import matrix_to_quat, quat_to_matrix
+from oibar.geometry.transforms import T_from_vec, adjoint, inv_T, log_T, pose_error
+from oibar_hil.calib_synth import SynthConfig, T_target_cam_at, frame_times, mocap_samples
 
 
-def test_quaternion_convention_matches_the_dataset():
-    from oibar_hil.rotations import matrix_to_quat, quat_to_matrix
+def test_quaternion_convention_matches_scipy():
+    """oibar.geometry (the dataset's (w, x, y, z), w >= 0) against scipy's (x, y, z, w), which the
+    toolbox used before the geometry core: same rotation, same sign rule, batched too."""
+    from scipy.spatial.transform import Rotation
 
     R = T_from_vec(np.r_[0, 0, 0, 0.3, -1.2, 2.0])[:3, :3]
-    assert np.allclose(R_to_quat_wxyz(R), matrix_to_quat(R))
-    assert np.allclose(quat_wxyz_to_R(matrix_to_quat(R)), quat_to_matrix(matrix_to_quat(R)))
+    q_scipy = Rotation.from_matrix(R).as_quat()[[3, 0, 1, 2]]
+    assert np.allclose(matrix_to_quat(R), q_scipy if q_scipy[0] >= 0 else -q_scipy)
+    assert np.allclose(quat_to_matrix(matrix_to_quat(R)), Rotation.from_quat(q_scipy[[1, 2, 3, 0]]).as_matrix())
+    Rs = Rotation.random(20, random_state=3)
+    q = matrix_to_quat(Rs.as_matrix())
+    assert q.shape == (20, 4) and np.all(q[:, 0] >= 0)
+    assert np.allclose(quat_to_matrix(q), Rs.as_matrix())
+    assert np.allclose(log_T(np.stack([np.eye(4)] * 3)), 0.0)
+    rv = Rs.as_rotvec()
+    assert np.allclose(np.stack([T_from_vec(np.r_[0, 0, 0, v])[:3, :3] for v in rv]), Rs.as_matrix())
 
 
 def test_adjoint_moves_a_right_perturbation_to_the_left():

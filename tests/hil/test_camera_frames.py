@@ -1,10 +1,12 @@
 import numpy as np
 
-from oibar_hil.camera import PinholeCamera
+from oibar.geometry.camera import PinholeCamera
+from oibar.geometry.docking import MOUNT
+from oibar.geometry.rotations import matrix_to_quat, quat_to_matrix, rotvec_to_matrix
+from oibar_hil.camera import gl_projection
 from oibar_hil.frames import lvlh_rotation
 from oibar_hil.ports import PORTS
-from oibar_hil.relpose import MOUNT, camera_poses
-from oibar_hil.rotations import matrix_to_quat, quat_to_matrix, rotvec_to_matrix
+from oibar_hil.relpose import camera_poses
 from oibar_hil.trajectory import generate
 
 
@@ -22,7 +24,7 @@ def test_camera_model_matches_lens_and_sensor():
 
 def test_gl_projection_reproduces_pinhole():
     cam = PinholeCamera()
-    P = cam.gl_projection()
+    P = gl_projection(cam)
     rng = np.random.default_rng(0)
     for _ in range(20):
         p = np.array([rng.uniform(-2, 2), rng.uniform(-1, 1), rng.uniform(0.5, 20)])

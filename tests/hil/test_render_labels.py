@@ -4,11 +4,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from oibar_hil.camera import PinholeCamera
-from oibar_hil.meshes import FIXTURE, ID_BOUNDARY, Part, fixture_at_port, fixture_corners_t
+from oibar.geometry.camera import PinholeCamera
+from oibar.geometry.fixture import FIXTURE, fixture_corners_t
+from oibar.geometry.rotations import rotvec_to_matrix
+from oibar.geometry.transforms import transform_points
+from oibar_hil.meshes import ID_BOUNDARY, Part, fixture_at_port
 from oibar_hil.ports import PORTS
-from oibar_hil.relpose import target_points_in_camera
-from oibar_hil.rotations import rotvec_to_matrix
 
 CAM = PinholeCamera()
 PORT = PORTS[1]
@@ -55,7 +56,7 @@ def test_marker_centroids_match_projection(gl_renderer, pose):
     rotvec, T = POSES[pose]
     # ~12 px markers whatever the range, so pixel quantisation stays well below the tolerance.
     ids, R_cam_t = _render_ids(gl_renderer, _markers(0.02 * T[2]), rotvec, T)
-    expected = CAM.project(target_points_in_camera(MARKER_POINTS_T, T, R_cam_t))
+    expected = CAM.project(transform_points(MARKER_POINTS_T, R_cam_t, T))
     for pid, uv in zip(MARKER_IDS, expected, strict=True):
         rows, cols = np.nonzero(ids == pid)
         assert len(rows) > 4, f"marker {pid} not drawn"
@@ -68,7 +69,7 @@ def test_marker_centroids_match_projection(gl_renderer, pose):
 def test_fixture_rectangle_corners_match_projection(gl_renderer, pose):
     rotvec, T = POSES[pose]
     ids, R_cam_t = _render_ids(gl_renderer, fixture_at_port(PORT), rotvec, T)
-    corners = CAM.project(target_points_in_camera(fixture_corners_t(), T, R_cam_t))
+    corners = CAM.project(transform_points(fixture_corners_t(), R_cam_t, T))
     rows, cols = np.nonzero(ids == ID_BOUNDARY)
     centres = np.stack([cols + 0.5, rows + 0.5], axis=1)
     # Every rim pixel lies inside the projected outer rectangle (to within a pixel) ...

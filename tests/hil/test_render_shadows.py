@@ -4,10 +4,10 @@ and a shaded frame does not depend on what was rendered before it (GL state, sha
 import numpy as np
 import trimesh
 
-from oibar_hil.camera import PinholeCamera
+from oibar.geometry.camera import PinholeCamera
+from oibar.geometry.transforms import transform_points
 from oibar_hil.meshes import Part
 from oibar_hil.ports import PORTS
-from oibar_hil.relpose import target_points_in_camera
 
 CAM = PinholeCamera()
 PORT = PORTS[1]
@@ -39,7 +39,7 @@ def _camera_pose():
 
 
 def _pixel(p_t: np.ndarray) -> tuple[int, int]:
-    u, v = CAM.project(target_points_in_camera(p_t[None], T_CAM, np.eye(3)))[0]
+    u, v = CAM.project(transform_points(p_t[None], np.eye(3), T_CAM))[0]
     return int(v), int(u)
 
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from oibar_hil.rotations import rotation_angle_deg
+from oibar.geometry.rotations import rotation_angle_deg
 from oibar_hil.trajectory import TrajectoryParams, generate
 
 P = TrajectoryParams()

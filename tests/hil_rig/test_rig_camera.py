@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from oibar.nav.frames import GEOMETRY, docking_from_camera_pose
+from oibar.geometry.docking import GEOMETRY, MOUNT, docking_from_camera_pose
+from oibar.geometry.fixture import FIXTURE, fixture_corners_t
+from oibar.geometry.rotations import quat_to_matrix
+from oibar.geometry.transforms import transform_points
 from oibar_hil import dataset
 from oibar_hil.dataset import PAPER_SEQUENCES, plan_sequence
 from oibar_hil.meshes import (
-    FIXTURE,
     ID_ADAPTER,
     ID_BOUNDARY,
     ID_CONNECTOR,
@@ -21,12 +23,9 @@ from oibar_hil.meshes import (
     ID_PIN_GUIDE,
     ID_PLATE,
     end_effector,
-    fixture_corners_t,
 )
 from oibar_hil.ports import PORTS
-from oibar_hil.relpose import MOUNT, target_points_in_camera
 from oibar_hil.rig.camera import OrbitClock, RigCamera, RigCameraError, pose_to_lvlh
-from oibar_hil.rotations import quat_to_matrix
 
 SEQ01 = PAPER_SEQUENCES[1]     # iss background, port 1 (+V-bar): the default scene
 SEQ07 = PAPER_SEQUENCES[7]     # perlin background, port 4 (-R-bar): another port, approach and backdrop
@@ -169,7 +168,7 @@ def test_fixture_lands_where_the_pinhole_model_says(cam, pose):
     T, R = frame.T_cam_target_m, frame.R_cam_target
 
     def ids_at(points_t):
-        uv = cam.camera.project(target_points_in_camera(points_t, T, R))
+        uv = cam.camera.project(transform_points(points_t, R, T))
         return ids[np.floor(uv[:, 1]).astype(int), np.floor(uv[:, 0]).astype(int)]
 
     # Through the mouth (F_t origin, and 0.7 mouth radii around it) one sees into the drogue
@@ -186,7 +185,7 @@ def test_fixture_lands_where_the_pinhole_model_says(cam, pose):
 
     # The rim's pixels span the projected outer corners (front face, z = 0) to a pixel.
     rows, cols = np.nonzero(ids == ID_BOUNDARY)
-    uv = cam.camera.project(target_points_in_camera(fixture_corners_t(), T, R))
+    uv = cam.camera.project(transform_points(fixture_corners_t(), R, T))
     np.testing.assert_allclose([cols.min(), cols.max() + 1, rows.min(), rows.max() + 1],
                                [uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()], atol=1.0)
 

@@ -16,16 +16,16 @@ import pytest
 from oibar import pb
 from oibar.camera import CallableSource, FolderSource
 from oibar.cli import main
+from oibar.geometry.docking import camera_pose_from_docking
+from oibar.geometry.rotations import matrix_to_quat
 from oibar.link.core import Request
 from oibar.nav.core import Navigator
 from oibar.nav.cyclelog import CycleLog, CycleLogError, read_log
 from oibar.nav.daemon import DaemonParams, NavDaemon
-from oibar.nav.frames import camera_pose_from_docking
 from oibar.nav.guidance import Guidance, MissionParams
 from oibar.nav.pose import PoseEstimate
 from oibar.nav.replay import replay
 from oibar.nav.vehicle import NullVehicle, RelativeVelocity, VehicleInterface, open_vehicle
-from oibar.rotations import matrix_to_quat
 
 R_TRUE_D_M = np.array([0.05, -0.02, 4.0])
 
@@ -567,6 +567,38 @@ def test_heartbeats_stop_when_the_navigation_loop_hangs(mcu, fast_timings):
         d.shutdown()
     finally:
         client.close()
+
+
+class TrackingEstimator(TruthEstimator):
+    """A TruthEstimator that, like a keypoint model, takes the predicted pose."""
+
+    uses_prior = True
+
+    def __init__(self, confidence=0.9):
+        super().__init__(confidence)
+        self.priors = []
+
+    def estimate(self, image, t_s=0.0, prior=None):
+        self.priors.append(prior)
+        return super().estimate(image, t_s)
+
+
+def test_the_navigator_gives_a_tracking_estimator_the_filters_predicted_pose():
+    """No prediction before the filter has a track; then the filter's pose at the frame's time
+    (the keypoint model crops there); a direct model (uses_prior False) is never passed one."""
+    est = TrackingEstimator(0.9)
+    nav = Navigator(est)
+    nav.step(0.0, grey(), frame_t_s=0.0)
+    assert est.priors == [None]
+    s = nav.step(0.1, grey(), frame_t_s=0.1)
+    R, T = est.priors[-1]
+    st = nav.filter.state(0.1)
+    assert np.allclose(T, st.T_cam_target_m) and np.allclose(R @ R.T, np.eye(3), atol=1e-9)
+    assert np.linalg.norm(T - s.estimate.T_cam_target_m) < 0.05
+    plain = TruthEstimator(0.9)          # its estimate() takes no prior: a call with one would raise
+    nav = Navigator(plain)
+    for k in range(3):
+        assert nav.step(0.1 * k, grey(), frame_t_s=0.1 * k).update is not None
 
 
 def test_bench_link_stub_accepts_commands():

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from oibar.geometry.docking import camera_pose_from_docking, docking_from_camera_pose
+from oibar.geometry.rotations import matrix_to_quat, rotvec_to_matrix
 from oibar.nav.filter import FilterParams, NavFilter
-from oibar.nav.frames import camera_pose_from_docking, docking_from_camera_pose
-from oibar.rotations import matrix_to_quat, rotvec_to_matrix
 
 DT_S = 0.1                                      # 10 Hz, as the camera
 R0_D_M = np.array([0.30, -0.20, 6.0])           # probe tip at the start

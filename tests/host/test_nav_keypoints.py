@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from oibar.nav.keypoints import CropWindow, cut, project, solve_pnp, window_around
-from oibar.rotations import rotvec_to_matrix
+from oibar.geometry.rotations import rotvec_to_matrix
 
 K = np.array([[583.3333, 0, 372.0], [0, 583.3333, 240.0], [0, 0, 1]])
 # a fixture-like point set (rim corners, pin guides, couplings, connector corners, centre)
@@ -123,5 +123,115 @@ def test_far_keypoints_with_an_attitude_prior_give_no_mirrored_pose():
         R_prior = rotvec_to_matrix(np.radians(rng.normal(0, 0.6, 3))) @ R
         r = map_pose(uv, POINTS, K, 1.0, R_prior, 0.15, np.radians(2.0))
         assert r.ok
-        att = np.degrees(np.linalg.norm(__import__("oibar.rotations", fromlist=["x"]).matrix_to_rotvec(r.R_cam_target @ R.T)))
+        att = np.degrees(np.linalg.norm(__import__("oibar.geometry.rotations", fromlist=["x"]).matrix_to_rotvec(r.R_cam_target @ R.T)))
         assert att < 3.0 and np.linalg.norm(r.T_cam_target_m - T) / np.linalg.norm(T) < 0.01, (att, T)
+
+
+# ----------------------------------------------------------------------------- model 0.5.0: depth, weights, tracking
+DEEP = np.vstack([POINTS, [[0.0, 0.0, 0.18]]])     # + the drogue's throat, 0.18 m behind the rim
+
+
+def _att_deg(Ra, Rb):
+    from oibar.geometry.rotations import matrix_to_rotvec
+    return float(np.degrees(np.linalg.norm(matrix_to_rotvec(Ra @ Rb.T))))
+
+
+def test_a_deep_point_pins_the_tilt_that_near_planar_points_cannot():
+    """The reason for the throat keypoint: with 0.3 px of keypoint noise at 3 m, PnP on the
+    near-planar front points alone is degrees off in tilt; one point 0.18 m deep brings it under
+    a degree."""
+    rng = np.random.default_rng(11)
+    flat, deep = [], []
+    for _ in range(30):
+        R, T = _pose(np.radians(rng.uniform(-3, 3, 3)), (rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), 3.0))
+        noise = rng.normal(0, 0.3, (len(DEEP), 2))
+        uv = project(K, DEEP, R, T) + noise
+        flat.append(_att_deg(solve_pnp(uv[:-1], POINTS, K, 3.0).R_cam_target, R))
+        deep.append(_att_deg(solve_pnp(uv, DEEP, K, 3.0).R_cam_target, R))
+    assert np.mean(flat) > 1.5 and np.mean(deep) < 0.6 * np.mean(flat), (np.mean(flat), np.mean(deep))
+
+
+def test_per_keypoint_sigmas_let_a_poorly_found_point_count_less():
+    """The throat 1.5 px off (as it is found under 1.5 m): with one sigma for all it tilts the
+    pose; with its own, larger sigma (the error model's) the others win."""
+    from oibar.nav.keypoints import map_pose
+
+    R, T = _pose(np.radians([1.0, -1.0, 0.5]), (0.05, 0.02, 1.2))
+    uv = project(K, DEEP, R, T)
+    uv[-1] += (1.5, -1.0)
+    R_prior = rotvec_to_matrix(np.radians([1.5, 1.0, 0.0])) @ R
+    same = map_pose(uv, DEEP, K, 4.0, R_prior, 0.3, np.radians(2.0))
+    sig = np.full(len(DEEP), 0.3)
+    sig[-1] = 3.0
+    own = map_pose(uv, DEEP, K, 4.0, R_prior, sig, np.radians(2.0))
+    assert same.ok and own.ok
+    assert _att_deg(own.R_cam_target, R) < 0.5 * _att_deg(same.R_cam_target, R), (
+        _att_deg(own.R_cam_target, R), _att_deg(same.R_cam_target, R))
+
+
+def test_error_model_scales_by_range_and_refuses_bad_tables():
+    from oibar.nav.keypoints import KeypointErrorModel
+
+    table = {"range_edges_m": [0.0, 1.5, 5.0, 100.0], "rms_crop_px": [[0.5, 0.3, 0.4], [2.0, 0.3, 0.5]]}
+    m = KeypointErrorModel(table)
+    near, mid, far = m.scale(0.8), m.scale(3.0), m.scale(250.0)    # beyond the last edge: the last bin
+    assert near[1] / near[0] == pytest.approx(4.0) and mid[1] / mid[0] == pytest.approx(1.0)
+    assert far[1] / far[0] == pytest.approx(1.25)
+    assert np.sqrt(np.mean(np.array(table["rms_crop_px"]) ** 2)) * mid[0] == pytest.approx(0.3)
+    with pytest.raises(ValueError, match="must be"):
+        KeypointErrorModel({"range_edges_m": [0.0, 1.0], "rms_crop_px": [[0.5, 0.3]]})
+    with pytest.raises(ValueError, match="finite and > 0"):
+        KeypointErrorModel({"range_edges_m": [0.0, 1.0, 2.0], "rms_crop_px": [[0.5, 0.0]]})
+
+
+def _bare_estimator(R_true, T_true):
+    """A KeypointPoseEstimator without networks: its 'keypoint network' reports the true points
+    when the crop holds the fixture's centre, nothing otherwise (what a trained net does)."""
+    from oibar.nav.pose import KeypointPoseEstimator
+
+    est = object.__new__(KeypointPoseEstimator)
+    est.K_frame, est.points_m, est.out_px, est.margin = K, DEEP, 128, 1.25
+    est.reproj_crop_px, est.refine_passes, est.meta = 4.0, 2, {"fusion": {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0}}
+    truth = project(K, DEEP, R_true, T_true)
+    centre = truth.mean(0)
+    est.crops = []
+
+    def keypoints(image, win):
+        est.crops.append(win)
+        inside = np.all(np.abs(win.to_crop(centre[None])[0] - win.out_px / 2) < win.out_px * 0.3)
+        uv = truth.copy() if inside else np.full_like(truth, np.nan)
+        return uv, np.zeros(len(uv)), np.ones(len(uv))
+
+    est.keypoints = keypoints
+    return est
+
+
+def test_the_predicted_pose_places_the_first_crop():
+    """At 10 m the direct model can be a metre off sideways: its windows (and the search around
+    them) miss the fixture. The filter's prediction puts the first crop on it."""
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
+    image = np.zeros((480, 744, 3), np.uint8)
+    T_direct = T + (1.6, 0.0, 0.0)
+    est = _bare_estimator(R, T)
+    r, _ = est.solve(image, R, T_direct)
+    assert r is None and len(est.crops) == 11                          # the whole search, in vain
+    est = _bare_estimator(R, T)
+    r, _ = est.solve(image, R, T_direct, prior=(R, T + (0.05, 0.02, 0.1)))
+    assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
+    assert len(est.crops) == 2                                         # the prediction's window, one refinement
+    est = _bare_estimator(R, T)                                        # a wrong prediction costs one crop
+    r, _ = est.solve(image, R, T, prior=(R, T + (1.6, 0.0, 0.0)))
+    assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3 and len(est.crops) == 3
+
+
+def test_an_unusable_prediction_is_ignored_and_a_malformed_one_refused():
+    from oibar.nav.pose import _checked_prior
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
+    assert _checked_prior(None) is None
+    assert _checked_prior((R, T)) is not None
+    assert _checked_prior((R, np.array([0.0, 0.0, -1.0]))) is None                 # behind the camera
+    assert _checked_prior((np.full((3, 3), np.nan), T)) is None
+    assert _checked_prior((2 * R, T)) is None                                       # not a rotation
+    with pytest.raises(ValueError, match="prior must be"):
+        _checked_prior((R, T[:2]))

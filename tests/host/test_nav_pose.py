@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from oibar.nav.pose import FrameError, ModelFileError, PoseEstimator, read_metadata, resize_frame
-from oibar.rotations import matrix_to_quat, rot_x, rot_y
+from oibar.geometry.rotations import matrix_to_quat, rot_x, rot_y
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnxruntime")
@@ -187,7 +187,7 @@ def test_filter_study_end_to_end(model, tmp_path):
     """Four frames of a sequence (random pixels: the tiny net is untrained) through the study."""
     from PIL import Image
 
-    from oibar.nav import filter_study
+    from oibar_models import filter_study   # a study: it lives with the models, not in flight code
 
     seq = tmp_path / "data" / "seq01"
     (seq / "frames").mkdir(parents=True)

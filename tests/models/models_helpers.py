@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from oibar_models.geometry import quat_from_matrix_np, rot_x, rot_y, rot_z
+from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
+from oibar.geometry.rotations import rot_x, rot_y, rot_z
 
 CAMERA = {"width_px": 744, "height_px": 480, "fx_px": 3.5 / 6.0e-3, "fy_px": 3.5 / 6.0e-3, "cx_px": 372.0,
           "cy_px": 240.0}

@@ -9,6 +9,10 @@ import numpy as np
 import pytest
 from models_helpers import CAMERA, tiny_config
 
+from oibar.geometry.camera import intrinsics, rotation_homography, scale_intrinsics
+from oibar.geometry.camera import project_camera_points as project_np
+from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
+from oibar.geometry.rotations import rot_x, rot_y, rot_z
 from oibar_models.config import AugmentConfig
 from oibar_models.data import (
     Augmenter,
@@ -18,16 +22,6 @@ from oibar_models.data import (
     load_sequence,
     split_subsequences,
     warp_homography,
-)
-from oibar_models.geometry import (
-    intrinsics,
-    project_np,
-    quat_to_matrix_np,
-    rot_x,
-    rot_y,
-    rot_z,
-    rotation_homography,
-    scale_intrinsics,
 )
 
 

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from oibar_hil.rotations import matrix_to_quat, rotvec_to_matrix
+from oibar.geometry.rotations import matrix_to_quat, rotvec_to_matrix
+from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
 from oibar_models import metrics
 from oibar_models.config import ConfigError, from_dict, load_config, parse_override
 from oibar_models.engine import cyclical_lr
-from oibar_models.geometry import matrix_from_rot6d, quat_from_matrix, quat_to_matrix_np, rot6d_from_matrix
+from oibar_models.geometry import matrix_from_rot6d, quat_from_matrix, rot6d_from_matrix
 from oibar_models.loss import UncertaintyPoseLoss
 
 CONFIGS = sorted((Path(__file__).resolve().parents[2] / "models" / "configs").glob("*.yaml"))

@@ -142,7 +142,8 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     assert export_main(["--config", str(CONFIG), "--out", str(out), *_smoke_overrides(tiny_dataset, kp_sets, run)]) == 0
     est = PoseEstimator(out, warmup_runs=1)
     assert isinstance(est, KeypointPoseEstimator)
-    assert est.points_m.shape == (13, 3) and est.meta["first_pass"] == "oibarnet_lite.onnx"
+    from oibar_models.kpnet import FIXTURE_KEYPOINTS
+    assert est.points_m.shape == (len(FIXTURE_KEYPOINTS), 3) and est.meta["first_pass"] == "oibarnet_lite.onnx"
 
     # bad input: never a confident wrong pose
     black = np.zeros((480, 744, 3), np.uint8)
@@ -172,3 +173,50 @@ def test_ddp_two_processes_on_gloo(tiny_dataset, kp_sets, tmp_path):
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-4000:]
     assert torch.load(run / "last.pt", weights_only=False)["step"] == 4
     assert not (run / "rank1").exists()
+
+
+# ----------------------------------------------------------------------------- model 0.5.0: the throat
+def test_the_throat_is_labelled_visible_only_down_the_funnel():
+    """The throat sits 0.18 m inside the funnel: a training label says 'visible' only within its
+    view cone; the front-face points are visible from any side of the fixture."""
+    from oibar.geometry.rotations import rot_y
+    from oibar_models.kp_data import off_axis_deg, visible
+    from oibar_models.kp_engine import view_limits
+    from oibar_models.kpnet import FIXTURE_KEYPOINTS
+    from oibar.nav.keypoints import CropWindow, project
+
+    names = [n for n, _ in FIXTURE_KEYPOINTS]
+    throat = names.index("drogue_throat")
+    P, limits = keypoints_m(), np.array(view_limits())
+    K = np.array([[583.3, 0, 372.0], [0, 583.3, 240.0], [0, 0, 1]])
+    T = np.array([0.0, 0.0, 3.0])
+    for tilt_deg, seen in ((0.0, True), (15.0, True), (35.0, False), (-35.0, False)):
+        R = rot_y(np.radians(tilt_deg))
+        off = off_axis_deg(P, R, T)
+        cam_t = -R.T @ T                                  # the camera in F_t
+        ray = cam_t - P[throat]
+        assert off[throat] == pytest.approx(np.degrees(np.arccos(-ray[2] / np.linalg.norm(ray))), abs=1e-6)
+        assert abs(off[throat] - abs(tilt_deg)) < 2.5     # the tilt plus the ray's slant to the point
+        uv = project(K, P, R, T)
+        win = CropWindow((372.0, 240.0), 300.0, 128)
+        vis = visible(uv, (744, 480), win, off, limits)
+        assert vis[throat] == seen
+        assert vis[[i for i in range(len(P)) if i != throat]].all()
+
+
+def test_a_checkpoint_with_fewer_keypoints_grows_into_the_new_head():
+    """Stage 3 starts from stage 2 (13 keypoints): every known keypoint keeps its head, the new
+    one starts from its nearest known neighbour's (the throat from the drogue's centre)."""
+    from oibar_models.kp_engine import load_grown
+    from oibar_models.kpnet import FIXTURE_KEYPOINTS, KeypointNet
+
+    names = [n for n, _ in FIXTURE_KEYPOINTS]
+    old = KeypointNet(len(names) - 1, 16, pretrained=False)
+    new = KeypointNet(len(names), 16, pretrained=False)
+    grown = load_grown(new, old.state_dict(), names[:-1])
+    assert grown == ["drogue_throat"]
+    centre = names.index("drogue_centre")
+    w_old, w_new = old.state_dict()["head.3.weight"], new.state_dict()["head.3.weight"]
+    assert torch.equal(w_new[: len(names) - 1], w_old) and torch.equal(w_new[-1], w_old[centre])
+    assert torch.equal(new.state_dict()["present.weight"][-1], old.state_dict()["present.weight"][centre])
+    assert torch.equal(new.state_dict()["lateral.0.weight"], old.state_dict()["lateral.0.weight"])

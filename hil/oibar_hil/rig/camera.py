@@ -6,7 +6,7 @@ the scene, lighting, orbit clock, intrinsics (744x480, f = 583.3 px) and image p
 the synthetic dataset (oibar_hil.dataset) for one of the paper's sequence specs:
 
   pose      (r_D_m, att_rad) of the rig world -> (T_cam_target, R_cam_target) with
-            oibar.nav.frames.camera_pose_from_docking (the mount and probe numbers of
+            oibar.geometry.docking.camera_pose_from_docking (the mount and probe numbers of
             GEOMETRY, the same ones oibar_hil.relpose labels the dataset with), then the
             camera's pose in LVLH from the spec's port, as relpose.camera_poses does;
   scene     scene_parts(background, port), Perlin seed = the spec's seed (dataset._renderer_for);
@@ -35,9 +35,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oibar.nav.frames import GEOMETRY, DockingGeometry, camera_pose_from_docking
+from oibar.geometry.camera import PinholeCamera
+from oibar.geometry.docking import GEOMETRY, DockingGeometry, camera_pose_from_docking
 
-from ..camera import PinholeCamera
 from ..dataset import PAPER_SEQUENCES, SUN_UPDATE_S, SequenceSpec, encode_image
 from ..orbit import DEFAULT_TLE, TargetOrbit, julian_date, parse_utc
 from ..ports import PORTS, Port

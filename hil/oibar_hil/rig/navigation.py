@@ -22,10 +22,10 @@ from typing import Any
 import numpy as np
 
 from oibar.camera import Frame
+from oibar.geometry.docking import camera_pose_from_docking
+from oibar.geometry.rotations import matrix_to_quat
 from oibar.nav.core import NavStep
-from oibar.nav.frames import camera_pose_from_docking
 from oibar.nav.guidance import NavSolution
-from oibar.rotations import matrix_to_quat
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 _TOKEN_IMAGE = np.zeros((1, 1, 3), np.uint8)

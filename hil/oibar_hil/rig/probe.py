@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from oibar.nav.frames import docking_from_camera_pose
+from oibar.geometry.docking import docking_from_camera_pose
 
 RANGES_M = (3.0, 1.0, 0.5)
 LATERAL_FRACTION = 0.06       # offsets of +-6 % of the range on each axis (the approach corridor)

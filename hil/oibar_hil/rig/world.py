@@ -24,9 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from oibar.nav.frames import R_D_CAM_ALIGNED  # camera axes in D when aligned (one definition)
+from oibar.geometry.docking import R_D_cam_from_attitude, lateral_offset_m, misalignment_deg
 from oibar.nav.vehicle import RelativeVelocity
-from oibar_hil.rotations import rotvec_to_matrix
 
 
 @dataclass
@@ -111,16 +110,15 @@ class World:
 
     @property
     def lateral_m(self) -> float:
-        return float(np.hypot(self.s.r_D_m[0], self.s.r_D_m[1]))
+        return lateral_offset_m(self.s.r_D_m)
 
     def R_D_cam(self) -> np.ndarray:
-        return R_D_CAM_ALIGNED @ rotvec_to_matrix(self.s.att_rad)
+        return R_D_cam_from_attitude(self.s.att_rad)
 
     @property
     def misalignment_deg(self) -> float:
         """Combined yaw/pitch: angle between the camera boresight and -z_D (roll excluded)."""
-        z_cam_D = self.R_D_cam()[:, 2]
-        return float(np.degrees(np.arccos(np.clip(-z_cam_D[2], -1.0, 1.0))))
+        return misalignment_deg(self.R_D_cam())
 
     def clamp_lateral(self, radius_m: float) -> None:
         r = self.lateral_m

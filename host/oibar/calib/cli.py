@@ -4,7 +4,9 @@
     oibar calib estimate --mocap M --frames F --pattern P --housing-body H --target-body T -o calib.json
     oibar calib apply --calib calib.json --mocap M --frames F -o poses.csv
     oibar calib overlay --poses poses.csv --out DIR [--every N]
-    oibar calib synth OUT_DIR                    a synthetic recording with known truth
+
+A synthetic recording with known truth (rendered, so it lives with the simulator):
+    python -m oibar_hil.calib_synth OUT_DIR
 
 Bad input ends with one line `oibar: error: ...` and exit status 2.
 """
@@ -12,7 +14,6 @@ Bad input ends with one line `oibar: error: ...` and exit status 2.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -42,7 +43,8 @@ def register(sub) -> None:
     es.add_argument("--offset-search-s", type=float, default=0.5, help="search +- this many seconds (default 0.5)")
     es.add_argument("--mocap-sigma-mm", type=float, default=0.2, help="RMS mocap position noise per sample (0.2)")
     es.add_argument("--mocap-sigma-deg", type=float, default=0.5, help="RMS mocap rotation noise per sample (0.5)")
-    es.add_argument("--corner-sigma-px", type=float, default=None, help="corner noise (default: from the PnP residuals)")
+    es.add_argument("--corner-sigma-px", type=float, default=None,
+                    help="corner noise (default: from the PnP residuals)")
     es.add_argument("--housing-body", required=True, help="mocap rigid body on the camera housing")
     es.add_argument("--target-body", required=True, help="mocap rigid body on the target")
     es.add_argument("-o", "--out", type=Path, required=True, help="calibration JSON to write")
@@ -64,12 +66,6 @@ def register(sub) -> None:
     ov.add_argument("--every", type=int, default=10, metavar="N", help="every N-th row (default 10)")
     ov.add_argument("--out", type=Path, required=True, help="output folder for the PNGs")
     ov.set_defaults(handler=cmd_overlay)
-
-    sy = cs.add_parser("synth", help="write a synthetic calibration recording with known truth")
-    sy.add_argument("out", type=Path)
-    sy.add_argument("--poses", type=int, default=200)
-    sy.add_argument("--seed", type=int, default=1)
-    sy.set_defaults(handler=cmd_synth)
 
 
 def _inputs(p) -> None:
@@ -141,7 +137,7 @@ def cmd_estimate(a) -> int:
 
 
 def summary(res: dict) -> str:
-    from .transforms import R_to_quat_wxyz
+    from oibar.geometry.rotations import matrix_to_quat as R_to_quat_wxyz
 
     lines = []
     for key in ("T_housing_cam", "T_tmarkers_target"):
@@ -153,9 +149,11 @@ def summary(res: dict) -> str:
     lines.append(f"offset_s: {res['offset_s']:.5f}" + (f" (1 sigma {so:.2f} ms)" if so else " (given)"))
     p, r = res["poses"], res["residuals"]
     lines.append(f"poses: {p['used']} used of {p['pattern_found']} with the pattern ({p['frames']} frames), "
-                 f"{p['outliers']} outliers; max rotation {p['max_rotation_deg']:.0f} deg, axis spread {p['axis_spread']:.2f}")
+                 f"{p['outliers']} outliers; max rotation {p['max_rotation_deg']:.0f} deg, "
+                 f"axis spread {p['axis_spread']:.2f}")
     lines.append(f"residuals: chi2/dof {r['chi2_per_dof']:.2f}; per pose {r['pose_translation_mm']['rms']:.2f} mm / "
-                 f"{r['pose_rotation_deg']['rms']:.3f} deg RMS; chain reprojection {r['chain_reprojection_px']['rms']:.2f} px RMS; "
+                 f"{r['pose_rotation_deg']['rms']:.3f} deg RMS; "
+                 f"chain reprojection {r['chain_reprojection_px']['rms']:.2f} px RMS; "
                  f"PnP {r['pnp_reprojection_px']['rms']:.3f} px RMS")
     return "\n".join(lines)
 
@@ -203,13 +201,4 @@ def cmd_overlay(a) -> int:
         cv2.imwrite(str(a.out / f"overlay_{row['frame']:06d}.png"), img)
         n += 1
     print(f"{n} overlays -> {a.out}")
-    return EXIT_OK
-
-
-def cmd_synth(a) -> int:
-    from .synthetic import SynthConfig, write_recording
-
-    tr = write_recording(a.out, SynthConfig(n_frames=a.poses, seed=a.seed))
-    print(f"wrote {a.out}: mocap.csv, frames.csv, frames/, pattern.json, intrinsics.json, truth.json")
-    print(json.dumps({k: tr[k] for k in ("T_housing_cam", "T_tmarkers_target", "offset_s")}))
     return EXIT_OK

@@ -16,8 +16,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from oibar.geometry.rotations import rotation_angles_deg as rotation_angle_deg
+from oibar.geometry.transforms import inv_T, make_T
+
 from .errors import CalibError
-from .transforms import inv_T, make_T, rotation_angle_deg
 
 MIN_POSES = 10
 MIN_ROTATION_SPREAD_DEG = 10.0   # largest rotation between two poses

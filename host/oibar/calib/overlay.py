@@ -1,5 +1,5 @@
-"""Reprojection overlay for visual checks: the target model (feature edges of the berthing
-fixture mesh, from oibar_hil.meshes) and its axes drawn from a camera-to-target pose, and
+"""Reprojection overlay for visual checks: the target model (the berthing fixture's outline,
+oibar.geometry.fixture.fixture_wireframe_t) and its axes drawn from a camera-to-target pose, and
 optionally the pattern corners predicted through the calibrated mocap chain (circles) next to
 the detected ones (crosses). Hidden edges are drawn too: it is a wireframe.
 """
@@ -11,23 +11,18 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from oibar.geometry.fixture import fixture_wireframe_t
+
 from .pnp import Intrinsics, project
 
-FEATURE_ANGLE_DEG = 30.0
 AXIS_LENGTH_M = 0.15
 
 
 @lru_cache(maxsize=1)
 def model_edges_target() -> np.ndarray:
-    """(E, 2, 3) segments in F_t: mesh edges whose two faces meet at more than 30 deg."""
-    from oibar_hil.meshes import berthing_fixture
-
-    segs = []
-    for part in berthing_fixture():
-        m = part.mesh
-        sharp = m.face_adjacency_angles > np.radians(FEATURE_ANGLE_DEG)
-        segs.append(m.vertices[m.face_adjacency_edges[sharp]])
-    return np.concatenate(segs).astype(float)
+    """(E, 2, 3) segments in F_t, metres: the fixture's outline (rim, drogue, pin guides,
+    couplings, connector)."""
+    return fixture_wireframe_t()
 
 
 def _pt(uv) -> tuple[int, int]:
@@ -45,7 +40,7 @@ def draw_model(image_bgr: np.ndarray, T_cam_target: np.ndarray, intr: Intrinsics
             cv2.line(img, _pt(a), _pt(b), color, 1, cv2.LINE_AA, shift=4)
     axes = project(np.vstack([np.zeros(3), np.eye(3) * AXIS_LENGTH_M]), T_cam_target, intr)
     if np.all(np.isfinite(axes)):
-        for tip, col in zip(axes[1:], ((0, 0, 255), (0, 255, 0), (255, 96, 0))):   # X red, Y green, Z blue
+        for tip, col in zip(axes[1:], ((0, 0, 255), (0, 255, 0), (255, 96, 0)), strict=True):   # X red, Y green, Z blue
             cv2.line(img, _pt(axes[0]), _pt(tip), col, 2, cv2.LINE_AA, shift=4)
     return img
 

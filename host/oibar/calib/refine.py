@@ -21,15 +21,16 @@ samples, piecewise linear in the offset) pass an `offset_window_s` of None and a
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.stats import chi2
 
+from oibar.geometry.transforms import T_from_vec, adjoint, inv_T, log_T
+
 from .errors import CalibError
-from .transforms import T_from_vec, adjoint, inv_T, log_T
 
 OUTLIER_P = 0.999
 

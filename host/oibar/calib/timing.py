@@ -17,8 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from oibar.geometry.rotations import rotation_angles_deg as rotation_angle_deg
+
 from .errors import CalibError
-from .transforms import rotation_angle_deg
 
 
 @dataclass

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from oibar.geometry.rotations import quat_to_matrix
 from oibar.nav.filter import NavFilter
 from oibar.nav.guidance import NavSolution
 from oibar.nav.pose import FrameError, PoseEstimate, PoseEstimator
@@ -84,7 +85,11 @@ class Navigator:
             else:
                 t0 = time.perf_counter()
                 try:
-                    est = self.estimator.estimate(frame, t_s=ft)
+                    prior = self._predicted_pose(ft)
+                    if prior is not None:
+                        est = self.estimator.estimate(frame, t_s=ft, prior=prior)
+                    else:
+                        est = self.estimator.estimate(frame, t_s=ft)
                 except FrameError as exc:
                     reason = f"malformed frame: {exc}"
                 timings["estimate_ms"] = (time.perf_counter() - t0) * 1e3
@@ -112,6 +117,19 @@ class Navigator:
             q_cam_target=np.asarray(st.q_cam_target, dtype=float),
             confidence=float(est.confidence) if est is not None else 0.0, hold_reason=reason)
         return NavStep(t_s, sol, frame_seq, frame_t_s, est, upd, reason, timings, velocity_update=vel_upd)
+
+    def _predicted_pose(self, t_s: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The filter's pose for the frame's time, for an estimator that looks where the target
+        should be (a keypoint model's crop); None while the filter has no valid track."""
+        if not getattr(self.estimator, "uses_prior", False) or not self.filter.initialised:
+            return None
+        try:
+            st = self.filter.state(t_s)
+        except ValueError:          # a frame older than the filter's clock
+            return None
+        if not st.valid:
+            return None
+        return quat_to_matrix(np.asarray(st.q_cam_target, float)), np.asarray(st.T_cam_target_m, float)
 
     def _fuse_velocity(self, t_s: float, odometry: Any) -> Any:
         try:

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from oibar.nav.frames import (
+from oibar.geometry.docking import (
     GEOMETRY,
     R_D_CAM_ALIGNED,
     DockingGeometry,
@@ -43,7 +43,7 @@ from oibar.nav.frames import (
     camera_pose_from_docking,
     docking_from_camera_pose,
 )
-from oibar.rotations import matrix_to_quat, rotvec_to_matrix
+from oibar.geometry.rotations import matrix_to_quat, rotvec_to_matrix
 
 CHI2_3DOF_P001 = 16.266   # chi-square, 3 degrees of freedom, upper tail 0.001
 

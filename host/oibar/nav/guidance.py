@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from oibar import pb
+from oibar.geometry.docking import lateral_offset_m
 from oibar.link.protocols import Event, Telemetry
 
 MAX_CLEAR_ATTEMPTS = 3
@@ -97,7 +98,7 @@ class MissionParams:
 
 @dataclass
 class NavSolution:
-    """What guidance needs from navigation, in the docking frame D (oibar.nav.frames)."""
+    """What guidance needs from navigation, in the docking frame D (oibar.geometry.docking)."""
 
     valid: bool
     r_D_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -119,7 +120,7 @@ class NavSolution:
 
     @property
     def lateral_m(self) -> float:
-        return float(np.hypot(self.r_D_m[0], self.r_D_m[1]))
+        return lateral_offset_m(self.r_D_m)
 
 
 @dataclass

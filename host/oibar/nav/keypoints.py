@@ -18,6 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oibar.geometry.camera import project_target_points as project  # noqa: F401  (target points -> px, corner convention)
+from oibar.geometry.fixture import FIXTURE_KEYPOINTS  # noqa: F401  (re-exported)
+
 
 @dataclass(frozen=True)
 class CropWindow:
@@ -77,15 +80,6 @@ def cut(image: np.ndarray, win: CropWindow) -> np.ndarray:
                           borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
 
 
-def project(K: np.ndarray, points_m: np.ndarray, R: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Target points (N, 3) -> pixels (N, 2), corner convention. Points behind the camera: NaN."""
-    p = np.asarray(points_m, float) @ np.asarray(R, float).T + np.asarray(T, float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = (p @ np.asarray(K, float).T)[:, :2] / p[:, 2:3]
-    uv[p[:, 2] <= 0] = np.nan
-    return uv
-
-
 @dataclass
 class PnpResult:
     ok: bool
@@ -143,18 +137,20 @@ def refine_with_prior(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, R:
     hundredth of a pixel, so PnP's attitude there is noise while its position is sharp; close in,
     the keypoints pin the attitude far better than the direct model. Weighting both by their
     errors lets each dominate where it is good, with no range switch to tune.
+    `sigma_px` is one number or one per point (keypoints are not all found equally well).
     Returns (R, T, rms_px over the given points, cost)."""
-    from ..rotations import matrix_to_rotvec, rotvec_to_matrix
+    from oibar.geometry.rotations import matrix_to_rotvec, rotvec_to_matrix
 
     uv = np.asarray(uv_px, float)
     good = np.all(np.isfinite(uv), axis=1)
+    sig = np.broadcast_to(np.asarray(sigma_px, float), (len(uv),))[good][:, None]
     P, uv = np.asarray(points_m, float)[good], uv[good]
     R = np.asarray(R, float)
     T = np.asarray(T, float)
 
     def residuals(x: np.ndarray) -> np.ndarray:
         Rx = rotvec_to_matrix(x[:3]) @ R
-        r_img = ((project(K, P, Rx, T + x[3:]) - uv) / sigma_px).ravel()
+        r_img = ((project(K, P, Rx, T + x[3:]) - uv) / sig).ravel()
         r_att = matrix_to_rotvec(Rx @ R_prior.T) / sigma_prior_rad
         return np.concatenate([r_img, r_att])
 
@@ -179,7 +175,7 @@ def refine_with_prior(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, R:
             break
     res = project(K, P, R, T) - uv
     rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
-    cost = float(np.sum(res ** 2) / sigma_px ** 2 + np.sum(matrix_to_rotvec(R @ R_prior.T) ** 2) / sigma_prior_rad ** 2)
+    cost = float(np.sum((res / sig) ** 2) + np.sum(matrix_to_rotvec(R @ R_prior.T) ** 2) / sigma_prior_rad ** 2)
     return R, T, rms, cost
 
 
@@ -201,12 +197,13 @@ def translation_given_rotation(uv_px: np.ndarray, points_m: np.ndarray, K: np.nd
 
 
 def map_pose(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, reproj_px: float, R_prior: np.ndarray,
-             sigma_px: float | None, sigma_prior_rad: float | None, min_points: int = 5) -> PnpResult:
+             sigma_px: float | np.ndarray | None, sigma_prior_rad: float | None, min_points: int = 5) -> PnpResult:
     """The pose from keypoints and an attitude prior. Two starts, refined by refine_with_prior, the
     lower cost kept: PnP (RANSAC + LM) and (R_prior, its least-squares T). The second start is what
     saves far frames, where near-planar keypoints let PnP fall into a mirrored pose that fits the
     pixels as well as the true one. Keypoints further than `reproj_px` from the chosen pose are
-    dropped and the pose refined again. Without a prior (sigma None): PnP alone."""
+    dropped and the pose refined again. Without a prior (sigma None): PnP alone. `sigma_px`: one
+    number, or one per keypoint (the export's error model, KeypointErrorModel)."""
     pnp = solve_pnp(uv_px, points_m, K, reproj_px, min_points=min_points)
     if sigma_px is None or sigma_prior_rad is None:
         return pnp
@@ -230,9 +227,33 @@ def map_pose(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, reproj_px: 
             continue
         uv1 = np.where(keep[:, None], uv, np.nan)
         R, T, rms, cost = refine_with_prior(uv1, points_m, K, R, T, R_prior, sigma_px, sigma_prior_rad)
-        cost += float((~keep & np.all(np.isfinite(uv), axis=1)).sum()) * (reproj_px / sigma_px) ** 2
+        dropped = ~keep & np.all(np.isfinite(uv), axis=1)
+        cost += float(np.sum((reproj_px / np.broadcast_to(np.asarray(sigma_px, float), (len(uv),))[dropped]) ** 2))
         if T[2] > 0 and (best is None or cost < best[0]):
             best = (cost, PnpResult(True, R, T, np.flatnonzero(keep), rms))
     if best is None:
         return PnpResult(False, reason=pnp.reason or "no consistent pose with the attitude prior")
     return best[1]
+
+
+class KeypointErrorModel:
+    """How well each keypoint is found, by camera range: RMS error (crop pixels) per keypoint and
+    range bin, measured on the validation scenes (oibar_models.kp_fusion) and shipped in the
+    export's ``oibar.fusion``. The fit weighs each keypoint by it: the drogue's throat, say, is
+    sharp at 3-8 m and four times worse under 1.5 m, where a fixed weight would let it tilt the
+    pose by degrees. Relative weights only: ``scale(range)`` is the RMS over the overall RMS."""
+
+    def __init__(self, table: dict):
+        self.edges_m = np.asarray(table["range_edges_m"], float)
+        self.rms_crop_px = np.asarray(table["rms_crop_px"], float)     # (K, bins)
+        if self.rms_crop_px.ndim != 2 or self.rms_crop_px.shape[1] != len(self.edges_m) - 1:
+            raise ValueError(f"error model: rms_crop_px must be (keypoints, {len(self.edges_m) - 1}), "
+                             f"got {self.rms_crop_px.shape}")
+        if not np.all(np.isfinite(self.rms_crop_px)) or np.any(self.rms_crop_px <= 0):
+            raise ValueError("error model: every rms_crop_px must be finite and > 0")
+        self.ref_crop_px = float(np.sqrt(np.mean(self.rms_crop_px ** 2)))
+
+    def scale(self, range_m: float) -> np.ndarray:
+        """(K,) per-keypoint sigma relative to the overall one, at this camera range."""
+        b = int(np.clip(np.searchsorted(self.edges_m, range_m, side="right") - 1, 0, self.rms_crop_px.shape[1] - 1))
+        return self.rms_crop_px[:, b] / self.ref_crop_px

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from ..rotations import matrix_to_quat
+from oibar.geometry.rotations import matrix_to_quat
 
 METADATA_PREFIX = "oibar."
 REQUIRED_OUTPUTS = ("position_m", "q_cam_target", "R_cam_target")
@@ -231,7 +231,13 @@ class PoseEstimator:
             raise FrameError(f"frame {w}x{h} has aspect {w / h:.3f}, the model expects the camera's "
                              f"{fw}x{fh} ({fw / fh:.3f}); a crop or rotation would distort the geometry")
 
-    def estimate(self, image_rgb_uint8: np.ndarray, t_s: float = 0.0) -> PoseEstimate:
+    # Whether estimate() uses a predicted pose (the navigation filter's) to look in the right place.
+    uses_prior = False
+
+    def estimate(self, image_rgb_uint8: np.ndarray, t_s: float = 0.0,
+                 prior: tuple[np.ndarray, np.ndarray] | None = None) -> PoseEstimate:
+        """One frame -> pose. `prior` (R_cam_target, T_cam_target_m), the pose predicted for this
+        frame, is ignored by a direct model: it sees the whole frame anyway."""
         if not np.isfinite(t_s):
             raise FrameError(f"frame time t_s must be finite, got {t_s}")
         self.check_frame(image_rgb_uint8)
@@ -306,6 +312,22 @@ SEARCH_STEPS = ((0, 0, 1.0), (-0.5, 0, 1.0), (0.5, 0, 1.0), (0, -0.5, 1.0), (0, 
 MIN_INLIERS = 5
 
 
+def _checked_prior(prior) -> tuple[np.ndarray, np.ndarray] | None:
+    """A usable predicted pose or None: a rotation and a finite translation in front of the camera."""
+    if prior is None:
+        return None
+    try:
+        R = np.asarray(prior[0], float).reshape(3, 3)
+        T = np.asarray(prior[1], float).reshape(3)
+    except (TypeError, ValueError, IndexError) as exc:
+        raise ValueError(f"prior must be (R_cam_target 3x3, T_cam_target_m 3), got {prior!r}") from exc
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(T))) or T[2] <= 0:
+        return None
+    if abs(np.linalg.det(R) - 1.0) > 1e-3 or not np.allclose(R.T @ R, np.eye(3), atol=1e-3):
+        return None
+    return R, T
+
+
 class KeypointPoseEstimator(PoseEstimator):
     """Keypoints + PnP (issue 15): the direct model (the first pass, a file beside this one named
     by ``oibar.first_pass``) places a crop at full resolution around the fixture; the keypoint
@@ -348,6 +370,8 @@ class KeypointPoseEstimator(PoseEstimator):
         self.range_limits_m = tuple(float(v) for v in range_limits_m)
         self.defect_scale = float(defect_scale)
         self.refine_passes = max(1, int(refine_passes))
+        if (self.meta.get("fusion") or {}).get("kp_error_model"):
+            self._error_model(self.meta["fusion"])      # a malformed table fails here, not in flight
         zero = np.zeros((1, 3, self.out_px, self.out_px), np.float32)
         for _ in range(warmup_runs):
             self.run(zero)
@@ -371,50 +395,87 @@ class KeypointPoseEstimator(PoseEstimator):
         uv[present < self.min_present] = np.nan
         return uv, spread, present
 
-    def solve(self, image: np.ndarray, R_direct: np.ndarray, T_direct: np.ndarray, fusion: dict | None = None):
-        """Crop around the current pose (first the direct model's), keypoints, pose
-        (keypoints.map_pose: PnP, and with the export's ``oibar.fusion`` weights the direct
-        attitude as a prior); then `refine_passes - 1` more times from the newest pose. When the
-        first window finds nothing, the windows of SEARCH_STEPS are tried in turn (the direct
-        model can be 1 m off sideways at 10 m on an unseen scene). Returns (PnpResult or None,
-        the last window)."""
+    def solve(self, image: np.ndarray, R_direct: np.ndarray, T_direct: np.ndarray, fusion: dict | None = None,
+              prior: tuple[np.ndarray, np.ndarray] | None = None):
+        """Crop around the current pose, keypoints, pose (keypoints.map_pose: PnP, and with the
+        export's ``oibar.fusion`` weights the direct attitude as a prior); then
+        `refine_passes - 1` more times from the newest pose. The first window is the predicted
+        pose's (`prior`, from the navigation filter) when there is one, else the direct model's.
+        When that finds nothing, the windows of SEARCH_STEPS around the direct model's pose are
+        tried in turn (the direct model can be 1 m off sideways at 10 m on an unseen scene).
+        The prior only places the crop; the attitude prior of the fit stays the direct model's,
+        so a wrong prediction cannot feed itself back. Returns (PnpResult or None, the last window)."""
         from .keypoints import CropWindow, project, window_around
 
         f = self.meta.get("fusion") if fusion is None else fusion
-        uv0 = project(self.K_frame, self.points_m, R_direct, T_direct)
-        if not np.all(np.isfinite(uv0)):
-            return None, None
-        base = window_around(uv0, self.out_px, self.margin)
         best = None
-        for dx, dy, k in SEARCH_STEPS:
-            c = (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px)
-            r, win = self._one_pass(image, CropWindow(c, base.side_px * k, self.out_px), R_direct, f)
-            if r is not None:
-                best = (r, win)
-                break
+        if prior is not None:
+            uv_p = project(self.K_frame, self.points_m, prior[0], prior[1])
+            if np.all(np.isfinite(uv_p)):
+                r, win = self._one_pass(image, window_around(uv_p, self.out_px, self.margin), R_direct, f,
+                                        float(np.linalg.norm(prior[1])))
+                if r is not None:
+                    best = (r, win)
+        if best is None:
+            uv0 = project(self.K_frame, self.points_m, R_direct, T_direct)
+            if not np.all(np.isfinite(uv0)):
+                return None, None
+            base = window_around(uv0, self.out_px, self.margin)
+            for dx, dy, k in SEARCH_STEPS:
+                c = (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px)
+                r, win = self._one_pass(image, CropWindow(c, base.side_px * k, self.out_px), R_direct, f,
+                                        float(np.linalg.norm(T_direct)) / k)
+                if r is not None:
+                    best = (r, win)
+                    break
         if best is None:
             return None, None
         for _ in range(self.refine_passes - 1):
             uv = project(self.K_frame, self.points_m, best[0].R_cam_target, best[0].T_cam_target_m)
-            r, win = self._one_pass(image, window_around(uv, self.out_px, self.margin), R_direct, f)
+            r, win = self._one_pass(image, window_around(uv, self.out_px, self.margin), R_direct, f,
+                                    float(np.linalg.norm(best[0].T_cam_target_m)))
             if r is None:
                 break
             best = (r, win)
         return best
 
-    def _one_pass(self, image, win, R_direct, f):
+    def _one_pass(self, image, win, R_direct, f, range_m: float):
         from .keypoints import map_pose
 
         uv, _, _ = self.keypoints(image, win)
         s_px = float(f["sigma_crop_px"]) / win.scale if f else None
+        if s_px is not None and f.get("kp_error_model"):
+            s_px = s_px * self._error_model(f).scale(range_m)
         s_rad = np.radians(float(f["sigma_prior_deg"])) if f else None
         r = map_pose(uv, self.points_m, self.K_frame, self.reproj_crop_px / win.scale, R_direct, s_px, s_rad, MIN_INLIERS)
         return (r, win) if r.ok else (None, None)
 
-    def estimate(self, image_rgb_uint8: np.ndarray, t_s: float = 0.0) -> PoseEstimate:
+    def _error_model(self, f: dict):
+        """The fusion's KeypointErrorModel, built once per fusion table."""
+        from .keypoints import KeypointErrorModel
+
+        key = id(f["kp_error_model"])
+        if getattr(self, "_err_key", None) != key:
+            try:
+                model = KeypointErrorModel(f["kp_error_model"])
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ModelFileError(f"{self.path}: oibar.fusion.kp_error_model is malformed ({exc})") from exc
+            if model.rms_crop_px.shape[0] != len(self.points_m):
+                raise ModelFileError(f"{self.path}: oibar.fusion.kp_error_model has {model.rms_crop_px.shape[0]} "
+                                     f"keypoints, the model {len(self.points_m)}")
+            self._err_key, self._err_model = key, model
+        return self._err_model
+
+    uses_prior = True
+
+    def estimate(self, image_rgb_uint8: np.ndarray, t_s: float = 0.0,
+                 prior: tuple[np.ndarray, np.ndarray] | None = None) -> PoseEstimate:
+        """One frame -> pose; `prior` (R_cam_target, T_cam_target_m), the pose predicted for this
+        frame (the daemon passes its filter's), places the first crop (see solve)."""
         if not np.isfinite(t_s):
             raise FrameError(f"frame time t_s must be finite, got {t_s}")
         self.check_frame(image_rgb_uint8)
+        prior = _checked_prior(prior)
         t0 = time.perf_counter()
         if float(image_rgb_uint8[::4, ::4].std()) < MIN_FRAME_STD_DN:
             nan = np.full(3, np.nan)
@@ -425,7 +486,7 @@ class KeypointPoseEstimator(PoseEstimator):
             direct.latency_ms = (time.perf_counter() - t0) * 1e3
             direct.flags = tuple(direct.flags) + ("no_first_pass",)
             return direct
-        r, win = self.solve(image_rgb_uint8, direct.R_cam_target, direct.T_cam_target_m)
+        r, win = self.solve(image_rgb_uint8, direct.R_cam_target, direct.T_cam_target_m, prior=prior)
         if r is None:
             latency_ms = (time.perf_counter() - t0) * 1e3
             direct.latency_ms = latency_ms

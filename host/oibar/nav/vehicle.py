@@ -1,7 +1,7 @@
 """The vehicle interface: where guidance's relative-velocity setpoints go (SPEC section 5).
 
 The service vehicle's own GNC is not ours; it takes a velocity and angular-rate setpoint in the
-docking frame D (oibar.nav.frames) at 10 Hz and flies it. Implement :class:`VehicleInterface`
+docking frame D (oibar.geometry.docking) at 10 Hz and flies it. Implement :class:`VehicleInterface`
 for your vehicle and pass it to the daemon (``oibar nav --vehicle python:mypkg.mod:MyVehicle``).
 
 Shipped sinks:

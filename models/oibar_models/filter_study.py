@@ -9,7 +9,9 @@ used only to score.
 Writes into --out: filter_study.md (tables), filter_study.json, <seq>_filter.png (error over
 time, raw vs filtered, and the confidence), <seq>_filter.csv (per frame).
 
-CLI: python -m oibar.nav.filter_study --model PATH --data data/synthetic --seqs 1 8 --out DIR
+A study, not flight code: it lives in oibar_models (tests/host/test_walls.py).
+
+CLI: python -m oibar_models.filter_study --model PATH --data data/synthetic --seqs 1 8 --out DIR
      [--frames-limit N] [--threads 2] [--no-progress]
 """
 
@@ -27,10 +29,13 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from oibar.geometry.docking import docking_from_camera_pose
+from oibar.geometry.rotations import quat_to_matrix
 from oibar.nav.filter import FilterParams, NavFilter
-from oibar.nav.frames import docking_from_camera_pose
 from oibar.nav.pose import FrameError, ModelFileError, PoseEstimator
-from oibar.rotations import quat_to_matrix
+from oibar_hil.sequence import DatasetError, read_pose_table
+
+from . import metrics
 
 TRUTH_COLUMNS = ("file", "time_s", "tx_m", "ty_m", "tz_m", "qw", "qx", "qy", "qz")
 
@@ -50,23 +55,13 @@ class Truth:
 
 
 def read_truth(seq_dir: Path, frames_limit: int | None = None) -> Truth:
-    """poses.csv of a synthetic sequence (docs/synthetic.md). Read here, torch-free, rather than
-    through oibar_models.data (which imports torch for its loaders)."""
-    path = seq_dir / "poses.csv"
-    if not path.is_file():
-        raise StudyError(f"{path}: missing (render the sequence with `make dataset`)")
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    if not rows:
-        raise StudyError(f"{path}: no rows")
-    missing = [c for c in TRUTH_COLUMNS if c not in rows[0]]
-    if missing:
-        raise StudyError(f"{path}: missing column(s) {missing}")
-    rows = rows[:frames_limit] if frames_limit else rows
+    """poses.csv of a synthetic sequence (docs/synthetic.md), through oibar_hil.sequence (torch-free,
+    unlike oibar_models.data's loaders); no manifest needed."""
     try:
-        num = np.array([[float(r[c]) for c in TRUTH_COLUMNS[1:]] for r in rows])
-    except ValueError as exc:
-        raise StudyError(f"{path}: non-numeric value ({exc})") from exc
+        rows, num = read_pose_table(seq_dir / "poses.csv", TRUTH_COLUMNS[1:], required=TRUTH_COLUMNS[:1],
+                                    frames_limit=frames_limit)
+    except DatasetError as exc:
+        raise StudyError(str(exc)) from exc
     return Truth(seq_dir.name, seq_dir, [r["file"] for r in rows], num[:, 0], num[:, 1:4], num[:, 4:8])
 
 
@@ -150,7 +145,7 @@ def motion_metrics(truth: Truth, r: dict) -> dict:
     envelope allows 50 mm/s) and the frame-to-frame jitter of the position error. Without a
     filter the closing speed would be the difference of consecutive raw ranges."""
     R_true = np.array([quat_to_matrix(q) for q in truth.q_cam_target])
-    r_true = np.array([docking_from_camera_pose(T, R).r_D_m for T, R in zip(truth.T_cam_target_m, R_true)])
+    r_true = np.array([docking_from_camera_pose(T, R).r_D_m for T, R in zip(truth.T_cam_target_m, R_true, strict=True)])
     v_true = np.gradient(r_true[:, 2], truth.time_s)
     closing_true = -v_true
     closing_raw = -np.diff(r["r_D_raw"][:, 2]) / np.diff(truth.time_s)
@@ -173,11 +168,11 @@ def plot_sequence(path: Path, name: str, time_s, dt_raw, dt_filt, dq_raw, dq_fil
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from oibar_models.metrics import ATT_REQ_DEG, POS_REQ_PCT
+
 
     fig, ax = plt.subplots(3, 1, figsize=(9, 7), sharex=True, gridspec_kw={"height_ratios": [3, 3, 1.4]})
-    for a, raw, filt, req, lab in ((ax[0], dt_raw, dt_filt, POS_REQ_PCT, "position error (% of range)"),
-                                   (ax[1], dq_raw, dq_filt, ATT_REQ_DEG, "attitude error (deg)")):
+    for a, raw, filt, req, lab in ((ax[0], dt_raw, dt_filt, metrics.POS_REQ_PCT, "position error (% of range)"),
+                                   (ax[1], dq_raw, dq_filt, metrics.ATT_REQ_DEG, "attitude error (deg)")):
         a.plot(time_s, raw, lw=0.7, alpha=0.7, label="raw estimate")
         a.plot(time_s, filt, lw=0.9, label="filtered")
         a.axhline(req, color="r", ls="--", lw=0.8, label="requirement")
@@ -210,8 +205,6 @@ def write_csv(path: Path, truth: Truth, r: dict, dt_raw, dt_filt, dq_raw, dq_fil
 
 def study(model: Path, data_root: Path, seqs: list[int], out: Path, frames_limit: int | None = None,
           threads: int = 2, params: FilterParams | None = None, progress: bool = True) -> dict:
-    from oibar_models import metrics
-
     params = params or FilterParams()
     est = PoseEstimator(model, threads=threads)          # fails clearly before anything is written
     truths = [read_truth(data_root / f"seq{n:02d}", frames_limit) for n in seqs]
@@ -284,7 +277,7 @@ def study(model: Path, data_root: Path, seqs: list[int], out: Path, frames_limit
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m oibar.nav.filter_study", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m oibar_models.filter_study", description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", required=True, type=Path, help="exported OibarNet (.onnx)")
     ap.add_argument("--data", required=True, type=Path, help="dataset root holding seqNN folders")
     ap.add_argument("--seqs", required=True, type=int, nargs="+", help="sequence numbers, e.g. 1 8")

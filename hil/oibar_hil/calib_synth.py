@@ -6,7 +6,10 @@ The fixture is drawn by the project's renderer (oibar_hil.render); the renderer 
 textures, so the board is projected with the same camera model and composited into each
 frame (2x supersampled, then area-averaged), before blur and read noise.
 
-CLI: python -m oibar.calib.synthetic OUT_DIR [--poses 150] [--seed 1]
+It lives in the simulator package because it renders: the lab toolbox (oibar.calib) itself
+imports no simulator.
+
+CLI: python -m oibar_hil.calib_synth OUT_DIR [--poses 150] [--seed 1]
 """
 
 from __future__ import annotations
@@ -20,8 +23,9 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .pnp import Intrinsics, Pattern
-from .transforms import R_to_quat_wxyz, T_from_vec, inv_T, make_T
+from oibar.calib.pnp import Intrinsics, Pattern
+from oibar.geometry.rotations import matrix_to_quat as R_to_quat_wxyz
+from oibar.geometry.transforms import T_from_vec, inv_T, make_T
 
 
 def _T(t_m, rotvec_deg) -> np.ndarray:
@@ -172,9 +176,10 @@ def render_frames(cfg: SynthConfig, intr: Intrinsics, out_dir: Path | None = Non
     import os
 
     os.environ.setdefault("LP_NUM_THREADS", "2")
-    from oibar_hil.camera import PinholeCamera
-    from oibar_hil.meshes import berthing_fixture
-    from oibar_hil.render import Renderer, RenderSettings, apply_sensor_effects
+    from oibar.geometry.camera import PinholeCamera
+
+    from .meshes import berthing_fixture
+    from .render import Renderer, RenderSettings, apply_sensor_effects
 
     cam = PinholeCamera()
     r = Renderer(cam, RenderSettings(shadow_map_px=1024))
@@ -212,7 +217,7 @@ def simulate_observations(cfg: SynthConfig, intr: Intrinsics, corner_sigma_px: f
     corners projected from the true pose, those inside the image kept, white noise of
     `corner_sigma_px` per axis added, then the same PnP as pnp.Detector.observe. For statistics
     over many recordings (tests/calib/test_multi_seed.py)."""
-    from .pnp import MIN_CORNERS, Observation, pose_covariance
+    from oibar.calib.pnp import MIN_CORNERS, Observation, pose_covariance
 
     obj_all = cfg.pattern.corners_pattern_m()
     tau = frame_times(cfg) + cfg.offset_s
@@ -243,7 +248,7 @@ def simulate_observations(cfg: SynthConfig, intr: Intrinsics, corner_sigma_px: f
 
 def simulated_tracks(cfg: SynthConfig) -> tuple:
     """The two mocap tracks of `mocap_samples`, as io.read_mocap_csv would return them."""
-    from .timing import Track
+    from oibar.calib.timing import Track
 
     mo = mocap_samples(cfg)
     return Track("housing", mo["t_s"], mo["housing"]), Track("tmarkers", mo["t_s"], mo["tmarkers"])
@@ -261,7 +266,7 @@ def truth(cfg: SynthConfig) -> dict:
 
 def write_recording(out_dir: Path, cfg: SynthConfig | None = None, images: bool = True) -> dict:
     """A complete recording as a user would bring it from the lab, plus truth.json."""
-    from .io import write_intrinsics, write_pattern
+    from oibar.calib.io import write_intrinsics, write_pattern
 
     cfg = cfg or SynthConfig()
     out_dir = Path(out_dir)
@@ -281,7 +286,7 @@ def write_recording(out_dir: Path, cfg: SynthConfig | None = None, images: bool 
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m oibar.calib.synthetic", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m oibar_hil.calib_synth", description=__doc__.splitlines()[0])
     ap.add_argument("out", type=Path)
     ap.add_argument("--poses", type=int, default=200, help="frames in the calibration motion (default 200)")
     ap.add_argument("--seed", type=int, default=1)
