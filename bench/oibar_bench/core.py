@@ -13,9 +13,10 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[2]
 BUILD = ROOT / "build"
@@ -138,7 +139,7 @@ class Measurement:
     key: str                                  # "section.name"
     title: str
     columns: list[tuple[str, str]]            # (row key, header)
-    fn: Callable[["Context"], Result]
+    fn: Callable[[Context], Result]
     order: int
 
     @property
@@ -197,7 +198,7 @@ class Context:
 
 def load_average() -> str:
     try:
-        return "%.2f %.2f %.2f" % os.getloadavg()
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
     except OSError:
         return "n/a"
 

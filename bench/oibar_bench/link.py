@@ -13,11 +13,10 @@ import contextlib
 import os
 import shutil
 import socket
-import statistics
 import subprocess
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 from .core import BUILD, Context, Result, Target, measurement, summarize_ms
 
@@ -92,11 +91,10 @@ def qemu_board(log: Path) -> Iterator[str]:
         while True:
             if proc.poll() is not None:
                 raise RuntimeError(f"QEMU exited ({proc.returncode}): {log.read_text(errors='replace')[-1000:]}")
-            with contextlib.suppress(OSError):
-                # QEMU listens with wait=off; this probe connection is closed at once and the
-                # chardev waits for the next client.
-                with socket.create_connection(("127.0.0.1", port), timeout=0.5):
-                    break
+            # QEMU listens with wait=off; this probe connection is closed at once and the
+            # chardev waits for the next client.
+            with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                break
             if time.monotonic() > deadline:
                 raise RuntimeError(f"QEMU did not open its serial socket in {QEMU_BOOT_TIMEOUT_S:.0f} s")
             time.sleep(0.1)
@@ -160,7 +158,7 @@ def measure(ctx: Context, url: str, label: str, param_id: int) -> tuple[list[dic
         ts = [t for t, _ in got]
         if len(ts) < 3:
             raise RuntimeError(f"{label}: only {len(ts)} telemetry packets in {tele_s} s")
-        gaps = [(b - a) * 1e3 for a, b in zip(ts, ts[1:])]
+        gaps = [(b - a) * 1e3 for a, b in zip(ts, ts[1:], strict=False)]
         s = summarize_ms(gaps)
         hz = (len(ts) - 1) / (ts[-1] - ts[0])
         rows.append({"link": label, "what": "telemetry period (MCU -> host)",
@@ -218,8 +216,9 @@ def over_qemu(ctx: Context) -> Result:
         rows, extra = measure(ctx, url, "QEMU", param_id=1)
     for r in rows:
         r["link"] = "QEMU netduinoplus2"
-    notes = ["The emulator image (build/fw-arm-qemu, OIBAR_QEMU=ON) under qemu-system-arm; the emulated board has no ADC, so the firmware "
-             "sits in STATE_FAULT (tests/qemu): NOOP is still accepted and parameters read, which is what is timed. "
+    notes = ["The emulator image (build/fw-arm-qemu, OIBAR_QEMU=ON) under qemu-system-arm; the emulated "
+             "board has no ADC, so the firmware sits in STATE_FAULT (tests/qemu): NOOP is still accepted "
+             "and parameters read, which is what is timed. "
              "QEMU's USART does not pace bytes at 115200 baud either, and its CPU is emulated, not timed. The "
              "chardev socket has nodelay=on: with Nagle's algorithm the firmware's byte-by-byte UART output "
              "waits for the host's delayed ACKs and every round trip costs ~40 ms of TCP, not firmware."]

@@ -95,7 +95,7 @@ def describe() -> dict:
             "valgrind": _first_line(["valgrind", "--version"]),
         },
         "run": {
-            "date (UTC)": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M"),
+            "date (UTC)": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M"),
             "git commit": git_commit(),
         },
     }

@@ -104,6 +104,7 @@ def export_untrained(ctx: Context, backbone: str, size_wh: tuple[int, int]) -> t
     if key in ctx.shared:
         return ctx.shared[key]
     import torch
+
     from oibar_models.export import export_onnx
     from oibar_models.nets import count_parameters
 
@@ -218,7 +219,9 @@ def shipped_model(ctx: Context) -> Result:
         small = batch_at([frame], est.size_wh)
         whole = ("744x480 frame -> pose (first pass, 2 crops, keypoints, PnP)" if est.meta.get("kind") == "keypoints"
                  else "744x480 frame -> pose (resize + model)")
-        for what, fn in (("model only", lambda: est.run(small)), (whole, lambda: est.estimate(frame))):
+        # (default arguments bind this iteration's estimator: the closures run within it)
+        for what, fn in (("model only", lambda est=est, small=small: est.run(small)),
+                         (whole, lambda est=est: est.estimate(frame))):
             box = dict(seconds=1.0, min_runs=5, max_runs=100) if ctx.quick else \
                 dict(seconds=5.0, min_runs=30, max_runs=500)
             lat = timed_runs(fn, **box)
@@ -272,7 +275,7 @@ def gpu(ctx: Context) -> Result:
             net = net.eval().to(dev)
             x = torch.rand(1, 3, size[1], size[0], device=dev)
             for precision, dtype in (("float32", torch.float32), ("float16 (autocast)", torch.float16)):
-                def once():
+                def once(net=net, x=x, dtype=dtype):
                     with torch.inference_mode(), torch.autocast("cuda", dtype=dtype,
                                                                 enabled=dtype is torch.float16):
                         net(x)

@@ -1,4 +1,4 @@
-"""OIBAR simulated rig: synthetic world, camera renderer and dataset generator.
+"""OIBAR simulated rig: synthetic world, camera renderer, dataset generator and the HIL rig.
 
 Modules are one idea each: `orbit` (target state from a TLE), `sun` (low-precision almanac),
 `frames` (LVLH), `camera` (the renderer's OpenGL projection of oibar.geometry's camera),

@@ -69,7 +69,7 @@ def run(seq: int, n_frames: int, workers: int, encode: bool) -> float:
 
 def _load() -> str:
     try:
-        return "load %.2f %.2f %.2f" % os.getloadavg()
+        return "load " + " ".join(f"{x:.2f}" for x in os.getloadavg())
     except OSError:
         return "load n/a"
 
@@ -77,7 +77,8 @@ def _load() -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m oibar_hil.bench")
     ap.add_argument("--seq", type=int, default=1)
-    ap.add_argument("--all", action="store_true", help="all 12 paper sequences (render + encode) and the set's estimate")
+    ap.add_argument("--all", action="store_true",
+                    help="all 12 paper sequences (render + encode) and the set's estimate")
     ap.add_argument("--frames", type=int, default=None, help="frames per measurement (default 400, 160 with --all)")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     a = ap.parse_args(argv)
@@ -93,7 +94,8 @@ def main(argv=None) -> int:
         return 0
     tot_wall = tot_cpu = 0.0
     frames_total = 0
-    with mp.get_context("spawn").Pool(a.workers, initializer=_worker_init, initargs=(max(1, cpu // a.workers),)) as pool:
+    threads = max(1, cpu // a.workers)
+    with mp.get_context("spawn").Pool(a.workers, initializer=_worker_init, initargs=(threads,)) as pool:
         for seq, spec in PAPER_SEQUENCES.items():
             plan = plan_sequence(spec)
             r = run_detailed(seq, a.frames or 160, a.workers, True, pool=pool, plan=plan)
@@ -101,10 +103,11 @@ def main(argv=None) -> int:
             tot_wall += plan.n_frames / r["fps"]
             tot_cpu += plan.n_frames / idle_fps
             frames_total += plan.n_frames
-            print(f"seq{seq:02d} {spec.approach:6s} {spec.background:6s} {plan.n_frames:5d} frames: {r['fps']:6.1f} frames/s wall, "
+            print(f"seq{seq:02d} {spec.approach:6s} {spec.background:6s} {plan.n_frames:5d} frames: "
+                  f"{r['fps']:6.1f} frames/s wall, "
                   f"{r['cpu_ms']:5.1f} CPU ms/frame (= {idle_fps:6.1f} frames/s idle); {_load()}", flush=True)
-    print(f"12 sequences, {frames_total} frames (render + encode only): {tot_wall / 60:.1f} min at the measured wall-clock "
-          f"rates, {tot_cpu / 60:.1f} min on {a.workers} idle cores; {_load()}")
+    print(f"12 sequences, {frames_total} frames (render + encode only): {tot_wall / 60:.1f} min at the "
+          f"measured wall-clock rates, {tot_cpu / 60:.1f} min on {a.workers} idle cores; {_load()}")
     return 0
 
 

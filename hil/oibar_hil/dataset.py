@@ -29,7 +29,6 @@ import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
-from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
@@ -43,8 +42,14 @@ from .orbit import DEFAULT_EPOCH_UTC, DEFAULT_TLE, TargetOrbit, julian_date, par
 from .ports import PORTS
 from .relpose import camera_poses
 from .render import RenderSettings
-from .sequence import (DatasetError, check_image_trailer, read_manifest, read_pose_table,  # noqa: F401  (DatasetError re-exported)
-                       sha256_file, verify_files)
+from .sequence import (  # noqa: F401  (DatasetError re-exported)
+    DatasetError,
+    check_image_trailer,
+    read_manifest,
+    read_pose_table,
+    sha256_file,
+    verify_files,
+)
 from .trajectory import PHASE_NAMES, TrajectoryParams, generate
 
 GENERATOR = "oibar_hil.dataset"
@@ -80,7 +85,8 @@ class SequenceSpec:
         if self.port not in PORTS:
             raise ValueError(f"{self.name}: port {self.port} not in 1..6")
         if PORTS[self.port].approach != self.approach:
-            raise ValueError(f"{self.name}: port {self.port} is a {PORTS[self.port].approach} port, not {self.approach}")
+            raise ValueError(f"{self.name}: port {self.port} is a {PORTS[self.port].approach} port, "
+                             f"not {self.approach}")
         if self.background not in ("iss", "perlin"):
             raise ValueError(f"{self.name}: background must be iss or perlin")
         if self.image_format not in ("jpg", "png"):
@@ -102,7 +108,8 @@ def spec_dict(spec: SequenceSpec) -> dict:
 
 
 def _paper(n: int, port: int, approach: str, sun: float, bg: str) -> SequenceSpec:
-    return SequenceSpec(name=f"seq{n:02d}", port=port, approach=approach, sun_elevation_deg=sun, background=bg, seed=1000 + n)
+    return SequenceSpec(name=f"seq{n:02d}", port=port, approach=approach, sun_elevation_deg=sun,
+                        background=bg, seed=1000 + n)
 
 
 # SPEC section 6 (the paper's table); seeds are ours.
@@ -254,7 +261,8 @@ def _renderer_for(spec: SequenceSpec):
         _WORKER["scene"] = None
     key = (spec.background, spec.port, spec.seed)
     if _WORKER.get("scene") != key:
-        r.load_scene(scene_parts(spec.background, spec.port), spec.background, PORTS[spec.port].p_lvlh_t, perlin_seed=spec.seed)
+        r.load_scene(scene_parts(spec.background, spec.port), spec.background, PORTS[spec.port].p_lvlh_t,
+                     perlin_seed=spec.seed)
         _WORKER["scene"] = key
     return r
 
@@ -434,8 +442,8 @@ def generate_dataset(out_dir: Path, specs: list[SequenceSpec], frames_limit: int
     total = sum(len(t["frames"]) for t in tasks)
     bar = None
     if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=total, unit="frame", desc="rendering", smoothing=0.05, file=sys.stderr)
+        from oibar.progress import Progress
+        bar = Progress("rendering", total=total, unit="frame")
     t_render = time.perf_counter()
     gl_name = "unknown"
     if total:
@@ -529,7 +537,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames-limit", type=int, default=None, help="render only the first N frames of each sequence")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="render processes (default: CPU count)")
     ap.add_argument("--format", choices=("jpg", "png"), default=None, help="frame format (default jpg)")
-    ap.add_argument("--envelope", action="store_true", help="envelope mode (+-10 deg, <= 50 mm/s) for the paper sequences")
+    ap.add_argument("--envelope", action="store_true",
+                    help="envelope mode (+-10 deg, <= 50 mm/s) for the paper sequences")
     ap.add_argument("--force", action="store_true", help="discard existing frames of the chosen sequences")
     ap.add_argument("--verify", action="store_true", help="only verify existing sequences against their manifests")
     ap.add_argument("--shard", default=None, metavar="I/N",

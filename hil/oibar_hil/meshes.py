@@ -40,7 +40,8 @@ SEGMENTS = 40
 
 def _to_trimesh(m: mf.Manifold) -> trimesh.Trimesh:
     mesh = m.to_mesh()
-    return trimesh.Trimesh(vertices=np.asarray(mesh.vert_properties)[:, :3], faces=np.asarray(mesh.tri_verts), process=False)
+    return trimesh.Trimesh(vertices=np.asarray(mesh.vert_properties)[:, :3], faces=np.asarray(mesh.tri_verts),
+                           process=False)
 
 
 def _box(size, center) -> mf.Manifold:
@@ -80,7 +81,8 @@ def berthing_fixture(d: FixtureDims = FIXTURE) -> list[Part]:
     plate = plate - cut
     bosses = None
     for sx in (-1, 1):
-        b = _frustum(d.pin_guide_radius_m, d.pin_guide_radius_m, z_plate0 - 0.015, z_plate0 + 0.001, (sx * d.pin_guide_x_m, 0.0))
+        b = _frustum(d.pin_guide_radius_m, d.pin_guide_radius_m, z_plate0 - 0.015, z_plate0 + 0.001,
+                     (sx * d.pin_guide_x_m, 0.0))
         bosses = b if bosses is None else bosses + b
     bosses = bosses - cut
 
@@ -180,7 +182,8 @@ def _transform_part(part: Part, R: np.ndarray, p: np.ndarray, part_id: int | Non
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = p
-    return Part(part.mesh.copy().apply_transform(T), part.rgb, part.specular, part.part_id if part_id is None else part_id)
+    return Part(part.mesh.copy().apply_transform(T), part.rgb, part.specular,
+                part.part_id if part_id is None else part_id)
 
 
 def fixture_at_port(port: Port, is_target: bool = True) -> list[Part]:
@@ -207,7 +210,8 @@ def station(target_port: int) -> list[Part]:
     for sy in (-1, 1):
         for k in range(3):
             y = sy * (11.0 + 4.0 * k)
-            parts.append(Part(_tbox((13.0, 3.2, 0.08), (truss_x - 8.0, y, truss_z + 0.3 * k)), (0.93, 0.93, 0.93), 0.15, ID_RADIATOR))
+            parts.append(Part(_tbox((13.0, 3.2, 0.08), (truss_x - 8.0, y, truss_z + 0.3 * k)), (0.93, 0.93, 0.93),
+                              0.15, ID_RADIATOR))
     # Solar array wings at the truss ends, extending along +-X.
     for sy in (-1, 1):
         for y in (sy * 31.0, sy * 37.0):
@@ -217,7 +221,8 @@ def station(target_port: int) -> list[Part]:
             parts.append(Part(_tbox((0.3, 0.3, 0.3), (truss_x, y, truss_z)), (0.5, 0.5, 0.5), 0.2, ID_TRUSS))
     # Adapters and fixtures on the six ports.
     for number, port in PORTS.items():
-        a = _to_trimesh(_frustum(0.30, 0.30, FIXTURE.rim_depth_m + FIXTURE.plate_thickness_m - 0.001, ADAPTER_LENGTH_M + 0.3))
+        a = _to_trimesh(_frustum(0.30, 0.30, FIXTURE.rim_depth_m + FIXTURE.plate_thickness_m - 0.001,
+                                 ADAPTER_LENGTH_M + 0.3))
         collar = _to_trimesh(_frustum(0.55, 0.55, ADAPTER_LENGTH_M - 0.15, ADAPTER_LENGTH_M + 0.3))
         for m in (a, collar):
             parts.append(_transform_part(Part(m, (0.80, 0.80, 0.78), 0.3, ID_ADAPTER), port.R_lvlh_t, port.p_lvlh_t))

@@ -9,7 +9,7 @@ SGP4 includes J2 and drag (via B*), like the paper's simulator.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 
 import numpy as np
 from sgp4.api import Satrec, jday
@@ -38,11 +38,11 @@ DEFAULT_EPOCH_UTC = "2024-03-20T00:00:00+00:00"
 
 def parse_utc(text: str) -> datetime:
     dt = datetime.fromisoformat(text.replace("Z", "+00:00"))
-    return dt if dt.tzinfo else dt.replace(tzinfo=timezone.utc)
+    return dt if dt.tzinfo else dt.replace(tzinfo=UTC)
 
 
 def julian_date(when: datetime) -> float:
-    w = when.astimezone(timezone.utc)
+    w = when.astimezone(UTC)
     jd, fr = jday(w.year, w.month, w.day, w.hour, w.minute, w.second + w.microsecond * 1e-6)
     return jd + fr
 

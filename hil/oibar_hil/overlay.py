@@ -42,7 +42,7 @@ def draw_overlay(image: Image.Image | np.ndarray, T_cam_target, q_cam_target,
         d.line(pts + [pts[0]], fill=color, width=width)
     o = p["origin"]
     if np.all(np.isfinite(o)):
-        for tip, col in zip(p["axes"], ((255, 0, 0), (0, 255, 0), (0, 96, 255))):
+        for tip, col in zip(p["axes"], ((255, 0, 0), (0, 255, 0), (0, 96, 255)), strict=True):
             if np.all(np.isfinite(tip)):
                 d.line([tuple(o), tuple(tip)], fill=col, width=width)
     return img

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -334,13 +335,18 @@ class Renderer:
         self.shadow_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)   # 2x2 PCF in hardware
         self.shadow_tex.repeat_x = self.shadow_tex.repeat_y = False
         self.shadow_fbo = c.framebuffer(depth_attachment=self.shadow_tex)
-        self._shadow_key = None
+        self._shadow_key: tuple[object, ...] | None = None
         self._light_vp = [np.eye(4), np.eye(4)]
 
-        self._earth_tex = None   # built on first use: ~1 s of noise, not needed for `perlin`
-        self.bg_tex = None
+        self._earth_tex: Any = None   # built on first use: ~1 s of noise, not needed for `perlin`
+        self.bg_tex: Any = None
         self.background = "iss"
-        self.mesh_vao = self.depth_vao = self.id_vao = self._vbo = self._ibo = None
+        # moderngl objects, made by load_scene
+        self.mesh_vao: Any = None
+        self.depth_vao: Any = None
+        self.id_vao: Any = None
+        self._vbo: Any = None
+        self._ibo: Any = None
         self.focus = np.zeros(3)
         self.gl_renderer = c.info.get("GL_RENDERER", "unknown")
 
@@ -380,7 +386,8 @@ class Renderer:
         vbo = self._vbo = self.ctx.buffer(data.tobytes())
         ibo = self._ibo = self.ctx.buffer(idx.tobytes())
         self.mesh_vao = self.ctx.vertex_array(
-            self.mesh_prog, [(vbo, "3f 3f 4f 4x", "in_pos", "in_nrm", "in_col")], index_buffer=ibo, index_element_size=4)
+            self.mesh_prog, [(vbo, "3f 3f 4f 4x", "in_pos", "in_nrm", "in_col")], index_buffer=ibo,
+            index_element_size=4)
         self.id_vao = self.ctx.vertex_array(
             self.id_prog, [(vbo, "3f 28x 1f", "in_pos", "in_id")], index_buffer=ibo, index_element_size=4)
         self.depth_vao = self.ctx.vertex_array(
@@ -430,7 +437,8 @@ class Renderer:
         sun = sun / np.linalg.norm(sun)
         if mode == "shaded":
             self._update_shadow(sun)
-        earth_c = np.array([0.0, 0.0, 6371.0 + 420.0]) if earth_center_lvlh_km is None else np.asarray(earth_center_lvlh_km, float)
+        earth_c = (np.array([0.0, 0.0, 6371.0 + 420.0]) if earth_center_lvlh_km is None
+                   else np.asarray(earth_center_lvlh_km, float))
         R_ecef = np.eye(3) if R_ecef_lvlh is None else R_ecef_lvlh
 
         self.fbo.use()

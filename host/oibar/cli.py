@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-import shutil
 import signal
 import sys
 import threading
 import time
-from typing import TYPE_CHECKING, Sequence, TextIO
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, TextIO
 
 from oibar import __version__
 
@@ -48,7 +48,7 @@ version, 130 on Ctrl-C.
 def build_parser() -> argparse.ArgumentParser:
     from oibar import pb
 
-    known_commands = " ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")
+    known_commands = " ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")  # noqa: SIM118
     parser = argparse.ArgumentParser(
         prog="oibar",
         description="OIBAR companion-computer tools (docking and refuelling mechanism).",
@@ -201,25 +201,19 @@ def _show_status(client: LinkClient, seconds: float, out: TextIO) -> None:
     """One status line, redrawn in place on a terminal, printed once a second otherwise."""
     if seconds <= 0:
         return
-    tty = out.isatty()
-    refresh_s = 0.25 if tty else 1.0
+    from oibar.progress import StatusLine
+
+    status = StatusLine(out, period_s=1.0)
+    refresh_s = 0.25 if status.tty else 1.0
     start = time.monotonic()
     end = start + seconds
     while True:
         now = time.monotonic()
-        line = status_line(client, now - start)
-        if tty:
-            width = shutil.get_terminal_size().columns - 1  # a wrapped line cannot be redrawn
-            out.write("\r" + line[:width] + "\x1b[K")
-            out.flush()
-        else:
-            print(line, file=out, flush=True)
+        status.show(status_line(client, now - start), force=True)
         if now >= end:
             break
         time.sleep(min(refresh_s, max(0.0, end - now)))
-    if tty:
-        out.write("\n")
-        out.flush()
+    status.end()
 
 
 def status_line(client: LinkClient, elapsed_s: float) -> str:

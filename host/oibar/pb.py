@@ -7,6 +7,8 @@ clear instruction instead of a bare ``ModuleNotFoundError``.
 
 from __future__ import annotations
 
+from typing import Any
+
 try:
     from oibar._generated import oibar_pb2
 except ModuleNotFoundError as exc:  # only a missing file earns the "make gen" hint
@@ -19,7 +21,8 @@ except ModuleNotFoundError as exc:  # only a missing file earns the "make gen" h
 
 from oibar._generated.oibar_pb2 import *  # noqa: E402,F401,F403  (re-export the schema)
 
-PROTOCOL_VERSION: int = oibar_pb2.Protocol.Value("PROTOCOL_VERSION")
+# (the star import brought PROTOCOL_VERSION as the enum member; this is the same number, as int)
+PROTOCOL_VERSION: int = oibar_pb2.Protocol.Value("PROTOCOL_VERSION")  # type: ignore[no-redef]
 """This build's link protocol version (from the schema, never a local copy)."""
 
 MAX_PACKET_BYTES: int = oibar_pb2.Protocol.Value("PROTOCOL_MAX_PACKET_BYTES")
@@ -29,13 +32,13 @@ MAX_FRAME_BYTES: int = oibar_pb2.Protocol.Value("PROTOCOL_MAX_FRAME_BYTES")
 """Largest wire frame, 0x00 delimiter included."""
 
 
-def enum_name(enum_type, value: int) -> str:
+def enum_name(enum_type: Any, value: int) -> str:
     """Name of ``value`` in ``enum_type``, or ``"<EnumName>(<value>)"`` if unknown.
 
     proto3 enums are open: a newer peer may send a value this build does not know, and a
     log line or a result must never fail because of that.
     """
     try:
-        return enum_type.Name(value)
+        return str(enum_type.Name(value))
     except ValueError:
         return f"{enum_type.DESCRIPTOR.name}({value})"

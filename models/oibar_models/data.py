@@ -111,8 +111,8 @@ def frame_cache(seq: Sequence, size_wh: tuple[int, int], cache_dir: Path | None,
     arr = np.empty((len(seq), h, w, 3), np.uint8)
     it = range(len(seq))
     if progress:
-        from tqdm import tqdm
-        it = tqdm(it, desc=f"caching {seq.name} {w}x{h}", unit="frame", leave=False)
+        from oibar.progress import progress_iter
+        it = progress_iter(it, f"caching {seq.name} {w}x{h}", unit="frame", leave=False)
     for k in it:
         arr[k] = load_frame(seq, k, size_wh)
     if path is not None:

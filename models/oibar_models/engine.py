@@ -13,7 +13,6 @@ import json
 import math
 import os
 import random
-import sys
 import time
 from pathlib import Path
 
@@ -96,8 +95,8 @@ def predict(net, loader, device, progress: bool = False, desc: str = "eval") -> 
     out = {k: [] for k in ("T_hat", "q_hat", "T", "q", "seq", "frame")}
     it = loader
     if progress:
-        from tqdm import tqdm
-        it = tqdm(loader, desc=desc, leave=False, file=sys.stderr)
+        from oibar.progress import progress_iter
+        it = progress_iter(loader, desc, unit="batch", leave=False)
     for b in it:
         T_hat, r6 = net(b["image"].to(device))
         out["T_hat"].append(T_hat.cpu().numpy())
@@ -131,7 +130,109 @@ def load_checkpoint(path: str | Path, map_location="cpu"):
     return net, ck
 
 
+def _data_loaders(cfg, splits) -> tuple[torch.utils.data.DataLoader, torch.utils.data.DataLoader]:
+    """The training loader (shuffled by a generator seeded from train.seed) and the validation
+    loader (thinned evenly to train.val_max_frames)."""
+    g = torch.Generator()
+    g.manual_seed(cfg.train.seed)
+    workers = cfg.train.workers
+    train_loader = torch.utils.data.DataLoader(
+        splits.train, batch_size=cfg.train.batch_size, shuffle=True, drop_last=len(splits.train) > cfg.train.batch_size,
+        num_workers=workers, persistent_workers=False, generator=g)
+    val_ds = splits.val
+    if cfg.train.val_max_frames and len(val_ds) > cfg.train.val_max_frames:
+        val_ds = torch.utils.data.Subset(val_ds, np.linspace(0, len(val_ds) - 1, cfg.train.val_max_frames).astype(int))
+    val_loader = torch.utils.data.DataLoader(val_ds, batch_size=cfg.train.batch_size, num_workers=0)
+    return train_loader, val_loader
+
+
+def _restore(cfg, last: Path, net, crit, opt, device, log) -> tuple[int, int, float]:
+    """Resume from ``last`` (run/last.pt) when it exists, else start from train.init_from (the
+    previous stage) when set. -> (epochs done, optimiser steps done, best validation score)."""
+    start_epoch, step, best = 0, 0, float("inf")
+    if not last.is_file() and cfg.train.init_from:
+        src = cfg.path(cfg.train.init_from)
+        if not src.is_file():
+            raise FileNotFoundError(f"train.init_from: {src} not found (train that stage first)")
+        state = torch.load(src, map_location=device, weights_only=False)["model"]
+        if state["head_t.weight"].shape != net.head_t.weight.shape:
+            state = widen_heads_from(net, state)
+        net.load_state_dict(state)
+        log(f"initialised from {src}")
+    if last.is_file():
+        ck = torch.load(last, map_location=device, weights_only=False)
+        if ck["config"]["model"] != cfg.to_dict()["model"]:
+            raise RuntimeError(f"{last}: was trained with another model config; use a new run_dir or delete it")
+        net.load_state_dict(ck["model"])
+        crit.load_state_dict(ck["loss"], strict=False)   # runs from before the keypoint term lack s_k
+        try:
+            opt.load_state_dict(ck["optimizer"])
+        except ValueError as exc:   # parameter groups changed with the loss: fresh moments
+            log(f"optimizer state not restored ({exc}); Adam restarts its moment estimates")
+        start_epoch, step, best = ck["epoch"], ck["step"], ck["best_score"]
+        torch.set_rng_state(ck["torch_rng"])
+        log(f"resumed from {last}: {start_epoch} epoch(s) done, step {step}")
+    return start_epoch, step, best
+
+
+def _train_epoch(cfg, epoch: int, net, crit, opt, kp_sup, train_loader, steps_per_epoch: int, step: int,
+                 total_steps: int, device, fmt, progress: bool) -> tuple[dict, int, int, float]:
+    """One epoch of optimiser steps. -> (summed loss terms, images seen, step count, last lr)."""
+    sums = {"loss": 0.0, "L_r": 0.0, "L_t": 0.0}
+    n_img = 0
+    it = iter(train_loader)
+    bar = None
+    if progress:
+        from oibar.progress import Progress
+        bar = Progress(f"epoch {epoch + 1}/{cfg.train.epochs}", total=steps_per_epoch, unit="batch",
+                       leave=False)
+    for _ in range(steps_per_epoch):
+        b = next(it)
+        lr = cyclical_lr(step, total_steps, cfg)
+        for pg in opt.param_groups:
+            pg["lr"] = lr
+        feats = net.features(b["image"].to(device).contiguous(memory_format=fmt))
+        T_hat, r6_hat = net.heads(feats)
+        T_true = b["T_cam_target"].to(device)
+        out = crit(T_hat, r6_hat, T_true, b["rot6d"].to(device))
+        if kp_sup is not None:
+            kp_true, valid = kp_sup.targets(T_true, b["rot6d"].to(device))
+            term, L_k = crit.keypoint_term(kp_sup.predicted(feats), kp_true, valid)
+            out["loss"] = out["loss"] + term
+            out["L_k"] = L_k
+        opt.zero_grad(set_to_none=True)
+        out["loss"].backward()
+        opt.step()
+        step += 1
+        bs = len(b["image"])
+        n_img += bs
+        for k in sums:
+            sums[k] += out[k].item()
+        if bar:
+            bar.update(1)
+            bar.set_postfix(loss=f"{out['loss'].item():.2f}", dt_m=f"{out['L_t'].item() / bs:.3f}", lr=f"{lr:.1e}")
+    del it   # the loader's workers end here, before validation
+    if bar:
+        bar.close()
+    return sums, n_img, step, lr
+
+
+def _append_logs(run: Path, fields: list[str], row: dict) -> None:
+    """One epoch's row into log.jsonl and log.csv (the header with the first row)."""
+    with open(run / "log.jsonl", "a") as fh:
+        fh.write(json.dumps(row) + "\n")
+    csv_path = run / "log.csv"
+    new_csv = not csv_path.exists()
+    with open(csv_path, "a", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+        if new_csv:
+            w.writeheader()
+        w.writerow(row)
+
+
 def train(cfg, progress: bool = True, log=print) -> dict:
+    """Train ``cfg``'s model into its run folder (resuming there if it has a last.pt);
+    -> the last epoch's log row."""
     run = cfg.run_path
     run.mkdir(parents=True, exist_ok=True)
     seed_everything(cfg.train.seed)
@@ -158,52 +259,19 @@ def train(cfg, progress: bool = True, log=print) -> dict:
                            weight_decay=cfg.train.weight_decay)
 
     kp_sup = KeypointSupervision(cfg, splits.K_input, net) if cfg.train.kp_loss else None
-
-    g = torch.Generator()
-    g.manual_seed(cfg.train.seed)
-    workers = cfg.train.workers
-    train_loader = torch.utils.data.DataLoader(
-        splits.train, batch_size=cfg.train.batch_size, shuffle=True, drop_last=len(splits.train) > cfg.train.batch_size,
-        num_workers=workers, persistent_workers=False, generator=g)
-    val_ds = splits.val
-    if cfg.train.val_max_frames and len(val_ds) > cfg.train.val_max_frames:
-        val_ds = torch.utils.data.Subset(val_ds, np.linspace(0, len(val_ds) - 1, cfg.train.val_max_frames).astype(int))
-    val_loader = torch.utils.data.DataLoader(val_ds, batch_size=cfg.train.batch_size, num_workers=0)
+    train_loader, val_loader = _data_loaders(cfg, splits)
 
     steps_per_epoch = len(train_loader)
     if cfg.train.max_steps_per_epoch:
         steps_per_epoch = min(steps_per_epoch, cfg.train.max_steps_per_epoch)
     total_steps = steps_per_epoch * cfg.train.epochs
 
-    start_epoch, step, best = 0, 0, float("inf")
     last = run / "last.pt"
-    if not last.is_file() and cfg.train.init_from:
-        src = cfg.path(cfg.train.init_from)
-        if not src.is_file():
-            raise FileNotFoundError(f"train.init_from: {src} not found (train that stage first)")
-        state = torch.load(src, map_location=device, weights_only=False)["model"]
-        if state["head_t.weight"].shape != net.head_t.weight.shape:
-            state = widen_heads_from(net, state)
-        net.load_state_dict(state)
-        log(f"initialised from {src}")
-    if last.is_file():
-        ck = torch.load(last, map_location=device, weights_only=False)
-        if ck["config"]["model"] != cfg.to_dict()["model"]:
-            raise RuntimeError(f"{last}: was trained with another model config; use a new run_dir or delete it")
-        net.load_state_dict(ck["model"])
-        crit.load_state_dict(ck["loss"], strict=False)   # runs from before the keypoint term lack s_k
-        try:
-            opt.load_state_dict(ck["optimizer"])
-        except ValueError as exc:   # parameter groups changed with the loss: fresh moments
-            log(f"optimizer state not restored ({exc}); Adam restarts its moment estimates")
-        start_epoch, step, best = ck["epoch"], ck["step"], ck["best_score"]
-        torch.set_rng_state(ck["torch_rng"])
-        log(f"resumed from {last}: {start_epoch} epoch(s) done, step {step}")
+    start_epoch, step, best = _restore(cfg, last, net, crit, opt, device, log)
     log(f"{cfg.name}: {cfg.model.backbone} ({count_parameters(net) / 1e6:.2f} M parameters), "
         f"{len(splits.train)} train / {len(splits.val)} val frames, {steps_per_epoch} steps/epoch, "
         f"{cfg.train.epochs} epochs, device {device}, torch threads {torch.get_num_threads()}")
 
-    csv_path = run / "log.csv"
     fields = ["epoch", "step", "lr", "loss", "L_r_mean", "L_t_mean_m", "s_r", "s_t", "train_images_per_s",
               "epoch_s"] + [f"val_{k}" for k, _, _ in metrics.TABLE_COLUMNS] + ["val_score"]
     summary = {}
@@ -211,42 +279,8 @@ def train(cfg, progress: bool = True, log=print) -> dict:
         splits.train.epoch = epoch          # new augmentation draws every epoch, reproducibly
         net.train()
         t0 = time.perf_counter()
-        sums = {"loss": 0.0, "L_r": 0.0, "L_t": 0.0}
-        n_img = 0
-        it = iter(train_loader)
-        bar = None
-        if progress:
-            from tqdm import tqdm
-            bar = tqdm(total=steps_per_epoch, desc=f"epoch {epoch + 1}/{cfg.train.epochs}", unit="batch",
-                       leave=False, file=sys.stderr)
-        for _ in range(steps_per_epoch):
-            b = next(it)
-            lr = cyclical_lr(step, total_steps, cfg)
-            for pg in opt.param_groups:
-                pg["lr"] = lr
-            feats = net.features(b["image"].to(device).contiguous(memory_format=fmt))
-            T_hat, r6_hat = net.heads(feats)
-            T_true = b["T_cam_target"].to(device)
-            out = crit(T_hat, r6_hat, T_true, b["rot6d"].to(device))
-            if kp_sup is not None:
-                kp_true, valid = kp_sup.targets(T_true, b["rot6d"].to(device))
-                term, L_k = crit.keypoint_term(kp_sup.predicted(feats), kp_true, valid)
-                out["loss"] = out["loss"] + term
-                out["L_k"] = L_k
-            opt.zero_grad(set_to_none=True)
-            out["loss"].backward()
-            opt.step()
-            step += 1
-            bs = len(b["image"])
-            n_img += bs
-            for k in sums:
-                sums[k] += out[k].item()
-            if bar:
-                bar.update(1)
-                bar.set_postfix(loss=f"{float(out['loss']):.2f}", dt_m=f"{float(out['L_t']) / bs:.3f}", lr=f"{lr:.1e}")
-        del it
-        if bar:
-            bar.close()
+        sums, n_img, step, lr = _train_epoch(cfg, epoch, net, crit, opt, kp_sup, train_loader, steps_per_epoch,
+                                             step, total_steps, device, fmt, progress)
         train_s = time.perf_counter() - t0
         pred = predict(net, val_loader, device, progress, "val")
         val = metrics.summarize(pred["T_hat"], pred["q_hat"], pred["T"], pred["q"]) if len(pred["T"]) else {}
@@ -255,14 +289,7 @@ def train(cfg, progress: bool = True, log=print) -> dict:
                "L_r_mean": sums["L_r"] / max(1, n_img), "L_t_mean_m": sums["L_t"] / max(1, n_img),
                "s_r": crit.s_r.item(), "s_t": crit.s_t.item(), "train_images_per_s": n_img / train_s,
                "epoch_s": time.perf_counter() - t0, **{f"val_{k}": v for k, v in val.items()}, "val_score": val_score}
-        with open(run / "log.jsonl", "a") as fh:
-            fh.write(json.dumps(row) + "\n")
-        new_csv = not csv_path.exists()
-        with open(csv_path, "a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
-            if new_csv:
-                w.writeheader()
-            w.writerow(row)
+        _append_logs(run, fields, row)
         ck = {"model": net.state_dict(), "loss": crit.state_dict(), "optimizer": opt.state_dict(),
               "epoch": epoch + 1, "step": step, "best_score": best, "config": cfg.to_dict(), "labels": labels,
               "camera": splits.camera, "torch_rng": torch.get_rng_state(), "val": val}

@@ -30,8 +30,8 @@ def predict_sequence(est: OnnxPoseEstimator, frames: np.ndarray, batch: int = 32
     T, q = [], []
     it = range(0, len(frames), batch)
     if progress:
-        from tqdm import tqdm
-        it = tqdm(it, desc="predict", unit="batch", leave=False, file=sys.stderr)
+        from oibar.progress import progress_iter
+        it = progress_iter(it, "predict", unit="batch", leave=False)
     for i in it:
         t_i, q_i = est.predict_batch(np.asarray(frames[i:i + batch]))
         T.append(t_i)
@@ -75,6 +75,7 @@ def plot_error_series(path: Path, name: str, time_s, series: dict) -> None:
 
 def write_overlays(out: Path, seq, T_hat, q_hat, n: int) -> list[str]:
     from PIL import Image
+
     from oibar_hil.overlay import draw_overlay
 
     files = []
@@ -117,7 +118,8 @@ def evaluate(model_path: Path, seq_dirs: list[Path], out: Path, cache_dir: Path 
                 w.writerow([k, f"{seq.time_s[k]:.3f}", seq.phase[k], f"{seq.range_m[k]:.4f}", f"{dt[k]:.5f}",
                             f"{dt_pct[k]:.4f}", f"{dq[k]:.4f}", *(f"{x:.5f}" for x in T_hat[k]),
                             *(f"{x:.6f}" for x in q_hat[k])])
-        plot_errors(out / f"{seq.name}_errors.png", f"{seq.name}: errors over time", seq.time_s, dt_pct, dq, dt_pct_b, dq_b)
+        plot_errors(out / f"{seq.name}_errors.png", f"{seq.name}: errors over time", seq.time_s, dt_pct, dq,
+                    dt_pct_b, dq_b)
         ov = write_overlays(out, seq, T_hat, q_hat, overlays)
         result["sequences"][seq.name] = {"model": s_model, "baseline": s_base, "overlays": ov}
     if bench_s > 0:

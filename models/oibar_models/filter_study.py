@@ -145,7 +145,7 @@ def motion_metrics(truth: Truth, r: dict) -> dict:
     envelope allows 50 mm/s) and the frame-to-frame jitter of the position error. Without a
     filter the closing speed would be the difference of consecutive raw ranges."""
     R_true = np.array([quat_to_matrix(q) for q in truth.q_cam_target])
-    r_true = np.array([docking_from_camera_pose(T, R).r_D_m for T, R in zip(truth.T_cam_target_m, R_true)])
+    r_true = np.array([docking_from_camera_pose(T, R).r_D_m for T, R in zip(truth.T_cam_target_m, R_true, strict=True)])
     v_true = np.gradient(r_true[:, 2], truth.time_s)
     closing_true = -v_true
     closing_raw = -np.diff(r["r_D_raw"][:, 2]) / np.diff(truth.time_s)

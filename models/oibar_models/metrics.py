@@ -5,8 +5,16 @@ shared with flight-side studies; they are re-exported here for the training code
 
 from __future__ import annotations
 
-from oibar.geometry.metrics import (ATT_REQ_DEG, POS_REQ_PCT, attitude_error_deg, mean_pose,  # noqa: F401
-                                    position_error_m, position_error_pct, score, summarize)
+from oibar.geometry.metrics import (  # noqa: F401
+    ATT_REQ_DEG,
+    POS_REQ_PCT,
+    attitude_error_deg,
+    mean_pose,
+    position_error_m,
+    position_error_pct,
+    score,
+    summarize,
+)
 
 TABLE_COLUMNS = [
     ("frames", "frames", "{:d}"),

@@ -131,7 +131,7 @@ def oibar_lite(width: float = 1.0, in_ch: int = 3) -> tuple[nn.Module, int]:
     ch = [max(8, int(round(c * width / 8)) * 8) for c in (16, 32, 48, 96, 192)]
     layers: list[nn.Module] = [conv_bn(in_ch, ch[0], 3, 2), conv_bn(ch[0], ch[1], 3, 2)]
     cin = ch[1]
-    for cout, n in zip(ch[1:], (1, 2, 2, 2)):
+    for cout, n in zip(ch[1:], (1, 2, 2, 2), strict=True):
         for i in range(n):
             layers.append(BasicBlock(cin, cout, 2 if (i == 0 and cout != ch[1]) else 1))
             cin = cout
@@ -245,7 +245,7 @@ def soft_argmax(logits: torch.Tensor) -> torch.Tensor:
     return torch.cat([u, v], 1)
 
 
-def widen_heads_from(net: "OibarNet", state: dict) -> dict:
+def widen_heads_from(net: OibarNet, state: dict) -> dict:
     """A checkpoint of the same net without the keypoint branch -> a state dict for ``net``:
     the heads' extra input columns start at zero, so the widened net starts out computing
     exactly what the old one did."""

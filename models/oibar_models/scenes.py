@@ -26,7 +26,8 @@ def _clash(a: SequenceSpec, b: SequenceSpec) -> str | None:
         return "same name"
     if a.seed == b.seed:
         return f"same trajectory seed {a.seed}"
-    if a.port == b.port and a.background == b.background and abs(a.sun_elevation_deg - b.sun_elevation_deg) < SUN_MARGIN_DEG:
+    if (a.port == b.port and a.background == b.background
+            and abs(a.sun_elevation_deg - b.sun_elevation_deg) < SUN_MARGIN_DEG):
         return (f"port {a.port}, {a.background} background, Sun {a.sun_elevation_deg} vs {b.sun_elevation_deg} deg "
                 f"(closer than {SUN_MARGIN_DEG} deg)")
     return None

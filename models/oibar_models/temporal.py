@@ -92,8 +92,8 @@ def extract_features(net, frames: np.ndarray, batch: int = 64, progress: bool = 
     out = np.empty((len(frames), net.feature_dim), np.float32)
     it = range(0, len(frames), batch)
     if progress:
-        from tqdm import tqdm
-        it = tqdm(it, desc=desc, unit="batch", leave=False, file=sys.stderr)
+        from oibar.progress import progress_iter
+        it = progress_iter(it, desc, unit="batch", leave=False)
     for i in it:
         out[i:i + batch] = net.features(images_from_uint8(frames[i:i + batch])).numpy()
     return out
@@ -321,9 +321,9 @@ def train_head(cnn, feats: list[np.ndarray], labels: list[dict], clips: np.ndarr
         idx = torch.from_numpy(rows[:, 2:])
         s = rows[:, 1]
         # clips of one batch may come from different sequences: gather per row
-        f = torch.stack([F[si][ix] for si, ix in zip(s, idx)])
-        t = torch.stack([T_lab[si][ix] for si, ix in zip(s, idx)])
-        r = torch.stack([r_lab[si][ix] for si, ix in zip(s, idx)])
+        f = torch.stack([F[si][ix] for si, ix in zip(s, idx, strict=True)])
+        t = torch.stack([T_lab[si][ix] for si, ix in zip(s, idx, strict=True)])
+        r = torch.stack([r_lab[si][ix] for si, ix in zip(s, idx, strict=True)])
         return f, t, r
 
     def val_predict(seg):
@@ -337,9 +337,9 @@ def train_head(cnn, feats: list[np.ndarray], labels: list[dict], clips: np.ndarr
         batches = range(0, len(order), st.batch_size)
         bar = None
         if progress:
-            from tqdm import tqdm
-            bar = tqdm(total=len(batches), desc=f"BiLSTM-{layers} epoch {epoch + 1}/{st.epochs}", unit="batch",
-                       leave=False, file=sys.stderr)
+            from oibar.progress import Progress
+            bar = Progress(f"BiLSTM-{layers} epoch {epoch + 1}/{st.epochs}", total=len(batches), unit="batch",
+                           leave=False)
         loss_sum = 0.0
         for i in batches:
             f, t, r = gather(clips[order[i:i + st.batch_size]])
@@ -401,14 +401,14 @@ def run_study(cfg, checkpoint: Path, out: Path, st: StudySettings, progress: boo
     # features, once per sequence (the expensive part)
     t0 = time.perf_counter()
     feats, reused = [], []
-    for s, n in zip(seqs, n_frames):
+    for s, n in zip(seqs, n_frames, strict=True):
         f, r = sequence_features(cnn, s, size, n, ck_hash, out, cache_dir, st.feature_batch, progress)
         feats.append(f)
         reused.append(r)
     extract_s = time.perf_counter() - t0
     log(f"features: {sum(n_frames)} frames of {len(seqs)} sequences, dim {cnn.feature_dim}, "
         f"{'reused from ' + str(out) if all(reused) else f'{extract_s:.0f} s'}")
-    labels = [_labels(s, n) for s, n in zip(seqs, n_frames)]
+    labels = [_labels(s, n) for s, n in zip(seqs, n_frames, strict=True)]
 
     items = {"train": splits.train.items, "val": splits.val.items}
     segs = split_segments(splits.split_info, [s.name for s in train_seqs], items, n_frames[:len(train_seqs)])
@@ -431,16 +431,7 @@ def run_study(cfg, checkpoint: Path, out: Path, st: StudySettings, progress: boo
     def cnn_predict(seg):
         return predict_cnn_from_features(cnn, feats[seg.seq][seg.frames])
 
-    checks = []
-    for seg in test_segs:            # 64 frames spread over each test sequence
-        n = n_frames[seg.seq]
-        idx = np.linspace(0, n - 1, min(64, n)).astype(int)
-        checks.append(direct_check(cnn, frame_cache(seqs[seg.seq], size, cache_dir), feats[seg.seq], idx))
-    check = {"frames": sum(c["frames"] for c in checks),
-             "max_abs_position_m": max(c["max_abs_position_m"] for c in checks),
-             "max_abs_rot6d": max(c["max_abs_rot6d"] for c in checks)}
-    if check["max_abs_position_m"] > 1e-3 or check["max_abs_rot6d"] > 1e-4:
-        raise StudyError(f"cached features do not reproduce the CNN's own predictions: {check}")
+    check = _direct_check_tests(cnn, seqs, test_segs, n_frames, feats, size, cache_dir)
     seq01 = len(train_seqs)          # first test sequence (seq01 in the paper's split): the plot
 
     def smoothed_predict(seg):
@@ -480,15 +471,7 @@ def run_study(cfg, checkpoint: Path, out: Path, st: StudySettings, progress: boo
     bilstms = [f"BiLSTM-{L}" for L in st.layers]
     best_key = min(bilstms, key=lambda k: metrics.score(results[k]["val"]))
 
-    # plot: seq01, CNN vs the BiLSTM chosen on validation (never on the test sequences)
-    s01 = seqs[seq01]
-    series = {}
-    for key in ("CNN alone", SMOOTHED, best_key):
-        t, r = preds[f"{s01.name}/{key}"]
-        series[key] = (metrics.position_error_pct(t, labels[seq01]["T"]),
-                       metrics.attitude_error_deg(quats_from_rot6d(r), labels[seq01]["q"]))
-    plot_error_series(out / f"{s01.name}_temporal_errors.png", f"{s01.name}: CNN alone, moving-average control, {best_key} (chosen on val)",
-                  s01.time_s[:n_frames[seq01]], series)
+    _plot_errors(out, seqs[seq01], preds, labels[seq01], n_frames[seq01], best_key)
     np.savez_compressed(out / "predictions.npz", **{f"{k}/T_cam_target_m": v[0] for k, v in preds.items()},
                         **{f"{k}/rot6d": v[1] for k, v in preds.items()})
 
@@ -511,23 +494,61 @@ def run_study(cfg, checkpoint: Path, out: Path, st: StudySettings, progress: boo
         "machine": f"{platform.processor() or platform.machine()}, {platform.system()}, "
                    f"torch threads {torch.get_num_threads()}",
     }
-    verdict = _verdict(results, best_key, [seqs[g.seq].name for g in test_segs])
-    result["verdict"] = verdict
+    result["verdict"] = _verdict(results, best_key, [seqs[g.seq].name for g in test_segs])
+    (out / "temporal.md").write_text(_report_markdown(result, rows, st, train_s))
+    (out / "temporal.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
+    return result
+
+
+def _direct_check_tests(cnn, seqs: list[Sequence], test_segs: list[Segment], n_frames: list[int],
+                        feats: list[np.ndarray], size, cache_dir) -> dict:
+    """The CNN on images against its heads on the cached features, 64 frames spread over each
+    test sequence: raises StudyError when they differ (stale or foreign features)."""
+    checks = []
+    for seg in test_segs:
+        n = n_frames[seg.seq]
+        idx = np.linspace(0, n - 1, min(64, n)).astype(int)
+        checks.append(direct_check(cnn, frame_cache(seqs[seg.seq], size, cache_dir), feats[seg.seq], idx))
+    check = {"frames": sum(c["frames"] for c in checks),
+             "max_abs_position_m": max(c["max_abs_position_m"] for c in checks),
+             "max_abs_rot6d": max(c["max_abs_rot6d"] for c in checks)}
+    if check["max_abs_position_m"] > 1e-3 or check["max_abs_rot6d"] > 1e-4:
+        raise StudyError(f"cached features do not reproduce the CNN's own predictions: {check}")
+    return check
+
+
+def _plot_errors(out: Path, seq: Sequence, preds: dict, label: dict, n_frames: int, best_key: str) -> None:
+    """Errors over time on one test sequence: the CNN, the smoothing control and the BiLSTM
+    chosen on validation (never on the test sequences)."""
+    series = {}
+    for key in ("CNN alone", SMOOTHED, best_key):
+        t, r = preds[f"{seq.name}/{key}"]
+        series[key] = (metrics.position_error_pct(t, label["T"]),
+                       metrics.attitude_error_deg(quats_from_rot6d(r), label["q"]))
+    plot_error_series(out / f"{seq.name}_temporal_errors.png",
+                      f"{seq.name}: CNN alone, moving-average control, {best_key} (chosen on val)",
+                      seq.time_s[:n_frames], series)
+
+
+def _report_markdown(result: dict, rows: list, st: StudySettings, train_s: dict) -> str:
+    """temporal.md: the settings, the table, the choice on validation, the verdict, the times."""
+    check, timing = result["direct_check"], result["timing_s"]
+    reused = timing["features_reused"]
     md = ["# Temporal study: BiLSTM on frozen CNN features", "",
-          f"checkpoint {checkpoint} (epoch {ck.get('epoch')}, sha256 {ck_hash}); clips of {st.clip_len} frames "
+          f"checkpoint {result['checkpoint']} (epoch {result['checkpoint_epoch']}, sha256 "
+          f"{result['checkpoint_sha256_12']}); clips of {st.clip_len} frames "
           f"every {st.clip_stride}; BiLSTM hidden {st.hidden}, {st.epochs} epochs, Adam lr {st.lr}, batch "
           f"{st.batch_size} clips; evaluation: {result['eval_rule']}; control: {SMOOTHED} = the CNN's per-frame "
           f"predictions averaged over a centred window of {st.clip_len} frames"
           + (f"; only the first {st.max_frames} frames per sequence" if st.max_frames else ""), "",
           metrics.markdown_table(rows), "",
-          f"BiLSTM chosen on validation: {best_key}. Direct check (CNN on images vs heads on cached features, "
-          f"{check['frames']} frames): max |d position| {check['max_abs_position_m']:.2e} m, "
-          f"max |d rot6d| {check['max_abs_rot6d']:.2e}.", "", f"Verdict: {verdict}", "",
-          f"Wall time {wall_s:.0f} s (features {extract_s:.0f} s{', reused' if all(reused) else ''}; training "
-          + ", ".join(f"BiLSTM-{L} {v:.0f} s" for L, v in train_s.items()) + f"); {result['machine']}.", ""]
-    (out / "temporal.md").write_text("\n".join(md))
-    (out / "temporal.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
-    return result
+          f"BiLSTM chosen on validation: {result['best_bilstm_on_val']}. Direct check (CNN on images vs heads on "
+          f"cached features, {check['frames']} frames): max |d position| {check['max_abs_position_m']:.2e} m, "
+          f"max |d rot6d| {check['max_abs_rot6d']:.2e}.", "", f"Verdict: {result['verdict']}", "",
+          f"Wall time {timing['wall']:.0f} s (features {timing['features']:.0f} s{', reused' if reused else ''}; "
+          "training " + ", ".join(f"BiLSTM-{L} {v:.0f} s" for L, v in train_s.items()) + f"); {result['machine']}.",
+          ""]
+    return "\n".join(md)
 
 
 def _distinct_frames(clips: np.ndarray) -> int:

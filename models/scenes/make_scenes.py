@@ -6,8 +6,9 @@ Sun angles over the sunlit part of the orbit, envelope runs (misalignment up to 
 noise and blur, each with its own trajectory seed. Validation also holds turned runs (the chaser
 misaligned by 1.5-5 deg from 10 m to contact, as in the rig's mission), appended after the
 others so the earlier scenes stay as they were. A scene that shares a test scene's port and
-background is kept at least 15 deg of Sun elevation away from it; validation scenes keep the same distance from training scenes, so validation figures are not
-test figures in disguise (oibar_models.scenes checks this again when a config is loaded).
+background is kept at least 15 deg of Sun elevation away from it; validation scenes keep the
+same distance from training scenes, so validation figures are not test figures in disguise
+(oibar_models.scenes checks this again when a config is loaded).
 
 Run: python models/scenes/make_scenes.py
 """

@@ -68,7 +68,7 @@ Linker script and memory map
  .text.link_poll
                 0x08000188      0x100 link/liboibar_link.a(link.c.obj)
                 0x08000188                oibar_link_poll
- *fill*         0x08000288        0x2 
+ *fill*         0x08000288        0x2
  .text.oibar_stepper_isr
                 0x0800028a       0x7e app/liboibar_app.a(drv_stepper.c.obj)
  .text.fsm      0x08000308       0x80 app/liboibar_app.a(fsm.c.obj)

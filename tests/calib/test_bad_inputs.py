@@ -40,7 +40,8 @@ def test_malformed_mocap_csv(tmp_path, text, message):
 
 def test_occluded_samples_are_dropped_and_mm_units(tmp_path):
     p = tmp_path / "m.csv"
-    p.write_text(GOOD_HEADER + "0.0,a,1000,0,0,1,0,0,0\n0.01,a,,,,,,,\n0.02,a,NaN,0,0,1,0,0,0\n0.03,a,2000,0,0,1,0,0,0\n")
+    p.write_text(GOOD_HEADER + "0.0,a,1000,0,0,1,0,0,0\n0.01,a,,,,,,,\n0.02,a,NaN,0,0,1,0,0,0\n"
+                 "0.03,a,2000,0,0,1,0,0,0\n")
     tr = io.read_mocap_csv(p, "mm")["a"]
     assert list(tr.t_s) == [0.0, 0.03] and tr.T_mocap_body[1][0, 3] == pytest.approx(2.0)
 
@@ -100,7 +101,8 @@ def test_unknown_body_and_bad_json(tmp_path, capsys):
     (tmp_path / "f.csv").write_text("frame,file,time_s\n0,a.png,5.0\n")
     (tmp_path / "calib.json").write_text("{not json")
     line = _cli_error(capsys, ["calib", "apply", "--calib", str(tmp_path / "calib.json"), "--mocap",
-                               str(tmp_path / "m.csv"), "--frames", str(tmp_path / "f.csv"), "-o", str(tmp_path / "o.csv")])
+                               str(tmp_path / "m.csv"), "--frames", str(tmp_path / "f.csv"),
+                               "-o", str(tmp_path / "o.csv")])
     assert "not valid JSON" in line
     with pytest.raises(CalibError, match="no rigid body 'camera' \\(found: housing, tmarkers\\)"):
         io.pick_tracks(io.read_mocap_csv(tmp_path / "m.csv"), "camera", "tmarkers", tmp_path / "m.csv")
@@ -113,7 +115,8 @@ def test_too_few_frames_with_the_pattern(recording, tmp_path, capsys):
     (tmp_path / "frames.csv").write_text("\n".join(lines[:7]) + "\n")
     line = _cli_error(capsys, ["calib", "estimate", "--mocap", str(recording / "mocap.csv"), "--frames",
                                str(tmp_path / "frames.csv"), "--pattern", str(recording / "pattern.json"),
-                               "--housing-body", "housing", "--target-body", "tmarkers", "-o", str(tmp_path / "c.json")])
+                               "--housing-body", "housing", "--target-body", "tmarkers",
+                               "-o", str(tmp_path / "c.json")])
     assert "too few calibration poses" in line
 
 

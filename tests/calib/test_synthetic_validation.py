@@ -58,12 +58,13 @@ def test_apply_gives_time_aligned_ground_truth(calib, recording, truth, tmp_path
     assert len(rows) == truth["n_frames"]
     cfg = SynthConfig()
     T_true = inv_T(T_target_cam_at(frame_times(cfg) + cfg.offset_s, cfg))
-    dt = [np.linalg.norm([float(r[k]) for k in ("tx_m", "ty_m", "tz_m")] - T_true[i][:3, 3]) for i, r in enumerate(rows)]
+    dt = [np.linalg.norm([float(r[k]) for k in ("tx_m", "ty_m", "tz_m")] - T_true[i][:3, 3])
+          for i, r in enumerate(rows)]
     dr = [rotation_angle_deg(T_from_pose([0, 0, 0], [float(r[k]) for k in ("qw", "qx", "qy", "qz")])[:3, :3].T
                              @ T_true[i][:3, :3]) for i, r in enumerate(rows)]
     # Per frame the stream carries the mocap noise of two bodies (0.5 deg each, ~1 m lever arm).
     assert np.median(dt) < 0.012 and np.median(dr) < 0.8
-    assert all(abs(float(r["time_s"]) - t) < 1e-6 for r, t in zip(rows, frame_times(cfg)))
+    assert all(abs(float(r["time_s"]) - t) < 1e-6 for r, t in zip(rows, frame_times(cfg), strict=True))
 
 
 def test_overlay_draws_the_model(calib, recording, tmp_path):

@@ -104,7 +104,7 @@ def run_leg(args: argparse.Namespace, runs_left: int) -> Leg:
     units_before = len(list(corpus.iterdir()))
     base_seed = int(time.time()) % 100_000 * 100
     procs, log_paths = [], []
-    started = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    started = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     print(f"== {args.target}: {runs_left:,} executions on {jobs} processes ({per_job:,} each), "
           f"corpus {corpus} ({units_before:,} units)", flush=True)
     t0 = time.monotonic()
@@ -152,7 +152,7 @@ def run_leg(args: argparse.Namespace, runs_left: int) -> Leg:
     wall = time.monotonic() - t0
 
     total, cov, rss, findings = 0, 0, 0, []
-    for p, log in zip(procs, log_paths):
+    for p, log in zip(procs, log_paths, strict=True):
         text = log.read_text(errors="replace")
         stats = {k: int(v) for k, v in STAT.findall(text)}
         total += stats.get("number_of_executed_units", 0)

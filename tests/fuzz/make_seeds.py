@@ -117,7 +117,7 @@ def main() -> None:
             walk.wait(300)
             continue
         target_kpa = 1200.0 if opcode == pb.CMD_START_TRANSFER else 0.0
-        walk.packet(lambda seq: command(seq, opcode, target_kpa))
+        walk.packet(lambda seq, opcode=opcode, target_kpa=target_kpa: command(seq, opcode, target_kpa))
         walk.wait(wait_ms)
     (dispatch_dir / "nominal_walk").write_bytes(walk.data)
 

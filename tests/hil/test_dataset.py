@@ -5,8 +5,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from oibar_hil.dataset import (PAPER_SEQUENCES, DatasetError, SequenceSpec, generate_dataset, plan_sequence,
-                               read_poses_csv, sha256_file, verify_sequence)
+from oibar_hil.dataset import (
+    PAPER_SEQUENCES,
+    DatasetError,
+    SequenceSpec,
+    generate_dataset,
+    plan_sequence,
+    read_poses_csv,
+    sha256_file,
+    verify_sequence,
+)
 
 N = 5
 PERLIN = PAPER_SEQUENCES[2]

@@ -29,7 +29,7 @@ POSES = [
 def _markers(size_m: float) -> list[Part]:
     """Thin squares (front face on the berthing plane) at the origin and near the corners."""
     parts = []
-    for pid, p in zip(MARKER_IDS, MARKER_POINTS_T):
+    for pid, p in zip(MARKER_IDS, MARKER_POINTS_T, strict=True):
         m = trimesh.creation.box(extents=(size_m, size_m, 0.002))
         m.apply_translation(p + [0, 0, 0.001])
         m.apply_transform(np.block([[PORT.R_lvlh_t, PORT.p_lvlh_t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
@@ -57,7 +57,7 @@ def test_marker_centroids_match_projection(gl_renderer, pose):
     # ~12 px markers whatever the range, so pixel quantisation stays well below the tolerance.
     ids, R_cam_t = _render_ids(gl_renderer, _markers(0.02 * T[2]), rotvec, T)
     expected = CAM.project(transform_points(MARKER_POINTS_T, R_cam_t, T))
-    for pid, uv in zip(MARKER_IDS, expected):
+    for pid, uv in zip(MARKER_IDS, expected, strict=True):
         rows, cols = np.nonzero(ids == pid)
         assert len(rows) > 4, f"marker {pid} not drawn"
         # Pixel (col, row) has its centre at (col + 0.5, row + 0.5) in our convention.

@@ -1,7 +1,14 @@
 import numpy as np
 
-from oibar_hil.orbit import (DEFAULT_EPOCH_UTC, DEFAULT_TLE, TargetOrbit, julian_date, parse_utc,
-                             sun_inplane_elevation_deg, tle_checksum)
+from oibar_hil.orbit import (
+    DEFAULT_EPOCH_UTC,
+    DEFAULT_TLE,
+    TargetOrbit,
+    julian_date,
+    parse_utc,
+    sun_inplane_elevation_deg,
+    tle_checksum,
+)
 from oibar_hil.sun import right_ascension_declination_deg, sun_position_au
 
 

@@ -3,7 +3,6 @@ host's navigator (the shipped OibarNet on onnxruntime, the checks, the filter) t
 into the solution, and the host's guidance flies the mission on it. The short version of
 `make demo`; plus the camera lost in flight."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -14,8 +14,16 @@ from oibar.geometry.rotations import quat_to_matrix
 from oibar.geometry.transforms import transform_points
 from oibar_hil import dataset
 from oibar_hil.dataset import PAPER_SEQUENCES, plan_sequence
-from oibar_hil.meshes import (ID_ADAPTER, ID_BOUNDARY, ID_CONNECTOR, ID_COUPLING, ID_DROGUE, ID_PIN_GUIDE, ID_PLATE,
-                              end_effector)
+from oibar_hil.meshes import (
+    ID_ADAPTER,
+    ID_BOUNDARY,
+    ID_CONNECTOR,
+    ID_COUPLING,
+    ID_DROGUE,
+    ID_PIN_GUIDE,
+    ID_PLATE,
+    end_effector,
+)
 from oibar_hil.ports import PORTS
 from oibar_hil.rig.camera import OrbitClock, RigCamera, RigCameraError, pose_to_lvlh
 

@@ -3,6 +3,7 @@
 import pytest
 
 from oibar import pb
+from oibar.link.errors import LinkError
 from oibar.link.framing import FrameDecoder, Packet, encode_frame
 from oibar.link.session import LinkSession
 
@@ -63,7 +64,7 @@ def test_link_up_heartbeats_and_link_loss():
     assert len(beats) >= 2
     s.step(0.45 + 1.0)  # silent for the link timeout
     assert not s.link_up and s.counters.link_losses == 1
-    with pytest.raises(Exception):
+    with pytest.raises(LinkError):  # LinkDown, or the re-handshake still outstanding
         s.command(pb.CMD_NOOP, now_s=1.5)
 
 

@@ -6,8 +6,8 @@ import threading
 import time
 
 import pytest
-
 from fake_mcu import FakeMcu
+
 from oibar.link import LinkClient
 
 # Timings ~5x shorter than the defaults keep the suite fast while preserving their ratios.

@@ -27,8 +27,8 @@ import select
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from oibar import pb
 from oibar.link.framing import FrameDecoder, Packet, encode_frame
@@ -148,7 +148,7 @@ class FakeMcu:
 
     # -- lifecycle ---------------------------------------------------------
 
-    def start(self) -> "FakeMcu":
+    def start(self) -> FakeMcu:
         self._listen()
         self._thread = threading.Thread(target=self._run, name="fake-mcu", daemon=True)
         self._thread.start()
@@ -163,7 +163,7 @@ class FakeMcu:
         self._wake_r.close()
         self._wake_w.close()
 
-    def __enter__(self) -> "FakeMcu":
+    def __enter__(self) -> FakeMcu:
         return self.start()
 
     def __exit__(self, *exc_info: object) -> None:
@@ -219,7 +219,7 @@ class FakeMcu:
     def emit_event(self, event_id: int, **fields: object) -> None:
         self._call(lambda: self._send_event(event_id, **fields))
 
-    def wait_until(self, predicate: Callable[["FakeMcu"], bool], timeout_s: float = 3.0) -> bool:
+    def wait_until(self, predicate: Callable[[FakeMcu], bool], timeout_s: float = 3.0) -> bool:
         """Poll ``predicate(self)`` until true or timeout (test helper)."""
         return wait_for(lambda: predicate(self), timeout_s)
 

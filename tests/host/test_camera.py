@@ -52,7 +52,7 @@ def test_folder_natural_order_and_nominal_rate(tmp_path):
     assert [f.t_s for f in frames] == pytest.approx([0.0, 0.2, 0.4, 0.6])
     assert [int(f.image[0, 0, 0]) for f in frames] == [0, 20, 40, 200]  # f0, f1, f2, f10; RGB order
     assert frames[0].image.shape == (H, W, 3) and frames[0].image.dtype == np.uint8
-    assert all(b.t_host >= a.t_host for a, b in zip(frames, frames[1:]))
+    assert all(b.t_host >= a.t_host for a, b in zip(frames, frames[1:], strict=False))
 
 
 def test_folder_timestamps_from_dataset_poses_csv(tmp_path):
@@ -181,7 +181,7 @@ def test_callable_source_realtime_rate_and_grey():
         elapsed = time.monotonic() - t0
     assert elapsed >= 0.09  # 5 periods of 20 ms
     ts = [f.t_s for f in frames]
-    assert all(b > a for a, b in zip(ts, ts[1:]))
+    assert all(b > a for a, b in zip(ts, ts[1:], strict=False))
     assert frames[0].image.shape == (H, W, 3) and int(frames[0].image[0, 0, 1]) == 7
 
 
@@ -199,9 +199,9 @@ def test_callable_source_dropout_and_failure():
 
     with CallableSource(boom, realtime=False) as src, pytest.raises(CameraLost, match="GL context lost"):
         src.read()
-    with CallableSource(lambda t: np.zeros((4, 4, 2), np.uint8), realtime=False) as src:
-        with pytest.raises(CameraError, match="shape"):
-            src.read()
+    with CallableSource(lambda t: np.zeros((4, 4, 2), np.uint8), realtime=False) as src, \
+            pytest.raises(CameraError, match="shape"):
+        src.read()
 
 
 # --- LatestFrame ---------------------------------------------------------------------------
@@ -216,7 +216,7 @@ def test_latest_frame_drops_stale_frames_under_slow_consumer():
             seqs.append(f.seq)
             time.sleep(0.05)  # a consumer 5x slower than the camera
     stats = cam.stats  # after stop(): no frame can arrive any more
-    assert all(b > a for a, b in zip(seqs, seqs[1:]))  # never an older (or the same) frame
+    assert all(b > a for a, b in zip(seqs, seqs[1:], strict=False))  # never an older (or the same) frame
     assert seqs[-1] - seqs[0] >= 15  # it skipped ahead
     assert cam.dropped == stats.dropped >= 15
     assert stats.delivered == 6
@@ -259,9 +259,9 @@ def test_latest_frame_source_that_stops_raises_after_timeout():
 
 
 def test_latest_frame_reports_source_error_and_end(tmp_path):
-    with LatestFrame(CallableSource(lambda t: None, realtime=False, lost_timeout_s=0.1), lost_timeout_s=5.0) as cam:
-        with pytest.raises(CameraLost, match="no frame"):
-            cam.get()
+    src = CallableSource(lambda t: None, realtime=False, lost_timeout_s=0.1)
+    with LatestFrame(src, lost_timeout_s=5.0) as cam, pytest.raises(CameraLost, match="no frame"):
+        cam.get()
     for k in range(3):
         _write_png(tmp_path / f"{k}.png", k)
     with LatestFrame(FolderSource(tmp_path, realtime=True, rate_hz=50.0)) as cam:

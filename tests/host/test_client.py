@@ -11,8 +11,8 @@ import time
 from pathlib import Path
 
 import pytest
-
 from fake_mcu import FakeMcu, PtyBridge, wait_for
+
 from oibar import cli, pb
 from oibar.link import (
     LinkClient,
@@ -360,7 +360,7 @@ def test_peer_seq_tracking_handles_wrap_stale_and_restart():
     track(6)
     assert core.counters.lost_peer_packets == 2
     track(0)  # seq 0 means none
-    for seq in (SEQ_MAX - 1, 2):  # gap across the wrap: SEQ_MAX and 1 lost
+    for _ in range(2):  # twice, a gap across the wrap each time: SEQ_MAX and 1 lost
         core._peer_seq = None
         track(SEQ_MAX - 1)
         track(2)

@@ -10,10 +10,28 @@ import numpy as np
 import pytest
 
 from oibar.geometry import camera, docking, fixture, metrics, transforms
-from oibar.geometry.camera import (CENTRE_MINUS_CORNER_PX, PIXEL_CENTRE, PIXEL_CORNER, PinholeCamera,
-                                   centre_to_corner_px, corner_to_centre_px, intrinsics_corner_to_centre)
-from oibar.geometry.rotations import (angle_between_quats_deg, matrix_to_quat, matrix_to_rotvec, quat_to_matrix, rot_x,
-                                      rot_y, rot_z, rotation_angle_deg, rotation_angles_deg, rotvec_to_matrix, skew)
+from oibar.geometry.camera import (
+    CENTRE_MINUS_CORNER_PX,
+    PIXEL_CENTRE,
+    PIXEL_CORNER,
+    PinholeCamera,
+    centre_to_corner_px,
+    corner_to_centre_px,
+    intrinsics_corner_to_centre,
+)
+from oibar.geometry.rotations import (
+    angle_between_quats_deg,
+    matrix_to_quat,
+    matrix_to_rotvec,
+    quat_to_matrix,
+    rot_x,
+    rot_y,
+    rot_z,
+    rotation_angle_deg,
+    rotation_angles_deg,
+    rotvec_to_matrix,
+    skew,
+)
 
 
 def random_rotvecs(n: int, seed: int = 0, max_angle_rad: float = np.pi) -> np.ndarray:
@@ -48,7 +66,7 @@ def test_quaternion_known_values_and_sign():
 def test_rotation_round_trips_one_and_batched():
     rv = random_rotvecs(200, seed=1, max_angle_rad=np.pi - 1e-6)
     Rs = np.stack([rotvec_to_matrix(v) for v in rv])
-    for v, R in zip(rv, Rs):
+    for v, R in zip(rv, Rs, strict=True):
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-14)
         assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-14)
         np.testing.assert_allclose(matrix_to_rotvec(R), v, atol=1e-9)

@@ -9,7 +9,6 @@ log.
 
 import os
 import threading
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -541,6 +540,7 @@ def test_heartbeats_stop_when_the_navigation_loop_hangs(mcu, fast_timings):
     alive to the MCU. The daemon's link (oibar nav's, open_link) sends them only from the cycle:
     cycling keeps the MCU's link up; a loop that stops cycling lets its link timeout expire."""
     from fake_mcu import wait_for
+
     from oibar.nav.cli import open_link
 
     client = open_link(mcu.url, **fast_timings)
@@ -599,3 +599,12 @@ def test_the_navigator_gives_a_tracking_estimator_the_filters_predicted_pose():
     nav = Navigator(plain)
     for k in range(3):
         assert nav.step(0.1 * k, grey(), frame_t_s=0.1 * k).update is not None
+
+
+def test_bench_link_stub_accepts_commands():
+    # The nav-cycle benchmark's MCU stub referred to `pb` outside the method that imported it, so
+    # the first command guidance sent during a benchmark raised NameError (found by ruff F821).
+    from oibar.nav.bench import _InstantLink
+
+    req = _InstantLink().submit_command(pb.CMD_APPROACH_ARM)
+    assert req.done and req.response.accepted and req.response_kind == "ack"

@@ -20,9 +20,10 @@ def truth(t_s):
     return R0_D_M + V_D_MPS * t_s, ATT_RAD
 
 
-def noisy_measurement(t_s, rng, params=FilterParams()):
+def noisy_measurement(t_s, rng, params=None):
     """Camera-frame pose with noise of the size the filter assumes (lateral/depth % of range,
     constant attitude)."""
+    params = params or FilterParams()
     r, a = truth(t_s)
     T, R = camera_pose_from_docking(r, a)
     rng_m = np.linalg.norm(T)
@@ -143,7 +144,7 @@ def test_covariance_grows_while_coasting_and_the_state_expires():
     f, rng, t0 = converged()
     t_last = 149 * DT_S
     sig = [f.state(t_last + dt).pos_sigma_m[2] for dt in (0.0, 0.3, 0.6, 0.9)]
-    assert all(b > a for a, b in zip(sig, sig[1:])), sig
+    assert all(b > a for a, b in zip(sig, sig[1:], strict=False)), sig
     assert f.state(t_last + 0.9).valid and f.state(t_last + 0.9).since_update_s == pytest.approx(0.9)
     assert not f.state(t_last + f.params.max_coast_s + 0.05).valid
     f.predict(t_last + 5.0)                               # a long gap: no frames at all
@@ -180,7 +181,6 @@ def test_low_confidence_and_non_finite_measurements_are_skipped():
     res = f.update(t, T, R, confidence=float("nan"))
     assert res.reason == "low_confidence"
     # low (but usable) confidence widens the noise: 0.25 -> 4x sigma
-    m = docking_from_camera_pose(T, R)
     Rp1, Ra1 = f.measurement_noise(T, R, 1.0)
     Rp4, Ra4 = f.measurement_noise(T, R, 0.25)
     np.testing.assert_allclose(Rp4, 16 * Rp1)

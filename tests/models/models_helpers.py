@@ -28,7 +28,7 @@ def draw_frame(T, q, rng) -> Image.Image:
     d.polygon([tuple(c) for c in p["corners"]], fill=(180, 180, 170), outline=(255, 255, 255))
     o = p["origin"]
     d.ellipse([o[0] - 4, o[1] - 4, o[0] + 4, o[1] + 4], fill=(255, 40, 40))
-    for tip, col in zip(p["axes"], ((255, 0, 0), (0, 255, 0), (0, 96, 255))):
+    for tip, col in zip(p["axes"], ((255, 0, 0), (0, 255, 0), (0, 96, 255)), strict=True):
         d.line([tuple(o), tuple(tip)], fill=col, width=3)
     return im
 

@@ -7,16 +7,22 @@ import shutil
 
 import numpy as np
 import pytest
+from models_helpers import CAMERA, tiny_config
 
-from oibar_models.config import AugmentConfig
-from oibar_models.data import (Augmenter, DatasetError, build_splits, load_frame, load_sequence,
-                               split_subsequences, warp_homography)
 from oibar.geometry.camera import intrinsics, rotation_homography, scale_intrinsics
 from oibar.geometry.camera import project_camera_points as project_np
 from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
 from oibar.geometry.rotations import rot_x, rot_y, rot_z
-
-from models_helpers import CAMERA, tiny_config
+from oibar_models.config import AugmentConfig
+from oibar_models.data import (
+    Augmenter,
+    DatasetError,
+    build_splits,
+    load_frame,
+    load_sequence,
+    split_subsequences,
+    warp_homography,
+)
 
 
 def test_reads_the_dataset_layout(tiny_dataset):
@@ -98,7 +104,7 @@ def test_random_augmentation_keeps_fixture_in_view_and_labels_valid(tiny_dataset
     for i in range(0, len(ds), 7):
         item = ds[i]
         x = item["image"].numpy()
-        assert x.shape == (3, 60, 93) and 0.0 <= x.min() and x.max() <= 1.0
+        assert x.shape == (3, 60, 93) and x.min() >= 0.0 and x.max() <= 1.0
         R = quat_to_matrix_np(item["q_cam_target"].numpy())
         np.testing.assert_allclose(R[:, 0], item["rot6d"].numpy()[:3], atol=1e-5)
         uv = project_np(sp.K_input, item["T_cam_target"].numpy()[None].astype(float))[0]

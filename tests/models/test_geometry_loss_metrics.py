@@ -47,7 +47,7 @@ def test_rot6d_roundtrip_and_gram_schmidt():
 def test_quaternion_matches_hil_convention():
     R = random_rotations(60)
     q = quat_from_matrix(torch.tensor(R)).numpy()
-    for Ri, qi in zip(R, q):
+    for Ri, qi in zip(R, q, strict=True):
         np.testing.assert_allclose(qi, matrix_to_quat(Ri), atol=1e-7)
         assert qi[0] >= 0
     np.testing.assert_allclose(quat_to_matrix_np(q), R, atol=1e-9)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oibar_models.data import frame_cache, input_intrinsics, load_sequence
 from oibar.geometry.camera import project_camera_points as project_np
+from oibar_models.data import frame_cache, input_intrinsics, load_sequence
 
 
 @pytest.mark.slow

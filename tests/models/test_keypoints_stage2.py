@@ -5,12 +5,11 @@ from __future__ import annotations
 import json
 
 import torch
+from models_helpers import tiny_config
 
 from oibar_models.engine import load_checkpoint, train
 from oibar_models.export import export_onnx, parity
 from oibar_models.nets import OibarNet, soft_argmax, widen_heads_from
-
-from models_helpers import tiny_config
 
 
 def test_soft_argmax_finds_the_peak_in_image_coordinates():
@@ -68,6 +67,7 @@ def test_missing_first_stage_is_a_clear_error(tiny_dataset, tmp_path):
 
 def test_keypoint_supervision_targets_are_the_projected_fixture_points(tiny_dataset, tmp_path):
     import numpy as np
+
     from oibar_models.engine import KeypointSupervision
     from oibar_models.geometry import rot6d_from_matrix
 

@@ -18,7 +18,7 @@ from oibar_models.config import ConfigError
 from oibar_models.efficientnet_lite import EfficientNetLite, WeightsError, load_pretrained, weights_path
 from oibar_models.kp_data import CropAugment, CropDataset, open_scenes
 from oibar_models.kp_engine import keypoints_m, load_kp_config
-from oibar_models.scenes import check_disjoint, load_set
+from oibar_models.scenes import load_set
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = REPO / "models/configs/keypoints/oibarnet_kp.yaml"

@@ -9,12 +9,11 @@ import json
 import numpy as np
 import pytest
 import torch
+from models_helpers import tiny_config
 
 from oibar_models import temporal as tm
 from oibar_models.data import PoseDataset, build_splits, open_sequences
 from oibar_models.engine import load_checkpoint, predict, train
-
-from models_helpers import tiny_config
 
 SETTINGS = dict(layers=(1, 2), hidden=8, clip_len=6, clip_stride=3, eval_stride=3, epochs=1, batch_size=4,
                 feature_batch=16, threads=1)
@@ -149,3 +148,15 @@ def test_checkpoint_with_another_split_is_refused(study, tiny_dataset, tmp_path)
     other.data.split_seed = 7
     with pytest.raises(tm.StudyError, match="split_seed"):
         tm.run_study(other, run / "best.pt", tmp_path / "t", tm.StudySettings(**SETTINGS), progress=False)
+
+
+def test_progress_in_a_log_has_no_carriage_returns(tiny_dataset, tmp_path, capsys):
+    """Training and the study with their progress on: in a log (stderr is no terminal here)
+    plain lines, never the carriage-return redraws a terminal gets."""
+    cfg = tiny_config(tiny_dataset, tmp_path / "run", epochs=1, max_steps_per_epoch=2, threads=1)
+    train(cfg, progress=True, log=lambda *_: None)
+    tm.run_study(cfg, tmp_path / "run" / "best.pt", tmp_path / "t",
+                 tm.StudySettings(**(SETTINGS | {"layers": (1,)})), progress=True, log=lambda *_: None)
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    assert "epoch 1/1: 2/2 batch (100%)" in err and "BiLSTM-1 epoch 1/1:" in err

@@ -8,14 +8,13 @@ import json
 import numpy as np
 import pytest
 import torch
+from models_helpers import tiny_config
 
 from oibar_models import evaluate as evaluate_mod
 from oibar_models.engine import load_checkpoint, train
 from oibar_models.export import export_onnx, parity, quantize_int8
 from oibar_models.infer import ModelFileError, OnnxPoseEstimator, read_metadata
 from oibar_models.nets import BACKBONES, OibarNet, TemporalOibarNet, count_parameters
-
-from models_helpers import tiny_config
 
 
 @pytest.fixture(scope="module")

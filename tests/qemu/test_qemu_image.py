@@ -27,8 +27,8 @@ import shutil
 import socket
 import subprocess
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import pytest
 
@@ -82,10 +82,9 @@ class QemuBoard:
                 "-chardev", f"socket,id=link,host=127.0.0.1,port={self.port},server=on,wait=off,nodelay=on",
                 "-serial", "chardev:link",
             ]
-            log = open(self.log_path, "wb")
-            self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log,
-                                         stderr=subprocess.STDOUT)
-            log.close()
+            with open(self.log_path, "wb") as log:
+                self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log,
+                                             stderr=subprocess.STDOUT)
             if self._wait_listening():
                 return
             self.stop()
@@ -99,9 +98,8 @@ class QemuBoard:
                 return False
             # QEMU listens with wait=off: a probe connection shows the port is up. It is
             # closed at once; the chardev then waits for the next client.
-            with contextlib.suppress(OSError):
-                with socket.create_connection(("127.0.0.1", self.port), timeout=0.5):
-                    return True
+            with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", self.port), timeout=0.5):
+                return True
             time.sleep(0.1)
         return False
 

@@ -16,4 +16,8 @@ Modules, one idea each:
   checks      requirements and expected outcomes, pass/fail
   report      the mission report (HTML + PNG plots)
   cli         `python -m oibar_hil.rig run|all|demo`
+  sitl        `make sitl`: the real `oibar nav` program flies the mission against the rig
+  soak        the short mission looped for an hour of simulated time (memory, deadlines)
+  matrix      the fault matrix: every fault type in every phase
+  capture_study, probe   studies: the capture envelope, the network's response to guidance
 """

@@ -87,7 +87,8 @@ def pose_to_lvlh(r_D_m: np.ndarray, att_rad: np.ndarray, port: Port, geom: Docki
     """Rig world state (probe tip in D, attitude error) -> (R_lvlh_cam, p_lvlh_cam_m,
     T_cam_target_m, R_cam_target)."""
     r_D_m, att_rad = np.asarray(r_D_m, dtype=float), np.asarray(att_rad, dtype=float)
-    if r_D_m.shape != (3,) or att_rad.shape != (3,) or not (np.all(np.isfinite(r_D_m)) and np.all(np.isfinite(att_rad))):
+    if (r_D_m.shape != (3,) or att_rad.shape != (3,)
+            or not (np.all(np.isfinite(r_D_m)) and np.all(np.isfinite(att_rad)))):
         raise RigCameraError(f"pose must be two finite 3-vectors, got r_D_m={r_D_m!r}, att_rad={att_rad!r}")
     T_cam_t, R_cam_t = camera_pose_from_docking(r_D_m, att_rad, geom)
     R_lvlh_cam, p_lvlh_cam = camera_pose_lvlh(T_cam_t, R_cam_t, port)

@@ -57,7 +57,7 @@ class RecordingNav:
         return self.inner.frame(t_s, world)
 
     @property
-    def navigator(self) -> "RecordingNav":
+    def navigator(self) -> RecordingNav:
         return self
 
     def step(self, t_s: float, image: Any, **kw: Any):
@@ -71,7 +71,7 @@ class RecordingNav:
     def at_contact(self, world_id: int) -> tuple[float, float] | None:
         """(nav, true) closing speed of the last cycle before the probe tip reached the drogue."""
         rows = [c for c in self.cycles if c[0] == world_id]
-        for prev, row in zip(rows, rows[1:]):
+        for prev, row in zip(rows, rows[1:], strict=False):
             if row[4] <= 0.0:
                 return prev[2], prev[3]
         return None

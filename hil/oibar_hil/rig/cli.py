@@ -82,7 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--nav", choices=("truth", "cnn"), default=None,
                     help="navigation source (default: cnn for demo, truth for run/all)")
-    ap.add_argument("--model", type=Path, default=None, help="ONNX model for --nav cnn (default models/oibarnet.onnx, the keypoint model; models/oibarnet_lite.onnx is its first pass)")
+    ap.add_argument("--model", type=Path, default=None,
+                    help="ONNX model for --nav cnn (default models/oibarnet.onnx, the keypoint model; "
+                         "models/oibarnet_lite.onnx is its first pass)")
     ap.add_argument("--scene", default="seq01", help="rendered scene for --nav cnn (a dataset sequence, default seq01)")
     ap.add_argument("--start-range-m", type=float, default=None, help="override the scenario's start range")
     ap.add_argument("--json", type=Path, default=None, help="also write the results' metrics as JSON here")

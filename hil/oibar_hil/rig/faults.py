@@ -33,7 +33,7 @@ class FaultSpec:
     args: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "FaultSpec":
+    def from_dict(cls, d: dict[str, Any]) -> FaultSpec:
         d = dict(d)
         kind = d.pop("type")
         if kind not in FAULT_TYPES:

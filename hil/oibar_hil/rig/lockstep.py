@@ -94,7 +94,7 @@ def encode_plant(frame: int, advance_ms: int, di_bits: int, adc_counts: list[int
 def decode_mcu(data: bytes) -> McuReply:
     if len(data) != _MCU.size:
         raise LockstepError(f"MCU reply of {len(data)} bytes, expected {_MCU.size}")
-    return McuReply(**dict(zip(_MCU_FIELDS, _MCU.unpack(data))))
+    return McuReply(**dict(zip(_MCU_FIELDS, _MCU.unpack(data), strict=True)))
 
 
 class SimMcu:
@@ -106,7 +106,7 @@ class SimMcu:
         if not exe.exists():
             raise FileNotFoundError(f"simulated MCU not found at {exe} (run `make firmware-host`)")
         self._sock, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        self._stderr = open(stderr_path, "wb") if stderr_path else subprocess.DEVNULL
+        self._stderr = open(stderr_path, "wb") if stderr_path else subprocess.DEVNULL  # noqa: SIM115  (closed by close())
         self.proc = subprocess.Popen(
             [str(exe), "--lockstep-fd", str(child.fileno()), "--watchdog-ms", str(watchdog_ms),
              "--build-id", build_id],
@@ -195,7 +195,7 @@ class SimMcu:
         if self._stderr is not subprocess.DEVNULL:
             self._stderr.close()
 
-    def __enter__(self) -> "SimMcu":
+    def __enter__(self) -> SimMcu:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -395,8 +395,8 @@ def run_matrix(cells: list[tuple[str, str]] | None = None, *, jobs: int = 1, pro
     cells = cells or all_cells()
     bar = None
     if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(cells), unit="cell", desc="fault matrix")
+        from oibar.progress import Progress
+        bar = Progress("fault matrix", total=len(cells), unit="cell")
     results: dict[tuple[str, str], CellResult] = {}
 
     def done(r: CellResult) -> None:

@@ -22,10 +22,10 @@ from typing import Any
 import numpy as np
 
 from oibar.camera import Frame
-from oibar.nav.core import NavStep
 from oibar.geometry.docking import camera_pose_from_docking
-from oibar.nav.guidance import NavSolution
 from oibar.geometry.rotations import matrix_to_quat
+from oibar.nav.core import NavStep
+from oibar.nav.guidance import NavSolution
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 _TOKEN_IMAGE = np.zeros((1, 1, 3), np.uint8)
@@ -45,7 +45,7 @@ class TruthNav:
         self._last: NavSolution | None = None
 
     @property
-    def navigator(self) -> "TruthNav":
+    def navigator(self) -> TruthNav:
         return self
 
     max_frame_age_s = 0.25  # as oibar.nav.core.NavigatorParams: an older frame is stale

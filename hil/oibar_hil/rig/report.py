@@ -20,7 +20,7 @@ import numpy as np  # noqa: E402
 
 from oibar import pb  # noqa: E402
 
-STATE_ORDER = [n for n in pb.State.keys() if n != "STATE_UNSPECIFIED"]
+STATE_ORDER = [n for n in pb.State.keys() if n != "STATE_UNSPECIFIED"]  # noqa: SIM118  (a protobuf enum, not a dict)
 
 
 def _arr(samples: dict[str, list], key: str) -> np.ndarray:

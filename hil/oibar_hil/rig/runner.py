@@ -22,9 +22,10 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -81,7 +82,7 @@ class RigVehicle(VehicleInterface):
     """The daemon's vehicle interface on the rig's world (whichever world the rig holds now:
     the soak installs a new one per mission)."""
 
-    def __init__(self, rig: "Rig") -> None:
+    def __init__(self, rig: Rig) -> None:
         self.rig = rig
 
     def send(self, t_s: float, v_D_mps: np.ndarray, w_rad_s: np.ndarray, phase: str) -> None:
@@ -93,11 +94,32 @@ class RigVehicle(VehicleInterface):
         return self.rig.world.relative_velocity(t_s)
 
 
+@dataclass
+class _SafetyWatch:
+    """Safety timings measured on the ground truth every lockstep exchange (for the checks)."""
+
+    fault_flags_seen: int = 0                      # every MCU fault flag raised during the run
+    first_fault_s: float | None = None             # the MCU entered STATE_FAULT
+    coils_off_after_fault_s: float | None = None   # then both valve coils were off after this long
+    valves_closed_after_injection_s: float | None = None  # both valves closed after the first injected fault
+
+    def observe(self, t_s: float, state: str, reply: Any, mech: Mechanism, first_injection_s: float | None) -> None:
+        self.fault_flags_seen |= reply.fault_flags
+        if state == "STATE_FAULT" and self.first_fault_s is None:
+            self.first_fault_s = t_s
+        if self.first_fault_s is not None and self.coils_off_after_fault_s is None and \
+                not (reply.do("SV_VALVE") or reply.do("TV_VALVE")):
+            self.coils_off_after_fault_s = t_s - self.first_fault_s
+        if first_injection_s is not None and self.valves_closed_after_injection_s is None and \
+                not (mech.sv_valve.open or mech.tv_valve.open):
+            self.valves_closed_after_injection_s = t_s - first_injection_s
+
+
 class Rig:
     def __init__(self, scenario: Scenario, *, mcu_path: Path | None = None,
                  out_dir: Path | None = None, progress: bool = False,
                  controller_factory: Callable[..., Any] | None = None,
-                 between_missions: Callable[["Rig"], bool] | None = None,
+                 between_missions: Callable[[Rig], bool] | None = None,
                  nav: str | Any = "truth", nav_options: dict | None = None) -> None:
         self.sc = scenario
         # Called once per exchange while the controller reports the mission finished; it
@@ -325,8 +347,10 @@ class Rig:
             rel = rng / np.maximum(np.array([abs(r["range_true_m"]) for r in valid]) + 0.57, 0.3)
             lat = np.array([r["lateral_err_m"] for r in valid])
             mis = np.array([abs(r["misalign_est_deg"] - r["misalign_true_deg"]) for r in valid])
-            out.update({"nav_range_err_m_median": float(np.median(rng)), "nav_range_err_pct_median": float(np.median(rel) * 100),
-                        "nav_lateral_err_m_median": float(np.median(lat)), "nav_lateral_err_m_p99": float(np.percentile(lat, 99)),
+            out.update({"nav_range_err_m_median": float(np.median(rng)),
+                        "nav_range_err_pct_median": float(np.median(rel) * 100),
+                        "nav_lateral_err_m_median": float(np.median(lat)),
+                        "nav_lateral_err_m_p99": float(np.percentile(lat, 99)),
                         "nav_misalign_err_deg_median": float(np.median(mis))})
         ms = [r["nav_ms"] for r in log if "nav_ms" in r]
         if ms:
@@ -352,38 +376,23 @@ class Rig:
 
     def run(self) -> RunResult:
         sc = self.sc
-        self.notes: list[tuple[float, str]] = []
-        self.requests_log: list[tuple[float, str, str]] = []
-        self.events_log: list[tuple[float, str]] = []
-        self._new_host()
-        samples: dict[str, list]
-        self.nav_log: list[dict] = []
-        self.samples = samples = {k: [] for k in (
-            "t_s", "state", "range_m", "lateral_m", "closing_mps", "lat_speed_mps", "misalign_deg",
-            "v_sp_closing_mps", "force_n", "latch_steps", "latch_engaged", "plane_mm",
-            "sv_cmd", "sv_open", "tv_cmd", "tv_open", "sv_kpa", "tv_kpa", "line_kpa",
-            "tv_sensed_kpa", "link_up", "fuel_lost_kg", "phase")}
-        states: list[tuple[float, str]]
-        self.states = states = []
+        samples, states = self._start_logs()
         stderr_path = (self.out_dir / "sim_mcu.stderr.log") if self.out_dir else None
         if self.out_dir:
             self.out_dir.mkdir(parents=True, exist_ok=True)
         bar = None
         if self.progress:
-            from tqdm import tqdm
-            bar = tqdm(total=int(sc.rig.max_time_s), unit="sim s", desc=sc.name, leave=False,
-                       bar_format="{desc}: {n_fmt}/{total_fmt} sim s [{elapsed}, {rate_fmt}]")
+            # a live bar on a terminal; in a log (make demo > file) a line every few seconds
+            from oibar.progress import Progress
+            bar = Progress(sc.name, total=int(sc.rig.max_time_s), unit="sim s", leave=False)
         metrics: dict[str, Any]
         self.metrics = metrics = {"max_force_soft_n": 0.0, "max_force_n": 0.0, "exchanges": 0,
                                    "exchanges_1ms": 0}
         state = "STATE_UNSPECIFIED"
         reply = None
-        first_fault_s = None
-        fault_flags_seen = 0
+        watch = _SafetyWatch()
         self.host_fault_flags = 0  # fault_flags in the telemetry the host received
         self._next_guidance = 0.0
-        coils_off_after_fault_s = None
-        valves_closed_after_injection_s = None
         next_record = 0.0
         out = None
         wall0 = time.perf_counter()
@@ -395,24 +404,7 @@ class Rig:
                 if self._host_finished() and not attacking and (self.between_missions is None
                                                                 or not self.between_missions(self)):
                     break
-                adv = self._advance_ms(reply, state)
-                flags = FLAG_HANG_MAIN_LOOP if self._hang else 0
-                self._hang = False
-                to_mcu = self.wire.take_to_mcu()
-                if to_mcu:
-                    mcu.write_uart(to_mcu)
-                reply = mcu.exchange(adv, self.mech.di_bits(), self.mech.adc_counts(),
-                                     adc_fail_bits=self.mech.adc_fail_bits, flags=flags,
-                                     uart_rx_bytes=len(to_mcu))
-                metrics["exchanges"] += 1
-                metrics["exchanges_1ms"] += adv == 1
-                dt = adv / 1000.0
-                self.t_s += dt
-                self.wire.deliver_to_host(mcu.read_uart(reply.uart_tx_bytes))
-                f = self.mech.step(dt, self.t_s, reply, self.world)
-                self.world.step(dt, f)
-                self.mech.after_motion(self.world)
-                fault_flags_seen |= reply.fault_flags
+                reply, dt = self._exchange(mcu, reply, state)
                 new_state = pb.enum_name(pb.State, reply.app_state)
                 if new_state != state:
                     states.append((self.t_s, new_state))
@@ -423,15 +415,7 @@ class Rig:
                 metrics["max_force_n"] = max(metrics["max_force_n"], force)
                 if state in ("STATE_APPROACH_READY", "STATE_RECEPTION", "STATE_SOFT_DOCKED"):
                     metrics["max_force_soft_n"] = max(metrics["max_force_soft_n"], force)
-                if state == "STATE_FAULT" and first_fault_s is None:
-                    first_fault_s = self.t_s
-                if first_fault_s is not None and coils_off_after_fault_s is None and \
-                        not (reply.do("SV_VALVE") or reply.do("TV_VALVE")):
-                    coils_off_after_fault_s = self.t_s - first_fault_s
-                inj = self.faults.first_injection_s
-                if inj is not None and valves_closed_after_injection_s is None and \
-                        not (self.mech.sv_valve.open or self.mech.tv_valve.open):
-                    valves_closed_after_injection_s = self.t_s - inj
+                watch.observe(self.t_s, state, reply, self.mech, self.faults.first_injection_s)
                 # the host
                 if self._host_alive:
                     out = self._host_step(out)
@@ -450,12 +434,60 @@ class Rig:
         if bar is not None:
             bar.close()
         self._record(samples, state, out)
+        metrics.update(self._end_metrics(state, final, mcu.frame, watch))
+        notes = sorted(self.notes + self.controller.notes + self.faults.log)
+        return RunResult(sc, self.controller.outcome, self.t_s, wall, samples, states,
+                         self.requests_log, self.events_log, notes, self.mech.capture_record,
+                         self.mech.capture_attempts, metrics, nav_log=list(self.nav_log))
+
+    def _start_logs(self) -> tuple[dict[str, list], list[tuple[float, str]]]:
+        """Fresh logs and a fresh host for a run; -> (samples by quantity, state changes)."""
+        self.notes: list[tuple[float, str]] = []
+        self.requests_log: list[tuple[float, str, str]] = []
+        self.events_log: list[tuple[float, str]] = []
+        self._new_host()
+        samples: dict[str, list]
+        self.nav_log: list[dict] = []
+        self.samples = samples = {k: [] for k in (
+            "t_s", "state", "range_m", "lateral_m", "closing_mps", "lat_speed_mps", "misalign_deg",
+            "v_sp_closing_mps", "force_n", "latch_steps", "latch_engaged", "plane_mm",
+            "sv_cmd", "sv_open", "tv_cmd", "tv_open", "sv_kpa", "tv_kpa", "line_kpa",
+            "tv_sensed_kpa", "link_up", "fuel_lost_kg", "phase")}
+        states: list[tuple[float, str]]
+        self.states = states = []
+        return samples, states
+
+    def _exchange(self, mcu: SimMcu, reply: Any, state: str) -> tuple[Any, float]:
+        """One lockstep exchange: the wire's bytes and the plant's inputs to the MCU, its time
+        advanced, its outputs to the wire, the mechanism and the vehicle moved by the same time.
+        -> (the MCU's reply, the time step in s)."""
+        adv = self._advance_ms(reply, state)
+        flags = FLAG_HANG_MAIN_LOOP if self._hang else 0
+        self._hang = False
+        to_mcu = self.wire.take_to_mcu()
+        if to_mcu:
+            mcu.write_uart(to_mcu)
+        reply = mcu.exchange(adv, self.mech.di_bits(), self.mech.adc_counts(),
+                             adc_fail_bits=self.mech.adc_fail_bits, flags=flags,
+                             uart_rx_bytes=len(to_mcu))
+        self.metrics["exchanges"] += 1
+        self.metrics["exchanges_1ms"] += adv == 1
+        dt = adv / 1000.0
+        self.t_s += dt
+        self.wire.deliver_to_host(mcu.read_uart(reply.uart_tx_bytes))
+        f = self.mech.step(dt, self.t_s, reply, self.world)
+        self.world.step(dt, f)
+        self.mech.after_motion(self.world)
+        return reply, dt
+
+    def _end_metrics(self, state: str, final: Any, lockstep_frames: int, watch: _SafetyWatch) -> dict[str, Any]:
+        """What the checks and the report read at the end of a run."""
         tm = self.session.telemetry
         info = self.session.handshake_info
         dec = self.session.decoder.counters
-        metrics.update({
+        return {
             "final_state": state,
-            "faults_seen": sorted(self._flags_to_faults(fault_flags_seen)),
+            "faults_seen": sorted(self._flags_to_faults(watch.fault_flags_seen)),
             "faults_reported_to_host": sorted({t.split()[-1] for _, t in self.events_log
                                                if t.startswith("EVT_FAULT ")}),
             "faults_in_host_telemetry": sorted(self._flags_to_faults(self.host_fault_flags)),
@@ -470,7 +502,7 @@ class Rig:
             "handshake_reset_cause": pb.enum_name(pb.ResetCause, info.reset_cause) if info else None,
             "watchdog_kicks": final.watchdog_kicks,
             "steps_total": final.steps_total,
-            "lockstep_frames": mcu.frame,
+            "lockstep_frames": lockstep_frames,
             "host_rx_crc_errors": dec.rx_crc_errors,
             "host_rx_errors": dec.errors,
             "mcu_rx_crc_errors": tm.link.rx_crc_errors if tm else 0,
@@ -479,16 +511,12 @@ class Rig:
             "host_retransmissions": self.session.counters.retransmissions,
             "host_link_losses": self.session.counters.link_losses,
             "wire": vars(self.wire.counters).copy(),
-            "first_fault_s": first_fault_s,
-            "coils_off_after_fault_s": coils_off_after_fault_s,
-            "valves_closed_after_injection_s": valves_closed_after_injection_s,
+            "first_fault_s": watch.first_fault_s,
+            "coils_off_after_fault_s": watch.coils_off_after_fault_s,
+            "valves_closed_after_injection_s": watch.valves_closed_after_injection_s,
             "first_injection_s": self.faults.first_injection_s,
             "captured": self.mech.capture_record is not None,
-        })
-        notes = sorted(self.notes + self.controller.notes + self.faults.log)
-        return RunResult(sc, self.controller.outcome, self.t_s, wall, samples, states,
-                         self.requests_log, self.events_log, notes, self.mech.capture_record,
-                         self.mech.capture_attempts, metrics, nav_log=list(self.nav_log))
+        }
 
     @staticmethod
     def _flags_to_faults(flags: int) -> set[str]:

@@ -69,7 +69,7 @@ class Scenario:
     path: Path | None = None
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], path: Path | None = None) -> "Scenario":
+    def from_dict(cls, d: dict[str, Any], path: Path | None = None) -> Scenario:
         d = dict(d)
         unknown_expect = set(d.get("expect", {})) - EXPECT_KEYS
         if unknown_expect:

@@ -134,8 +134,9 @@ class SitlRig(Rig):
             "--target-pressure-kpa", str(self.sc.mission.target_kpa),
             "--duration-s", str(self.sc.rig.max_time_s)]
         env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT / "host")] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
-        self._stdout = open(Path(self.out_dir) / "oibar_nav.out", "wb")
+        inherited = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+        env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT / "host"), *inherited])
+        self._stdout = open(Path(self.out_dir) / "oibar_nav.out", "wb")  # noqa: SIM115  (closed by stop())
         self.command = cmd
         self.proc = subprocess.Popen(cmd, stdout=self._stdout, stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT)
         print(f"sitl: started `oibar nav` (PID {self.proc.pid}): {' '.join(cmd[-22:])}", flush=True)

@@ -205,9 +205,7 @@ class Soak:
         if not self._turning:
             self._turning = True
             self._end_mission(rig)
-            if rig.controller.outcome != "completed" or rig.t_s >= self.sim_s:
-                return False
-            return True
+            return rig.controller.outcome == "completed" and rig.t_s < self.sim_s
         # Turnaround: tanks back to their initial pressures, slowly.
         mech, p = rig.mech, rig.mech.p
         step = TURNAROUND_KPA_S * max(dt, 0.0)
@@ -303,7 +301,8 @@ def markdown(s: SoakResult) -> str:
 
     begin, end = markers(s.nav)
     nav_text = ("navigation: the CNN in the loop (rendered camera, OibarNet, filter; navigator time per cycle "
-                f"median {t.get('nav_ms_median', float('nan')):.1f} ms, p99 {t.get('nav_ms_p99', float('nan')):.1f} ms, "
+                f"median {t.get('nav_ms_median', float('nan')):.1f} ms, "
+                f"p99 {t.get('nav_ms_p99', float('nan')):.1f} ms, "
                 f"max {t.get('nav_ms_max', float('nan')):.1f} ms over {t.get('nav_cycles', 0):,} cycles; "
                 f"{t.get('nav_over_100ms', 0)} over the 100 ms period)" if s.nav == "cnn" else
                 "navigation: ground truth")

@@ -40,7 +40,7 @@ class WireCounters:
 class _HostEnd:
     """What the host's LinkSession sees as its serial port."""
 
-    def __init__(self, wire: "Wire") -> None:
+    def __init__(self, wire: Wire) -> None:
         self._wire = wire
 
     def write(self, data: bytes) -> None:

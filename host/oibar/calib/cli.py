@@ -43,7 +43,8 @@ def register(sub) -> None:
     es.add_argument("--offset-search-s", type=float, default=0.5, help="search +- this many seconds (default 0.5)")
     es.add_argument("--mocap-sigma-mm", type=float, default=0.2, help="RMS mocap position noise per sample (0.2)")
     es.add_argument("--mocap-sigma-deg", type=float, default=0.5, help="RMS mocap rotation noise per sample (0.5)")
-    es.add_argument("--corner-sigma-px", type=float, default=None, help="corner noise (default: from the PnP residuals)")
+    es.add_argument("--corner-sigma-px", type=float, default=None,
+                    help="corner noise (default: from the PnP residuals)")
     es.add_argument("--housing-body", required=True, help="mocap rigid body on the camera housing")
     es.add_argument("--target-body", required=True, help="mocap rigid body on the target")
     es.add_argument("-o", "--out", type=Path, required=True, help="calibration JSON to write")
@@ -148,9 +149,11 @@ def summary(res: dict) -> str:
     lines.append(f"offset_s: {res['offset_s']:.5f}" + (f" (1 sigma {so:.2f} ms)" if so else " (given)"))
     p, r = res["poses"], res["residuals"]
     lines.append(f"poses: {p['used']} used of {p['pattern_found']} with the pattern ({p['frames']} frames), "
-                 f"{p['outliers']} outliers; max rotation {p['max_rotation_deg']:.0f} deg, axis spread {p['axis_spread']:.2f}")
+                 f"{p['outliers']} outliers; max rotation {p['max_rotation_deg']:.0f} deg, "
+                 f"axis spread {p['axis_spread']:.2f}")
     lines.append(f"residuals: chi2/dof {r['chi2_per_dof']:.2f}; per pose {r['pose_translation_mm']['rms']:.2f} mm / "
-                 f"{r['pose_rotation_deg']['rms']:.3f} deg RMS; chain reprojection {r['chain_reprojection_px']['rms']:.2f} px RMS; "
+                 f"{r['pose_rotation_deg']['rms']:.3f} deg RMS; "
+                 f"chain reprojection {r['chain_reprojection_px']['rms']:.2f} px RMS; "
                  f"PnP {r['pnp_reprojection_px']['rms']:.3f} px RMS")
     return "\n".join(lines)
 

@@ -39,7 +39,7 @@ def _open_csv(path: Path):
     path = Path(path)
     if not path.is_file():
         raise CalibError(f"{path}: no such file")
-    fh = open(path, newline="")
+    fh = open(path, newline="")  # noqa: SIM115  (returned open: the caller reads and closes it)
     reader = csv.reader(fh)
     try:
         header = next(reader)
@@ -135,11 +135,12 @@ def read_frames_csv(path: Path, check_files: bool = True) -> list[dict]:
             t = _float(row[i_t], path, line, "time_s")
             if not np.isfinite(t):
                 raise CalibError(f"{path}:{line}: no time stamp")
-            frames.append({"frame": k, "file": row[i_file].strip(), "time_s": t, "path": path.parent / row[i_file].strip()})
+            name = row[i_file].strip()
+            frames.append({"frame": k, "file": name, "time_s": t, "path": path.parent / name})
     if not frames:
         raise CalibError(f"{path}: no frames")
-    t = np.array([f["time_s"] for f in frames])
-    if np.any(np.diff(t) <= 0):
+    times_s = np.array([f["time_s"] for f in frames])
+    if np.any(np.diff(times_s) <= 0):
         raise CalibError(f"{path}: time_s must increase from frame to frame")
     if check_files:
         missing = [f["file"] for f in frames if not f["path"].is_file()]
@@ -160,7 +161,8 @@ def _pose_from_json(d, where: str) -> np.ndarray:
         if t.shape != (3,) or q.shape != (4,) or abs(np.linalg.norm(q) - 1) > 1e-3:
             raise ValueError
     except (KeyError, TypeError, ValueError):
-        raise CalibError(f"{where}: a pose is {{\"t_m\": [x, y, z], \"q_wxyz\": [w, x, y, z]}} (unit quaternion)") from None
+        raise CalibError(f"{where}: a pose is "
+                         f"{{\"t_m\": [x, y, z], \"q_wxyz\": [w, x, y, z]}} (unit quaternion)") from None
     return T_from_pose(t, q)
 
 
@@ -273,7 +275,7 @@ def read_poses_csv(path: Path) -> list[dict]:
         for line, row in enumerate(reader, start=2):
             if not row:
                 continue
-            d = dict(zip(header, row))
+            d = dict(zip(header, row, strict=False))  # a short row reads as missing columns
             t = [_float(d[k], Path(path), line, k) for k in ("tx_m", "ty_m", "tz_m")]
             q = [_float(d[k], Path(path), line, k) for k in ("qw", "qx", "qy", "qz")]
             out.append({"frame": int(d["frame"]), "file": d["file"], "T_cam_target": T_from_pose(t, q)})

@@ -40,7 +40,7 @@ def draw_model(image_bgr: np.ndarray, T_cam_target: np.ndarray, intr: Intrinsics
             cv2.line(img, _pt(a), _pt(b), color, 1, cv2.LINE_AA, shift=4)
     axes = project(np.vstack([np.zeros(3), np.eye(3) * AXIS_LENGTH_M]), T_cam_target, intr)
     if np.all(np.isfinite(axes)):
-        for tip, col in zip(axes[1:], ((0, 0, 255), (0, 255, 0), (255, 96, 0))):   # X red, Y green, Z blue
+        for tip, col in zip(axes[1:], ((0, 0, 255), (0, 255, 0), (255, 96, 0)), strict=True):   # X red, Y green, Z blue
             cv2.line(img, _pt(axes[0]), _pt(tip), col, 2, cv2.LINE_AA, shift=4)
     return img
 

@@ -10,9 +10,9 @@ apply:    calibration + mocap CSV + frame index -> T_cam_target per frame, poses
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -117,15 +117,16 @@ def estimate_from_observations(inp: EstimateInputs, housing: timing.Track, tmark
     (`obs[k]` None where it was not found). Also used by the multi-recording validation, which
     simulates the observations instead of rendering frames."""
     seen = [k for k, o in enumerate(obs) if o is not None]
+    found = [o for o in obs if o is not None]     # the observations of the frames in `seen`
     if len(seen) < inp.min_poses:
         raise CalibError(f"too few calibration poses: the pattern was found in {len(seen)} of {len(frames)} "
                          f"frames, need at least {inp.min_poses}")
     t_f = np.array([frames[k]["time_s"] for k in seen])
-    A = np.stack([obs[k].T_cam_pattern for k in seen])
+    A = np.stack([o.T_cam_pattern for o in found])
     # The PnP covariance must match the real corner noise: an overstated one biases the time
     # offset towards frames half-way between mocap samples (see timing.interpolate).
-    sigma_px = inp.corner_sigma_px or pooled_corner_sigma_px([obs[k] for k in seen])
-    A_cov = np.stack([obs[k].cov for k in seen]) * sigma_px ** 2
+    sigma_px = inp.corner_sigma_px or pooled_corner_sigma_px(found)
+    A_cov = np.stack([o.cov for o in found]) * sigma_px ** 2
     spread = handeye.check_motion(A, inp.min_poses)
 
     if (t_f[-1] + inp.offset_search_s < housing.t_s[0] or t_f[0] - inp.offset_search_s > housing.t_s[-1]):
@@ -155,12 +156,12 @@ def estimate_from_observations(inp: EstimateInputs, housing: timing.Track, tmark
     # Reprojection of the detected corners through the calibrated mocap chain.
     B, _ = timing.relative_at(housing, tmarkers, t_f + res.offset_s, smooth_half_width_s=hw)
     A_pred = res.Z @ B @ inv_T(res.X)
-    reproj = []
-    for j, k in enumerate(seen):
+    reproj_parts = []
+    for j, o in enumerate(found):
         if res.inliers[j]:
-            uv = project(pattern.corners_pattern_m()[obs[k].ids], A_pred[j], intr)
-            reproj.append(np.linalg.norm(uv - obs[k].uv_px, axis=1))
-    reproj = np.concatenate(reproj)
+            uv = project(pattern.corners_pattern_m()[o.ids], A_pred[j], intr)
+            reproj_parts.append(np.linalg.norm(uv - o.uv_px, axis=1))
+    reproj = np.concatenate(reproj_parts)
     r = res.residuals[res.inliers]
 
     T_housing_cam = inv_T(res.Z)
@@ -182,9 +183,10 @@ def estimate_from_observations(inp: EstimateInputs, housing: timing.Track, tmark
         "residuals": {
             "chi2_per_dof": round(res.chi2_per_dof, 4),
             "pose_translation_mm": {k: round(v * 1e3, 4) for k, v in _stats(np.linalg.norm(r[:, :3], axis=1)).items()},
-            "pose_rotation_deg": {k: round(float(np.degrees(v)), 4) for k, v in _stats(np.linalg.norm(r[:, 3:], axis=1)).items()},
+            "pose_rotation_deg": {k: round(float(np.degrees(v)), 4)
+                                  for k, v in _stats(np.linalg.norm(r[:, 3:], axis=1)).items()},
             "chain_reprojection_px": {k: round(v, 4) for k, v in _stats(reproj).items()},
-            "pnp_reprojection_px": {k: round(v, 4) for k, v in _stats([obs[k].rms_px for k in seen]).items()},
+            "pnp_reprojection_px": {k: round(v, 4) for k, v in _stats(np.array([o.rms_px for o in found])).items()},
         },
         "offset_stages_s": {"speed_match": round(off_speed, 6), "closed_form_scan": round(off0, 6),
                             "refined": round(res.offset_s, 6)},
@@ -205,7 +207,8 @@ def distance_m(T_cam_target: np.ndarray) -> float:
     return float(-T_target_s[2, 3])
 
 
-def apply(calib: dict, tracks: dict, frames: list[dict], mocap_path: Path, max_gap_s: float | None = None) -> tuple[list[dict], list[int]]:
+def apply(calib: dict, tracks: dict, frames: list[dict], mocap_path: Path,
+          max_gap_s: float | None = None) -> tuple[list[dict], list[int]]:
     """Ground-truth rows for every frame with mocap coverage; also the frames skipped."""
     housing, tmarkers = io.pick_tracks(tracks, calib["housing_body"], calib["target_body"], mocap_path)
     t_f = np.array([f["time_s"] for f in frames]) + float(calib["offset_s"])

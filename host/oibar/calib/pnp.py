@@ -56,7 +56,7 @@ class Intrinsics:
     dist: np.ndarray
 
     @classmethod
-    def oibar_default(cls) -> "Intrinsics":
+    def oibar_default(cls) -> Intrinsics:
         cam = PinholeCamera()
         return cls(cam.width_px, cam.height_px, cam.K_centre(), np.zeros(5))
 
@@ -89,9 +89,9 @@ class Detector:
         ids = ids.ravel().astype(int)
         spacing = _min_spacing_px(uv.reshape(-1, 2))
         half = int(np.clip(spacing * 0.3, 2, 7))
-        uv = cv2.cornerSubPix(gray, uv, (half, half), (-1, -1),
-                              (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3))
-        return ids, uv.reshape(-1, 2).astype(float)
+        refined = cv2.cornerSubPix(gray, uv, (half, half), (-1, -1),
+                                   (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3))
+        return ids, refined.reshape(-1, 2).astype(float)
 
     def observe(self, image: np.ndarray) -> Observation | None:
         """Pattern pose in the camera, or None when too few corners are seen."""

@@ -21,8 +21,8 @@ samples, piecewise linear in the offset) pass an `offset_window_s` of None and a
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 from scipy.optimize import least_squares

@@ -59,7 +59,7 @@ class LatestFrame:
         self._last_capture_host = 0.0
 
     # --- lifecycle -------------------------------------------------------------------------
-    def start(self) -> "LatestFrame":
+    def start(self) -> LatestFrame:
         if self._thread is not None:
             raise CameraError(f"{self.source.name}: LatestFrame already started")
         self.source.open()
@@ -91,7 +91,7 @@ class LatestFrame:
         self.source.close()
         return True
 
-    def __enter__(self) -> "LatestFrame":
+    def __enter__(self) -> LatestFrame:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

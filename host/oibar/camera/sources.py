@@ -27,9 +27,10 @@ import os
 import re
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -110,7 +111,7 @@ class CameraSource(ABC):
         self._last_t = -math.inf
 
     # --- lifecycle -------------------------------------------------------------------------
-    def open(self) -> "CameraSource":
+    def open(self) -> CameraSource:
         """Open the source; raises a :class:`CameraOpenError` subclass when it cannot be used.
         Opening an open source does nothing."""
         if not self._opened:
@@ -130,7 +131,7 @@ class CameraSource(ABC):
     def is_open(self) -> bool:
         return self._opened
 
-    def __enter__(self) -> "CameraSource":
+    def __enter__(self) -> CameraSource:
         return self.open()
 
     def __exit__(self, *exc: object) -> None:
@@ -217,7 +218,7 @@ class DeviceSource(CameraSource):
         self.lost_timeout_s = float(lost_timeout_s)
         self.backend = backend
         self.name = f"device {device}"
-        self._cap = None
+        self._cap: Any = None  # cv2.VideoCapture once open
         self._last_frame_host = 0.0
 
     def _open(self) -> None:
@@ -276,7 +277,7 @@ class VideoFileSource(CameraSource):
         self.rate_hz = rate_hz
         self.name = f"video {self.path}"
         self._pacer = _Pacer(realtime)
-        self._cap = None
+        self._cap: Any = None  # cv2.VideoCapture once open
         self._index = 0
         self._fps = DEFAULT_RATE_HZ
 
@@ -427,7 +428,7 @@ class FolderSource(CameraSource):
                     f"e.g. {missing[0]} (pass use_table=False to use the nominal rate)"
                 )
             times = [by_name[p.name] for p in files]
-            for a, b, p in zip(times, times[1:], files[1:]):
+            for a, b, p in zip(times, times[1:], files[1:], strict=False):
                 if not b > a:
                     raise SourceUnreadable(
                         f"timestamp table {table}: time_s does not increase at {p.name} ({b} after {a})"

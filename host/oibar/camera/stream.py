@@ -71,10 +71,12 @@ class FrameStreamSource(CameraSource):
 
     def _recv_exact(self, n: int) -> bytes:
         buf = bytearray()
+        sock = self._sock
+        assert sock is not None, "read before open"  # the base class opens before it reads
         while len(buf) < n:
             try:
-                chunk = self._sock.recv(n - len(buf))
-            except socket.timeout:
+                chunk = sock.recv(n - len(buf))
+            except TimeoutError:
                 raise CameraLost(f"{self.name}: no frame for {self.lost_timeout_s:.1f} s",
                                  seconds_without_frame=self.lost_timeout_s) from None
             except OSError as exc:
@@ -134,7 +136,7 @@ class FrameStreamServer:
         while not self._stop.is_set():
             try:
                 conn, _ = self._listener.accept()
-            except (socket.timeout, OSError):
+            except (TimeoutError, OSError):
                 continue
             conn.settimeout(self.send_timeout_s)
             with self._lock:

@@ -26,23 +26,22 @@ import collections
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, cast
 
 import serial
 
 from oibar import __version__, pb
+from oibar.link.core import LinkCore, Notice, Request
 from oibar.link.errors import (
     LinkClosed,
     LinkDown,
     LinkError,
-    LinkTimeout,
     Nack,
     PortError,
     ProtocolVersionError,
 )
-from oibar.link.core import LinkCore, Request
-from oibar.link.framing import Packet
 
 _log = logging.getLogger(__name__)
 
@@ -76,7 +75,7 @@ class CommandResult:
     reason: str  # NackReason name; "NACK_NONE" when accepted
     state: str  # State name after the command was handled
 
-    def raise_for_nack(self, what: str = "command") -> "CommandResult":
+    def raise_for_nack(self, what: str = "command") -> CommandResult:
         """Return self if accepted, else raise :class:`Nack`."""
         if not self.accepted:
             raise Nack(self.reason, what, self.state)
@@ -100,7 +99,7 @@ class ParamValue:
     def ok(self) -> bool:
         return self.reason == "NACK_NONE"
 
-    def raise_for_nack(self, what: str = "parameter request") -> "ParamValue":
+    def raise_for_nack(self, what: str = "parameter request") -> ParamValue:
         """Return self if the get/set succeeded, else raise :class:`Nack`."""
         if not self.ok:
             raise Nack(self.reason, what)
@@ -137,9 +136,9 @@ def parse_opcode(opcode: int | str) -> int:
     if not name.startswith("CMD_"):
         name = "CMD_" + name
     try:
-        return pb.CommandOpcode.Value(name)
+        return int(pb.CommandOpcode.Value(name))
     except ValueError:
-        known = ", ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")
+        known = ", ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")  # noqa: SIM118  (protobuf enum)
         raise ValueError(f"unknown command {opcode!r}; known commands: {known}") from None
 
 
@@ -172,8 +171,8 @@ class LinkClient:
         retransmit_timeout_s: float = 0.2,
         max_retries: int = 3,
         reconnect_period_s: float = 0.5,
-        on_telemetry: Callable[[Any], None] | None = None,
-        on_event: Callable[[Any], None] | None = None,
+        on_telemetry: Callable[[pb.Telemetry], None] | None = None,
+        on_event: Callable[[pb.Event], None] | None = None,
         on_link_state: Callable[[bool], None] | None = None,
         *,
         protocol_version: int = pb.PROTOCOL_VERSION,
@@ -271,7 +270,7 @@ class LinkClient:
             self._notified_alive = False
             self._call_back(self._on_link_state, False)
 
-    def __enter__(self) -> "LinkClient":
+    def __enter__(self) -> LinkClient:
         return self
 
     def __exit__(self, *exc_info: object) -> None:
@@ -293,7 +292,7 @@ class LinkClient:
         return None if reply is None else self._info(reply)
 
     @property
-    def telemetry(self) -> Any:
+    def telemetry(self) -> pb.Telemetry | None:
         """The newest ``Telemetry`` message, or None before the first."""
         with self._cond:
             return self._core.telemetry
@@ -325,7 +324,7 @@ class LinkClient:
                 unmatched_responses=c.unmatched_responses, events_dropped=c.events_dropped,
                 link_losses=c.link_losses, mcu_restarts=c.mcu_restarts)
 
-    def next_event(self, timeout_s: float | None = None) -> Any:
+    def next_event(self, timeout_s: float | None = None) -> pb.Event | None:
         """Pop the oldest queued ``Event``; wait up to ``timeout_s`` (None: forever).
         Returns None on timeout or when the client is closed."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
@@ -381,7 +380,7 @@ class LinkClient:
         req = self._request(lambda now: self._core.param_set(param_id, value, now_s=now))
         return param_value(req, param_id)
 
-    def send_nav_update(self, nav: Any) -> bool:
+    def send_nav_update(self, nav: pb.NavUpdate) -> bool:
         """Send a ready ``NavUpdate`` message, fire and forget (the newest one wins on the MCU).
         Returns False (and sends nothing) while the link is down."""
         with self._cond:
@@ -415,7 +414,7 @@ class LinkClient:
         q.w, q.x, q.y, q.z = q_cam_target
         nav.range_m = range_m
         nav.closing_speed_mps = closing_speed_mps
-        nav.phase = pb.NavPhase.Value(phase) if isinstance(phase, str) else phase
+        nav.phase = cast("pb.NavPhase", pb.NavPhase.Value(phase) if isinstance(phase, str) else phase)
         nav.confidence = confidence
         nav.valid = bool(valid)
         return self.send_nav_update(nav)
@@ -470,7 +469,7 @@ class LinkClient:
                 self._cond.wait(0.1)
 
     @staticmethod
-    def _info(reply: Any) -> HandshakeInfo:
+    def _info(reply: pb.HandshakeReply) -> HandshakeInfo:
         return HandshakeInfo(
             firmware_version=reply.firmware_version,
             build_id=reply.build_id,
@@ -558,7 +557,7 @@ class LinkClient:
             self._core.port_opened(self._now())
         _log.info("re-opened %s", self.url)
 
-    def _deliver(self, notices: list) -> None:
+    def _deliver(self, notices: list[Notice]) -> None:
         """Log and call back, in the order the core saw things (I/O thread, no lock held)."""
         for n in notices:
             if n.what == "telemetry":
@@ -574,11 +573,13 @@ class LinkClient:
             elif n.what == "link_up":
                 self._last_retry_problem = ""
                 info = self._core.handshake_info
+                assert info is not None  # set before the core announces link_up, never cleared
                 _log.info("link up on %s: firmware %s (build %s), protocol %d, reset cause %s",
                           self.url, info.firmware_version, info.build_id, info.protocol_version,
                           pb.enum_name(pb.ResetCause, info.reset_cause))
                 self._set_notified(True)
-            elif n.what == "request_done" and n.request.kind == "handshake" and n.request.error:
+            elif (n.what == "request_done" and n.request is not None and n.request.kind == "handshake"
+                  and n.request.error):
                 with self._cond:
                     retrying = self._core.auto_connect
                 if retrying:

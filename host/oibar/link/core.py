@@ -26,7 +26,7 @@ from __future__ import annotations
 import collections
 import logging
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 from oibar import pb
 from oibar.link.errors import LinkDown, LinkError, LinkTimeout, Nack, ProtocolVersionError
@@ -63,7 +63,7 @@ class Request:
             return False
         if hasattr(self.response, "accepted"):
             return bool(self.response.accepted)
-        return self.response.reason == pb.NACK_NONE
+        return bool(self.response.reason == pb.NACK_NONE)
 
 
 @dataclass
@@ -123,10 +123,10 @@ class LinkCore:
         self.counters = CoreCounters()
         self.decoder = FrameDecoder()
         self.link_up = False
-        self.handshake_info: Any = None  # the last accepted HandshakeReply
-        self.telemetry: Any = None
+        self.handshake_info: pb.HandshakeReply | None = None  # the last accepted one
+        self.telemetry: pb.Telemetry | None = None
         self.telemetry_at_s: float | None = None
-        self.events: collections.deque[Any] = collections.deque(maxlen=event_queue_size)
+        self.events: collections.deque[pb.Event] = collections.deque(maxlen=event_queue_size)
         self.notices: collections.deque[Notice] = collections.deque(maxlen=4096)
         self.port_open = True  # the driver says when its transport is gone (port_lost/port_opened)
         self._out: list[bytes] = []
@@ -156,7 +156,7 @@ class LinkCore:
         out, self._out = self._out, []
         return out
 
-    def take_events(self) -> list[Any]:
+    def take_events(self) -> list[pb.Event]:
         out = list(self.events)
         self.events.clear()
         return out
@@ -181,7 +181,7 @@ class LinkCore:
 
     def command(self, opcode: int, target_pressure_kpa: float | None = None, *, now_s: float) -> Request:
         packet = Packet()
-        packet.command.opcode = opcode
+        packet.command.opcode = cast("pb.CommandOpcode", opcode)
         if target_pressure_kpa:
             packet.command.target_pressure_kpa = float(target_pressure_kpa)
         return self._submit("command", packet, now_s)
@@ -197,7 +197,7 @@ class LinkCore:
         packet.param_set.value = float(value)
         return self._submit("param_set", packet, now_s)
 
-    def nav_update(self, nav: Any, *, now_s: float) -> bool:
+    def nav_update(self, nav: pb.NavUpdate, *, now_s: float) -> bool:
         """Queue a NavUpdate (not acknowledged; newest wins). False when the link is down."""
         if not self.link_up:
             return False

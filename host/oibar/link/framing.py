@@ -13,8 +13,8 @@ as the schema's ``LinkCounters`` so host and MCU statistics read alike.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Callable
 
 from oibar import pb
 from oibar.link import cobs

@@ -26,6 +26,7 @@ from typing import Any, Protocol
 
 from oibar import pb
 from oibar.link.core import CoreCounters, LinkCore, Notice, Request
+from oibar.link.framing import Packet
 
 # Names kept for the callers of the first LinkSession.
 SessionCounters = CoreCounters
@@ -61,12 +62,12 @@ class LinkSession(LinkCore):
         for frame in self.take_output():
             self.transport.write(frame)
 
-    def _submit(self, kind, packet, now_s, *, require_link=True):  # noqa: ANN001 (same as the core)
+    def _submit(self, kind: str, packet: Packet, now_s: float, *, require_link: bool = True) -> Request:
         req = super()._submit(kind, packet, now_s, require_link=require_link)
         self.flush()
         return req
 
-    def nav_update(self, nav: Any, *, now_s: float) -> bool:
+    def nav_update(self, nav: pb.NavUpdate, *, now_s: float) -> bool:
         sent = super().nav_update(nav, now_s=now_s)
         self.flush()
         return sent
@@ -90,14 +91,14 @@ class SessionLink:
         return self.session.link_up
 
     @property
-    def telemetry(self) -> Any:
+    def telemetry(self) -> pb.Telemetry | None:
         return self.session.telemetry
 
-    def next_event(self, timeout_s: float | None = 0) -> Any:
+    def next_event(self, timeout_s: float | None = 0) -> pb.Event | None:
         events = self.session.events
         return events.popleft() if events else None
 
-    def send_nav_update(self, nav: Any) -> bool:
+    def send_nav_update(self, nav: pb.NavUpdate) -> bool:
         return self.session.nav_update(nav, now_s=self.session.now_s)
 
     def heartbeat(self, *, force: bool = False) -> bool:

@@ -13,16 +13,18 @@ from __future__ import annotations
 import tempfile
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+from oibar import pb
+from oibar.link.core import Request
 
 
 class _InstantLink:
     """Always up, IDLE, accepts everything at once: the MCU is not what is measured here."""
 
     def __init__(self) -> None:
-        from oibar import pb
-
         tm = pb.Telemetry()
         tm.state = pb.STATE_IDLE
         self._tm = tm
@@ -32,27 +34,25 @@ class _InstantLink:
     link_alive = True
 
     @property
-    def telemetry(self):
+    def telemetry(self) -> pb.Telemetry:
         return self._tm
 
-    def next_event(self, timeout_s=None):
+    def next_event(self, timeout_s: float | None = None) -> pb.Event | None:
         return None
 
-    def send_nav_update(self, nav) -> bool:
+    def send_nav_update(self, nav: pb.NavUpdate) -> bool:
         with self._lock:
             self.navs += 1
         return True
 
-    def heartbeat(self, force=False) -> bool:
+    def heartbeat(self, *, force: bool = False) -> bool:
         return True
 
-    def submit_command(self, opcode, target_kpa=None):
-        from oibar.link.core import Request
-
+    def submit_command(self, opcode: int, target_pressure_kpa: float | None = None) -> Request:
         ack = pb.Ack(accepted=True, reason=pb.NACK_NONE, state=pb.STATE_IDLE)
         return Request("command", pb.Packet(), done=True, response=ack, response_kind="ack")
 
-    def submit_param_set(self, pid, value):
+    def submit_param_set(self, param_id: int, value: float) -> Request:
         raise RuntimeError("not used")
 
 
@@ -69,7 +69,7 @@ def _frames(frames_dir: str | Path | None, n: int) -> list[np.ndarray]:
 
 
 def nav_cycle_latency(model_path: str | Path, cycles: int = 600, frames_dir: str | Path | None = None,
-                      threads: int = 2, rate_hz: float = 10.0) -> dict:
+                      threads: int = 2, rate_hz: float = 10.0) -> dict[str, Any]:
     """-> dict(median_ms, p99_ms, max_ms, cycles, missed_deadlines, cycle_ms_median, cycle_ms_p99,
     frames_used, source). Runs ``cycles / rate_hz`` seconds of wall time."""
     from oibar.camera import CallableSource

@@ -7,6 +7,12 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from oibar.progress import StatusLine
+
+if TYPE_CHECKING:
+    from oibar.link.client import LinkClient
 
 EXIT_OK = 0
 EXIT_ERROR = 2
@@ -64,7 +70,7 @@ def default_model_path() -> Path:
     return Path("models/oibarnet.onnx")
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     nav = sub.add_parser("nav", help="run the navigation daemon (camera -> OibarNet -> guidance -> MCU)",
                          description=_NAV_DESCRIPTION, epilog=_NAV_EPILOG,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -104,26 +110,13 @@ def run(args: argparse.Namespace) -> int:
     from oibar.nav.vehicle import VehicleError
 
     try:
-        return args.handler(args)
+        return int(args.handler(args))
     except (ModelFileError, CameraError, VehicleError, CycleLogError, OSError) as exc:
         print(f"oibar: error: {exc}", file=sys.stderr, flush=True)
         return EXIT_ERROR
 
 
-def _status_printer():
-    tty = sys.stderr.isatty()
-
-    def show(line: str) -> None:
-        if tty:
-            width = max(40, os.get_terminal_size(sys.stderr.fileno()).columns - 1)
-            sys.stderr.write("\r" + line[:width].ljust(width))
-        else:
-            sys.stderr.write(line + "\n")
-        sys.stderr.flush()
-    return show
-
-
-def open_link(port: str, **settings):
+def open_link(port: str, **settings: Any) -> LinkClient:
     """The navigation daemon's link client: heartbeats only from the navigation cycle
     (``heartbeats="caller"``), so when the loop hangs the MCU's link timeout sees a silent host
     and holds or retreats, instead of a heartbeat thread keeping a dead navigator alive."""
@@ -132,10 +125,16 @@ def open_link(port: str, **settings):
     return LinkClient(port, heartbeats="caller", **settings)
 
 
-def cmd_nav(a) -> int:
+def cmd_nav(a: argparse.Namespace) -> int:
     from oibar.camera import open_source
     from oibar.nav.cyclelog import CycleLog
-    from oibar.nav.daemon import DaemonParams, NavDaemon, connect_in_background, install_sigint, load_navigator
+    from oibar.nav.daemon import (
+        DaemonParams,
+        NavDaemon,
+        connect_in_background,
+        install_sigint,
+        load_navigator,
+    )
     from oibar.nav.guidance import Guidance, MissionParams
     from oibar.nav.vehicle import open_vehicle
 
@@ -159,15 +158,17 @@ def cmd_nav(a) -> int:
         link = open_link(a.port, baudrate=a.baudrate)
         connect_in_background(link, on_error=lambda m: print(f"\nlink: {m} (retrying)", file=sys.stderr))
     guidance = Guidance(MissionParams(target_kpa=a.target_pressure_kpa))
+    # the live status line on a terminal; in a log, one line every few seconds
+    status = StatusLine()
     daemon = NavDaemon(navigator, guidance, camera, link=link, vehicle=vehicle, log=log,
-                       params=DaemonParams(rate_hz=a.rate_hz), status=_status_printer())
+                       params=DaemonParams(rate_hz=a.rate_hz), status=status.show)
     install_sigint(daemon)
     try:
         summary = daemon.run(duration_s=a.duration_s)
     finally:
         if link is not None:
             link.close()
-    print(file=sys.stderr)
+        status.end()
     p99 = summary.get("frame_to_command_ms_p99")
     print(f"{summary['cycles']} cycles, {summary['missed_deadlines']} missed deadlines, "
           f"frame-to-command p99 {p99:.1f} ms" if p99 is not None else
@@ -177,15 +178,18 @@ def cmd_nav(a) -> int:
     return EXIT_OK
 
 
-def cmd_replay(a) -> int:
+def cmd_replay(a: argparse.Namespace) -> int:
     from oibar.nav.daemon import load_navigator
     from oibar.nav.replay import format_summary, replay
 
     model = a.model or default_model_path()
     navigator = load_navigator(model, threads=a.threads)
-    show = _status_printer()
-    res = replay(a.log, navigator, a.out,
-                 progress=lambda i, n: show(f"replay {i}/{n} cycles") if i % 50 == 0 or i == n else None)
-    print(file=sys.stderr)
+    status = StatusLine()
+
+    def progress(i: int, n: int) -> None:
+        status.show(f"replay {i}/{n} cycles", force=i == n)
+
+    res = replay(a.log, navigator, a.out, progress=progress)
+    status.end()
     print(format_summary(res))
     return EXIT_OK

@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
+from oibar.geometry.rotations import quat_to_matrix
 from oibar.nav.filter import NavFilter
 from oibar.nav.guidance import NavSolution
 from oibar.nav.pose import FrameError, PoseEstimate, PoseEstimator
-from oibar.geometry.rotations import quat_to_matrix
 
 
 @dataclass
@@ -105,7 +105,7 @@ class Navigator:
                         timings["filter_ms"] = (time.perf_counter() - t0) * 1e3
                         if upd is not None and upd.gated:
                             reason = "gated outlier"
-        if odometry is not None:
+        if odometry is not None and odo_t_s is not None:  # (odometry kept: its time is finite)
             vel_upd = self._fuse_velocity(odo_t_s, odometry)
         st = self.filter.state(t_s)
         if not st.valid and not reason:

@@ -16,8 +16,9 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -58,7 +59,7 @@ class CycleLog:
         if self.frames_dir:
             self.frames_dir.mkdir(parents=True, exist_ok=True)
         # line buffered writes would cost a syscall per cycle; flush every few cycles instead
-        self._fh = open(self.path, "a", encoding="utf-8")
+        self._fh = open(self.path, "a", encoding="utf-8")  # noqa: SIM115  (closed by close())
 
     @property
     def ok(self) -> bool:
@@ -72,7 +73,7 @@ class CycleLog:
         except OSError:
             pass
 
-    def write(self, record: dict) -> bool:
+    def write(self, record: dict[str, Any]) -> bool:
         if self.error is not None:
             self.lines_lost += 1
             return False
@@ -116,14 +117,14 @@ class CycleLog:
             except OSError as exc:
                 self._fail(exc)
 
-    def __enter__(self) -> "CycleLog":
+    def __enter__(self) -> CycleLog:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
-def read_log(path: str | Path) -> Iterator[dict]:
+def read_log(path: str | Path) -> Iterator[dict[str, Any]]:
     """Yield the records of a cycle log. A truncated last line (the process was killed
     mid-write) is skipped; any other bad line raises CycleLogError naming the line."""
     path = Path(path)

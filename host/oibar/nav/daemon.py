@@ -11,10 +11,10 @@ The HIL rig drives this same ``cycle`` on simulated time (oibar_hil.rig.runner) 
 :class:`~oibar.link.session.SessionLink` over the same link core; the real program drives it
 from :meth:`NavDaemon.run` with a :class:`~oibar.link.client.LinkClient`.
 
-The link object needs: ``link_alive``, ``telemetry``, ``next_event(timeout_s)``,
-``send_nav_update(NavUpdate)``, ``heartbeat()``, ``submit_command(opcode, target_kpa)`` and
-``submit_param_set(param_id, value)`` returning a handle with ``done``, ``error``,
-``response`` and ``response_kind`` (oibar.link.core.Request).
+The link object is anything that fits :class:`oibar.link.protocols.NavLink`: ``link_alive``,
+``telemetry``, ``next_event(timeout_s)``, ``send_nav_update(NavUpdate)``, ``heartbeat()``,
+``submit_command(opcode, target_kpa)`` and ``submit_param_set(param_id, value)`` returning a
+handle with ``done``, ``error``, ``response`` and ``response_kind`` (oibar.link.core.Request).
 
 Failure behaviour (each has a test in tests/host/test_nav_daemon.py):
 - model file missing or corrupt: ModelFileError at start, before the camera or the port is opened;
@@ -43,14 +43,17 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from oibar import pb
-from oibar.camera import CameraError, CameraLost, CameraSource, EndOfStream, LatestFrame
+from oibar.camera import CameraError, CameraLost, CameraSource, EndOfStream, Frame, LatestFrame
+from oibar.link.core import Request
+from oibar.link.protocols import Connectable, Event, NavLink, Telemetry
 from oibar.nav.core import Navigator, NavStep
 from oibar.nav.cyclelog import CycleLog
 from oibar.nav.guidance import Guidance, GuidanceOutput, MechRequest, Observation, RequestResult
@@ -72,15 +75,15 @@ class DaemonStats:
     cycles: int = 0
     missed_deadlines: int = 0
     # cycle start -> end of work; capture -> setpoint sent (the newest DaemonParams.stats_window)
-    cycle_ms: collections.deque = field(default_factory=collections.deque)
-    frame_to_command_ms: collections.deque = field(default_factory=collections.deque)
+    cycle_ms: collections.deque[float] = field(default_factory=collections.deque)
+    frame_to_command_ms: collections.deque[float] = field(default_factory=collections.deque)
     frames_used: int = 0
     camera_reopens: int = 0
     holds: int = 0
     odometry_errors: int = 0          # the vehicle's relative_velocity raised
 
-    def summary(self) -> dict:
-        def pct(xs, q):
+    def summary(self) -> dict[str, Any]:
+        def pct(xs: collections.deque[float], q: float) -> float | None:
             return float(np.percentile(xs, q)) if xs else None
         return {"cycles": self.cycles, "missed_deadlines": self.missed_deadlines, "frames_used": self.frames_used,
                 "camera_reopens": self.camera_reopens, "hold_cycles": self.holds,
@@ -91,7 +94,7 @@ class DaemonStats:
                 "frame_to_command_ms_max": max(self.frame_to_command_ms) if self.frame_to_command_ms else None}
 
 
-def request_result(req: MechRequest, handle: Any) -> RequestResult:
+def request_result(req: MechRequest, handle: Request) -> RequestResult:
     """Guidance's view of a completed link request handle (oibar.link.core.Request)."""
     if handle.error is not None:  # LinkDown, LinkTimeout, closed: guidance hears it and retries
         return RequestResult(req, False, type(handle.error).__name__)
@@ -104,9 +107,9 @@ def request_result(req: MechRequest, handle: Any) -> RequestResult:
 
 class NavDaemon:
     def __init__(self, navigator: Navigator, guidance: Guidance, camera: CameraSource,
-                 link: Any | None = None, vehicle: VehicleInterface | None = None,
+                 link: NavLink | None = None, vehicle: VehicleInterface | None = None,
                  log: CycleLog | None = None, params: DaemonParams | None = None,
-                 status: Callable[[str], None] | None = None, clock: Callable[[], float] = time.monotonic,
+                 status: Callable[[str], object] | None = None, clock: Callable[[], float] = time.monotonic,
                  t0_s: float | None = None) -> None:
         self.nav = navigator
         self.guidance = guidance
@@ -126,7 +129,7 @@ class NavDaemon:
         self._cam_error = ""
         self._next_cam_try = 0.0
         self._awaiting: MechRequest | None = None
-        self._handle: Any = None            # the link's handle of the request in flight
+        self._handle: Request | None = None  # the link's handle of the request in flight
         self._failed: list[RequestResult] = []  # requests the link refused to send
         self._t0 = clock() if t0_s is None else t0_s
         self._t0_fixed = t0_s is not None
@@ -171,7 +174,7 @@ class NavDaemon:
             self._stuck_cam = cam            # LatestFrame.stop left it running and the source open
         self._next_cam_try = now + self.p.camera_retry_s
 
-    def wait_frame(self, until: float, min_capture_host: float = -1e18):
+    def wait_frame(self, until: float, min_capture_host: float = -1e18) -> Frame | None:
         """The newest frame captured at or after ``min_capture_host`` (host clock), waiting for
         one until ``until``; None if none came (or the camera is gone: then ``_cam_error`` says
         why). Waiting for the frame, rather than ticking on our own, keeps frame-to-command
@@ -202,7 +205,7 @@ class NavDaemon:
 
     # -- one cycle ----------------------------------------------------------------------
 
-    def cycle(self, frame: Any = None, camera_error: str | None = None) -> tuple[NavStep, GuidanceOutput]:
+    def cycle(self, frame: Frame | None = None, camera_error: str | None = None) -> tuple[NavStep, GuidanceOutput]:
         """One cycle on ``frame`` (None: no new frame this time). ``camera_error``: why there is
         none, from a caller that runs the camera itself (the HIL rig); default: the daemon's own
         camera state."""
@@ -221,7 +224,7 @@ class NavDaemon:
                 step.hold_reason = step.solution.hold_reason = f"camera: {camera_error}"
         link_up = bool(self.link is not None and self.link.link_alive)
         telemetry = self.link.telemetry if self.link is not None else None
-        events = []
+        events: list[Event] = []
         if self.link is not None:
             while (ev := self.link.next_event(0)) is not None:
                 events.append(ev)
@@ -271,6 +274,7 @@ class NavDaemon:
     def _take_results(self) -> list[RequestResult]:
         results, self._failed = self._failed, []
         if self._handle is not None and self._handle.done:
+            assert self._awaiting is not None  # set together with the handle
             results.append(request_result(self._awaiting, self._handle))
             self._handle = self._awaiting = None
         return results
@@ -284,7 +288,7 @@ class NavDaemon:
             return None
 
     @staticmethod
-    def _odometry_record(odometry: Any, upd: Any) -> dict | None:
+    def _odometry_record(odometry: Any, upd: Any) -> dict[str, Any] | None:
         """The vehicle's measurement as fed (replay feeds it again) and the filter's verdict."""
         if odometry is None:
             return None
@@ -295,8 +299,8 @@ class NavDaemon:
             rec = {"malformed": repr(odometry)[:80]}
         return {**rec, "reason": upd.reason if upd is not None else "dropped"}
 
-    def _log_cycle(self, t_s, frame, step: NavStep, out: GuidanceOutput, link_up, tm, cycle_ms,
-                   odometry: Any = None) -> None:
+    def _log_cycle(self, t_s: float, frame: Frame | None, step: NavStep, out: GuidanceOutput, link_up: bool,
+                   tm: Telemetry | None, cycle_ms: float, odometry: Any = None) -> None:
         if self.log is None:
             return
         est = step.estimate
@@ -307,7 +311,8 @@ class NavDaemon:
         self.log.write({
             "kind": "cycle", "t_s": t_s, "cycle": self.stats.cycles,
             "frame": None if frame is None else {"seq": frame.seq, "t_s": frame.t_host - self._t0, "file": frame_file},
-            "estimate": None if est is None else {"T_cam_target_m": est.T_cam_target_m, "q_cam_target": est.q_cam_target,
+            "estimate": None if est is None else {"T_cam_target_m": est.T_cam_target_m,
+                                                  "q_cam_target": est.q_cam_target,
                                                   "confidence": est.confidence, "latency_ms": est.latency_ms},
             "filter": None if upd is None else {"accepted": upd.accepted, "gated": upd.gated,
                                                 "reinitialised": getattr(upd, "reinitialised", False)},
@@ -344,11 +349,13 @@ class NavDaemon:
     def stop(self) -> None:
         self._stop.set()
 
-    def run(self, duration_s: float | None = None, max_cycles: int | None = None) -> dict:
+    def run(self, duration_s: float | None = None, max_cycles: int | None = None) -> dict[str, Any]:
         """Frame-driven at ``rate_hz``: each cycle starts when a frame arrives that was captured
         at least 0.9 periods after the previous one used (a faster camera is decimated); with no
         frame by 1.5 periods after the previous cycle, the cycle runs without one (guidance
-        holds, the link and the MCU keep being served). A deadline is missed when a cycle's work
+        holds, the link and the MCU keep being served). There is no grid of absolute deadlines:
+        every wait counts from the previous cycle's start (or capture), so a late cycle moves
+        the ones after it instead of making them hurry. A deadline is missed when a cycle's work
         takes longer than one period, or when cycles are more than 1.5 periods apart while
         frames are coming."""
         period = 1.0 / self.p.rate_hz
@@ -392,7 +399,8 @@ class NavDaemon:
         return self.stats.summary()
 
     def shutdown(self) -> None:
-        """Vehicle hold, stop the worker, camera and link; write the footer."""
+        """Vehicle hold and close, camera stopped, log footer written. The link is its
+        opener's to close (oibar nav closes it after ``run``)."""
         try:
             self.vehicle.hold(self._last_t())
         except Exception:
@@ -417,7 +425,7 @@ class NavDaemon:
 
 def install_sigint(daemon: NavDaemon) -> None:
     """Ctrl-C / SIGTERM: finish the current cycle, hold the vehicle, close everything."""
-    def handler(signum, _frame):
+    def handler(signum: int, _frame: object) -> None:
         daemon.stop()
         print(f"\n{signal.Signals(signum).name}: stopping (vehicle hold, closing link and camera)", file=sys.stderr)
     signal.signal(signal.SIGINT, handler)
@@ -430,7 +438,7 @@ def load_navigator(model_path: str | Path, threads: int = 2) -> Navigator:
     return Navigator(PoseEstimator(model_path, threads=threads))
 
 
-def connect_in_background(link: Any, retry_s: float = 2.0, on_error: Callable[[str], None] | None = None,
+def connect_in_background(link: Connectable, retry_s: float = 2.0, on_error: Callable[[str], None] | None = None,
                           stop: threading.Event | None = None) -> threading.Thread:
     """Keep calling ``link.connect()`` until it succeeds: a daemon started before the MCU is
     powered (or with the cable out) comes up by itself. After the first handshake the link

@@ -33,9 +33,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from oibar.geometry.docking import GEOMETRY, R_D_CAM_ALIGNED, DockingGeometry, DockingState, camera_pose_from_docking, \
-    docking_from_camera_pose
+from oibar.geometry.docking import (
+    GEOMETRY,
+    R_D_CAM_ALIGNED,
+    DockingGeometry,
+    DockingState,
+    camera_pose_from_docking,
+    docking_from_camera_pose,
+)
 from oibar.geometry.rotations import matrix_to_quat, rotvec_to_matrix
 
 CHI2_3DOF_P001 = 16.266   # chi-square, 3 degrees of freedom, upper tail 0.001
@@ -77,7 +84,7 @@ class FilterParams:
     vel_gate_chi2: float = CHI2_3DOF_P001  # on the velocity innovation alone
     vel_reset_after: int = 5               # consecutive gated velocities: 0.5 s at 10 Hz
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in ("pos_sigma_lateral_frac", "pos_sigma_depth_frac", "pos_sigma_floor_m", "att_sigma_deg",
                      "accel_psd_m2_s3", "ang_accel_psd_rad2_s3", "init_vel_sigma_mps", "init_rate_sigma_deg_s",
                      "gate_chi2", "max_coast_s", "confidence_floor", "vel_sigma_floor_mps", "vel_gate_chi2"):
@@ -241,11 +248,18 @@ class NavFilter:
     def predict(self, t_s: float) -> None:
         """Propagate the state to t_s (covariance grows with the gap)."""
         t_s = self._check_time(t_s)
-        if self._pos is not None and t_s > self._t_s:
+        if self._pos is not None and self._att is not None and self._t_s is not None and t_s > self._t_s:
             dt = t_s - self._t_s
             self._pos = self._pos.predicted(dt, self.params.accel_psd_m2_s3)
             self._att = self._att.predicted(dt, self.params.ang_accel_psd_rad2_s3)
         self._t_s = t_s
+
+    def _blocks(self) -> tuple[_CvBlock, _CvBlock, float, float]:
+        """(position block, attitude block, their time, last accepted time) of a started filter;
+        callers check ``initialised`` first (the four are set together by ``_start``)."""
+        assert self._pos is not None and self._att is not None
+        assert self._t_s is not None and self._t_accepted_s is not None
+        return self._pos, self._att, self._t_s, self._t_accepted_s
 
     def _coasted_too_long(self, t_s: float) -> bool:
         return self._t_accepted_s is None or t_s - self._t_accepted_s > self.params.max_coast_s
@@ -273,7 +287,8 @@ class NavFilter:
         R_att = att_var_rad2 * np.eye(3)
         return R_pos * scale ** 2, R_att * scale ** 2
 
-    def update(self, t_s: float, T_cam_target_m, R_cam_target, confidence: float = 1.0) -> UpdateResult:
+    def update(self, t_s: float, T_cam_target_m: ArrayLike, R_cam_target: ArrayLike,
+               confidence: float = 1.0) -> UpdateResult:
         """Fuse one pose estimate taken at t_s. Never raises for a bad measurement (it is skipped
         or gated, and the result says why); raises ValueError only for time going backwards."""
         p = self.params
@@ -292,8 +307,9 @@ class NavFilter:
             was = self.initialised
             self._start(meas, R_pos, R_att, t_s)
             return self._count(UpdateResult(True, False, nan, nan, True, "reinitialised" if was else "initialised"))
-        y_p, S_p, nis_p = self._pos.innovation(meas.r_D_m, R_pos)
-        y_a, S_a, nis_a = self._att.innovation(meas.att_rad, R_att)
+        pos, att, _, _ = self._blocks()
+        y_p, S_p, nis_p = pos.innovation(meas.r_D_m, R_pos)
+        y_a, S_a, nis_a = att.innovation(meas.att_rad, R_att)
         # One network pass gave both blocks: an inconsistent part condemns the whole frame.
         if nis_p > p.gate_chi2 or nis_a > p.gate_chi2:
             self._gated_run += 1
@@ -302,13 +318,13 @@ class NavFilter:
                 self._start(meas, R_pos, R_att, t_s, keep_rates=True)
                 return self._count(UpdateResult(True, True, nis_p, nis_a, True, "reinitialised"))
             return self._count(UpdateResult(False, True, nis_p, nis_a, False, "gated"))
-        self._pos.fuse(y_p, S_p, R_pos)
-        self._att.fuse(y_a, S_a, R_att)
+        pos.fuse(y_p, S_p, R_pos)
+        att.fuse(y_a, S_a, R_att)
         self._gated_run = 0
         self._t_accepted_s = t_s
         return self._count(UpdateResult(True, False, nis_p, nis_a, False, "fused"))
 
-    def update_velocity(self, t_s: float, v_D_mps, sigma_mps: float) -> VelocityUpdateResult:
+    def update_velocity(self, t_s: float, v_D_mps: ArrayLike, sigma_mps: float) -> VelocityUpdateResult:
         """Fuse the vehicle's own relative velocity in D (m/s), 1-sigma ``sigma_mps`` per axis,
         measured at t_s. Skipped before the camera has started the filter or after it expired
         (nothing to correct: the next frame restarts it); never raises for a bad measurement,
@@ -326,15 +342,16 @@ class NavFilter:
         if not self.initialised or self._coasted_too_long(t_s):
             return self._count_vel(VelocityUpdateResult(False, False, nan, "not_initialised"))
         Rm = max(sigma, p.vel_sigma_floor_mps) ** 2 * np.eye(3)
-        y, S, nis = self._pos.rate_innovation(v, Rm)
+        pos, _, _, _ = self._blocks()
+        y, S, nis = pos.rate_innovation(v, Rm)
         if nis > p.vel_gate_chi2:
             self._vel_gated_run += 1
             if self._vel_gated_run >= p.vel_reset_after:
-                self._pos.reseat_rate(v, Rm)
+                pos.reseat_rate(v, Rm)
                 self._vel_gated_run = 0
                 return self._count_vel(VelocityUpdateResult(True, True, nis, "reset"))
             return self._count_vel(VelocityUpdateResult(False, True, nis, "gated"))
-        self._pos.fuse_rate(y, S, Rm)
+        pos.fuse_rate(y, S, Rm)
         self._vel_gated_run = 0
         return self._count_vel(VelocityUpdateResult(True, False, nis, "fused"))
 
@@ -345,8 +362,10 @@ class NavFilter:
     def _start(self, meas: DockingState, R_pos: np.ndarray, R_att: np.ndarray, t_s: float,
                keep_rates: bool = False) -> None:
         p = self.params
-        v = self._pos.x[3:] if keep_rates else None
-        w = self._att.x[3:] if keep_rates else None
+        v = w = None
+        if keep_rates:
+            pos, att, _, _ = self._blocks()
+            v, w = pos.x[3:], att.x[3:]
         self._pos = _CvBlock.started(meas.r_D_m, R_pos, p.init_vel_sigma_mps, v)
         self._att = _CvBlock.started(meas.att_rad, R_att, np.radians(p.init_rate_sigma_deg_s), w)
         self._t_s = t_s
@@ -368,14 +387,15 @@ class NavFilter:
             return NavState(t_s, False, zero, zero.copy(), zero.copy(), zero.copy(), inf3, inf3.copy(), inf3.copy(),
                             float("inf"), 0.0, self.geometry.shaft_distance_m(0.0), 0.0, 0.0, 0.0, T,
                             matrix_to_quat(R))
-        dt = t_s - self._t_s
-        pos = self._pos.predicted(dt, self.params.accel_psd_m2_s3)
-        att = self._att.predicted(dt, self.params.ang_accel_psd_rad2_s3)
+        pos0, att0, blocks_t_s, accepted_t_s = self._blocks()
+        dt = t_s - blocks_t_s
+        pos = pos0.predicted(dt, self.params.accel_psd_m2_s3)
+        att = att0.predicted(dt, self.params.ang_accel_psd_rad2_s3)
         r, v, a, w = pos.x[:3], pos.x[3:], att.x[:3], att.x[3:]
         R_D_cam = R_D_CAM_ALIGNED @ rotvec_to_matrix(a) @ self.geometry.R_s_cam
         ds = DockingState(r_D_m=r, att_rad=a, R_D_cam=R_D_cam)
         T, R = camera_pose_from_docking(r, a, self.geometry)
-        since = t_s - self._t_accepted_s
+        since = t_s - accepted_t_s
         return NavState(
             t_s=t_s, valid=not self._coasted_too_long(t_s), r_D_m=r, v_D_mps=v, att_rad=a, w_rad_s=w,
             pos_sigma_m=np.sqrt(np.diag(pos.P)[:3]), vel_sigma_mps=np.sqrt(np.diag(pos.P)[3:]),

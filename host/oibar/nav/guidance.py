@@ -35,6 +35,7 @@ import numpy as np
 
 from oibar import pb
 from oibar.geometry.docking import lateral_offset_m
+from oibar.link.protocols import Event, Telemetry
 
 MAX_CLEAR_ATTEMPTS = 3
 MAX_RECOVERIES = 1          # after one recovered fault that recurs, leave it to the ground
@@ -127,8 +128,8 @@ class Observation:
     t_s: float
     nav: NavSolution
     link_up: bool
-    telemetry: Any
-    events: list = field(default_factory=list)
+    telemetry: Telemetry | None       # the newest MCU telemetry (pb.Telemetry); None before the first
+    events: list[Event] = field(default_factory=list)
     results: list[RequestResult] = field(default_factory=list)
 
 
@@ -136,7 +137,7 @@ class Observation:
 class GuidanceOutput:
     v_sp_D_mps: np.ndarray
     w_sp_rad_s: np.ndarray
-    nav: Any
+    nav: pb.NavUpdate
     request: MechRequest | None
     phase: str
 
@@ -208,7 +209,7 @@ class Guidance:
             if op == "CMD_CLEAR_FAULT" and r.accepted:
                 self.recoveries += 1
 
-    def _on_state(self, t_s: float, state: str, tm: Any) -> None:
+    def _on_state(self, t_s: float, state: str, tm: Telemetry) -> None:
         last = self._last_state
         if state == last:
             return
@@ -234,7 +235,7 @@ class Guidance:
         return MechRequest("command", opcode=opcode, target_kpa=target_kpa,
                            label=_name(pb.CommandOpcode, opcode))
 
-    def _next_request(self, t_s: float, obs: Observation, state: str, tm: Any) -> MechRequest | None:
+    def _next_request(self, t_s: float, obs: Observation, state: str, tm: Telemetry) -> MechRequest | None:
         if self.param_queue and state in ("STATE_IDLE", "STATE_BOOT"):
             return self.param_queue.pop(0)
         done_docking = self.filled or self.mission_aborted
@@ -304,7 +305,7 @@ class Guidance:
     def _trusted(obs: Observation) -> bool:
         return bool(obs.nav.valid and not obs.nav.hold_reason)
 
-    def _guidance(self, obs: Observation, state: str, tm: Any) -> tuple[np.ndarray, np.ndarray, str]:
+    def _guidance(self, obs: Observation, state: str, tm: Telemetry | None) -> tuple[np.ndarray, np.ndarray, str]:
         nav = obs.nav
         trusted = self._trusted(obs)
         r = nav.range_m
@@ -365,7 +366,7 @@ class Guidance:
             phase = "HOLD"
         return np.array([v_lat[0], v_lat[1], -closing]), w, phase
 
-    def _nav(self, obs: Observation, phase: str) -> Any:
+    def _nav(self, obs: Observation, phase: str) -> pb.NavUpdate:
         """The NavUpdate for the MCU. ``valid`` says the filter has a solution (initialised, not
         diverged); an invalid one carries no pose, range, speed or confidence at all, so the
         defaults of an uninitialised filter never read as data. A valid solution on a cycle
@@ -392,7 +393,7 @@ class Guidance:
 
     # -- the interface ------------------------------------------------------------------
 
-    def _watch_navigation(self, t_s: float, obs: Observation, state: str, tm: Any) -> None:
+    def _watch_navigation(self, t_s: float, obs: Observation, state: str, tm: Telemetry | None) -> None:
         """Navigation lost in free flight for too long: abort and back off blind."""
         free_flight = state in FREE_FLIGHT_STATES and not (tm is not None and tm.contact)
         if self._trusted(obs) or not free_flight:

@@ -11,14 +11,18 @@ reading.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from oibar.nav.cyclelog import CycleLog, CycleLogError, read_log
 from oibar.geometry.rotations import angle_between_quats_deg
+from oibar.nav.cyclelog import CycleLog, CycleLogError, read_log
+
+if TYPE_CHECKING:
+    from oibar.nav.core import Navigator
 
 
 @dataclass
@@ -32,17 +36,18 @@ class ReplayResult:
     dq_deg: list[float] = field(default_factory=list)
     model: str = ""
 
-    def summary(self) -> dict:
-        def stat(xs, f):
+    def summary(self) -> dict[str, Any]:
+        def stat(xs: list[float], f: Callable[[list[float]], Any]) -> float | None:
             return float(f(xs)) if xs else None
         return {"model": self.model, "cycles": self.cycles, "frames_replayed": self.frames_replayed,
                 "frames_missing": self.frames_missing, "holds_recorded": self.holds_recorded,
                 "holds_replayed": self.holds_replayed,
                 "position_diff_m_mean": stat(self.dt_m, np.mean), "position_diff_m_max": stat(self.dt_m, np.max),
-                "attitude_diff_deg_mean": stat(self.dq_deg, np.mean), "attitude_diff_deg_max": stat(self.dq_deg, np.max)}
+                "attitude_diff_deg_mean": stat(self.dq_deg, np.mean),
+                "attitude_diff_deg_max": stat(self.dq_deg, np.max)}
 
 
-def replay(log_path: str | Path, navigator, out_path: str | Path | None = None,
+def replay(log_path: str | Path, navigator: Navigator, out_path: str | Path | None = None,
            progress: Callable[[int, int], None] | None = None) -> ReplayResult:
     from PIL import Image
 
@@ -106,7 +111,8 @@ def format_summary(res: ReplayResult) -> str:
              f"hold cycles         recorded {s['holds_recorded']}, replayed {s['holds_replayed']}"]
     if res.dt_m:
         lines += [f"position vs record  mean {s['position_diff_m_mean']:.4f} m, max {s['position_diff_m_max']:.4f} m",
-                  f"attitude vs record  mean {s['attitude_diff_deg_mean']:.3f} deg, max {s['attitude_diff_deg_max']:.3f} deg"]
+                  f"attitude vs record  mean {s['attitude_diff_deg_mean']:.3f} deg, "
+                  f"max {s['attitude_diff_deg_max']:.3f} deg"]
     return "\n".join(lines)
 
 

@@ -34,7 +34,7 @@ import importlib
 import json
 import socket
 from abc import ABC, abstractmethod
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -63,11 +63,11 @@ class VehicleInterface(ABC):
     def hold(self, t_s: float) -> None:
         self.send(t_s, np.zeros(3), np.zeros(3), "HOLD")
 
-    def statistics(self) -> dict:
+    def statistics(self) -> dict[str, Any]:
         """Counters worth keeping in the log's footer (send errors, odometry taken / refused)."""
         return {}
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027  (a default: only a vehicle with resources overrides it)
         """Release resources; the daemon calls hold() first."""
 
 
@@ -75,7 +75,7 @@ class NullVehicle(VehicleInterface):
     def __init__(self) -> None:
         self.last: tuple[float, np.ndarray, np.ndarray, str] | None = None
 
-    def send(self, t_s, v_D_mps, w_rad_s, phase) -> None:
+    def send(self, t_s: float, v_D_mps: np.ndarray, w_rad_s: np.ndarray, phase: str) -> None:
         self.last = (t_s, np.asarray(v_D_mps, float).copy(), np.asarray(w_rad_s, float).copy(), phase)
 
 
@@ -107,7 +107,7 @@ class UdpJsonVehicle(VehicleInterface):
         self.odometry_rejected = 0
         self._latest: RelativeVelocity | None = None
 
-    def send(self, t_s, v_D_mps, w_rad_s, phase) -> None:
+    def send(self, t_s: float, v_D_mps: np.ndarray, w_rad_s: np.ndarray, phase: str) -> None:
         msg = {"t_s": float(t_s), "v_D_mps": [float(v) for v in v_D_mps],
                "w_rad_s": [float(v) for v in w_rad_s], "phase": phase, "hold": phase == "HOLD"}
         try:
@@ -153,7 +153,7 @@ class UdpJsonVehicle(VehicleInterface):
             return None
         return RelativeVelocity(min(t, now_s), v, sigma)
 
-    def statistics(self) -> dict:
+    def statistics(self) -> dict[str, Any]:
         return {"send_errors": self.errors, "odometry_received": self.odometry_received,
                 "odometry_rejected": self.odometry_rejected}
 
