@@ -9,6 +9,7 @@ release, separate, latch reset. Prints a summary table and the report's path.
 A thin entry point: everything lives in ``oibar_hil.rig`` (``python -m oibar_hil.rig demo``).
 ``--peer`` (the link-only demo of earlier builds) is accepted and ignored.
 """
+
 from __future__ import annotations
 
 import sys

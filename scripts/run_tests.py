@@ -5,6 +5,7 @@ C: every Unity executable `test_*` in the firmware host build, plus cppcheck on 
 Python: pytest over tests/ (one run, counted per folder from its JUnit XML report).
 The closing line reads `total: N passed, M failed` so CI and people see one verdict.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,8 +35,9 @@ def run_unity(build: Path) -> tuple[int, int]:
     for exe in suites:
         t0 = time.monotonic()
         try:
-            proc = subprocess.run([str(exe)], cwd=ROOT, capture_output=True, text=True,
-                                  timeout=UNITY_TIMEOUT_S)
+            proc = subprocess.run(
+                [str(exe)], cwd=ROOT, capture_output=True, text=True, timeout=UNITY_TIMEOUT_S
+            )
             out, rc = proc.stdout + proc.stderr, proc.returncode
         except subprocess.TimeoutExpired as exc:
             out, rc = f"{exc.stdout or ''}\nTIMEOUT after {UNITY_TIMEOUT_S} s", -1
@@ -47,8 +49,10 @@ def run_unity(build: Path) -> tuple[int, int]:
         passed += tests - fails - ignored
         failed += fails
         verdict = "ok" if fails == 0 and rc == 0 else "FAILED"
-        print(f"   {exe.name:<34} {tests:4d} tests {fails:3d} failures {ignored:2d} ignored"
-              f"  {time.monotonic() - t0:6.2f} s  {verdict}")
+        print(
+            f"   {exe.name:<34} {tests:4d} tests {fails:3d} failures {ignored:2d} ignored"
+            f"  {time.monotonic() - t0:6.2f} s  {verdict}"
+        )
         if verdict != "ok":
             print("\n".join("      " + ln for ln in out.strip().splitlines()[-40:]))
     return passed, failed
@@ -59,16 +63,25 @@ def run_cppcheck() -> tuple[int, int]:
     if shutil.which("cppcheck") is None:
         print("== cppcheck: not installed (run `make setup`)", file=sys.stderr)
         return 0, 1
-    parts = [p for p in ("link", "app", "hal", "port/sim", "port/stm32f4")
-             if (ROOT / "firmware" / p).is_dir()]
+    parts = [
+        p for p in ("link", "app", "hal", "port/sim", "port/stm32f4") if (ROOT / "firmware" / p).is_dir()
+    ]
     includes = [f"-I{p}" for p in (ROOT / "firmware").glob("*/include")]
     includes += [f"-I{p}" for p in (ROOT / "firmware" / "port").glob("*/include")]
-    cmd = ["cppcheck", "--quiet", "--enable=warning,style,performance,portability",
-           "--error-exitcode=1", "--inline-suppr", "--std=c11",
-           "--suppress=missingIncludeSystem", *includes,
-           # the board image gets these from its build; any value will do for the analysis
-           '-DOIBAR_FW_VERSION="0"', '-DOIBAR_BUILD_ID="0"',
-           *[str(ROOT / "firmware" / p) for p in parts]]
+    cmd = [
+        "cppcheck",
+        "--quiet",
+        "--enable=warning,style,performance,portability",
+        "--error-exitcode=1",
+        "--inline-suppr",
+        "--std=c11",
+        "--suppress=missingIncludeSystem",
+        *includes,
+        # the board image gets these from its build; any value will do for the analysis
+        '-DOIBAR_FW_VERSION="0"',
+        '-DOIBAR_BUILD_ID="0"',
+        *[str(ROOT / "firmware" / p) for p in parts],
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     findings = proc.stderr.strip()
     ok = proc.returncode == 0 and not findings
@@ -81,8 +94,19 @@ def run_cppcheck() -> tuple[int, int]:
 def run_pytest(extra: list[str]) -> tuple[int, int]:
     with tempfile.TemporaryDirectory() as tmp:
         report = Path(tmp) / "pytest.xml"
-        cmd = [sys.executable, "-m", "pytest", "tests", "-q", "-p", "no:cacheprovider",
-               f"--junitxml={report}", "-o", "junit_family=xunit1", *extra]
+        cmd = [
+            sys.executable,
+            "-m",
+            "pytest",
+            "tests",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            f"--junitxml={report}",
+            "-o",
+            "junit_family=xunit1",
+            *extra,
+        ]
         print("== pytest: " + " ".join(cmd[3:]), flush=True)
         rc = subprocess.call(cmd, cwd=ROOT)
         if not report.exists():

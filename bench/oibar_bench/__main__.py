@@ -29,8 +29,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="short time boxes and a subset (smoke run, ~1 min)")
     ap.add_argument("--only", help=f"comma-separated sections or measurement keys ({', '.join(SECTIONS)})")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks.md", help="the Markdown page")
-    ap.add_argument("--json", type=Path, default=ROOT / "build" / "bench" / "benchmarks.json",
-                    help="every row with its raw numbers")
+    ap.add_argument(
+        "--json",
+        type=Path,
+        default=ROOT / "build" / "bench" / "benchmarks.json",
+        help="every row with its raw numbers",
+    )
     ap.add_argument("--threads", type=int, default=2, help="inference threads (the target machine's cores)")
     ap.add_argument("--banner", help="a line shown at the top of the page (e.g. why the run is special)")
     ap.add_argument("--list", action="store_true", help="list the measurements and exit")
@@ -46,10 +50,14 @@ def main(argv: list[str] | None = None) -> int:
         wanted = [w.strip() for w in a.only.split(",") if w.strip()]
         unknown = [w for w in wanted if w not in SECTIONS and all(m.key != w for m in REGISTRY)]
         if unknown:
-            ap.error(f"--only: unknown {unknown}; sections {list(SECTIONS)}, keys {[m.key for m in REGISTRY]}")
+            ap.error(
+                f"--only: unknown {unknown}; sections {list(SECTIONS)}, keys {[m.key for m in REGISTRY]}"
+            )
         chosen = [m for m in chosen if m.section in wanted or m.key in wanted]
 
-    command = "python -m oibar_bench " + " ".join(shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:]))
+    command = "python -m oibar_bench " + " ".join(
+        shlex.quote(x) for x in (argv if argv is not None else sys.argv[1:])
+    )
     load_start = load_average()
     t0 = time.monotonic()
     tmp = Path(tempfile.mkdtemp(prefix="oibar-bench-"))
@@ -73,11 +81,22 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     duration = time.monotonic() - t0
-    write_markdown(a.out, info=info, results=results, quick=a.quick, banner=a.banner, command=command,
-                   duration_s=duration, load_start=load_start, load_end=load_average())
+    write_markdown(
+        a.out,
+        info=info,
+        results=results,
+        quick=a.quick,
+        banner=a.banner,
+        command=command,
+        duration_s=duration,
+        load_start=load_start,
+        load_end=load_average(),
+    )
     write_json(a.json, info=info, results=results, quick=a.quick, duration_s=duration)
-    ctx.progress(f"wrote {a.out} and {a.json} in {duration / 60:.1f} min"
-                 + (f"; FAILED: {', '.join(failed)}" if failed else ""))
+    ctx.progress(
+        f"wrote {a.out} and {a.json} in {duration / 60:.1f} min"
+        + (f"; FAILED: {', '.join(failed)}" if failed else "")
+    )
     return 1 if failed else 0
 
 

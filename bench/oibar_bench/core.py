@@ -32,7 +32,7 @@ class Target:
     op: str
     value: float
     unit: str
-    source: str = ""          # where the number comes from (issue, doc, build budget)
+    source: str = ""  # where the number comes from (issue, doc, build budget)
 
     def __post_init__(self) -> None:
         if self.op not in (">=", "<="):
@@ -70,8 +70,14 @@ def summarize_ms(samples_ms: Iterable[float]) -> dict:
     xs = sorted(float(x) for x in samples_ms)
     if not xs:
         raise ValueError("no samples to summarize")
-    return {"runs": len(xs), "median_ms": statistics.median(xs), "p99_ms": percentile(xs, 99.0),
-            "max_ms": xs[-1], "min_ms": xs[0], "mean_ms": statistics.fmean(xs)}
+    return {
+        "runs": len(xs),
+        "median_ms": statistics.median(xs),
+        "p99_ms": percentile(xs, 99.0),
+        "max_ms": xs[-1],
+        "min_ms": xs[0],
+        "mean_ms": statistics.fmean(xs),
+    }
 
 
 def percentile(sorted_xs: list[float], q: float) -> float:
@@ -83,8 +89,9 @@ def percentile(sorted_xs: list[float], q: float) -> float:
     return sorted_xs[lo] + (sorted_xs[hi] - sorted_xs[lo]) * (pos - lo)
 
 
-def timed_runs(fn: Callable[[], Any], *, seconds: float, min_runs: int, max_runs: int,
-               warmup: int = 2) -> list[float]:
+def timed_runs(
+    fn: Callable[[], Any], *, seconds: float, min_runs: int, max_runs: int, warmup: int = 2
+) -> list[float]:
     """Call ``fn`` repeatedly; return each call's latency in ms. Stops at ``max_runs``, or once
     ``seconds`` have passed and at least ``min_runs`` calls were made (the time box)."""
     for _ in range(warmup):
@@ -136,9 +143,9 @@ class Result:
 
 @dataclass
 class Measurement:
-    key: str                                  # "section.name"
+    key: str  # "section.name"
     title: str
-    columns: list[tuple[str, str]]            # (row key, header)
+    columns: list[tuple[str, str]]  # (row key, header)
     fn: Callable[[Context], Result]
     order: int
 
@@ -171,6 +178,7 @@ def measurement(key: str, title: str, columns: list[tuple[str, str]]):
             raise ValueError(f"measurement {key!r} registered twice")
         REGISTRY.append(Measurement(key, title, columns, fn, len(REGISTRY)))
         return fn
+
     return deco
 
 
@@ -178,8 +186,8 @@ def measurement(key: str, title: str, columns: list[tuple[str, str]]):
 @dataclass
 class Context:
     quick: bool
-    tmp: Path                                  # scratch, removed after the run
-    threads: int = 2                           # intra-op threads for inference (the target's 2 cores)
+    tmp: Path  # scratch, removed after the run
+    threads: int = 2  # intra-op threads for inference (the target's 2 cores)
     t_start: float = field(default_factory=time.monotonic)
     shared: dict = field(default_factory=dict)  # values one measurement leaves for another
 

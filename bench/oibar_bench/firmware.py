@@ -36,15 +36,21 @@ MAP = FW_ARM / "oibar_stm32f4.map"
 HARNESS_SRC = ROOT / "bench" / "callgrind" / "step_isr.c"
 HARNESS = BUILD / "bench" / "step_isr"
 
-FLASH_SECTIONS = {".isr_vector", ".text", ".rodata", ".ARM.exidx", ".data"}   # .data: its initial values
+FLASH_SECTIONS = {".isr_vector", ".text", ".rodata", ".ARM.exidx", ".data"}  # .data: its initial values
 RAM_SECTIONS = {".data", ".bss", ".noinit"}
 
 CPU_HZ = 168e6
-CPI_RANGE = (1.2, 1.5)          # assumed cycles per instruction, Cortex-M4 from flash with ART
-EXCEPTION_CYCLES = 12 + 12       # entry (stacking) + exit (unstacking), no lazy FP context
+CPI_RANGE = (1.2, 1.5)  # assumed cycles per instruction, Cortex-M4 from flash with ART
+EXCEPTION_CYCLES = 12 + 12  # entry (stacking) + exit (unstacking), no lazy FP context
 CPU_SHARE_TARGET_PCT = 10.0
 # Functions the common step path goes through on the board (hal_step.c, hal_gpio.c, drv_stepper.c).
-STEP_PATH = ["TIM2_IRQHandler", "oibar_stepper_isr", "hal_di_read", "hal_step_pulse", "hal_step_timer_set_period"]
+STEP_PATH = [
+    "TIM2_IRQHandler",
+    "oibar_stepper_isr",
+    "hal_di_read",
+    "hal_step_pulse",
+    "hal_step_timer_set_period",
+]
 
 
 # ----------------------------------------------------------------------------- linker map
@@ -136,7 +142,9 @@ def parse_map(path: Path) -> dict[str, dict[str, int]]:
 
 def size_totals(elf: Path) -> dict[str, int]:
     """text, data, bss from arm-none-eabi-size (Berkeley), as the build's budget check reads them."""
-    out = subprocess.run(["arm-none-eabi-size", "-B", "-d", str(elf)], capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        ["arm-none-eabi-size", "-B", "-d", str(elf)], capture_output=True, text=True, check=True
+    )
     m = re.search(r"^\s*(\d+)\s+(\d+)\s+(\d+)", out.stdout.splitlines()[1])
     if m is None:
         raise RuntimeError(f"cannot read arm-none-eabi-size output:\n{out.stdout}")
@@ -160,8 +168,13 @@ def budgets() -> dict[str, int]:
     return out
 
 
-SIZE_COLUMNS = [("module", "module"), ("flash_B", "flash (bytes)"), ("flash_share", "share of image flash (%)"),
-                ("ram_B", "static RAM (bytes)"), ("ram_share", "share of static RAM (%)")]
+SIZE_COLUMNS = [
+    ("module", "module"),
+    ("flash_B", "flash (bytes)"),
+    ("flash_share", "share of image flash (%)"),
+    ("ram_B", "static RAM (bytes)"),
+    ("ram_share", "share of static RAM (%)"),
+]
 
 
 def _need_image() -> None:
@@ -172,7 +185,9 @@ def _need_image() -> None:
         raise FileNotFoundError("arm-none-eabi-size not installed: run `make setup` (gcc-arm-none-eabi)")
 
 
-@measurement("firmware.modules", "Flash and static RAM per module (STM32F405 image, MinSizeRel)", SIZE_COLUMNS)
+@measurement(
+    "firmware.modules", "Flash and static RAM per module (STM32F405 image, MinSizeRel)", SIZE_COLUMNS
+)
 def modules(ctx: Context) -> Result:
     _need_image()
     sizes = parse_map(MAP)
@@ -186,26 +201,52 @@ def modules(ctx: Context) -> Result:
             continue
         v = sizes[mod]
         if v["flash"] == 0 and v["ram"] == 0:
-            continue   # e.g. the linker's empty stub sections
-        rows.append({"module": mod, "flash_B": v["flash"], "flash_share": 100.0 * v["flash"] / flash_sum,
-                     "ram_B": v["ram"], "ram_share": 100.0 * v["ram"] / ram_sum if ram_sum else 0.0})
-    rows.append({"module": "**total**", "flash_B": flash_sum, "flash_share": 100.0, "ram_B": ram_sum,
-                 "ram_share": 100.0})
-    notes = [f"From {MAP.relative_to(ROOT)}: every input section of .isr_vector, .text (with .rodata), "
-             ".ARM.exidx and .data (flash holds its initial values) and of .data, .bss, .noinit (RAM), by object "
-             "file. The port's main.c holds the link instance (its buffers) in its .bss."]
+            continue  # e.g. the linker's empty stub sections
+        rows.append(
+            {
+                "module": mod,
+                "flash_B": v["flash"],
+                "flash_share": 100.0 * v["flash"] / flash_sum,
+                "ram_B": v["ram"],
+                "ram_share": 100.0 * v["ram"] / ram_sum if ram_sum else 0.0,
+            }
+        )
+    rows.append(
+        {
+            "module": "**total**",
+            "flash_B": flash_sum,
+            "flash_share": 100.0,
+            "ram_B": ram_sum,
+            "ram_share": 100.0,
+        }
+    )
+    notes = [
+        f"From {MAP.relative_to(ROOT)}: every input section of .isr_vector, .text (with .rodata), "
+        ".ARM.exidx and .data (flash holds its initial values) and of .data, .bss, .noinit (RAM), by object "
+        "file. The port's main.c holds the link instance (its buffers) in its .bss."
+    ]
     if (flash_sum, ram_sum) == (tot["flash"], tot["ram"]):
-        notes.append(f"The sums equal arm-none-eabi-size: flash {tot['flash']:,} (text {tot['text']:,} + data "
-                     f"{tot['data']:,}), RAM {tot['ram']:,} (data {tot['data']:,} + bss {tot['bss']:,}).")
+        notes.append(
+            f"The sums equal arm-none-eabi-size: flash {tot['flash']:,} (text {tot['text']:,} + data "
+            f"{tot['data']:,}), RAM {tot['ram']:,} (data {tot['data']:,} + bss {tot['bss']:,})."
+        )
     else:
-        notes.append(f"**Check**: the map sums (flash {flash_sum:,}, RAM {ram_sum:,}) differ from "
-                     f"arm-none-eabi-size (flash {tot['flash']:,}, RAM {tot['ram']:,}).")
+        notes.append(
+            f"**Check**: the map sums (flash {flash_sum:,}, RAM {ram_sum:,}) differ from "
+            f"arm-none-eabi-size (flash {tot['flash']:,}, RAM {tot['ram']:,})."
+        )
     ctx.progress(f"firmware modules: flash {flash_sum:,} B, RAM {ram_sum:,} B over {len(rows) - 1} modules")
     return Result(rows, notes)
 
 
-BUDGET_COLUMNS = [("what", "image"), ("bytes", "bytes"), ("budget_B", "budget (bytes)"),
-                  ("used_pct", "used (%)"), ("target", "target"), ("gap", "gap")]
+BUDGET_COLUMNS = [
+    ("what", "image"),
+    ("bytes", "bytes"),
+    ("budget_B", "budget (bytes)"),
+    ("used_pct", "used (%)"),
+    ("target", "target"),
+    ("gap", "gap"),
+]
 
 
 @measurement("firmware.budget", "Totals against the budgets the build enforces", BUDGET_COLUMNS)
@@ -214,12 +255,30 @@ def budget(ctx: Context) -> Result:
     tot = size_totals(ELF)
     b = budgets()
     rows = []
-    for key, what in (("flash", "flash (text + data)"), ("ram", "static RAM (data + bss, stack not included)")):
-        t = Target("<=", float(b[key]), "B", "firmware/port/stm32f4/CMakeLists.txt (the build fails above it)")
-        rows.append({"what": what, "bytes": tot[key], "budget_B": b[key], "used_pct": 100.0 * tot[key] / b[key],
-                     "target": t, "measured": float(tot[key])})
-    return Result(rows, ["The STM32F405 has 1 MiB of flash and 128 KiB of SRAM; the budgets are the project's. "
-                         "The linker script keeps at least 8 KiB below the top of RAM for the main stack."])
+    for key, what in (
+        ("flash", "flash (text + data)"),
+        ("ram", "static RAM (data + bss, stack not included)"),
+    ):
+        t = Target(
+            "<=", float(b[key]), "B", "firmware/port/stm32f4/CMakeLists.txt (the build fails above it)"
+        )
+        rows.append(
+            {
+                "what": what,
+                "bytes": tot[key],
+                "budget_B": b[key],
+                "used_pct": 100.0 * tot[key] / b[key],
+                "target": t,
+                "measured": float(tot[key]),
+            }
+        )
+    return Result(
+        rows,
+        [
+            "The STM32F405 has 1 MiB of flash and 128 KiB of SRAM; the budgets are the project's. "
+            "The linker script keeps at least 8 KiB below the top of RAM for the main stack."
+        ],
+    )
 
 
 # ----------------------------------------------------------------------------- step interrupt
@@ -231,15 +290,43 @@ def build_harness() -> Path:
     for p, how in ((gen / "oibar.pb.c", "make gen"), (nanopb / "pb_encode.c", "make setup")):
         if not p.is_file():
             raise FileNotFoundError(f"{p} is missing: run `{how}`")
-    srcs = [HARNESS_SRC, *sorted((ROOT / "firmware" / "link" / "src").glob("*.c")),
-            *sorted((ROOT / "firmware" / "app" / "src").glob("*.c")),
-            ROOT / "tests" / "firmware" / "support" / "fake_hal.c",
-            nanopb / "pb_common.c", nanopb / "pb_encode.c", nanopb / "pb_decode.c", gen / "oibar.pb.c"]
+    srcs = [
+        HARNESS_SRC,
+        *sorted((ROOT / "firmware" / "link" / "src").glob("*.c")),
+        *sorted((ROOT / "firmware" / "app" / "src").glob("*.c")),
+        ROOT / "tests" / "firmware" / "support" / "fake_hal.c",
+        nanopb / "pb_common.c",
+        nanopb / "pb_encode.c",
+        nanopb / "pb_decode.c",
+        gen / "oibar.pb.c",
+    ]
     HARNESS.parent.mkdir(parents=True, exist_ok=True)
-    cmd = ["gcc", "-std=c11", "-Os", "-DNDEBUG", "-g", "-Wall", "-Wextra",
-           *[f"-I{ROOT / d}" for d in ("firmware/link/include", "firmware/app/include", "firmware/hal/include",
-                                       "tests/firmware/support")],
-           "-isystem", str(gen), "-isystem", str(nanopb), "-o", str(HARNESS), *map(str, srcs), "-lm"]
+    cmd = [
+        "gcc",
+        "-std=c11",
+        "-Os",
+        "-DNDEBUG",
+        "-g",
+        "-Wall",
+        "-Wextra",
+        *[
+            f"-I{ROOT / d}"
+            for d in (
+                "firmware/link/include",
+                "firmware/app/include",
+                "firmware/hal/include",
+                "tests/firmware/support",
+            )
+        ],
+        "-isystem",
+        str(gen),
+        "-isystem",
+        str(nanopb),
+        "-o",
+        str(HARNESS),
+        *map(str, srcs),
+        "-lm",
+    ]
     p = subprocess.run(cmd, capture_output=True, text=True)
     if p.returncode != 0:
         raise RuntimeError(f"building the step-ISR harness failed:\n{p.stderr[-3000:]}")
@@ -249,8 +336,15 @@ def build_harness() -> Path:
 def callgrind_count(harness: Path, mode: str, n: int, tmp: Path) -> tuple[int, dict]:
     """(instructions inside oibar_stepper_isr over n interrupts, the harness's JSON line)."""
     out_file = tmp / f"callgrind.{mode}.out"
-    cmd = ["valgrind", "--tool=callgrind", "--toggle-collect=oibar_stepper_isr",
-           f"--callgrind-out-file={out_file}", str(harness), mode, str(n)]
+    cmd = [
+        "valgrind",
+        "--tool=callgrind",
+        "--toggle-collect=oibar_stepper_isr",
+        f"--callgrind-out-file={out_file}",
+        str(harness),
+        mode,
+        str(n),
+    ]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     if p.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed (exit {p.returncode}):\n{(p.stdout + p.stderr)[-2000:]}")
@@ -272,8 +366,12 @@ _RETURN = re.compile(r"^(bx(\.n)?|pop(\.w)?|ldmia(\.w)?|ldm(\.w)?|ldmfd(\.w)?)$"
 
 def arm_functions(elf: Path) -> dict[str, list[tuple[int, str, str]]]:
     """Thumb-2 functions of the image: name -> [(address, mnemonic, operands)], literals left out."""
-    out = subprocess.run(["arm-none-eabi-objdump", "-d", "--no-show-raw-insn", str(elf)],
-                         capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        ["arm-none-eabi-objdump", "-d", "--no-show-raw-insn", str(elf)],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     funcs: dict[str, list] = {}
     cur = None
     for line in out.splitlines():
@@ -282,7 +380,7 @@ def arm_functions(elf: Path) -> dict[str, list[tuple[int, str, str]]]:
             cur = funcs.setdefault(m.group(2), [])
             continue
         m = _INSN.match(line)
-        if cur is not None and m and not m.group(2).startswith("."):   # .word/.short: literal pool
+        if cur is not None and m and not m.group(2).startswith("."):  # .word/.short: literal pool
             cur.append((int(m.group(1), 16), m.group(2), m.group(3)))
     return funcs
 
@@ -300,13 +398,13 @@ def longest_path(name: str, insns: list[tuple[int, str, str]]) -> int:
         if mn.startswith(("tbb", "tbh")):
             raise ValueError(f"{name}: jump table at {addr:#x}")
         if _B_UNCOND.match(mn):
-            succ.append([index[int(t.group(1), 16)]] if intra else [])      # else a tail call
+            succ.append([index[int(t.group(1), 16)]] if intra else [])  # else a tail call
         elif _B_COND.match(mn):
             succ.append(nxt + ([index[int(t.group(1), 16)]] if intra else []))
         elif _RETURN.match(mn) and (mn.startswith("bx") or "pc" in ops):
-            succ.append([])                                                  # return / indirect tail call
+            succ.append([])  # return / indirect tail call
         else:
-            succ.append(nxt)                                                 # incl. bl/blx (calls return)
+            succ.append(nxt)  # incl. bl/blx (calls return)
     memo: dict[int, int] = {}
     on_stack: set[int] = set()
 
@@ -323,29 +421,51 @@ def longest_path(name: str, insns: list[tuple[int, str, str]]) -> int:
     return walk(0)
 
 
-ISR_COLUMNS = [("path", "interrupt path"), ("basis", "counted"), ("insns", "instructions / interrupt"),
-               ("cycles", "cycles (CPI 1.2-1.5 + 24)"), ("us", "µs at 168 MHz"),
-               ("cpu_default", "CPU at the default speed (%)"), ("cpu_max", "CPU at the highest settable speed (%)"),
-               ("max_rate", "max steps/s under 10 % CPU"), ("target", "target"), ("gap", "gap")]
+ISR_COLUMNS = [
+    ("path", "interrupt path"),
+    ("basis", "counted"),
+    ("insns", "instructions / interrupt"),
+    ("cycles", "cycles (CPI 1.2-1.5 + 24)"),
+    ("us", "µs at 168 MHz"),
+    ("cpu_default", "CPU at the default speed (%)"),
+    ("cpu_max", "CPU at the highest settable speed (%)"),
+    ("max_rate", "max steps/s under 10 % CPU"),
+    ("target", "target"),
+    ("gap", "gap"),
+]
 
 
 def _isr_row(path: str, basis: str, insns: float, rates: dict) -> dict:
     lo = insns * CPI_RANGE[0] + EXCEPTION_CYCLES
     hi = insns * CPI_RANGE[1] + EXCEPTION_CYCLES
     cpu_max = 100.0 * rates["max"] * hi / CPU_HZ
-    t = Target("<=", CPU_SHARE_TARGET_PCT, "% CPU",
-               f"issue 10, at the fastest rate the parameters allow ({rates['max']:.0f} steps/s)")
-    return {"path": path, "basis": basis, "insns": insns, "cycles": f"{lo:.0f}-{hi:.0f}",
-            "cycles_hi": hi, "us": f"{lo / CPU_HZ * 1e6:.2f}-{hi / CPU_HZ * 1e6:.2f}",
-            "cpu_default": 100.0 * rates["default"] * hi / CPU_HZ, "cpu_max": cpu_max,
-            "max_rate": int(CPU_SHARE_TARGET_PCT / 100.0 * CPU_HZ / hi), "target": t, "measured": cpu_max}
+    t = Target(
+        "<=",
+        CPU_SHARE_TARGET_PCT,
+        "% CPU",
+        f"issue 10, at the fastest rate the parameters allow ({rates['max']:.0f} steps/s)",
+    )
+    return {
+        "path": path,
+        "basis": basis,
+        "insns": insns,
+        "cycles": f"{lo:.0f}-{hi:.0f}",
+        "cycles_hi": hi,
+        "us": f"{lo / CPU_HZ * 1e6:.2f}-{hi / CPU_HZ * 1e6:.2f}",
+        "cpu_default": 100.0 * rates["default"] * hi / CPU_HZ,
+        "cpu_max": cpu_max,
+        "max_rate": int(CPU_SHARE_TARGET_PCT / 100.0 * CPU_HZ / hi),
+        "target": t,
+        "measured": cpu_max,
+    }
 
 
 @measurement("firmware.step_isr", "Step interrupt cost (oibar_stepper_isr)", ISR_COLUMNS)
 def step_isr(ctx: Context) -> Result:
     if shutil.which("valgrind") is None:
-        raise FileNotFoundError("valgrind is not installed (Debian package `valgrind`): the step-ISR count "
-                                "needs callgrind")
+        raise FileNotFoundError(
+            "valgrind is not installed (Debian package `valgrind`): the step-ISR count needs callgrind"
+        )
     n = 20000 if ctx.quick else 200000
     n_finish = 2000 if ctx.quick else 20000
     ctx.progress("firmware step ISR: building the harness (gcc -Os, no sanitizers)")
@@ -368,16 +488,38 @@ def step_isr(ctx: Context) -> Result:
         else:
             wrapper = longest["TIM2_IRQHandler"]
             basis = "Thumb-2, static longest path: " + " + ".join(f"{f} {longest[f]}" for f in STEP_PATH)
-            bound_row = {**_isr_row("step (common path), upper bound", basis, float(sum(longest.values())), rates),
-                         "x86": False}
-            notes.append("ARM static bound: the longest path through each function's control-flow graph in the "
-                         "image (no loops: checked), summed over the functions the step path calls, each once.")
+            bound_row = {
+                **_isr_row("step (common path), upper bound", basis, float(sum(longest.values())), rates),
+                "x86": False,
+            }
+            notes.append(
+                "ARM static bound: the longest path through each function's control-flow graph in the "
+                "image (no loops: checked), summed over the functions the step path calls, each once."
+            )
     plus = f" + TIM2_IRQHandler {wrapper} (Thumb-2)" if wrapper else ""
     rows = [
-        {**_isr_row("step (common path)", f"x86-64 callgrind, mean over {info['calls']:,}{plus}",
-                    per_step + wrapper, rates), "ir_total": ir_step, "ir_per_call": per_step, "x86": True},
-        {**_isr_row("end of move (switch reached, event posted)", f"x86-64 callgrind, mean over {n_finish:,}{plus}",
-                    per_finish + wrapper, rates), "ir_total": ir_finish, "ir_per_call": per_finish, "x86": True},
+        {
+            **_isr_row(
+                "step (common path)",
+                f"x86-64 callgrind, mean over {info['calls']:,}{plus}",
+                per_step + wrapper,
+                rates,
+            ),
+            "ir_total": ir_step,
+            "ir_per_call": per_step,
+            "x86": True,
+        },
+        {
+            **_isr_row(
+                "end of move (switch reached, event posted)",
+                f"x86-64 callgrind, mean over {n_finish:,}{plus}",
+                per_finish + wrapper,
+                rates,
+            ),
+            "ir_total": ir_finish,
+            "ir_per_call": per_finish,
+            "x86": True,
+        },
     ]
     if bound_row:
         rows.append(bound_row)
@@ -392,5 +534,7 @@ def step_isr(ctx: Context) -> Result:
         f"Harness: {HARNESS_SRC.relative_to(ROOT)} + firmware/app, firmware/link, tests/firmware/support/fake_hal.c, "
         "compiled -Os like the image, without sanitizers.",
     ]
-    ctx.progress(f"firmware step ISR: {per_step:.1f} x86 instructions per step, {per_finish:.1f} per move end")
+    ctx.progress(
+        f"firmware step ISR: {per_step:.1f} x86 instructions per step, {per_finish:.1f} per move end"
+    )
     return Result(rows, notes)

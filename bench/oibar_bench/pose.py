@@ -16,7 +16,7 @@ import numpy as np
 
 from .core import Context, Result, Target, measurement, summarize_ms, timed_runs
 
-CONFIGS = {   # backbone -> the experiment config that defines its model options
+CONFIGS = {  # backbone -> the experiment config that defines its model options
     "squeezenet": "models/configs/squeezenet.yaml",
     "darknet19": "models/configs/darknet19.yaml",
     "darknet53": "models/configs/darknet53.yaml",
@@ -36,10 +36,19 @@ RATE_TARGET = Target(">=", 30.0, "/s", "issue 10, model card")
 # The big backbones get a shorter time box (one ResNet-101 inference is ~0.3-1 s on 2 cores).
 HEAVY = {"darknet53", "resnet101"}
 
-COLUMNS = [("model", "model"), ("input", "input (px)"), ("precision", "precision"),
-           ("params_M", "params (M)"), ("onnx_MiB", "ONNX (MiB)"), ("runs", "runs"),
-           ("median_ms", "median (ms)"), ("p99_ms", "p99 (ms)"), ("rate", "inferences/s"),
-           ("target", "target"), ("gap", "gap")]
+COLUMNS = [
+    ("model", "model"),
+    ("input", "input (px)"),
+    ("precision", "precision"),
+    ("params_M", "params (M)"),
+    ("onnx_MiB", "ONNX (MiB)"),
+    ("runs", "runs"),
+    ("median_ms", "median (ms)"),
+    ("p99_ms", "p99 (ms)"),
+    ("rate", "inferences/s"),
+    ("target", "target"),
+    ("gap", "gap"),
+]
 
 
 # ----------------------------------------------------------------------------- frames
@@ -64,6 +73,7 @@ def calibration_frames(ctx: Context, n: int) -> tuple[list[np.ndarray], str]:
     if not frames:
         try:
             from oibar_hil.dataset import PAPER_SEQUENCES, generate_dataset
+
             out = ctx.tmp / "calib"
             generate_dataset(out, [PAPER_SEQUENCES[1]], frames_limit=n, workers=1, progress=False)
             files = sorted((out / PAPER_SEQUENCES[1].name / "frames").iterdir())
@@ -79,6 +89,7 @@ def calibration_frames(ctx: Context, n: int) -> tuple[list[np.ndarray], str]:
 
 def batch_at(frames: list[np.ndarray], size_wh: tuple[int, int]) -> np.ndarray:
     from oibar_models.infer import resize_frame, to_input
+
     return np.concatenate([to_input(resize_frame(f, size_wh)) for f in frames])
 
 
@@ -89,11 +100,15 @@ def build_untrained(backbone: str, size_wh: tuple[int, int]):
     from oibar_models.nets import build_model
 
     w, h = size_wh
-    cfg = load_config(Path(__file__).resolve().parents[2] / CONFIGS[backbone],
-                      {"model": {"input_width_px": w, "input_height_px": h}})
+    cfg = load_config(
+        Path(__file__).resolve().parents[2] / CONFIGS[backbone],
+        {"model": {"input_width_px": w, "input_height_px": h}},
+    )
     net = build_model(cfg.model)
-    ck = {"config": cfg.to_dict(),
-          "labels": {"mean_T_cam_target": [0.0, 0.0, 5.0], "mean_q_cam_target": [1.0, 0.0, 0.0, 0.0]}}
+    ck = {
+        "config": cfg.to_dict(),
+        "labels": {"mean_T_cam_target": [0.0, 0.0, 5.0], "mean_q_cam_target": [1.0, 0.0, 0.0, 0.0]},
+    }
     return net, ck
 
 
@@ -139,15 +154,21 @@ def time_model(ctx: Context, path: Path, x: np.ndarray, heavy: bool) -> dict:
         box = dict(seconds=4.0, min_runs=20, max_runs=400)
     lat = timed_runs(lambda: est.run(x), warmup=1 if heavy else 3, **box)
     s = summarize_ms(lat)
-    s["rate"] = 1e3 * len(lat) / sum(lat)     # single-stream throughput over the whole run
+    s["rate"] = 1e3 * len(lat) / sum(lat)  # single-stream throughput over the whole run
     return s
 
 
 def _row(model: str, size_wh, precision: str, params: int | None, path: Path, s: dict) -> dict:
-    return {"model": model, "input": f"{size_wh[0]}x{size_wh[1]}", "precision": precision,
-            "params_M": params / 1e6 if params else None, "onnx_MiB": path.stat().st_size / 2**20,
-            **{k: s[k] for k in ("runs", "median_ms", "p99_ms", "max_ms", "rate")},
-            "target": RATE_TARGET, "measured": s["rate"]}
+    return {
+        "model": model,
+        "input": f"{size_wh[0]}x{size_wh[1]}",
+        "precision": precision,
+        "params_M": params / 1e6 if params else None,
+        "onnx_MiB": path.stat().st_size / 2**20,
+        **{k: s[k] for k in ("runs", "median_ms", "p99_ms", "max_ms", "rate")},
+        "target": RATE_TARGET,
+        "measured": s["rate"],
+    }
 
 
 # ----------------------------------------------------------------------------- figures
@@ -160,7 +181,7 @@ def per_backbone(ctx: Context) -> Result:
     if ctx.quick:
         plan = [("oibar_lite", SIZES_WH[0])]
     else:
-        plan.append(("oibar_lite", FULL_WH))   # cheap for our backbone only
+        plan.append(("oibar_lite", FULL_WH))  # cheap for our backbone only
     rows: list[dict] = []
     for i, (backbone, size) in enumerate(plan, 1):
         tag = f"{backbone} {size[0]}x{size[1]}"
@@ -170,15 +191,19 @@ def per_backbone(ctx: Context) -> Result:
         x = x_all[:1]
         s = time_model(ctx, path, x, backbone in HEAVY)
         rows.append(_row(backbone, size, "float32", params, path, s))
-        ctx.progress(f"  {tag} float32: median {s['median_ms']:.1f} ms, p99 {s['p99_ms']:.1f} ms, "
-                     f"{s['rate']:.1f}/s ({s['runs']} runs)")
+        ctx.progress(
+            f"  {tag} float32: median {s['median_ms']:.1f} ms, p99 {s['p99_ms']:.1f} ms, "
+            f"{s['rate']:.1f}/s ({s['runs']} runs)"
+        )
         if size == FULL_WH:
-            continue   # INT8 at full resolution is not worth its calibration time
+            continue  # INT8 at full resolution is not worth its calibration time
         q_path = quantize_int8(path, path.with_suffix(".int8.onnx"), x_all)
         s = time_model(ctx, q_path, x, backbone in HEAVY)
         rows.append(_row(backbone, size, "INT8 (static QDQ)", params, q_path, s))
-        ctx.progress(f"  {tag} INT8: median {s['median_ms']:.1f} ms, p99 {s['p99_ms']:.1f} ms, "
-                     f"{s['rate']:.1f}/s ({s['runs']} runs)")
+        ctx.progress(
+            f"  {tag} INT8: median {s['median_ms']:.1f} ms, p99 {s['p99_ms']:.1f} ms, "
+            f"{s['rate']:.1f}/s ({s['runs']} runs)"
+        )
     notes = [
         f"Weights are untrained (random): latency does not depend on their values. INT8 calibration: {where}.",
         f"onnxruntime CPUExecutionProvider, {ctx.threads} intra-op threads, sequential, batch 1; the model "
@@ -188,13 +213,23 @@ def per_backbone(ctx: Context) -> Result:
         "config in models/configs/; the paper's four have none, oibar_lite has the shipped model's.",
     ]
     if ctx.quick:
-        notes.append("Quick mode: only oibar_lite at 248x160; `make bench` times all five backbones at "
-                     "248x160 and 372x240 and oibar_lite at 744x480.")
+        notes.append(
+            "Quick mode: only oibar_lite at 248x160; `make bench` times all five backbones at "
+            "248x160 and 372x240 and oibar_lite at 744x480."
+        )
     return Result(rows, notes)
 
 
-SHIPPED_COLUMNS = [("model", "model"), ("what", "timed"), ("runs", "runs"), ("median_ms", "median (ms)"),
-                   ("p99_ms", "p99 (ms)"), ("rate", "inferences/s"), ("target", "target"), ("gap", "gap")]
+SHIPPED_COLUMNS = [
+    ("model", "model"),
+    ("what", "timed"),
+    ("runs", "runs"),
+    ("median_ms", "median (ms)"),
+    ("p99_ms", "p99 (ms)"),
+    ("rate", "inferences/s"),
+    ("target", "target"),
+    ("gap", "gap"),
+]
 
 
 @measurement("pose.shipped", "The shipped model (what the navigation loads)", SHIPPED_COLUMNS)
@@ -203,47 +238,75 @@ def shipped_model(ctx: Context) -> Result:
 
     frames, _ = calibration_frames(ctx, 4 if ctx.quick else 12)
     frame = frames[0]
-    candidates = [(ctx.root / SHIPPED_KP, SHIPPED_KP), (ctx.root / SHIPPED, SHIPPED),
-                  (ctx.root / SHIPPED_INT8, SHIPPED_INT8)]
+    candidates = [
+        (ctx.root / SHIPPED_KP, SHIPPED_KP),
+        (ctx.root / SHIPPED, SHIPPED),
+        (ctx.root / SHIPPED_INT8, SHIPPED_INT8),
+    ]
     found = [(p, name) for p, name in candidates if p.is_file()]
     notes = []
     if not found:
         path, _ = export_untrained(ctx, "oibar_lite", SIZES_WH[0])
         found = [(path, "oibar_lite, untrained")]
-        notes.append(f"{SHIPPED} does not exist yet (`make train` then `make export`): the row is the "
-                     "untrained oibar_lite backbone at the shipped input size, which the target applies to "
-                     "until then.")
+        notes.append(
+            f"{SHIPPED} does not exist yet (`make train` then `make export`): the row is the "
+            "untrained oibar_lite backbone at the shipped input size, which the target applies to "
+            "until then."
+        )
     rows = []
     for path, name in found:
         est = OnnxPoseEstimator(path, threads=ctx.threads)
         small = batch_at([frame], est.size_wh)
-        whole = ("744x480 frame -> pose (first pass, 2 crops, keypoints, PnP)" if est.meta.get("kind") == "keypoints"
-                 else "744x480 frame -> pose (resize + model)")
+        whole = (
+            "744x480 frame -> pose (first pass, 2 crops, keypoints, PnP)"
+            if est.meta.get("kind") == "keypoints"
+            else "744x480 frame -> pose (resize + model)"
+        )
         # (default arguments bind this iteration's estimator: the closures run within it)
-        for what, fn in (("model only", lambda est=est, small=small: est.run(small)),
-                         (whole, lambda est=est: est.estimate(frame))):
-            box = dict(seconds=1.0, min_runs=5, max_runs=100) if ctx.quick else \
-                dict(seconds=5.0, min_runs=30, max_runs=500)
+        for what, fn in (
+            ("model only", lambda est=est, small=small: est.run(small)),
+            (whole, lambda est=est: est.estimate(frame)),
+        ):
+            box = (
+                dict(seconds=1.0, min_runs=5, max_runs=100)
+                if ctx.quick
+                else dict(seconds=5.0, min_runs=30, max_runs=500)
+            )
             lat = timed_runs(fn, **box)
             s = summarize_ms(lat)
             s["rate"] = 1e3 * len(lat) / sum(lat)
-            rows.append({"model": f"{name} ({est.size_wh[0]}x{est.size_wh[1]})", "what": what,
-                         **{k: s[k] for k in ("runs", "median_ms", "p99_ms", "max_ms", "rate")},
-                         "target": RATE_TARGET, "measured": s["rate"]})
+            rows.append(
+                {
+                    "model": f"{name} ({est.size_wh[0]}x{est.size_wh[1]})",
+                    "what": what,
+                    **{k: s[k] for k in ("runs", "median_ms", "p99_ms", "max_ms", "rate")},
+                    "target": RATE_TARGET,
+                    "measured": s["rate"],
+                }
+            )
             ctx.progress(f"pose shipped {name} {what}: median {s['median_ms']:.1f} ms, {s['rate']:.1f}/s")
     notes.append(f"The frame is a real rendered 744x480 frame; {ctx.threads} threads as above.")
     return Result(rows, notes)
 
 
-GPU_COLUMNS = [("model", "model"), ("input", "input (px)"), ("precision", "precision"), ("runs", "runs"),
-               ("median_ms", "median (ms)"), ("p99_ms", "p99 (ms)"), ("rate", "inferences/s"),
-               ("target", "target"), ("gap", "gap")]
+GPU_COLUMNS = [
+    ("model", "model"),
+    ("input", "input (px)"),
+    ("precision", "precision"),
+    ("runs", "runs"),
+    ("median_ms", "median (ms)"),
+    ("p99_ms", "p99 (ms)"),
+    ("rate", "inferences/s"),
+    ("target", "target"),
+    ("gap", "gap"),
+]
 
 
 def gpu_available() -> tuple[bool, str]:
     why = []
     try:
         import torch
+
         if torch.cuda.is_available():
             return True, f"torch CUDA: {torch.cuda.get_device_name(0)}"
         why.append("torch.cuda.is_available() is False")
@@ -251,6 +314,7 @@ def gpu_available() -> tuple[bool, str]:
         why.append(f"torch: {exc}")
     try:
         import onnxruntime as ort
+
         provs = ort.get_available_providers()
         why.append(f"onnxruntime providers: {', '.join(provs)}")
     except Exception as exc:
@@ -275,15 +339,28 @@ def gpu(ctx: Context) -> Result:
             net = net.eval().to(dev)
             x = torch.rand(1, 3, size[1], size[0], device=dev)
             for precision, dtype in (("float32", torch.float32), ("float16 (autocast)", torch.float16)):
+
                 def once(net=net, x=x, dtype=dtype):
-                    with torch.inference_mode(), torch.autocast("cuda", dtype=dtype,
-                                                                enabled=dtype is torch.float16):
+                    with (
+                        torch.inference_mode(),
+                        torch.autocast("cuda", dtype=dtype, enabled=dtype is torch.float16),
+                    ):
                         net(x)
                     torch.cuda.synchronize()
-                lat = timed_runs(once, seconds=1.0 if ctx.quick else 3.0, min_runs=20, max_runs=1000, warmup=5)
+
+                lat = timed_runs(
+                    once, seconds=1.0 if ctx.quick else 3.0, min_runs=20, max_runs=1000, warmup=5
+                )
                 s = summarize_ms(lat)
                 s["rate"] = 1e3 * len(lat) / sum(lat)
-                rows.append({"model": backbone, "input": f"{size[0]}x{size[1]}", "precision": precision,
-                             **{k: s[k] for k in ("runs", "median_ms", "p99_ms", "max_ms", "rate")},
-                             "target": RATE_TARGET, "measured": s["rate"]})
+                rows.append(
+                    {
+                        "model": backbone,
+                        "input": f"{size[0]}x{size[1]}",
+                        "precision": precision,
+                        **{k: s[k] for k in ("runs", "median_ms", "p99_ms", "max_ms", "rate")},
+                        "target": RATE_TARGET,
+                        "measured": s["rate"],
+                    }
+                )
     return Result(rows, [f"PyTorch eager on {why}, batch 1, untrained weights."])

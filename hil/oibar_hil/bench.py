@@ -26,7 +26,7 @@ from .dataset import PAPER_SEQUENCES, _renderer_for, _worker_init, encode_image,
 def _bench_worker(args):
     spec, frames, encode, arrays = args
     r = _renderer_for(spec)
-    r.render(arrays["R"][0], arrays["p"][0], arrays["sun"][0], arrays["Re"][0], arrays["ec"])   # warm-up
+    r.render(arrays["R"][0], arrays["p"][0], arrays["sun"][0], arrays["Re"][0], arrays["ec"])  # warm-up
     r.ctx.finish()
     t, c = time.perf_counter(), time.process_time()
     for j in range(len(frames)):
@@ -45,8 +45,21 @@ def _jobs(seq: int, n_frames: int, workers: int, encode: bool, plan=None):
     starts = (np.array([0.05, 0.35, 0.65, 0.95]) * (plan.n_frames - block)).astype(int)
     idx = np.concatenate([np.arange(s0, s0 + block) for s0 in starts])
     parts = np.array_split(idx, workers)
-    return [(spec, p.tolist(), encode, {"R": plan.R_lvlh_cam[p], "p": plan.p_lvlh_cam[p], "sun": plan.sun_lvlh[p],
-                                        "Re": plan.R_ecef_lvlh[p], "ec": plan.earth_center_lvlh_km}) for p in parts]
+    return [
+        (
+            spec,
+            p.tolist(),
+            encode,
+            {
+                "R": plan.R_lvlh_cam[p],
+                "p": plan.p_lvlh_cam[p],
+                "sun": plan.sun_lvlh[p],
+                "Re": plan.R_ecef_lvlh[p],
+                "ec": plan.earth_center_lvlh_km,
+            },
+        )
+        for p in parts
+    ]
 
 
 def run_detailed(seq: int, n_frames: int, workers: int, encode: bool, pool=None, plan=None) -> dict:
@@ -54,7 +67,9 @@ def run_detailed(seq: int, n_frames: int, workers: int, encode: bool, pool=None,
     jobs = _jobs(seq, n_frames, workers, encode, plan)
     if pool is None:
         cpu = os.cpu_count() or 1
-        with mp.get_context("spawn").Pool(workers, initializer=_worker_init, initargs=(max(1, cpu // workers),)) as p:
+        with mp.get_context("spawn").Pool(
+            workers, initializer=_worker_init, initargs=(max(1, cpu // workers),)
+        ) as p:
             res = p.map(_bench_worker, jobs)
     else:
         res = pool.map(_bench_worker, jobs)
@@ -77,9 +92,12 @@ def _load() -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m oibar_hil.bench")
     ap.add_argument("--seq", type=int, default=1)
-    ap.add_argument("--all", action="store_true",
-                    help="all 12 paper sequences (render + encode) and the set's estimate")
-    ap.add_argument("--frames", type=int, default=None, help="frames per measurement (default 400, 160 with --all)")
+    ap.add_argument(
+        "--all", action="store_true", help="all 12 paper sequences (render + encode) and the set's estimate"
+    )
+    ap.add_argument(
+        "--frames", type=int, default=None, help="frames per measurement (default 400, 160 with --all)"
+    )
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     a = ap.parse_args(argv)
     cpu = os.cpu_count() or 1
@@ -88,9 +106,11 @@ def main(argv=None) -> int:
         for encode in (False, True):
             r = run_detailed(a.seq, a.frames or 400, a.workers, encode)
             what = "render + JPEG encode" if encode else "render only        "
-            print(f"seq{a.seq:02d} {PAPER_SEQUENCES[a.seq].background:6s} {what}: {r['fps']:6.1f} frames/s wall, "
-                  f"{r['cpu_ms']:5.1f} CPU ms/frame (= {a.workers * 1e3 / r['cpu_ms']:6.1f} frames/s on "
-                  f"{a.workers} idle cores); {_load()}")
+            print(
+                f"seq{a.seq:02d} {PAPER_SEQUENCES[a.seq].background:6s} {what}: {r['fps']:6.1f} frames/s wall, "
+                f"{r['cpu_ms']:5.1f} CPU ms/frame (= {a.workers * 1e3 / r['cpu_ms']:6.1f} frames/s on "
+                f"{a.workers} idle cores); {_load()}"
+            )
         return 0
     tot_wall = tot_cpu = 0.0
     frames_total = 0
@@ -103,11 +123,16 @@ def main(argv=None) -> int:
             tot_wall += plan.n_frames / r["fps"]
             tot_cpu += plan.n_frames / idle_fps
             frames_total += plan.n_frames
-            print(f"seq{seq:02d} {spec.approach:6s} {spec.background:6s} {plan.n_frames:5d} frames: "
-                  f"{r['fps']:6.1f} frames/s wall, "
-                  f"{r['cpu_ms']:5.1f} CPU ms/frame (= {idle_fps:6.1f} frames/s idle); {_load()}", flush=True)
-    print(f"12 sequences, {frames_total} frames (render + encode only): {tot_wall / 60:.1f} min at the "
-          f"measured wall-clock rates, {tot_cpu / 60:.1f} min on {a.workers} idle cores; {_load()}")
+            print(
+                f"seq{seq:02d} {spec.approach:6s} {spec.background:6s} {plan.n_frames:5d} frames: "
+                f"{r['fps']:6.1f} frames/s wall, "
+                f"{r['cpu_ms']:5.1f} CPU ms/frame (= {idle_fps:6.1f} frames/s idle); {_load()}",
+                flush=True,
+            )
+    print(
+        f"12 sequences, {frames_total} frames (render + encode only): {tot_wall / 60:.1f} min at the "
+        f"measured wall-clock rates, {tot_cpu / 60:.1f} min on {a.workers} idle cores; {_load()}"
+    )
     return 0
 
 

@@ -43,16 +43,18 @@ class SynthConfig:
     n_frames: int = 200
     frame_rate_hz: float = 10.0
     mocap_rate_hz: float = 100.0
-    offset_s: float = 0.0237                 # mocap time = frame time + offset_s
-    frame_t0_s: float = 5.0                  # the camera clock starts elsewhere than the mocap's
-    sigma_t_m: float = 0.2e-3                # mocap noise per sample: RMS position error
-    sigma_r_deg: float = 0.5                 # and RMS rotation angle (per axis: / sqrt(3))
-    noise_dn: float = 2.0                    # image read noise
+    offset_s: float = 0.0237  # mocap time = frame time + offset_s
+    frame_t0_s: float = 5.0  # the camera clock starts elsewhere than the mocap's
+    sigma_t_m: float = 0.2e-3  # mocap noise per sample: RMS position error
+    sigma_r_deg: float = 0.5  # and RMS rotation angle (per axis: / sqrt(3))
+    noise_dn: float = 2.0  # image read noise
     blur_px: float = 0.6
     seed: int = 1
     # Truth: camera in the housing markers' frame, target in the target markers' frame.
     T_housing_cam: np.ndarray = field(default_factory=lambda: _T([0.035, -0.062, 0.048], [12.0, -95.0, 7.0]))
-    T_tmarkers_target: np.ndarray = field(default_factory=lambda: _T([0.21, -0.14, 0.09], [-60.0, 20.0, 150.0]))
+    T_tmarkers_target: np.ndarray = field(
+        default_factory=lambda: _T([0.21, -0.14, 0.09], [-60.0, 20.0, 150.0])
+    )
     T_mocap_target0: np.ndarray = field(default_factory=lambda: _T([1.2, 0.4, 1.1], [90.0, 0.0, 0.0]))
     pattern: Pattern = field(default_factory=default_pattern)
 
@@ -68,12 +70,18 @@ def T_target_cam_at(tau_s: np.ndarray, cfg: SynthConfig) -> np.ndarray:
     el = np.radians(25) * np.sin(2 * np.pi * 0.173 * tau + ph[1])
     dist = 1.0 + 0.25 * np.sin(2 * np.pi * 0.071 * tau + ph[2])
     roll = np.radians(30) * np.sin(2 * np.pi * 0.131 * tau + ph[3])
-    look = np.stack([0.04 * np.sin(2 * np.pi * 0.29 * tau + ph[4]), 0.03 * np.sin(2 * np.pi * 0.23 * tau + ph[5]),
-                     np.zeros_like(tau)], 1)
+    look = np.stack(
+        [
+            0.04 * np.sin(2 * np.pi * 0.29 * tau + ph[4]),
+            0.03 * np.sin(2 * np.pi * 0.23 * tau + ph[5]),
+            np.zeros_like(tau),
+        ],
+        1,
+    )
     p = np.stack([np.sin(az) * np.cos(el), np.sin(el), -np.cos(az) * np.cos(el)], 1) * dist[:, None]
     z = look - p
     z /= np.linalg.norm(z, axis=1, keepdims=True)
-    x0 = np.cross(np.array([0.0, 1.0, 0.0]), z)   # camera +Y roughly along the target's +Y
+    x0 = np.cross(np.array([0.0, 1.0, 0.0]), z)  # camera +Y roughly along the target's +Y
     x0 /= np.linalg.norm(x0, axis=1, keepdims=True)
     y0 = np.cross(z, x0)
     c, s = np.cos(roll)[:, None], np.sin(roll)[:, None]
@@ -90,9 +98,12 @@ def T_mocap_target_at(tau_s: np.ndarray, cfg: SynthConfig) -> np.ndarray:
     rigid bodies move as in a real recording."""
     tau = np.atleast_1d(tau_s)
     wob = np.zeros((len(tau), 4, 4))
-    wob[:, :3, :3] = Rotation.from_rotvec(np.radians(np.stack(
-        [4 * np.sin(0.37 * tau), 3 * np.sin(0.29 * tau), 5 * np.sin(0.19 * tau)], 1))).as_matrix()
-    wob[:, :3, 3] = np.stack([0.03 * np.sin(0.3 * tau), 0.02 * np.sin(0.41 * tau), 0.01 * np.sin(0.23 * tau)], 1)
+    wob[:, :3, :3] = Rotation.from_rotvec(
+        np.radians(np.stack([4 * np.sin(0.37 * tau), 3 * np.sin(0.29 * tau), 5 * np.sin(0.19 * tau)], 1))
+    ).as_matrix()
+    wob[:, :3, 3] = np.stack(
+        [0.03 * np.sin(0.3 * tau), 0.02 * np.sin(0.41 * tau), 0.01 * np.sin(0.23 * tau)], 1
+    )
     wob[:, 3, 3] = 1.0
     return cfg.T_mocap_target0 @ wob
 
@@ -117,7 +128,9 @@ def mocap_samples(cfg: SynthConfig) -> dict:
     """Both rigid bodies sampled at the mocap rate over the frames' span (+1 s each side),
     with per-sample noise in the body frame."""
     t_f = frame_times(cfg) + cfg.offset_s
-    tau = np.arange(np.floor((t_f[0] - 1.0) * cfg.mocap_rate_hz), np.ceil((t_f[-1] + 1.0) * cfg.mocap_rate_hz) + 1)
+    tau = np.arange(
+        np.floor((t_f[0] - 1.0) * cfg.mocap_rate_hz), np.ceil((t_f[-1] + 1.0) * cfg.mocap_rate_hz) + 1
+    )
     tau = tau / cfg.mocap_rate_hz
     rng = np.random.default_rng(cfg.seed + 1000)
     T_mt = T_mocap_target_at(tau, cfg)
@@ -135,8 +148,12 @@ def write_mocap_csv(path: Path, mocap: dict, names=("housing", "tmarkers")) -> N
         for name in names:
             T = mocap[name][k]
             q = R_to_quat_wxyz(T[:3, :3])
-            lines.append(f"{t:.4f},{name}," + ",".join(f"{v:.6f}" for v in T[:3, 3]) + ","
-                         + ",".join(f"{v:.8f}" for v in q))
+            lines.append(
+                f"{t:.4f},{name},"
+                + ",".join(f"{v:.6f}" for v in T[:3, 3])
+                + ","
+                + ",".join(f"{v:.8f}" for v in q)
+            )
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -146,23 +163,26 @@ class BoardCompositor:
     def __init__(self, pattern: Pattern, intr: Intrinsics, px_per_m: float = 4000.0):
         w_m, h_m = pattern.size_m
         self.m_per_px = 1.0 / px_per_m
-        self.img = pattern.board().generateImage((int(round(w_m * px_per_m)), int(round(h_m * px_per_m))),
-                                                 marginSize=0, borderBits=1)
+        self.img = pattern.board().generateImage(
+            (int(round(w_m * px_per_m)), int(round(h_m * px_per_m))), marginSize=0, borderBits=1
+        )
         self.pattern, self.intr = pattern, intr
 
     def composite(self, frame_rgb: np.ndarray, T_cam_pattern: np.ndarray) -> np.ndarray:
-        s = 2   # supersampling
+        s = 2  # supersampling
         K2 = self.intr.K.copy()
         K2[:2] *= s
-        K2[0, 2] += (s - 1) / 2   # pixel-centre convention at s times the resolution
+        K2[0, 2] += (s - 1) / 2  # pixel-centre convention at s times the resolution
         K2[1, 2] += (s - 1) / 2
         # Board image pixel (u, v) -> pattern metres ((u + 0.5) m, (v + 0.5) m, 0) -> camera.
-        S = np.array([[self.m_per_px, 0, 0.5 * self.m_per_px], [0, self.m_per_px, 0.5 * self.m_per_px], [0, 0, 1]])
+        S = np.array(
+            [[self.m_per_px, 0, 0.5 * self.m_per_px], [0, self.m_per_px, 0.5 * self.m_per_px], [0, 0, 1]]
+        )
         R, t = T_cam_pattern[:3, :3], T_cam_pattern[:3, 3]
         Hm = K2 @ np.column_stack([R[:, 0], R[:, 1], t]) @ S
         W, H = self.intr.width_px * s, self.intr.height_px * s
         # Printed board: white ~0.8, black ~0.1 reflectance under the lab light.
-        shade = (25 + self.img.astype(np.float32) * (190 - 25) / 255.0)
+        shade = 25 + self.img.astype(np.float32) * (190 - 25) / 255.0
         board = cv2.warpPerspective(shade, Hm, (W, H), flags=cv2.INTER_AREA, borderValue=0)
         mask = cv2.warpPerspective(np.ones_like(shade), Hm, (W, H), flags=cv2.INTER_LINEAR, borderValue=0)
         board = cv2.resize(board, (W // s, H // s), interpolation=cv2.INTER_AREA)
@@ -188,19 +208,22 @@ def render_frames(cfg: SynthConfig, intr: Intrinsics, out_dir: Path | None = Non
         comp = BoardCompositor(cfg.pattern, intr)
         tau = frame_times(cfg) + cfg.offset_s
         T_tc = T_target_cam_at(tau, cfg)
-        sun_target = np.array([0.3, -0.5, -1.0])   # towards the light: behind and above the camera
+        sun_target = np.array([0.3, -0.5, -1.0])  # towards the light: behind and above the camera
         images = []
         for k in range(cfg.n_frames):
             # Earth put behind the camera: a black lab background.
-            img = r.render(T_tc[k, :3, :3], T_tc[k, :3, 3], sun_target, earth_center_lvlh_km=-6791.0 * T_tc[k, :3, 2])
+            img = r.render(
+                T_tc[k, :3, :3], T_tc[k, :3, 3], sun_target, earth_center_lvlh_km=-6791.0 * T_tc[k, :3, 2]
+            )
             T_cp = inv_T(T_tc[k]) @ cfg.pattern.T_target_pattern
             img = comp.composite(img, T_cp)
             rng = np.random.default_rng([cfg.seed, k])
             img = apply_sensor_effects(img, cfg.noise_dn, cfg.blur_px, rng)
             images.append(img)
             if out_dir is not None:
-                cv2.imwrite(str(out_dir / "frames" / f"{k:06d}.png"), img[..., ::-1],
-                            [cv2.IMWRITE_PNG_COMPRESSION, 1])
+                cv2.imwrite(
+                    str(out_dir / "frames" / f"{k:06d}.png"), img[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 1]
+                )
     finally:
         r.release()
     return images
@@ -211,8 +234,9 @@ def render_frames(cfg: SynthConfig, intr: Intrinsics, out_dir: Path | None = Non
 SIM_CORNER_SIGMA_PX = 0.12
 
 
-def simulate_observations(cfg: SynthConfig, intr: Intrinsics, corner_sigma_px: float = SIM_CORNER_SIGMA_PX,
-                          margin_px: float = 4.0) -> list:
+def simulate_observations(
+    cfg: SynthConfig, intr: Intrinsics, corner_sigma_px: float = SIM_CORNER_SIGMA_PX, margin_px: float = 4.0
+) -> list:
     """What the detector would return on the rendered frames, without rendering: the board
     corners projected from the true pose, those inside the image kept, white noise of
     `corner_sigma_px` per axis added, then the same PnP as pnp.Detector.observe. For statistics
@@ -229,8 +253,12 @@ def simulate_observations(cfg: SynthConfig, intr: Intrinsics, corner_sigma_px: f
         T_cp = inv_T(T_tc[k]) @ cfg.pattern.T_target_pattern
         rvec = cv2.Rodrigues(T_cp[:3, :3])[0]
         uv = cv2.projectPoints(obj_all.reshape(-1, 1, 3), rvec, T_cp[:3, 3], K, dist)[0].reshape(-1, 2)
-        inside = ((uv[:, 0] > margin_px) & (uv[:, 0] < intr.width_px - 1 - margin_px)
-                  & (uv[:, 1] > margin_px) & (uv[:, 1] < intr.height_px - 1 - margin_px))
+        inside = (
+            (uv[:, 0] > margin_px)
+            & (uv[:, 0] < intr.width_px - 1 - margin_px)
+            & (uv[:, 1] > margin_px)
+            & (uv[:, 1] < intr.height_px - 1 - margin_px)
+        )
         ids = np.flatnonzero(inside)
         if len(ids) < MIN_CORNERS:
             out.append(None)
@@ -258,10 +286,17 @@ def truth(cfg: SynthConfig) -> dict:
     def pose(T):
         return {"t_m": T[:3, 3].tolist(), "q_wxyz": R_to_quat_wxyz(T[:3, :3]).tolist()}
 
-    return {"T_housing_cam": pose(cfg.T_housing_cam), "T_tmarkers_target": pose(cfg.T_tmarkers_target),
-            "offset_s": cfg.offset_s, "sigma_t_m": cfg.sigma_t_m, "sigma_r_deg": cfg.sigma_r_deg,
-            "n_frames": cfg.n_frames, "frame_rate_hz": cfg.frame_rate_hz, "mocap_rate_hz": cfg.mocap_rate_hz,
-            "seed": cfg.seed}
+    return {
+        "T_housing_cam": pose(cfg.T_housing_cam),
+        "T_tmarkers_target": pose(cfg.T_tmarkers_target),
+        "offset_s": cfg.offset_s,
+        "sigma_t_m": cfg.sigma_t_m,
+        "sigma_r_deg": cfg.sigma_r_deg,
+        "n_frames": cfg.n_frames,
+        "frame_rate_hz": cfg.frame_rate_hz,
+        "mocap_rate_hz": cfg.mocap_rate_hz,
+        "seed": cfg.seed,
+    }
 
 
 def write_recording(out_dir: Path, cfg: SynthConfig | None = None, images: bool = True) -> dict:

@@ -15,12 +15,14 @@ def gl_projection(cam: PinholeCamera) -> np.ndarray:
     z backwards) that reproduces ``cam.project`` (pixel-corner convention) after the image is
     read back and flipped so row 0 is the top."""
     W, H, n, f = cam.width_px, cam.height_px, cam.near_m, cam.far_m
-    return np.array([
-        [2 * cam.fx_px / W, 0.0, 1.0 - 2 * cam.cx_px / W, 0.0],
-        [0.0, 2 * cam.fy_px / H, -(1.0 - 2 * cam.cy_px / H), 0.0],
-        [0.0, 0.0, -(f + n) / (f - n), -2 * f * n / (f - n)],
-        [0.0, 0.0, -1.0, 0.0],
-    ])
+    return np.array(
+        [
+            [2 * cam.fx_px / W, 0.0, 1.0 - 2 * cam.cx_px / W, 0.0],
+            [0.0, 2 * cam.fy_px / H, -(1.0 - 2 * cam.cy_px / H), 0.0],
+            [0.0, 0.0, -(f + n) / (f - n), -2 * f * n / (f - n)],
+            [0.0, 0.0, -1.0, 0.0],
+        ]
+    )
 
 
 # OpenCV camera axes -> OpenGL eye axes (flip Y and Z).

@@ -53,8 +53,8 @@ from .sequence import (  # noqa: F401  (DatasetError re-exported)
 from .trajectory import PHASE_NAMES, TrajectoryParams, generate
 
 GENERATOR = "oibar_hil.dataset"
-SUN_UPDATE_S = 1.0          # Sun direction is sampled once a second (0.065 deg steps): lets the
-                            # shadow map be reused for 10 frames, deterministically per frame
+SUN_UPDATE_S = 1.0  # Sun direction is sampled once a second (0.065 deg steps): lets the
+# shadow map be reused for 10 frames, deterministically per frame
 CHUNK_FRAMES = 25
 
 
@@ -64,11 +64,11 @@ class SequenceSpec:
     port: int
     approach: str
     sun_elevation_deg: float
-    background: str                    # iss | perlin
+    background: str  # iss | perlin
     seed: int
     envelope: bool = False
     epoch_utc: str = DEFAULT_EPOCH_UTC  # search for the Sun elevation starts here
-    image_format: str = "jpg"          # jpg | png
+    image_format: str = "jpg"  # jpg | png
     jpeg_quality: int = 95
     png_compress_level: int = 1
     noise_sigma_dn: float = 0.0
@@ -85,15 +85,18 @@ class SequenceSpec:
         if self.port not in PORTS:
             raise ValueError(f"{self.name}: port {self.port} not in 1..6")
         if PORTS[self.port].approach != self.approach:
-            raise ValueError(f"{self.name}: port {self.port} is a {PORTS[self.port].approach} port, "
-                             f"not {self.approach}")
+            raise ValueError(
+                f"{self.name}: port {self.port} is a {PORTS[self.port].approach} port, not {self.approach}"
+            )
         if self.background not in ("iss", "perlin"):
             raise ValueError(f"{self.name}: background must be iss or perlin")
         if self.image_format not in ("jpg", "png"):
             raise ValueError(f"{self.name}: image_format must be jpg or png")
         if not 0.0 <= self.turned_deg <= 10.0:
-            raise ValueError(f"{self.name}: turned_deg must be 0-10 deg (the mechanism's capture limit), "
-                             f"got {self.turned_deg}")
+            raise ValueError(
+                f"{self.name}: turned_deg must be 0-10 deg (the mechanism's capture limit), "
+                f"got {self.turned_deg}"
+            )
 
 
 def spec_dict(spec: SequenceSpec) -> dict:
@@ -108,8 +111,9 @@ def spec_dict(spec: SequenceSpec) -> dict:
 
 
 def _paper(n: int, port: int, approach: str, sun: float, bg: str) -> SequenceSpec:
-    return SequenceSpec(name=f"seq{n:02d}", port=port, approach=approach, sun_elevation_deg=sun,
-                        background=bg, seed=1000 + n)
+    return SequenceSpec(
+        name=f"seq{n:02d}", port=port, approach=approach, sun_elevation_deg=sun, background=bg, seed=1000 + n
+    )
 
 
 # SPEC section 6 (the paper's table); seeds are ours.
@@ -152,8 +156,9 @@ class SequencePlan:
         return np.linalg.norm(self.T_cam_target, axis=1)
 
 
-def plan_sequence(spec: SequenceSpec, frames_limit: int | None = None,
-                  params: TrajectoryParams | None = None) -> SequencePlan:
+def plan_sequence(
+    spec: SequenceSpec, frames_limit: int | None = None, params: TrajectoryParams | None = None
+) -> SequencePlan:
     spec.validate()
     traj = generate(spec.seed, envelope=spec.envelope, params=params, turned_deg=spec.turned_deg)
     port = PORTS[spec.port]
@@ -185,10 +190,19 @@ def plan_sequence(spec: SequenceSpec, frames_limit: int | None = None,
         "lvlh": "ISS/NASA: +X V-bar (velocity), +Z R-bar (to Earth centre), +Y negative orbit normal",
     }
     return SequencePlan(
-        spec=spec, n_frames=n, t_s=traj.t_s[keep], phase=traj.phase[keep], distance_m=traj.distance_m[keep],
-        T_cam_target=cp.T_cam_target[keep], q_cam_target=cp.q_cam_target[keep],
-        R_lvlh_cam=cp.R_lvlh_cam[keep], p_lvlh_cam=cp.p_lvlh_cam[keep], sun_lvlh=sun, R_ecef_lvlh=R_ecef,
-        earth_center_lvlh_km=st0.earth_center_lvlh_km, orbit_info=orbit_info,
+        spec=spec,
+        n_frames=n,
+        t_s=traj.t_s[keep],
+        phase=traj.phase[keep],
+        distance_m=traj.distance_m[keep],
+        T_cam_target=cp.T_cam_target[keep],
+        q_cam_target=cp.q_cam_target[keep],
+        R_lvlh_cam=cp.R_lvlh_cam[keep],
+        p_lvlh_cam=cp.p_lvlh_cam[keep],
+        sun_lvlh=sun,
+        R_ecef_lvlh=R_ecef,
+        earth_center_lvlh_km=st0.earth_center_lvlh_km,
+        orbit_info=orbit_info,
         trajectory_info={**traj.info, "frames_total": len(traj), "params": asdict(traj.params)},
     )
 
@@ -222,14 +236,43 @@ def write_poses_csv(path: Path, plan: SequencePlan) -> None:
     sun_cam = np.einsum("nij,nj->ni", R_cam_lvlh, plan.sun_lvlh)
     out = io.StringIO()
     w = csv.writer(out, lineterminator="\n")
-    w.writerow(["frame", "file", "time_s", "phase", "phase_name", "distance_m", "tx_m", "ty_m", "tz_m",
-                "qw", "qx", "qy", "qz", "range_m", "sun_cam_x", "sun_cam_y", "sun_cam_z"])
+    w.writerow(
+        [
+            "frame",
+            "file",
+            "time_s",
+            "phase",
+            "phase_name",
+            "distance_m",
+            "tx_m",
+            "ty_m",
+            "tz_m",
+            "qw",
+            "qx",
+            "qy",
+            "qz",
+            "range_m",
+            "sun_cam_x",
+            "sun_cam_y",
+            "sun_cam_z",
+        ]
+    )
     for k in range(plan.n_frames):
         t, q = plan.T_cam_target[k], plan.q_cam_target[k]
-        w.writerow([k, frame_name(k, plan.spec.image_format), f"{plan.t_s[k]:.3f}", int(plan.phase[k]),
-                    PHASE_NAMES[int(plan.phase[k])], f"{plan.distance_m[k]:.6f}",
-                    *(f"{x:.6f}" for x in t), *(f"{x:.9f}" for x in q), f"{plan.range_m[k]:.6f}",
-                    *(f"{x:.6f}" for x in sun_cam[k])])
+        w.writerow(
+            [
+                k,
+                frame_name(k, plan.spec.image_format),
+                f"{plan.t_s[k]:.3f}",
+                int(plan.phase[k]),
+                PHASE_NAMES[int(plan.phase[k])],
+                f"{plan.distance_m[k]:.6f}",
+                *(f"{x:.6f}" for x in t),
+                *(f"{x:.9f}" for x in q),
+                f"{plan.range_m[k]:.6f}",
+                *(f"{x:.6f}" for x in sun_cam[k]),
+            ]
+        )
     _write_atomic(path, out.getvalue().encode())
 
 
@@ -261,8 +304,12 @@ def _renderer_for(spec: SequenceSpec):
         _WORKER["scene"] = None
     key = (spec.background, spec.port, spec.seed)
     if _WORKER.get("scene") != key:
-        r.load_scene(scene_parts(spec.background, spec.port), spec.background, PORTS[spec.port].p_lvlh_t,
-                     perlin_seed=spec.seed)
+        r.load_scene(
+            scene_parts(spec.background, spec.port),
+            spec.background,
+            PORTS[spec.port].p_lvlh_t,
+            perlin_seed=spec.seed,
+        )
         _WORKER["scene"] = key
     return r
 
@@ -273,8 +320,14 @@ def _render_chunk(task: dict) -> int:
     seq_dir = Path(task["seq_dir"])
     for j, k in enumerate(task["frames"]):
         rng = np.random.default_rng([spec.seed, k]) if spec.noise_sigma_dn > 0 else None
-        img = r.render(task["R_lvlh_cam"][j], task["p_lvlh_cam"][j], task["sun_lvlh"][j], task["R_ecef_lvlh"][j],
-                       task["earth_center_lvlh_km"], rng=rng)
+        img = r.render(
+            task["R_lvlh_cam"][j],
+            task["p_lvlh_cam"][j],
+            task["sun_lvlh"][j],
+            task["R_ecef_lvlh"][j],
+            task["earth_center_lvlh_km"],
+            rng=rng,
+        )
         _write_atomic(seq_dir / frame_name(k, spec.image_format), encode_image(img, spec))
     return len(task["frames"])
 
@@ -289,13 +342,14 @@ def _render_in_pool(tasks: list[dict], workers: int, cpu: int, bar, fn=None) -> 
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
 
-    ctx = mp.get_context("spawn")   # never fork a process that may hold a GL context
+    ctx = mp.get_context("spawn")  # never fork a process that may hold a GL context
     todo = list(range(len(tasks)))
     for attempt in range(POOL_RESTARTS + 1):
         done = set()
         try:
-            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
-                                     initargs=(max(1, cpu // workers),)) as pool:
+            with ProcessPoolExecutor(
+                workers, mp_context=ctx, initializer=_worker_init, initargs=(max(1, cpu // workers),)
+            ) as pool:
                 futures = {pool.submit(fn or _render_chunk, tasks[i]): i for i in todo}
                 for fut in as_completed(futures):
                     n = fut.result()
@@ -305,10 +359,15 @@ def _render_in_pool(tasks: list[dict], workers: int, cpu: int, bar, fn=None) -> 
                 return pool.submit(gl_renderer_name).result()
         except BrokenProcessPool:
             todo = [i for i in todo if i not in done]
-            print(f"\nwarning: a render worker died; restarting the pool for the {len(todo)} chunk(s) left "
-                  f"(attempt {attempt + 1} of {POOL_RESTARTS})", file=sys.stderr)
-    raise DatasetError(f"render workers kept dying ({POOL_RESTARTS + 1} pools); {len(todo)} chunk(s) not rendered. "
-                       "Run the same command again to resume.")
+            print(
+                f"\nwarning: a render worker died; restarting the pool for the {len(todo)} chunk(s) left "
+                f"(attempt {attempt + 1} of {POOL_RESTARTS})",
+                file=sys.stderr,
+            )
+    raise DatasetError(
+        f"render workers kept dying ({POOL_RESTARTS + 1} pools); {len(todo)} chunk(s) not rendered. "
+        "Run the same command again to resume."
+    )
 
 
 def gl_renderer_name() -> str:
@@ -330,7 +389,8 @@ def prepare_sequence_dir(seq_dir: Path, spec: SequenceSpec, force: bool = False)
         old = json.loads(spec_path.read_text())
         if old != ident:
             raise DatasetError(
-                f"{seq_dir}: holds a different sequence spec ({spec_path}); use a new --out folder or --force")
+                f"{seq_dir}: holds a different sequence spec ({spec_path}); use a new --out folder or --force"
+            )
     if force:
         for p in (seq_dir / "frames").glob("*"):
             p.unlink()
@@ -375,7 +435,7 @@ def write_manifest(seq_dir: Path, plan: SequencePlan, frames_limit: int | None, 
             "fixture": asdict(FIXTURE),
         },
         "labels": "T_cam_target = fixture origin in camera frame (OpenCV axes), m; "
-                  "q_cam_target = (w,x,y,z) of R_cam_target (F_t -> camera); see docs/synthetic.md",
+        "q_cam_target = (w,x,y,z) of R_cam_target (F_t -> camera); see docs/synthetic.md",
         "gl_renderer": gl_renderer,
         "files": files,
     }
@@ -405,8 +465,14 @@ class GenerateReport:
         return self.rendered / self.seconds if self.seconds > 0 else 0.0
 
 
-def generate_dataset(out_dir: Path, specs: list[SequenceSpec], frames_limit: int | None = None,
-                     workers: int = 2, force: bool = False, progress: bool = True) -> GenerateReport:
+def generate_dataset(
+    out_dir: Path,
+    specs: list[SequenceSpec],
+    frames_limit: int | None = None,
+    workers: int = 2,
+    force: bool = False,
+    progress: bool = True,
+) -> GenerateReport:
     out_dir = Path(out_dir)
     report = GenerateReport()
     t_start = time.perf_counter()
@@ -431,18 +497,25 @@ def generate_dataset(out_dir: Path, specs: list[SequenceSpec], frames_limit: int
         report.skipped += plan.n_frames - len(todo)
         report.per_sequence[spec.name] = {"rendered": len(todo), "skipped": plan.n_frames - len(todo)}
         for i in range(0, len(todo), CHUNK_FRAMES):
-            idx = np.array(todo[i:i + CHUNK_FRAMES])
-            tasks.append({
-                "spec": spec, "seq_dir": str(seq_dir), "frames": idx.tolist(),
-                "R_lvlh_cam": plan.R_lvlh_cam[idx], "p_lvlh_cam": plan.p_lvlh_cam[idx],
-                "sun_lvlh": plan.sun_lvlh[idx], "R_ecef_lvlh": plan.R_ecef_lvlh[idx],
-                "earth_center_lvlh_km": plan.earth_center_lvlh_km,
-            })
+            idx = np.array(todo[i : i + CHUNK_FRAMES])
+            tasks.append(
+                {
+                    "spec": spec,
+                    "seq_dir": str(seq_dir),
+                    "frames": idx.tolist(),
+                    "R_lvlh_cam": plan.R_lvlh_cam[idx],
+                    "p_lvlh_cam": plan.p_lvlh_cam[idx],
+                    "sun_lvlh": plan.sun_lvlh[idx],
+                    "R_ecef_lvlh": plan.R_ecef_lvlh[idx],
+                    "earth_center_lvlh_km": plan.earth_center_lvlh_km,
+                }
+            )
 
     total = sum(len(t["frames"]) for t in tasks)
     bar = None
     if progress:
         from oibar.progress import Progress
+
         bar = Progress("rendering", total=total, unit="frame")
     t_render = time.perf_counter()
     gl_name = "unknown"
@@ -534,16 +607,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True, type=Path, help="output folder (one sub-folder per sequence)")
     ap.add_argument("--seqs", help="paper sequences, e.g. 1,8 or 1-12 (default: all 12)")
     ap.add_argument("--spec", type=Path, help="JSON file with custom sequence specs (instead of --seqs)")
-    ap.add_argument("--frames-limit", type=int, default=None, help="render only the first N frames of each sequence")
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="render processes (default: CPU count)")
+    ap.add_argument(
+        "--frames-limit", type=int, default=None, help="render only the first N frames of each sequence"
+    )
+    ap.add_argument(
+        "--workers", type=int, default=os.cpu_count() or 1, help="render processes (default: CPU count)"
+    )
     ap.add_argument("--format", choices=("jpg", "png"), default=None, help="frame format (default jpg)")
-    ap.add_argument("--envelope", action="store_true",
-                    help="envelope mode (+-10 deg, <= 50 mm/s) for the paper sequences")
+    ap.add_argument(
+        "--envelope", action="store_true", help="envelope mode (+-10 deg, <= 50 mm/s) for the paper sequences"
+    )
     ap.add_argument("--force", action="store_true", help="discard existing frames of the chosen sequences")
-    ap.add_argument("--verify", action="store_true", help="only verify existing sequences against their manifests")
-    ap.add_argument("--shard", default=None, metavar="I/N",
-                    help="render only sequences I, I+N, I+2N, ... of the list (0 <= I < N): one shard per "
-                         "batch job, all writing into the same --out")
+    ap.add_argument(
+        "--verify", action="store_true", help="only verify existing sequences against their manifests"
+    )
+    ap.add_argument(
+        "--shard",
+        default=None,
+        metavar="I/N",
+        help="render only sequences I, I+N, I+2N, ... of the list (0 <= I < N): one shard per "
+        "batch job, all writing into the same --out",
+    )
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
 
@@ -577,12 +661,16 @@ def main(argv: list[str] | None = None) -> int:
         return 1 if bad else 0
 
     try:
-        rep = generate_dataset(args.out, specs, args.frames_limit, args.workers, args.force, not args.no_progress)
+        rep = generate_dataset(
+            args.out, specs, args.frames_limit, args.workers, args.force, not args.no_progress
+        )
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"rendered {rep.rendered} frames in {rep.seconds:.1f} s ({rep.fps:.1f} frames/s), "
-          f"skipped {rep.skipped} already done, {rep.sequences_complete} sequence(s) complete in {args.out}")
+    print(
+        f"rendered {rep.rendered} frames in {rep.seconds:.1f} s ({rep.fps:.1f} frames/s), "
+        f"skipped {rep.skipped} already done, {rep.sequences_complete} sequence(s) complete in {args.out}"
+    )
     return 0
 
 

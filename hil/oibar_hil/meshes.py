@@ -19,7 +19,7 @@ from oibar.geometry.fixture import FIXTURE, FixtureDims
 from .ports import ADAPTER_LENGTH_M, MODULES_ALONG_X, PORTS, Port
 
 # Part ids (also the value written by the renderer's id pass).
-ID_BOUNDARY = 1       # rectangular boundary (rim) of the berthing plate
+ID_BOUNDARY = 1  # rectangular boundary (rim) of the berthing plate
 ID_PLATE = 2
 ID_DROGUE = 3
 ID_PIN_GUIDE = 4
@@ -40,15 +40,18 @@ SEGMENTS = 40
 
 def _to_trimesh(m: mf.Manifold) -> trimesh.Trimesh:
     mesh = m.to_mesh()
-    return trimesh.Trimesh(vertices=np.asarray(mesh.vert_properties)[:, :3], faces=np.asarray(mesh.tri_verts),
-                           process=False)
+    return trimesh.Trimesh(
+        vertices=np.asarray(mesh.vert_properties)[:, :3], faces=np.asarray(mesh.tri_verts), process=False
+    )
 
 
 def _box(size, center) -> mf.Manifold:
     return mf.Manifold.cube(tuple(size), center=True).translate(tuple(center))
 
 
-def _frustum(r0: float, r1: float, z0: float, z1: float, xy=(0.0, 0.0), segments: int = SEGMENTS) -> mf.Manifold:
+def _frustum(
+    r0: float, r1: float, z0: float, z1: float, xy=(0.0, 0.0), segments: int = SEGMENTS
+) -> mf.Manifold:
     """Solid cone frustum along +Z from z0 (radius r0) to z1 (radius r1)."""
     return mf.Manifold.cylinder(z1 - z0, r0, r1, segments).translate((xy[0], xy[1], z0))
 
@@ -68,7 +71,8 @@ def berthing_fixture(d: FixtureDims = FIXTURE) -> list[Part]:
     z_plate1 = z_plate0 + d.plate_thickness_m
 
     rim = _box((w, h, d.rim_depth_m), (0, 0, d.rim_depth_m / 2)) - _box(
-        (w - 2 * d.rim_width_m, h - 2 * d.rim_width_m, 1.0), (0, 0, 0))
+        (w - 2 * d.rim_width_m, h - 2 * d.rim_width_m, 1.0), (0, 0, 0)
+    )
 
     plate = _box((w, h, d.plate_thickness_m), (0, 0, (z_plate0 + z_plate1) / 2))
     plate = plate - _frustum(d.drogue_mouth_radius_m, d.drogue_mouth_radius_m, -0.1, 0.2)
@@ -81,8 +85,13 @@ def berthing_fixture(d: FixtureDims = FIXTURE) -> list[Part]:
     plate = plate - cut
     bosses = None
     for sx in (-1, 1):
-        b = _frustum(d.pin_guide_radius_m, d.pin_guide_radius_m, z_plate0 - 0.015, z_plate0 + 0.001,
-                     (sx * d.pin_guide_x_m, 0.0))
+        b = _frustum(
+            d.pin_guide_radius_m,
+            d.pin_guide_radius_m,
+            z_plate0 - 0.015,
+            z_plate0 + 0.001,
+            (sx * d.pin_guide_x_m, 0.0),
+        )
         bosses = b if bosses is None else bosses + b
     bosses = bosses - cut
 
@@ -90,13 +99,15 @@ def berthing_fixture(d: FixtureDims = FIXTURE) -> list[Part]:
     r_m, r_t, depth = d.drogue_mouth_radius_m, d.drogue_throat_radius_m, d.drogue_depth_m
     outer = _frustum(r_m + 0.02, r_t + 0.02, z_plate0 - 0.008, z_plate0 + depth + 0.08)
     inner = _frustum(r_m, r_t, z_plate0 - 0.009, z_plate0 + depth) + _frustum(
-        r_t, r_t, z_plate0 + depth - 0.001, z_plate0 + depth + 0.06)
+        r_t, r_t, z_plate0 + depth - 0.001, z_plate0 + depth + 0.06
+    )
     drogue = outer - inner
 
     couplings = None
     for x, y in d.couplings_xy_m:
         c = _frustum(d.coupling_radius_m, d.coupling_radius_m, 0.002, z_plate0 + 0.001, (x, y)) - _frustum(
-            0.010, 0.010, 0.0, 0.014, (x, y))
+            0.010, 0.010, 0.0, 0.014, (x, y)
+        )
         couplings = c if couplings is None else couplings + c
 
     cx, cy = d.connector_xy_m
@@ -153,7 +164,9 @@ def _tbox(size, center) -> trimesh.Trimesh:
     return trimesh.creation.box(extents=size, transform=trimesh.transformations.translation_matrix(center))
 
 
-def _truss(x_c: float, z_c: float, y0: float, y1: float, side: float = 3.0, bay: float = 4.0, beam: float = 0.14):
+def _truss(
+    x_c: float, z_c: float, y0: float, y1: float, side: float = 3.0, bay: float = 4.0, beam: float = 0.14
+):
     parts = []
     hs = side / 2
     for dx in (-hs, hs):
@@ -172,7 +185,9 @@ def _truss(x_c: float, z_c: float, y0: float, y1: float, side: float = 3.0, bay:
             ang = np.arctan2((y1 - y0) / n_bays, side)
             for dz in (-hs, hs):
                 d = _tbox((L, beam, beam), (0, 0, 0))
-                d.apply_transform(trimesh.transformations.rotation_matrix(ang * (1 if i % 2 else -1), (0, 0, 1)))
+                d.apply_transform(
+                    trimesh.transformations.rotation_matrix(ang * (1 if i % 2 else -1), (0, 0, 1))
+                )
                 d.apply_translation((x_c, ym, z_c + dz))
                 parts.append(d)
     return trimesh.util.concatenate(parts)
@@ -182,13 +197,20 @@ def _transform_part(part: Part, R: np.ndarray, p: np.ndarray, part_id: int | Non
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = p
-    return Part(part.mesh.copy().apply_transform(T), part.rgb, part.specular,
-                part.part_id if part_id is None else part_id)
+    return Part(
+        part.mesh.copy().apply_transform(T),
+        part.rgb,
+        part.specular,
+        part.part_id if part_id is None else part_id,
+    )
 
 
 def fixture_at_port(port: Port, is_target: bool = True) -> list[Part]:
     parts = berthing_fixture()
-    out = [_transform_part(pt, port.R_lvlh_t, port.p_lvlh_t, None if is_target else ID_OTHER_FIXTURE) for pt in parts]
+    out = [
+        _transform_part(pt, port.R_lvlh_t, port.p_lvlh_t, None if is_target else ID_OTHER_FIXTURE)
+        for pt in parts
+    ]
     return out
 
 
@@ -210,22 +232,35 @@ def station(target_port: int) -> list[Part]:
     for sy in (-1, 1):
         for k in range(3):
             y = sy * (11.0 + 4.0 * k)
-            parts.append(Part(_tbox((13.0, 3.2, 0.08), (truss_x - 8.0, y, truss_z + 0.3 * k)), (0.93, 0.93, 0.93),
-                              0.15, ID_RADIATOR))
+            parts.append(
+                Part(
+                    _tbox((13.0, 3.2, 0.08), (truss_x - 8.0, y, truss_z + 0.3 * k)),
+                    (0.93, 0.93, 0.93),
+                    0.15,
+                    ID_RADIATOR,
+                )
+            )
     # Solar array wings at the truss ends, extending along +-X.
     for sy in (-1, 1):
         for y in (sy * 31.0, sy * 37.0):
             for sx in (-1, 1):
                 xc = truss_x + sx * (1.5 + 17.0)
-                parts.append(Part(_tbox((33.0, 4.6, 0.05), (xc, y, truss_z)), (0.12, 0.16, 0.38), 0.9, ID_SOLAR_ARRAY))
+                parts.append(
+                    Part(_tbox((33.0, 4.6, 0.05), (xc, y, truss_z)), (0.12, 0.16, 0.38), 0.9, ID_SOLAR_ARRAY)
+                )
             parts.append(Part(_tbox((0.3, 0.3, 0.3), (truss_x, y, truss_z)), (0.5, 0.5, 0.5), 0.2, ID_TRUSS))
     # Adapters and fixtures on the six ports.
     for number, port in PORTS.items():
-        a = _to_trimesh(_frustum(0.30, 0.30, FIXTURE.rim_depth_m + FIXTURE.plate_thickness_m - 0.001,
-                                 ADAPTER_LENGTH_M + 0.3))
+        a = _to_trimesh(
+            _frustum(
+                0.30, 0.30, FIXTURE.rim_depth_m + FIXTURE.plate_thickness_m - 0.001, ADAPTER_LENGTH_M + 0.3
+            )
+        )
         collar = _to_trimesh(_frustum(0.55, 0.55, ADAPTER_LENGTH_M - 0.15, ADAPTER_LENGTH_M + 0.3))
         for m in (a, collar):
-            parts.append(_transform_part(Part(m, (0.80, 0.80, 0.78), 0.3, ID_ADAPTER), port.R_lvlh_t, port.p_lvlh_t))
+            parts.append(
+                _transform_part(Part(m, (0.80, 0.80, 0.78), 0.3, ID_ADAPTER), port.R_lvlh_t, port.p_lvlh_t)
+            )
         parts.extend(fixture_at_port(port, is_target=(number == target_port)))
     return parts
 

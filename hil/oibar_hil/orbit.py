@@ -60,8 +60,8 @@ class TargetState:
     r_teme_km: np.ndarray
     v_teme_kmps: np.ndarray
     R_teme_lvlh: np.ndarray
-    sun_lvlh: np.ndarray          # unit vector target -> Sun, LVLH
-    R_ecef_lvlh: np.ndarray       # rotates LVLH vectors into Earth-fixed (for Earth texture)
+    sun_lvlh: np.ndarray  # unit vector target -> Sun, LVLH
+    R_ecef_lvlh: np.ndarray  # rotates LVLH vectors into Earth-fixed (for Earth texture)
 
     @property
     def altitude_km(self) -> float:

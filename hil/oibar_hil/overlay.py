@@ -31,8 +31,14 @@ def project_fixture(T_cam_target, q_cam_target, camera: PinholeCamera | None = N
     return {"origin": uv[0], "corners": uv[1:5], "axes": uv[5:8]}
 
 
-def draw_overlay(image: Image.Image | np.ndarray, T_cam_target, q_cam_target,
-                 camera: PinholeCamera | None = None, color=(0, 255, 0), width: int = 2) -> Image.Image:
+def draw_overlay(
+    image: Image.Image | np.ndarray,
+    T_cam_target,
+    q_cam_target,
+    camera: PinholeCamera | None = None,
+    color=(0, 255, 0),
+    width: int = 2,
+) -> Image.Image:
     img = Image.fromarray(image) if isinstance(image, np.ndarray) else image.copy()
     img = img.convert("RGB")
     d = ImageDraw.Draw(img)

@@ -31,8 +31,8 @@ ADAPTER_LENGTH_M = 1.2  # docking adapter from module skin to the berthing plane
 class Port:
     number: int
     approach: str
-    p_lvlh_t: np.ndarray      # target-frame origin in LVLH, m
-    R_lvlh_t: np.ndarray      # F_t -> LVLH
+    p_lvlh_t: np.ndarray  # target-frame origin in LVLH, m
+    R_lvlh_t: np.ndarray  # F_t -> LVLH
     module_anchor_lvlh: np.ndarray  # where the adapter meets the module skin, m
 
 
@@ -40,9 +40,9 @@ def _axes_for(approach: str) -> np.ndarray:
     n = APPROACH_NORMAL_LVLH[approach]
     z_t = -n
     if approach in ("+V-bar", "-V-bar"):
-        y_t = np.array([0.0, 0.0, 1.0])   # Earth (+R-bar) is image-down
+        y_t = np.array([0.0, 0.0, 1.0])  # Earth (+R-bar) is image-down
     else:
-        y_t = np.array([1.0, 0.0, 0.0])   # +V-bar is image-down
+        y_t = np.array([1.0, 0.0, 0.0])  # +V-bar is image-down
     x_t = np.cross(y_t, z_t)
     return np.stack([x_t, y_t, z_t], axis=1)
 
@@ -54,10 +54,10 @@ def _port(number: int, approach: str, anchor: tuple[float, float, float]) -> Por
 
 
 PORTS = {
-    1: _port(1, "+V-bar", (18.0, 0.0, 0.0)),    # forward end of the forward node
-    2: _port(2, "-R-bar", (15.0, 0.0, -2.2)),   # zenith of the forward node
-    3: _port(3, "-V-bar", (-31.0, 0.0, 0.0)),   # aft end of the service module
+    1: _port(1, "+V-bar", (18.0, 0.0, 0.0)),  # forward end of the forward node
+    2: _port(2, "-R-bar", (15.0, 0.0, -2.2)),  # zenith of the forward node
+    3: _port(3, "-V-bar", (-31.0, 0.0, 0.0)),  # aft end of the service module
     4: _port(4, "-R-bar", (-10.0, 0.0, -2.0)),  # zenith of the FGB-like module
-    5: _port(5, "+R-bar", (15.0, 0.0, 2.2)),    # nadir of the forward node
-    6: _port(6, "+R-bar", (-22.0, 0.0, 2.0)),   # nadir of the service module
+    5: _port(5, "+R-bar", (15.0, 0.0, 2.2)),  # nadir of the forward node
+    6: _port(6, "+R-bar", (-22.0, 0.0, 2.0)),  # nadir of the service module
 }

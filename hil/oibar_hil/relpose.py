@@ -29,11 +29,11 @@ from .trajectory import Trajectory
 
 @dataclass
 class CameraPoses:
-    T_cam_target: np.ndarray   # (N, 3) m
-    R_cam_target: np.ndarray   # (N, 3, 3)
-    q_cam_target: np.ndarray   # (N, 4) w, x, y, z
-    R_lvlh_cam: np.ndarray     # (N, 3, 3)
-    p_lvlh_cam: np.ndarray     # (N, 3) m
+    T_cam_target: np.ndarray  # (N, 3) m
+    R_cam_target: np.ndarray  # (N, 3, 3)
+    q_cam_target: np.ndarray  # (N, 4) w, x, y, z
+    R_lvlh_cam: np.ndarray  # (N, 3, 3)
+    p_lvlh_cam: np.ndarray  # (N, 3) m
 
     @property
     def range_m(self) -> np.ndarray:
@@ -43,7 +43,7 @@ class CameraPoses:
 def camera_poses(traj: Trajectory, port: Port, mount: CameraMount = MOUNT) -> CameraPoses:
     R_s_cam = np.asarray(mount.R_s_cam, dtype=float)
     p_s_cam = np.asarray(mount.p_s_cam_m, dtype=float)
-    R_t_cam = traj.R_t_s @ R_s_cam                                   # (N,3,3)
+    R_t_cam = traj.R_t_s @ R_s_cam  # (N,3,3)
     p_t_cam = traj.p_t_s + np.einsum("nij,j->ni", traj.R_t_s, p_s_cam)
     R_cam_t = np.transpose(R_t_cam, (0, 2, 1))
     T_cam_t = -np.einsum("nij,nj->ni", R_cam_t, p_t_cam)

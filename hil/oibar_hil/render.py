@@ -142,18 +142,23 @@ vec2 equirect(vec3 d) {
 """
 
 # The Perlin backdrop is fixed to the LVLH frame so it moves like a distant scene.
-_PERLIN_FS = """
+_PERLIN_FS = (
+    """
 #version 330
 uniform sampler2D u_tex;
 in vec3 v_dir;
 out vec4 f_color;
-""" + _EQUIRECT + """
+"""
+    + _EQUIRECT
+    + """
 void main() { f_color = vec4(texture(u_tex, equirect(normalize(v_dir))).rgb, 1.0); }
 """
+)
 
 # Space and the Earth: exact ray-sphere intersection per pixel. The per-frame constants
 # (|c|^2 - R^2, 1/|c|, the limb angle) come in as uniforms.
-_EARTH_FS = """
+_EARTH_FS = (
+    """
 #version 330
 uniform vec3 u_sun_dir;
 uniform vec3 u_earth_center_km;   // LVLH, from the station
@@ -164,7 +169,9 @@ uniform mat3 u_R_ecef_world;
 uniform sampler2D u_tex;
 in vec3 v_dir;
 out vec4 f_color;
-""" + _EQUIRECT + """
+"""
+    + _EQUIRECT
+    + """
 void main() {
     vec3 d = normalize(v_dir);
     vec3 c = u_earth_center_km;
@@ -191,21 +198,22 @@ void main() {
     f_color = vec4(pow(clamp(col, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
 }
 """
+)
 
 
 @dataclass(frozen=True)
 class RenderSettings:
     shadow_map_px: int = 2048
-    shadow_near_half_extent_m: float = 0.6   # cascade around the fixture: ~0.6 mm texels
-    shadow_far_half_extent_m: float = 20.0   # cascade around the port: ~2 cm texels
+    shadow_near_half_extent_m: float = 0.6  # cascade around the fixture: ~0.6 mm texels
+    shadow_far_half_extent_m: float = 20.0  # cascade around the port: ~2 cm texels
     shadow_depth_m: float = 120.0
     shadow_bias: float = 0.0005
-    msaa_samples: int = 0                # off: ~2.5x faster on llvmpipe, labels unaffected
+    msaa_samples: int = 0  # off: ~2.5x faster on llvmpipe, labels unaffected
     sun_intensity: float = 1.0
     ambient: float = 0.03
-    albedo_max: float = 0.30             # Earth-shine fill at full sunlit Earth below
-    noise_sigma_dn: float = 0.0          # optional sensor noise (8-bit digital numbers)
-    blur_sigma_px: float = 0.0           # optional optical blur (Gaussian)
+    albedo_max: float = 0.30  # Earth-shine fill at full sunlit Earth below
+    noise_sigma_dn: float = 0.0  # optional sensor noise (8-bit digital numbers)
+    blur_sigma_px: float = 0.0  # optional optical blur (Gaussian)
 
 
 def create_context():
@@ -230,13 +238,15 @@ def _m3(M: np.ndarray) -> bytes:
     return np.asarray(M, dtype="f4").T.tobytes()
 
 
-def crease_normals(vertices: np.ndarray, faces: np.ndarray, crease_deg: float = 35.0) -> tuple[np.ndarray, np.ndarray]:
+def crease_normals(
+    vertices: np.ndarray, faces: np.ndarray, crease_deg: float = 35.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-corner normals: area-weighted average of the faces around a vertex whose normals are
     within `crease_deg` of the corner's own face, so cylinders look round and box edges stay
     sharp. Returns unshared corner vertices (3F, 3) and normals (3F, 3)."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])   # |cross| = 2 * area
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # |cross| = 2 * area
     area2 = np.linalg.norm(cross, axis=1)
     n_face = cross / np.maximum(area2, 1e-30)[:, None]
     corner_vertex = f.reshape(-1)
@@ -245,11 +255,13 @@ def crease_normals(vertices: np.ndarray, faces: np.ndarray, crease_deg: float = 
     sorted_v = corner_vertex[order]
     start = np.searchsorted(sorted_v, np.arange(len(v)), side="left")
     deg = np.bincount(corner_vertex, minlength=len(v))
-    rep = deg[corner_vertex]                                   # neighbours of each corner
+    rep = deg[corner_vertex]  # neighbours of each corner
     owner = np.repeat(np.arange(len(corner_vertex)), rep)
     offs = np.arange(rep.sum()) - np.repeat(np.cumsum(rep) - rep, rep)
     nb_face = corner_face[order[start[corner_vertex[owner]] + offs]]
-    keep = np.einsum("ij,ij->i", n_face[corner_face[owner]], n_face[nb_face]) >= np.cos(np.radians(crease_deg))
+    keep = np.einsum("ij,ij->i", n_face[corner_face[owner]], n_face[nb_face]) >= np.cos(
+        np.radians(crease_deg)
+    )
     acc = np.zeros((len(corner_vertex), 3))
     np.add.at(acc, owner[keep], cross[nb_face[keep]])
     normals = acc / np.maximum(np.linalg.norm(acc, axis=1), 1e-30)[:, None]
@@ -271,8 +283,11 @@ def _vertex_data(parts: list[Part]) -> tuple[np.ndarray, np.ndarray]:
     data = np.concatenate(verts)
     # Share identical corners (same position, normal, colour, id): ~4x fewer vertices to shade,
     # while the triangle order, and so the rasterised result, stays the same.
-    uniq, first, inverse = np.unique(data.view(np.dtype((np.void, data.dtype.itemsize * 11))).ravel(),
-                                     return_index=True, return_inverse=True)
+    uniq, first, inverse = np.unique(
+        data.view(np.dtype((np.void, data.dtype.itemsize * 11))).ravel(),
+        return_index=True,
+        return_inverse=True,
+    )
     return data[first], inverse.astype(np.uint32).ravel()
 
 
@@ -286,7 +301,7 @@ def view_matrix(R_world_cam: np.ndarray, p_world_cam: np.ndarray) -> np.ndarray:
 
 def light_matrix(sun_dir: np.ndarray, focus: np.ndarray, half_extent_m: float, depth_m: float) -> np.ndarray:
     """Orthographic view-projection of the Sun, centred on `focus`."""
-    z = sun_dir / np.linalg.norm(sun_dir)             # eye looks along -z, i.e. away from the Sun
+    z = sun_dir / np.linalg.norm(sun_dir)  # eye looks along -z, i.e. away from the Sun
     up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
     x = np.cross(up, z)
     x /= np.linalg.norm(x)
@@ -295,7 +310,7 @@ def light_matrix(sun_dir: np.ndarray, focus: np.ndarray, half_extent_m: float, d
     V[:3, :3] = np.stack([x, y, z])
     V[:3, 3] = -V[:3, :3] @ focus
     s, d = half_extent_m, depth_m
-    P = np.diag([1 / s, 1 / s, -1 / d, 1.0])          # z_eye in [-d, d] -> ndc [1, -1]
+    P = np.diag([1 / s, 1 / s, -1 / d, 1.0])  # z_eye in [-d, d] -> ndc [1, -1]
     return P @ V
 
 
@@ -325,20 +340,22 @@ class Renderer:
             color_attachments=[c.renderbuffer((W, H), 4, samples=samples)],
             depth_attachment=c.depth_renderbuffer((W, H), samples=samples),
         )
-        self.resolve_fbo = c.framebuffer(color_attachments=[c.renderbuffer((W, H), 4)]) if samples else self.fbo
+        self.resolve_fbo = (
+            c.framebuffer(color_attachments=[c.renderbuffer((W, H), 4)]) if samples else self.fbo
+        )
 
         # Both cascades in one depth texture (near | far), so the mesh shader needs a single
         # filtered shadow tap per pixel, not one per cascade.
         n = s.shadow_map_px
         self.shadow_tex = c.depth_texture((2 * n, n))
         self.shadow_tex.compare_func = "<="
-        self.shadow_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)   # 2x2 PCF in hardware
+        self.shadow_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)  # 2x2 PCF in hardware
         self.shadow_tex.repeat_x = self.shadow_tex.repeat_y = False
         self.shadow_fbo = c.framebuffer(depth_attachment=self.shadow_tex)
         self._shadow_key: tuple[object, ...] | None = None
         self._light_vp = [np.eye(4), np.eye(4)]
 
-        self._earth_tex: Any = None   # built on first use: ~1 s of noise, not needed for `perlin`
+        self._earth_tex: Any = None  # built on first use: ~1 s of noise, not needed for `perlin`
         self.bg_tex: Any = None
         self.background = "iss"
         # moderngl objects, made by load_scene
@@ -362,21 +379,33 @@ class Renderer:
     # The public GL entry points make this renderer's context current first: a process may hold
     # several (the dataset writer's cached one, a rig camera, a test's), and GL calls issued
     # while another one, or none, is current crash inside the driver instead of raising.
-    def load_scene(self, parts: list[Part], background: str, focus_lvlh: np.ndarray, perlin_seed: int | None = None):
+    def load_scene(
+        self, parts: list[Part], background: str, focus_lvlh: np.ndarray, perlin_seed: int | None = None
+    ):
         """Upload the meshes; `focus_lvlh` centres the shadow map (the target port)."""
         with self.ctx:
             self._load_scene(parts, background, focus_lvlh, perlin_seed)
 
-    def render(self, R_lvlh_cam: np.ndarray, p_lvlh_cam: np.ndarray, sun_lvlh: np.ndarray,
-               R_ecef_lvlh: np.ndarray | None = None, earth_center_lvlh_km: np.ndarray | None = None,
-               mode: str = "shaded", rng: np.random.Generator | None = None) -> np.ndarray:
+    def render(
+        self,
+        R_lvlh_cam: np.ndarray,
+        p_lvlh_cam: np.ndarray,
+        sun_lvlh: np.ndarray,
+        R_ecef_lvlh: np.ndarray | None = None,
+        earth_center_lvlh_km: np.ndarray | None = None,
+        mode: str = "shaded",
+        rng: np.random.Generator | None = None,
+    ) -> np.ndarray:
         """One frame as (H, W, 3) uint8, row 0 at the top. mode 'id' returns part ids in
         channel 0 and no background, lighting, noise or blur."""
         with self.ctx:
-            return self._render(R_lvlh_cam, p_lvlh_cam, sun_lvlh, R_ecef_lvlh, earth_center_lvlh_km, mode, rng)
+            return self._render(
+                R_lvlh_cam, p_lvlh_cam, sun_lvlh, R_ecef_lvlh, earth_center_lvlh_km, mode, rng
+            )
 
-    def _load_scene(self, parts: list[Part], background: str, focus_lvlh: np.ndarray,
-                    perlin_seed: int | None) -> None:
+    def _load_scene(
+        self, parts: list[Part], background: str, focus_lvlh: np.ndarray, perlin_seed: int | None
+    ) -> None:
         for obj in (self.mesh_vao, self.depth_vao, self.id_vao, self._vbo, self._ibo):
             if obj is not None:
                 obj.release()
@@ -386,12 +415,17 @@ class Renderer:
         vbo = self._vbo = self.ctx.buffer(data.tobytes())
         ibo = self._ibo = self.ctx.buffer(idx.tobytes())
         self.mesh_vao = self.ctx.vertex_array(
-            self.mesh_prog, [(vbo, "3f 3f 4f 4x", "in_pos", "in_nrm", "in_col")], index_buffer=ibo,
-            index_element_size=4)
+            self.mesh_prog,
+            [(vbo, "3f 3f 4f 4x", "in_pos", "in_nrm", "in_col")],
+            index_buffer=ibo,
+            index_element_size=4,
+        )
         self.id_vao = self.ctx.vertex_array(
-            self.id_prog, [(vbo, "3f 28x 1f", "in_pos", "in_id")], index_buffer=ibo, index_element_size=4)
+            self.id_prog, [(vbo, "3f 28x 1f", "in_pos", "in_id")], index_buffer=ibo, index_element_size=4
+        )
         self.depth_vao = self.ctx.vertex_array(
-            self.depth_prog, [(vbo, "3f 32x", "in_pos")], index_buffer=ibo, index_element_size=4)
+            self.depth_prog, [(vbo, "3f 32x", "in_pos")], index_buffer=ibo, index_element_size=4
+        )
         self.background = background
         self.focus = np.asarray(focus_lvlh, dtype=float)
         if background == "perlin":
@@ -413,7 +447,7 @@ class Renderer:
         # Closed meshes: the surface nearest the Sun is always a front face, so culling back
         # faces leaves the depth map unchanged and halves the fill.
         self.ctx.enable(self.ctx.DEPTH_TEST | self.ctx.CULL_FACE)
-        self.ctx.polygon_offset = (1.5, 2.0)   # slope-scaled bias
+        self.ctx.polygon_offset = (1.5, 2.0)  # slope-scaled bias
         n = s.shadow_map_px
         self.shadow_fbo.use()
         self.shadow_fbo.clear(depth=1.0)
@@ -427,9 +461,16 @@ class Renderer:
         self.ctx.polygon_offset = (0.0, 0.0)
         self._shadow_key = key
 
-    def _render(self, R_lvlh_cam: np.ndarray, p_lvlh_cam: np.ndarray, sun_lvlh: np.ndarray,
-                R_ecef_lvlh: np.ndarray | None, earth_center_lvlh_km: np.ndarray | None,
-                mode: str, rng: np.random.Generator | None) -> np.ndarray:
+    def _render(
+        self,
+        R_lvlh_cam: np.ndarray,
+        p_lvlh_cam: np.ndarray,
+        sun_lvlh: np.ndarray,
+        R_ecef_lvlh: np.ndarray | None,
+        earth_center_lvlh_km: np.ndarray | None,
+        mode: str,
+        rng: np.random.Generator | None,
+    ) -> np.ndarray:
         if self.mesh_vao is None:
             raise RuntimeError("load_scene() first")
         cam, s, ctx = self.camera, self.settings, self.ctx
@@ -437,8 +478,11 @@ class Renderer:
         sun = sun / np.linalg.norm(sun)
         if mode == "shaded":
             self._update_shadow(sun)
-        earth_c = (np.array([0.0, 0.0, 6371.0 + 420.0]) if earth_center_lvlh_km is None
-                   else np.asarray(earth_center_lvlh_km, float))
+        earth_c = (
+            np.array([0.0, 0.0, 6371.0 + 420.0])
+            if earth_center_lvlh_km is None
+            else np.asarray(earth_center_lvlh_km, float)
+        )
         R_ecef = np.eye(3) if R_ecef_lvlh is None else R_ecef_lvlh
 
         self.fbo.use()
@@ -480,7 +524,7 @@ class Renderer:
                 clen = float(np.linalg.norm(earth_c))
                 bp["u_sun_dir"].value = tuple(sun)
                 bp["u_earth_center_km"].value = tuple(earth_c)
-                bp["u_c2_minus_r2"].value = clen * clen - EARTH_RADIUS_KM ** 2
+                bp["u_c2_minus_r2"].value = clen * clen - EARTH_RADIUS_KM**2
                 bp["u_inv_clen"].value = 1.0 / clen
                 bp["u_limb"].value = float(np.arcsin(EARTH_RADIUS_KM / clen))
                 bp["u_R_ecef_world"].write(_m3(R_ecef))
@@ -507,8 +551,9 @@ def _gauss_kernel(sigma: float) -> np.ndarray:
     return k / k.sum()
 
 
-def apply_sensor_effects(img: np.ndarray, noise_sigma_dn: float, blur_sigma_px: float,
-                         rng: np.random.Generator | None) -> np.ndarray:
+def apply_sensor_effects(
+    img: np.ndarray, noise_sigma_dn: float, blur_sigma_px: float, rng: np.random.Generator | None
+) -> np.ndarray:
     """Optional blur (separable Gaussian) then additive Gaussian read noise, both in 8-bit DN."""
     if blur_sigma_px <= 0 and noise_sigma_dn <= 0:
         return img
@@ -517,8 +562,8 @@ def apply_sensor_effects(img: np.ndarray, noise_sigma_dn: float, blur_sigma_px: 
         k = _gauss_kernel(blur_sigma_px)
         r = len(k) // 2
         pad = np.pad(out, ((r, r), (r, r), (0, 0)), mode="edge")
-        tmp = sum(k[i] * pad[:, i:i + out.shape[1]] for i in range(len(k)))
-        out = sum(k[i] * tmp[i:i + out.shape[0]] for i in range(len(k)))
+        tmp = sum(k[i] * pad[:, i : i + out.shape[1]] for i in range(len(k)))
+        out = sum(k[i] * tmp[i : i + out.shape[0]] for i in range(len(k)))
     if noise_sigma_dn > 0:
         if rng is None:
             raise ValueError("sensor noise needs a seeded rng (determinism)")

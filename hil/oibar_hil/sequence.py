@@ -65,7 +65,9 @@ def check_image_trailer(path: Path) -> str | None:
     return None
 
 
-def read_manifest(seq_dir: str | Path, required: Callable[[dict[str, Any]], object] | None = None) -> dict[str, Any]:
+def read_manifest(
+    seq_dir: str | Path, required: Callable[[dict[str, Any]], object] | None = None
+) -> dict[str, Any]:
     """The sequence's manifest. ``required`` (optional) reads the fields the caller needs; a
     KeyError/TypeError/ValueError there is reported as a corrupt manifest too."""
     seq_dir = Path(seq_dir)
@@ -73,8 +75,10 @@ def read_manifest(seq_dir: str | Path, required: Callable[[dict[str, Any]], obje
         raise DatasetError(f"{seq_dir}: sequence folder not found (render it with `make dataset`)")
     mpath = seq_dir / MANIFEST
     if not mpath.is_file():
-        raise DatasetError(f"{mpath}: missing, so the sequence is incomplete "
-                           "(re-run `python -m oibar_hil.dataset` with the same arguments to resume)")
+        raise DatasetError(
+            f"{mpath}: missing, so the sequence is incomplete "
+            "(re-run `python -m oibar_hil.dataset` with the same arguments to resume)"
+        )
     try:
         manifest: dict[str, Any] = json.loads(mpath.read_text())
         if required is not None:
@@ -101,11 +105,14 @@ def verify_files(seq_dir: str | Path, manifest: dict[str, Any], check_trailers: 
             problems.append(f"{path}: corrupt (SHA-256 differs from the manifest)")
     if problems:
         more = f" (and {len(problems) - 10} more)" if len(problems) > 10 else ""
-        raise DatasetError(f"{len(problems)} bad file(s) in {seq_dir}:\n  " + "\n  ".join(problems[:10]) + more)
+        raise DatasetError(
+            f"{len(problems)} bad file(s) in {seq_dir}:\n  " + "\n  ".join(problems[:10]) + more
+        )
 
 
-def read_pose_table(path: str | Path, numeric: Sequence[str], required: Sequence[str] = (),
-                    frames_limit: int | None = None) -> tuple[list[dict[str, str]], np.ndarray]:
+def read_pose_table(
+    path: str | Path, numeric: Sequence[str], required: Sequence[str] = (), frames_limit: int | None = None
+) -> tuple[list[dict[str, str]], np.ndarray]:
     """poses.csv -> (rows as dicts of strings, the ``numeric`` columns as a float array (N, C)).
     Checks that the ``required`` and ``numeric`` columns exist and parse; keeps the first
     ``frames_limit`` rows when given."""

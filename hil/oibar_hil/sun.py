@@ -20,11 +20,13 @@ def sun_position_au(jd: float) -> np.ndarray:
     ecl_lon = np.radians(mean_lon_deg + 1.914666471 * np.sin(mean_anom) + 0.019994643 * np.sin(2 * mean_anom))
     dist_au = 1.000140612 - 0.016708617 * np.cos(mean_anom) - 0.000139589 * np.cos(2 * mean_anom)
     obliquity = np.radians(23.439291 - 0.0130042 * t_cent)
-    return dist_au * np.array([
-        np.cos(ecl_lon),
-        np.cos(obliquity) * np.sin(ecl_lon),
-        np.sin(obliquity) * np.sin(ecl_lon),
-    ])
+    return dist_au * np.array(
+        [
+            np.cos(ecl_lon),
+            np.cos(obliquity) * np.sin(ecl_lon),
+            np.sin(obliquity) * np.sin(ecl_lon),
+        ]
+    )
 
 
 def sun_direction(jd: float) -> np.ndarray:

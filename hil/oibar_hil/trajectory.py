@@ -28,12 +28,12 @@ PHASE_NAMES = {1: "acquisition", 2: "forced_translation", 3: "alignment_soft_doc
 
 @dataclass(frozen=True)
 class TrajectoryParams:
-    dt_s: float = 0.1                        # 10 Hz frames (paper)
-    start_distance_m: float = 10.0           # paper
+    dt_s: float = 0.1  # 10 Hz frames (paper)
+    start_distance_m: float = 10.0  # paper
     # Phase 1 (paper): waypoints 1-2 m off axis, speed 0.09-0.12 m/s, attitude aligned.
     waypoint_radius_min_m: float = 1.0
     waypoint_radius_max_m: float = 2.0
-    waypoint_min_separation_m: float = 1.0   # assumption: keeps the two waypoints distinct
+    waypoint_min_separation_m: float = 1.0  # assumption: keeps the two waypoints distinct
     acq_speed_min_mps: float = 0.09
     acq_speed_max_mps: float = 0.12
     # Phase 2 (paper): 10 m -> 3 m at 0.03 m/s with PI-controlled perturbations.
@@ -43,20 +43,20 @@ class TrajectoryParams:
     pert_cross_m: float = 0.01
     pert_attitude_deg: float = 0.1
     pert_probability: float = 0.10
-    pert_tick_s: float = 1.0                 # assumption: a perturbation may occur once a second
-    pi_kp: float = 2.0                       # assumption: PI gains (1/s, 1/s^2), critically damped
+    pert_tick_s: float = 1.0  # assumption: a perturbation may occur once a second
+    pi_kp: float = 2.0  # assumption: PI gains (1/s, 1/s^2), critically damped
     pi_ki: float = 1.0
     # Phase 3 (paper gives no numbers; assumptions).
     align_duration_s: float = 10.0
     final_speed_mps: float = 0.04
     slow_distance_m: float = 0.5
     contact_speed_mps: float = 0.02
-    soft_dock_distance_m: float = 0.10       # shaft plane to berthing plane when latches engage
+    soft_dock_distance_m: float = 0.10  # shaft plane to berthing plane when latches engage
     # Envelope mode (mechanism capture limits, beyond the paper).
-    env_max_misalignment_deg: float = 9.8    # + perturbations (<= 0.17 deg) stays <= 10 deg
+    env_max_misalignment_deg: float = 9.8  # + perturbations (<= 0.17 deg) stays <= 10 deg
     env_max_closing_speed_mps: float = 0.05
     env_min_closing_speed_mps: float = 0.01
-    env_max_lateral_m: float = 0.02          # assumption: residual offset inside the drogue's reach
+    env_max_lateral_m: float = 0.02  # assumption: residual offset inside the drogue's reach
     env_ramp_s: float = 20.0
 
 
@@ -128,8 +128,9 @@ def _segment(p0: np.ndarray, p1: np.ndarray, speed_mps: float, p: TrajectoryPara
     return pts, vel
 
 
-def generate(seed: int, envelope: bool = False, params: TrajectoryParams | None = None,
-             turned_deg: float = 0.0) -> Trajectory:
+def generate(
+    seed: int, envelope: bool = False, params: TrajectoryParams | None = None, turned_deg: float = 0.0
+) -> Trajectory:
     """`turned_deg` > 0: the chaser keeps a constant misalignment of that size (about a random
     axis in the berthing plane, from its own generator so the rest of the trajectory is the same
     as without) from 10 m to contact, on top of everything else: the case of a vehicle that

@@ -55,7 +55,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"oibar {__version__}")
     parser.add_argument(
-        "-v", "--verbose", action="count", default=0,
+        "-v",
+        "--verbose",
+        action="count",
+        default=0,
         help="log more: -v for link events, -vv for every retransmission",
     )
     sub = parser.add_subparsers(dest="subcommand", metavar="SUBCOMMAND")
@@ -72,22 +75,33 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     link.add_argument(
-        "--port", required=True, metavar="URL",
+        "--port",
+        required=True,
+        metavar="URL",
         help="serial device (/dev/ttyACM0, COM3), socket://HOST:PORT or loop://",
     )
+    link.add_argument("--baudrate", type=int, default=115200, help="serial baud rate (default: 115200)")
     link.add_argument(
-        "--baudrate", type=int, default=115200, help="serial baud rate (default: 115200)"
-    )
-    link.add_argument(
-        "--seconds", type=float, default=5.0, metavar="S",
+        "--seconds",
+        type=float,
+        default=5.0,
+        metavar="S",
         help="how long to show the live status, in seconds (default: 5; 0 skips it)",
     )
     link.add_argument(
-        "--command", dest="commands", nargs="+", action="extend", default=[], metavar="NAME",
+        "--command",
+        dest="commands",
+        nargs="+",
+        action="extend",
+        default=[],
+        metavar="NAME",
         help="mechanism command(s) to send after connecting, e.g. NOOP APPROACH_ARM",
     )
     link.add_argument(
-        "--target-pressure-kpa", type=float, default=None, metavar="KPA",
+        "--target-pressure-kpa",
+        type=float,
+        default=None,
+        metavar="KPA",
         help="target pressure sent with the commands (used by START_TRANSFER)",
     )
     from oibar.calib.cli import register as register_calib
@@ -172,7 +186,8 @@ def run_link(
             f"connected to {url}: firmware {info.firmware_version or '?'} "
             f"(build {info.build_id or '?'}), protocol {info.protocol_version}, "
             f"reset cause {info.reset_cause}, MCU uptime {info.uptime_ms / 1000:.1f} s",
-            file=out, flush=True,
+            file=out,
+            flush=True,
         )
         for opcode in opcodes:
             name = pb.enum_name(pb.CommandOpcode, opcode)

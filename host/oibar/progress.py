@@ -29,8 +29,8 @@ from typing import TextIO, TypeVar
 
 __all__ = ["DEFAULT_PERIOD_S", "Progress", "StatusLine", "progress_iter"]
 
-DEFAULT_PERIOD_S = 5.0        # plain lines at most this often when not on a terminal
-LIVE_PERIOD_S = 0.1           # redraws at most this often on a terminal
+DEFAULT_PERIOD_S = 5.0  # plain lines at most this often when not on a terminal
+LIVE_PERIOD_S = 0.1  # redraws at most this often on a terminal
 
 T = TypeVar("T")
 
@@ -39,9 +39,15 @@ class StatusLine:
     """One line of status text: redrawn in place on a terminal, a plain line every ``period_s``
     otherwise. ``show`` returns whether it wrote."""
 
-    def __init__(self, stream: TextIO | None = None, *, period_s: float = DEFAULT_PERIOD_S,
-                 live_period_s: float = LIVE_PERIOD_S, tty: bool | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        stream: TextIO | None = None,
+        *,
+        period_s: float = DEFAULT_PERIOD_S,
+        live_period_s: float = LIVE_PERIOD_S,
+        tty: bool | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.stream = stream if stream is not None else sys.stderr
         if tty is None:
             isatty = getattr(self.stream, "isatty", None)
@@ -51,8 +57,8 @@ class StatusLine:
         self.live_period_s = live_period_s
         self.clock = clock
         self._last_s: float | None = None
-        self._pending = ""          # the newest text not written yet (non-terminal)
-        self._open = False          # a live line is on screen without its newline
+        self._pending = ""  # the newest text not written yet (non-terminal)
+        self._open = False  # a live line is on screen without its newline
 
     def show(self, text: str, *, force: bool = False) -> bool:
         now = self.clock()
@@ -116,9 +122,18 @@ class Progress:
 
     BAR_WIDTH = 20
 
-    def __init__(self, desc: str = "", total: float | None = None, unit: str = "it", *,
-                 leave: bool = True, stream: TextIO | None = None, period_s: float = DEFAULT_PERIOD_S,
-                 tty: bool | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        desc: str = "",
+        total: float | None = None,
+        unit: str = "it",
+        *,
+        leave: bool = True,
+        stream: TextIO | None = None,
+        period_s: float = DEFAULT_PERIOD_S,
+        tty: bool | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.desc = desc
         self.total = total
         self.unit = unit
@@ -143,7 +158,9 @@ class Progress:
         count = f"{self.n:g}/{self.total:g}" if self.total else f"{self.n:g}"
         pct = f"{100.0 * self.n / self.total:3.0f}%" if self.total else ""
         head = f"{self.desc}: " if self.desc else ""
-        tail = f" [{_duration(elapsed)}, {rate:.3g} {self.unit}/s]" + (f" {self.postfix}" if self.postfix else "")
+        tail = f" [{_duration(elapsed)}, {rate:.3g} {self.unit}/s]" + (
+            f" {self.postfix}" if self.postfix else ""
+        )
         if self.line.tty and self.total:
             done = int(self.BAR_WIDTH * min(1.0, self.n / self.total))
             bar = "#" * done + "-" * (self.BAR_WIDTH - done)
@@ -176,9 +193,18 @@ class Progress:
             self.line.end(self.text())
 
 
-def progress_iter(items: Iterable[T], desc: str = "", total: float | None = None, unit: str = "it", *,
-                  leave: bool = True, stream: TextIO | None = None, period_s: float = DEFAULT_PERIOD_S,
-                  tty: bool | None = None, clock: Callable[[], float] = time.monotonic) -> Iterator[T]:
+def progress_iter(
+    items: Iterable[T],
+    desc: str = "",
+    total: float | None = None,
+    unit: str = "it",
+    *,
+    leave: bool = True,
+    stream: TextIO | None = None,
+    period_s: float = DEFAULT_PERIOD_S,
+    tty: bool | None = None,
+    clock: Callable[[], float] = time.monotonic,
+) -> Iterator[T]:
     """``for x in progress_iter(xs, "predict", unit="batch")``: a :class:`Progress` over an
     iterable (``total`` from ``len(items)`` when it has one)."""
     if total is None and isinstance(items, Sized):

@@ -27,14 +27,24 @@ def bench_config(path: str, threads: int, seconds: float, train_steps: int, batc
     cfg = load_config(path)
     net = build_model(cfg.model)
     w, h = cfg.model.input_width_px, cfg.model.input_height_px
-    ck = {"config": cfg.to_dict(), "labels": {"mean_T_cam_target": [0, 0, 0], "mean_q_cam_target": [1, 0, 0, 0]}}
+    ck = {
+        "config": cfg.to_dict(),
+        "labels": {"mean_T_cam_target": [0, 0, 0], "mean_q_cam_target": [1, 0, 0, 0]},
+    }
     with tempfile.TemporaryDirectory() as tmp:
         onnx_path = export_onnx(net, ck, Path(tmp) / "m.onnx")
         size_mib = onnx_path.stat().st_size / 2**20
         lat = benchmark(onnx_path, threads=threads, seconds=seconds, with_preprocess=False)
-    row = {"config": Path(path).stem, "backbone": cfg.model.backbone, "input": f"{w}x{h}",
-           "params_M": count_parameters(net) / 1e6, "onnx_MiB": size_mib, "ort_ms": lat["mean_ms"],
-           "ort_per_s": lat["inferences_per_s"], "threads": threads}
+    row = {
+        "config": Path(path).stem,
+        "backbone": cfg.model.backbone,
+        "input": f"{w}x{h}",
+        "params_M": count_parameters(net) / 1e6,
+        "onnx_MiB": size_mib,
+        "ort_ms": lat["mean_ms"],
+        "ort_per_s": lat["inferences_per_s"],
+        "threads": threads,
+    }
     if train_steps > 0:
         torch.set_num_threads(threads)
         net.train()
@@ -48,7 +58,7 @@ def bench_config(path: str, threads: int, seconds: float, train_steps: int, batc
             opt.zero_grad()
             loss.backward()
             opt.step()
-            if i:     # the first step pays one-off allocations
+            if i:  # the first step pays one-off allocations
                 times.append(time.perf_counter() - t0)
         row["train_img_per_s"] = batch * len(times) / sum(times)
         row["train_batch"] = batch
@@ -71,8 +81,11 @@ def main(argv: list[str] | None = None) -> int:
     for c in a.configs:
         r = bench_config(c, a.threads, a.seconds, a.train_steps, a.batch)
         rows.append(r)
-        print(f"| {r['config']} | {r['backbone']} | {r['input']} | {r['params_M']:.2f} | {r['onnx_MiB']:.1f} | "
-              f"{r['ort_ms']:.1f} | {r['ort_per_s']:.1f} | {r.get('train_img_per_s', float('nan')):.1f} |", flush=True)
+        print(
+            f"| {r['config']} | {r['backbone']} | {r['input']} | {r['params_M']:.2f} | {r['onnx_MiB']:.1f} | "
+            f"{r['ort_ms']:.1f} | {r['ort_per_s']:.1f} | {r.get('train_img_per_s', float('nan')):.1f} |",
+            flush=True,
+        )
     print(f"load average after: {os.getloadavg()[0]:.2f}")
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1) + "\n")

@@ -38,12 +38,12 @@ class Sequence:
     name: str
     dir: Path
     files: list[str]
-    time_s: np.ndarray          # (N,)
-    phase: np.ndarray           # (N,) int
-    T_cam_target: np.ndarray    # (N, 3) m
-    q_cam_target: np.ndarray    # (N, 4) (w, x, y, z)
-    range_m: np.ndarray         # (N,)
-    K: np.ndarray               # 3x3 intrinsics at the frames' resolution (pixel-corner convention)
+    time_s: np.ndarray  # (N,)
+    phase: np.ndarray  # (N,) int
+    T_cam_target: np.ndarray  # (N, 3) m
+    q_cam_target: np.ndarray  # (N, 4) (w, x, y, z)
+    range_m: np.ndarray  # (N,)
+    K: np.ndarray  # 3x3 intrinsics at the frames' resolution (pixel-corner convention)
     width_px: int
     height_px: int
 
@@ -67,20 +67,32 @@ def load_sequence(seq_dir: str | Path, verify_hashes: bool = False) -> Sequence:
         raise DatasetError(f"{ppath}: missing pose table")
     if verify_hashes:
         verify_files(seq_dir, manifest, check_trailers=False)
-    rows, num = read_pose_table(ppath, ("time_s", "phase", "tx_m", "ty_m", "tz_m", "qw", "qx", "qy", "qz", "range_m"),
-                                required=POSE_COLUMNS)
+    rows, num = read_pose_table(
+        ppath,
+        ("time_s", "phase", "tx_m", "ty_m", "tz_m", "qw", "qx", "qy", "qz", "range_m"),
+        required=POSE_COLUMNS,
+    )
     if len(rows) != n_expected:
-        raise DatasetError(f"{ppath}: {len(rows)} rows but the manifest says {n_expected} frames (truncated?)")
+        raise DatasetError(
+            f"{ppath}: {len(rows)} rows but the manifest says {n_expected} frames (truncated?)"
+        )
     if not np.all(np.isfinite(num)):
         raise DatasetError(f"{ppath}: non-finite values")
     q = num[:, 5:9]
     if np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)) > 1e-4:
         raise DatasetError(f"{ppath}: quaternions are not unit length")
     return Sequence(
-        name=seq_dir.name, dir=seq_dir, files=[r["file"] for r in rows], time_s=num[:, 0],
-        phase=num[:, 1].astype(int), T_cam_target=num[:, 2:5], q_cam_target=q, range_m=num[:, 9],
+        name=seq_dir.name,
+        dir=seq_dir,
+        files=[r["file"] for r in rows],
+        time_s=num[:, 0],
+        phase=num[:, 1].astype(int),
+        T_cam_target=num[:, 2:5],
+        q_cam_target=q,
+        range_m=num[:, 9],
         K=intrinsics(cam["fx_px"], cam["fy_px"], cam["cx_px"], cam["cy_px"]),
-        width_px=int(cam["width_px"]), height_px=int(cam["height_px"]),
+        width_px=int(cam["width_px"]),
+        height_px=int(cam["height_px"]),
     )
 
 
@@ -96,7 +108,9 @@ def load_frame(seq: Sequence, k: int, size_wh: tuple[int, int]) -> np.ndarray:
         raise DatasetError(f"{path}: cannot decode frame ({exc})") from exc
 
 
-def frame_cache(seq: Sequence, size_wh: tuple[int, int], cache_dir: Path | None, progress: bool = False) -> np.ndarray:
+def frame_cache(
+    seq: Sequence, size_wh: tuple[int, int], cache_dir: Path | None, progress: bool = False
+) -> np.ndarray:
     """All frames of a sequence resized to size_wh, uint8 (N, H, W, 3); cached on disk, keyed by
     the manifest's hash so a re-rendered sequence is never served stale frames."""
     w, h = size_wh
@@ -112,6 +126,7 @@ def frame_cache(seq: Sequence, size_wh: tuple[int, int], cache_dir: Path | None,
     it = range(len(seq))
     if progress:
         from oibar.progress import progress_iter
+
         it = progress_iter(it, f"caching {seq.name} {w}x{h}", unit="frame", leave=False)
     for k in it:
         arr[k] = load_frame(seq, k, size_wh)
@@ -167,14 +182,22 @@ class Augmenter:
         self.K = K_input
         self.w, self.h = size_wh
 
-    def pose(self, img: np.ndarray, T: np.ndarray, R: np.ndarray, rng: np.random.Generator,
-             R_aug: np.ndarray | None = None):
+    def pose(
+        self,
+        img: np.ndarray,
+        T: np.ndarray,
+        R: np.ndarray,
+        rng: np.random.Generator,
+        R_aug: np.ndarray | None = None,
+    ):
         c = self.cfg
         if R_aug is None:
-            for _ in range(5):   # keep the fixture origin inside the frame, away from the edge
-                R_try = (rot_z(np.radians(rng.uniform(-c.inplane_deg, c.inplane_deg)))
-                         @ rot_x(np.radians(rng.uniform(-c.offplane_deg, c.offplane_deg)))
-                         @ rot_y(np.radians(rng.uniform(-c.offplane_deg, c.offplane_deg))))
+            for _ in range(5):  # keep the fixture origin inside the frame, away from the edge
+                R_try = (
+                    rot_z(np.radians(rng.uniform(-c.inplane_deg, c.inplane_deg)))
+                    @ rot_x(np.radians(rng.uniform(-c.offplane_deg, c.offplane_deg)))
+                    @ rot_y(np.radians(rng.uniform(-c.offplane_deg, c.offplane_deg)))
+                )
                 uv = project_np(self.K, (R_try @ T)[None])[0]
                 if 0.1 * self.w < uv[0] < 0.9 * self.w and 0.1 * self.h < uv[1] < 0.9 * self.h:
                     R_aug = R_try
@@ -217,8 +240,9 @@ def warp_homography(img: np.ndarray, H_old_to_new: np.ndarray, border: str = "re
         Hinv = np.linalg.inv(H_old_to_new)
         Hinv = Hinv / Hinv[2, 2]
         im = Image.fromarray(img)
-        out = im.transform(im.size, Image.Transform.PERSPECTIVE, tuple(Hinv.flatten()[:8]),
-                           Image.Resampling.BILINEAR)
+        out = im.transform(
+            im.size, Image.Transform.PERSPECTIVE, tuple(Hinv.flatten()[:8]), Image.Resampling.BILINEAR
+        )
         return np.asarray(out)
     h, w = img.shape[:2]
     py, px = h // 2, w // 2
@@ -229,8 +253,10 @@ def warp_homography(img: np.ndarray, H_old_to_new: np.ndarray, border: str = "re
     Hinv = np.linalg.inv(H_pad)
     Hinv = Hinv / Hinv[2, 2]
     im = Image.fromarray(padded)
-    out = im.transform(im.size, Image.Transform.PERSPECTIVE, tuple(Hinv.flatten()[:8]), Image.Resampling.BILINEAR)
-    return np.asarray(out)[py:py + h, px:px + w]
+    out = im.transform(
+        im.size, Image.Transform.PERSPECTIVE, tuple(Hinv.flatten()[:8]), Image.Resampling.BILINEAR
+    )
+    return np.asarray(out)[py : py + h, px : px + w]
 
 
 # ----------------------------------------------------------------------------- torch datasets
@@ -239,13 +265,24 @@ class PoseDataset(torch.utils.data.Dataset):
     Item: image (3, H, W) float in [0, 1], T_cam_target (3,), rot6d (6,), q_cam_target (4,),
     range_m, seq (int), frame (int)."""
 
-    def __init__(self, seqs: list[Sequence], indices: list[np.ndarray], size_wh, cache_dir=None,
-                 augment=None, seed: int = 0, progress: bool = False):
+    def __init__(
+        self,
+        seqs: list[Sequence],
+        indices: list[np.ndarray],
+        size_wh,
+        cache_dir=None,
+        augment=None,
+        seed: int = 0,
+        progress: bool = False,
+    ):
         self.seqs = seqs
         self.size_wh = tuple(size_wh)
         self.frames = [frame_cache(s, self.size_wh, cache_dir, progress) for s in seqs]
-        self.items = np.concatenate([np.stack([np.full(len(ix), i), ix], 1) for i, ix in enumerate(indices)]
-                                    ) if indices else np.zeros((0, 2), int)
+        self.items = (
+            np.concatenate([np.stack([np.full(len(ix), i), ix], 1) for i, ix in enumerate(indices)])
+            if indices
+            else np.zeros((0, 2), int)
+        )
         self.augment = augment
         self.seed = seed
         self.epoch = 0
@@ -260,7 +297,7 @@ class PoseDataset(torch.utils.data.Dataset):
         T = seq.T_cam_target[k].copy()
         R = quat_to_matrix_np(seq.q_cam_target[k])
         if self.augment is not None:
-            rng = np.random.default_rng([self.seed, self.epoch, i])   # reproducible per epoch
+            rng = np.random.default_rng([self.seed, self.epoch, i])  # reproducible per epoch
             x, T, R = self.augment(img, T, R, rng)
         else:
             x = img.astype(np.float32) / 255.0
@@ -270,7 +307,8 @@ class PoseDataset(torch.utils.data.Dataset):
             "rot6d": torch.tensor(rot6d_from_matrix_np(R), dtype=torch.float32),
             "q_cam_target": torch.tensor(quat_from_matrix_np(R), dtype=torch.float32),
             "range_m": torch.tensor(float(np.linalg.norm(T)), dtype=torch.float32),
-            "seq": s, "frame": k,
+            "seq": s,
+            "frame": k,
         }
 
 
@@ -304,16 +342,27 @@ def build_splits(cfg, progress: bool = False) -> Splits:
         t_idx, v_idx, chunks, val_chunks = split_subsequences(len(s), d.chunk_lengths, d.val_fraction, rng)
         tr.append(t_idx[:: d.frame_stride])
         va.append(v_idx[:: d.frame_stride])
-        info[s.name] = {"frames": len(s), "chunks": chunks, "val_chunks": val_chunks,
-                        "train_frames": int(len(tr[-1])), "val_frames": int(len(va[-1]))}
+        info[s.name] = {
+            "frames": len(s),
+            "chunks": chunks,
+            "val_chunks": val_chunks,
+            "train_frames": int(len(tr[-1])),
+            "val_frames": int(len(va[-1])),
+        }
     K_in = input_intrinsics(seqs[0], size)
     cache = cfg.path(d.cache_dir) if d.cache_dir else None
     aug = Augmenter(cfg.augment, K_in, size) if cfg.augment.enabled else None
     train = PoseDataset(seqs, tr, size, cache, aug, cfg.train.seed, progress)
     val = PoseDataset(seqs, va, size, cache, None, cfg.train.seed, progress)
-    cam = {"fx_px": float(seqs[0].K[0, 0]), "fy_px": float(seqs[0].K[1, 1]), "cx_px": float(seqs[0].K[0, 2]),
-           "cy_px": float(seqs[0].K[1, 2]), "width_px": seqs[0].width_px, "height_px": seqs[0].height_px,
-           "pixel_convention": "continuous, origin at the top-left corner of the image"}
+    cam = {
+        "fx_px": float(seqs[0].K[0, 0]),
+        "fy_px": float(seqs[0].K[1, 1]),
+        "cx_px": float(seqs[0].K[0, 2]),
+        "cy_px": float(seqs[0].K[1, 2]),
+        "width_px": seqs[0].width_px,
+        "height_px": seqs[0].height_px,
+        "pixel_convention": "continuous, origin at the top-left corner of the image",
+    }
     return Splits(train, val, info, K_in, cam)
 
 
@@ -323,15 +372,22 @@ def label_statistics(ds: PoseDataset) -> dict:
     T = np.concatenate([s.T_cam_target[ix] for s, ix in _per_seq(ds)])
     q = np.concatenate([s.q_cam_target[ix] for s, ix in _per_seq(ds)])
     from .metrics import mean_pose
+
     T_mean, q_mean = mean_pose(T, q)
     R_mean = quat_to_matrix_np(q_mean)
     z = np.maximum(T[:, 2], 1e-3)
     uvz = np.stack([T[:, 0] / z, T[:, 1] / z, np.log(z)], 1)
-    return {"pos_mean_m": T.mean(0).tolist(), "pos_std_m": np.maximum(T.std(0), 0.05).tolist(),
-            "uvlogz_mean": uvz.mean(0).tolist(), "uvlogz_std": np.maximum(uvz.std(0), 0.02).tolist(),
-            "mean_T_cam_target": T_mean.tolist(), "mean_q_cam_target": q_mean.tolist(),
-            "rot6d_mean": rot6d_from_matrix_np(R_mean).tolist(), "frames": int(len(T)),
-            "range_m": [float(np.linalg.norm(T, axis=1).min()), float(np.linalg.norm(T, axis=1).max())]}
+    return {
+        "pos_mean_m": T.mean(0).tolist(),
+        "pos_std_m": np.maximum(T.std(0), 0.05).tolist(),
+        "uvlogz_mean": uvz.mean(0).tolist(),
+        "uvlogz_std": np.maximum(uvz.std(0), 0.02).tolist(),
+        "mean_T_cam_target": T_mean.tolist(),
+        "mean_q_cam_target": q_mean.tolist(),
+        "rot6d_mean": rot6d_from_matrix_np(R_mean).tolist(),
+        "frames": int(len(T)),
+        "range_m": [float(np.linalg.norm(T, axis=1).min()), float(np.linalg.norm(T, axis=1).max())],
+    }
 
 
 def _per_seq(ds: PoseDataset):

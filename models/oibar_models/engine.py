@@ -34,9 +34,9 @@ def cyclical_lr(step: int, total_steps: int, cfg) -> float:
     t = cfg.train
     cycle_len = max(1, math.ceil(total_steps / t.lr_cycles))
     cycle = min(step // cycle_len, t.lr_cycles - 1)
-    x = (step - cycle * cycle_len) / cycle_len           # 0..1 inside the cycle
-    peak = t.lr_max * (t.lr_cycle_decay ** cycle)
-    tri = 1.0 - abs(2.0 * x - 1.0)                        # 0 -> 1 -> 0
+    x = (step - cycle * cycle_len) / cycle_len  # 0..1 inside the cycle
+    peak = t.lr_max * (t.lr_cycle_decay**cycle)
+    tri = 1.0 - abs(2.0 * x - 1.0)  # 0 -> 1 -> 0
     return t.lr_min + (peak - t.lr_min) * tri
 
 
@@ -66,8 +66,8 @@ class KeypointSupervision:
         return uv, valid
 
     def predicted(self, feats: torch.Tensor) -> torch.Tensor:
-        k = feats[:, self.base:]
-        return torch.stack([k[:, :self.n_pts], k[:, self.n_kp:self.n_kp + self.n_pts]], -1)
+        k = feats[:, self.base :]
+        return torch.stack([k[:, : self.n_pts], k[:, self.n_kp : self.n_kp + self.n_pts]], -1)
 
 
 def pick_device(name: str) -> torch.device:
@@ -96,6 +96,7 @@ def predict(net, loader, device, progress: bool = False, desc: str = "eval") -> 
     it = loader
     if progress:
         from oibar.progress import progress_iter
+
         it = progress_iter(loader, desc, unit="batch", leave=False)
     for b in it:
         T_hat, r6 = net(b["image"].to(device))
@@ -123,8 +124,14 @@ def load_checkpoint(path: str | Path, map_location="cpu"):
         raise RuntimeError(f"{path}: not an OibarNet checkpoint (no model/config entries)")
     cfg = from_dict(ck["config"])
     lab = ck["labels"]
-    net = build_model(cfg.model, lab["pos_mean_m"], lab["pos_std_m"], lab["rot6d_mean"],
-                      lab.get("uvlogz_mean"), lab.get("uvlogz_std"))
+    net = build_model(
+        cfg.model,
+        lab["pos_mean_m"],
+        lab["pos_std_m"],
+        lab["rot6d_mean"],
+        lab.get("uvlogz_mean"),
+        lab.get("uvlogz_std"),
+    )
     net.load_state_dict(ck["model"])
     net.eval()
     return net, ck
@@ -137,11 +144,19 @@ def _data_loaders(cfg, splits) -> tuple[torch.utils.data.DataLoader, torch.utils
     g.manual_seed(cfg.train.seed)
     workers = cfg.train.workers
     train_loader = torch.utils.data.DataLoader(
-        splits.train, batch_size=cfg.train.batch_size, shuffle=True, drop_last=len(splits.train) > cfg.train.batch_size,
-        num_workers=workers, persistent_workers=False, generator=g)
+        splits.train,
+        batch_size=cfg.train.batch_size,
+        shuffle=True,
+        drop_last=len(splits.train) > cfg.train.batch_size,
+        num_workers=workers,
+        persistent_workers=False,
+        generator=g,
+    )
     val_ds = splits.val
     if cfg.train.val_max_frames and len(val_ds) > cfg.train.val_max_frames:
-        val_ds = torch.utils.data.Subset(val_ds, np.linspace(0, len(val_ds) - 1, cfg.train.val_max_frames).astype(int))
+        val_ds = torch.utils.data.Subset(
+            val_ds, np.linspace(0, len(val_ds) - 1, cfg.train.val_max_frames).astype(int)
+        )
     val_loader = torch.utils.data.DataLoader(val_ds, batch_size=cfg.train.batch_size, num_workers=0)
     return train_loader, val_loader
 
@@ -162,12 +177,14 @@ def _restore(cfg, last: Path, net, crit, opt, device, log) -> tuple[int, int, fl
     if last.is_file():
         ck = torch.load(last, map_location=device, weights_only=False)
         if ck["config"]["model"] != cfg.to_dict()["model"]:
-            raise RuntimeError(f"{last}: was trained with another model config; use a new run_dir or delete it")
+            raise RuntimeError(
+                f"{last}: was trained with another model config; use a new run_dir or delete it"
+            )
         net.load_state_dict(ck["model"])
-        crit.load_state_dict(ck["loss"], strict=False)   # runs from before the keypoint term lack s_k
+        crit.load_state_dict(ck["loss"], strict=False)  # runs from before the keypoint term lack s_k
         try:
             opt.load_state_dict(ck["optimizer"])
-        except ValueError as exc:   # parameter groups changed with the loss: fresh moments
+        except ValueError as exc:  # parameter groups changed with the loss: fresh moments
             log(f"optimizer state not restored ({exc}); Adam restarts its moment estimates")
         start_epoch, step, best = ck["epoch"], ck["step"], ck["best_score"]
         torch.set_rng_state(ck["torch_rng"])
@@ -175,8 +192,21 @@ def _restore(cfg, last: Path, net, crit, opt, device, log) -> tuple[int, int, fl
     return start_epoch, step, best
 
 
-def _train_epoch(cfg, epoch: int, net, crit, opt, kp_sup, train_loader, steps_per_epoch: int, step: int,
-                 total_steps: int, device, fmt, progress: bool) -> tuple[dict, int, int, float]:
+def _train_epoch(
+    cfg,
+    epoch: int,
+    net,
+    crit,
+    opt,
+    kp_sup,
+    train_loader,
+    steps_per_epoch: int,
+    step: int,
+    total_steps: int,
+    device,
+    fmt,
+    progress: bool,
+) -> tuple[dict, int, int, float]:
     """One epoch of optimiser steps. -> (summed loss terms, images seen, step count, last lr)."""
     sums = {"loss": 0.0, "L_r": 0.0, "L_t": 0.0}
     n_img = 0
@@ -184,8 +214,10 @@ def _train_epoch(cfg, epoch: int, net, crit, opt, kp_sup, train_loader, steps_pe
     bar = None
     if progress:
         from oibar.progress import Progress
-        bar = Progress(f"epoch {epoch + 1}/{cfg.train.epochs}", total=steps_per_epoch, unit="batch",
-                       leave=False)
+
+        bar = Progress(
+            f"epoch {epoch + 1}/{cfg.train.epochs}", total=steps_per_epoch, unit="batch", leave=False
+        )
     for _ in range(steps_per_epoch):
         b = next(it)
         lr = cyclical_lr(step, total_steps, cfg)
@@ -210,8 +242,10 @@ def _train_epoch(cfg, epoch: int, net, crit, opt, kp_sup, train_loader, steps_pe
             sums[k] += out[k].item()
         if bar:
             bar.update(1)
-            bar.set_postfix(loss=f"{out['loss'].item():.2f}", dt_m=f"{out['L_t'].item() / bs:.3f}", lr=f"{lr:.1e}")
-    del it   # the loader's workers end here, before validation
+            bar.set_postfix(
+                loss=f"{out['loss'].item():.2f}", dt_m=f"{out['L_t'].item() / bs:.3f}", lr=f"{lr:.1e}"
+            )
+    del it  # the loader's workers end here, before validation
     if bar:
         bar.close()
     return sums, n_img, step, lr
@@ -246,17 +280,27 @@ def train(cfg, progress: bool = True, log=print) -> dict:
     (run / "labels.json").write_text(json.dumps(labels, indent=1) + "\n")
     (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
 
-    net = build_model(cfg.model, labels["pos_mean_m"], labels["pos_std_m"], labels["rot6d_mean"],
-                      labels["uvlogz_mean"], labels["uvlogz_std"]).to(device)
+    net = build_model(
+        cfg.model,
+        labels["pos_mean_m"],
+        labels["pos_std_m"],
+        labels["rot6d_mean"],
+        labels["uvlogz_mean"],
+        labels["uvlogz_std"],
+    ).to(device)
     # channels-last roughly doubles oneDNN's CPU training speed for these convolutions (measured)
     fmt = torch.channels_last if device.type == "cpu" else torch.contiguous_format
     net = net.to(memory_format=fmt)
     if cfg.train.pos_loss not in ("metres", "range_normalised"):
         raise ValueError(f"train.pos_loss: {cfg.train.pos_loss!r} is not metres or range_normalised")
-    crit = UncertaintyPoseLoss(cfg.train.init_s_r, cfg.train.init_s_t,
-                               range_normalised=cfg.train.pos_loss == "range_normalised").to(device)
-    opt = torch.optim.Adam(list(net.parameters()) + list(crit.parameters()), lr=cfg.train.lr_max,
-                           weight_decay=cfg.train.weight_decay)
+    crit = UncertaintyPoseLoss(
+        cfg.train.init_s_r, cfg.train.init_s_t, range_normalised=cfg.train.pos_loss == "range_normalised"
+    ).to(device)
+    opt = torch.optim.Adam(
+        list(net.parameters()) + list(crit.parameters()),
+        lr=cfg.train.lr_max,
+        weight_decay=cfg.train.weight_decay,
+    )
 
     kp_sup = KeypointSupervision(cfg, splits.K_input, net) if cfg.train.kp_loss else None
     train_loader, val_loader = _data_loaders(cfg, splits)
@@ -268,39 +312,94 @@ def train(cfg, progress: bool = True, log=print) -> dict:
 
     last = run / "last.pt"
     start_epoch, step, best = _restore(cfg, last, net, crit, opt, device, log)
-    log(f"{cfg.name}: {cfg.model.backbone} ({count_parameters(net) / 1e6:.2f} M parameters), "
+    log(
+        f"{cfg.name}: {cfg.model.backbone} ({count_parameters(net) / 1e6:.2f} M parameters), "
         f"{len(splits.train)} train / {len(splits.val)} val frames, {steps_per_epoch} steps/epoch, "
-        f"{cfg.train.epochs} epochs, device {device}, torch threads {torch.get_num_threads()}")
+        f"{cfg.train.epochs} epochs, device {device}, torch threads {torch.get_num_threads()}"
+    )
 
-    fields = ["epoch", "step", "lr", "loss", "L_r_mean", "L_t_mean_m", "s_r", "s_t", "train_images_per_s",
-              "epoch_s"] + [f"val_{k}" for k, _, _ in metrics.TABLE_COLUMNS] + ["val_score"]
+    fields = (
+        [
+            "epoch",
+            "step",
+            "lr",
+            "loss",
+            "L_r_mean",
+            "L_t_mean_m",
+            "s_r",
+            "s_t",
+            "train_images_per_s",
+            "epoch_s",
+        ]
+        + [f"val_{k}" for k, _, _ in metrics.TABLE_COLUMNS]
+        + ["val_score"]
+    )
     summary = {}
     for epoch in range(start_epoch, cfg.train.epochs):
-        splits.train.epoch = epoch          # new augmentation draws every epoch, reproducibly
+        splits.train.epoch = epoch  # new augmentation draws every epoch, reproducibly
         net.train()
         t0 = time.perf_counter()
-        sums, n_img, step, lr = _train_epoch(cfg, epoch, net, crit, opt, kp_sup, train_loader, steps_per_epoch,
-                                             step, total_steps, device, fmt, progress)
+        sums, n_img, step, lr = _train_epoch(
+            cfg,
+            epoch,
+            net,
+            crit,
+            opt,
+            kp_sup,
+            train_loader,
+            steps_per_epoch,
+            step,
+            total_steps,
+            device,
+            fmt,
+            progress,
+        )
         train_s = time.perf_counter() - t0
         pred = predict(net, val_loader, device, progress, "val")
         val = metrics.summarize(pred["T_hat"], pred["q_hat"], pred["T"], pred["q"]) if len(pred["T"]) else {}
         val_score = metrics.score(val) if val else float("nan")
-        row = {"epoch": epoch + 1, "step": step, "lr": lr, "loss": sums["loss"] / steps_per_epoch,
-               "L_r_mean": sums["L_r"] / max(1, n_img), "L_t_mean_m": sums["L_t"] / max(1, n_img),
-               "s_r": crit.s_r.item(), "s_t": crit.s_t.item(), "train_images_per_s": n_img / train_s,
-               "epoch_s": time.perf_counter() - t0, **{f"val_{k}": v for k, v in val.items()}, "val_score": val_score}
+        row = {
+            "epoch": epoch + 1,
+            "step": step,
+            "lr": lr,
+            "loss": sums["loss"] / steps_per_epoch,
+            "L_r_mean": sums["L_r"] / max(1, n_img),
+            "L_t_mean_m": sums["L_t"] / max(1, n_img),
+            "s_r": crit.s_r.item(),
+            "s_t": crit.s_t.item(),
+            "train_images_per_s": n_img / train_s,
+            "epoch_s": time.perf_counter() - t0,
+            **{f"val_{k}": v for k, v in val.items()},
+            "val_score": val_score,
+        }
         _append_logs(run, fields, row)
-        ck = {"model": net.state_dict(), "loss": crit.state_dict(), "optimizer": opt.state_dict(),
-              "epoch": epoch + 1, "step": step, "best_score": best, "config": cfg.to_dict(), "labels": labels,
-              "camera": splits.camera, "torch_rng": torch.get_rng_state(), "val": val}
+        ck = {
+            "model": net.state_dict(),
+            "loss": crit.state_dict(),
+            "optimizer": opt.state_dict(),
+            "epoch": epoch + 1,
+            "step": step,
+            "best_score": best,
+            "config": cfg.to_dict(),
+            "labels": labels,
+            "camera": splits.camera,
+            "torch_rng": torch.get_rng_state(),
+            "val": val,
+        }
         if val and val_score < best:
             best = val_score
             ck["best_score"] = best
             _save_atomic(ck, run / "best.pt")
         _save_atomic(ck, last)
-        log(f"epoch {epoch + 1}: loss {row['loss']:.3f}, {row['train_images_per_s']:.1f} img/s, "
-            + (f"val dt {val['dt_mean_pct']:.2f} % dq {val['dq_mean_deg']:.2f} deg "
-               f"compliance {val['compliance_pos_pct']:.1f}/{val['compliance_att_pct']:.1f} %" if val else "no val"))
+        log(
+            f"epoch {epoch + 1}: loss {row['loss']:.3f}, {row['train_images_per_s']:.1f} img/s, "
+            + (
+                f"val dt {val['dt_mean_pct']:.2f} % dq {val['dq_mean_deg']:.2f} deg "
+                f"compliance {val['compliance_pos_pct']:.1f}/{val['compliance_att_pct']:.1f} %"
+                if val
+                else "no val"
+            )
+        )
         summary = row
     if not (run / "best.pt").exists() and last.exists():
         _save_atomic(torch.load(last, weights_only=False), run / "best.pt")

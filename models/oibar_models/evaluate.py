@@ -31,9 +31,10 @@ def predict_sequence(est: OnnxPoseEstimator, frames: np.ndarray, batch: int = 32
     it = range(0, len(frames), batch)
     if progress:
         from oibar.progress import progress_iter
+
         it = progress_iter(it, "predict", unit="batch", leave=False)
     for i in it:
-        t_i, q_i = est.predict_batch(np.asarray(frames[i:i + batch]))
+        t_i, q_i = est.predict_batch(np.asarray(frames[i : i + batch]))
         T.append(t_i)
         q.append(q_i)
     return np.concatenate(T), np.concatenate(q)
@@ -50,6 +51,7 @@ def plot_error_series(path: Path, name: str, time_s, series: dict) -> None:
     """Position (% of range) and attitude (deg) errors over time, one line per label in
     ``series`` (label -> (dt_pct, dq_deg)), log scale, the requirements dashed."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -89,9 +91,16 @@ def write_overlays(out: Path, seq, T_hat, q_hat, n: int) -> list[str]:
     return files
 
 
-def evaluate(model_path: Path, seq_dirs: list[Path], out: Path, cache_dir: Path | None, overlays: int = 4,
-             bench_s: float = 5.0, progress: bool = True) -> dict:
-    est = OnnxPoseEstimator(model_path)          # fails clearly before anything is written
+def evaluate(
+    model_path: Path,
+    seq_dirs: list[Path],
+    out: Path,
+    cache_dir: Path | None,
+    overlays: int = 4,
+    bench_s: float = 5.0,
+    progress: bool = True,
+) -> dict:
+    est = OnnxPoseEstimator(model_path)  # fails clearly before anything is written
     out.mkdir(parents=True, exist_ok=True)
     meta = est.meta
     T_base = np.array(meta["train_mean_T_cam_target"])
@@ -103,7 +112,9 @@ def evaluate(model_path: Path, seq_dirs: list[Path], out: Path, cache_dir: Path 
         T_hat, q_hat = predict_sequence(est, frames, progress=progress)
         n = len(seq)
         s_model = metrics.summarize(T_hat, q_hat, seq.T_cam_target, seq.q_cam_target)
-        s_base = metrics.summarize(np.tile(T_base, (n, 1)), np.tile(q_base, (n, 1)), seq.T_cam_target, seq.q_cam_target)
+        s_base = metrics.summarize(
+            np.tile(T_base, (n, 1)), np.tile(q_base, (n, 1)), seq.T_cam_target, seq.q_cam_target
+        )
         rows += [(seq.name, "OibarNet", s_model), (seq.name, "mean-pose baseline", s_base)]
         dt_pct = metrics.position_error_pct(T_hat, seq.T_cam_target)
         dq = metrics.attitude_error_deg(q_hat, seq.q_cam_target)
@@ -111,15 +122,48 @@ def evaluate(model_path: Path, seq_dirs: list[Path], out: Path, cache_dir: Path 
         dq_b = metrics.attitude_error_deg(np.tile(q_base, (n, 1)), seq.q_cam_target)
         with open(out / f"{seq.name}_errors.csv", "w", newline="") as fh:
             w = csv.writer(fh, lineterminator="\n")
-            w.writerow(["frame", "time_s", "phase", "range_m", "dt_m", "dt_pct", "dq_deg", "tx_hat_m", "ty_hat_m",
-                        "tz_hat_m", "qw_hat", "qx_hat", "qy_hat", "qz_hat"])
+            w.writerow(
+                [
+                    "frame",
+                    "time_s",
+                    "phase",
+                    "range_m",
+                    "dt_m",
+                    "dt_pct",
+                    "dq_deg",
+                    "tx_hat_m",
+                    "ty_hat_m",
+                    "tz_hat_m",
+                    "qw_hat",
+                    "qx_hat",
+                    "qy_hat",
+                    "qz_hat",
+                ]
+            )
             dt = metrics.position_error_m(T_hat, seq.T_cam_target)
             for k in range(n):
-                w.writerow([k, f"{seq.time_s[k]:.3f}", seq.phase[k], f"{seq.range_m[k]:.4f}", f"{dt[k]:.5f}",
-                            f"{dt_pct[k]:.4f}", f"{dq[k]:.4f}", *(f"{x:.5f}" for x in T_hat[k]),
-                            *(f"{x:.6f}" for x in q_hat[k])])
-        plot_errors(out / f"{seq.name}_errors.png", f"{seq.name}: errors over time", seq.time_s, dt_pct, dq,
-                    dt_pct_b, dq_b)
+                w.writerow(
+                    [
+                        k,
+                        f"{seq.time_s[k]:.3f}",
+                        seq.phase[k],
+                        f"{seq.range_m[k]:.4f}",
+                        f"{dt[k]:.5f}",
+                        f"{dt_pct[k]:.4f}",
+                        f"{dq[k]:.4f}",
+                        *(f"{x:.5f}" for x in T_hat[k]),
+                        *(f"{x:.6f}" for x in q_hat[k]),
+                    ]
+                )
+        plot_errors(
+            out / f"{seq.name}_errors.png",
+            f"{seq.name}: errors over time",
+            seq.time_s,
+            dt_pct,
+            dq,
+            dt_pct_b,
+            dq_b,
+        )
         ov = write_overlays(out, seq, T_hat, q_hat, overlays)
         result["sequences"][seq.name] = {"model": s_model, "baseline": s_base, "overlays": ov}
     if bench_s > 0:
@@ -128,15 +172,23 @@ def evaluate(model_path: Path, seq_dirs: list[Path], out: Path, cache_dir: Path 
             "with_preprocess": benchmark(model_path, threads=2, seconds=bench_s, with_preprocess=True),
             "machine": f"{platform.processor() or platform.machine()}, {platform.system()}",
         }
-    md = [f"# Evaluation of {model_path.name}", "",
-          f"backbone {meta.get('backbone')}, input {meta['input_size_wh'][0]}x{meta['input_size_wh'][1]}, "
-          f"epochs trained {meta.get('epochs_trained')}, model version {meta.get('model_version')}", "",
-          metrics.markdown_table(rows), ""]
+    md = [
+        f"# Evaluation of {model_path.name}",
+        "",
+        f"backbone {meta.get('backbone')}, input {meta['input_size_wh'][0]}x{meta['input_size_wh'][1]}, "
+        f"epochs trained {meta.get('epochs_trained')}, model version {meta.get('model_version')}",
+        "",
+        metrics.markdown_table(rows),
+        "",
+    ]
     if "latency" in result:
         lm, lp = result["latency"]["model_only"], result["latency"]["with_preprocess"]
-        md += [f"Latency (onnxruntime, 2 threads, batch 1): model only {lm['mean_ms']:.1f} ms mean "
-               f"({lm['inferences_per_s']:.1f} /s); with resize from 744x480 {lp['mean_ms']:.1f} ms "
-               f"({lp['inferences_per_s']:.1f} /s)", ""]
+        md += [
+            f"Latency (onnxruntime, 2 threads, batch 1): model only {lm['mean_ms']:.1f} ms mean "
+            f"({lm['inferences_per_s']:.1f} /s); with resize from 744x480 {lp['mean_ms']:.1f} ms "
+            f"({lp['inferences_per_s']:.1f} /s)",
+            "",
+        ]
     (out / "eval.md").write_text("\n".join(md))
     (out / "eval.json").write_text(json.dumps(result, indent=1) + "\n")
     return result
@@ -160,14 +212,21 @@ def main(argv: list[str] | None = None) -> int:
         nums = [int(x) for x in a.seqs.split(",")] if a.seqs else cfg.data.test_seqs
         root = cfg.path(cfg.data.root)
         dirs = [root / seq_name(n) for n in nums]
-        for p in cfg.data.extra_test_dirs:   # optional extras (e.g. envelope mode): skipped when not rendered
+        for p in cfg.data.extra_test_dirs:  # optional extras (e.g. envelope mode): skipped when not rendered
             if cfg.path(p).is_dir():
                 dirs.append(cfg.path(p))
             else:
                 print(f"note: {cfg.path(p)} not rendered, skipped", file=sys.stderr)
         out = Path(a.out) if a.out else cfg.run_path / "eval"
-        res = evaluate(model, dirs, out, cfg.path(cfg.data.cache_dir) if cfg.data.cache_dir else None,
-                       a.overlays, a.bench_s, not a.no_progress)
+        res = evaluate(
+            model,
+            dirs,
+            out,
+            cfg.path(cfg.data.cache_dir) if cfg.data.cache_dir else None,
+            a.overlays,
+            a.bench_s,
+            not a.no_progress,
+        )
     except (ConfigError, DatasetError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -40,11 +40,11 @@ def metadata_for(net: OibarNet, ck: dict, model_version: str) -> dict:
         "backbone": cfg["model"]["backbone"],
         "input_size_wh": [w, h],
         "input": "image: float32 (N, 3, H, W), RGB, values in [0, 1] = uint8 / 255, after resizing the "
-                 "camera frame with PIL bilinear (oibar.nav.pose.resize_frame)",
+        "camera frame with PIL bilinear (oibar.nav.pose.resize_frame)",
         "normalisation": {"mean": list(INPUT_MEAN), "std": list(INPUT_STD), "applied": "inside the graph"},
         "outputs": {
             "position_m": "T_cam_target: fixture origin in the camera frame (OpenCV axes: +X right, +Y down, "
-                          "+Z forward), metres",
+            "+Z forward), metres",
             "q_cam_target": "unit quaternion (w, x, y, z), w >= 0, of R_cam_target (p_cam = R p_t + T)",
             "R_cam_target": "rotation matrix, Gram-Schmidt of rot6d",
             "rot6d": "Zhou et al. 6D: first two columns of R_cam_target",
@@ -66,7 +66,9 @@ def metadata_for(net: OibarNet, ck: dict, model_version: str) -> dict:
     return meta
 
 
-def export_onnx(net: OibarNet, ck: dict, out_path: str | Path, opset: int = 17, model_version: str = "0.1.0") -> Path:
+def export_onnx(
+    net: OibarNet, ck: dict, out_path: str | Path, opset: int = 17, model_version: str = "0.1.0"
+) -> Path:
     import onnx
 
     out_path = Path(out_path)
@@ -76,18 +78,30 @@ def export_onnx(net: OibarNet, ck: dict, out_path: str | Path, opset: int = 17, 
     wrapper = PoseOutputs(net.eval()).eval()
     dummy = torch.rand(1, 3, h, w)
     tmp = out_path.with_suffix(".tmp.onnx")
-    with warnings.catch_warnings():   # the TorchScript exporter is deprecated but is the pinned torch's stable path
+    with (
+        warnings.catch_warnings()
+    ):  # the TorchScript exporter is deprecated but is the pinned torch's stable path
         warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(wrapper, dummy, str(tmp), input_names=["image"], output_names=OUTPUT_NAMES,
-                          dynamic_axes={n: {0: "batch"} for n in ["image"] + OUTPUT_NAMES},
-                          opset_version=opset, dynamo=False)
+        torch.onnx.export(
+            wrapper,
+            dummy,
+            str(tmp),
+            input_names=["image"],
+            output_names=OUTPUT_NAMES,
+            dynamic_axes={n: {0: "batch"} for n in ["image"] + OUTPUT_NAMES},
+            opset_version=opset,
+            dynamo=False,
+        )
     m = onnx.load(str(tmp))
     for k, v in metadata_for(net, ck, model_version).items():
         p = m.metadata_props.add()
         p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
     m.producer_name = "oibar_models.export"
-    m.model_version = int(model_version.split(".")[0]) * 10000 + int(model_version.split(".")[1]) * 100 + int(
-        model_version.split(".")[2])
+    m.model_version = (
+        int(model_version.split(".")[0]) * 10000
+        + int(model_version.split(".")[1]) * 100
+        + int(model_version.split(".")[2])
+    )
     onnx.checker.check_model(m)
     onnx.save(m, str(out_path))
     tmp.unlink(missing_ok=True)
@@ -116,7 +130,9 @@ def quantize_int8(onnx_path: str | Path, out_path: str | Path, calib_images: np.
 
     class Reader(CalibrationDataReader):
         def __init__(self):
-            self.it = iter([{"image": calib_images[i:i + 1].astype(np.float32)} for i in range(len(calib_images))])
+            self.it = iter(
+                [{"image": calib_images[i : i + 1].astype(np.float32)} for i in range(len(calib_images))]
+            )
 
         def get_next(self):
             return next(self.it, None)
@@ -124,8 +140,15 @@ def quantize_int8(onnx_path: str | Path, out_path: str | Path, calib_images: np.
     out_path = Path(out_path)
     pre = out_path.with_suffix(".pre.onnx")
     quant_pre_process(str(onnx_path), str(pre), skip_symbolic_shape=True)
-    quantize_static(str(pre), str(out_path), Reader(), quant_format=QuantFormat.QDQ,
-                    activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True)
+    quantize_static(
+        str(pre),
+        str(out_path),
+        Reader(),
+        quant_format=QuantFormat.QDQ,
+        activation_type=QuantType.QUInt8,
+        weight_type=QuantType.QInt8,
+        per_channel=True,
+    )
     pre.unlink(missing_ok=True)
     src, dst = onnx.load(str(onnx_path)), onnx.load(str(out_path))
     del dst.metadata_props[:]
@@ -146,7 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", required=True)
     ap.add_argument("--checkpoint", help="default: runs/<name>/best.pt")
     ap.add_argument("--out", help="default: export.onnx_path or models/<name>.onnx")
-    ap.add_argument("--int8", action="store_true", help="also write <out>.int8.onnx (calibrated on validation frames)")
+    ap.add_argument(
+        "--int8", action="store_true", help="also write <out>.int8.onnx (calibrated on validation frames)"
+    )
     a = ap.parse_args(argv)
     try:
         cfg = load_config(a.config)
@@ -159,10 +184,13 @@ def main(argv: list[str] | None = None) -> int:
     export_onnx(net, ck, out, cfg.export.opset, cfg.export.model_version)
     h, w = cfg.model.input_height_px, cfg.model.input_width_px
     diffs = parity(net, out, torch.rand(4, 3, h, w))
-    print(f"wrote {out} ({out.stat().st_size / 2**20:.2f} MiB); parity vs PyTorch (max abs): "
-          + ", ".join(f"{k} {v:.2e}" for k, v in diffs.items()))
+    print(
+        f"wrote {out} ({out.stat().st_size / 2**20:.2f} MiB); parity vs PyTorch (max abs): "
+        + ", ".join(f"{k} {v:.2e}" for k, v in diffs.items())
+    )
     if a.int8 or cfg.export.int8:
         from .data import build_splits
+
         splits = build_splits(cfg)
         idx = np.linspace(0, len(splits.val) - 1, min(200, len(splits.val))).astype(int)
         calib = np.stack([splits.val[int(i)]["image"].numpy() for i in idx])

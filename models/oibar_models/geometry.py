@@ -41,13 +41,16 @@ def quat_from_matrix(R: torch.Tensor) -> torch.Tensor:
     m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
     m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
     t = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
-    cand = torch.stack([
-        torch.stack([t[..., 0], m21 - m12, m02 - m20, m10 - m01], -1),   # 4w * q
-        torch.stack([m21 - m12, t[..., 1], m10 + m01, m02 + m20], -1),   # 4x * q
-        torch.stack([m02 - m20, m10 + m01, t[..., 2], m21 + m12], -1),   # 4y * q
-        torch.stack([m10 - m01, m02 + m20, m21 + m12, t[..., 3]], -1),   # 4z * q
-    ], -2)
-    idx = torch.argmax(t, dim=-1, keepdim=True)                          # (..., 1)
+    cand = torch.stack(
+        [
+            torch.stack([t[..., 0], m21 - m12, m02 - m20, m10 - m01], -1),  # 4w * q
+            torch.stack([m21 - m12, t[..., 1], m10 + m01, m02 + m20], -1),  # 4x * q
+            torch.stack([m02 - m20, m10 + m01, t[..., 2], m21 + m12], -1),  # 4y * q
+            torch.stack([m10 - m01, m02 + m20, m21 + m12, t[..., 3]], -1),  # 4z * q
+        ],
+        -2,
+    )
+    idx = torch.argmax(t, dim=-1, keepdim=True)  # (..., 1)
     idx = idx.unsqueeze(-1).expand(*idx.shape[:-1], 1, 4)
     q = torch.gather(cand, -2, idx).squeeze(-2)
     q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)

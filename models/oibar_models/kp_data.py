@@ -18,18 +18,18 @@ import numpy as np
 import torch
 from PIL import Image
 
+from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
 from oibar.nav.keypoints import CropWindow, cut, project, window_around
 
 from .data import Sequence, load_sequence
-from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
 
 
 @dataclass
 class CropAugment:
-    center_jitter: float = 0.12      # std of the window centre shift, fraction of the side
-    scale_jitter: float = 0.25       # side scaled by exp(U(-a, a))
-    angle_deg: float = 15.0          # in-plane turn, uniform +-
-    margin: float = 1.25             # window side / keypoint bounding box (flight uses the same)
+    center_jitter: float = 0.12  # std of the window centre shift, fraction of the side
+    scale_jitter: float = 0.25  # side scaled by exp(U(-a, a))
+    angle_deg: float = 15.0  # in-plane turn, uniform +-
+    margin: float = 1.25  # window side / keypoint bounding box (flight uses the same)
     p_photometric: float = 0.8
     p_noise: float = 0.4
     noise_sigma_max: float = 0.04
@@ -40,20 +40,29 @@ class CropAugment:
 
 def open_scenes(root: Path, names: list[str] | None = None) -> list[Sequence]:
     root = Path(root)
-    dirs = [root / n for n in names] if names else sorted(p for p in root.iterdir() if (p / "poses.csv").is_file())
+    dirs = (
+        [root / n for n in names]
+        if names
+        else sorted(p for p in root.iterdir() if (p / "poses.csv").is_file())
+    )
     return [load_sequence(d) for d in dirs]
 
 
 def off_axis_deg(points_m: np.ndarray, R: np.ndarray, T: np.ndarray) -> np.ndarray:
     """Per target point, the angle (deg) between the fixture's outward axis (-Z_t) and the line
     from the point to the camera: 0 looking straight down the funnel."""
-    to_cam_t = -(np.asarray(points_m, float) @ R.T + T) @ R      # camera - point, in F_t
+    to_cam_t = -(np.asarray(points_m, float) @ R.T + T) @ R  # camera - point, in F_t
     cos = -to_cam_t[:, 2] / np.linalg.norm(to_cam_t, axis=1)
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
-def visible(uv: np.ndarray, frame_wh: tuple[int, int], win: CropWindow, off_axis: np.ndarray | None = None,
-            limit_deg: np.ndarray | None = None) -> np.ndarray:
+def visible(
+    uv: np.ndarray,
+    frame_wh: tuple[int, int],
+    win: CropWindow,
+    off_axis: np.ndarray | None = None,
+    limit_deg: np.ndarray | None = None,
+) -> np.ndarray:
     """Keypoints that the crop can show: in front of the camera, inside the frame and the crop,
     and (with `off_axis`/`limit_deg`) not hidden inside the funnel."""
     w, h = frame_wh
@@ -69,13 +78,14 @@ def visible(uv: np.ndarray, frame_wh: tuple[int, int], win: CropWindow, off_axis
 def photometric(img: np.ndarray, rng: np.random.Generator, a: CropAugment) -> np.ndarray:
     x = img.astype(np.float32) / 255.0
     if rng.random() < a.p_photometric:
-        x = x * rng.uniform(0.6, 1.4) + rng.uniform(-0.1, 0.1)                    # gain, offset
+        x = x * rng.uniform(0.6, 1.4) + rng.uniform(-0.1, 0.1)  # gain, offset
         m = x.mean()
-        x = (x - m) * rng.uniform(0.7, 1.3) + m                                   # contrast
-        x = x * rng.uniform(0.9, 1.1, size=3)[None, None, :]                      # colour
-        x = np.clip(x, 0, 1) ** rng.uniform(0.7, 1.4)                             # gamma
+        x = (x - m) * rng.uniform(0.7, 1.3) + m  # contrast
+        x = x * rng.uniform(0.9, 1.1, size=3)[None, None, :]  # colour
+        x = np.clip(x, 0, 1) ** rng.uniform(0.7, 1.4)  # gamma
     if rng.random() < a.p_blur:
         import cv2
+
         x = cv2.GaussianBlur(x, (0, 0), rng.uniform(0.3, a.blur_sigma_max_px))
     if rng.random() < a.p_noise:
         x = x + rng.normal(0, rng.uniform(0.005, a.noise_sigma_max), x.shape).astype(np.float32)
@@ -91,12 +101,29 @@ class CropDataset(torch.utils.data.Dataset):
     """Index i -> one frame's crop. `train` draws a new perturbation each time; otherwise the
     perturbation is fixed per index (seeded), so validation is repeatable."""
 
-    def __init__(self, scenes: list[Sequence], keypoints_m: np.ndarray, out_px: int, aug: CropAugment,
-                 train: bool, seed: int = 0, frames: list[tuple[int, int]] | None = None,
-                 view_limit_deg: list[float] | None = None):
-        self.scenes, self.kp_m, self.out_px, self.aug, self.train, self.seed = scenes, keypoints_m, out_px, aug, train, seed
+    def __init__(
+        self,
+        scenes: list[Sequence],
+        keypoints_m: np.ndarray,
+        out_px: int,
+        aug: CropAugment,
+        train: bool,
+        seed: int = 0,
+        frames: list[tuple[int, int]] | None = None,
+        view_limit_deg: list[float] | None = None,
+    ):
+        self.scenes, self.kp_m, self.out_px, self.aug, self.train, self.seed = (
+            scenes,
+            keypoints_m,
+            out_px,
+            aug,
+            train,
+            seed,
+        )
         self.view_limit_deg = None if view_limit_deg is None else np.asarray(view_limit_deg, float)
-        self.items = frames if frames is not None else [(s, k) for s, sc in enumerate(scenes) for k in range(len(sc))]
+        self.items = (
+            frames if frames is not None else [(s, k) for s, sc in enumerate(scenes) for k in range(len(sc))]
+        )
 
     def __len__(self) -> int:
         return len(self.items)
@@ -121,7 +148,9 @@ class CropDataset(torch.utils.data.Dataset):
         crop = cut(img, win)
         if self.train:
             crop = photometric(crop, rng, self.aug)
-        vis = visible(uv, (sc.width_px, sc.height_px), win, off_axis_deg(self.kp_m, R, T), self.view_limit_deg)
+        vis = visible(
+            uv, (sc.width_px, sc.height_px), win, off_axis_deg(self.kp_m, R, T), self.view_limit_deg
+        )
         kp = win.to_crop(np.nan_to_num(uv, nan=0.0))
         return {
             "image": torch.from_numpy(np.ascontiguousarray(crop.transpose(2, 0, 1))).float().div_(255.0),
@@ -130,7 +159,8 @@ class CropDataset(torch.utils.data.Dataset):
             "A": torch.from_numpy(win.matrix().astype(np.float64)),
             "T": torch.from_numpy(np.asarray(T, np.float64)),
             "R": torch.from_numpy(R),
-            "scene": s, "frame": k,
+            "scene": s,
+            "frame": k,
         }
 
 

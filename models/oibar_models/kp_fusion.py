@@ -21,17 +21,18 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
+from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
+
 from . import metrics
 from .config import REPO_ROOT
 from .data import load_sequence
-from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
-from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
 from .scenes import load_set
 
 SIGMA_CROP_PX = (0.5, 1.0, 2.0)
-SIGMA_PRIOR_DEG = (1.0, 2.0, 3.0, 5.0, 8.0, None)     # None: PnP alone
+SIGMA_PRIOR_DEG = (1.0, 2.0, 3.0, 5.0, 8.0, None)  # None: PnP alone
 ERROR_RANGE_EDGES_M = (0.0, 1.0, 1.5, 2.0, 3.0, 5.0, 8.0, 100.0)
-MIN_RMS_CROP_PX = 0.1           # a floor: no keypoint is trusted beyond the heat map's resolution
+MIN_RMS_CROP_PX = 0.1  # a floor: no keypoint is trusted beyond the heat map's resolution
 
 
 def collect(est, seqs, stride: int) -> list[dict]:
@@ -48,23 +49,25 @@ def collect(est, seqs, stride: int) -> list[dict]:
             win = window_around(uv_true, est.out_px, est.margin)
             uv, _, _ = est.keypoints(img, win)
             err = np.linalg.norm(uv - uv_true, axis=1) * win.scale
-            rows.append({"img": img, "T": T, "q": q, "direct": est.first.estimate(img), "kp_err_crop_px": err})
+            rows.append(
+                {"img": img, "T": T, "q": q, "direct": est.first.estimate(img), "kp_err_crop_px": err}
+            )
     return rows
 
 
 def error_model(rows: list[dict], clip_crop_px: float) -> dict:
     """Per keypoint and range bin, the RMS of the (clipped) keypoint errors; a bin with fewer than
     5 answers takes the keypoint's overall RMS."""
-    err = np.minimum(np.array([r["kp_err_crop_px"] for r in rows]), clip_crop_px)   # NaN stays NaN
+    err = np.minimum(np.array([r["kp_err_crop_px"] for r in rows]), clip_crop_px)  # NaN stays NaN
     rng = np.array([float(np.linalg.norm(r["T"])) for r in rows])
-    overall = np.sqrt(np.nanmean(err ** 2, axis=0))
+    overall = np.sqrt(np.nanmean(err**2, axis=0))
     edges = np.asarray(ERROR_RANGE_EDGES_M)
     table = np.empty((err.shape[1], len(edges) - 1))
-    for b, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+    for b, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=False)):
         e = err[(rng >= lo) & (rng < hi)]
         n = np.sum(np.isfinite(e), axis=0)
         with np.errstate(invalid="ignore"):
-            rms = np.sqrt(np.nanmean(e ** 2, axis=0)) if len(e) else np.full(err.shape[1], np.nan)
+            rms = np.sqrt(np.nanmean(e**2, axis=0)) if len(e) else np.full(err.shape[1], np.nan)
         table[:, b] = np.where(n >= 5, rms, overall)
     table = np.maximum(np.nan_to_num(table, nan=float(np.nanmax(overall))), MIN_RMS_CROP_PX)
     return {"range_edges_m": list(ERROR_RANGE_EDGES_M), "rms_crop_px": np.round(table, 4).tolist()}
@@ -83,24 +86,38 @@ def score_grid(est, rows: list[dict], progress: bool, err_model: dict | None = N
         for row in rows:
             d = row["direct"]
             r, _ = est.solve(row["img"], d.R_cam_target, d.T_cam_target_m, fusion=fusion)
-            R_, T_ = (r.R_cam_target, r.T_cam_target_m) if r is not None else (d.R_cam_target, d.T_cam_target_m)
+            R_, T_ = (
+                (r.R_cam_target, r.T_cam_target_m) if r is not None else (d.R_cam_target, d.T_cam_target_m)
+            )
             T_hat.append(T_)
             q_hat.append(quat_from_matrix_np(R_))
-        s = metrics.summarize(np.array(T_hat), np.array(q_hat), np.array([r["T"] for r in rows]),
-                              np.array([r["q"] for r in rows]))
-        s.update(sigma_crop_px=s_px, sigma_prior_deg=s_deg, error_model=em is not None, score=metrics.score(s))
+        s = metrics.summarize(
+            np.array(T_hat),
+            np.array(q_hat),
+            np.array([r["T"] for r in rows]),
+            np.array([r["q"] for r in rows]),
+        )
+        s.update(
+            sigma_crop_px=s_px, sigma_prior_deg=s_deg, error_model=em is not None, score=metrics.score(s)
+        )
         out.append(s)
         if progress:
-            print(f"sigma_kp {s_px} px{' x error model' if em else ''}, prior {s_deg} deg: dt {s['dt_mean_pct']:.3f} % (median {s['dt_median_pct']:.3f}) "
-                  f"dq {s['dq_mean_deg']:.3f} deg (median {s['dq_median_deg']:.3f}) score {s['score']:.4f}",
-                  file=sys.stderr, flush=True)
+            print(
+                f"sigma_kp {s_px} px{' x error model' if em else ''}, prior {s_deg} deg: "
+                f"dt {s['dt_mean_pct']:.3f} % (median {s['dt_median_pct']:.3f}) "
+                f"dq {s['dq_mean_deg']:.3f} deg (median {s['dq_median_deg']:.3f}) score {s['score']:.4f}",
+                file=sys.stderr,
+                flush=True,
+            )
     return out
 
 
 def main(argv: list[str] | None = None) -> int:
     from oibar.nav.pose import KeypointPoseEstimator, PoseEstimator
 
-    ap = argparse.ArgumentParser(prog="python -m oibar_models.kp_fusion", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m oibar_models.kp_fusion", description=__doc__.split("\n\n")[0]
+    )
     ap.add_argument("--model", type=Path, default=REPO_ROOT / "models/oibarnet.onnx")
     ap.add_argument("--stride", type=int, default=16)
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/oibarnet_kp/fusion.json")
@@ -110,7 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     if not isinstance(est, KeypointPoseEstimator):
         print(f"error: {a.model} is not a keypoint model", file=sys.stderr)
         return 2
-    seqs = [load_sequence(REPO_ROOT / "data/val" / s.name) for s in load_set(REPO_ROOT / "models/scenes/val.json")]
+    seqs = [
+        load_sequence(REPO_ROOT / "data/val" / s.name) for s in load_set(REPO_ROOT / "models/scenes/val.json")
+    ]
     rows = collect(est, seqs, a.stride)
     em = error_model(rows, float(est.reproj_crop_px))
     grid = score_grid(est, rows, not a.no_progress, em)
@@ -120,10 +139,24 @@ def main(argv: list[str] | None = None) -> int:
     a.out.parent.mkdir(parents=True, exist_ok=True)
     for g in grid:
         g.pop("img", None)
-    a.out.write_text(json.dumps({"chosen_on": "validation scenes (models/scenes/val.json)", "frames": len(rows),
-                                 "stride": a.stride, "best": best, "grid": grid, "kp_error_model": em}, indent=1) + "\n")
-    print(f"best: sigma_kp {best['sigma_crop_px']} crop px, prior {best['sigma_prior_deg']} deg: "
-          f"dt {best['dt_mean_pct']:.3f} %, dq {best['dq_mean_deg']:.3f} deg -> {a.out}")
+    a.out.write_text(
+        json.dumps(
+            {
+                "chosen_on": "validation scenes (models/scenes/val.json)",
+                "frames": len(rows),
+                "stride": a.stride,
+                "best": best,
+                "grid": grid,
+                "kp_error_model": em,
+            },
+            indent=1,
+        )
+        + "\n"
+    )
+    print(
+        f"best: sigma_kp {best['sigma_crop_px']} crop px, prior {best['sigma_prior_deg']} deg: "
+        f"dt {best['dt_mean_pct']:.3f} %, dq {best['dq_mean_deg']:.3f} deg -> {a.out}"
+    )
     return 0
 
 

@@ -1,4 +1,5 @@
-"""Entry point: python -m oibar_models.kp_train --config models/configs/keypoints/oibarnet_kp.yaml [section.key=value ...]
+"""Entry point:
+python -m oibar_models.kp_train --config models/configs/keypoints/oibarnet_kp.yaml [section.key=value ...]
 
 Re-running the same command resumes from runs/<name>/last.pt. Data-parallel:
 torchrun --nproc_per_node N -m oibar_models.kp_train --config ...

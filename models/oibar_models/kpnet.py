@@ -40,8 +40,11 @@ class KeypointNet(nn.Module):
         self.backbone = bb
         self.lateral = nn.ModuleList(nn.Conv2d(c, width, 1) for c in bb.tap_channels)
         self.head = nn.Sequential(
-            nn.Conv2d(width, width, 3, padding=1, bias=False), nn.BatchNorm2d(width), nn.ReLU(inplace=True),
-            nn.Conv2d(width, n_keypoints, 1))
+            nn.Conv2d(width, width, 3, padding=1, bias=False),
+            nn.BatchNorm2d(width),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(width, n_keypoints, 1),
+        )
         self.present = nn.Linear(bb.tap_channels[-1], n_keypoints)
         self.n_keypoints = n_keypoints
 
@@ -49,14 +52,14 @@ class KeypointNet(nn.Module):
         """RGB [0, 1] (N, 3, S, S) -> heat-map logits (N, K, S/4, S/4), presence logits (N, K)."""
         taps = self.backbone.features(x)
         y = self.lateral[-1](taps[-1])
-        for lat, tap in zip(reversed(self.lateral[:-1]), reversed(taps[:-1])):
+        for lat, tap in zip(reversed(self.lateral[:-1]), reversed(taps[:-1]), strict=True):
             y = F.interpolate(y, size=tap.shape[-2:], mode="bilinear", align_corners=False) + lat(tap)
         heat = self.head(y)
         present = self.present(taps[-1].mean(dim=(2, 3)))
         return heat, present
 
 
-def view_limits_deg(names: list[str] | tuple[str, ...]) -> "list[float]":
+def view_limits_deg(names: list[str] | tuple[str, ...]) -> list[float]:
     """Per keypoint, the largest angle off the fixture's axis it is seen from (inf: any)."""
     return [KEYPOINT_VIEW_LIMIT_DEG.get(n, float("inf")) for n in names]
 
@@ -70,7 +73,7 @@ def soft_argmax(heat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.T
     p = logp.exp().reshape(n, k, h, w)
     xs = (torch.arange(w, dtype=heat.dtype, device=heat.device) + 0.5) * STRIDE
     ys = (torch.arange(h, dtype=heat.dtype, device=heat.device) + 0.5) * STRIDE
-    px, py = p.sum(2), p.sum(3)                          # marginals (N, K, W), (N, K, H)
+    px, py = p.sum(2), p.sum(3)  # marginals (N, K, W), (N, K, H)
     mx, my = (px * xs).sum(-1), (py * ys).sum(-1)
     vx = (px * (xs - mx[..., None]) ** 2).sum(-1)
     vy = (py * (ys - my[..., None]) ** 2).sum(-1)

@@ -21,7 +21,7 @@ class UncertaintyPoseLoss(nn.Module):
     def __init__(self, init_s_r: float = 0.0, init_s_t: float = 0.0, range_normalised: bool = False):
         super().__init__()
         self.range_normalised = range_normalised
-        self.s_k = nn.Parameter(torch.tensor(0.0))   # keypoint term (used only with train.kp_loss)
+        self.s_k = nn.Parameter(torch.tensor(0.0))  # keypoint term (used only with train.kp_loss)
         self.s_r = nn.Parameter(torch.tensor(float(init_s_r)))
         self.s_t = nn.Parameter(torch.tensor(float(init_s_t)))
 
@@ -33,7 +33,9 @@ class UncertaintyPoseLoss(nn.Module):
         L_k = (d.sum(-1) / valid.sum(-1).clamp_min(1.0)).sum()
         return L_k * torch.exp(-2 * self.s_k) + 2 * self.s_k, L_k.detach()
 
-    def forward(self, T_hat_m: torch.Tensor, r6_hat: torch.Tensor, T_m: torch.Tensor, r6: torch.Tensor) -> dict:
+    def forward(
+        self, T_hat_m: torch.Tensor, r6_hat: torch.Tensor, T_m: torch.Tensor, r6: torch.Tensor
+    ) -> dict:
         dt = torch.linalg.vector_norm(T_hat_m - T_m, dim=-1)
         if self.range_normalised:
             dt = dt / torch.linalg.vector_norm(T_m, dim=-1).clamp_min(0.1)

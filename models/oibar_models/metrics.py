@@ -18,10 +18,14 @@ from oibar.geometry.metrics import (  # noqa: F401
 
 TABLE_COLUMNS = [
     ("frames", "frames", "{:d}"),
-    ("dt_mean_m", "dt mean (m)", "{:.3f}"), ("dt_median_m", "dt median (m)", "{:.3f}"),
-    ("dt_mean_pct", "dt mean (%)", "{:.2f}"), ("dt_median_pct", "dt median (%)", "{:.2f}"),
-    ("dq_mean_deg", "dq mean (deg)", "{:.2f}"), ("dq_median_deg", "dq median (deg)", "{:.2f}"),
-    ("compliance_pos_pct", "pos <= 5 % (%)", "{:.2f}"), ("compliance_att_pct", "att <= 5 deg (%)", "{:.2f}"),
+    ("dt_mean_m", "dt mean (m)", "{:.3f}"),
+    ("dt_median_m", "dt median (m)", "{:.3f}"),
+    ("dt_mean_pct", "dt mean (%)", "{:.2f}"),
+    ("dt_median_pct", "dt median (%)", "{:.2f}"),
+    ("dq_mean_deg", "dq mean (deg)", "{:.2f}"),
+    ("dq_median_deg", "dq median (deg)", "{:.2f}"),
+    ("compliance_pos_pct", "pos <= 5 % (%)", "{:.2f}"),
+    ("compliance_att_pct", "att <= 5 deg (%)", "{:.2f}"),
 ]
 
 
@@ -31,5 +35,7 @@ def markdown_table(rows: list[tuple[str, str, dict]]) -> str:
     sep = "| --- | --- | " + " | ".join("---:" for _ in TABLE_COLUMNS) + " |"
     lines = [head, sep]
     for seq, model, s in rows:
-        lines.append(f"| {seq} | {model} | " + " | ".join(fmt.format(s[k]) for k, _, fmt in TABLE_COLUMNS) + " |")
+        lines.append(
+            f"| {seq} | {model} | " + " | ".join(fmt.format(s[k]) for k, _, fmt in TABLE_COLUMNS) + " |"
+        )
     return "\n".join(lines)

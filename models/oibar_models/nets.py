@@ -18,7 +18,7 @@ import torch.nn as nn
 
 from .geometry import matrix_from_rot6d, quat_from_matrix
 
-INPUT_MEAN = (0.5, 0.5, 0.5)    # from-scratch training: a fixed, documented normalisation
+INPUT_MEAN = (0.5, 0.5, 0.5)  # from-scratch training: a fixed, documented normalisation
 INPUT_STD = (0.25, 0.25, 0.25)
 
 
@@ -47,10 +47,18 @@ class Fire(nn.Module):
 def squeezenet() -> tuple[nn.Module, int]:
     pool = lambda: nn.MaxPool2d(3, 2, ceil_mode=True)  # noqa: E731
     net = nn.Sequential(
-        conv_bn(3, 64, 3, 2), pool(),
-        Fire(64, 16, 64), Fire(128, 16, 64), pool(),
-        Fire(128, 32, 128), Fire(256, 32, 128), pool(),
-        Fire(256, 48, 192), Fire(384, 48, 192), Fire(384, 64, 256), Fire(512, 64, 256),
+        conv_bn(3, 64, 3, 2),
+        pool(),
+        Fire(64, 16, 64),
+        Fire(128, 16, 64),
+        pool(),
+        Fire(128, 32, 128),
+        Fire(256, 32, 128),
+        pool(),
+        Fire(256, 48, 192),
+        Fire(384, 48, 192),
+        Fire(384, 64, 256),
+        Fire(512, 64, 256),
     )
     return net, 512
 
@@ -60,11 +68,29 @@ def darknet19() -> tuple[nn.Module, int]:
     L = lambda a, b, k=3: conv_bn(a, b, k, act="leaky")  # noqa: E731
     mp = lambda: nn.MaxPool2d(2, 2)  # noqa: E731
     net = nn.Sequential(
-        L(3, 32), mp(), L(32, 64), mp(),
-        L(64, 128), L(128, 64, 1), L(64, 128), mp(),
-        L(128, 256), L(256, 128, 1), L(128, 256), mp(),
-        L(256, 512), L(512, 256, 1), L(256, 512), L(512, 256, 1), L(256, 512), mp(),
-        L(512, 1024), L(1024, 512, 1), L(512, 1024), L(1024, 512, 1), L(512, 1024),
+        L(3, 32),
+        mp(),
+        L(32, 64),
+        mp(),
+        L(64, 128),
+        L(128, 64, 1),
+        L(64, 128),
+        mp(),
+        L(128, 256),
+        L(256, 128, 1),
+        L(128, 256),
+        mp(),
+        L(256, 512),
+        L(512, 256, 1),
+        L(256, 512),
+        L(512, 256, 1),
+        L(256, 512),
+        mp(),
+        L(512, 1024),
+        L(1024, 512, 1),
+        L(512, 1024),
+        L(1024, 512, 1),
+        L(512, 1024),
     )
     return net, 1024
 
@@ -93,9 +119,12 @@ class Bottleneck(nn.Module):
     def __init__(self, cin: int, width: int, stride: int):
         super().__init__()
         cout = 4 * width
-        self.body = nn.Sequential(conv_bn(cin, width, 1), conv_bn(width, width, 3, stride),
-                                  conv_bn(width, cout, 1, act="none"))
-        self.skip = nn.Identity() if (cin == cout and stride == 1) else conv_bn(cin, cout, 1, stride, act="none")
+        self.body = nn.Sequential(
+            conv_bn(cin, width, 1), conv_bn(width, width, 3, stride), conv_bn(width, cout, 1, act="none")
+        )
+        self.skip = (
+            nn.Identity() if (cin == cout and stride == 1) else conv_bn(cin, cout, 1, stride, act="none")
+        )
         self.relu = nn.ReLU(inplace=True)
 
     def forward(self, x):
@@ -117,7 +146,9 @@ class BasicBlock(nn.Module):
     def __init__(self, cin: int, cout: int, stride: int):
         super().__init__()
         self.body = nn.Sequential(conv_bn(cin, cout, 3, stride), conv_bn(cout, cout, 3, act="none"))
-        self.skip = nn.Identity() if (cin == cout and stride == 1) else conv_bn(cin, cout, 1, stride, act="none")
+        self.skip = (
+            nn.Identity() if (cin == cout and stride == 1) else conv_bn(cin, cout, 1, stride, act="none")
+        )
         self.relu = nn.ReLU(inplace=True)
 
     def forward(self, x):
@@ -155,10 +186,20 @@ class OibarNet(nn.Module):
     training labels) turn back into metres, so the graph's output is already in metres; the 6D
     head starts at the mean attitude. Both only condition the start of training."""
 
-    def __init__(self, backbone: str = "oibar_lite", width: float = 1.0, dropout: float = 0.2,
-                 coord_channels: bool = False, pos_mean_m=(0.0, 0.1, 5.0), pos_std_m=(0.5, 0.5, 3.0),
-                 rot6d_mean=(1.0, 0.0, 0.0, 0.0, 1.0, 0.0), pos_param: str = "metres",
-                 uvlogz_mean=(0.0, 0.0, 1.4), uvlogz_std=(0.1, 0.1, 0.8), keypoints: int = 0):
+    def __init__(
+        self,
+        backbone: str = "oibar_lite",
+        width: float = 1.0,
+        dropout: float = 0.2,
+        coord_channels: bool = False,
+        pos_mean_m=(0.0, 0.1, 5.0),
+        pos_std_m=(0.5, 0.5, 3.0),
+        rot6d_mean=(1.0, 0.0, 0.0, 0.0, 1.0, 0.0),
+        pos_param: str = "metres",
+        uvlogz_mean=(0.0, 0.0, 1.4),
+        uvlogz_std=(0.1, 0.1, 0.8),
+        keypoints: int = 0,
+    ):
         super().__init__()
         if pos_param not in ("metres", "uvlogz"):
             raise ValueError(f"unknown pos_param {pos_param!r}; choose metres or uvlogz")
@@ -172,10 +213,11 @@ class OibarNet(nn.Module):
             self.backbone, feat = oibar_lite(width, in_ch)
         else:
             self.backbone, feat = BACKBONES[backbone]()
-            if coord_channels:   # widen the stem's first convolution to take the (u, v) maps
+            if coord_channels:  # widen the stem's first convolution to take the (u, v) maps
                 first = self.backbone[0][0]
-                self.backbone[0][0] = nn.Conv2d(in_ch, first.out_channels, first.kernel_size,
-                                                first.stride, first.padding, bias=False)
+                self.backbone[0][0] = nn.Conv2d(
+                    in_ch, first.out_channels, first.kernel_size, first.stride, first.padding, bias=False
+                )
         # Optional soft-argmax branch (our addition, model.keypoints > 0): K heat maps on the
         # stride-16 features, each reduced to its expected image position (u, v). Global average
         # pooling keeps *what* is seen but blurs *where*; a GAP network trained on our data
@@ -184,12 +226,15 @@ class OibarNet(nn.Module):
         self.keypoints = int(keypoints)
         if self.keypoints:
             if backbone == "oibar_lite":
-                self.kp_tap, mid_ch = 7, self.backbone[6].body[1][0].out_channels   # end of the stride-16 stage
+                self.kp_tap, mid_ch = (
+                    7,
+                    self.backbone[6].body[1][0].out_channels,
+                )  # end of the stride-16 stage
             else:
                 self.kp_tap, mid_ch = len(self.backbone), feat
             self.kp_conv = nn.Sequential(conv_bn(mid_ch, mid_ch, 3), nn.Conv2d(mid_ch, self.keypoints, 1))
         self.feature_dim = feat + 2 * self.keypoints
-        self.dropout = nn.Dropout(dropout)      # the paper: dropout, then GAP
+        self.dropout = nn.Dropout(dropout)  # the paper: dropout, then GAP
         self.pool = nn.AdaptiveAvgPool2d(1)
         self.head_t = nn.Linear(self.feature_dim, 3)
         self.head_r = nn.Linear(self.feature_dim, 6)
@@ -214,8 +259,8 @@ class OibarNet(nn.Module):
             x = torch.cat([x, u, v], 1)
         if not self.keypoints:
             return self.pool(self.dropout(self.backbone(x))).flatten(1)
-        mid = self.backbone[:self.kp_tap](x)
-        f = self.pool(self.dropout(self.backbone[self.kp_tap:](mid))).flatten(1)
+        mid = self.backbone[: self.kp_tap](x)
+        f = self.pool(self.dropout(self.backbone[self.kp_tap :](mid))).flatten(1)
         return torch.cat([f, soft_argmax(self.kp_conv(mid))], 1)
 
     def decode_position(self, raw: torch.Tensor) -> torch.Tensor:
@@ -253,7 +298,7 @@ def widen_heads_from(net: OibarNet, state: dict) -> dict:
     for name in ("head_t", "head_r"):
         w_old = state[f"{name}.weight"]
         w_new = torch.zeros_like(getattr(net, name).weight)
-        w_new[:, :w_old.shape[1]] = w_old
+        w_new[:, : w_old.shape[1]] = w_old
         out[f"{name}.weight"] = w_new
     for k, v in net.state_dict().items():
         if k.startswith("kp_conv.") and k not in out:
@@ -278,7 +323,7 @@ class TemporalOibarNet(nn.Module):
         self.lstm = nn.LSTM(cnn.feature_dim, hidden, num_layers=layers, batch_first=True, bidirectional=True)
         self.head_t = nn.Linear(2 * hidden, 3)
         self.head_r = nn.Linear(2 * hidden, 6)
-        with torch.no_grad():   # start from the CNN's own answer for the mean feature
+        with torch.no_grad():  # start from the CNN's own answer for the mean feature
             self.head_r.bias.copy_(cnn.head_r.bias)
 
     def forward(self, clip: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -302,8 +347,9 @@ class PoseOutputs(nn.Module):
         return t, quat_from_matrix(R), R, r6
 
 
-def build_model(mcfg, pos_mean_m=None, pos_std_m=None, rot6d_mean=None, uvlogz_mean=None,
-                uvlogz_std=None) -> OibarNet:
+def build_model(
+    mcfg, pos_mean_m=None, pos_std_m=None, rot6d_mean=None, uvlogz_mean=None, uvlogz_std=None
+) -> OibarNet:
     kw = {"pos_param": getattr(mcfg, "pos_param", "metres"), "keypoints": getattr(mcfg, "keypoints", 0)}
     for name, val in (("uvlogz_mean", uvlogz_mean), ("uvlogz_std", uvlogz_std)):
         if val is not None:

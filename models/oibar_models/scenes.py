@@ -26,10 +26,15 @@ def _clash(a: SequenceSpec, b: SequenceSpec) -> str | None:
         return "same name"
     if a.seed == b.seed:
         return f"same trajectory seed {a.seed}"
-    if (a.port == b.port and a.background == b.background
-            and abs(a.sun_elevation_deg - b.sun_elevation_deg) < SUN_MARGIN_DEG):
-        return (f"port {a.port}, {a.background} background, Sun {a.sun_elevation_deg} vs {b.sun_elevation_deg} deg "
-                f"(closer than {SUN_MARGIN_DEG} deg)")
+    if (
+        a.port == b.port
+        and a.background == b.background
+        and abs(a.sun_elevation_deg - b.sun_elevation_deg) < SUN_MARGIN_DEG
+    ):
+        return (
+            f"port {a.port}, {a.background} background, Sun {a.sun_elevation_deg} vs {b.sun_elevation_deg} deg "
+            f"(closer than {SUN_MARGIN_DEG} deg)"
+        )
     return None
 
 
@@ -38,7 +43,7 @@ def check_disjoint(sets: dict[str, list[SequenceSpec]]) -> None:
     names = list(sets)
     clashes = []
     for i, na in enumerate(names):
-        for nb in names[i + 1:]:
+        for nb in names[i + 1 :]:
             for a in sets[na]:
                 for b in sets[nb]:
                     why = _clash(a, b)
@@ -46,5 +51,8 @@ def check_disjoint(sets: dict[str, list[SequenceSpec]]) -> None:
                         clashes.append(f"{na} {a.name} and {nb} {b.name}: {why}")
     if clashes:
         more = f"\n  ... and {len(clashes) - 10} more" if len(clashes) > 10 else ""
-        raise ConfigError(f"the {', '.join(names)} sets overlap, so validation or test figures would not be honest:\n  "
-                          + "\n  ".join(clashes[:10]) + more)
+        raise ConfigError(
+            f"the {', '.join(names)} sets overlap, so validation or test figures would not be honest:\n  "
+            + "\n  ".join(clashes[:10])
+            + more
+        )

@@ -58,10 +58,18 @@ from .loss import UncertaintyPoseLoss
 
 # The fields of the data config that define the split: the study must cut the sequences exactly
 # as the CNN's training did, or "validation" frames could be frames the CNN was trained on.
-SPLIT_FIELDS = ("root", "train_seqs", "test_seqs", "val_fraction", "chunk_lengths", "split_seed", "frame_stride")
+SPLIT_FIELDS = (
+    "root",
+    "train_seqs",
+    "test_seqs",
+    "val_fraction",
+    "chunk_lengths",
+    "split_seed",
+    "frame_stride",
+)
 
 
-SMOOTHED = "CNN + moving avg"    # the smoothing control's row label
+SMOOTHED = "CNN + moving avg"  # the smoothing control's row label
 
 
 class StudyError(RuntimeError):
@@ -85,22 +93,33 @@ def images_from_uint8(frames: np.ndarray) -> torch.Tensor:
 
 
 @torch.no_grad()
-def extract_features(net, frames: np.ndarray, batch: int = 64, progress: bool = False, desc: str = "features"
-                     ) -> np.ndarray:
+def extract_features(
+    net, frames: np.ndarray, batch: int = 64, progress: bool = False, desc: str = "features"
+) -> np.ndarray:
     """GAP features of every frame, in order: (N, feature_dim) float32."""
     net.eval()
     out = np.empty((len(frames), net.feature_dim), np.float32)
     it = range(0, len(frames), batch)
     if progress:
         from oibar.progress import progress_iter
+
         it = progress_iter(it, desc, unit="batch", leave=False)
     for i in it:
-        out[i:i + batch] = net.features(images_from_uint8(frames[i:i + batch])).numpy()
+        out[i : i + batch] = net.features(images_from_uint8(frames[i : i + batch])).numpy()
     return out
 
 
-def sequence_features(net, seq: Sequence, size_wh, n_frames: int, ck_hash: str, out: Path,
-                      frame_cache_dir: Path | None, batch: int = 64, progress: bool = False) -> tuple[np.ndarray, bool]:
+def sequence_features(
+    net,
+    seq: Sequence,
+    size_wh,
+    n_frames: int,
+    ck_hash: str,
+    out: Path,
+    frame_cache_dir: Path | None,
+    batch: int = 64,
+    progress: bool = False,
+) -> tuple[np.ndarray, bool]:
     """Features of frames [0, n_frames) of seq, cached in out; -> (features, reused_from_disk)."""
     m_hash = hashlib.sha256((seq.dir / "manifest.json").read_bytes()).hexdigest()[:8]
     path = out / f"features_{seq.name}_n{n_frames}_ck{ck_hash}_m{m_hash}.npy"
@@ -113,7 +132,7 @@ def sequence_features(net, seq: Sequence, size_wh, n_frames: int, ck_hash: str, 
     out.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npy")
     np.save(tmp, arr)
-    tmp.replace(path)      # atomic: an interrupted extraction never leaves a truncated cache
+    tmp.replace(path)  # atomic: an interrupted extraction never leaves a truncated cache
     return arr, False
 
 
@@ -121,14 +140,16 @@ def sequence_features(net, seq: Sequence, size_wh, n_frames: int, ck_hash: str, 
 @dataclass
 class Segment:
     """A run of consecutive frames of one sequence that belongs to one split."""
-    seq: int                 # index into the study's sequence list
-    frames: np.ndarray       # frame indices, increasing
-    split: str               # train | val | test
-    chunk: int               # sub-sequence number in split.json (-1: a whole test sequence)
+
+    seq: int  # index into the study's sequence list
+    frames: np.ndarray  # frame indices, increasing
+    split: str  # train | val | test
+    chunk: int  # sub-sequence number in split.json (-1: a whole test sequence)
 
 
-def split_segments(split_info: dict, seq_names: list[str], items: dict[str, np.ndarray],
-                   n_frames: list[int]) -> list[Segment]:
+def split_segments(
+    split_info: dict, seq_names: list[str], items: dict[str, np.ndarray], n_frames: list[int]
+) -> list[Segment]:
     """One Segment per sub-sequence (chunk) of the split, holding the frames the split's dataset
     actually uses (items[split]: (seq, frame) rows) below n_frames[seq]."""
     segs = []
@@ -153,7 +174,7 @@ def make_clips(segments: list[Segment], length: int, stride: int) -> np.ndarray:
     rows = []
     for i, seg in enumerate(segments):
         for a in window_starts(len(seg.frames), length, stride) if len(seg.frames) >= length else []:
-            rows.append([i, seg.seq, *seg.frames[a:a + length]])
+            rows.append([i, seg.seq, *seg.frames[a : a + length]])
     return np.array(rows, dtype=np.int64).reshape(-1, 2 + length)
 
 
@@ -178,8 +199,16 @@ class TemporalHead(nn.Module):
     standardised parameterisation (N, T, 3), rot6d (N, T, 6)). Decode the position with the
     CNN's decode_position (predict_clips does)."""
 
-    def __init__(self, feature_dim: int, layers: int, hidden: int, feat_mean, feat_std, rot6d_mean,
-                 dropout: float = 0.2):
+    def __init__(
+        self,
+        feature_dim: int,
+        layers: int,
+        hidden: int,
+        feat_mean,
+        feat_std,
+        rot6d_mean,
+        dropout: float = 0.2,
+    ):
         super().__init__()
         if not 1 <= layers <= 3:
             raise ValueError("the paper's study uses 1 to 3 BiLSTM layers")
@@ -187,8 +216,14 @@ class TemporalHead(nn.Module):
         self.register_buffer("feat_mean", torch.as_tensor(np.asarray(feat_mean), dtype=torch.float32))
         self.register_buffer("feat_std", torch.as_tensor(np.asarray(feat_std), dtype=torch.float32))
         # inter-layer dropout only exists for 2+ layers (torch warns otherwise)
-        self.lstm = nn.LSTM(feature_dim, hidden, num_layers=layers, batch_first=True, bidirectional=True,
-                            dropout=dropout if layers > 1 else 0.0)
+        self.lstm = nn.LSTM(
+            feature_dim,
+            hidden,
+            num_layers=layers,
+            batch_first=True,
+            bidirectional=True,
+            dropout=dropout if layers > 1 else 0.0,
+        )
         self.head_t = nn.Linear(2 * hidden, 3)
         self.head_r = nn.Linear(2 * hidden, 6)
         # start from the mean pose, as OibarNet's heads do
@@ -209,8 +244,9 @@ def predict_clips(head: TemporalHead, cnn, feats: torch.Tensor) -> tuple[torch.T
 
 
 @torch.no_grad()
-def predict_sequence_bilstm(head: TemporalHead, cnn, feats: np.ndarray, length: int, stride: int,
-                            batch: int = 256) -> tuple[np.ndarray, np.ndarray]:
+def predict_sequence_bilstm(
+    head: TemporalHead, cnn, feats: np.ndarray, length: int, stride: int, batch: int = 256
+) -> tuple[np.ndarray, np.ndarray]:
     """Sliding windows over one run of consecutive frames; each frame predicted once, by the
     window whose centre is nearest. -> T_cam_target (n, 3) m, rot6d (n, 6)."""
     head.eval()
@@ -220,7 +256,7 @@ def predict_sequence_bilstm(head: TemporalHead, cnn, feats: np.ndarray, length: 
     f = torch.from_numpy(np.ascontiguousarray(feats))
     T_w, r_w = [], []
     for i in range(0, len(starts), batch):
-        clip = torch.stack([f[a:a + L] for a in starts[i:i + batch]])
+        clip = torch.stack([f[a : a + L] for a in starts[i : i + batch]])
         t, r = predict_clips(head, cnn, clip)
         T_w.append(t)
         r_w.append(r)
@@ -261,31 +297,42 @@ class StudySettings:
     hidden: int = 128
     clip_len: int = 32
     clip_stride: int = 8
-    eval_stride: int = 8             # sliding-window stride on validation / test
+    eval_stride: int = 8  # sliding-window stride on validation / test
     epochs: int = 15
-    batch_size: int = 32             # clips
+    batch_size: int = 32  # clips
     lr: float = 1e-3
-    dropout: float = 0.2             # between LSTM layers (2+ layers)
+    dropout: float = 0.2  # between LSTM layers (2+ layers)
     seed: int = 0
-    max_frames: int = 0              # >0: only the first N frames of every sequence (smoke runs)
+    max_frames: int = 0  # >0: only the first N frames of every sequence (smoke runs)
     feature_batch: int = 64
     threads: int = 2
 
 
 def _labels(seq: Sequence, n: int) -> dict:
-    return {"T": seq.T_cam_target[:n].astype(np.float32), "q": seq.q_cam_target[:n],
-            "r6": rot6d_from_matrix_np(quat_to_matrix_np(seq.q_cam_target[:n])).astype(np.float32)}
+    return {
+        "T": seq.T_cam_target[:n].astype(np.float32),
+        "q": seq.q_cam_target[:n],
+        "r6": rot6d_from_matrix_np(quat_to_matrix_np(seq.q_cam_target[:n])).astype(np.float32),
+    }
 
 
 def _check_checkpoint_matches(cfg, ck: dict) -> None:
     ck_data, ck_model = ck["config"]["data"], ck["config"]["model"]
-    bad = [f"data.{k}: config {getattr(cfg.data, k)!r} vs checkpoint {ck_data.get(k)!r}"
-           for k in SPLIT_FIELDS if ck_data.get(k) != getattr(cfg.data, k)]
-    bad += [f"model.{k}: config {getattr(cfg.model, k)!r} vs checkpoint {ck_model.get(k)!r}"
-            for k in ("input_width_px", "input_height_px") if ck_model.get(k) != getattr(cfg.model, k)]
+    bad = [
+        f"data.{k}: config {getattr(cfg.data, k)!r} vs checkpoint {ck_data.get(k)!r}"
+        for k in SPLIT_FIELDS
+        if ck_data.get(k) != getattr(cfg.data, k)
+    ]
+    bad += [
+        f"model.{k}: config {getattr(cfg.model, k)!r} vs checkpoint {ck_model.get(k)!r}"
+        for k in ("input_width_px", "input_height_px")
+        if ck_model.get(k) != getattr(cfg.model, k)
+    ]
     if bad:
-        raise StudyError("the checkpoint was trained with another split or input size than the config "
-                         "(the study must reuse the CNN's split):\n  " + "\n  ".join(bad))
+        raise StudyError(
+            "the checkpoint was trained with another split or input size than the config "
+            "(the study must reuse the CNN's split):\n  " + "\n  ".join(bad)
+        )
 
 
 def _summarize(T_hat, r6_hat, lab_T, lab_q) -> dict:
@@ -304,9 +351,21 @@ def _evaluate_segments(predict, segments, labels) -> dict:
     return _summarize(np.concatenate(T_hat), np.concatenate(r6_hat), np.concatenate(T), np.concatenate(q))
 
 
-def train_head(cnn, feats: list[np.ndarray], labels: list[dict], clips: np.ndarray, val_segments: list[Segment],
-               layers: int, st: StudySettings, range_normalised: bool, rot6d_mean, feat_mean, feat_std,
-               progress: bool = False, log=print) -> tuple[TemporalHead, list[dict]]:
+def train_head(
+    cnn,
+    feats: list[np.ndarray],
+    labels: list[dict],
+    clips: np.ndarray,
+    val_segments: list[Segment],
+    layers: int,
+    st: StudySettings,
+    range_normalised: bool,
+    rot6d_mean,
+    feat_mean,
+    feat_std,
+    progress: bool = False,
+    log=print,
+) -> tuple[TemporalHead, list[dict]]:
     """Adam on the clips; after each epoch, validation by sliding windows; keeps the best epoch."""
     torch.manual_seed(st.seed + layers)
     rng = np.random.default_rng(st.seed + layers)
@@ -338,11 +397,16 @@ def train_head(cnn, feats: list[np.ndarray], labels: list[dict], clips: np.ndarr
         bar = None
         if progress:
             from oibar.progress import Progress
-            bar = Progress(f"BiLSTM-{layers} epoch {epoch + 1}/{st.epochs}", total=len(batches), unit="batch",
-                           leave=False)
+
+            bar = Progress(
+                f"BiLSTM-{layers} epoch {epoch + 1}/{st.epochs}",
+                total=len(batches),
+                unit="batch",
+                leave=False,
+            )
         loss_sum = 0.0
         for i in batches:
-            f, t, r = gather(clips[order[i:i + st.batch_size]])
+            f, t, r = gather(clips[order[i : i + st.batch_size]])
             T_hat, r6_hat = predict_clips(head, cnn, f)
             out = crit(T_hat, r6_hat, t, r)
             opt.zero_grad(set_to_none=True)
@@ -355,11 +419,18 @@ def train_head(cnn, feats: list[np.ndarray], labels: list[dict], clips: np.ndarr
             bar.close()
         val = _evaluate_segments(val_predict, val_segments, labels)
         score = metrics.score(val)
-        row = {"epoch": epoch + 1, "loss": loss_sum / max(1, len(batches)), "val_score": score,
-               "epoch_s": time.perf_counter() - t0, **{f"val_{k}": v for k, v in val.items()}}
+        row = {
+            "epoch": epoch + 1,
+            "loss": loss_sum / max(1, len(batches)),
+            "val_score": score,
+            "epoch_s": time.perf_counter() - t0,
+            **{f"val_{k}": v for k, v in val.items()},
+        }
         history.append(row)
-        log(f"BiLSTM-{layers} epoch {epoch + 1}: loss {row['loss']:.2f}, val dt {val['dt_mean_pct']:.2f} % "
-            f"dq {val['dq_mean_deg']:.2f} deg, score {score:.4f} ({row['epoch_s']:.1f} s)")
+        log(
+            f"BiLSTM-{layers} epoch {epoch + 1}: loss {row['loss']:.2f}, val dt {val['dt_mean_pct']:.2f} % "
+            f"dq {val['dq_mean_deg']:.2f} deg, score {score:.4f} ({row['epoch_s']:.1f} s)"
+        )
         if score < best:
             best = score
             best_state = {k: v.detach().clone() for k, v in head.state_dict().items()}
@@ -373,8 +444,11 @@ def direct_check(cnn, frames: np.ndarray, feats: np.ndarray, idx: np.ndarray) ->
     with torch.no_grad():
         t_img, r_img = cnn(images_from_uint8(np.asarray(frames[idx])))
     t_f, r_f = predict_cnn_from_features(cnn, feats[idx])
-    return {"frames": int(len(idx)), "max_abs_position_m": float(np.abs(t_img.numpy() - t_f).max()),
-            "max_abs_rot6d": float(np.abs(r_img.numpy() - r_f).max())}
+    return {
+        "frames": int(len(idx)),
+        "max_abs_position_m": float(np.abs(t_img.numpy() - t_f).max()),
+        "max_abs_rot6d": float(np.abs(r_img.numpy() - r_f).max()),
+    }
 
 
 def run_study(cfg, checkpoint: Path, out: Path, st: StudySettings, progress: bool = True, log=print) -> dict:
@@ -406,33 +480,41 @@ def run_study(cfg, checkpoint: Path, out: Path, st: StudySettings, progress: boo
         feats.append(f)
         reused.append(r)
     extract_s = time.perf_counter() - t0
-    log(f"features: {sum(n_frames)} frames of {len(seqs)} sequences, dim {cnn.feature_dim}, "
-        f"{'reused from ' + str(out) if all(reused) else f'{extract_s:.0f} s'}")
+    log(
+        f"features: {sum(n_frames)} frames of {len(seqs)} sequences, dim {cnn.feature_dim}, "
+        f"{'reused from ' + str(out) if all(reused) else f'{extract_s:.0f} s'}"
+    )
     labels = [_labels(s, n) for s, n in zip(seqs, n_frames, strict=True)]
 
     items = {"train": splits.train.items, "val": splits.val.items}
-    segs = split_segments(splits.split_info, [s.name for s in train_seqs], items, n_frames[:len(train_seqs)])
+    segs = split_segments(splits.split_info, [s.name for s in train_seqs], items, n_frames[: len(train_seqs)])
     train_segs = [g for g in segs if g.split == "train"]
     val_segs = [g for g in segs if g.split == "val"]
-    test_segs = [Segment(len(train_seqs) + i, np.arange(n_frames[len(train_seqs) + i]), "test", -1)
-                 for i in range(len(test_seqs))]
+    test_segs = [
+        Segment(len(train_seqs) + i, np.arange(n_frames[len(train_seqs) + i]), "test", -1)
+        for i in range(len(test_seqs))
+    ]
     clips = make_clips(train_segs, st.clip_len, st.clip_stride)
     if not len(clips) or not val_segs:
-        raise StudyError(f"no training clips of {st.clip_len} frames or no validation frames "
-                         f"(max_frames={st.max_frames}): use more frames or a shorter clip")
+        raise StudyError(
+            f"no training clips of {st.clip_len} frames or no validation frames "
+            f"(max_frames={st.max_frames}): use more frames or a shorter clip"
+        )
     train_frames = np.concatenate([feats[g.seq][g.frames] for g in train_segs])
     feat_mean, feat_std = train_frames.mean(0), np.maximum(train_frames.std(0), 1e-3)
     range_normalised = ck["config"]["train"].get("pos_loss") == "range_normalised"
-    log(f"clips: {len(clips)} of {st.clip_len} frames (stride {st.clip_stride}) from {len(train_segs)} train "
+    log(
+        f"clips: {len(clips)} of {st.clip_len} frames (stride {st.clip_stride}) from {len(train_segs)} train "
         f"sub-sequences; {sum(len(g.frames) for g in val_segs)} val frames in {len(val_segs)} sub-sequences; "
-        f"loss {'range-normalised' if range_normalised else 'metres'}")
+        f"loss {'range-normalised' if range_normalised else 'metres'}"
+    )
 
     # the CNN alone, from the same features; and the check that this path is the CNN itself
     def cnn_predict(seg):
         return predict_cnn_from_features(cnn, feats[seg.seq][seg.frames])
 
     check = _direct_check_tests(cnn, seqs, test_segs, n_frames, feats, size, cache_dir)
-    seq01 = len(train_seqs)          # first test sequence (seq01 in the paper's split): the plot
+    seq01 = len(train_seqs)  # first test sequence (seq01 in the paper's split): the plot
 
     def smoothed_predict(seg):
         t, r = cnn_predict(seg)
@@ -455,13 +537,35 @@ def run_study(cfg, checkpoint: Path, out: Path, st: StudySettings, progress: boo
     histories, train_s = {}, {}
     for L in st.layers:
         t0 = time.perf_counter()
-        head, hist = train_head(cnn, feats, labels, clips, val_segs, L, st, range_normalised,
-                                ck["labels"]["rot6d_mean"], feat_mean, feat_std, progress, log)
+        head, hist = train_head(
+            cnn,
+            feats,
+            labels,
+            clips,
+            val_segs,
+            L,
+            st,
+            range_normalised,
+            ck["labels"]["rot6d_mean"],
+            feat_mean,
+            feat_std,
+            progress,
+            log,
+        )
         train_s[L] = time.perf_counter() - t0
         histories[L] = hist
         key = f"BiLSTM-{L}"
-        torch.save({"state_dict": head.state_dict(), "layers": L, "hidden": st.hidden, "checkpoint": str(checkpoint),
-                    "checkpoint_sha256_12": ck_hash, "settings": st.__dict__}, out / f"bilstm_L{L}.pt")
+        torch.save(
+            {
+                "state_dict": head.state_dict(),
+                "layers": L,
+                "hidden": st.hidden,
+                "checkpoint": str(checkpoint),
+                "checkpoint_sha256_12": ck_hash,
+                "settings": st.__dict__,
+            },
+            out / f"bilstm_L{L}.pt",
+        )
 
         def bl_predict(seg, head=head):
             return predict_sequence_bilstm(head, cnn, feats[seg.seq][seg.frames], st.clip_len, st.eval_stride)
@@ -472,27 +576,44 @@ def run_study(cfg, checkpoint: Path, out: Path, st: StudySettings, progress: boo
     best_key = min(bilstms, key=lambda k: metrics.score(results[k]["val"]))
 
     _plot_errors(out, seqs[seq01], preds, labels[seq01], n_frames[seq01], best_key)
-    np.savez_compressed(out / "predictions.npz", **{f"{k}/T_cam_target_m": v[0] for k, v in preds.items()},
-                        **{f"{k}/rot6d": v[1] for k, v in preds.items()})
+    np.savez_compressed(
+        out / "predictions.npz",
+        **{f"{k}/T_cam_target_m": v[0] for k, v in preds.items()},
+        **{f"{k}/rot6d": v[1] for k, v in preds.items()},
+    )
 
-    rows = [(split, model, results[model][split]) for split in [seqs[g.seq].name for g in test_segs] + ["val"]
-            for model in results]
+    rows = [
+        (split, model, results[model][split])
+        for split in [seqs[g.seq].name for g in test_segs] + ["val"]
+        for model in results
+    ]
     wall_s = time.perf_counter() - t_start
     result = {
-        "checkpoint": str(checkpoint), "checkpoint_sha256_12": ck_hash,
-        "checkpoint_epoch": ck.get("epoch"), "settings": st.__dict__ | {"layers": list(st.layers)},
+        "checkpoint": str(checkpoint),
+        "checkpoint_sha256_12": ck_hash,
+        "checkpoint_epoch": ck.get("epoch"),
+        "settings": st.__dict__ | {"layers": list(st.layers)},
         "eval_rule": "sliding windows of clip_len every eval_stride frames; each frame predicted once, "
-                     "by the window whose centre is nearest",
-        "frames": {"train_clips": int(len(clips)), "train_frames_in_clips": _distinct_frames(clips),
-                   "val_frames": int(sum(len(g.frames) for g in val_segs)),
-                   **{seqs[g.seq].name: int(len(g.frames)) for g in test_segs}},
+        "by the window whose centre is nearest",
+        "frames": {
+            "train_clips": int(len(clips)),
+            "train_frames_in_clips": _distinct_frames(clips),
+            "val_frames": int(sum(len(g.frames) for g in val_segs)),
+            **{seqs[g.seq].name: int(len(g.frames)) for g in test_segs},
+        },
         "loss": "range_normalised" if range_normalised else "metres",
-        "direct_check": check, "results": results, "best_bilstm_on_val": best_key,
+        "direct_check": check,
+        "results": results,
+        "best_bilstm_on_val": best_key,
         "history": {f"BiLSTM-{L}": h for L, h in histories.items()},
-        "timing_s": {"features": extract_s, "features_reused": all(reused),
-                     **{f"train_BiLSTM-{L}": v for L, v in train_s.items()}, "wall": wall_s},
+        "timing_s": {
+            "features": extract_s,
+            "features_reused": all(reused),
+            **{f"train_BiLSTM-{L}": v for L, v in train_s.items()},
+            "wall": wall_s,
+        },
         "machine": f"{platform.processor() or platform.machine()}, {platform.system()}, "
-                   f"torch threads {torch.get_num_threads()}",
+        f"torch threads {torch.get_num_threads()}",
     }
     result["verdict"] = _verdict(results, best_key, [seqs[g.seq].name for g in test_segs])
     (out / "temporal.md").write_text(_report_markdown(result, rows, st, train_s))
@@ -500,8 +621,15 @@ def run_study(cfg, checkpoint: Path, out: Path, st: StudySettings, progress: boo
     return result
 
 
-def _direct_check_tests(cnn, seqs: list[Sequence], test_segs: list[Segment], n_frames: list[int],
-                        feats: list[np.ndarray], size, cache_dir) -> dict:
+def _direct_check_tests(
+    cnn,
+    seqs: list[Sequence],
+    test_segs: list[Segment],
+    n_frames: list[int],
+    feats: list[np.ndarray],
+    size,
+    cache_dir,
+) -> dict:
     """The CNN on images against its heads on the cached features, 64 frames spread over each
     test sequence: raises StudyError when they differ (stale or foreign features)."""
     checks = []
@@ -509,9 +637,11 @@ def _direct_check_tests(cnn, seqs: list[Sequence], test_segs: list[Segment], n_f
         n = n_frames[seg.seq]
         idx = np.linspace(0, n - 1, min(64, n)).astype(int)
         checks.append(direct_check(cnn, frame_cache(seqs[seg.seq], size, cache_dir), feats[seg.seq], idx))
-    check = {"frames": sum(c["frames"] for c in checks),
-             "max_abs_position_m": max(c["max_abs_position_m"] for c in checks),
-             "max_abs_rot6d": max(c["max_abs_rot6d"] for c in checks)}
+    check = {
+        "frames": sum(c["frames"] for c in checks),
+        "max_abs_position_m": max(c["max_abs_position_m"] for c in checks),
+        "max_abs_rot6d": max(c["max_abs_rot6d"] for c in checks),
+    }
     if check["max_abs_position_m"] > 1e-3 or check["max_abs_rot6d"] > 1e-4:
         raise StudyError(f"cached features do not reproduce the CNN's own predictions: {check}")
     return check
@@ -523,31 +653,46 @@ def _plot_errors(out: Path, seq: Sequence, preds: dict, label: dict, n_frames: i
     series = {}
     for key in ("CNN alone", SMOOTHED, best_key):
         t, r = preds[f"{seq.name}/{key}"]
-        series[key] = (metrics.position_error_pct(t, label["T"]),
-                       metrics.attitude_error_deg(quats_from_rot6d(r), label["q"]))
-    plot_error_series(out / f"{seq.name}_temporal_errors.png",
-                      f"{seq.name}: CNN alone, moving-average control, {best_key} (chosen on val)",
-                      seq.time_s[:n_frames], series)
+        series[key] = (
+            metrics.position_error_pct(t, label["T"]),
+            metrics.attitude_error_deg(quats_from_rot6d(r), label["q"]),
+        )
+    plot_error_series(
+        out / f"{seq.name}_temporal_errors.png",
+        f"{seq.name}: CNN alone, moving-average control, {best_key} (chosen on val)",
+        seq.time_s[:n_frames],
+        series,
+    )
 
 
 def _report_markdown(result: dict, rows: list, st: StudySettings, train_s: dict) -> str:
     """temporal.md: the settings, the table, the choice on validation, the verdict, the times."""
     check, timing = result["direct_check"], result["timing_s"]
     reused = timing["features_reused"]
-    md = ["# Temporal study: BiLSTM on frozen CNN features", "",
-          f"checkpoint {result['checkpoint']} (epoch {result['checkpoint_epoch']}, sha256 "
-          f"{result['checkpoint_sha256_12']}); clips of {st.clip_len} frames "
-          f"every {st.clip_stride}; BiLSTM hidden {st.hidden}, {st.epochs} epochs, Adam lr {st.lr}, batch "
-          f"{st.batch_size} clips; evaluation: {result['eval_rule']}; control: {SMOOTHED} = the CNN's per-frame "
-          f"predictions averaged over a centred window of {st.clip_len} frames"
-          + (f"; only the first {st.max_frames} frames per sequence" if st.max_frames else ""), "",
-          metrics.markdown_table(rows), "",
-          f"BiLSTM chosen on validation: {result['best_bilstm_on_val']}. Direct check (CNN on images vs heads on "
-          f"cached features, {check['frames']} frames): max |d position| {check['max_abs_position_m']:.2e} m, "
-          f"max |d rot6d| {check['max_abs_rot6d']:.2e}.", "", f"Verdict: {result['verdict']}", "",
-          f"Wall time {timing['wall']:.0f} s (features {timing['features']:.0f} s{', reused' if reused else ''}; "
-          "training " + ", ".join(f"BiLSTM-{L} {v:.0f} s" for L, v in train_s.items()) + f"); {result['machine']}.",
-          ""]
+    md = [
+        "# Temporal study: BiLSTM on frozen CNN features",
+        "",
+        f"checkpoint {result['checkpoint']} (epoch {result['checkpoint_epoch']}, sha256 "
+        f"{result['checkpoint_sha256_12']}); clips of {st.clip_len} frames "
+        f"every {st.clip_stride}; BiLSTM hidden {st.hidden}, {st.epochs} epochs, Adam lr {st.lr}, batch "
+        f"{st.batch_size} clips; evaluation: {result['eval_rule']}; control: {SMOOTHED} = the CNN's per-frame "
+        f"predictions averaged over a centred window of {st.clip_len} frames"
+        + (f"; only the first {st.max_frames} frames per sequence" if st.max_frames else ""),
+        "",
+        metrics.markdown_table(rows),
+        "",
+        f"BiLSTM chosen on validation: {result['best_bilstm_on_val']}. Direct check (CNN on images vs heads on "
+        f"cached features, {check['frames']} frames): max |d position| {check['max_abs_position_m']:.2e} m, "
+        f"max |d rot6d| {check['max_abs_rot6d']:.2e}.",
+        "",
+        f"Verdict: {result['verdict']}",
+        "",
+        f"Wall time {timing['wall']:.0f} s (features {timing['features']:.0f} s{', reused' if reused else ''}; "
+        "training "
+        + ", ".join(f"BiLSTM-{L} {v:.0f} s" for L, v in train_s.items())
+        + f"); {result['machine']}.",
+        "",
+    ]
     return "\n".join(md)
 
 
@@ -563,10 +708,17 @@ def _verdict(results: dict, best_key: str, test_names: list[str]) -> str:
     parts = []
     for name in test_names:
         b = results[best_key][name]
-        d = {k: (b["dt_mean_pct"] - results[k][name]["dt_mean_pct"], b["dq_mean_deg"] - results[k][name]["dq_mean_deg"])
-             for k in ("CNN alone", SMOOTHED)}
-        parts.append(f"{name}: {best_key} vs CNN alone {d['CNN alone'][0]:+.2f} % / {d['CNN alone'][1]:+.2f} deg, "
-                     f"vs {SMOOTHED} {d[SMOOTHED][0]:+.2f} % / {d[SMOOTHED][1]:+.2f} deg (negative: BiLSTM better)")
+        d = {
+            k: (
+                b["dt_mean_pct"] - results[k][name]["dt_mean_pct"],
+                b["dq_mean_deg"] - results[k][name]["dq_mean_deg"],
+            )
+            for k in ("CNN alone", SMOOTHED)
+        }
+        parts.append(
+            f"{name}: {best_key} vs CNN alone {d['CNN alone'][0]:+.2f} % / {d['CNN alone'][1]:+.2f} deg, "
+            f"vs {SMOOTHED} {d[SMOOTHED][0]:+.2f} % / {d[SMOOTHED][1]:+.2f} deg (negative: BiLSTM better)"
+        )
     return "; ".join(parts)
 
 
@@ -587,13 +739,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch-size", type=int, default=d.batch_size)
     ap.add_argument("--lr", type=float, default=d.lr)
     ap.add_argument("--seed", type=int, default=d.seed)
-    ap.add_argument("--max-frames", type=int, default=0, help="only the first N frames of every sequence (smoke)")
+    ap.add_argument(
+        "--max-frames", type=int, default=0, help="only the first N frames of every sequence (smoke)"
+    )
     ap.add_argument("--threads", type=int, default=d.threads, help="torch threads (0: torch's default)")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
-    st = StudySettings(layers=tuple(a.layers), hidden=a.hidden, clip_len=a.clip_len, clip_stride=a.clip_stride,
-                       eval_stride=a.eval_stride, epochs=a.epochs, batch_size=a.batch_size, lr=a.lr, seed=a.seed,
-                       max_frames=a.max_frames, threads=a.threads)
+    st = StudySettings(
+        layers=tuple(a.layers),
+        hidden=a.hidden,
+        clip_len=a.clip_len,
+        clip_stride=a.clip_stride,
+        eval_stride=a.eval_stride,
+        epochs=a.epochs,
+        batch_size=a.batch_size,
+        lr=a.lr,
+        seed=a.seed,
+        max_frames=a.max_frames,
+        threads=a.threads,
+    )
     try:
         cfg = load_config(a.config)
         ckpt = Path(a.checkpoint) if a.checkpoint else cfg.run_path / "best.pt"

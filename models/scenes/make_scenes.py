@@ -23,10 +23,10 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 PORT_APPROACH = {1: "+V-bar", 2: "-R-bar", 3: "-V-bar", 4: "-R-bar", 5: "+R-bar", 6: "+R-bar"}
 TEST = [{"paper": 1}, {"paper": 8}]
-TEST_KEYS = [(1, "iss", 37.0), (4, "iss", 146.0)]      # (port, background, Sun elevation)
+TEST_KEYS = [(1, "iss", 37.0), (4, "iss", 146.0)]  # (port, background, Sun elevation)
 SUN_RANGE_DEG = (15.0, 170.0)
-SUN_MARGIN_DEG = 15.0                                   # > oibar_models.scenes.SUN_MARGIN_DEG
-STRIDE = 8                                              # every 8th frame: 0.8 s apart
+SUN_MARGIN_DEG = 15.0  # > oibar_models.scenes.SUN_MARGIN_DEG
+STRIDE = 8  # every 8th frame: 0.8 s apart
 
 
 def _sun(rng: np.random.Generator, port: int, bg: str, avoid: list[tuple]) -> float:
@@ -38,16 +38,24 @@ def _sun(rng: np.random.Generator, port: int, bg: str, avoid: list[tuple]) -> fl
             return sun
 
 
-def scenes(prefix: str, seed0: int, per_cell: int, rng: np.random.Generator, avoid: list[tuple]) -> list[dict]:
+def scenes(
+    prefix: str, seed0: int, per_cell: int, rng: np.random.Generator, avoid: list[tuple]
+) -> list[dict]:
     out = []
     i = 0
     for port in range(1, 7):
         for bg in ("iss", "perlin"):
             for _ in range(per_cell):
                 kind = rng.choice(["nominal", "envelope", "noise", "blur"], p=[0.4, 0.25, 0.2, 0.15])
-                s = {"name": f"{prefix}{i:03d}", "port": port, "approach": PORT_APPROACH[port],
-                     "sun_elevation_deg": _sun(rng, port, bg, avoid), "background": bg, "seed": seed0 + i,
-                     "frame_stride": STRIDE}
+                s = {
+                    "name": f"{prefix}{i:03d}",
+                    "port": port,
+                    "approach": PORT_APPROACH[port],
+                    "sun_elevation_deg": _sun(rng, port, bg, avoid),
+                    "background": bg,
+                    "seed": seed0 + i,
+                    "frame_stride": STRIDE,
+                }
                 if kind == "envelope":
                     s["envelope"] = True
                 elif kind == "noise":
@@ -59,14 +67,25 @@ def scenes(prefix: str, seed0: int, per_cell: int, rng: np.random.Generator, avo
     return out
 
 
-def turned(prefix: str, first: int, seed0: int, n: int, rng: np.random.Generator, avoid: list[tuple]) -> list[dict]:
+def turned(
+    prefix: str, first: int, seed0: int, n: int, rng: np.random.Generator, avoid: list[tuple]
+) -> list[dict]:
     """n nominal runs on n different ports, backgrounds alternating, each turned 1.5-5 deg."""
     out = []
     for j, port in enumerate(rng.choice(np.arange(1, 7), n, replace=False)):
         port, bg = int(port), ("iss", "perlin")[j % 2]
-        out.append({"name": f"{prefix}{first + j:03d}", "port": port, "approach": PORT_APPROACH[port],
-                    "sun_elevation_deg": _sun(rng, port, bg, avoid), "background": bg, "seed": seed0 + j,
-                    "frame_stride": STRIDE, "turned_deg": float(np.round(rng.uniform(1.5, 5.0), 1))})
+        out.append(
+            {
+                "name": f"{prefix}{first + j:03d}",
+                "port": port,
+                "approach": PORT_APPROACH[port],
+                "sun_elevation_deg": _sun(rng, port, bg, avoid),
+                "background": bg,
+                "seed": seed0 + j,
+                "frame_stride": STRIDE,
+                "turned_deg": float(np.round(rng.uniform(1.5, 5.0), 1)),
+            }
+        )
     return out
 
 

@@ -91,20 +91,27 @@ def test_map_parser_groups_sections_by_module(tmp_path):
     sizes = firmware.parse_map(p)
     by = {k.split(" ")[0]: v for k, v in sizes.items()}
     assert by["link"] == {"flash": 0x100, "ram": 0}
-    assert by["drivers"] == {"flash": 0x7e, "ram": 0}
-    assert by["application"] == {"flash": 0x80, "ram": 0}          # debug sections ignored
-    assert by["startup"] == {"flash": 0x188 + 0x100, "ram": 0}      # vectors + libc
-    assert by["nanopb"] == {"flash": 8, "ram": 8}                   # .data: flash image and RAM
+    assert by["drivers"] == {"flash": 0x7E, "ram": 0}
+    assert by["application"] == {"flash": 0x80, "ram": 0}  # debug sections ignored
+    assert by["startup"] == {"flash": 0x188 + 0x100, "ram": 0}  # vectors + libc
+    assert by["nanopb"] == {"flash": 8, "ram": 8}  # .data: flash image and RAM
     assert by["port/stm32f4"] == {"flash": 0, "ram": 0x20}
     assert by["alignment"] == {"flash": 2, "ram": 0}
 
 
 def test_longest_path_bounds_branches_and_refuses_loops():
-    straight = [(0x10, "ldr", "r3, [pc, #8]"), (0x12, "cbz", "r3, 1a <f+0xa>"), (0x14, "movs", "r0, #1"),
-                (0x16, "adds", "r0, #2"), (0x18, "bx", "lr"), (0x1a, "movs", "r0, #0"), (0x1c, "bx", "lr")]
-    assert firmware.longest_path("f", straight) == 5          # ldr, cbz, movs, adds, bx
-    tail = [(0x10, "push", "{r4, lr}"), (0x12, "bl", "40 <g>"), (0x16, "b.w", "50 <h>"), (0x1a, "nop", "")]
-    assert firmware.longest_path("f", tail) == 3              # a tail call ends the path
+    straight = [
+        (0x10, "ldr", "r3, [pc, #8]"),
+        (0x12, "cbz", "r3, 1a <f+0xa>"),
+        (0x14, "movs", "r0, #1"),
+        (0x16, "adds", "r0, #2"),
+        (0x18, "bx", "lr"),
+        (0x1A, "movs", "r0, #0"),
+        (0x1C, "bx", "lr"),
+    ]
+    assert firmware.longest_path("f", straight) == 5  # ldr, cbz, movs, adds, bx
+    tail = [(0x10, "push", "{r4, lr}"), (0x12, "bl", "40 <g>"), (0x16, "b.w", "50 <h>"), (0x1A, "nop", "")]
+    assert firmware.longest_path("f", tail) == 3  # a tail call ends the path
     loop = [(0x10, "subs", "r0, #1"), (0x12, "bne.n", "10 <f>"), (0x14, "bx", "lr")]
     with pytest.raises(ValueError, match="loop"):
         firmware.longest_path("f", loop)
@@ -127,9 +134,17 @@ def test_budget_frames_are_the_framing_codes():
 def quick_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
     page, js = out / "benchmarks.md", out / "benchmarks.json"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT / p) for p in ("bench", "models", "hil", "host")]))
-    proc = subprocess.run([sys.executable, "-m", "oibar_bench", "--quick", "--out", str(page), "--json", str(js)],
-                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=QUICK_TIMEOUT_S)
+    env = dict(
+        os.environ, PYTHONPATH=os.pathsep.join([str(ROOT / p) for p in ("bench", "models", "hil", "host")])
+    )
+    proc = subprocess.run(
+        [sys.executable, "-m", "oibar_bench", "--quick", "--out", str(page), "--json", str(js)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=QUICK_TIMEOUT_S,
+    )
     assert page.is_file() and js.is_file(), f"no page written:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
     return proc, page.read_text(), json.loads(js.read_text())
 
@@ -145,7 +160,7 @@ def test_quick_run_writes_every_section(quick_run):
     proc, page, data = quick_run
     failed = [m["key"] for m in data["measurements"] if any(n.startswith("**failed**") for n in m["notes"])]
     if shutil.which("valgrind") is None and failed == ["firmware.step_isr"]:
-        failed = []     # valgrind is not among the Debian packages make setup installs yet
+        failed = []  # valgrind is not among the Debian packages make setup installs yet
     assert not failed, f"failed measurements {failed}:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
     assert proc.returncode == 0 or shutil.which("valgrind") is None
     for heading in core.SECTIONS.values():
@@ -153,8 +168,18 @@ def test_quick_run_writes_every_section(quick_run):
     for m in core.REGISTRY:
         assert f"### {m.title}" in page, f"{m.key} has no table on the page"
     assert "Quick development run" in page
-    for label in ("CPU", "cores (logical)", "RAM", "OS", "onnxruntime", "torch", "arm-none-eabi-gcc",
-                  "qemu-system-arm", "git commit", "date (UTC)"):
+    for label in (
+        "CPU",
+        "cores (logical)",
+        "RAM",
+        "OS",
+        "onnxruntime",
+        "torch",
+        "arm-none-eabi-gcc",
+        "qemu-system-arm",
+        "git commit",
+        "date (UTC)",
+    ):
         assert f"| {label} |" in page
 
 
@@ -199,7 +224,7 @@ def test_quick_run_numbers_are_sane(quick_run):
         rtt = [r for r in rows if "round trip" in r["what"]]
         assert rtt and all(0 < r["median_ms"] <= r["p99_ms"] for r in rtt)
         tele = [r for r in rows if "telemetry" in r["what"]][0]
-        assert 5.0 < tele["rate"] < 15.0      # 10 Hz by contract; an emulated board may run slow
+        assert 5.0 < tele["rate"] < 15.0  # 10 Hz by contract; an emulated board may run slow
     budget = _measurement(data, "link.budget")["rows"]
     totals = [r for r in budget if r["message"] == "**total**"]
     assert len(totals) == 2 and all(0 < r["util_pct"] < 100 for r in totals)

@@ -16,7 +16,7 @@ from oibar.calib.pnp import Intrinsics
 from oibar.geometry.transforms import pose_error
 from oibar_hil.calib_synth import SynthConfig, frame_times, simulate_observations, simulated_tracks
 
-SEEDS = range(101, 117)       # not the seeds the estimator was tuned on (1-20); ~2 s each
+SEEDS = range(101, 117)  # not the seeds the estimator was tuned on (1-20); ~2 s each
 
 
 def _run(seed: int, intr: Intrinsics) -> dict:
@@ -28,9 +28,17 @@ def _run(seed: int, intr: Intrinsics) -> dict:
     res = pipeline.estimate_from_observations(inp, housing, tmarkers, frames, obs, cfg.pattern, intr)
     hc = pose_error(res["T_housing_cam"], cfg.T_housing_cam)
     tt = pose_error(res["T_tmarkers_target"], cfg.T_tmarkers_target)
-    return {"seed": seed, "hc_mm": hc[0] * 1e3, "hc_deg": hc[1], "tt_mm": tt[0] * 1e3, "tt_deg": tt[1],
-            "offset_ms": (res["offset_s"] - cfg.offset_s) * 1e3, "chi2": res["residuals"]["chi2_per_dof"],
-            "used": res["poses"]["used"], "n": cfg.n_frames}
+    return {
+        "seed": seed,
+        "hc_mm": hc[0] * 1e3,
+        "hc_deg": hc[1],
+        "tt_mm": tt[0] * 1e3,
+        "tt_deg": tt[1],
+        "offset_ms": (res["offset_s"] - cfg.offset_s) * 1e3,
+        "chi2": res["residuals"]["chi2_per_dof"],
+        "used": res["poses"]["used"],
+        "n": cfg.n_frames,
+    }
 
 
 def test_every_recording_of_the_design_meets_the_limits(capsys):
@@ -41,12 +49,16 @@ def test_every_recording_of_the_design_meets_the_limits(capsys):
     keys = ("hc_mm", "hc_deg", "tt_mm", "tt_deg", "offset_ms")
     a = {k: np.array([r[k] for r in rows]) for k in keys}
     with capsys.disabled():
-        print(f"\n[calib multi-seed] {len(rows)} recordings of {rows[0]['n']} poses in {dt:.0f} s; median / worst: "
-              + "; ".join(f"{k} {np.median(a[k]):+.3f} / {a[k][np.argmax(np.abs(a[k]))]:+.3f}" for k in keys))
+        print(
+            f"\n[calib multi-seed] {len(rows)} recordings of {rows[0]['n']} poses in {dt:.0f} s; median / worst: "
+            + "; ".join(f"{k} {np.median(a[k]):+.3f} / {a[k][np.argmax(np.abs(a[k]))]:+.3f}" for k in keys)
+        )
     bad = [r for r in rows if max(r["hc_mm"], r["tt_mm"]) >= 1.0 or max(r["hc_deg"], r["tt_deg"]) >= 0.1]
     assert not bad, "recordings outside 1 mm / 0.1 deg: " + "; ".join(
         f"seed {r['seed']}: {r['hc_mm']:.3f} mm {r['hc_deg']:.4f} deg, {r['tt_mm']:.3f} mm {r['tt_deg']:.4f} deg, "
-        f"offset {r['offset_ms']:+.2f} ms" for r in bad)
+        f"offset {r['offset_ms']:+.2f} ms"
+        for r in bad
+    )
     # The offset: no bias left (was +0.6 ms median with interpolated mocap) and no stray estimate.
     assert abs(np.median(a["offset_ms"])) < 0.4 and np.max(np.abs(a["offset_ms"])) < 2.0
     assert all(0.7 < r["chi2"] < 1.4 and r["used"] >= r["n"] - 5 for r in rows)

@@ -17,7 +17,9 @@ def test_quaternion_convention_matches_scipy():
     R = T_from_vec(np.r_[0, 0, 0, 0.3, -1.2, 2.0])[:3, :3]
     q_scipy = Rotation.from_matrix(R).as_quat()[[3, 0, 1, 2]]
     assert np.allclose(matrix_to_quat(R), q_scipy if q_scipy[0] >= 0 else -q_scipy)
-    assert np.allclose(quat_to_matrix(matrix_to_quat(R)), Rotation.from_quat(q_scipy[[1, 2, 3, 0]]).as_matrix())
+    assert np.allclose(
+        quat_to_matrix(matrix_to_quat(R)), Rotation.from_quat(q_scipy[[1, 2, 3, 0]]).as_matrix()
+    )
     Rs = Rotation.random(20, random_state=3)
     q = matrix_to_quat(Rs.as_matrix())
     assert q.shape == (20, 4) and np.all(q[:, 0] >= 0)
@@ -41,14 +43,18 @@ def test_interpolation_and_gaps():
     tr = timing.Track("a", t, T)
     out, valid, k = timing.interpolate(tr, np.array([0.005, 0.05, -1.0]), with_variance=True)
     assert valid.tolist() == [True, False, False]
-    assert out[0][0, 3] == pytest.approx(0.5) and np.degrees(np.arccos(out[0][0, 0])) == pytest.approx(np.degrees(0.05))
+    assert out[0][0, 3] == pytest.approx(0.5) and np.degrees(np.arccos(out[0][0, 0])) == pytest.approx(
+        np.degrees(0.05)
+    )
     assert k[0] == pytest.approx(0.5)
 
 
 def _exact_problem(n=60):
     cfg = SynthConfig(n_frames=n)
     t_f = frame_times(cfg)
-    A = np.einsum("nij,jk->nik", inv_T(T_target_cam_at(t_f + cfg.offset_s, cfg)), cfg.pattern.T_target_pattern)
+    A = np.einsum(
+        "nij,jk->nik", inv_T(T_target_cam_at(t_f + cfg.offset_s, cfg)), cfg.pattern.T_target_pattern
+    )
     Z = inv_T(cfg.T_housing_cam)
     X = inv_T(cfg.T_tmarkers_target @ cfg.pattern.T_target_pattern)
     B = np.einsum("ij,njk,kl->nil", inv_T(Z), A, X)
@@ -67,8 +73,16 @@ def test_refinement_fixes_a_perturbed_start():
     B_at = lambda off: (B, np.ones(n, bool), np.ones(n), np.ones(n))  # noqa: E731
     noise = refine.MocapNoise()
     A_cov = np.tile(np.eye(6) * 1e-10, (n, 1, 1))
-    res = refine.refine(A, A_cov, B_at, X @ T_from_vec(np.r_[0.01, 0, -0.01, 0.02, 0, 0.01]),
-                        Z @ T_from_vec(np.r_[-0.01, 0.02, 0, 0, 0.03, 0]), 0.0, noise, noise)
+    res = refine.refine(
+        A,
+        A_cov,
+        B_at,
+        X @ T_from_vec(np.r_[0.01, 0, -0.01, 0.02, 0, 0.01]),
+        Z @ T_from_vec(np.r_[-0.01, 0.02, 0, 0, 0.03, 0]),
+        0.0,
+        noise,
+        noise,
+    )
     assert pose_error(res.X, X)[0] < 1e-7 and pose_error(res.Z, Z)[1] < 1e-6
     assert np.all(np.abs(log_T(inv_T(res.Z) @ Z)) < 1e-7)
 

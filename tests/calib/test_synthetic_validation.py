@@ -19,9 +19,26 @@ from oibar_hil.calib_synth import SynthConfig, T_target_cam_at, frame_times
 @pytest.fixture(scope="module")
 def calib(recording, tmp_path_factory):
     out = tmp_path_factory.mktemp("calib_out") / "calib.json"
-    rc = main(["calib", "estimate", "--mocap", str(recording / "mocap.csv"), "--frames", str(recording / "frames.csv"),
-               "--pattern", str(recording / "pattern.json"), "--intrinsics", str(recording / "intrinsics.json"),
-               "--housing-body", "housing", "--target-body", "tmarkers", "-o", str(out)])
+    rc = main(
+        [
+            "calib",
+            "estimate",
+            "--mocap",
+            str(recording / "mocap.csv"),
+            "--frames",
+            str(recording / "frames.csv"),
+            "--pattern",
+            str(recording / "pattern.json"),
+            "--intrinsics",
+            str(recording / "intrinsics.json"),
+            "--housing-body",
+            "housing",
+            "--target-body",
+            "tmarkers",
+            "-o",
+            str(out),
+        ]
+    )
     assert rc == 0
     return json.loads(out.read_text()), out
 
@@ -35,33 +52,57 @@ def test_recovers_static_transforms(calib, truth, capsys):
         dt_m, dr_deg = pose_error(T_est, T_true)
         figures[key] = (dt_m * 1e3, dr_deg)
     with capsys.disabled():
-        print(f"\n[calib] poses used {res['poses']['used']}; "
-              + "; ".join(f"{k}: {t:.3f} mm, {r:.4f} deg" for k, (t, r) in figures.items())
-              + f"; offset {res['offset_s'] * 1e3:.2f} ms (true {truth['offset_s'] * 1e3:.2f});"
-              f" chi2/dof {res['residuals']['chi2_per_dof']:.2f}")
+        print(
+            f"\n[calib] poses used {res['poses']['used']}; "
+            + "; ".join(f"{k}: {t:.3f} mm, {r:.4f} deg" for k, (t, r) in figures.items())
+            + f"; offset {res['offset_s'] * 1e3:.2f} ms (true {truth['offset_s'] * 1e3:.2f});"
+            f" chi2/dof {res['residuals']['chi2_per_dof']:.2f}"
+        )
     for key, (t_mm, r_deg) in figures.items():
         assert t_mm < 1.0, f"{key}: translation error {t_mm:.3f} mm"
         assert r_deg < 0.1, f"{key}: rotation error {r_deg:.4f} deg"
     assert abs(res["offset_s"] - truth["offset_s"]) < 0.003
     assert res["poses"]["used"] >= 190
-    assert 0.5 < res["residuals"]["chi2_per_dof"] < 2.0   # the stated noise matches the data
+    assert 0.5 < res["residuals"]["chi2_per_dof"] < 2.0  # the stated noise matches the data
 
 
 def test_apply_gives_time_aligned_ground_truth(calib, recording, truth, tmp_path):
     _, calib_path = calib
     out = tmp_path / "poses.csv"
-    assert main(["calib", "apply", "--calib", str(calib_path), "--mocap", str(recording / "mocap.csv"),
-                 "--frames", str(recording / "frames.csv"), "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "calib",
+                "apply",
+                "--calib",
+                str(calib_path),
+                "--mocap",
+                str(recording / "mocap.csv"),
+                "--frames",
+                str(recording / "frames.csv"),
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     with open(out, newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert list(rows[0].keys()) == io.POSES_COLUMNS
     assert len(rows) == truth["n_frames"]
     cfg = SynthConfig()
     T_true = inv_T(T_target_cam_at(frame_times(cfg) + cfg.offset_s, cfg))
-    dt = [np.linalg.norm([float(r[k]) for k in ("tx_m", "ty_m", "tz_m")] - T_true[i][:3, 3])
-          for i, r in enumerate(rows)]
-    dr = [rotation_angle_deg(T_from_pose([0, 0, 0], [float(r[k]) for k in ("qw", "qx", "qy", "qz")])[:3, :3].T
-                             @ T_true[i][:3, :3]) for i, r in enumerate(rows)]
+    dt = [
+        np.linalg.norm([float(r[k]) for k in ("tx_m", "ty_m", "tz_m")] - T_true[i][:3, 3])
+        for i, r in enumerate(rows)
+    ]
+    dr = [
+        rotation_angle_deg(
+            T_from_pose([0, 0, 0], [float(r[k]) for k in ("qw", "qx", "qy", "qz")])[:3, :3].T
+            @ T_true[i][:3, :3]
+        )
+        for i, r in enumerate(rows)
+    ]
     # Per frame the stream carries the mocap noise of two bodies (0.5 deg each, ~1 m lever arm).
     assert np.median(dt) < 0.012 and np.median(dr) < 0.8
     assert all(abs(float(r["time_s"]) - t) < 1e-6 for r, t in zip(rows, frame_times(cfg), strict=True))
@@ -70,8 +111,20 @@ def test_apply_gives_time_aligned_ground_truth(calib, recording, truth, tmp_path
 def test_overlay_draws_the_model(calib, recording, tmp_path):
     _, calib_path = calib
     poses = recording / "gt.csv"
-    main(["calib", "apply", "--calib", str(calib_path), "--mocap", str(recording / "mocap.csv"),
-          "--frames", str(recording / "frames.csv"), "-o", str(poses)])
+    main(
+        [
+            "calib",
+            "apply",
+            "--calib",
+            str(calib_path),
+            "--mocap",
+            str(recording / "mocap.csv"),
+            "--frames",
+            str(recording / "frames.csv"),
+            "-o",
+            str(poses),
+        ]
+    )
     assert main(["calib", "overlay", "--poses", str(poses), "--out", str(tmp_path), "--every", "100"]) == 0
     pngs = sorted(tmp_path.glob("overlay_*.png"))
     assert len(pngs) == 2
@@ -82,7 +135,10 @@ def test_overlay_draws_the_model(calib, recording, tmp_path):
 
 def test_charuco_corners_unbiased(recording):
     """Guards the re-refinement of OpenCV's ChArUco corners (+0.5 px in 4.13, opencv#25539)."""
-    pattern, intr = io.read_pattern(recording / "pattern.json"), io.read_intrinsics(recording / "intrinsics.json")
+    pattern, intr = (
+        io.read_pattern(recording / "pattern.json"),
+        io.read_intrinsics(recording / "intrinsics.json"),
+    )
     det = Detector(pattern, intr)
     cfg = SynthConfig()
     T_tc = T_target_cam_at(frame_times(cfg) + cfg.offset_s, cfg)
@@ -93,4 +149,4 @@ def test_charuco_corners_unbiased(recording):
         diffs.append(uv - uv_true)
     d = np.concatenate(diffs)
     assert np.all(np.abs(d.mean(axis=0)) < 0.1), d.mean(axis=0)
-    assert np.sqrt(np.mean(d ** 2)) < 0.4
+    assert np.sqrt(np.mean(d**2)) < 0.4

@@ -13,6 +13,7 @@ machines (carry the build folder). `--max-time-s` ends a leg early and cleanly.
 Exit status: 0 when every process ended cleanly without a finding, 1 on a finding (crash, leak,
 timeout, sanitizer report; the reproducer is saved under `<build>/artifacts/`), 2 on misuse.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -105,20 +106,29 @@ def run_leg(args: argparse.Namespace, runs_left: int) -> Leg:
     base_seed = int(time.time()) % 100_000 * 100
     procs, log_paths = [], []
     started = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
-    print(f"== {args.target}: {runs_left:,} executions on {jobs} processes ({per_job:,} each), "
-          f"corpus {corpus} ({units_before:,} units)", flush=True)
+    print(
+        f"== {args.target}: {runs_left:,} executions on {jobs} processes ({per_job:,} each), "
+        f"corpus {corpus} ({units_before:,} units)",
+        flush=True,
+    )
     t0 = time.monotonic()
     for j in range(jobs):
         log = logs / f"{args.target}.{j:02d}.log"
-        cmd = [str(exe), f"-runs={per_job}", f"-seed={base_seed + j + 1}", "-print_final_stats=1",
-               "-reload=1", f"-artifact_prefix={artifacts}/{args.target}-",
-               str(corpus), str(seeds)]
+        cmd = [
+            str(exe),
+            f"-runs={per_job}",
+            f"-seed={base_seed + j + 1}",
+            "-print_final_stats=1",
+            "-reload=1",
+            f"-artifact_prefix={artifacts}/{args.target}-",
+            str(corpus),
+            str(seeds),
+        ]
         if args.max_time_s:
             cmd.insert(1, f"-max_total_time={int(args.max_time_s)}")
         log_paths.append(log)
         with log.open("w") as f:
-            procs.append(subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT,
-                                          start_new_session=True))
+            procs.append(subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True))
 
     stopped = []
 
@@ -127,6 +137,7 @@ def run_leg(args: argparse.Namespace, runs_left: int) -> Leg:
         for p in procs:
             if p.poll() is None:
                 os.killpg(p.pid, signal.SIGINT)
+
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGTERM, stop)
 
@@ -141,11 +152,13 @@ def run_leg(args: argparse.Namespace, runs_left: int) -> Leg:
             done = sum(e for e, _ in prog)
             rate = done / max(now - t0, 1e-6)
             eta = (jobs * per_job - done) / rate if rate > 0 else float("inf")
-            line = (f"[{args.target}] {done:,}/{jobs * per_job:,} exec "
-                    f"({100.0 * done / (jobs * per_job):5.1f} %)  {rate:,.0f}/s  "
-                    f"cov {max((c for _, c in prog), default=0)}  elapsed {fmt_s(now - t0)}  "
-                    f"eta {fmt_s(eta) if math.isfinite(eta) else '?'}  "
-                    f"running {sum(p.poll() is None for p in procs)}/{jobs}")
+            line = (
+                f"[{args.target}] {done:,}/{jobs * per_job:,} exec "
+                f"({100.0 * done / (jobs * per_job):5.1f} %)  {rate:,.0f}/s  "
+                f"cov {max((c for _, c in prog), default=0)}  elapsed {fmt_s(now - t0)}  "
+                f"eta {fmt_s(eta) if math.isfinite(eta) else '?'}  "
+                f"running {sum(p.poll() is None for p in procs)}/{jobs}"
+            )
             print(("\r" + line) if tty else line, end="" if tty else "\n", flush=True)
     if tty:
         print()
@@ -162,11 +175,20 @@ def run_leg(args: argparse.Namespace, runs_left: int) -> Leg:
         if FINDING.search(text) or (p.returncode != 0 and not interrupted):
             findings.append(f"{log.name}: exit {p.returncode}")
     findings += [str(a) for a in sorted(artifacts.glob(f"{args.target}-*"))]
-    return Leg(started_utc=started, host=platform.node(), cpus=os.cpu_count() or 0, jobs=jobs,
-               executions=total, wall_s=round(wall, 1), rate_per_s=round(total / max(wall, 1e-6), 1),
-               coverage_edges=cov, corpus_units=len(list(corpus.iterdir())),
-               new_units=len(list(corpus.iterdir())) - units_before, peak_rss_mb=rss,
-               findings=findings)
+    return Leg(
+        started_utc=started,
+        host=platform.node(),
+        cpus=os.cpu_count() or 0,
+        jobs=jobs,
+        executions=total,
+        wall_s=round(wall, 1),
+        rate_per_s=round(total / max(wall, 1e-6), 1),
+        coverage_edges=cov,
+        corpus_units=len(list(corpus.iterdir())),
+        new_units=len(list(corpus.iterdir())) - units_before,
+        peak_rss_mb=rss,
+        findings=findings,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -176,7 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=10_000_000, help="executions the whole campaign must reach")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel libFuzzer processes")
     ap.add_argument("--max-time-s", type=float, default=0.0, help="end this leg after so many seconds")
-    ap.add_argument("--progress-s", type=float, default=30.0, help="progress line period when not on a terminal")
+    ap.add_argument(
+        "--progress-s", type=float, default=30.0, help="progress line period when not on a terminal"
+    )
     ap.add_argument("--fresh", action="store_true", help="start a new ledger (the corpus is kept)")
     args = ap.parse_args(argv)
     if args.runs <= 0 or args.jobs <= 0:
@@ -186,8 +210,10 @@ def main(argv: list[str] | None = None) -> int:
     ledger = {"target": args.target, "legs": []} if args.fresh else load_ledger(path, args.target)
     left = args.runs - executed(ledger)
     if left <= 0:
-        print(f"== {args.target}: the ledger already holds {executed(ledger):,} executions "
-              f"(>= {args.runs:,}); nothing to run ({path})")
+        print(
+            f"== {args.target}: the ledger already holds {executed(ledger):,} executions "
+            f"(>= {args.runs:,}); nothing to run ({path})"
+        )
         return 1 if any(leg["findings"] for leg in ledger["legs"]) else 0
     leg = run_leg(args, left)
     ledger["legs"].append(asdict(leg))
@@ -197,10 +223,12 @@ def main(argv: list[str] | None = None) -> int:
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(ledger, indent=2) + "\n")
     tmp.replace(path)
-    print(f"== {args.target}: this leg {leg.executions:,} executions in {fmt_s(leg.wall_s)} "
-          f"({leg.rate_per_s:,.0f}/s on {leg.jobs} processes), coverage {leg.coverage_edges} edges, "
-          f"corpus {leg.corpus_units:,} units (+{leg.new_units:,}), peak RSS {leg.peak_rss_mb} MB; "
-          f"campaign {ledger['executions']:,}/{args.runs:,}; findings: {len(leg.findings) or 'none'}")
+    print(
+        f"== {args.target}: this leg {leg.executions:,} executions in {fmt_s(leg.wall_s)} "
+        f"({leg.rate_per_s:,.0f}/s on {leg.jobs} processes), coverage {leg.coverage_edges} edges, "
+        f"corpus {leg.corpus_units:,} units (+{leg.new_units:,}), peak RSS {leg.peak_rss_mb} MB; "
+        f"campaign {ledger['executions']:,}/{args.runs:,}; findings: {len(leg.findings) or 'none'}"
+    )
     for f in leg.findings:
         print(f"   finding: {f}")
     return 1 if leg.findings else 0

@@ -13,6 +13,7 @@ its executions in the deep states (transfer, separation, faults) instead of redi
 libFuzzer's `-merge=1` (the smallest set of inputs keeping every feature), and rewrites the
 archive byte for byte reproducibly (sorted names, zero times and owners).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,7 +29,7 @@ from pathlib import Path
 ARCHIVE = Path(__file__).resolve().parent / "corpus.tar.gz"
 # seed kind -> libFuzzer target
 KINDS = {"frame": "fuzz_frame", "dispatch": "fuzz_dispatch"}
-MAX_UNIT_BYTES = 64 * 1024      # far above any input libFuzzer keeps here (-max_len 4096)
+MAX_UNIT_BYTES = 64 * 1024  # far above any input libFuzzer keeps here (-max_len 4096)
 
 
 class CorpusError(RuntimeError):
@@ -74,8 +75,10 @@ def _write_archive(folders: dict[str, Path], archive: Path) -> None:
                 info = tarfile.TarInfo(f"{kind}/{hashlib.sha1(data).hexdigest()}")
                 info.size, info.mtime, info.mode = len(data), 0, 0o644
                 tar.addfile(info, io.BytesIO(data))
-    with open(archive, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=9, mtime=0,
-                                                   filename="") as gz:
+    with (
+        open(archive, "wb") as raw,
+        gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=9, mtime=0, filename="") as gz,
+    ):
         gz.write(buf.getvalue())
 
 
@@ -91,13 +94,16 @@ def pack(build: Path, archive: Path = ARCHIVE) -> dict[str, int]:
                 raise CorpusError(f"{exe} or its corpus is missing: run `make fuzz-build` (and `make fuzz`)")
             out = Path(tmp) / kind
             out.mkdir()
-            proc = subprocess.run([str(exe), "-merge=1", str(out), *map(str, sources)],
-                                  capture_output=True, text=True)
+            proc = subprocess.run(
+                [str(exe), "-merge=1", str(out), *map(str, sources)], capture_output=True, text=True
+            )
             if proc.returncode != 0:
                 raise CorpusError(f"{target} -merge=1 failed:\n{proc.stderr[-2000:]}")
             merged[kind] = out
             counts[kind] = sum(1 for _ in out.iterdir())
-            line = next((ln for ln in proc.stderr.splitlines() if "MERGE-OUTER:" in ln and "new files" in ln), "")
+            line = next(
+                (ln for ln in proc.stderr.splitlines() if "MERGE-OUTER:" in ln and "new files" in ln), ""
+            )
             print(f"corpus: {kind}: {counts[kind]} units ({line.split('MERGE-OUTER: ')[-1]})")
         _write_archive(merged, archive)
     print(f"corpus: wrote {archive} ({archive.stat().st_size:,} bytes)")

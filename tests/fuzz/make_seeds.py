@@ -7,6 +7,7 @@ dispatch/ record programs for fuzz_dispatch.c (see its header): each golden host
           events that let it progress, so the fuzzer starts from deep states.
 Both also get the committed, minimised corpus of the long campaigns (tests/fuzz/corpus.py).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -94,8 +95,9 @@ def main() -> None:
     dispatch_dir.mkdir(parents=True, exist_ok=True)
 
     vectors = json.loads((GOLDEN / "vectors.json").read_text())["vectors"]
-    wires = {v["name"]: bytes.fromhex((GOLDEN / v["direction"] / f"{v['name']}.hex").read_text())
-             for v in vectors}
+    wires = {
+        v["name"]: bytes.fromhex((GOLDEN / v["direction"] / f"{v['name']}.hex").read_text()) for v in vectors
+    }
     for name, wire in wires.items():
         (frame_dir / name).write_bytes(wire)
     (frame_dir / "all_in_one_stream").write_bytes(b"\x00garbage".join(wires.values()))
@@ -104,13 +106,20 @@ def main() -> None:
     for v in vectors:
         if v["direction"] == "host_to_mcu":
             (dispatch_dir / v["name"]).write_bytes(
-                hello + rec_packet(packet_bytes_of(wires[v["name"]])) + rec_time(40))
+                hello + rec_packet(packet_bytes_of(wires[v["name"]])) + rec_time(40)
+            )
 
     walk = Walk(hello)
-    for opcode, wait_ms in ((pb.CMD_APPROACH_ARM, 200), (None, 0), (pb.CMD_DOCK, 1500),
-                            (pb.CMD_HARD_DOCK, 5000), (pb.CMD_ARM_TRANSFER, 200),
-                            (pb.CMD_START_TRANSFER, 3000), (pb.CMD_STOP_TRANSFER, 200),
-                            (pb.CMD_SEPARATE, 6000)):
+    for opcode, wait_ms in (
+        (pb.CMD_APPROACH_ARM, 200),
+        (None, 0),
+        (pb.CMD_DOCK, 1500),
+        (pb.CMD_HARD_DOCK, 5000),
+        (pb.CMD_ARM_TRANSFER, 200),
+        (pb.CMD_START_TRANSFER, 3000),
+        (pb.CMD_STOP_TRANSFER, 200),
+        (pb.CMD_SEPARATE, 6000),
+    ):
         walk.packet(nav)
         if opcode is None:  # the probe enters the drogue
             walk.data += bytes([REC_PLANT, PLANT_PROBE_IN])

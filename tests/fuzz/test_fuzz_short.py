@@ -3,6 +3,7 @@
 The long campaign (10 million executions) is `make fuzz`; docs/reliability.md has its figures.
 Targets are built by `make fuzz-build` (a prerequisite of `make test`).
 """
+
 from __future__ import annotations
 
 import json
@@ -26,9 +27,19 @@ def test_short_fuzz_campaign_finds_nothing(target, seeds, runs, tmp_path):
     if not exe.exists() or not seed_dir.is_dir():
         pytest.fail(f"{exe} or its seeds are missing: run `make fuzz-build`")
     proc = subprocess.run(
-        [str(exe), f"-runs={runs}", "-seed=1", "-print_final_stats=1",
-         f"-artifact_prefix={tmp_path}/", str(tmp_path), str(seed_dir)],
-        capture_output=True, text=True, timeout=300)
+        [
+            str(exe),
+            f"-runs={runs}",
+            "-seed=1",
+            "-print_final_stats=1",
+            f"-artifact_prefix={tmp_path}/",
+            str(tmp_path),
+            str(seed_dir),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     log = proc.stdout + proc.stderr
     assert proc.returncode == 0, log[-4000:]
     assert not list(tmp_path.glob("crash-*")) and not list(tmp_path.glob("leak-*"))
@@ -68,16 +79,18 @@ def test_committed_corpus_starts_deeper_than_the_golden_seeds(target, seeds, run
 def test_corpus_archive_round_trip_and_bad_archives(tmp_path):
     sys.path.insert(0, str(ROOT / "tests" / "fuzz"))
     import corpus
+
     counts = corpus.unpack(tmp_path / "out")
     assert counts["dispatch"] > 100 and counts["frame"] > 100
     assert len(list((tmp_path / "out" / "dispatch").iterdir())) <= counts["dispatch"]
 
     cut = tmp_path / "cut.tar.gz"
-    cut.write_bytes(corpus.ARCHIVE.read_bytes()[:5000])          # truncated download
+    cut.write_bytes(corpus.ARCHIVE.read_bytes()[:5000])  # truncated download
     with pytest.raises(corpus.CorpusError):
         corpus.unpack(tmp_path / "o2", cut)
     import io
     import tarfile
+
     evil = tmp_path / "evil.tar.gz"
     with tarfile.open(evil, "w:gz") as tar:
         info = tarfile.TarInfo("dispatch/../../escape")
@@ -90,10 +103,24 @@ def test_corpus_archive_round_trip_and_bad_archives(tmp_path):
 
 # --- the resumable campaign runner (tests/fuzz/campaign.py) ---------------------------------
 
+
 def _campaign(build: Path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(ROOT / "tests" / "fuzz" / "campaign.py"), "--build", str(build),
-                           "--target", "fuzz_frame", "--progress-s", "1", *args],
-                          capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "tests" / "fuzz" / "campaign.py"),
+            "--build",
+            str(build),
+            "--target",
+            "fuzz_frame",
+            "--progress-s",
+            "1",
+            *args,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def _ledger(build: Path) -> dict:
@@ -138,9 +165,11 @@ def test_campaign_reports_a_finding_and_fails(campaign_build):
     # A stand-in target that behaves like libFuzzer after a sanitizer report.
     fake = campaign_build / "fuzz_frame"
     fake.unlink()
-    fake.write_text("#!/bin/sh\necho '#1\tINITED cov: 3 ft: 3 corp: 1/1b exec/s: 0 rss: 1Mb'\n"
-                    "echo '==42==ERROR: AddressSanitizer: heap-buffer-overflow'\n"
-                    "echo 'stat::number_of_executed_units: 7'\nexit 1\n")
+    fake.write_text(
+        "#!/bin/sh\necho '#1\tINITED cov: 3 ft: 3 corp: 1/1b exec/s: 0 rss: 1Mb'\n"
+        "echo '==42==ERROR: AddressSanitizer: heap-buffer-overflow'\n"
+        "echo 'stat::number_of_executed_units: 7'\nexit 1\n"
+    )
     fake.chmod(0o755)
     r = _campaign(campaign_build, "--runs", "100", "--jobs", "2")
     assert r.returncode == 1

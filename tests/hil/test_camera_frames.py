@@ -17,7 +17,9 @@ def test_camera_model_matches_lens_and_sensor():
     assert (cam.cx_px, cam.cy_px) == (372.0, 240.0)
     assert round(cam.hfov_deg, 1) == 65.1 and round(cam.vfov_deg, 1) == 44.7
     np.testing.assert_allclose(cam.project([[0, 0, 5.0]])[0], [372, 240])
-    np.testing.assert_allclose(cam.project([[1.0, -0.5, 2.0]])[0], [372 + 583.3333 / 2, 240 - 583.3333 / 4], atol=1e-3)
+    np.testing.assert_allclose(
+        cam.project([[1.0, -0.5, 2.0]])[0], [372 + 583.3333 / 2, 240 - 583.3333 / 4], atol=1e-3
+    )
     np.testing.assert_allclose(cam.K_opencv()[:2, 2], [371.5, 239.5])
     assert np.isnan(cam.project([[0, 0, -1.0]])).all()
 
@@ -51,10 +53,10 @@ def test_lvlh_axes_iss_convention():
     R = lvlh_rotation(r, v)
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
     assert np.linalg.det(R) > 0
-    np.testing.assert_allclose(R[:, 2], -r / np.linalg.norm(r))               # +Z to Earth
-    np.testing.assert_allclose(R[:, 0], v / np.linalg.norm(v), atol=1e-12)     # +X along v (circular)
+    np.testing.assert_allclose(R[:, 2], -r / np.linalg.norm(r))  # +Z to Earth
+    np.testing.assert_allclose(R[:, 0], v / np.linalg.norm(v), atol=1e-12)  # +X along v (circular)
     h = np.cross(r, v)
-    np.testing.assert_allclose(R[:, 1], -h / np.linalg.norm(h))               # +Y = -orbit normal
+    np.testing.assert_allclose(R[:, 1], -h / np.linalg.norm(h))  # +Y = -orbit normal
 
 
 def test_port_frames_right_handed_and_facing_their_approach():
@@ -67,10 +69,12 @@ def test_port_frames_right_handed_and_facing_their_approach():
 def test_aligned_pose_label_convention():
     traj = generate(5)
     cp = camera_poses(traj, PORTS[1])
-    k = int(np.argmax(traj.phase == 2))   # first phase-2 sample: on axis, attitude aligned
-    k -= 1                                # last phase-1 sample is exactly on axis, aligned
+    k = int(np.argmax(traj.phase == 2))  # first phase-2 sample: on axis, attitude aligned
+    k -= 1  # last phase-1 sample is exactly on axis, aligned
     np.testing.assert_allclose(cp.q_cam_target[k], [1, 0, 0, 0], atol=1e-12)
     d = traj.distance_m[k]
-    np.testing.assert_allclose(cp.T_cam_target[k], [0, -MOUNT.p_s_cam_m[1], d - MOUNT.p_s_cam_m[2]], atol=1e-9)
+    np.testing.assert_allclose(
+        cp.T_cam_target[k], [0, -MOUNT.p_s_cam_m[1], d - MOUNT.p_s_cam_m[2]], atol=1e-9
+    )
     # Camera in LVLH looks along +Z_t, i.e. into the port (-X LVLH for the +V-bar port).
     np.testing.assert_allclose(cp.R_lvlh_cam[k][:, 2], [-1, 0, 0], atol=1e-12)

@@ -116,8 +116,18 @@ def test_resume_refuses_a_different_spec(tmp_path, gl_renderer):
 
 
 def test_custom_spec_png_envelope(tmp_path, gl_renderer):
-    spec = SequenceSpec(name="custom", port=5, approach="+R-bar", sun_elevation_deg=100, background="perlin",
-                        seed=77, envelope=True, image_format="png", noise_sigma_dn=2.0, blur_sigma_px=0.7)
+    spec = SequenceSpec(
+        name="custom",
+        port=5,
+        approach="+R-bar",
+        sun_elevation_deg=100,
+        background="perlin",
+        seed=77,
+        envelope=True,
+        image_format="png",
+        noise_sigma_dn=2.0,
+        blur_sigma_px=0.7,
+    )
     generate_dataset(tmp_path, [spec], frames_limit=2, workers=1, progress=False)
     m = verify_sequence(tmp_path / "custom")
     assert "frames/000001.png" in m["files"] and m["spec"]["envelope"] is True
@@ -129,6 +139,7 @@ def test_renderers_survive_other_gl_contexts_in_the_process(gl_renderer, tmp_pat
     inside the driver (SIGSEGV). Run in a child so a crash is a failure, not a dead test run."""
     import subprocess
     import sys
+
     script = f"""
 from pathlib import Path
 from oibar_hil.dataset import PAPER_SEQUENCES, generate_dataset
@@ -151,6 +162,7 @@ def _crash_once(task: dict) -> int:
     """A render chunk whose worker dies the first time (as Mesa once did with SIGSEGV)."""
     import os
     from pathlib import Path
+
     marker = Path(task["marker"])
     if task["crash"] and not marker.exists():
         marker.write_text("crashed")
@@ -171,6 +183,7 @@ def test_a_dying_render_worker_does_not_hang_the_writer(tmp_path):
 
 def _crash_always(task: dict) -> int:
     import os
+
     os._exit(139)
 
 
@@ -189,7 +202,7 @@ def test_frame_stride_keeps_every_nth_pose_and_old_specs_keep_their_identity():
     assert every8.n_frames == (full.n_frames + 7) // 8
     assert np.allclose(every8.T_cam_target, full.T_cam_target[::8])
     assert np.allclose(every8.t_s, full.t_s[::8]) and np.allclose(every8.sun_lvlh[1], full.sun_lvlh[8])
-    assert "frame_stride" not in spec_dict(PAPER_SEQUENCES[2])          # datasets written before it match
+    assert "frame_stride" not in spec_dict(PAPER_SEQUENCES[2])  # datasets written before it match
     assert spec_dict(replace(PAPER_SEQUENCES[2], frame_stride=8))["frame_stride"] == 8
     with pytest.raises(ValueError, match="frame_stride"):
         replace(PAPER_SEQUENCES[2], frame_stride=0).validate()
@@ -211,11 +224,40 @@ def test_scene_spec_files_name_paper_sequences_and_refuse_bad_entries(tmp_path):
     from oibar_hil.dataset import load_spec_file
 
     p = tmp_path / "s.json"
-    p.write_text(json.dumps({"scenes": [{"paper": 8}, {"name": "a", "port": 5, "approach": "+R-bar",
-                                                        "sun_elevation_deg": 90, "background": "iss", "seed": 3}]}))
+    p.write_text(
+        json.dumps(
+            {
+                "scenes": [
+                    {"paper": 8},
+                    {
+                        "name": "a",
+                        "port": 5,
+                        "approach": "+R-bar",
+                        "sun_elevation_deg": 90,
+                        "background": "iss",
+                        "seed": 3,
+                    },
+                ]
+            }
+        )
+    )
     assert [s.name for s in load_spec_file(p)] == ["seq08", "a"]
-    p.write_text(json.dumps({"scenes": [{"name": "a", "port": 5, "approach": "-V-bar", "sun_elevation_deg": 90,
-                                         "background": "iss", "seed": 3}]}))
+    p.write_text(
+        json.dumps(
+            {
+                "scenes": [
+                    {
+                        "name": "a",
+                        "port": 5,
+                        "approach": "-V-bar",
+                        "sun_elevation_deg": 90,
+                        "background": "iss",
+                        "seed": 3,
+                    }
+                ]
+            }
+        )
+    )
     with pytest.raises(DatasetError, match="scene 0: a: port 5 is a \\+R-bar port"):
         load_spec_file(p)
     p.write_text(json.dumps({"scenes": [{"paper": 2}, {"paper": 2}]}))

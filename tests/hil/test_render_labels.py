@@ -32,7 +32,9 @@ def _markers(size_m: float) -> list[Part]:
     for pid, p in zip(MARKER_IDS, MARKER_POINTS_T, strict=True):
         m = trimesh.creation.box(extents=(size_m, size_m, 0.002))
         m.apply_translation(p + [0, 0, 0.001])
-        m.apply_transform(np.block([[PORT.R_lvlh_t, PORT.p_lvlh_t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
+        m.apply_transform(
+            np.block([[PORT.R_lvlh_t, PORT.p_lvlh_t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
+        )
         parts.append(Part(m, (1, 1, 1), 0.0, pid))
     return parts
 
@@ -94,7 +96,7 @@ def test_shaded_frame_shows_fixture_over_background(gl_renderer):
     R_l_c, p_l_c = _camera_in_lvlh(np.eye(3), np.array([0.0, 0.12, 2.0]))
     img = gl_renderer.render(R_l_c, p_l_c, np.array([0.6, 0.0, -0.8]))
     assert img.shape == (480, 744, 3) and img.dtype == np.uint8
-    assert img.std() > 10                          # Perlin backdrop is not flat
-    u, v = CAM.project(np.array([[0.0, 0.12 - 0.14, 2.0]]))[0]   # on the plate, above the drogue
-    assert img[int(v), int(u)].mean() > 40          # the sunlit plate is visible
+    assert img.std() > 10  # Perlin backdrop is not flat
+    u, v = CAM.project(np.array([[0.0, 0.12 - 0.14, 2.0]]))[0]  # on the plate, above the drogue
+    assert img[int(v), int(u)].mean() > 40  # the sunlit plate is visible
     assert FIXTURE.width_m > FIXTURE.height_m

@@ -22,7 +22,7 @@ def test_sun_against_meeus_example_25a():
 
 
 def test_sun_declination_at_june_solstice():
-    jd = julian_date(parse_utc("2024-06-20T20:51:00Z"))   # 2024 June solstice
+    jd = julian_date(parse_utc("2024-06-20T20:51:00Z"))  # 2024 June solstice
     _, dec = right_ascension_declination_deg(jd)
     assert abs(dec - 23.44) < 0.01
 
@@ -35,8 +35,8 @@ def test_default_tle_is_valid_and_iss_like():
     assert 380 < st.altitude_km < 450
     assert 90 < orbit.period_s / 60 < 95
     v_lvlh = st.R_teme_lvlh.T @ st.v_teme_kmps
-    assert v_lvlh[0] > 7.5 and abs(v_lvlh[1]) < 1e-9          # flies along +V-bar
-    assert abs(st.beta_deg) < 2.0                               # Sun near the orbit plane by design
+    assert v_lvlh[0] > 7.5 and abs(v_lvlh[1]) < 1e-9  # flies along +V-bar
+    assert abs(st.beta_deg) < 2.0  # Sun near the orbit plane by design
 
 
 def test_time_for_sun_elevation_hits_requested_angle():
@@ -46,4 +46,4 @@ def test_time_for_sun_elevation_hits_requested_angle():
         t = orbit.time_for_sun_elevation(start, elev)
         st = orbit.state(julian_date(t))
         assert abs(sun_inplane_elevation_deg(st.sun_lvlh) - elev) < 0.01
-        assert st.sun_lvlh[2] < 0        # above the local horizon (daylight)
+        assert st.sun_lvlh[2] < 0  # above the local horizon (daylight)

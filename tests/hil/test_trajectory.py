@@ -39,7 +39,9 @@ def test_phases_follow_the_paper(seed):
     p2 = ph == 2
     vz = tr.v_t_s[p2, 2]
     assert vz.min() >= 0.03 - 0.002 - 1e-12 and vz.max() <= 0.03 + 0.002 + 1e-12
-    np.testing.assert_allclose(np.diff(tr.p_t_s[p1.sum() - 1:p1.sum() + p2.sum(), 2]) / P.dt_s, vz, atol=1e-12)
+    np.testing.assert_allclose(
+        np.diff(tr.p_t_s[p1.sum() - 1 : p1.sum() + p2.sum(), 2]) / P.dt_s, vz, atol=1e-12
+    )
     assert np.abs(tr.p_t_s[p2, :2]).max() <= 0.01 + 1e-12
     ang = np.array([_small_angles_deg(R) for R in tr.R_t_s[p2]])
     assert np.abs(ang).max() <= 0.1 + 1e-6
@@ -100,7 +102,8 @@ def test_a_turned_run_keeps_its_misalignment_from_10_m_to_contact(turn_deg):
 def test_a_turn_beyond_the_capture_limit_is_refused():
     from oibar_hil.dataset import SequenceSpec
 
-    spec = SequenceSpec(name="x", port=1, approach="+V-bar", sun_elevation_deg=60.0, background="iss", seed=1,
-                        turned_deg=12.0)
+    spec = SequenceSpec(
+        name="x", port=1, approach="+V-bar", sun_elevation_deg=60.0, background="iss", seed=1, turned_deg=12.0
+    )
     with pytest.raises(ValueError, match="turned_deg"):
         spec.validate()

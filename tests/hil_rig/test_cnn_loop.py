@@ -3,7 +3,6 @@ host's navigator (the shipped OibarNet on onnxruntime, the checks, the filter) t
 into the solution, and the host's guidance flies the mission on it. The short version of
 `make demo`; plus the camera lost in flight."""
 
-
 import numpy as np
 import pytest
 
@@ -23,11 +22,13 @@ ATTITUDE_SLOPE_MIN = 0.3
 def cnn_nav_factory():
     assert MODEL.is_file(), f"the shipped model {MODEL} is missing"
     from oibar_hil.rig.camera import RigCamera, RigCameraError
+
     try:
         RigCamera(scene="seq01").close()
     except RigCameraError as exc:
         pytest.skip(f"no headless GL context here: {exc}")
     from oibar_hil.rig.navigation import CnnNav
+
     return lambda **kw: CnnNav(model_path=MODEL, **kw)
 
 
@@ -51,8 +52,11 @@ def test_short_mission_with_the_cnn_in_the_loop(sim_mcu_path, cnn_nav_factory, t
     # 9.4 mm/s, docs/navigation.md)
     assert r.capture is not None
     t_c = r.capture["t_s"]
-    err = [x["closing_est_mps"] - x["closing_true_mps"] for x in r.nav_log
-           if t_c - 10.0 <= x["t_s"] < t_c and x["valid"]]
+    err = [
+        x["closing_est_mps"] - x["closing_true_mps"]
+        for x in r.nav_log
+        if t_c - 10.0 <= x["t_s"] < t_c and x["valid"]
+    ]
     assert len(err) > 80 and np.sqrt(np.mean(np.square(err))) < 0.005, err
     assert abs(err[-1]) < 0.010, err[-1]
 
@@ -95,8 +99,11 @@ def test_a_new_approach_starts_with_a_fresh_track(cnn_nav_factory):
     from oibar_hil.rig.world import VehicleParams, World, WorldState
 
     def world_at(range_m):
-        return World(VehicleParams(odometry=False), WorldState(r_D_m=np.array([0.0, 0.0, range_m])),
-                     np.random.default_rng(0))
+        return World(
+            VehicleParams(odometry=False),
+            WorldState(r_D_m=np.array([0.0, 0.0, range_m])),
+            np.random.default_rng(0),
+        )
 
     def reasons_after_jump(reset):
         nav = cnn_nav_factory()
@@ -111,5 +118,5 @@ def test_a_new_approach_starts_with_a_fresh_track(cnn_nav_factory):
         finally:
             nav.close()
 
-    assert "gated outlier" in reasons_after_jump(reset=False)   # the case reset is for
+    assert "gated outlier" in reasons_after_jump(reset=False)  # the case reset is for
     assert reasons_after_jump(reset=True) == [""] * 10

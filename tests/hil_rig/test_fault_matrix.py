@@ -9,22 +9,31 @@ from oibar_hil.rig.faults import FAULT_TYPES
 
 # Every fault once, every phase at least once (and none of them the scenario of test_scenarios).
 SUBSET = [
-    ("link_loss", "approach"), ("bit_errors", "approach"),
-    ("pressure_sensor_range", "reception"), ("latch_stall", "reception"), ("host_crash", "reception"),
-    ("valve_stuck_open", "hard_docking"), ("watchdog_reset", "hard_docking"),
-    ("pressure_sensor_stuck", "hard_docked"), ("actuator_jam", "hard_docked"),
+    ("link_loss", "approach"),
+    ("bit_errors", "approach"),
+    ("pressure_sensor_range", "reception"),
+    ("latch_stall", "reception"),
+    ("host_crash", "reception"),
+    ("valve_stuck_open", "hard_docking"),
+    ("watchdog_reset", "hard_docking"),
+    ("pressure_sensor_stuck", "hard_docked"),
+    ("actuator_jam", "hard_docked"),
     ("valve_stuck_closed", "transferring"),
     ("overpressure", "unmating"),
     # issue 16 (fw-drv): valve preconditions and sensor glitches, mid-fill
-    ("latch_wire_break", "transferring"), ("adc_glitch", "transferring"),
+    ("latch_wire_break", "transferring"),
+    ("adc_glitch", "transferring"),
     ("adc_glitch_run", "transferring"),
     # issue 16 (fw-link): the replay window
     ("replay", "transferring"),
     # issue 17 (rig): the host's own failures
-    ("camera_unplugged", "approach"), ("slow_inference", "approach"),
-    ("nav_hang", "hard_docked"), ("serial_unplugged", "unmating"),
+    ("camera_unplugged", "approach"),
+    ("slow_inference", "approach"),
+    ("nav_hang", "hard_docked"),
+    ("serial_unplugged", "unmating"),
     # issue 16 (fw-app): abort with slow valves, host-side parameter attack
-    ("valve_slow_close", "transferring"), ("param_attack", "hard_docked"),
+    ("valve_slow_close", "transferring"),
+    ("param_attack", "hard_docked"),
 ]
 
 
@@ -65,8 +74,17 @@ def test_fault_matrix_cell(fault, phase, sim_mcu_path):
     r = mx.run_cell(fault, phase, str(sim_mcu_path))
     assert r.status == "pass", f"{fault}@{phase}: {r.reason}"
     ids = {c["id"] for c in r.checks}
-    assert {"REQ-VALVES", "REQ-SAFE-END", "REQ-FORCE-HARD", "G-INJECTED", "G-END", "G-VALVES",
-            "EXP-fuel_lost_max_kg", "EXP-faults", "EXP-outcome"} <= ids
+    assert {
+        "REQ-VALVES",
+        "REQ-SAFE-END",
+        "REQ-FORCE-HARD",
+        "G-INJECTED",
+        "G-END",
+        "G-VALVES",
+        "EXP-fuel_lost_max_kg",
+        "EXP-faults",
+        "EXP-outcome",
+    } <= ids
 
 
 def test_valve_failing_open_while_unmating_is_reseated_not_left_venting(sim_mcu_path):

@@ -11,8 +11,9 @@ from oibar_hil.rig.lockstep import DI, LockstepError, SimMcu
 from oibar_hil.rig.wire import Wire
 
 # At home the latch switch's NC contact is closed (a changeover pair: exactly one of two).
-AT_HOME = ((1 << DI.index("LATCH_HOME")) | (1 << DI.index("PLANE_RETRACTED"))
-           | (1 << DI.index("LATCH_NOT_ENGAGED")))
+AT_HOME = (
+    (1 << DI.index("LATCH_HOME")) | (1 << DI.index("PLANE_RETRACTED")) | (1 << DI.index("LATCH_NOT_ENGAGED"))
+)
 ADC_OK = [410 + 2400, 410 + 330, 410 + 1100, 0, 0]
 
 

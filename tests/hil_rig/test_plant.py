@@ -17,10 +17,15 @@ def reply(**outputs) -> McuReply:
 
 def approach(speed_mps=0.03, misalign_deg=(0.0, 0.0), lateral_m=(0.0, 0.0), push=True):
     rng = np.random.default_rng(0)
-    world = World(VehicleParams(accel_noise_mps2=0.0, ang_noise_rad_s2=0.0),
-                  WorldState(r_D_m=np.array([lateral_m[0], lateral_m[1], 0.01]),
-                             v_D_mps=np.array([0.0, 0.0, -speed_mps]),
-                             att_rad=np.radians([misalign_deg[0], misalign_deg[1], 0.0])), rng)
+    world = World(
+        VehicleParams(accel_noise_mps2=0.0, ang_noise_rad_s2=0.0),
+        WorldState(
+            r_D_m=np.array([lateral_m[0], lateral_m[1], 0.01]),
+            v_D_mps=np.array([0.0, 0.0, -speed_mps]),
+            att_rad=np.radians([misalign_deg[0], misalign_deg[1], 0.0]),
+        ),
+        rng,
+    )
     mech = Mechanism(MechanismParams(adc_noise_counts=0.0), rng)
     world.set_setpoint(np.array([0.0, 0.0, -(0.05 if push else speed_mps)]), np.zeros(3))
     t, out, max_force = 0.0, reply(), 0.0
@@ -43,11 +48,14 @@ def test_capture_inside_the_envelope_latches_softly():
     assert world.lateral_m < 0.002 and world.misalignment_deg < 1.0  # the funnel centred it
 
 
-@pytest.mark.parametrize("speed, misalign, lateral", [
-    (0.060, (0.0, 0.0), (0.0, 0.0)),   # too fast (> 50 mm/s)
-    (0.030, (9.0, 6.0), (0.0, 0.0)),   # combined misalignment 10.8 deg
-    (0.030, (0.0, 0.0), (0.08, 0.08)),  # outside the funnel mouth
-])
+@pytest.mark.parametrize(
+    "speed, misalign, lateral",
+    [
+        (0.060, (0.0, 0.0), (0.0, 0.0)),  # too fast (> 50 mm/s)
+        (0.030, (9.0, 6.0), (0.0, 0.0)),  # combined misalignment 10.8 deg
+        (0.030, (0.0, 0.0), (0.08, 0.08)),  # outside the funnel mouth
+    ],
+)
 def test_capture_outside_the_envelope_bounces(speed, misalign, lateral):
     mech, world, _ = approach(speed, misalign, lateral, push=False)
     first = mech.capture_attempts[0]
@@ -112,8 +120,11 @@ def test_valve_follows_its_coil_after_the_stroke_time():
 
 
 def _drift(params, seed=4, steps=500):
-    world = World(params, WorldState(r_D_m=np.array([0.0, 0.0, 2.0]), v_D_mps=np.array([0.0, 0.0, -0.03])),
-                  np.random.default_rng(seed))
+    world = World(
+        params,
+        WorldState(r_D_m=np.array([0.0, 0.0, 2.0]), v_D_mps=np.array([0.0, 0.0, -0.03])),
+        np.random.default_rng(seed),
+    )
     world.set_setpoint(np.array([0.01, 0.0, -0.03]), np.zeros(3))
     odo = []
     for k in range(steps):

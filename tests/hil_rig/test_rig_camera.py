@@ -27,9 +27,9 @@ from oibar_hil.meshes import (
 from oibar_hil.ports import PORTS
 from oibar_hil.rig.camera import OrbitClock, RigCamera, RigCameraError, pose_to_lvlh
 
-SEQ01 = PAPER_SEQUENCES[1]     # iss background, port 1 (+V-bar): the default scene
-SEQ07 = PAPER_SEQUENCES[7]     # perlin background, port 4 (-R-bar): another port, approach and backdrop
-FACE = {ID_PLATE, ID_PIN_GUIDE, ID_COUPLING, ID_CONNECTOR}   # the fixture's face around the drogue
+SEQ01 = PAPER_SEQUENCES[1]  # iss background, port 1 (+V-bar): the default scene
+SEQ07 = PAPER_SEQUENCES[7]  # perlin background, port 4 (-R-bar): another port, approach and backdrop
+FACE = {ID_PLATE, ID_PIN_GUIDE, ID_COUPLING, ID_CONNECTOR}  # the fixture's face around the drogue
 
 
 def _camera(**kw) -> RigCamera:
@@ -95,10 +95,16 @@ def _dataset_frame(plan, k: int, tmp: Path) -> np.ndarray:
     # Enter the worker renderer's context before the generator (re)loads a scene with it: the
     # rig camera's context may have been used in this thread since.
     r = dataset._WORKER.get("renderer") or dataset._renderer_for(plan.spec)
-    task = {"spec": plan.spec, "seq_dir": str(tmp), "frames": [k],
-            "R_lvlh_cam": plan.R_lvlh_cam[[k]], "p_lvlh_cam": plan.p_lvlh_cam[[k]],
-            "sun_lvlh": plan.sun_lvlh[[k]], "R_ecef_lvlh": plan.R_ecef_lvlh[[k]],
-            "earth_center_lvlh_km": plan.earth_center_lvlh_km}
+    task = {
+        "spec": plan.spec,
+        "seq_dir": str(tmp),
+        "frames": [k],
+        "R_lvlh_cam": plan.R_lvlh_cam[[k]],
+        "p_lvlh_cam": plan.p_lvlh_cam[[k]],
+        "sun_lvlh": plan.sun_lvlh[[k]],
+        "R_ecef_lvlh": plan.R_ecef_lvlh[[k]],
+        "earth_center_lvlh_km": plan.earth_center_lvlh_km,
+    }
     (tmp / "frames").mkdir(exist_ok=True)
     with r.ctx:
         dataset._render_chunk(task)
@@ -186,8 +192,11 @@ def test_fixture_lands_where_the_pinhole_model_says(cam, pose):
     # The rim's pixels span the projected outer corners (front face, z = 0) to a pixel.
     rows, cols = np.nonzero(ids == ID_BOUNDARY)
     uv = cam.camera.project(transform_points(fixture_corners_t(), R, T))
-    np.testing.assert_allclose([cols.min(), cols.max() + 1, rows.min(), rows.max() + 1],
-                               [uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()], atol=1.0)
+    np.testing.assert_allclose(
+        [cols.min(), cols.max() + 1, rows.min(), rows.max() + 1],
+        [uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()],
+        atol=1.0,
+    )
 
     # The shaded frame agrees: the rim (dark anodised, rgb 0.10) is darker than the plate (0.72).
     img = frame.image.astype(float).mean(axis=2)

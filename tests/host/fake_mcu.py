@@ -205,11 +205,13 @@ class FakeMcu:
     def reboot(self) -> None:
         """Restart as after a watchdog reset: uptime and seq from zero, host forgotten, the
         connection kept (a USB-serial adapter outlives the MCU behind it)."""
+
         def now() -> None:
             self._forget_host_now()
             self._boot_s = time.monotonic()
             self._seq = 0
             self._host_seq = None
+
         self._call(now)
 
     def send_raw(self, data: bytes) -> None:
@@ -490,7 +492,9 @@ class FakeMcu:
             if new_state != self.state:
                 old_state, self.state = self.state, new_state
                 self._send_event(
-                    pb.EVT_STATE_CHANGE, from_state=old_state, to_state=new_state,
+                    pb.EVT_STATE_CHANGE,
+                    from_state=old_state,
+                    to_state=new_state,
                     severity=pb.SEVERITY_ACTIVITY_LO,
                 )
         reply.ack.state = self.state
@@ -551,8 +555,13 @@ class FakeMcu:
         t.host_link_alive = self.connected
         counters = self._decoder.counters
         for name in (
-            "rx_packets", "rx_crc_errors", "rx_framing_errors", "rx_oversize",
-            "rx_bad_header", "rx_decode_errors", "rx_unknown_type",
+            "rx_packets",
+            "rx_crc_errors",
+            "rx_framing_errors",
+            "rx_oversize",
+            "rx_bad_header",
+            "rx_decode_errors",
+            "rx_unknown_type",
         ):
             setattr(t.link, name, getattr(counters, name))
         t.link.rx_duplicates = self.rx_duplicates

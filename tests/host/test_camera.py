@@ -199,8 +199,10 @@ def test_callable_source_dropout_and_failure():
 
     with CallableSource(boom, realtime=False) as src, pytest.raises(CameraLost, match="GL context lost"):
         src.read()
-    with CallableSource(lambda t: np.zeros((4, 4, 2), np.uint8), realtime=False) as src, \
-            pytest.raises(CameraError, match="shape"):
+    with (
+        CallableSource(lambda t: np.zeros((4, 4, 2), np.uint8), realtime=False) as src,
+        pytest.raises(CameraError, match="shape"),
+    ):
         src.read()
 
 

@@ -31,7 +31,7 @@ def test_frames_round_trip_and_a_closed_stream_is_a_lost_camera():
             assert server.send(img, 1.25)
             frame = cam.get(timeout_s=2.0)
             assert frame.t_s == 1.25 and np.array_equal(frame.image, img)
-            server.disconnect()             # the camera unplugged: lost, not end of stream
+            server.disconnect()  # the camera unplugged: lost, not end of stream
             with pytest.raises(CameraLost):
                 cam.get(timeout_s=2.0)
     finally:

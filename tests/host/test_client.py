@@ -111,13 +111,13 @@ def test_client_over_a_real_serial_device(mcu, make_client):
 
 def test_missing_generated_module_says_to_run_make_gen():
     host_dir = Path(__import__("oibar").__file__).resolve().parents[1]
-    code = (
-        "import sys; sys.modules['oibar._generated.oibar_pb2'] = None\n"
-        "import oibar.pb"
-    )
+    code = "import sys; sys.modules['oibar._generated.oibar_pb2'] = None\nimport oibar.pb"
     proc = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True,
-        env={**os.environ, "PYTHONPATH": str(host_dir)}, timeout=30,
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(host_dir)},
+        timeout=30,
     )
     assert proc.returncode != 0
     assert "ImportError" in proc.stderr and "run `make gen` at the repository root" in proc.stderr
@@ -134,7 +134,9 @@ def test_command_accepted_and_refused(mcu, make_client):
     assert (armed.accepted, armed.state) == (True, "STATE_APPROACH_READY")
     again = client.command(pb.CMD_APPROACH_ARM)
     assert (again.accepted, again.reason, again.state) == (
-        False, "NACK_INVALID_IN_STATE", "STATE_APPROACH_READY"
+        False,
+        "NACK_INVALID_IN_STATE",
+        "STATE_APPROACH_READY",
     )
     with pytest.raises(Nack) as caught:
         client.command_checked("approach_arm")
@@ -295,8 +297,13 @@ def test_event_queue_is_bounded(mcu, make_client):
 def test_send_nav_is_fire_and_forget(mcu, make_client):
     client = connected(make_client, mcu)
     assert client.send_nav(
-        frame_id=42, t_cam_target_m=(-0.1, 0.02, 4.25), q_cam_target=(1.0, 0.0, 0.0, 0.0),
-        range_m=4.25, closing_speed_mps=0.05, phase="NAV_PHASE_FORCED_TRANSLATION", confidence=0.9,
+        frame_id=42,
+        t_cam_target_m=(-0.1, 0.02, 4.25),
+        q_cam_target=(1.0, 0.0, 0.0, 0.0),
+        range_m=4.25,
+        closing_speed_mps=0.05,
+        phase="NAV_PHASE_FORCED_TRANSLATION",
+        confidence=0.9,
     )
     assert mcu.wait_until(lambda m: len(m.nav_updates) == 1)
     nav = mcu.nav_updates[0]
@@ -507,7 +514,9 @@ def test_close_without_connect_and_from_a_callback(mcu, make_client):
     client = make_client(mcu.url, on_telemetry=close_from_callback)
     client.connect()
     assert done.wait(2.0)
-    assert wait_for(lambda: not any(t.is_alive() for t in threading.enumerate() if t.name.startswith("oibar-link-")))
+    assert wait_for(
+        lambda: not any(t.is_alive() for t in threading.enumerate() if t.name.startswith("oibar-link-"))
+    )
 
 
 def test_connect_twice_is_an_error(mcu, make_client):
@@ -521,7 +530,17 @@ def test_connect_twice_is_an_error(mcu, make_client):
 
 def test_cli_link_connects_sends_commands_and_shows_status(mcu, capsys):
     code = cli.main(
-        ["link", "--port", mcu.url, "--seconds", "1.1", "--command", "NOOP", "cmd_approach_arm", "APPROACH_ARM"]
+        [
+            "link",
+            "--port",
+            mcu.url,
+            "--seconds",
+            "1.1",
+            "--command",
+            "NOOP",
+            "cmd_approach_arm",
+            "APPROACH_ARM",
+        ]
     )
     out, err = capsys.readouterr()
     assert code == 0, err

@@ -70,7 +70,9 @@ COBS_VECTORS = [
 ]
 
 
-@pytest.mark.parametrize("data,encoded", COBS_VECTORS, ids=lambda v: v[:6].hex() if isinstance(v, bytes) else v)
+@pytest.mark.parametrize(
+    "data,encoded", COBS_VECTORS, ids=lambda v: v[:6].hex() if isinstance(v, bytes) else v
+)
 def test_cobs_vectors(data, encoded):
     assert cobs.encode(data) == encoded
     assert cobs.decode(encoded) == data

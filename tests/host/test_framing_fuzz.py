@@ -150,13 +150,13 @@ def test_every_valid_packet_round_trips(packet):
     after=_garbage,
     cuts=st.lists(st.integers(0, 1000), max_size=30),
 )
-def test_packets_survive_arbitrary_splits_and_surrounding_garbage(first, second, before, between, after, cuts):
+def test_packets_survive_arbitrary_splits_and_surrounding_garbage(
+    first, second, before, between, after, cuts
+):
     assume(first.ByteSize() <= MAX_PACKET_BYTES and second.ByteSize() <= MAX_PACKET_BYTES)
     # Garbage is closed by a 0x00 (as a sender's leading delimiter would), so it costs at
     # most its own "frame" and never the packets.
-    stream = (
-        before + b"\x00" + encode_frame(first) + between + b"\x00" + encode_frame(second) + after
-    )
+    stream = before + b"\x00" + encode_frame(first) + between + b"\x00" + encode_frame(second) + after
     decoder = FrameDecoder()
     out = []
     previous = 0

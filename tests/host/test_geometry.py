@@ -108,11 +108,17 @@ def test_rigid_transform_round_trips():
         np.testing.assert_allclose(transforms.T_from_vec(transforms.log_T(T)), T, atol=1e-12)
         np.testing.assert_allclose(transforms.T_from_pose(t, matrix_to_quat(T[:3, :3])), T, atol=1e-14)
         p = rng.normal(size=(5, 3))
-        np.testing.assert_allclose(transforms.transform_points(p, T[:3, :3], t), (T[:3, :3] @ p.T).T + t, atol=1e-14)
-        dt_m, dr_deg = transforms.pose_error(T, T @ transforms.make_T(rot_x(np.radians(2.0)), [0.0, 0.03, 0.04]))
+        np.testing.assert_allclose(
+            transforms.transform_points(p, T[:3, :3], t), (T[:3, :3] @ p.T).T + t, atol=1e-14
+        )
+        dt_m, dr_deg = transforms.pose_error(
+            T, T @ transforms.make_T(rot_x(np.radians(2.0)), [0.0, 0.03, 0.04])
+        )
         assert dt_m == pytest.approx(0.05) and dr_deg == pytest.approx(2.0)
     stack = np.stack([transforms.make_T(rot_z(0.1 * k), [k, 0.0, 0.0]) for k in range(4)])
-    np.testing.assert_allclose(transforms.inv_T(stack) @ stack, np.broadcast_to(np.eye(4), stack.shape), atol=1e-14)
+    np.testing.assert_allclose(
+        transforms.inv_T(stack) @ stack, np.broadcast_to(np.eye(4), stack.shape), atol=1e-14
+    )
     assert transforms.log_T(stack).shape == (4, 6)
 
 
@@ -138,8 +144,8 @@ def test_the_two_pixel_conventions_differ_by_exactly_half_a_pixel():
     assert (PIXEL_CORNER, PIXEL_CENTRE) == ("corner", "centre") and CENTRE_MINUS_CORNER_PX == -0.5
     cam = PinholeCamera()
     K_corner, K_centre = cam.K, cam.K_centre()
-    np.testing.assert_array_equal(K_corner[:2, 2], [372.0, 240.0])      # the image centre, exactly
-    np.testing.assert_array_equal(K_centre[:2, 2], [371.5, 239.5])      # OpenCV's
+    np.testing.assert_array_equal(K_corner[:2, 2], [372.0, 240.0])  # the image centre, exactly
+    np.testing.assert_array_equal(K_centre[:2, 2], [371.5, 239.5])  # OpenCV's
     np.testing.assert_array_equal(K_corner - K_centre, [[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
     np.testing.assert_array_equal(intrinsics_corner_to_centre(K_corner), K_centre)
     np.testing.assert_array_equal(cam.K_opencv(), K_centre)
@@ -161,8 +167,9 @@ def test_projections_agree_and_reject_points_behind():
     R, T = rot_y(np.radians(5.0)), np.array([0.1, 0.12, 3.0])
     uv = camera.project_target_points(cam.K, pts_t, R, T)
     np.testing.assert_allclose(uv, cam.project(transforms.transform_points(pts_t, R, T)), atol=1e-12)
-    np.testing.assert_allclose(uv, camera.project_camera_points(cam.K, transforms.transform_points(pts_t, R, T)),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        uv, camera.project_camera_points(cam.K, transforms.transform_points(pts_t, R, T)), atol=1e-12
+    )
     behind = camera.project_target_points(cam.K, pts_t, np.eye(3), [0.0, 0.0, -1.0])
     assert np.isnan(behind).all()
 
@@ -172,7 +179,7 @@ def test_intrinsics_scale_exactly_in_the_corner_convention():
     Ks = camera.scale_intrinsics(K, 0.5, 0.5)
     p = np.array([[0.3, -0.2, 4.0]])
     np.testing.assert_allclose(camera.project_camera_points(Ks, p), camera.project_camera_points(K, p) * 0.5)
-    np.testing.assert_allclose(Ks[:2, 2], [186.0, 120.0])              # still the image centre
+    np.testing.assert_allclose(Ks[:2, 2], [186.0, 120.0])  # still the image centre
 
 
 def test_rotation_homography_maps_pixels_of_a_pure_rotation():
@@ -206,11 +213,16 @@ def test_docking_round_trip_and_known_aligned_pose():
 
 def test_misalignment_and_lateral_offset():
     assert docking.lateral_offset_m([0.3, -0.4, 7.0]) == pytest.approx(0.5)
-    assert docking.misalignment_deg(docking.R_D_cam_from_attitude(np.zeros(3))) == pytest.approx(0.0, abs=1e-6)
-    assert docking.misalignment_deg(docking.R_D_cam_from_attitude(np.radians([3.0, 4.0, 0.0]))) == pytest.approx(5.0)
+    assert docking.misalignment_deg(docking.R_D_cam_from_attitude(np.zeros(3))) == pytest.approx(
+        0.0, abs=1e-6
+    )
+    assert docking.misalignment_deg(
+        docking.R_D_cam_from_attitude(np.radians([3.0, 4.0, 0.0]))
+    ) == pytest.approx(5.0)
     # roll does not count
-    assert docking.misalignment_deg(docking.R_D_cam_from_attitude(np.radians([0.0, 0.0, 30.0]))) == pytest.approx(
-        0.0, abs=1e-6)
+    assert docking.misalignment_deg(
+        docking.R_D_cam_from_attitude(np.radians([0.0, 0.0, 30.0]))
+    ) == pytest.approx(0.0, abs=1e-6)
 
 
 def test_mount_is_the_geometry_as_json():
@@ -218,8 +230,9 @@ def test_mount_is_the_geometry_as_json():
     assert m.p_s_cam_m == tuple(docking.GEOMETRY.p_s_cam_m) == (0.0, -0.12, -0.30)
     np.testing.assert_array_equal(np.asarray(m.R_s_cam), docking.GEOMETRY.R_s_cam)
     d = asdict(m)
-    assert json.loads(json.dumps(d)) == json.loads(json.dumps({"p_s_cam_m": [0.0, -0.12, -0.3],
-                                                                 "R_s_cam": np.eye(3).tolist()}))
+    assert json.loads(json.dumps(d)) == json.loads(
+        json.dumps({"p_s_cam_m": [0.0, -0.12, -0.3], "R_s_cam": np.eye(3).tolist()})
+    )
     np.testing.assert_array_equal(m.T_s_cam()[:3, 3], [0.0, -0.12, -0.30])
 
 
@@ -227,28 +240,40 @@ def test_mount_is_the_geometry_as_json():
 def test_fixture_numbers():
     d = fixture.FIXTURE
     c = fixture.fixture_corners_t()
-    np.testing.assert_array_equal(c, [[-0.25, -0.18, 0.0], [0.25, -0.18, 0.0], [0.25, 0.18, 0.0], [-0.25, 0.18, 0.0]])
+    np.testing.assert_array_equal(
+        c, [[-0.25, -0.18, 0.0], [0.25, -0.18, 0.0], [0.25, 0.18, 0.0], [-0.25, 0.18, 0.0]]
+    )
     assert d.width_m > d.height_m
     kp = dict(fixture.FIXTURE_KEYPOINTS)
     assert len(kp) == len(fixture.FIXTURE_KEYPOINTS) == 14
-    np.testing.assert_array_equal(fixture.keypoints_m()[:4], c)          # the rim corners, bit for bit
+    np.testing.assert_array_equal(fixture.keypoints_m()[:4], c)  # the rim corners, bit for bit
     # the literal keypoints are the front faces of the default fixture's parts
     zp = d.rim_depth_m
     expect = {
-        "pin_guide_left": (-d.pin_guide_x_m, 0.0, zp - 0.015), "pin_guide_right": (d.pin_guide_x_m, 0.0, zp - 0.015),
-        "coupling_left": (*d.couplings_xy_m[0], 0.002), "coupling_right": (*d.couplings_xy_m[1], 0.002),
-        "connector_top_left": (d.connector_xy_m[0] - d.connector_size_m[0] / 2,
-                               d.connector_xy_m[1] - d.connector_size_m[1] / 2, zp - 0.0155),
-        "connector_bottom_right": (d.connector_xy_m[0] + d.connector_size_m[0] / 2,
-                                   d.connector_xy_m[1] + d.connector_size_m[1] / 2, zp - 0.0155),
+        "pin_guide_left": (-d.pin_guide_x_m, 0.0, zp - 0.015),
+        "pin_guide_right": (d.pin_guide_x_m, 0.0, zp - 0.015),
+        "coupling_left": (*d.couplings_xy_m[0], 0.002),
+        "coupling_right": (*d.couplings_xy_m[1], 0.002),
+        "connector_top_left": (
+            d.connector_xy_m[0] - d.connector_size_m[0] / 2,
+            d.connector_xy_m[1] - d.connector_size_m[1] / 2,
+            zp - 0.0155,
+        ),
+        "connector_bottom_right": (
+            d.connector_xy_m[0] + d.connector_size_m[0] / 2,
+            d.connector_xy_m[1] + d.connector_size_m[1] / 2,
+            zp - 0.0155,
+        ),
         "drogue_centre": (0.0, 0.0, zp - 0.008),
         "drogue_throat": (0.0, 0.0, zp + d.drogue_depth_m),
     }
     for name, p in expect.items():
         np.testing.assert_allclose(kp[name], p, atol=1e-12, err_msg=name)
     # the throat's view cone stays inside what the mouth lets through
-    depth = kp["drogue_throat"][2] - kp["drogue_centre"][2]           # lip to throat, 0.168 m
-    assert fixture.KEYPOINT_VIEW_LIMIT_DEG["drogue_throat"] < np.degrees(np.arctan(d.drogue_mouth_radius_m / depth))
+    depth = kp["drogue_throat"][2] - kp["drogue_centre"][2]  # lip to throat, 0.168 m
+    assert fixture.KEYPOINT_VIEW_LIMIT_DEG["drogue_throat"] < np.degrees(
+        np.arctan(d.drogue_mouth_radius_m / depth)
+    )
 
 
 def test_fixture_wireframe_outlines_the_rim():
@@ -269,7 +294,7 @@ def test_paper_metrics_known_values():
     q = matrix_to_quat(np.eye(3))
     q_hat = matrix_to_quat(rot_x(np.radians(4.0)))
     assert metrics.attitude_error_deg(q_hat, q) == pytest.approx(4.0)
-    assert metrics.attitude_error_deg(-q_hat, q) == pytest.approx(4.0)            # sign-invariant
+    assert metrics.attitude_error_deg(-q_hat, q) == pytest.approx(4.0)  # sign-invariant
     s = metrics.summarize(T_hat, np.stack([q_hat, q]), T, np.stack([q, q]))
     assert s["frames"] == 2 and s["compliance_pos_pct"] == 50.0 and s["compliance_att_pct"] == 100.0
     assert s["dt_mean_pct"] == pytest.approx(7.5) and s["dq_mean_deg"] == pytest.approx(2.0)
@@ -284,4 +309,6 @@ def test_attitude_error_matches_the_rotation_angle():
     rv = random_rotvecs(50, seed=7)
     q = matrix_to_quat(np.stack([rotvec_to_matrix(v) for v in rv]))
     q0 = np.tile(matrix_to_quat(np.eye(3)), (50, 1))
-    np.testing.assert_allclose(metrics.attitude_error_deg(q, q0), np.degrees(np.linalg.norm(rv, axis=1)), atol=1e-6)
+    np.testing.assert_allclose(
+        metrics.attitude_error_deg(q, q0), np.degrees(np.linalg.norm(rv, axis=1)), atol=1e-6
+    )

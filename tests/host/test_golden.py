@@ -5,6 +5,7 @@ decoder reads in tests/firmware/test_golden.c); mcu_to_host frames, written by t
 *read* here and must decode to exactly the fields described in tests/golden/vectors.json.
 Set OIBAR_GOLDEN_WRITE=1 to rewrite the host_to_mcu files on purpose (`make golden`).
 """
+
 from __future__ import annotations
 
 import json

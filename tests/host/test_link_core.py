@@ -73,9 +73,9 @@ def test_caller_heartbeats_go_out_only_when_called_and_gate_the_re_handshake():
     core.receive(telemetry(3, 2600, host_link_alive=False), 2.1)  # the MCU timed the hung host out
     assert not core.link_up
     sent(core)
-    for t in (2.2, 2.5, 3.0):          # the caller is still hung: no handshake behind its back
+    for t in (2.2, 2.5, 3.0):  # the caller is still hung: no handshake behind its back
         core.step(t)
     assert not core.busy and not sent(core)
-    core.heartbeat(3.1)                 # the loop cycles again
+    core.heartbeat(3.1)  # the loop cycles again
     core.step(3.1)
     assert core.busy and core.pending.kind == "handshake"

@@ -5,6 +5,7 @@ minimal application (no mechanism: NOOP accepted, other commands NACK_NOT_SUPPOR
 own timing parameters in its table). These tests exercise the contract end to end, across the
 two implementations, in real time.
 """
+
 from __future__ import annotations
 
 import os
@@ -25,8 +26,9 @@ class Peer:
     def __init__(self, *args: str) -> None:
         if not PEER.exists():
             pytest.fail(f"{PEER} not built: run `make firmware-host` (make test does it)")
-        self.proc = subprocess.Popen([str(PEER), *args], stdout=subprocess.PIPE,
-                                     stderr=subprocess.DEVNULL, text=True)
+        self.proc = subprocess.Popen(
+            [str(PEER), *args], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+        )
         line = self.proc.stdout.readline().strip()
         assert line.startswith("PTY "), f"unexpected peer banner {line!r}"
         self.pty = line.split(" ", 1)[1]

@@ -16,20 +16,23 @@ def follow(seqs, last=None):
 
 def test_next_seq_wraps_past_zero():
     assert next_seq(0) == 1 and next_seq(41) == 42
-    assert next_seq(SEQ_MAX) == 1          # 0 means "none" and is never sent
+    assert next_seq(SEQ_MAX) == 1  # 0 means "none" and is never sent
 
 
-@pytest.mark.parametrize("seqs,last,lost", [
-    ((1, 2, 3), 3, 0),
-    ((1, 2, 5), 5, 2),                                   # 3 and 4 never arrived
-    ((SEQ_MAX - 1, SEQ_MAX, 1, 2), 2, 0),                # the wrap is not a loss
-    ((SEQ_MAX - 1, 2), 2, 2),                            # SEQ_MAX and 1 lost across the wrap
-    ((10, 11, 0, 12), 12, 0),                            # seq 0: no seq, ignored
-    ((10, 11, 9, 12), 12, 0),                            # 9 again: a re-send, not news
-    ((10, 11, 11, 12), 12, 0),                           # the same packet twice
-    ((50_000, 1, 2), 2, 0),                              # far behind: the peer restarted
-    ((5_000, 5_000 - STALE_SEQ_WINDOW, 5_001), 5_001, 0),   # at the edge of the window: a re-send
-])
+@pytest.mark.parametrize(
+    "seqs,last,lost",
+    [
+        ((1, 2, 3), 3, 0),
+        ((1, 2, 5), 5, 2),  # 3 and 4 never arrived
+        ((SEQ_MAX - 1, SEQ_MAX, 1, 2), 2, 0),  # the wrap is not a loss
+        ((SEQ_MAX - 1, 2), 2, 2),  # SEQ_MAX and 1 lost across the wrap
+        ((10, 11, 0, 12), 12, 0),  # seq 0: no seq, ignored
+        ((10, 11, 9, 12), 12, 0),  # 9 again: a re-send, not news
+        ((10, 11, 11, 12), 12, 0),  # the same packet twice
+        ((50_000, 1, 2), 2, 0),  # far behind: the peer restarted
+        ((5_000, 5_000 - STALE_SEQ_WINDOW, 5_001), 5_001, 0),  # at the edge of the window: a re-send
+    ],
+)
 def test_follow_peer_seq(seqs, last, lost):
     assert follow(seqs) == (last, lost)
 

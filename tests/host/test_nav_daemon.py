@@ -74,8 +74,9 @@ class FakeLink:
 
     def send_nav_update(self, nav):
         with self.lock:
-            self.navs.append((self.alive, {"closing_speed_mps": nav.closing_speed_mps, "valid": nav.valid,
-                                           "nav": nav}))
+            self.navs.append(
+                (self.alive, {"closing_speed_mps": nav.closing_speed_mps, "valid": nav.valid, "nav": nav})
+            )
         return True
 
     def heartbeat(self, force=False):
@@ -114,8 +115,15 @@ def make_daemon(camera, link=None, log=None, vehicle=None, confidence=0.9, **par
     for k, v in params.items():
         setattr(p, k, v)
     est = TruthEstimator(confidence)
-    return NavDaemon(Navigator(est), Guidance(MissionParams(nav_lost_abort_s=60.0)), camera, link=link,
-                     vehicle=vehicle or RecordingVehicle(), log=log, params=p)
+    return NavDaemon(
+        Navigator(est),
+        Guidance(MissionParams(nav_lost_abort_s=60.0)),
+        camera,
+        link=link,
+        vehicle=vehicle or RecordingVehicle(),
+        log=log,
+        params=p,
+    )
 
 
 def test_nominal_cycles_are_logged_and_commanded(tmp_path):
@@ -127,7 +135,7 @@ def test_nominal_cycles_are_logged_and_commanded(tmp_path):
     assert summary["cycles"] == 30 and summary["frames_used"] >= 20
     recs = list(read_log(tmp_path / "cycles.jsonl"))
     assert recs[0]["kind"] == "header" and recs[-1]["kind"] == "footer"
-    assert recs[-1]["vehicle"] == {}          # a sink without counters (VehicleInterface default)
+    assert recs[-1]["vehicle"] == {}  # a sink without counters (VehicleInterface default)
     cycles = [r for r in recs if r["kind"] == "cycle"]
     assert len(cycles) == 30
     moving = [v for _, v, ph in veh.sent if ph != "HOLD"]
@@ -218,8 +226,11 @@ def test_log_cut_by_a_kill_is_read_up_to_the_cut(tmp_path):
 
 def test_replay_rereads_the_recorded_frames(tmp_path):
     levels = iter(range(40, 240, 4))
-    d = make_daemon(CallableSource(lambda t: grey(next(levels, 200)), rate_hz=100.0), link=FakeLink(),
-                    log=CycleLog(tmp_path / "cycles.jsonl", frames_dir=tmp_path / "frames"))
+    d = make_daemon(
+        CallableSource(lambda t: grey(next(levels, 200)), rate_hz=100.0),
+        link=FakeLink(),
+        log=CycleLog(tmp_path / "cycles.jsonl", frames_dir=tmp_path / "frames"),
+    )
     d.run(max_cycles=20)
     n_frames = len(list((tmp_path / "frames").glob("*.jpg")))
     assert n_frames >= 10
@@ -245,12 +256,25 @@ def test_cli_model_missing_or_corrupt_is_one_clear_line(tmp_path, capsys, conten
     frames = tmp_path / "frames"
     frames.mkdir()
     from PIL import Image
+
     Image.fromarray(grey()).save(frames / "000001.png")
     model = tmp_path / "model.onnx"
     if content is not None:
         model.write_bytes(content)
-    rc = main(["nav", "--camera", str(frames), "--port", "none", "--model", str(model), "--no-log",
-               "--duration-s", "1"])
+    rc = main(
+        [
+            "nav",
+            "--camera",
+            str(frames),
+            "--port",
+            "none",
+            "--model",
+            str(model),
+            "--no-log",
+            "--duration-s",
+            "1",
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 2
     assert "oibar: error:" in err and str(model) in err
@@ -272,6 +296,7 @@ def test_vehicle_specs():
     v.send(0.0, np.zeros(3), np.zeros(3), "HOLD")
     v.close()
     from oibar.nav.vehicle import VehicleError
+
     for bad in ("udp://nohost", "python:nosuchmodule:X", "tcp://x", "python:os:getcwd"):
         with pytest.raises(VehicleError):
             open_vehicle(bad)
@@ -279,7 +304,7 @@ def test_vehicle_specs():
 
 def test_vehicles_report_no_odometry_by_default():
     assert NullVehicle().relative_velocity(1.0) is None
-    assert RecordingVehicle().relative_velocity(1.0) is None       # a sink that only implements send
+    assert RecordingVehicle().relative_velocity(1.0) is None  # a sink that only implements send
     v = open_vehicle("udp://127.0.0.1:9")
     assert v.relative_velocity(1.0) is None
     v.close()
@@ -292,6 +317,7 @@ def test_udp_vehicle_takes_the_gnc_odometry_back():
     import json
     import socket
     import time as _time
+
     gnc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     gnc.bind(("127.0.0.1", 0))
     gnc.settimeout(2.0)
@@ -315,28 +341,30 @@ def test_udp_vehicle_takes_the_gnc_odometry_back():
             return v.relative_velocity(t_s)
 
         reply(v_D_mps=[0.0, 0.0, -0.028], sigma_mps=0.004, t_s=10.02)
-        reply(v_D_mps=[0.001, 0.0, -0.030], sigma_mps=0.003, t_s=10.05)   # newer: this one wins
+        reply(v_D_mps=[0.001, 0.0, -0.030], sigma_mps=0.003, t_s=10.05)  # newer: this one wins
         odo = drained(10.1, 2)
         assert isinstance(odo, RelativeVelocity)
         assert odo.t_s == pytest.approx(10.05) and odo.sigma_mps == pytest.approx(0.003)
         assert odo.v_D_mps == pytest.approx([0.001, 0.0, -0.030])
-        assert v.relative_velocity(10.2) is None            # reported once, not again
+        assert v.relative_velocity(10.2) is None  # reported once, not again
 
-        reply(v_D_mps=[0.0, 0.0, -0.03], sigma_mps=0.003)     # no t_s: valid when read
+        reply(v_D_mps=[0.0, 0.0, -0.03], sigma_mps=0.003)  # no t_s: valid when read
         odo = drained(10.3, 1)
         assert odo is not None and odo.t_s == pytest.approx(10.3)
 
-        bad = [{"v_D_mps": [0.0, 0.0], "sigma_mps": 0.003, "t_s": 10.3},          # not 3 axes
-               {"v_D_mps": [0.0, 0.0, float("nan")], "sigma_mps": 0.003},
-               {"v_D_mps": [0.0, 0.0, -0.03], "sigma_mps": 0.0},
-               {"v_D_mps": [0.0, 0.0, -0.03], "sigma_mps": 0.003, "t_s": 99.0}]   # from the future
+        bad = [
+            {"v_D_mps": [0.0, 0.0], "sigma_mps": 0.003, "t_s": 10.3},  # not 3 axes
+            {"v_D_mps": [0.0, 0.0, float("nan")], "sigma_mps": 0.003},
+            {"v_D_mps": [0.0, 0.0, -0.03], "sigma_mps": 0.0},
+            {"v_D_mps": [0.0, 0.0, -0.03], "sigma_mps": 0.003, "t_s": 99.0},
+        ]  # from the future
         for m in bad:
             gnc.sendto(json.dumps(m).encode(), daemon_addr)
         gnc.sendto(b"not json", daemon_addr)
         assert drained(10.4, 5) is None
         assert v.odometry_rejected == 5 and v.odometry_received == 3
 
-        reply(v_D_mps=[0.0, 0.0, -0.03], sigma_mps=0.003, t_s=9.0)   # 1.5 s old: stale
+        reply(v_D_mps=[0.0, 0.0, -0.03], sigma_mps=0.003, t_s=9.0)  # 1.5 s old: stale
         assert drained(10.5, 1) is None
         assert v.statistics() == {"send_errors": 0, "odometry_received": 4, "odometry_rejected": 5}
     finally:
@@ -361,6 +389,7 @@ class OdometryVehicle(RecordingVehicle):
 def test_the_vehicles_odometry_reaches_the_filter_and_the_mcu(tmp_path):
     """The camera sees a fixed pose (no motion); the vehicle says it closes at 20 mm/s with 2 mm/s
     confidence: the filter believes the vehicle, and the NavUpdate carries it."""
+
     def closing_after(vehicle, log=None):
         link = FakeLink()
         d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=link, vehicle=vehicle, log=log)
@@ -402,6 +431,7 @@ def test_end_of_a_recorded_stream_is_not_a_lost_camera(tmp_path):
     frames = tmp_path / "frames"
     frames.mkdir()
     from PIL import Image
+
     for k in range(3):
         Image.fromarray(grey(100 + k)).save(frames / f"{k:06d}.png")
     d = make_daemon(FolderSource(frames, rate_hz=100.0, realtime=True), link=FakeLink())
@@ -429,14 +459,18 @@ def test_recorded_frames_survive_a_camera_reopen(tmp_path):
     for _ in range(6):
         tick(d)
     from oibar.camera import CameraLost
+
     d._drop_camera(CameraLost("unplugged for the test"), d.clock())
     d._next_cam_try = 0.0
     for _ in range(6):
         tick(d)
     d.shutdown()
     assert d.stats.camera_reopens == 1
-    files = [r["frame"]["file"] for r in read_log(tmp_path / "cycles.jsonl")
-             if r.get("kind") == "cycle" and r.get("frame")]
+    files = [
+        r["frame"]["file"]
+        for r in read_log(tmp_path / "cycles.jsonl")
+        if r.get("kind") == "cycle" and r.get("frame")
+    ]
     assert len(files) == d.stats.frames_used and len(set(files)) == len(files)
     assert len(list((tmp_path / "frames").glob("*.jpg"))) == len(files)
 
@@ -468,7 +502,7 @@ def test_a_reader_stuck_in_read_is_never_doubled():
                 self.reads += 1
                 n = self.reads
             try:
-                threading.Event().wait(0.8 if n == 5 else 0.01)   # the 5th read hangs
+                threading.Event().wait(0.8 if n == 5 else 0.01)  # the 5th read hangs
             finally:
                 with self.lock:
                     self.active -= 1
@@ -528,8 +562,13 @@ def test_navigator_orders_odometry_and_frame_in_time_and_skips_malformed_odometr
     # older than what the filter already has: dropped, not an error
     s = nav.step(0.4, None, odometry=RelativeVelocity(0.1, np.zeros(3), 0.005))
     assert s.velocity_update is None and s.hold_reason == "no new frame"
-    for bad in ((float("nan"), np.zeros(3), 0.005), ("x", np.zeros(3), 0.005), (0.5, np.zeros(2), 0.005),
-                (0.5, None, 0.005), (0.5,)):
+    for bad in (
+        (float("nan"), np.zeros(3), 0.005),
+        ("x", np.zeros(3), 0.005),
+        (0.5, np.zeros(2), 0.005),
+        (0.5, None, 0.005),
+        (0.5,),
+    ):
         s = nav.step(0.5, grey(), frame_t_s=0.5, odometry=bad)
         assert s.solution.valid and s.update is not None
         assert s.velocity_update is None or s.velocity_update.reason == "non_finite"
@@ -548,7 +587,7 @@ def test_heartbeats_stop_when_the_navigation_loop_hangs(mcu, fast_timings):
         client.connect()
         d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=client)
         d._t0 = d.clock()
-        for _ in range(8):                      # cycling: 0.05 s apart, link timeout 0.3 s
+        for _ in range(8):  # cycling: 0.05 s apart, link timeout 0.3 s
             tick(d)
             d._stop.wait(0.05)
         assert mcu.link_losses == 0 and mcu.connected
@@ -556,9 +595,9 @@ def test_heartbeats_stop_when_the_navigation_loop_hangs(mcu, fast_timings):
         beats = len(mcu.requests("heartbeat"))
         assert wait_for(lambda: mcu.link_losses >= 1, timeout_s=2.0), "a hung loop must fall silent"
         assert len(mcu.requests("heartbeat")) == beats
-        d._stop.wait(0.6)                       # still hung: no re-handshake behind its back
+        d._stop.wait(0.6)  # still hung: no re-handshake behind its back
         assert mcu.handshakes_accepted == 1
-        for _ in range(20):                     # the loop cycles again: the link comes back
+        for _ in range(20):  # the loop cycles again: the link comes back
             tick(d)
             d._stop.wait(0.05)
             if client.link_alive and mcu.connected:
@@ -595,7 +634,7 @@ def test_the_navigator_gives_a_tracking_estimator_the_filters_predicted_pose():
     st = nav.filter.state(0.1)
     assert np.allclose(T, st.T_cam_target_m) and np.allclose(R @ R.T, np.eye(3), atol=1e-9)
     assert np.linalg.norm(T - s.estimate.T_cam_target_m) < 0.05
-    plain = TruthEstimator(0.9)          # its estimate() takes no prior: a call with one would raise
+    plain = TruthEstimator(0.9)  # its estimate() takes no prior: a call with one would raise
     nav = Navigator(plain)
     for k in range(3):
         assert nav.step(0.1 * k, grey(), frame_t_s=0.1 * k).update is not None

@@ -10,9 +10,9 @@ from oibar.geometry.docking import camera_pose_from_docking, docking_from_camera
 from oibar.geometry.rotations import matrix_to_quat, rotvec_to_matrix
 from oibar.nav.filter import FilterParams, NavFilter
 
-DT_S = 0.1                                      # 10 Hz, as the camera
-R0_D_M = np.array([0.30, -0.20, 6.0])           # probe tip at the start
-V_D_MPS = np.array([-0.01, 0.005, -0.10])       # closing at 0.1 m/s
+DT_S = 0.1  # 10 Hz, as the camera
+R0_D_M = np.array([0.30, -0.20, 6.0])  # probe tip at the start
+V_D_MPS = np.array([-0.01, 0.005, -0.10])  # closing at 0.1 m/s
 ATT_RAD = np.radians([1.0, -0.5, 2.0])
 
 
@@ -27,8 +27,14 @@ def noisy_measurement(t_s, rng, params=None):
     r, a = truth(t_s)
     T, R = camera_pose_from_docking(r, a)
     rng_m = np.linalg.norm(T)
-    T = T + rng.normal(0, 1, 3) * np.array([params.pos_sigma_lateral_frac, params.pos_sigma_lateral_frac,
-                                             params.pos_sigma_depth_frac]) * rng_m
+    T = (
+        T
+        + rng.normal(0, 1, 3)
+        * np.array(
+            [params.pos_sigma_lateral_frac, params.pos_sigma_lateral_frac, params.pos_sigma_depth_frac]
+        )
+        * rng_m
+    )
     R = R @ rotvec_to_matrix(rng.normal(0, np.radians(params.att_sigma_deg), 3))
     return T, R
 
@@ -67,7 +73,7 @@ def test_converges_on_constant_velocity_and_beats_the_raw_measurements():
         t = k * DT_S
         T, R = noisy_measurement(t, rng)
         res = f.update(t, T, R, 1.0)
-        if k >= 50:                                   # after 5 s of convergence
+        if k >= 50:  # after 5 s of convergence
             r, a = truth(t)
             s = f.state(t)
             meas = docking_from_camera_pose(T, R)
@@ -93,25 +99,25 @@ def test_single_outlier_is_gated_and_does_not_move_the_state(kind):
     before = f.state(149 * DT_S)
     T, R = noisy_measurement(t, rng)
     if kind == "position":
-        T = T + np.array([0.0, 0.0, 1.5])                 # 1.5 m too far at ~4.6 m: 10 sigma in depth
-    else:                                                 # same probe tip, attitude 15 deg off
+        T = T + np.array([0.0, 0.0, 1.5])  # 1.5 m too far at ~4.6 m: 10 sigma in depth
+    else:  # same probe tip, attitude 15 deg off
         m = docking_from_camera_pose(T, R)
         T, R = camera_pose_from_docking(m.r_D_m, m.att_rad + np.radians([0.0, 15.0, 0.0]))
     res = f.update(t, T, R, 1.0)
     assert res.gated and not res.accepted and not res.reinitialised and res.reason == "gated"
     bad, good = (res.nis_pos, res.nis_att) if kind == "position" else (res.nis_att, res.nis_pos)
-    assert bad > f.params.gate_chi2 and good < f.params.gate_chi2     # each block's gate works on its own
+    assert bad > f.params.gate_chi2 and good < f.params.gate_chi2  # each block's gate works on its own
     after = f.state(t)
     r_true, _ = truth(t)
     assert np.linalg.norm(after.r_D_m - r_true) < 0.1
-    np.testing.assert_allclose(after.r_D_m, before.r_D_m + before.v_D_mps * DT_S, atol=1e-9)   # predicted only
+    np.testing.assert_allclose(after.r_D_m, before.r_D_m + before.v_D_mps * DT_S, atol=1e-9)  # predicted only
     res = f.update(t + DT_S, *noisy_measurement(t + DT_S, rng))
     assert res.accepted and res.reason == "fused"
 
 
 def test_reinitialises_after_n_consecutive_outliers():
     f, rng, t0 = converged()
-    jump_D_m = np.array([0.0, 0.0, 2.0])                  # e.g. the true range was badly tracked
+    jump_D_m = np.array([0.0, 0.0, 2.0])  # e.g. the true range was badly tracked
     n = f.params.reinit_after
     results = []
     for k in range(n + 2):
@@ -120,12 +126,14 @@ def test_reinitialises_after_n_consecutive_outliers():
         T, R = camera_pose_from_docking(r + jump_D_m, a)
         results.append(f.update(t, T, R, 1.0))
     assert [r.gated for r in results[:n]] == [True] * n
-    assert not any(r.accepted for r in results[:n - 1])
-    assert results[n - 1].reinitialised and results[n - 1].accepted and results[n - 1].reason == "reinitialised"
+    assert not any(r.accepted for r in results[: n - 1])
+    assert (
+        results[n - 1].reinitialised and results[n - 1].accepted and results[n - 1].reason == "reinitialised"
+    )
     assert results[n].reason == "fused" and results[n + 1].reason == "fused"
     s = f.state(t0 + (n + 1) * DT_S)
     np.testing.assert_allclose(s.r_D_m, truth(t0 + (n + 1) * DT_S)[0] + jump_D_m, atol=0.05)
-    np.testing.assert_allclose(s.v_D_mps, V_D_MPS, atol=0.03)   # the velocity survives the position jump
+    np.testing.assert_allclose(s.v_D_mps, V_D_MPS, atol=0.03)  # the velocity survives the position jump
 
 
 def test_a_good_measurement_between_outliers_resets_the_count():
@@ -134,7 +142,7 @@ def test_a_good_measurement_between_outliers_resets_the_count():
     for k in range(2 * n):
         t = t0 + k * DT_S
         T, R = noisy_measurement(t, rng)
-        if k % n != n - 1:                                # every n-th is good
+        if k % n != n - 1:  # every n-th is good
             T = T + np.array([0.0, 0.0, 2.0])
         res = f.update(t, T, R, 1.0)
         assert not res.reinitialised
@@ -147,7 +155,7 @@ def test_covariance_grows_while_coasting_and_the_state_expires():
     assert all(b > a for a, b in zip(sig, sig[1:], strict=False)), sig
     assert f.state(t_last + 0.9).valid and f.state(t_last + 0.9).since_update_s == pytest.approx(0.9)
     assert not f.state(t_last + f.params.max_coast_s + 0.05).valid
-    f.predict(t_last + 5.0)                               # a long gap: no frames at all
+    f.predict(t_last + 5.0)  # a long gap: no frames at all
     s = f.state(t_last + 5.0)
     assert not s.valid and s.pos_sigma_m[2] > 2 * sig[0]
     # after expiry the next measurement restarts the filter, however far from the prediction
@@ -168,7 +176,7 @@ def test_time_going_backwards_is_rejected():
         f.state(t - 0.5)
     with pytest.raises(ValueError, match="finite"):
         f.predict(float("nan"))
-    f.update(19 * DT_S, *noisy_measurement(19 * DT_S, rng))   # the same time as the last update is fine
+    f.update(19 * DT_S, *noisy_measurement(19 * DT_S, rng))  # the same time as the last update is fine
 
 
 def test_low_confidence_and_non_finite_measurements_are_skipped():
@@ -188,7 +196,7 @@ def test_low_confidence_and_non_finite_measurements_are_skipped():
 
 
 def test_measurement_noise_grows_with_range_and_depth_is_noisiest():
-    aligned = np.eye(3)                                   # R_cam_target when the vehicles are aligned
+    aligned = np.eye(3)  # R_cam_target when the vehicles are aligned
     f = NavFilter()
     near, _ = f.measurement_noise(np.array([0.0, 0.0, 2.0]), aligned, 1.0)
     far, att = f.measurement_noise(np.array([0.0, 0.0, 8.0]), aligned, 1.0)
@@ -206,8 +214,9 @@ def test_measurement_noise_grows_with_range_and_depth_is_noisiest():
 def test_attitude_noise_reaches_the_probe_tip_as_the_model_says():
     """Monte Carlo: attitude-only noise on (T, R), pushed through docking_from_camera_pose,
     gives the probe-tip covariance the filter assumes (it grows with range: lateral)."""
-    params = FilterParams(pos_sigma_lateral_frac=1e-9, pos_sigma_depth_frac=1e-9, pos_sigma_floor_m=1e-9,
-                          att_sigma_deg=1.0)
+    params = FilterParams(
+        pos_sigma_lateral_frac=1e-9, pos_sigma_depth_frac=1e-9, pos_sigma_floor_m=1e-9, att_sigma_deg=1.0
+    )
     f, rng = NavFilter(params), np.random.default_rng(3)
     T, R = camera_pose_from_docking(np.array([0.4, -0.3, 7.0]), np.radians([2.0, -3.0, 5.0]))
     model_cov, _ = f.measurement_noise(T, R, 1.0)
@@ -215,24 +224,34 @@ def test_attitude_noise_reaches_the_probe_tip_as_the_model_says():
     r = np.array([docking_from_camera_pose(T, rotvec_to_matrix(phi) @ R).r_D_m for phi in phis])
     emp = np.cov(r.T)
     np.testing.assert_allclose(np.sqrt(np.diag(emp)), np.sqrt(np.diag(model_cov)), rtol=0.1, atol=2e-3)
-    assert np.sqrt(model_cov[0, 0]) > 0.1                 # ~7 m x 1 deg: lateral, not negligible
+    assert np.sqrt(model_cov[0, 0]) > 0.1  # ~7 m x 1 deg: lateral, not negligible
 
 
 def test_reset_forgets_everything():
     f, rng, t = converged(20)
     f.reset()
     assert not f.initialised and not f.state(0.0).valid
-    assert f.update(0.0, *noisy_measurement(0.0, rng)).reason == "initialised"   # time may restart
+    assert f.update(0.0, *noisy_measurement(0.0, rng)).reason == "initialised"  # time may restart
 
 
-@pytest.mark.parametrize("bad", [dict(pos_sigma_depth_frac=0.0), dict(att_sigma_deg=-1.0), dict(max_coast_s=np.inf),
-                                 dict(reinit_after=0), dict(min_confidence=1.0), dict(confidence_floor=2.0)])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(pos_sigma_depth_frac=0.0),
+        dict(att_sigma_deg=-1.0),
+        dict(max_coast_s=np.inf),
+        dict(reinit_after=0),
+        dict(min_confidence=1.0),
+        dict(confidence_floor=2.0),
+    ],
+)
 def test_bad_parameters_are_refused(bad):
     with pytest.raises(ValueError, match=f"FilterParams.{next(iter(bad))}"):
         FilterParams(**bad)
 
 
 # --- the vehicle's own velocity (odometry) --------------------------------------------------
+
 
 def closing_approach(t_s):
     """A docking-like approach: 3 m out, closing at 80 mm/s slowing to 30 mm/s (tau 8 s)."""
@@ -283,13 +302,13 @@ def test_odometry_shrinks_the_closing_speed_error_of_a_biased_camera():
 
 def test_an_inconsistent_velocity_is_gated_then_a_persistent_one_reseats_the_velocity():
     f, rng, t0 = converged()
-    for k in range(20):                                   # settle on good odometry
+    for k in range(20):  # settle on good odometry
         t = t0 + k * DT_S
         f.update(t, *noisy_measurement(t, rng))
         f.update_velocity(t, V_D_MPS + rng.normal(0, 0.005, 3), 0.005)
     t = t0 + 20 * DT_S
     before = f.state(t)
-    res = f.update_velocity(t, V_D_MPS + np.array([0.0, 0.0, 0.2]), 0.005)   # a 0.2 m/s glitch
+    res = f.update_velocity(t, V_D_MPS + np.array([0.0, 0.0, 0.2]), 0.005)  # a 0.2 m/s glitch
     assert res.gated and not res.accepted and res.reason == "gated" and res.nis > f.params.vel_gate_chi2
     after = f.state(t)
     np.testing.assert_allclose(after.v_D_mps, before.v_D_mps, atol=1e-12)
@@ -298,7 +317,7 @@ def test_an_inconsistent_velocity_is_gated_then_a_persistent_one_reseats_the_vel
     new_v = V_D_MPS + np.array([0.0, 0.0, 0.08])
     n = f.params.vel_reset_after
     results = [f.update_velocity(t + k * DT_S, new_v, 0.005) for k in range(1, n)]
-    assert all(r.reason == "gated" for r in results[:n - 2]) and results[-1].reason == "reset"
+    assert all(r.reason == "gated" for r in results[: n - 2]) and results[-1].reason == "reset"
     np.testing.assert_allclose(f.state(t + (n - 1) * DT_S).v_D_mps, new_v, atol=1e-9)
     assert f.update_velocity(t + n * DT_S, new_v, 0.005).reason == "fused"
 
@@ -308,7 +327,7 @@ def test_velocity_alone_neither_starts_nor_keeps_the_filter_and_bad_input_is_ski
     assert f.update_velocity(0.0, V_D_MPS, 0.005).reason == "not_initialised"
     assert not f.initialised and not f.state(0.0).valid
     f.update(0.1, *camera_pose_from_docking(*truth(0.1)))
-    for k in range(2, 40):                                 # the camera goes, the odometry stays
+    for k in range(2, 40):  # the camera goes, the odometry stays
         f.update_velocity(k * DT_S, V_D_MPS, 0.005)
     assert not f.state(39 * DT_S).valid, "validity is the camera's"
     assert f.velocity_counts["not_initialised"] > 20
@@ -316,7 +335,13 @@ def test_velocity_alone_neither_starts_nor_keeps_the_filter_and_bad_input_is_ski
     before = f2.state(t)
     assert f2.update_velocity(t, [np.nan, 0.0, 0.0], 0.005).reason == "non_finite"
     assert f2.update_velocity(t, V_D_MPS, float("inf")).reason == "non_finite"
-    for bad_v, bad_sigma in ((V_D_MPS, -0.005), (V_D_MPS, None), ("fast", 0.005), (None, 0.005), (V_D_MPS[:2], 0.005)):
+    for bad_v, bad_sigma in (
+        (V_D_MPS, -0.005),
+        (V_D_MPS, None),
+        ("fast", 0.005),
+        (None, 0.005),
+        (V_D_MPS[:2], 0.005),
+    ):
         assert f2.update_velocity(t, bad_v, bad_sigma).reason == "non_finite"
     np.testing.assert_allclose(f2.state(t).v_D_mps, before.v_D_mps)
     with pytest.raises(ValueError, match="backwards"):
@@ -343,7 +368,9 @@ def test_without_odometry_the_filter_is_unchanged():
     assert a.counts == b.counts and a.velocity_counts["fused"] == 0
 
 
-@pytest.mark.parametrize("bad", [dict(vel_sigma_floor_mps=0.0), dict(vel_gate_chi2=-1.0), dict(vel_reset_after=0)])
+@pytest.mark.parametrize(
+    "bad", [dict(vel_sigma_floor_mps=0.0), dict(vel_gate_chi2=-1.0), dict(vel_reset_after=0)]
+)
 def test_bad_odometry_parameters_are_refused(bad):
     with pytest.raises(ValueError, match=f"FilterParams.{next(iter(bad))}"):
         FilterParams(**bad)

@@ -15,8 +15,12 @@ def telemetry(state="STATE_IDLE", contact=False):
 
 
 def nav(range_m=5.0, lateral=(0.0, 0.0), valid=True, hold_reason=""):
-    return NavSolution(valid=valid, r_D_m=np.array([lateral[0], lateral[1], range_m]), confidence=0.9,
-                       hold_reason=hold_reason)
+    return NavSolution(
+        valid=valid,
+        r_D_m=np.array([lateral[0], lateral[1], range_m]),
+        confidence=0.9,
+        hold_reason=hold_reason,
+    )
 
 
 def obs(t_s, n, link_up=True, tm=None):
@@ -31,8 +35,14 @@ def test_approach_closes_on_a_trusted_solution_and_centres_laterally():
     assert out.phase == "FORCED_TRANSLATION"
 
 
-@pytest.mark.parametrize("n", [nav(hold_reason="gated outlier"), nav(hold_reason="low confidence 0.20"),
-                               nav(valid=False, hold_reason="filter not initialised")])
+@pytest.mark.parametrize(
+    "n",
+    [
+        nav(hold_reason="gated outlier"),
+        nav(hold_reason="low confidence 0.20"),
+        nav(valid=False, hold_reason="filter not initialised"),
+    ],
+)
 def test_untrusted_navigation_holds(n):
     g = Guidance(MissionParams())
     out = g.step(0.0, obs(0.0, n))
@@ -84,7 +94,7 @@ def test_link_down_holds_and_sends_no_command():
     out = g.step(0.0, obs(0.0, nav(1.5), link_up=False))
     assert out.phase == "HOLD" and np.all(out.v_sp_D_mps == 0)
     assert out.request is None
-    out = g.step(0.1, obs(0.1, nav(1.5), link_up=True))       # link back: arm
+    out = g.step(0.1, obs(0.1, nav(1.5), link_up=True))  # link back: arm
     assert out.request is not None and out.request.label == "CMD_APPROACH_ARM"
 
 
@@ -118,7 +128,7 @@ def test_navigation_back_before_the_timeout_resumes_the_approach():
     g.step(1.0, obs(1.0, nav(valid=False, hold_reason="camera: gone")))
     out = g.step(1.5, obs(1.5, nav(4.0)))
     assert not g.mission_aborted and out.v_sp_D_mps[2] < 0
-    g.step(3.0, obs(3.0, nav(valid=False, hold_reason="camera: gone")))   # the clock restarts
+    g.step(3.0, obs(3.0, nav(valid=False, hold_reason="camera: gone")))  # the clock restarts
     assert not g.mission_aborted
 
 
@@ -126,7 +136,9 @@ def test_docked_states_do_not_abort_on_navigation_loss():
     g = Guidance(MissionParams(nav_lost_abort_s=1.0))
     for k in range(40):
         t = k * 0.1
-        out = g.step(t, obs(t, nav(valid=False, hold_reason="camera: gone"), tm=telemetry("STATE_HARD_DOCKED", True)))
+        out = g.step(
+            t, obs(t, nav(valid=False, hold_reason="camera: gone"), tm=telemetry("STATE_HARD_DOCKED", True))
+        )
     assert not g.mission_aborted, "docked, the camera is not needed: no abort"
     assert np.all(out.v_sp_D_mps == 0)
 
@@ -141,10 +153,10 @@ def test_attitude_is_left_to_the_vehicle_unless_steering_is_enabled():
 def test_attitude_inside_the_deadband_is_left_alone_outside_it_is_corrected():
     g = Guidance(MissionParams(steer_attitude=True))
     n = nav(5.0)
-    n.att_rad = np.radians([2.5, 1.0, 0.0])        # a typical network error: no rate command
+    n.att_rad = np.radians([2.5, 1.0, 0.0])  # a typical network error: no rate command
     out = g.step(0.0, obs(0.0, n))
     assert np.all(out.w_sp_rad_s == 0)
-    n.att_rad = np.radians([5.0, -4.0, 0.0])       # a real misalignment: turned back
+    n.att_rad = np.radians([5.0, -4.0, 0.0])  # a real misalignment: turned back
     out = g.step(0.1, obs(0.1, n))
     assert out.w_sp_rad_s[0] < 0 and out.w_sp_rad_s[1] > 0
 
@@ -152,7 +164,9 @@ def test_attitude_inside_the_deadband_is_left_alone_outside_it_is_corrected():
 def test_approach_corridor_stops_closing_outside_and_backs_off_far_outside():
     from oibar.nav.guidance import corridor_half_width_m
 
-    assert corridor_half_width_m(5.0) == pytest.approx(0.5) and corridor_half_width_m(0.1) == pytest.approx(0.05)
+    assert corridor_half_width_m(5.0) == pytest.approx(0.5) and corridor_half_width_m(0.1) == pytest.approx(
+        0.05
+    )
     g = Guidance(MissionParams())
     inside = g.step(0.0, obs(0.0, nav(3.0, lateral=(0.2, 0.0))))
     assert inside.v_sp_D_mps[2] < 0, "inside the corridor: closing"

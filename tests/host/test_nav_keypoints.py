@@ -6,33 +6,47 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oibar.nav.keypoints import CropWindow, cut, project, solve_pnp, window_around
 from oibar.geometry.rotations import rotvec_to_matrix
+from oibar.nav.keypoints import CropWindow, cut, project, solve_pnp, window_around
 
 K = np.array([[583.3333, 0, 372.0], [0, 583.3333, 240.0], [0, 0, 1]])
 # a fixture-like point set (rim corners, pin guides, couplings, connector corners, centre)
-POINTS = np.array([[-0.25, -0.18, 0], [0.25, -0.18, 0], [0.25, 0.18, 0], [-0.25, 0.18, 0], [-0.17, 0, 0.005],
-                   [0.17, 0, 0.005], [-0.1, 0.115, 0.002], [0.1, 0.115, 0.002], [-0.045, -0.135, 0.0045],
-                   [0.045, -0.135, 0.0045], [0.045, -0.095, 0.0045], [-0.045, -0.095, 0.0045], [0, 0, 0.012]])
+POINTS = np.array(
+    [
+        [-0.25, -0.18, 0],
+        [0.25, -0.18, 0],
+        [0.25, 0.18, 0],
+        [-0.25, 0.18, 0],
+        [-0.17, 0, 0.005],
+        [0.17, 0, 0.005],
+        [-0.1, 0.115, 0.002],
+        [0.1, 0.115, 0.002],
+        [-0.045, -0.135, 0.0045],
+        [0.045, -0.135, 0.0045],
+        [0.045, -0.095, 0.0045],
+        [-0.045, -0.095, 0.0045],
+        [0, 0, 0.012],
+    ]
+)
 
 
 def test_window_maps_points_both_ways():
     win = CropWindow((400.3, 200.7), 87.0, 160, np.radians(12))
     uv = np.array([[400.3, 200.7], [410.0, 190.0], [380.5, 230.25]])
     c = win.to_crop(uv)
-    assert np.allclose(c[0], [80, 80])                       # the centre lands in the middle
+    assert np.allclose(c[0], [80, 80])  # the centre lands in the middle
     assert np.allclose(win.to_frame(c), uv)
     assert np.isclose(np.linalg.norm(c[1] - c[0]), np.linalg.norm(uv[1] - uv[0]) * 160 / 87.0)
 
 
-@pytest.mark.parametrize("side_px", [60.0, 160.0, 700.0])    # enlarging, 1:1, area-shrunk by 4
+@pytest.mark.parametrize("side_px", [60.0, 160.0, 700.0])  # enlarging, 1:1, area-shrunk by 4
 def test_cut_puts_a_frame_point_where_the_window_says(side_px):
     """A bright square centred on a frame point must appear centred on its crop coordinates,
     whatever the scale (the pixel-convention conversions to OpenCV are where this breaks)."""
     img = np.zeros((480, 744, 3), np.uint8)
-    p = np.array([352.0, 251.0])                              # frame point (corner convention)
+    p = np.array([352.0, 251.0])  # frame point (corner convention)
     r = max(2, int(side_px / 40))
-    img[int(p[1]) - r:int(p[1]) + r, int(p[0]) - r:int(p[0]) + r] = 255
+    img[int(p[1]) - r : int(p[1]) + r, int(p[0]) - r : int(p[0]) + r] = 255
     win = CropWindow((360.4, 240.8), side_px, 160)
     crop = cut(img, win).astype(float)[..., 0]
     ys, xs = np.mgrid[0:160, 0:160]
@@ -65,8 +79,8 @@ def test_pnp_recovers_the_pose_from_exact_keypoints(T):
 def test_pnp_rejects_outliers_and_missing_points():
     R, T = _pose(np.radians([1.0, 2.0, -3.0]), (0.1, 0.1, 3.0))
     uv = project(K, POINTS, R, T)
-    uv[[0, 5, 9]] += np.array([[25, -30], [40, 12], [-18, 22]])     # three wrong detections
-    uv[12] = np.nan                                                 # one not found
+    uv[[0, 5, 9]] += np.array([[25, -30], [40, 12], [-18, 22]])  # three wrong detections
+    uv[12] = np.nan  # one not found
     r = solve_pnp(uv, POINTS, K, reproj_px=2.0)
     assert r.ok, r.reason
     assert set(r.inliers.tolist()).isdisjoint({0, 5, 9, 12})
@@ -79,7 +93,7 @@ def test_pnp_says_why_it_has_no_answer():
     uv[4:] = np.nan
     r = solve_pnp(uv, POINTS, K, reproj_px=2.0)
     assert not r.ok and "only 4 keypoints" in r.reason
-    noise = np.random.default_rng(1).uniform(0, 744, (len(POINTS), 2))   # points with no consistent pose
+    noise = np.random.default_rng(1).uniform(0, 744, (len(POINTS), 2))  # points with no consistent pose
     r = solve_pnp(noise, POINTS, K, reproj_px=0.5)
     assert not r.ok and r.reason
 
@@ -104,10 +118,14 @@ def test_prior_weight_moves_the_attitude_between_keypoints_and_prior():
     R, T = _pose(np.radians([1.0, 2.0, 0.5]), (0.1, 0.1, 2.0))
     uv = project(K, POINTS, R, T)
     R_prior = rotvec_to_matrix(np.radians([3.0, -2.0, 0.0])) @ R
-    R1, T1, rms, _ = refine_with_prior(uv, POINTS, K, R, T, R_prior, sigma_px=0.01, sigma_prior_rad=np.radians(90))
-    assert np.allclose(R1, R, atol=1e-6) and rms < 1e-3              # the keypoints win
-    R2, _, _, _ = refine_with_prior(uv, POINTS, K, R, T, R_prior, sigma_px=100.0, sigma_prior_rad=np.radians(0.01))
-    assert np.allclose(R2, R_prior, atol=1e-4)                       # the prior wins
+    R1, T1, rms, _ = refine_with_prior(
+        uv, POINTS, K, R, T, R_prior, sigma_px=0.01, sigma_prior_rad=np.radians(90)
+    )
+    assert np.allclose(R1, R, atol=1e-6) and rms < 1e-3  # the keypoints win
+    R2, _, _, _ = refine_with_prior(
+        uv, POINTS, K, R, T, R_prior, sigma_px=100.0, sigma_prior_rad=np.radians(0.01)
+    )
+    assert np.allclose(R2, R_prior, atol=1e-4)  # the prior wins
 
 
 def test_far_keypoints_with_an_attitude_prior_give_no_mirrored_pose():
@@ -118,21 +136,28 @@ def test_far_keypoints_with_an_attitude_prior_give_no_mirrored_pose():
 
     rng = np.random.default_rng(7)
     for _ in range(25):
-        R, T = _pose(np.radians(rng.uniform(-3, 3, 3)), (rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(8, 10.5)))
+        R, T = _pose(
+            np.radians(rng.uniform(-3, 3, 3)), (rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(8, 10.5))
+        )
         uv = project(K, POINTS, R, T) + rng.normal(0, 0.15, (len(POINTS), 2))
         R_prior = rotvec_to_matrix(np.radians(rng.normal(0, 0.6, 3))) @ R
         r = map_pose(uv, POINTS, K, 1.0, R_prior, 0.15, np.radians(2.0))
         assert r.ok
-        att = np.degrees(np.linalg.norm(__import__("oibar.geometry.rotations", fromlist=["x"]).matrix_to_rotvec(r.R_cam_target @ R.T)))
+        att = np.degrees(
+            np.linalg.norm(
+                __import__("oibar.geometry.rotations", fromlist=["x"]).matrix_to_rotvec(r.R_cam_target @ R.T)
+            )
+        )
         assert att < 3.0 and np.linalg.norm(r.T_cam_target_m - T) / np.linalg.norm(T) < 0.01, (att, T)
 
 
 # ----------------------------------------------------------------------------- model 0.5.0: depth, weights, tracking
-DEEP = np.vstack([POINTS, [[0.0, 0.0, 0.18]]])     # + the drogue's throat, 0.18 m behind the rim
+DEEP = np.vstack([POINTS, [[0.0, 0.0, 0.18]]])  # + the drogue's throat, 0.18 m behind the rim
 
 
 def _att_deg(Ra, Rb):
     from oibar.geometry.rotations import matrix_to_rotvec
+
     return float(np.degrees(np.linalg.norm(matrix_to_rotvec(Ra @ Rb.T))))
 
 
@@ -166,7 +191,9 @@ def test_per_keypoint_sigmas_let_a_poorly_found_point_count_less():
     own = map_pose(uv, DEEP, K, 4.0, R_prior, sig, np.radians(2.0))
     assert same.ok and own.ok
     assert _att_deg(own.R_cam_target, R) < 0.5 * _att_deg(same.R_cam_target, R), (
-        _att_deg(own.R_cam_target, R), _att_deg(same.R_cam_target, R))
+        _att_deg(own.R_cam_target, R),
+        _att_deg(same.R_cam_target, R),
+    )
 
 
 def test_error_model_scales_by_range_and_refuses_bad_tables():
@@ -174,7 +201,7 @@ def test_error_model_scales_by_range_and_refuses_bad_tables():
 
     table = {"range_edges_m": [0.0, 1.5, 5.0, 100.0], "rms_crop_px": [[0.5, 0.3, 0.4], [2.0, 0.3, 0.5]]}
     m = KeypointErrorModel(table)
-    near, mid, far = m.scale(0.8), m.scale(3.0), m.scale(250.0)    # beyond the last edge: the last bin
+    near, mid, far = m.scale(0.8), m.scale(3.0), m.scale(250.0)  # beyond the last edge: the last bin
     assert near[1] / near[0] == pytest.approx(4.0) and mid[1] / mid[0] == pytest.approx(1.0)
     assert far[1] / far[0] == pytest.approx(1.25)
     assert np.sqrt(np.mean(np.array(table["rms_crop_px"]) ** 2)) * mid[0] == pytest.approx(0.3)
@@ -191,7 +218,11 @@ def _bare_estimator(R_true, T_true):
 
     est = object.__new__(KeypointPoseEstimator)
     est.K_frame, est.points_m, est.out_px, est.margin = K, DEEP, 128, 1.25
-    est.reproj_crop_px, est.refine_passes, est.meta = 4.0, 2, {"fusion": {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0}}
+    est.reproj_crop_px, est.refine_passes, est.meta = (
+        4.0,
+        2,
+        {"fusion": {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0}},
+    )
     truth = project(K, DEEP, R_true, T_true)
     centre = truth.mean(0)
     est.crops = []
@@ -214,12 +245,12 @@ def test_the_predicted_pose_places_the_first_crop():
     T_direct = T + (1.6, 0.0, 0.0)
     est = _bare_estimator(R, T)
     r, _ = est.solve(image, R, T_direct)
-    assert r is None and len(est.crops) == 11                          # the whole search, in vain
+    assert r is None and len(est.crops) == 11  # the whole search, in vain
     est = _bare_estimator(R, T)
     r, _ = est.solve(image, R, T_direct, prior=(R, T + (0.05, 0.02, 0.1)))
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
-    assert len(est.crops) == 2                                         # the prediction's window, one refinement
-    est = _bare_estimator(R, T)                                        # a wrong prediction costs one crop
+    assert len(est.crops) == 2  # the prediction's window, one refinement
+    est = _bare_estimator(R, T)  # a wrong prediction costs one crop
     r, _ = est.solve(image, R, T, prior=(R, T + (1.6, 0.0, 0.0)))
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3 and len(est.crops) == 3
 
@@ -230,8 +261,8 @@ def test_an_unusable_prediction_is_ignored_and_a_malformed_one_refused():
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
     assert _checked_prior(None) is None
     assert _checked_prior((R, T)) is not None
-    assert _checked_prior((R, np.array([0.0, 0.0, -1.0]))) is None                 # behind the camera
+    assert _checked_prior((R, np.array([0.0, 0.0, -1.0]))) is None  # behind the camera
     assert _checked_prior((np.full((3, 3), np.nan), T)) is None
-    assert _checked_prior((2 * R, T)) is None                                       # not a rotation
+    assert _checked_prior((2 * R, T)) is None  # not a rotation
     with pytest.raises(ValueError, match="prior must be"):
         _checked_prior((R, T[:2]))

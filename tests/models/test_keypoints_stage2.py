@@ -14,10 +14,10 @@ from oibar_models.nets import OibarNet, soft_argmax, widen_heads_from
 
 def test_soft_argmax_finds_the_peak_in_image_coordinates():
     logits = torch.full((1, 2, 10, 16), -30.0)
-    logits[0, 0, 2, 12] = 30.0          # row 2 of 10, column 12 of 16
+    logits[0, 0, 2, 12] = 30.0  # row 2 of 10, column 12 of 16
     logits[0, 1, 7, 3] = 30.0
     uv = soft_argmax(logits)[0]
-    u_cell = lambda c, n: -1 + (2 * c + 1) / n   # noqa: E731 (cell centre in [-1, 1])
+    u_cell = lambda c, n: -1 + (2 * c + 1) / n  # noqa: E731 (cell centre in [-1, 1])
     assert torch.allclose(uv[:2], torch.tensor([u_cell(12, 16), u_cell(3, 16)]), atol=1e-5)
     assert torch.allclose(uv[2:], torch.tensor([u_cell(2, 10), u_cell(7, 10)]), atol=1e-5)
     # a moving peak moves the output: the branch is position-sensitive by construction
@@ -32,7 +32,7 @@ def test_widened_heads_start_from_the_old_function():
         old.head_t.weight.normal_(0, 0.1)
     new.load_state_dict(widen_heads_from(new, old.state_dict()))
     x = torch.rand(3, 3, 60, 93)
-    for a, b in zip(old(x), new(x)):
+    for a, b in zip(old(x), new(x), strict=True):
         assert torch.allclose(a, b, atol=1e-5)
     assert new.feature_dim == old.feature_dim + 16
 
@@ -41,8 +41,12 @@ def test_second_stage_trains_from_the_first_and_exports(tiny_dataset, tmp_path):
     cfg1 = tiny_config(tiny_dataset, tmp_path / "stage1", pos_loss="range_normalised")
     cfg1.model.pos_param = "uvlogz"
     train(cfg1, progress=False, log=lambda m: None)
-    cfg2 = tiny_config(tiny_dataset, tmp_path / "stage2", init_from=str(tmp_path / "stage1" / "best.pt"),
-                       pos_loss="range_normalised")
+    cfg2 = tiny_config(
+        tiny_dataset,
+        tmp_path / "stage2",
+        init_from=str(tmp_path / "stage1" / "best.pt"),
+        pos_loss="range_normalised",
+    )
     cfg2.model.pos_param = "uvlogz"
     cfg2.model.keypoints = 4
     logs = []

@@ -55,7 +55,9 @@ def test_a_damaged_weights_file_is_refused(tmp_path):
 
 
 # ----------------------------------------------------------------------------- honest split
-@pytest.mark.parametrize("path", sorted((REPO / "models/configs/keypoints").glob("*.yaml")), ids=lambda p: p.stem)
+@pytest.mark.parametrize(
+    "path", sorted((REPO / "models/configs/keypoints").glob("*.yaml")), ids=lambda p: p.stem
+)
 def test_keypoint_configs_load(path):
     cfg = load_kp_config(path)
     assert cfg.model.out_px % 32 == 0 and cfg.train.steps > 0 and cfg.data.test_spec.endswith("test.json")
@@ -64,17 +66,45 @@ def test_keypoint_configs_load(path):
 def test_committed_scene_sets_are_disjoint():
     cfg = load_kp_config(CONFIG)
     sets = {n: load_set(cfg.path(getattr(cfg.data, f"{n}_spec"))) for n in ("train", "val", "test")}
-    assert len(sets["train"]) >= 40 and len(sets["val"]) >= 12 and [s.name for s in sets["test"]] == ["seq01", "seq08"]
-    assert {s.port for s in sets["val"]} == set(range(1, 7)) and {s.background for s in sets["val"]} == {"iss", "perlin"}
+    assert (
+        len(sets["train"]) >= 40
+        and len(sets["val"]) >= 12
+        and [s.name for s in sets["test"]] == ["seq01", "seq08"]
+    )
+    assert {s.port for s in sets["val"]} == set(range(1, 7)) and {s.background for s in sets["val"]} == {
+        "iss",
+        "perlin",
+    }
 
 
-@pytest.mark.parametrize("leak,why", [
-    ({"paper": 1}, "seq01"),                                                          # a test scene itself
-    ({"name": "x", "port": 4, "approach": "-R-bar", "sun_elevation_deg": 150, "background": "iss", "seed": 7},
-     "Sun 150"),                                                                      # seq08's view and light
-    ({"name": "tr000", "port": 2, "approach": "-R-bar", "sun_elevation_deg": 90, "background": "perlin", "seed": 5},
-     "same name"),
-])
+@pytest.mark.parametrize(
+    "leak,why",
+    [
+        ({"paper": 1}, "seq01"),  # a test scene itself
+        (
+            {
+                "name": "x",
+                "port": 4,
+                "approach": "-R-bar",
+                "sun_elevation_deg": 150,
+                "background": "iss",
+                "seed": 7,
+            },
+            "Sun 150",
+        ),  # seq08's view and light
+        (
+            {
+                "name": "tr000",
+                "port": 2,
+                "approach": "-R-bar",
+                "sun_elevation_deg": 90,
+                "background": "perlin",
+                "seed": 5,
+            },
+            "same name",
+        ),
+    ],
+)
 def test_a_config_whose_sets_overlap_is_refused(tmp_path, leak, why):
     val = json.loads((REPO / "models/scenes/val.json").read_text())
     val["scenes"].append(leak)
@@ -103,19 +133,31 @@ def test_crop_labels_follow_the_fixture(tiny_dataset):
     for i in range(0, len(ds), 4):
         b = ds[i]
         img = b["image"].numpy().max(0)
-        for (u, v), vis in zip(b["kp_crop_px"].numpy()[:4], b["visible"].numpy()[:4]):
+        for (u, v), vis in zip(b["kp_crop_px"].numpy()[:4], b["visible"].numpy()[:4], strict=True):
             if vis and 2 < u < 94 and 2 < v < 94:
-                patch = img[int(v) - 2:int(v) + 3, int(u) - 2:int(u) + 3]
+                patch = img[int(v) - 2 : int(v) + 3, int(u) - 2 : int(u) + 3]
                 assert patch.max() > 0.4, (i, u, v)
                 checked += 1
     assert checked > 10
 
 
 def _smoke_overrides(tiny_dataset, kp_sets, run_dir) -> list[str]:
-    return [f"data.train_spec={kp_sets / 'train.json'}", f"data.val_spec={kp_sets / 'val.json'}",
-            f"data.train_root={tiny_dataset}", f"data.val_root={tiny_dataset}", "data.val_frames=8",
-            f"run_dir={run_dir}", "model.out_px=64", "model.pretrained=false", "train.steps=4", "train.batch_size=4",
-            "train.val_every=2", "train.warmup_steps=1", "train.workers=0", "train.threads=1"]
+    return [
+        f"data.train_spec={kp_sets / 'train.json'}",
+        f"data.val_spec={kp_sets / 'val.json'}",
+        f"data.train_root={tiny_dataset}",
+        f"data.val_root={tiny_dataset}",
+        "data.val_frames=8",
+        f"run_dir={run_dir}",
+        "model.out_px=64",
+        "model.pretrained=false",
+        "train.steps=4",
+        "train.batch_size=4",
+        "train.val_every=2",
+        "train.warmup_steps=1",
+        "train.workers=0",
+        "train.threads=1",
+    ]
 
 
 def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_path):
@@ -139,11 +181,19 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     out = tmp_path / "models" / "kp.onnx"
     out.parent.mkdir()
     (out.parent / "oibarnet_lite.onnx").symlink_to(REPO / "models/oibarnet_lite.onnx")
-    assert export_main(["--config", str(CONFIG), "--out", str(out), *_smoke_overrides(tiny_dataset, kp_sets, run)]) == 0
+    assert (
+        export_main(
+            ["--config", str(CONFIG), "--out", str(out), *_smoke_overrides(tiny_dataset, kp_sets, run)]
+        )
+        == 0
+    )
     est = PoseEstimator(out, warmup_runs=1)
     assert isinstance(est, KeypointPoseEstimator)
     from oibar_models.kpnet import FIXTURE_KEYPOINTS
-    assert est.points_m.shape == (len(FIXTURE_KEYPOINTS), 3) and est.meta["first_pass"] == "oibarnet_lite.onnx"
+
+    assert (
+        est.points_m.shape == (len(FIXTURE_KEYPOINTS), 3) and est.meta["first_pass"] == "oibarnet_lite.onnx"
+    )
 
     # bad input: never a confident wrong pose
     black = np.zeros((480, 744, 3), np.uint8)
@@ -152,9 +202,12 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     e = est.estimate(np.full((480, 744, 3), 255, np.uint8))
     assert e.confidence == 0.0 and "blank_frame" in e.flags
     noise = np.random.default_rng(0).integers(0, 255, (480, 744, 3), dtype=np.uint8)
-    e = est.estimate(noise)        # an untrained net on noise: PnP fails or disagrees
-    assert e.confidence < 0.35 and ({"pnp_failed", "direct_disagrees", "reprojection"} & set(e.flags)), e.flags
+    e = est.estimate(noise)  # an untrained net on noise: PnP fails or disagrees
+    assert e.confidence < 0.35 and ({"pnp_failed", "direct_disagrees", "reprojection"} & set(e.flags)), (
+        e.flags
+    )
     from oibar.nav.pose import FrameError
+
     with pytest.raises(FrameError):
         est.estimate(noise[:, :700])
     (out.parent / "oibarnet_lite.onnx").unlink()
@@ -166,9 +219,22 @@ def test_ddp_two_processes_on_gloo(tiny_dataset, kp_sets, tmp_path):
     """torchrun --nproc_per_node 2: both processes step together; rank 0 writes the run."""
     run = tmp_path / "ddp"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517",
-           "-m", "oibar_models.kp_train", "--config", str(CONFIG), "--no-progress",
-           *_smoke_overrides(tiny_dataset, kp_sets, run), "train.device=cpu"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc_per_node",
+        "2",
+        "--master_port",
+        "29517",
+        "-m",
+        "oibar_models.kp_train",
+        "--config",
+        str(CONFIG),
+        "--no-progress",
+        *_smoke_overrides(tiny_dataset, kp_sets, run),
+        "train.device=cpu",
+    ]
     p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-4000:]
     assert torch.load(run / "last.pt", weights_only=False)["step"] == 4
@@ -180,10 +246,10 @@ def test_the_throat_is_labelled_visible_only_down_the_funnel():
     """The throat sits 0.18 m inside the funnel: a training label says 'visible' only within its
     view cone; the front-face points are visible from any side of the fixture."""
     from oibar.geometry.rotations import rot_y
+    from oibar.nav.keypoints import CropWindow, project
     from oibar_models.kp_data import off_axis_deg, visible
     from oibar_models.kp_engine import view_limits
     from oibar_models.kpnet import FIXTURE_KEYPOINTS
-    from oibar.nav.keypoints import CropWindow, project
 
     names = [n for n, _ in FIXTURE_KEYPOINTS]
     throat = names.index("drogue_throat")
@@ -193,10 +259,10 @@ def test_the_throat_is_labelled_visible_only_down_the_funnel():
     for tilt_deg, seen in ((0.0, True), (15.0, True), (35.0, False), (-35.0, False)):
         R = rot_y(np.radians(tilt_deg))
         off = off_axis_deg(P, R, T)
-        cam_t = -R.T @ T                                  # the camera in F_t
+        cam_t = -R.T @ T  # the camera in F_t
         ray = cam_t - P[throat]
         assert off[throat] == pytest.approx(np.degrees(np.arccos(-ray[2] / np.linalg.norm(ray))), abs=1e-6)
-        assert abs(off[throat] - abs(tilt_deg)) < 2.5     # the tilt plus the ray's slant to the point
+        assert abs(off[throat] - abs(tilt_deg)) < 2.5  # the tilt plus the ray's slant to the point
         uv = project(K, P, R, T)
         win = CropWindow((372.0, 240.0), 300.0, 128)
         vis = visible(uv, (744, 480), win, off, limits)

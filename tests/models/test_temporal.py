@@ -15,25 +15,44 @@ from oibar_models import temporal as tm
 from oibar_models.data import PoseDataset, build_splits, open_sequences
 from oibar_models.engine import load_checkpoint, predict, train
 
-SETTINGS = dict(layers=(1, 2), hidden=8, clip_len=6, clip_stride=3, eval_stride=3, epochs=1, batch_size=4,
-                feature_batch=16, threads=1)
+SETTINGS = dict(
+    layers=(1, 2),
+    hidden=8,
+    clip_len=6,
+    clip_stride=3,
+    eval_stride=3,
+    epochs=1,
+    batch_size=4,
+    feature_batch=16,
+    threads=1,
+)
 
 
 @pytest.fixture(scope="module")
 def study(tiny_dataset, tmp_path_factory):
     run = tmp_path_factory.mktemp("cnn_run")
     # one thread: two would oversubscribe the cores whenever anything else runs beside the tests
-    cfg = tiny_config(tiny_dataset, run, epochs=1, max_steps_per_epoch=1, pos_loss="range_normalised", threads=1)
+    cfg = tiny_config(
+        tiny_dataset, run, epochs=1, max_steps_per_epoch=1, pos_loss="range_normalised", threads=1
+    )
     train(cfg, progress=False, log=lambda *_: None)
     out = tmp_path_factory.mktemp("temporal")
-    res = tm.run_study(cfg, run / "best.pt", out, tm.StudySettings(**SETTINGS), progress=False, log=lambda *_: None)
+    res = tm.run_study(
+        cfg, run / "best.pt", out, tm.StudySettings(**SETTINGS), progress=False, log=lambda *_: None
+    )
     return cfg, run, out, res
 
 
 def test_study_writes_table_json_plot_and_predictions(study):
     cfg, run, out, res = study
-    for f in ("temporal.md", "temporal.json", "seq01_temporal_errors.png", "predictions.npz", "bilstm_L1.pt",
-              "bilstm_L2.pt"):
+    for f in (
+        "temporal.md",
+        "temporal.json",
+        "seq01_temporal_errors.png",
+        "predictions.npz",
+        "bilstm_L1.pt",
+        "bilstm_L2.pt",
+    ):
         assert (out / f).is_file(), f
     assert json.loads((out / "temporal.json").read_text())["best_bilstm_on_val"] in ("BiLSTM-1", "BiLSTM-2")
     assert res["loss"] == "range_normalised"
@@ -41,13 +60,13 @@ def test_study_writes_table_json_plot_and_predictions(study):
         for split in ("seq01", "val"):
             s = res["results"][model][split]
             assert np.isfinite(s["dt_mean_pct"]) and np.isfinite(s["dq_mean_deg"])
-        assert res["results"][model]["seq01"]["frames"] == 48      # every test frame predicted once
+        assert res["results"][model]["seq01"]["frames"] == 48  # every test frame predicted once
     assert [len(h) for h in res["history"].values()] == [1, 1]
     pred = np.load(out / "predictions.npz")
     assert pred["seq01/BiLSTM-2/T_cam_target_m"].shape == (48, 3)
     assert pred["seq01/BiLSTM-2/rot6d"].shape == (48, 6)
     feats = sorted(out.glob("features_seq*_n48_ck*.npy"))
-    assert len(feats) == 3 and np.load(feats[0]).shape == (48, 96)   # width 0.5: 96 features
+    assert len(feats) == 3 and np.load(feats[0]).shape == (48, 96)  # width 0.5: 96 features
     table = (out / "temporal.md").read_text()
     assert "| seq01 | CNN alone |" in table and "| val | BiLSTM-2 |" in table
 
@@ -69,9 +88,10 @@ def test_clips_never_cross_a_subsequence_boundary(study):
     cfg, _, _, _ = study
     splits = build_splits(cfg)
     names = [s.name for s in splits.train.seqs]
-    segs = tm.split_segments(splits.split_info, names, {"train": splits.train.items, "val": splits.val.items},
-                             [48, 48])
-    assert sum(len(g.frames) for g in segs) == 96                      # every frame in exactly one segment
+    segs = tm.split_segments(
+        splits.split_info, names, {"train": splits.train.items, "val": splits.val.items}, [48, 48]
+    )
+    assert sum(len(g.frames) for g in segs) == 96  # every frame in exactly one segment
     clips = tm.make_clips([g for g in segs if g.split == "train"], 6, 3)
     assert len(clips)
     for row in clips:
@@ -86,11 +106,17 @@ def test_clip_builder_on_a_known_split():
     info = {"seqA": {"chunks": [[0, 8], [8, 20], [20, 24], [24, 40]], "val_chunks": [1]}}
     all_frames = np.arange(40)
     val = (all_frames >= 8) & (all_frames < 20)
-    items = {"train": np.stack([np.zeros(28, int), all_frames[~val]], 1),
-             "val": np.stack([np.zeros(12, int), all_frames[val]], 1)}
+    items = {
+        "train": np.stack([np.zeros(28, int), all_frames[~val]], 1),
+        "val": np.stack([np.zeros(12, int), all_frames[val]], 1),
+    }
     segs = tm.split_segments(info, ["seqA"], items, [40])
     assert [(g.split, g.frames[0], g.frames[-1]) for g in segs] == [
-        ("train", 0, 7), ("val", 8, 19), ("train", 20, 23), ("train", 24, 39)]
+        ("train", 0, 7),
+        ("val", 8, 19),
+        ("train", 20, 23),
+        ("train", 24, 39),
+    ]
     train = [g for g in segs if g.split == "train"]
     clips = tm.make_clips(train, 6, 4)
     # chunk [20, 24) is shorter than a clip: no clip; [0, 8) and [24, 40) end flush
@@ -110,12 +136,12 @@ def test_sliding_windows_predict_each_frame_once_from_its_most_central_window():
     assert np.all((pos >= 0) & (pos < L))
     centres = starts + (L - 1) / 2
     assert np.all(np.abs(np.arange(n) - centres[w]) <= np.abs(np.arange(n)[:, None] - centres).min(1))
-    assert list(tm.window_starts(4, L, stride)) == [0]                  # shorter than a window: one window
+    assert list(tm.window_starts(4, L, stride)) == [0]  # shorter than a window: one window
 
 
 def test_moving_average_control_is_centred_and_truncated_at_the_ends():
     x = np.arange(10, dtype=float)[:, None] * np.ones((1, 3))
-    y = tm.moving_average(x, 4)                       # window [k - 1, k + 2]
+    y = tm.moving_average(x, 4)  # window [k - 1, k + 2]
     assert y.shape == (10, 3)
     np.testing.assert_allclose(y[:, 0], [1.0, 1.5, 2.5, 3.5, 4.5, 5.5, 6.5, 7.5, 8.0, 8.5])
     np.testing.assert_allclose(tm.moving_average(np.full((5, 6), 2.0), 32), 2.0)
@@ -137,8 +163,14 @@ def test_bilstm_sequence_prediction_matches_a_single_clip(study):
 
 def test_rerun_reuses_cached_features(study):
     cfg, run, out, _ = study
-    res = tm.run_study(cfg, run / "best.pt", out, tm.StudySettings(**(SETTINGS | {"layers": (1,)})),
-                       progress=False, log=lambda *_: None)
+    res = tm.run_study(
+        cfg,
+        run / "best.pt",
+        out,
+        tm.StudySettings(**(SETTINGS | {"layers": (1,)})),
+        progress=False,
+        log=lambda *_: None,
+    )
     assert res["timing_s"]["features_reused"] is True
 
 
@@ -155,8 +187,14 @@ def test_progress_in_a_log_has_no_carriage_returns(tiny_dataset, tmp_path, capsy
     plain lines, never the carriage-return redraws a terminal gets."""
     cfg = tiny_config(tiny_dataset, tmp_path / "run", epochs=1, max_steps_per_epoch=2, threads=1)
     train(cfg, progress=True, log=lambda *_: None)
-    tm.run_study(cfg, tmp_path / "run" / "best.pt", tmp_path / "t",
-                 tm.StudySettings(**(SETTINGS | {"layers": (1,)})), progress=True, log=lambda *_: None)
+    tm.run_study(
+        cfg,
+        tmp_path / "run" / "best.pt",
+        tmp_path / "t",
+        tm.StudySettings(**(SETTINGS | {"layers": (1,)})),
+        progress=True,
+        log=lambda *_: None,
+    )
     err = capsys.readouterr().err
     assert "\r" not in err
     assert "epoch 1/1: 2/2 batch (100%)" in err and "BiLSTM-1 epoch 1/1:" in err

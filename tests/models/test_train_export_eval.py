@@ -28,7 +28,16 @@ def trained(tiny_dataset, tmp_path_factory):
 
 def test_smoke_training_writes_checkpoints_and_logs(trained):
     cfg, run, logs = trained
-    for f in ("last.pt", "best.pt", "log.jsonl", "log.csv", "split.json", "labels.json", "config.yaml", "done.json"):
+    for f in (
+        "last.pt",
+        "best.pt",
+        "log.jsonl",
+        "log.csv",
+        "split.json",
+        "labels.json",
+        "config.yaml",
+        "done.json",
+    ):
         assert (run / f).is_file(), f
     rows = [json.loads(x) for x in (run / "log.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in rows] == [1, 2]
@@ -85,8 +94,9 @@ def test_evaluation_tables_plots_overlays(trained, tiny_dataset, tmp_path):
     cfg, run, _ = trained
     net, ck = load_checkpoint(run / "best.pt")
     model = export_onnx(net, ck, tmp_path / "m.onnx")
-    res = evaluate_mod.evaluate(model, [tiny_dataset / "seq01"], tmp_path / "eval", None, overlays=2,
-                                bench_s=0.3, progress=False)
+    res = evaluate_mod.evaluate(
+        model, [tiny_dataset / "seq01"], tmp_path / "eval", None, overlays=2, bench_s=0.3, progress=False
+    )
     s = res["sequences"]["seq01"]
     assert s["model"]["frames"] == 48 and "dt_mean_pct" in s["baseline"]
     md = (tmp_path / "eval" / "eval.md").read_text()
@@ -128,8 +138,13 @@ def test_backbones_build_and_run(name):
     assert t.shape == (2, 3) and r6.shape == (2, 6)
     assert isinstance(net.dropout, torch.nn.Dropout) and net.dropout.p == 0.2
     n = count_parameters(net)
-    expect_m = {"squeezenet": (0.5, 1.5), "darknet19": (15, 25), "darknet53": (35, 45), "resnet101": (40, 45),
-                "oibar_lite": (0.5, 3)}[name]
+    expect_m = {
+        "squeezenet": (0.5, 1.5),
+        "darknet19": (15, 25),
+        "darknet53": (35, 45),
+        "resnet101": (40, 45),
+        "oibar_lite": (0.5, 3),
+    }[name]
     assert expect_m[0] * 1e6 < n < expect_m[1] * 1e6, n
 
 

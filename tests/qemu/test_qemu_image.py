@@ -67,24 +67,32 @@ class QemuBoard:
     def start(self) -> None:
         qemu = shutil.which("qemu-system-arm")
         if qemu is None:
-            pytest.fail("qemu-system-arm is not installed: run `make setup` (Debian package "
-                        "qemu-system-arm)")
+            pytest.fail("qemu-system-arm is not installed: run `make setup` (Debian package qemu-system-arm)")
         # The port is free when picked but could be taken before QEMU binds it: retry.
         for _attempt in range(3):
             self.port = _free_port()
             cmd = [
-                qemu, "-M", "netduinoplus2", "-nographic", "-monitor", "none",
+                qemu,
+                "-M",
+                "netduinoplus2",
+                "-nographic",
+                "-monitor",
+                "none",
                 # A reset of the firmware (fatal-error handler) ends QEMU, so the test sees it.
                 "-no-reboot",
-                "-kernel", str(IMAGE),
+                "-kernel",
+                str(IMAGE),
                 # nodelay: without it Nagle holds the UART's byte-by-byte output for a delayed
                 # ACK (~40 ms a round trip), which on a loaded CI runner made handshakes retry.
-                "-chardev", f"socket,id=link,host=127.0.0.1,port={self.port},server=on,wait=off,nodelay=on",
-                "-serial", "chardev:link",
+                "-chardev",
+                f"socket,id=link,host=127.0.0.1,port={self.port},server=on,wait=off,nodelay=on",
+                "-serial",
+                "chardev:link",
             ]
             with open(self.log_path, "wb") as log:
-                self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log,
-                                             stderr=subprocess.STDOUT)
+                self.proc = subprocess.Popen(
+                    cmd, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT
+                )
             if self._wait_listening():
                 return
             self.stop()
@@ -98,7 +106,10 @@ class QemuBoard:
                 return False
             # QEMU listens with wait=off: a probe connection shows the port is up. It is
             # closed at once; the chardev then waits for the next client.
-            with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", self.port), timeout=0.5):
+            with (
+                contextlib.suppress(OSError),
+                socket.create_connection(("127.0.0.1", self.port), timeout=0.5),
+            ):
                 return True
             time.sleep(0.1)
         return False
@@ -167,8 +178,9 @@ def wait_telemetry(link: LinkClient, newer_than_ms: int = -1, *, host_link_alive
                 return t
         time.sleep(0.02)
     want = " reporting the host link alive" if host_link_alive else ""
-    pytest.fail(f"no telemetry newer than {newer_than_ms} ms{want} within {TELEMETRY_TIMEOUT_S} s; "
-                f"last seen:\n{last}")
+    pytest.fail(
+        f"no telemetry newer than {newer_than_ms} ms{want} within {TELEMETRY_TIMEOUT_S} s; last seen:\n{last}"
+    )
 
 
 def fault_bit(name: str) -> int:
@@ -232,8 +244,7 @@ def test_invalid_commands_are_refused_with_their_reason(board: QemuBoard) -> Non
         assert (r.accepted, r.reason, r.state) == (False, "NACK_FAULT_ACTIVE", "STATE_FAULT")
         # CMD_CLEAR_FAULT exists but its guard (sensors healthy) fails.
         r = link.command("CLEAR_FAULT")
-        assert (r.accepted, r.reason, r.state) == (False, "NACK_PRECONDITION_FAILED",
-                                                   "STATE_FAULT")
+        assert (r.accepted, r.reason, r.state) == (False, "NACK_PRECONDITION_FAILED", "STATE_FAULT")
         # An opcode the firmware does not know.
         r = link.command(999)
         assert (r.accepted, r.reason) == (False, "NACK_UNKNOWN_OPCODE")

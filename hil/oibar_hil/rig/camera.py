@@ -44,7 +44,7 @@ from ..ports import PORTS, Port
 from ..render import RenderSettings
 
 SCENES = {spec.name: spec for spec in PAPER_SEQUENCES.values()}
-DEFAULT_SCENE = "seq01"     # a test sequence of the CNN: the demo runs on a scene it never trained on
+DEFAULT_SCENE = "seq01"  # a test sequence of the CNN: the demo runs on a scene it never trained on
 
 
 class RigCameraError(RuntimeError):
@@ -53,11 +53,11 @@ class RigCameraError(RuntimeError):
 
 @dataclass(frozen=True)
 class RenderedFrame:
-    image: np.ndarray               # (480, 744, 3) uint8 RGB, row 0 at the top
-    T_cam_target_m: np.ndarray      # ground-truth label of this frame (dataset convention)
+    image: np.ndarray  # (480, 744, 3) uint8 RGB, row 0 at the top
+    T_cam_target_m: np.ndarray  # ground-truth label of this frame (dataset convention)
     R_cam_target: np.ndarray
-    t_s: float                      # rig (mission) time the frame was rendered for
-    frame: int                      # 0, 1, ... per camera
+    t_s: float  # rig (mission) time the frame was rendered for
+    frame: int  # 0, 1, ... per camera
 
 
 def scene_spec(scene: str | SequenceSpec) -> SequenceSpec:
@@ -67,8 +67,10 @@ def scene_spec(scene: str | SequenceSpec) -> SequenceSpec:
     elif isinstance(scene, str) and scene in SCENES:
         spec = SCENES[scene]
     else:
-        raise RigCameraError(f"unknown scene {scene!r}: give one of the paper's sequences "
-                             f"({', '.join(sorted(SCENES))}) or a SequenceSpec")
+        raise RigCameraError(
+            f"unknown scene {scene!r}: give one of the paper's sequences "
+            f"({', '.join(sorted(SCENES))}) or a SequenceSpec"
+        )
     try:
         spec.validate()
     except ValueError as exc:
@@ -76,7 +78,9 @@ def scene_spec(scene: str | SequenceSpec) -> SequenceSpec:
     return spec
 
 
-def camera_pose_lvlh(T_cam_target_m: np.ndarray, R_cam_target: np.ndarray, port: Port) -> tuple[np.ndarray, np.ndarray]:
+def camera_pose_lvlh(
+    T_cam_target_m: np.ndarray, R_cam_target: np.ndarray, port: Port
+) -> tuple[np.ndarray, np.ndarray]:
     """Label (F_t seen from the camera) + port -> (R_lvlh_cam, p_lvlh_cam_m), as relpose.camera_poses."""
     R_t_cam = np.asarray(R_cam_target, dtype=float).T
     p_t_cam = -R_t_cam @ np.asarray(T_cam_target_m, dtype=float)
@@ -87,8 +91,11 @@ def pose_to_lvlh(r_D_m: np.ndarray, att_rad: np.ndarray, port: Port, geom: Docki
     """Rig world state (probe tip in D, attitude error) -> (R_lvlh_cam, p_lvlh_cam_m,
     T_cam_target_m, R_cam_target)."""
     r_D_m, att_rad = np.asarray(r_D_m, dtype=float), np.asarray(att_rad, dtype=float)
-    if (r_D_m.shape != (3,) or att_rad.shape != (3,)
-            or not (np.all(np.isfinite(r_D_m)) and np.all(np.isfinite(att_rad)))):
+    if (
+        r_D_m.shape != (3,)
+        or att_rad.shape != (3,)
+        or not (np.all(np.isfinite(r_D_m)) and np.all(np.isfinite(att_rad)))
+    ):
         raise RigCameraError(f"pose must be two finite 3-vectors, got r_D_m={r_D_m!r}, att_rad={att_rad!r}")
     T_cam_t, R_cam_t = camera_pose_from_docking(r_D_m, att_rad, geom)
     R_lvlh_cam, p_lvlh_cam = camera_pose_lvlh(T_cam_t, R_cam_t, port)
@@ -109,7 +116,7 @@ class OrbitClock:
 
     def at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """(sun_lvlh unit vector, R_ecef_lvlh) at rig time t_s."""
-        tq = float(np.floor(t_s / SUN_UPDATE_S + 1e-9) * SUN_UPDATE_S)    # same quantisation as the dataset
+        tq = float(np.floor(t_s / SUN_UPDATE_S + 1e-9) * SUN_UPDATE_S)  # same quantisation as the dataset
         if tq != self._sun_key:
             self._sun_lvlh = self.orbit.state(self.jd0 + tq / 86400.0).sun_lvlh
             self._sun_key = tq
@@ -125,9 +132,14 @@ class RigCamera:
     render (plus a shadow-map pass when the Sun sample changes, once per simulated second).
     """
 
-    def __init__(self, scene: str | SequenceSpec = DEFAULT_SCENE, seed: int = 0, sensor_effects: bool = True,
-                 geometry: DockingGeometry = GEOMETRY) -> None:
-        self.spec = scene_spec(scene)                # unknown scene: fail before any GL work
+    def __init__(
+        self,
+        scene: str | SequenceSpec = DEFAULT_SCENE,
+        seed: int = 0,
+        sensor_effects: bool = True,
+        geometry: DockingGeometry = GEOMETRY,
+    ) -> None:
+        self.spec = scene_spec(scene)  # unknown scene: fail before any GL work
         self.seed = int(seed)
         self.sensor_effects = bool(sensor_effects)
         self.geometry = geometry
@@ -137,8 +149,11 @@ class RigCamera:
         self._lock = threading.Lock()
         self._frames = 0
         self._renderer = None
-        settings = (RenderSettings(noise_sigma_dn=self.spec.noise_sigma_dn, blur_sigma_px=self.spec.blur_sigma_px)
-                    if self.sensor_effects else RenderSettings())
+        settings = (
+            RenderSettings(noise_sigma_dn=self.spec.noise_sigma_dn, blur_sigma_px=self.spec.blur_sigma_px)
+            if self.sensor_effects
+            else RenderSettings()
+        )
         try:
             from ..render import Renderer, create_context
 
@@ -146,12 +161,16 @@ class RigCamera:
         except Exception as exc:  # noqa: BLE001 - missing moderngl, EGL or Mesa: one clear error
             raise RigCameraError(f"rendered camera unavailable: {exc}") from exc
         try:
-            with ctx:   # leaves the context current nowhere, so any thread may render later
+            with ctx:  # leaves the context current nowhere, so any thread may render later
                 from ..meshes import scene_parts
 
                 self._renderer = Renderer(self.camera, settings, ctx=ctx)
-                self._renderer.load_scene(scene_parts(self.spec.background, self.spec.port), self.spec.background,
-                                          self.port.p_lvlh_t, perlin_seed=self.spec.seed)
+                self._renderer.load_scene(
+                    scene_parts(self.spec.background, self.spec.port),
+                    self.spec.background,
+                    self.port.p_lvlh_t,
+                    perlin_seed=self.spec.seed,
+                )
         except Exception as exc:
             ctx.release()
             self._renderer = None
@@ -185,9 +204,14 @@ class RigCamera:
             sun_lvlh, R_ecef_lvlh = self.clock.at(float(t_s))
             n = self._frames
             self._frames += 1
-            rng = (np.random.default_rng([self.seed, n])
-                   if self.sensor_effects and self.spec.noise_sigma_dn > 0 else None)
-            img = r.render(R_lvlh_cam, p_lvlh_cam, sun_lvlh, R_ecef_lvlh, self.clock.earth_center_lvlh_km, rng=rng)
+            rng = (
+                np.random.default_rng([self.seed, n])
+                if self.sensor_effects and self.spec.noise_sigma_dn > 0
+                else None
+            )
+            img = r.render(
+                R_lvlh_cam, p_lvlh_cam, sun_lvlh, R_ecef_lvlh, self.clock.earth_center_lvlh_km, rng=rng
+            )
         if self.sensor_effects:
             img = self._through_image_format(img)
         return RenderedFrame(image=img, T_cam_target_m=T_cam_t, R_cam_target=R_cam_t, t_s=float(t_s), frame=n)

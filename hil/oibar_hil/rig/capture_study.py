@@ -31,7 +31,7 @@ from oibar_hil.rig.runner import REPO_ROOT, Rig
 from oibar_hil.rig.scenario import load_scenario
 
 SCENARIO = REPO_ROOT / "hil" / "scenarios" / "nominal_short.yaml"
-ENVELOPE_MPS = REQ_CAPTURE_MAX_SPEED_MPS   # the MCU's PARAM_CAPTURE_MAX_CLOSING_SPEED_MM_S default
+ENVELOPE_MPS = REQ_CAPTURE_MAX_SPEED_MPS  # the MCU's PARAM_CAPTURE_MAX_CLOSING_SPEED_MM_S default
 
 
 class RecordingNav:
@@ -42,7 +42,7 @@ class RecordingNav:
 
     def __init__(self, **kw: Any) -> None:
         self.inner = CnnNav(**kw)
-        self.cycles: list[tuple[int, float, float, float, float]] = []   # (world id, t, nav, true, range)
+        self.cycles: list[tuple[int, float, float, float, float]] = []  # (world id, t, nav, true, range)
 
     @property
     def last_timings_ms(self) -> dict:
@@ -91,14 +91,20 @@ class RecordingNav:
 
 def _mission_row(nav: RecordingNav, world: Any, outcome: str, requests: list, notes: list, **extra) -> dict:
     contact = nav.at_contact(id(world))
-    return {**extra, "outcome": outcome,
-            "nav_closing_mps": contact[0] if contact else None, "true_closing_mps": contact[1] if contact else None,
-            "dock": [res for _, label, res in requests if label == "CMD_DOCK"],
-            "notes": [text for _, text in notes] if outcome != "completed" else [],
-            "closing_err_last10s_rms_mps": nav.error_before_contact(id(world))}
+    return {
+        **extra,
+        "outcome": outcome,
+        "nav_closing_mps": contact[0] if contact else None,
+        "true_closing_mps": contact[1] if contact else None,
+        "dock": [res for _, label, res in requests if label == "CMD_DOCK"],
+        "notes": [text for _, text in notes] if outcome != "completed" else [],
+        "closing_err_last10s_rms_mps": nav.error_before_contact(id(world)),
+    }
 
 
-def run_one(seed: int, *, odometry: bool = True, scenario: Path = SCENARIO, mcu_path: Path | None = None) -> dict:
+def run_one(
+    seed: int, *, odometry: bool = True, scenario: Path = SCENARIO, mcu_path: Path | None = None
+) -> dict:
     sc = load_scenario(scenario)
     sc.seed = seed
     sc.name = f"{sc.name}_s{seed}"
@@ -118,13 +124,22 @@ def run_soak(sim_s: float, *, odometry: bool = True) -> list[dict]:
 
     class Recorder(Soak):
         def between_missions(self, rig: Rig) -> bool:
-            if not self._turning:   # the mission just ended: read it before the soak clears it
+            if not self._turning:  # the mission just ended: read it before the soak clears it
                 notes = sorted(rig.notes + rig.controller.notes)
-                rows.append(_mission_row(self.nav, rig.world, rig.controller.outcome, rig.requests_log, notes,
-                                         mission=len(rows) + 1, t_s=rig.t_s))
+                rows.append(
+                    _mission_row(
+                        self.nav,
+                        rig.world,
+                        rig.controller.outcome,
+                        rig.requests_log,
+                        notes,
+                        mission=len(rows) + 1,
+                        t_s=rig.t_s,
+                    )
+                )
                 print(_line(rows[-1]), flush=True)
                 if rig.controller.outcome != "completed" and rig.t_s < self.sim_s:
-                    self._end_mission(rig)   # carry on past a failed mission: we want the rate
+                    self._end_mission(rig)  # carry on past a failed mission: we want the rate
                     self._turning = True
                     return True
             return super().between_missions(rig)
@@ -142,36 +157,56 @@ def summarise(rows: list[dict]) -> dict:
     nav = np.array([row["nav_closing_mps"] for row in done])
     true = np.array([row["true_closing_mps"] for row in done])
     err = nav - true
-    out = {"missions": len(rows),
-           "completed": sum(row["outcome"] == "completed" for row in rows),
-           "aborted": sum(row["outcome"] == "aborted" for row in rows),
-           "true_in_envelope_at_contact": int(np.sum(true <= ENVELOPE_MPS)),
-           "nav_over_envelope_at_contact": int(np.sum(nav > ENVELOPE_MPS)),
-           "dock_refused": sum(any("PRECONDITION" in d for d in row["dock"]) for row in rows)}
+    out = {
+        "missions": len(rows),
+        "completed": sum(row["outcome"] == "completed" for row in rows),
+        "aborted": sum(row["outcome"] == "aborted" for row in rows),
+        "true_in_envelope_at_contact": int(np.sum(true <= ENVELOPE_MPS)),
+        "nav_over_envelope_at_contact": int(np.sum(nav > ENVELOPE_MPS)),
+        "dock_refused": sum(any("PRECONDITION" in d for d in row["dock"]) for row in rows),
+    }
     if err.size:
-        out.update({
-            "nav_closing_err_at_contact_mm_s": {"mean": 1e3 * float(np.mean(err)),
-                                                "rms": 1e3 * float(np.sqrt(np.mean(err ** 2))),
-                                                "max_abs": 1e3 * float(np.max(np.abs(err)))},
-            "nav_closing_at_contact_mm_s": {"min": 1e3 * float(nav.min()), "median": 1e3 * float(np.median(nav)),
-                                            "max": 1e3 * float(nav.max())},
-            "true_closing_at_contact_mm_s": {"min": 1e3 * float(true.min()), "max": 1e3 * float(true.max())},
-            "closing_err_last10s_rms_mm_s_median": 1e3 * float(np.nanmedian(
-                [row["closing_err_last10s_rms_mps"] for row in rows]))})
+        out.update(
+            {
+                "nav_closing_err_at_contact_mm_s": {
+                    "mean": 1e3 * float(np.mean(err)),
+                    "rms": 1e3 * float(np.sqrt(np.mean(err**2))),
+                    "max_abs": 1e3 * float(np.max(np.abs(err))),
+                },
+                "nav_closing_at_contact_mm_s": {
+                    "min": 1e3 * float(nav.min()),
+                    "median": 1e3 * float(np.median(nav)),
+                    "max": 1e3 * float(nav.max()),
+                },
+                "true_closing_at_contact_mm_s": {
+                    "min": 1e3 * float(true.min()),
+                    "max": 1e3 * float(true.max()),
+                },
+                "closing_err_last10s_rms_mm_s_median": 1e3
+                * float(np.nanmedian([row["closing_err_last10s_rms_mps"] for row in rows])),
+            }
+        )
     return out
 
 
 def _line(row: dict) -> str:
     who = f"seed {row['seed']:4d}" if "seed" in row else f"mission {row['mission']:3d}"
-    contact = (f"nav {row['nav_closing_mps'] * 1e3:5.1f} mm/s, true {row['true_closing_mps'] * 1e3:5.1f} mm/s"
-               if row["nav_closing_mps"] is not None else "no contact")
-    text = (f"{who}: {row['outcome']:<9} at contact {contact}; DOCK {row['dock'] or '-'}; "
-            f"last 10 s RMS {row['closing_err_last10s_rms_mps'] * 1e3:.1f} mm/s")
+    contact = (
+        f"nav {row['nav_closing_mps'] * 1e3:5.1f} mm/s, true {row['true_closing_mps'] * 1e3:5.1f} mm/s"
+        if row["nav_closing_mps"] is not None
+        else "no contact"
+    )
+    text = (
+        f"{who}: {row['outcome']:<9} at contact {contact}; DOCK {row['dock'] or '-'}; "
+        f"last 10 s RMS {row['closing_err_last10s_rms_mps'] * 1e3:.1f} mm/s"
+    )
     return "\n".join([text] + [f"      {n}" for n in row["notes"]])
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m oibar_hil.rig.capture_study", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m oibar_hil.rig.capture_study", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--runs", type=int, default=30)
     ap.add_argument("--seed0", type=int, default=100)
     ap.add_argument("--soak-s", type=float, default=None, help="run the CNN soak this long instead")

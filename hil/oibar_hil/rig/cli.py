@@ -30,14 +30,22 @@ SCENARIO_DIR = REPO_ROOT / "hil" / "scenarios"
 DEFAULT_OUT = REPO_ROOT / "build" / "hil"
 
 
-def run_scenario(scenario: Scenario | str | Path, *, out_root: Path | None = DEFAULT_OUT,
-                 progress: bool = False, mcu_path: Path | None = None,
-                 report: bool = True, nav: str = "truth", nav_options: dict | None = None) -> RunResult:
+def run_scenario(
+    scenario: Scenario | str | Path,
+    *,
+    out_root: Path | None = DEFAULT_OUT,
+    progress: bool = False,
+    mcu_path: Path | None = None,
+    report: bool = True,
+    nav: str = "truth",
+    nav_options: dict | None = None,
+) -> RunResult:
     """Run one scenario, check it, and (by default) write its report."""
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     out_dir = (Path(out_root) / sc.name) if out_root else None
-    result = Rig(sc, mcu_path=mcu_path, out_dir=out_dir, progress=progress, nav=nav,
-                 nav_options=nav_options).run()
+    result = Rig(
+        sc, mcu_path=mcu_path, out_dir=out_dir, progress=progress, nav=nav, nav_options=nav_options
+    ).run()
     result.checks = evaluate(result)
     if report and out_dir is not None:
         result.report_path = write_report(result, out_dir)
@@ -50,8 +58,10 @@ def print_summary(results: list[RunResult]) -> None:
     print("-" * len(head))
     for r in results:
         bad = [c.id for c in r.checks if c.ok is False]
-        print(f"{r.scenario.name:<26} {r.outcome:<10} {'PASS' if r.passed else 'FAIL':<7} "
-              f"{r.sim_time_s:7.1f} {r.wall_time_s:7.2f} {r.speed_factor:5.0f}x  {', '.join(bad) or '-'}")
+        print(
+            f"{r.scenario.name:<26} {r.outcome:<10} {'PASS' if r.passed else 'FAIL':<7} "
+            f"{r.sim_time_s:7.1f} {r.wall_time_s:7.2f} {r.speed_factor:5.0f}x  {', '.join(bad) or '-'}"
+        )
 
 
 def _print_checks(r: RunResult) -> None:
@@ -64,15 +74,19 @@ def _print_nav(r: RunResult) -> None:
     m = r.metrics
     if m.get("nav") != "cnn":
         return
-    print(f"  navigation: {m.get('nav_cycles', 0)} cycles, {m.get('nav_hold_cycles', 0)} held; "
-          f"range error median {m.get('nav_range_err_m_median', float('nan')) * 100:.1f} cm, "
-          f"lateral error median {m.get('nav_lateral_err_m_median', float('nan')) * 100:.1f} cm "
-          f"(p99 {m.get('nav_lateral_err_m_p99', float('nan')) * 100:.1f} cm), "
-          f"misalignment error median {m.get('nav_misalign_err_deg_median', float('nan')):.2f} deg")
-    print(f"  navigator time per cycle (frame in -> solution out, render excluded): median "
-          f"{m.get('nav_ms_median', float('nan')):.1f} ms, p99 {m.get('nav_ms_p99', float('nan')):.1f} ms, "
-          f"max {m.get('nav_ms_max', float('nan')):.1f} ms of the 100 ms period; "
-          f"render median {m.get('render_ms_median', float('nan')):.1f} ms")
+    print(
+        f"  navigation: {m.get('nav_cycles', 0)} cycles, {m.get('nav_hold_cycles', 0)} held; "
+        f"range error median {m.get('nav_range_err_m_median', float('nan')) * 100:.1f} cm, "
+        f"lateral error median {m.get('nav_lateral_err_m_median', float('nan')) * 100:.1f} cm "
+        f"(p99 {m.get('nav_lateral_err_m_p99', float('nan')) * 100:.1f} cm), "
+        f"misalignment error median {m.get('nav_misalign_err_deg_median', float('nan')):.2f} deg"
+    )
+    print(
+        f"  navigator time per cycle (frame in -> solution out, render excluded): median "
+        f"{m.get('nav_ms_median', float('nan')):.1f} ms, p99 {m.get('nav_ms_p99', float('nan')):.1f} ms, "
+        f"max {m.get('nav_ms_max', float('nan')):.1f} ms of the 100 ms period; "
+        f"render median {m.get('render_ms_median', float('nan')):.1f} ms"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -80,12 +94,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="report folder root")
     ap.add_argument("--mcu", type=Path, default=None, help=f"simulated MCU (default {default_mcu_path()})")
     ap.add_argument("--no-progress", action="store_true")
-    ap.add_argument("--nav", choices=("truth", "cnn"), default=None,
-                    help="navigation source (default: cnn for demo, truth for run/all)")
-    ap.add_argument("--model", type=Path, default=None,
-                    help="ONNX model for --nav cnn (default models/oibarnet.onnx, the keypoint model; "
-                         "models/oibarnet_lite.onnx is its first pass)")
-    ap.add_argument("--scene", default="seq01", help="rendered scene for --nav cnn (a dataset sequence, default seq01)")
+    ap.add_argument(
+        "--nav",
+        choices=("truth", "cnn"),
+        default=None,
+        help="navigation source (default: cnn for demo, truth for run/all)",
+    )
+    ap.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        help="ONNX model for --nav cnn (default models/oibarnet.onnx, the keypoint model; "
+        "models/oibarnet_lite.onnx is its first pass)",
+    )
+    ap.add_argument(
+        "--scene", default="seq01", help="rendered scene for --nav cnn (a dataset sequence, default seq01)"
+    )
     ap.add_argument("--start-range-m", type=float, default=None, help="override the scenario's start range")
     ap.add_argument("--json", type=Path, default=None, help="also write the results' metrics as JSON here")
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -111,18 +135,27 @@ def main(argv: list[str] | None = None) -> int:
         if args.start_range_m is not None:
             sc.start.range_m = args.start_range_m
         try:
-            r = run_scenario(sc, out_root=args.out, progress=not args.no_progress, mcu_path=args.mcu,
-                             nav=nav, nav_options=nav_options)
+            r = run_scenario(
+                sc,
+                out_root=args.out,
+                progress=not args.no_progress,
+                mcu_path=args.mcu,
+                nav=nav,
+                nav_options=nav_options,
+            )
         except Exception as exc:
             from oibar.nav.pose import ModelFileError
+
             if not isinstance(exc, ModelFileError) and type(exc).__name__ != "RigCameraError":
                 raise
             print(f"error: {exc}\n(--nav truth runs the mission on ground-truth navigation)", file=sys.stderr)
             return 2
         results.append(r)
-        print(f"{r.scenario.name}: {r.outcome}, {'PASS' if r.passed else 'FAIL'} "
-              f"({r.sim_time_s:.1f} s simulated in {r.wall_time_s:.2f} s, {r.speed_factor:.1f}x real time, "
-              f"navigation: {nav})")
+        print(
+            f"{r.scenario.name}: {r.outcome}, {'PASS' if r.passed else 'FAIL'} "
+            f"({r.sim_time_s:.1f} s simulated in {r.wall_time_s:.2f} s, {r.speed_factor:.1f}x real time, "
+            f"navigation: {nav})"
+        )
         _print_nav(r)
         if args.cmd != "all" or not r.passed:
             _print_checks(r)
@@ -131,14 +164,32 @@ def main(argv: list[str] | None = None) -> int:
     print_summary(results)
     if args.json:
         import json
+
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps([{"scenario": r.scenario.name, "outcome": r.outcome, "passed": r.passed,
-                                           "sim_time_s": r.sim_time_s, "wall_time_s": r.wall_time_s,
-                                           "speed_factor": r.speed_factor, "metrics": r.metrics}
-                                          for r in results], indent=1, default=str) + "\n")
+        args.json.write_text(
+            json.dumps(
+                [
+                    {
+                        "scenario": r.scenario.name,
+                        "outcome": r.outcome,
+                        "passed": r.passed,
+                        "sim_time_s": r.sim_time_s,
+                        "wall_time_s": r.wall_time_s,
+                        "speed_factor": r.speed_factor,
+                        "metrics": r.metrics,
+                    }
+                    for r in results
+                ],
+                indent=1,
+                default=str,
+            )
+            + "\n"
+        )
     if len(results) > 1:
-        print(f"{sum(r.passed for r in results)}/{len(results)} scenarios passed "
-              f"in {time.perf_counter() - t0:.1f} s")
+        print(
+            f"{sum(r.passed for r in results)}/{len(results)} scenarios passed "
+            f"in {time.perf_counter() - t0:.1f} s"
+        )
     return 0 if all(r.passed for r in results) else 1
 
 

@@ -12,14 +12,29 @@ from dataclasses import dataclass, field
 from typing import Any
 
 FAULT_TYPES = (
-    "link_loss", "bit_errors", "pressure_sensor_stuck", "pressure_sensor_range",
-    "valve_stuck_open", "valve_stuck_closed", "latch_stall", "actuator_jam",
-    "overpressure", "watchdog_reset", "host_crash",
-    "latch_wire_break", "adc_glitch", "adc_glitch_run", "replay",
+    "link_loss",
+    "bit_errors",
+    "pressure_sensor_stuck",
+    "pressure_sensor_range",
+    "valve_stuck_open",
+    "valve_stuck_closed",
+    "latch_stall",
+    "actuator_jam",
+    "overpressure",
+    "watchdog_reset",
+    "host_crash",
+    "latch_wire_break",
+    "adc_glitch",
+    "adc_glitch_run",
+    "replay",
     # the host's own failures, through the real daemon cycle and link core (issue 17)
-    "camera_unplugged", "serial_unplugged", "nav_hang", "slow_inference",
+    "camera_unplugged",
+    "serial_unplugged",
+    "nav_hang",
+    "slow_inference",
     # issue 16 (fw-app): abort with slow valves, host-side parameter attack
-    "valve_slow_close", "param_attack",
+    "valve_slow_close",
+    "param_attack",
 )
 
 
@@ -38,8 +53,14 @@ class FaultSpec:
         kind = d.pop("type")
         if kind not in FAULT_TYPES:
             raise ValueError(f"unknown fault type {kind!r}; known: {', '.join(FAULT_TYPES)}")
-        spec = cls(kind, d.pop("at_s", None), d.pop("at_state", None), float(d.pop("after_s", 0.0)),
-                   d.pop("duration_s", None), d)
+        spec = cls(
+            kind,
+            d.pop("at_s", None),
+            d.pop("at_state", None),
+            float(d.pop("after_s", 0.0)),
+            d.pop("duration_s", None),
+            d,
+        )
         if spec.at_s is None and spec.at_state is None:
             spec.at_s = 0.0
         return spec
@@ -108,7 +129,7 @@ class FaultInjector:
             s.forced_counts = (4095 if level == "high" else 0) if on else None
         elif kind in ("valve_stuck_open", "valve_stuck_closed"):
             valve = mech.sv_valve if spec.args.get("valve", "sv") == "sv" else mech.tv_valve
-            valve.stuck = (("open" if kind == "valve_stuck_open" else "closed") if on else None)
+            valve.stuck = ("open" if kind == "valve_stuck_open" else "closed") if on else None
         elif kind == "latch_stall":
             mech.latch_stall = on
         elif kind == "actuator_jam":

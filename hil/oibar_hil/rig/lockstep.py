@@ -37,8 +37,17 @@ _MCU_FIELDS = (
 ).split()
 
 # hal.h enums, by meaning (the bit positions of di_bits / do_bits / adc slots).
-DI = ("CONTACT", "LATCH_ENGAGED", "LATCH_HOME", "PLANE_EXTENDED", "PLANE_RETRACTED",
-      "CONNECTOR_MATED", "SV_VALVE_OPEN", "TV_VALVE_OPEN", "LATCH_NOT_ENGAGED")
+DI = (
+    "CONTACT",
+    "LATCH_ENGAGED",
+    "LATCH_HOME",
+    "PLANE_EXTENDED",
+    "PLANE_RETRACTED",
+    "CONNECTOR_MATED",
+    "SV_VALVE_OPEN",
+    "TV_VALVE_OPEN",
+    "LATCH_NOT_ENGAGED",
+)
 DO = ("LATCH_DIR", "LATCH_ENABLE", "PLANE_EXTEND", "PLANE_RETRACT", "SV_VALVE", "TV_VALVE")
 ADC = ("SV_TANK", "TV_TANK", "LINE", "PLANE_POS", "CONTACT_FORCE")
 RESET_CAUSES = ("UNKNOWN", "POWER_ON", "PIN", "WATCHDOG", "BROWNOUT", "SOFTWARE", "LOCKUP")
@@ -83,12 +92,20 @@ class McuReply:
         return bool(self.flags & MCU_STEP_TIMER_RUNNING)
 
 
-def encode_plant(frame: int, advance_ms: int, di_bits: int, adc_counts: list[int],
-                 adc_fail_bits: int = 0, flags: int = 0, uart_rx_bytes: int = 0,
-                 magic: int = PLANT_MAGIC) -> bytes:
+def encode_plant(
+    frame: int,
+    advance_ms: int,
+    di_bits: int,
+    adc_counts: list[int],
+    adc_fail_bits: int = 0,
+    flags: int = 0,
+    uart_rx_bytes: int = 0,
+    magic: int = PLANT_MAGIC,
+) -> bytes:
     adc = [max(0, min(0xFFFF, int(c))) for c in adc_counts] + [0] * (ADC_SLOTS - len(adc_counts))
-    return _PLANT.pack(magic, VERSION, frame, advance_ms, flags, di_bits, adc_fail_bits,
-                       uart_rx_bytes, *adc[:ADC_SLOTS])
+    return _PLANT.pack(
+        magic, VERSION, frame, advance_ms, flags, di_bits, adc_fail_bits, uart_rx_bytes, *adc[:ADC_SLOTS]
+    )
 
 
 def decode_mcu(data: bytes) -> McuReply:
@@ -100,17 +117,34 @@ def decode_mcu(data: bytes) -> McuReply:
 class SimMcu:
     """The ``oibar_sim_mcu`` process: lockstep socket, pty slave (the host's serial port)."""
 
-    def __init__(self, exe: Path, *, watchdog_ms: int = 100, build_id: str = "rig",
-                 stderr_path: Path | None = None, reply_timeout_s: float = 10.0) -> None:
+    def __init__(
+        self,
+        exe: Path,
+        *,
+        watchdog_ms: int = 100,
+        build_id: str = "rig",
+        stderr_path: Path | None = None,
+        reply_timeout_s: float = 10.0,
+    ) -> None:
         exe = Path(exe)
         if not exe.exists():
             raise FileNotFoundError(f"simulated MCU not found at {exe} (run `make firmware-host`)")
         self._sock, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self._stderr = open(stderr_path, "wb") if stderr_path else subprocess.DEVNULL  # noqa: SIM115  (closed by close())
         self.proc = subprocess.Popen(
-            [str(exe), "--lockstep-fd", str(child.fileno()), "--watchdog-ms", str(watchdog_ms),
-             "--build-id", build_id],
-            pass_fds=(child.fileno(),), stdout=subprocess.PIPE, stderr=self._stderr)
+            [
+                str(exe),
+                "--lockstep-fd",
+                str(child.fileno()),
+                "--watchdog-ms",
+                str(watchdog_ms),
+                "--build-id",
+                build_id,
+            ],
+            pass_fds=(child.fileno(),),
+            stdout=subprocess.PIPE,
+            stderr=self._stderr,
+        )
         child.close()
         line = self.proc.stdout.readline().decode(errors="replace").strip()
         if not line.startswith("PTY "):
@@ -133,22 +167,33 @@ class SimMcu:
             raise LockstepError(f"no lockstep reply within {self.reply_timeout_s} s")
         return decode_mcu(self._sock.recv(256))
 
-    def exchange(self, advance_ms: int, di_bits: int, adc_counts: list[int], *,
-                 adc_fail_bits: int = 0, flags: int = 0, uart_rx_bytes: int = 0) -> McuReply:
+    def exchange(
+        self,
+        advance_ms: int,
+        di_bits: int,
+        adc_counts: list[int],
+        *,
+        adc_fail_bits: int = 0,
+        flags: int = 0,
+        uart_rx_bytes: int = 0,
+    ) -> McuReply:
         """Run ``advance_ms`` of MCU time with these inputs; check the reply."""
         self.frame += 1
-        reply = self.send_raw(encode_plant(self.frame, advance_ms, di_bits, adc_counts,
-                                           adc_fail_bits, flags, uart_rx_bytes))
+        reply = self.send_raw(
+            encode_plant(self.frame, advance_ms, di_bits, adc_counts, adc_fail_bits, flags, uart_rx_bytes)
+        )
         if reply.magic != MCU_MAGIC or reply.status != 0:
             raise LockstepError(
                 f"MCU refused frame {self.frame}: {STATUS_NAMES.get(reply.status, reply.status)} "
-                f"(it expected frame {reply.expected_frame})")
+                f"(it expected frame {reply.expected_frame})"
+            )
         if reply.frame != self.frame:
             raise LockstepError(f"reply echoes frame {reply.frame}, sent {self.frame}")
         self.steps_seen += reply.steps_fwd + reply.steps_rev
         if reply.steps_total != self.steps_seen:
             raise LockstepError(
-                f"step pulses: MCU counted {reply.steps_total}, plant received {self.steps_seen}")
+                f"step pulses: MCU counted {reply.steps_total}, plant received {self.steps_seen}"
+            )
         self.last = reply
         return reply
 

@@ -40,8 +40,8 @@ from oibar_hil.rig.faults import FAULT_TYPES
 from oibar_hil.rig.runner import REPO_ROOT
 from oibar_hil.rig.scenario import Scenario
 
-FUEL_LOST_MAX_KG = 0.0   # the couplings must never vent (checks.py allows 1e-9 for rounding)
-MAX_SIM_TIME_S = 240.0   # a cell that has not ended by then is "stuck"
+FUEL_LOST_MAX_KG = 0.0  # the couplings must never vent (checks.py allows 1e-9 for rounding)
+MAX_SIM_TIME_S = 240.0  # a cell that has not ended by then is "stuck"
 DOC_PATH = REPO_ROOT / "docs" / "reliability.md"
 BEGIN, END = "<!-- fault-matrix:begin -->", "<!-- fault-matrix:end -->"
 
@@ -56,39 +56,59 @@ class Phase:
 
 
 PHASES = (
-    Phase("approach", "approach (APPROACH_READY)", "STATE_APPROACH_READY", 2.0,
-          "armed, closing on the drogue at ~1 m"),
-    Phase("reception", "reception + soft dock", "STATE_RECEPTION", 0.5,
-          "probe in the drogue, pushing until the latches engage"),
-    Phase("hard_docking", "hard docking", "STATE_HARD_DOCKING", 1.0,
-          "fluidic plane extending (~10 mm of 40)"),
-    Phase("hard_docked", "hard docked / arming", "STATE_HARD_DOCKED", 0.0,
-          "mated, valves closed, before ARM_TRANSFER"),
-    Phase("transferring", "transferring", "STATE_TRANSFERRING", 1.0,
-          "valves open, filling"),
-    Phase("unmating", "unmating / separation", "STATE_UNMATING", 0.5,
-          "fill done, plane retracting (~35 mm, couplings half-mated)"),
+    Phase(
+        "approach",
+        "approach (APPROACH_READY)",
+        "STATE_APPROACH_READY",
+        2.0,
+        "armed, closing on the drogue at ~1 m",
+    ),
+    Phase(
+        "reception",
+        "reception + soft dock",
+        "STATE_RECEPTION",
+        0.5,
+        "probe in the drogue, pushing until the latches engage",
+    ),
+    Phase(
+        "hard_docking", "hard docking", "STATE_HARD_DOCKING", 1.0, "fluidic plane extending (~10 mm of 40)"
+    ),
+    Phase(
+        "hard_docked",
+        "hard docked / arming",
+        "STATE_HARD_DOCKED",
+        0.0,
+        "mated, valves closed, before ARM_TRANSFER",
+    ),
+    Phase("transferring", "transferring", "STATE_TRANSFERRING", 1.0, "valves open, filling"),
+    Phase(
+        "unmating",
+        "unmating / separation",
+        "STATE_UNMATING",
+        0.5,
+        "fill done, plane retracting (~35 mm, couplings half-mated)",
+    ),
 )
 PHASE_KEYS = tuple(p.key for p in PHASES)
 
 # How each fault type is injected in the matrix (FaultSpec fields besides the trigger).
 FAULT_ARGS: dict[str, dict[str, Any]] = {
     "link_loss": {"duration_s": 3.0},
-    "bit_errors": {"ber": 2.0e-4},                      # until the end of the mission
+    "bit_errors": {"ber": 2.0e-4},  # until the end of the mission
     "pressure_sensor_stuck": {"sensor": "tv"},
     "pressure_sensor_range": {"sensor": "tv", "level": "high"},
-    "valve_stuck_open": {"valve": "sv"},                # when closed: the valve fails open
+    "valve_stuck_open": {"valve": "sv"},  # when closed: the valve fails open
     "valve_stuck_closed": {"valve": "tv"},
     "latch_stall": {},
-    "actuator_jam": {},                                 # permanent: the plane never frees
+    "actuator_jam": {},  # permanent: the plane never frees
     "overpressure": {"tank": "sv", "rate_kpa_s": 300, "peak_kpa": 2700, "hold_s": 3.0},
     "watchdog_reset": {},
     "host_crash": {"duration_s": 4.0},
     # issue 16 (fw-drv): latch switch pair, ADC glitches
-    "latch_wire_break": {"wire": "no"},                 # the engaged contact's wire, for good
-    "adc_glitch": {"sensor": "tv", "samples": 1},       # one bad conversion
+    "latch_wire_break": {"wire": "no"},  # the engaged contact's wire, for good
+    "adc_glitch": {"sensor": "tv", "samples": 1},  # one bad conversion
     "adc_glitch_run": {"sensor": "tv", "samples": 20},  # 20 in a row (bound: 10 ms)
-    "replay": {"period_s": 0.25},                       # until the end of the mission
+    "replay": {"period_s": 0.25},  # until the end of the mission
     # the host's own failures (issue 17), through NavDaemon.cycle and the link core
     "camera_unplugged": {"duration_s": 3.0},
     "serial_unplugged": {"duration_s": 3.0},
@@ -96,25 +116,48 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
     "slow_inference": {"duration_s": 3.0, "latency_s": 0.3},
     "valve_slow_close": {"stroke_s": 0.3, "host_abort": True},  # until the end of the mission
     # Each protection zeroed or loosened past its margin (docs/firmware.md, "Safety limits").
-    "param_attack": {"values": {
-        "soft_dock_max_force_n": 0, "hard_dock_max_force_n": 0, "overpressure_kpa": 3000,
-        "press_sv_kpa_per_count": 0.1, "press_tv_kpa_per_count": 0.1, "press_line_kpa_per_count": 10,
-        "press_zero_counts": 1000, "press_min_counts": 0, "press_max_counts": 4095,
-        "press_max_rate_kpa_s": 100000, "force_n_per_count": 0.001, "valve_mismatch_ms": 2000,
-        "plane_coupling_mm": 40, "nav_min_confidence": 0, "capture_max_speed_mm_s": 200,
-        "capture_max_misalign_deg": 45, "plane_mm_per_count": 0.02}},
+    "param_attack": {
+        "values": {
+            "soft_dock_max_force_n": 0,
+            "hard_dock_max_force_n": 0,
+            "overpressure_kpa": 3000,
+            "press_sv_kpa_per_count": 0.1,
+            "press_tv_kpa_per_count": 0.1,
+            "press_line_kpa_per_count": 10,
+            "press_zero_counts": 1000,
+            "press_min_counts": 0,
+            "press_max_counts": 4095,
+            "press_max_rate_kpa_s": 100000,
+            "force_n_per_count": 0.001,
+            "valve_mismatch_ms": 2000,
+            "plane_coupling_mm": 40,
+            "nav_min_confidence": 0,
+            "capture_max_speed_mm_s": 200,
+            "capture_max_misalign_deg": 45,
+            "plane_mm_per_count": 0.02,
+        }
+    },
 }
 FAULT_TITLES = {
-    "link_loss": "link loss 3 s", "bit_errors": "bit errors (BER 2e-4)",
-    "pressure_sensor_stuck": "TV pressure sensor stuck", "pressure_sensor_range": "TV pressure sensor out of range",
-    "valve_stuck_open": "SV valve stuck open", "valve_stuck_closed": "TV valve stuck closed",
-    "latch_stall": "latch stall", "actuator_jam": "plane actuator jam", "overpressure": "SV over-pressure 2700 kPa",
-    "watchdog_reset": "watchdog reset (main loop hang)", "host_crash": "host crash 4 s",
-    "latch_wire_break": "latch switch wire broken", "adc_glitch": "TV pressure: 1 bad ADC sample",
+    "link_loss": "link loss 3 s",
+    "bit_errors": "bit errors (BER 2e-4)",
+    "pressure_sensor_stuck": "TV pressure sensor stuck",
+    "pressure_sensor_range": "TV pressure sensor out of range",
+    "valve_stuck_open": "SV valve stuck open",
+    "valve_stuck_closed": "TV valve stuck closed",
+    "latch_stall": "latch stall",
+    "actuator_jam": "plane actuator jam",
+    "overpressure": "SV over-pressure 2700 kPa",
+    "watchdog_reset": "watchdog reset (main loop hang)",
+    "host_crash": "host crash 4 s",
+    "latch_wire_break": "latch switch wire broken",
+    "adc_glitch": "TV pressure: 1 bad ADC sample",
     "adc_glitch_run": "TV pressure: 20 bad ADC samples",
     "replay": "replayed ARM/START",
-    "camera_unplugged": "camera unplugged 3 s", "serial_unplugged": "serial port unplugged 3 s",
-    "nav_hang": "navigation loop hung 3 s", "slow_inference": "inference 300 ms (3 periods) for 3 s",
+    "camera_unplugged": "camera unplugged 3 s",
+    "serial_unplugged": "serial port unplugged 3 s",
+    "nav_hang": "navigation loop hung 3 s",
+    "slow_inference": "inference 300 ms (3 periods) for 3 s",
     "valve_slow_close": "valves stroke 300 ms, host aborts",
     "param_attack": "host loosens every protection",
 }
@@ -123,33 +166,35 @@ assert set(FAULT_ARGS) == set(FAULT_TYPES), "a fault type of the rig is missing 
 # Valves open at the injection must be sensed closed within this (s after the injection).
 # None: the fault does not require closing them (the fill goes on) or the valve cannot close.
 VALVES_CLOSED_BOUND_S: dict[str, float | None] = {
-    "link_loss": 1.5,               # link timeout 1 s + 50 ms stroke
-    "bit_errors": None,             # the link copes; the fill completes
-    "pressure_sensor_stuck": 7.0,   # invisible to the MCU: the host's 5 s fill-stall abort
-    "pressure_sensor_range": 0.2,   # range check (debounce) + stroke
-    "valve_stuck_open": None,       # the stuck valve cannot close: coils off within 50 ms instead
-    "valve_stuck_closed": 0.4,      # mismatch 200 ms + stroke of the other valve
-    "latch_stall": None,            # latent until the latch release
-    "actuator_jam": None,           # latent until the plane moves
-    "overpressure": 3.0,            # ramp 300 kPa/s to the 2600 kPa trip (~1.7 s) + stroke
-    "watchdog_reset": 0.3,          # watchdog 100 ms, outputs off at reset + stroke
-    "host_crash": 1.5,              # link timeout 1 s + stroke
-    "latch_wire_break": 0.1,        # debounce 10 ms (the pair reads "not engaged") + stroke
-    "adc_glitch": None,             # one sample is not a fault: the fill goes on
-    "adc_glitch_run": 0.1,          # bad-run bound 10 ms + stroke
-    "replay": None,                 # refused frames: the fill goes on
-    "camera_unplugged": None,       # navigation only: the mechanism goes on
-    "serial_unplugged": 1.5,        # as a link loss: the MCU's link timeout 1 s + stroke
-    "nav_hang": 1.5,                # no heartbeat from a hung loop: link timeout 1 s + stroke
-    "slow_inference": None,         # late cycles still beat the link timeout: the fill goes on
-    "valve_slow_close": 0.4,        # the 300 ms stroke + debounce
-    "param_attack": None,           # refused: nothing changes, the fill goes on
+    "link_loss": 1.5,  # link timeout 1 s + 50 ms stroke
+    "bit_errors": None,  # the link copes; the fill completes
+    "pressure_sensor_stuck": 7.0,  # invisible to the MCU: the host's 5 s fill-stall abort
+    "pressure_sensor_range": 0.2,  # range check (debounce) + stroke
+    "valve_stuck_open": None,  # the stuck valve cannot close: coils off within 50 ms instead
+    "valve_stuck_closed": 0.4,  # mismatch 200 ms + stroke of the other valve
+    "latch_stall": None,  # latent until the latch release
+    "actuator_jam": None,  # latent until the plane moves
+    "overpressure": 3.0,  # ramp 300 kPa/s to the 2600 kPa trip (~1.7 s) + stroke
+    "watchdog_reset": 0.3,  # watchdog 100 ms, outputs off at reset + stroke
+    "host_crash": 1.5,  # link timeout 1 s + stroke
+    "latch_wire_break": 0.1,  # debounce 10 ms (the pair reads "not engaged") + stroke
+    "adc_glitch": None,  # one sample is not a fault: the fill goes on
+    "adc_glitch_run": 0.1,  # bad-run bound 10 ms + stroke
+    "replay": None,  # refused frames: the fill goes on
+    "camera_unplugged": None,  # navigation only: the mechanism goes on
+    "serial_unplugged": 1.5,  # as a link loss: the MCU's link timeout 1 s + stroke
+    "nav_hang": 1.5,  # no heartbeat from a hung loop: link timeout 1 s + stroke
+    "slow_inference": None,  # late cycles still beat the link timeout: the fill goes on
+    "valve_slow_close": 0.4,  # the 300 ms stroke + debounce
+    "param_attack": None,  # refused: nothing changes, the fill goes on
 }
 
 NOT_APPLICABLE: dict[tuple[str, str], str] = {
-    ("valve_stuck_closed", "unmating"):
-        "the valves are closed for good after the fill and never commanded again: a valve stuck "
-        "closed is indistinguishable from a healthy one (the plant is identical)",
+    (
+        "valve_stuck_closed",
+        "unmating",
+    ): "the valves are closed for good after the fill and never commanded again: a valve stuck "
+    "closed is indistinguishable from a healthy one (the plant is identical)",
 }
 
 
@@ -173,98 +218,180 @@ def expectation(fault: str, phase: str) -> Expect | str:
     late = phase == "unmating"
     before_fill = phase in ("approach", "reception", "hard_docking", "hard_docked")
     if fault in ("link_loss", "host_crash"):
-        e = Expect("aborted", ["FAULT_HOST_LINK_LOSS"],
-                   why="MCU declares link loss after 1 s, safes; new/re-handshaken host clears, separates")
+        e = Expect(
+            "aborted",
+            ["FAULT_HOST_LINK_LOSS"],
+            why="MCU declares link loss after 1 s, safes; new/re-handshaken host clears, separates",
+        )
     elif fault == "bit_errors":
-        e = Expect("completed", [], extra={"min_crc_errors": 1, "tv_min_kpa": 595},
-                   why="CRC drops and retransmissions: nominal")
+        e = Expect(
+            "completed",
+            [],
+            extra={"min_crc_errors": 1, "tv_min_kpa": 595},
+            why="CRC drops and retransmissions: nominal",
+        )
     elif fault == "pressure_sensor_stuck":
         if late:
             e = Expect("completed", [], why="the reading is no longer used after the fill")
         else:
-            e = Expect("aborted", [], why="in range, the MCU cannot see it; the host sees the fill stall, ABORT")
+            e = Expect(
+                "aborted", [], why="in range, the MCU cannot see it; the host sees the fill stall, ABORT"
+            )
     elif fault == "pressure_sensor_range":
-        e = Expect("safed", ["FAULT_PRESSURE_SENSOR_RANGE"],
-                   why="range fault at once; not clearable while broken: hold, valves closed")
+        e = Expect(
+            "safed",
+            ["FAULT_PRESSURE_SENSOR_RANGE"],
+            why="range fault at once; not clearable while broken: hold, valves closed",
+        )
     elif fault == "valve_stuck_open" and late:
         # The plane is already past the seals when the valve fails: the line vents from the
         # failure until the 200 ms mismatch detection plus the plane's re-seat to full mate
         # (firmware SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN), about 0.6 s at ~8 g/s.
-        e = Expect("safed", ["FAULT_VALVE_MISMATCH"],
-                   extra={"coils_off_within_s_of_fault": 0.05, "fuel_lost_max_kg": 0.010},
-                   why="mismatch after 200 ms; FAULT re-seats the half-mated plane; vents < 10 g")
+        e = Expect(
+            "safed",
+            ["FAULT_VALVE_MISMATCH"],
+            extra={"coils_off_within_s_of_fault": 0.05, "fuel_lost_max_kg": 0.010},
+            why="mismatch after 200 ms; FAULT re-seats the half-mated plane; vents < 10 g",
+        )
     elif fault == "valve_stuck_open":
-        e = Expect("safed", ["FAULT_VALVE_MISMATCH"], extra={"coils_off_within_s_of_fault": 0.05},
-                   why="mismatch after 200 ms, coils off; not clearable: hold, nothing vented")
+        e = Expect(
+            "safed",
+            ["FAULT_VALVE_MISMATCH"],
+            extra={"coils_off_within_s_of_fault": 0.05},
+            why="mismatch after 200 ms, coils off; not clearable: hold, nothing vented",
+        )
     elif fault == "valve_stuck_closed":
-        e = Expect("aborted", ["FAULT_VALVE_MISMATCH"], extra={"coils_off_within_s_of_fault": 0.05},
-                   why=("latent until START_TRANSFER; " if before_fill else "") +
-                       "mismatch after 200 ms, both closed; clear, abort, separate")
+        e = Expect(
+            "aborted",
+            ["FAULT_VALVE_MISMATCH"],
+            extra={"coils_off_within_s_of_fault": 0.05},
+            why=("latent until START_TRANSFER; " if before_fill else "")
+            + "mismatch after 200 ms, both closed; clear, abort, separate",
+        )
     elif fault == "latch_stall":
-        e = Expect("safed", ["FAULT_LATCH_STALL"],
-                   why=("latent until the release; " if not late else "") +
-                       "release budget spent, one retry stalls again: hold soft-docked")
+        e = Expect(
+            "safed",
+            ["FAULT_LATCH_STALL"],
+            why=("latent until the release; " if not late else "")
+            + "release budget spent, one retry stalls again: hold soft-docked",
+        )
     elif fault == "actuator_jam":
         if phase in ("approach", "reception"):
-            e = Expect("aborted", ["FAULT_PLANE_TIMEOUT"],
-                       why="latent until HARD_DOCK: plane timeout at 0 mm; clear, separate")
+            e = Expect(
+                "aborted",
+                ["FAULT_PLANE_TIMEOUT"],
+                why="latent until HARD_DOCK: plane timeout at 0 mm; clear, separate",
+            )
         else:
-            e = Expect("safed", ["FAULT_PLANE_TIMEOUT"],
-                       why="plane cannot move either way: timeouts, one recovery, hold, valves closed")
+            e = Expect(
+                "safed",
+                ["FAULT_PLANE_TIMEOUT"],
+                why="plane cannot move either way: timeouts, one recovery, hold, valves closed",
+            )
     elif fault == "overpressure":
-        e = Expect("aborted", ["FAULT_OVERPRESSURE"], extra={"coils_off_within_s_of_fault": 0.05},
-                   why="trip at 2600 kPa, coils off; clear once below, abort, separate")
+        e = Expect(
+            "aborted",
+            ["FAULT_OVERPRESSURE"],
+            extra={"coils_off_within_s_of_fault": 0.05},
+            why="trip at 2600 kPa, coils off; clear once below, abort, separate",
+        )
     elif fault == "serial_unplugged":
-        e = Expect("aborted", ["FAULT_HOST_LINK_LOSS"],
-                   why="host port gone: MCU link timeout 1 s, safes; the port back, re-handshake, clear, separate")
+        e = Expect(
+            "aborted",
+            ["FAULT_HOST_LINK_LOSS"],
+            why="host port gone: MCU link timeout 1 s, safes; the port back, re-handshake, clear, separate",
+        )
     elif fault == "nav_hang":
-        e = Expect("aborted", ["FAULT_HOST_LINK_LOSS"],
-                   why="no heartbeat or update from the hung cycle: MCU link timeout, safes; "
-                       "the loop back, re-handshake, clear, separate")
+        e = Expect(
+            "aborted",
+            ["FAULT_HOST_LINK_LOSS"],
+            why="no heartbeat or update from the hung cycle: MCU link timeout, safes; "
+            "the loop back, re-handshake, clear, separate",
+        )
     elif fault == "camera_unplugged":
-        e = Expect("completed", [],
-                   why=("free flight: hold 3 s on no frame, then on" if phase == "approach" else
-                        "docked: navigation not needed; the mission goes on"))
+        e = Expect(
+            "completed",
+            [],
+            why=(
+                "free flight: hold 3 s on no frame, then on"
+                if phase == "approach"
+                else "docked: navigation not needed; the mission goes on"
+            ),
+        )
     elif fault == "slow_inference":
-        e = Expect("completed", [],
-                   why="cycles every 300 ms on 300 ms old frames: stale, held, never acted on; "
-                       "heartbeats still within the link timeout; on time again after 3 s")
+        e = Expect(
+            "completed",
+            [],
+            why="cycles every 300 ms on 300 ms old frames: stale, held, never acted on; "
+            "heartbeats still within the link timeout; on time again after 3 s",
+        )
     elif fault == "watchdog_reset":
-        e = Expect("aborted", ["FAULT_WATCHDOG_RESET"], extra={"reset_cause": "RESET_WATCHDOG"},
-                   why="reset after 100 ms, outputs off, FAULT; host re-handshakes, clears, separates")
+        e = Expect(
+            "aborted",
+            ["FAULT_WATCHDOG_RESET"],
+            extra={"reset_cause": "RESET_WATCHDOG"},
+            why="reset after 100 ms, outputs off, FAULT; host re-handshakes, clears, separates",
+        )
     elif fault == "latch_wire_break":
-        e = Expect("safed", ["FAULT_LATCH_SENSOR"],
-                   why=("latent until the latches engage; " if phase == "approach" else
-                        "the pair reads 'not engaged' at once (valves closed, FAULT_LATCH_LOST "
-                        "where engaged was required); ") +
-                       "neither contact for 100 ms: FAULT_LATCH_SENSOR, not clearable: hold")
+        e = Expect(
+            "safed",
+            ["FAULT_LATCH_SENSOR"],
+            why=(
+                "latent until the latches engage; "
+                if phase == "approach"
+                else "the pair reads 'not engaged' at once (valves closed, FAULT_LATCH_LOST "
+                "where engaged was required); "
+            )
+            + "neither contact for 100 ms: FAULT_LATCH_SENSOR, not clearable: hold",
+        )
     elif fault == "adc_glitch":
-        e = Expect("completed", [], extra={"tv_min_kpa": 595},
-                   why="one bad conversion is skipped (last good value held): nominal")
+        e = Expect(
+            "completed",
+            [],
+            extra={"tv_min_kpa": 595},
+            why="one bad conversion is skipped (last good value held): nominal",
+        )
     elif fault == "adc_glitch_run":
-        e = Expect("aborted", ["FAULT_PRESSURE_SENSOR_RANGE"],
-                   why="a run of bad samples lasting 10 ms is a range fault; the sensor is back: "
-                       "clear, abort, separate")
+        e = Expect(
+            "aborted",
+            ["FAULT_PRESSURE_SENSOR_RANGE"],
+            why="a run of bad samples lasting 10 ms is a range fault; the sensor is back: "
+            "clear, abort, separate",
+        )
     elif fault == "replay":
-        e = Expect("completed", [], extra={"max_replays_executed": 0, "min_replays": 1, "tv_min_kpa": 595},
-                   why="recorded ARM/START resent every 0.25 s to the end: refused as stale "
-                       "(or answered from the duplicate cache): none runs again")
+        e = Expect(
+            "completed",
+            [],
+            extra={"max_replays_executed": 0, "min_replays": 1, "tv_min_kpa": 595},
+            why="recorded ARM/START resent every 0.25 s to the end: refused as stale "
+            "(or answered from the duplicate cache): none runs again",
+        )
     elif fault == "param_attack":
-        e = Expect("completed", [], why="every ParamSet refused (locked while active, out of bounds "
-                                        "in IDLE/FAULT): the mission goes on unchanged")
+        e = Expect(
+            "completed",
+            [],
+            why="every ParamSet refused (locked while active, out of bounds "
+            "in IDLE/FAULT): the mission goes on unchanged",
+        )
     elif fault == "valve_slow_close":
         if phase == "transferring":
-            e = Expect("aborted", ["FAULT_VALVE_MISMATCH"],
-                       why="host ABORT while filling: plane held mated while the valves close (300 ms "
-                           "> valve_mismatch_ms): FAULT, plane held; clear once closed, abort, separate")
+            e = Expect(
+                "aborted",
+                ["FAULT_VALVE_MISMATCH"],
+                why="host ABORT while filling: plane held mated while the valves close (300 ms "
+                "> valve_mismatch_ms): FAULT, plane held; clear once closed, abort, separate",
+            )
         elif phase == "reception":
             e = Expect("aborted", [], why="valves closed: the host's ABORT safes at once; no second try")
         elif phase == "unmating":
             e = Expect("completed", [], why="valves closed: ABORT re-latches soft-docked, separation goes on")
         else:
-            e = Expect("aborted", ["FAULT_VALVE_MISMATCH"],
-                       why="valves closed: ABORT safes at once; the retried fill's valves close slower "
-                           "than valve_mismatch_ms: FAULT with the plane held mated, nothing vented")
+            e = Expect(
+                "aborted",
+                ["FAULT_VALVE_MISMATCH"],
+                why="valves closed: ABORT safes at once; the retried fill's valves close slower "
+                "than valve_mismatch_ms: FAULT with the plane held mated, nothing vented",
+            )
     else:
         raise ValueError(f"no expectation for fault {fault!r}")
     if e.final_state is None:
@@ -275,31 +402,38 @@ def expectation(fault: str, phase: str) -> Expect | str:
 def cell_scenario(fault: str, phase: str, exp: Expect, seed: int = 7) -> Scenario:
     ph = next(p for p in PHASES if p.key == phase)
     spec = {"type": fault, "at_state": ph.at_state, "after_s": ph.after_s, **FAULT_ARGS[fault]}
-    expect = {"outcome": exp.outcome, "final_state": exp.final_state, "faults": exp.faults,
-              "fuel_lost_max_kg": FUEL_LOST_MAX_KG, **exp.extra}
-    return Scenario.from_dict({
-        "name": f"matrix_{fault}@{phase}",
-        "description": f"{FAULT_TITLES[fault]} during {ph.title} ({ph.note}): {exp.why}",
-        "seed": seed,
-        "start": {"range_m": 1.2, "lateral_m": [0.02, -0.01], "misalignment_deg": [1.0, -0.5]},
-        "mission": {"target_kpa": 600, "arm_range_m": 2.0, "retreat_to_m": 0.5},
-        "rig": {"max_time_s": MAX_SIM_TIME_S},
-        "faults": [spec],
-        "expect": expect,
-    })
+    expect = {
+        "outcome": exp.outcome,
+        "final_state": exp.final_state,
+        "faults": exp.faults,
+        "fuel_lost_max_kg": FUEL_LOST_MAX_KG,
+        **exp.extra,
+    }
+    return Scenario.from_dict(
+        {
+            "name": f"matrix_{fault}@{phase}",
+            "description": f"{FAULT_TITLES[fault]} during {ph.title} ({ph.note}): {exp.why}",
+            "seed": seed,
+            "start": {"range_m": 1.2, "lateral_m": [0.02, -0.01], "misalignment_deg": [1.0, -0.5]},
+            "mission": {"target_kpa": 600, "arm_range_m": 2.0, "retreat_to_m": 0.5},
+            "rig": {"max_time_s": MAX_SIM_TIME_S},
+            "faults": [spec],
+            "expect": expect,
+        }
+    )
 
 
 @dataclass
 class CellResult:
     fault: str
     phase: str
-    status: str                    # pass | FAIL | n.a.
-    reason: str = ""               # n.a. reason or the failed checks
+    status: str  # pass | FAIL | n.a.
+    reason: str = ""  # n.a. reason or the failed checks
     outcome: str = ""
     final_state: str = ""
     faults_seen: list[str] = field(default_factory=list)
-    detect_s: float | None = None          # first FAULT state after the injection
-    valves_closed_s: float | None = None   # both valves sensed closed after the injection
+    detect_s: float | None = None  # first FAULT state after the injection
+    valves_closed_s: float | None = None  # both valves sensed closed after the injection
     valves_open_at_injection: bool = False
     fuel_lost_kg: float = 0.0
     sim_time_s: float = 0.0
@@ -314,46 +448,84 @@ def generic_checks(fault: str, result: Any) -> list[Check]:
     vc = m["valves_closed_after_injection_s"]
     open_at_inj = inj is not None and (vc is None or vc > 0.0)
     stuck_open = fault == "valve_stuck_open"
-    checks = [Check("G-INJECTED", "the phase was reached and the fault injected", inj is not None,
-                    "never" if inj is None else f"at {inj:.2f} s")]
+    checks = [
+        Check(
+            "G-INJECTED",
+            "the phase was reached and the fault injected",
+            inj is not None,
+            "never" if inj is None else f"at {inj:.2f} s",
+        )
+    ]
     ended = result.outcome in ("completed", "aborted", "safed")
     sensed_ok = m["valves_closed_at_end"] or stuck_open
-    checks.append(Check(
-        "G-END", "ended completed/aborted/safed, not TRANSFERRING, coils off, valves closed "
-        "(a stuck-open valve excepted)",
-        ended and m["final_state"] != "STATE_TRANSFERRING" and m["coils_off_at_end"] and sensed_ok,
-        f"{result.outcome} in {m['final_state']}, coils off {m['coils_off_at_end']}, "
-        f"valves closed {m['valves_closed_at_end']}"))
+    checks.append(
+        Check(
+            "G-END",
+            "ended completed/aborted/safed, not TRANSFERRING, coils off, valves closed "
+            "(a stuck-open valve excepted)",
+            ended and m["final_state"] != "STATE_TRANSFERRING" and m["coils_off_at_end"] and sensed_ok,
+            f"{result.outcome} in {m['final_state']}, coils off {m['coils_off_at_end']}, "
+            f"valves closed {m['valves_closed_at_end']}",
+        )
+    )
     bound = VALVES_CLOSED_BOUND_S[fault]
     if not open_at_inj:
-        checks.append(Check("G-VALVES", "valves open at the injection closed within the bound", None,
-                            "valves were closed at the injection"))
+        checks.append(
+            Check(
+                "G-VALVES",
+                "valves open at the injection closed within the bound",
+                None,
+                "valves were closed at the injection",
+            )
+        )
     elif bound is None:
-        checks.append(Check("G-VALVES", "valves open at the injection closed within the bound", None,
-                            f"no bound for {fault} (closed after "
-                            f"{'never' if vc is None else f'{vc:.3f} s'})"))
+        checks.append(
+            Check(
+                "G-VALVES",
+                "valves open at the injection closed within the bound",
+                None,
+                f"no bound for {fault} (closed after {'never' if vc is None else f'{vc:.3f} s'})",
+            )
+        )
     else:
-        checks.append(Check("G-VALVES", f"valves open at the injection sensed closed within {bound} s",
-                            vc is not None and vc <= bound, "never" if vc is None else f"{vc:.3f} s"))
+        checks.append(
+            Check(
+                "G-VALVES",
+                f"valves open at the injection sensed closed within {bound} s",
+                vc is not None and vc <= bound,
+                "never" if vc is None else f"{vc:.3f} s",
+            )
+        )
     want = set(result.scenario.expect.get("faults", []))
     events, flags = set(m["faults_reported_to_host"]), set(m["faults_in_host_telemetry"])
-    checks.append(Check("G-REPORTED", "every expected fault reached the host (EVT_FAULT or telemetry)",
-                        (want <= events | flags) if want else None,
-                        f"events: {', '.join(sorted(events)) or 'none'}; "
-                        f"telemetry: {', '.join(sorted(flags)) or 'none'}"))
+    checks.append(
+        Check(
+            "G-REPORTED",
+            "every expected fault reached the host (EVT_FAULT or telemetry)",
+            (want <= events | flags) if want else None,
+            f"events: {', '.join(sorted(events)) or 'none'}; telemetry: {', '.join(sorted(flags)) or 'none'}",
+        )
+    )
     if fault == "param_attack":
         attacks = [(label, verdict) for _, label, verdict in result.requests if label.startswith("ATTACK ")]
         accepted = [label for label, verdict in attacks if not verdict.startswith("refused")]
         names = {label.split()[1].split("=")[0] for label, _ in attacks}
-        bounded = {label.split()[1].split("=")[0] for label, verdict in attacks
-                   if verdict == "refused (NACK_PARAM_OUT_OF_BOUNDS)"}
+        bounded = {
+            label.split()[1].split("=")[0]
+            for label, verdict in attacks
+            if verdict == "refused (NACK_PARAM_OUT_OF_BOUNDS)"
+        }
         want = set(FAULT_ARGS["param_attack"]["values"])
-        checks.append(Check(
-            "G-PARAMS", "every attempt to loosen a protection refused; each refused by its bounds once "
-            "parameters may change (IDLE/FAULT)",
-            not accepted and names == want and bounded == want,
-            f"{len(attacks)} attempts, not refused: {', '.join(accepted) or 'none'}; "
-            f"not tried in a settable state: {', '.join(sorted(want - bounded)) or 'none'}"))
+        checks.append(
+            Check(
+                "G-PARAMS",
+                "every attempt to loosen a protection refused; each refused by its bounds once "
+                "parameters may change (IDLE/FAULT)",
+                not accepted and names == want and bounded == want,
+                f"{len(attacks)} attempts, not refused: {', '.join(accepted) or 'none'}; "
+                f"not tried in a settable state: {', '.join(sorted(want - bounded)) or 'none'}",
+            )
+        )
     return checks
 
 
@@ -366,36 +538,55 @@ def run_cell(fault: str, phase: str, mcu_path: str | None = None) -> CellResult:
     if isinstance(exp, str):
         return CellResult(fault, phase, "n.a.", reason=exp)
     sc = cell_scenario(fault, phase, exp)
-    expected = f"{exp.outcome}" + (f", {'+'.join(f.replace('FAULT_', '') for f in exp.faults)}" if exp.faults else "")
+    expected = f"{exp.outcome}" + (
+        f", {'+'.join(f.replace('FAULT_', '') for f in exp.faults)}" if exp.faults else ""
+    )
     try:
         result = Rig(sc, mcu_path=Path(mcu_path) if mcu_path else None).run()
     except Exception as exc:  # a lockstep error or a crash of the rig is a failed cell
-        return CellResult(fault, phase, "FAIL", reason=f"run raised {type(exc).__name__}: {exc}",
-                          expected=expected)
+        return CellResult(
+            fault, phase, "FAIL", reason=f"run raised {type(exc).__name__}: {exc}", expected=expected
+        )
     result.checks = evaluate(result) + generic_checks(fault, result)
     m = result.metrics
     inj, ff = m["first_injection_s"], m["first_fault_s"]
     vc = m["valves_closed_after_injection_s"]
     failed = [f"{c.id} ({c.measured})" for c in result.checks if c.ok is False]
     return CellResult(
-        fault, phase, "pass" if not failed else "FAIL", reason="; ".join(failed),
-        outcome=result.outcome, final_state=m["final_state"], faults_seen=m["faults_seen"],
+        fault,
+        phase,
+        "pass" if not failed else "FAIL",
+        reason="; ".join(failed),
+        outcome=result.outcome,
+        final_state=m["final_state"],
+        faults_seen=m["faults_seen"],
         detect_s=(ff - inj) if (ff is not None and inj is not None and ff >= inj) else None,
-        valves_closed_s=vc, valves_open_at_injection=inj is not None and (vc is None or vc > 0.0),
-        fuel_lost_kg=m["fuel_lost_kg"], sim_time_s=result.sim_time_s, wall_time_s=result.wall_time_s,
-        checks=[asdict(c) for c in result.checks], expected=expected)
+        valves_closed_s=vc,
+        valves_open_at_injection=inj is not None and (vc is None or vc > 0.0),
+        fuel_lost_kg=m["fuel_lost_kg"],
+        sim_time_s=result.sim_time_s,
+        wall_time_s=result.wall_time_s,
+        checks=[asdict(c) for c in result.checks],
+        expected=expected,
+    )
 
 
 def all_cells() -> list[tuple[str, str]]:
     return [(f, p) for f in FAULT_TYPES for p in PHASE_KEYS]
 
 
-def run_matrix(cells: list[tuple[str, str]] | None = None, *, jobs: int = 1, progress: bool = True,
-               mcu_path: str | None = None) -> list[CellResult]:
+def run_matrix(
+    cells: list[tuple[str, str]] | None = None,
+    *,
+    jobs: int = 1,
+    progress: bool = True,
+    mcu_path: str | None = None,
+) -> list[CellResult]:
     cells = cells or all_cells()
     bar = None
     if progress:
         from oibar.progress import Progress
+
         bar = Progress("fault matrix", total=len(cells), unit="cell")
     results: dict[tuple[str, str], CellResult] = {}
 
@@ -422,6 +613,7 @@ def run_matrix(cells: list[tuple[str, str]] | None = None, *, jobs: int = 1, pro
 
 # -- the table ----------------------------------------------------------------------------
 
+
 def _cell_text(r: CellResult) -> str:
     if r.status == "n.a.":
         return "n.a.¹"
@@ -439,24 +631,36 @@ def markdown(results: list[CellResult], wall_s: float | None = None) -> str:
     n_pass = sum(r.status == "pass" for r in results)
     n_fail = sum(r.status == "FAIL" for r in results)
     n_na = sum(r.status == "n.a." for r in results)
-    lines = [BEGIN, "",
-             f"**{n_pass} pass, {n_fail} fail, {n_na} not applicable** of {len(results)} cells "
-             f"({len(FAULT_TYPES)} faults x {len(PHASES)} phases)"
-             + (f"; the whole matrix ran in {wall_s:.0f} s wall." if wall_s is not None else "."),
-             "",
-             "Cell: verdict · outcome · **F** time from the injection to the MCU entering FAULT "
-             "(when it did) · **V** time from the injection until both valves were sensed closed "
-             "(only where they were open at the injection). Simulated seconds.",
-             "",
-             "| fault \\ phase | " + " | ".join(p.title for p in PHASES) + " |",
-             "| --- | " + " | ".join("---" for _ in PHASES) + " |"]
+    lines = [
+        BEGIN,
+        "",
+        f"**{n_pass} pass, {n_fail} fail, {n_na} not applicable** of {len(results)} cells "
+        f"({len(FAULT_TYPES)} faults x {len(PHASES)} phases)"
+        + (f"; the whole matrix ran in {wall_s:.0f} s wall." if wall_s is not None else "."),
+        "",
+        "Cell: verdict · outcome · **F** time from the injection to the MCU entering FAULT "
+        "(when it did) · **V** time from the injection until both valves were sensed closed "
+        "(only where they were open at the injection). Simulated seconds.",
+        "",
+        "| fault \\ phase | " + " | ".join(p.title for p in PHASES) + " |",
+        "| --- | " + " | ".join("---" for _ in PHASES) + " |",
+    ]
     for f in FAULT_TYPES:
         row = [_cell_text(by[(f, p)]) if (f, p) in by else "not run" for p in PHASE_KEYS]
         lines.append(f"| {FAULT_TITLES[f]} | " + " | ".join(row) + " |")
-    lines += ["", "Injection points (the rig's `at_state` trigger, seconds after the MCU first enters it):", ""]
+    lines += [
+        "",
+        "Injection points (the rig's `at_state` trigger, seconds after the MCU first enters it):",
+        "",
+    ]
     lines += [f"- **{p.title}**: `{p.at_state}` + {p.after_s:g} s: {p.note}" for p in PHASES]
-    lines += ["", "Expected outcome per cell (`hil/oibar_hil/rig/matrix.py`, `expectation()`):", "",
-              "| fault | phase | expected | why |", "| --- | --- | --- | --- |"]
+    lines += [
+        "",
+        "Expected outcome per cell (`hil/oibar_hil/rig/matrix.py`, `expectation()`):",
+        "",
+        "| fault | phase | expected | why |",
+        "| --- | --- | --- | --- |",
+    ]
     for f in FAULT_TYPES:
         for p in PHASE_KEYS:
             e = expectation(f, p)
@@ -468,9 +672,11 @@ def markdown(results: list[CellResult], wall_s: float | None = None) -> str:
     fails = [r for r in results if r.status == "FAIL"]
     lines += ["", "Failed cells:" if fails else "No failed cell.", ""]
     for r in fails:
-        lines.append(f"- `{r.fault}@{r.phase}`: expected {r.expected}; got {r.outcome} in "
-                     f"{r.final_state}, faults {', '.join(r.faults_seen) or 'none'}, fuel lost "
-                     f"{r.fuel_lost_kg * 1000:.1f} g; failed {r.reason}")
+        lines.append(
+            f"- `{r.fault}@{r.phase}`: expected {r.expected}; got {r.outcome} in "
+            f"{r.final_state}, faults {', '.join(r.faults_seen) or 'none'}, fuel lost "
+            f"{r.fuel_lost_kg * 1000:.1f} g; failed {r.reason}"
+        )
     lines += ["", END]
     return "\n".join(lines)
 
@@ -481,7 +687,7 @@ def write_doc(section: str, path: Path = DOC_PATH, begin: str = BEGIN, end: str 
     i, j = text.find(begin), text.find(end)
     if i < 0 or j < 0:
         raise ValueError(f"{path}: markers {begin} / {end} not found")
-    path.write_text(text[:i] + section + text[j + len(end):], encoding="utf-8")
+    path.write_text(text[:i] + section + text[j + len(end) :], encoding="utf-8")
 
 
 def _parse_only(items: list[str]) -> list[tuple[str, str]]:
@@ -510,6 +716,7 @@ def main(argv: list[str] | None = None) -> int:
     print(table.replace(BEGIN, "").replace(END, "").strip())
     if args.json:
         import json
+
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps([asdict(r) for r in results], indent=1, default=str))
     if args.doc:

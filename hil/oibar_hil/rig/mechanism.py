@@ -35,33 +35,33 @@ class MechanismParams:
     # capture envelope (paper)
     capture_max_speed_mps: float = 0.050
     capture_max_misalign_deg: float = 10.0
-    funnel_mouth_radius_m: float = 0.10    # assumption: drogue mouth radius
-    funnel_throat_depth_m: float = 0.05    # assumption: funnel centres the probe by here
+    funnel_mouth_radius_m: float = 0.10  # assumption: drogue mouth radius
+    funnel_throat_depth_m: float = 0.05  # assumption: funnel centres the probe by here
     # probe in the drogue (assumptions)
-    spring_engage_depth_m: float = 0.066   # probe spring-damper touches the drogue end
-    latch_depth_m: float = 0.075           # latches pop out behind the cavity here
-    latch_hold_margin_m: float = 0.002     # detent play once latched
-    end_stop_depth_m: float = 0.095        # spring fully compressed
-    spring_n_per_m: float = 600.0          # 5.4 N extraction pre-load at the latch point
-    damper_n_s_per_m: float = 150.0        # about 0.25 of critical with the SV mass
+    spring_engage_depth_m: float = 0.066  # probe spring-damper touches the drogue end
+    latch_depth_m: float = 0.075  # latches pop out behind the cavity here
+    latch_hold_margin_m: float = 0.002  # detent play once latched
+    end_stop_depth_m: float = 0.095  # spring fully compressed
+    spring_n_per_m: float = 600.0  # 5.4 N extraction pre-load at the latch point
+    damper_n_s_per_m: float = 150.0  # about 0.25 of critical with the SV mass
     bounce_restitution: float = 0.3
     bounce_contact_s: float = 0.03
-    bounce_impact_s: float = 0.05          # impulse spread for the force estimate
+    bounce_impact_s: float = 0.05  # impulse spread for the force estimate
     # latch cam and stepper (assumptions consistent with params.c ids 15-19)
-    latch_release_steps: int = 600         # latches retracted from here on
+    latch_release_steps: int = 600  # latches retracted from here on
     latch_release_detent_steps: int = 650
     latch_end_stop_steps: int = 1500
-    latch_home_stop_steps: int = -20       # mechanical stop behind the home switch
+    latch_home_stop_steps: int = -20  # mechanical stop behind the home switch
     latch_detent_rate_steps_s: float = 200.0
     # fluidic plane (assumptions consistent with params.c ids 10, 32)
     plane_travel_mm: float = 40.0
     plane_speed_mm_s: float = 10.0
     plane_switch_band_mm: float = 0.2
     plane_mm_per_count: float = 0.01221
-    pins_engage_mm: float = 37.0           # alignment pins enter their tapered cavities
+    pins_engage_mm: float = 37.0  # alignment pins enter their tapered cavities
     connector_mate_mm: float = 39.5
-    seal_made_mm: float = 38.5             # coupling seals hold from here to full travel
-    mating_force_n: float = 20.0           # at full mate, through the probe load cell
+    seal_made_mm: float = 38.5  # coupling seals hold from here to full travel
+    mating_force_n: float = 20.0  # at full mate, through the probe load cell
     # valves (assumption, params.c id 20 comment)
     valve_stroke_s: float = 0.05
     # gas (assumptions): isothermal nitrogen simulant, self-sealing couplings
@@ -70,9 +70,9 @@ class MechanismParams:
     line_volume_l: float = 2.0
     sv_initial_kpa: float = 2200.0
     tv_initial_kpa: float = 300.0
-    line_initial_kpa: float = 1000.0       # residual of the previous transfer
-    valve_conductance_l_s: float = 0.84    # flow = G * dp (kPa*L/s)
-    leak_conductance_l_s: float = 0.5      # coupling half-open to space (fault paths only)
+    line_initial_kpa: float = 1000.0  # residual of the previous transfer
+    valve_conductance_l_s: float = 0.84  # flow = G * dp (kPa*L/s)
+    leak_conductance_l_s: float = 0.5  # coupling half-open to space (fault paths only)
     # sensors (params.c ids 21-26, 33)
     press_zero_counts: float = 410.0
     press_kpa_per_count: float = 0.9158
@@ -104,7 +104,7 @@ class Valve:
 
 @dataclass
 class SensorFault:
-    stuck_counts: int | None = None   # frozen reading
+    stuck_counts: int | None = None  # frozen reading
     forced_counts: int | None = None  # out of range (open wire / short)
 
 
@@ -136,8 +136,9 @@ class Mechanism:
     spring_force_n: float = 0.0
     contact_force_n: float = 0.0
     # sensors
-    sensor_faults: dict = field(default_factory=lambda: {"sv": SensorFault(), "tv": SensorFault(),
-                                                           "line": SensorFault()})
+    sensor_faults: dict = field(
+        default_factory=lambda: {"sv": SensorFault(), "tv": SensorFault(), "line": SensorFault()}
+    )
     adc_fail_bits: int = 0
     # latch switch wiring (a changeover pair, common to ground): None, or the broken wire
     # "no" (engaged contact), "nc" (not-engaged contact) or "common"
@@ -212,9 +213,11 @@ class Mechanism:
             "misalignment_deg": world.misalignment_deg,
             "lateral_m": world.lateral_m,
         }
-        rec["captured"] = (rec["closing_speed_mps"] <= p.capture_max_speed_mps
-                           and rec["misalignment_deg"] <= p.capture_max_misalign_deg
-                           and rec["lateral_m"] <= p.funnel_mouth_radius_m)
+        rec["captured"] = (
+            rec["closing_speed_mps"] <= p.capture_max_speed_mps
+            and rec["misalignment_deg"] <= p.capture_max_misalign_deg
+            and rec["lateral_m"] <= p.funnel_mouth_radius_m
+        )
         self.capture_attempts.append(rec)
         if rec["captured"]:
             self.captured = True
@@ -285,7 +288,9 @@ class Mechanism:
                 self.latch_steps += out.steps_fwd - out.steps_rev
         else:
             # Unpowered, the cam settles into its nearest detent (home or released).
-            goal = 0.0 if self.latch_steps < p.latch_release_detent_steps / 2 else p.latch_release_detent_steps
+            goal = (
+                0.0 if self.latch_steps < p.latch_release_detent_steps / 2 else p.latch_release_detent_steps
+            )
             d = goal - self.latch_steps
             step = p.latch_detent_rate_steps_s * dt_s
             self.latch_steps += float(np.clip(d, -step, step))

@@ -56,8 +56,14 @@ class TruthNav:
         self._seq += 1
         return Frame(image=_TOKEN_IMAGE, seq=self._seq, t_s=t_s, t_host=t_s, source="truth")
 
-    def step(self, t_s: float, image: Any = None, frame_t_s: float | None = None,
-             frame_seq: int | None = None, odometry: Any = None) -> NavStep:
+    def step(
+        self,
+        t_s: float,
+        image: Any = None,
+        frame_t_s: float | None = None,
+        frame_seq: int | None = None,
+        odometry: Any = None,
+    ) -> NavStep:
         """The truth now when a fresh frame came; else, like a coasting filter, the last solution
         with the reason to hold (no new frame, stale frame) and no confidence."""
         if image is not None and (frame_t_s is None or t_s - frame_t_s <= self.max_frame_age_s):
@@ -65,18 +71,32 @@ class TruthNav:
             return NavStep(t_s, self._last)
         reason = "no new frame" if image is None else f"stale frame ({t_s - frame_t_s:.2f} s old)"
         last = self._last or NavSolution(valid=False)
-        sol = NavSolution(valid=last.valid, r_D_m=last.r_D_m, v_D_mps=last.v_D_mps, att_rad=last.att_rad,
-                          misalignment_deg=last.misalignment_deg, t_cam_target_m=last.t_cam_target_m,
-                          q_cam_target=last.q_cam_target, confidence=0.0,
-                          hold_reason=reason if last.valid else "filter not initialised")
+        sol = NavSolution(
+            valid=last.valid,
+            r_D_m=last.r_D_m,
+            v_D_mps=last.v_D_mps,
+            att_rad=last.att_rad,
+            misalignment_deg=last.misalignment_deg,
+            t_cam_target_m=last.t_cam_target_m,
+            q_cam_target=last.q_cam_target,
+            confidence=0.0,
+            hold_reason=reason if last.valid else "filter not initialised",
+        )
         return NavStep(t_s, sol, hold_reason=sol.hold_reason)
 
     def solve(self, t_s: float, world: Any) -> NavSolution:
         s = world.s
         T, R = camera_pose_from_docking(s.r_D_m, s.att_rad)
-        return NavSolution(valid=True, r_D_m=s.r_D_m.copy(), v_D_mps=s.v_D_mps.copy(), att_rad=s.att_rad.copy(),
-                           misalignment_deg=world.misalignment_deg, t_cam_target_m=T,
-                           q_cam_target=matrix_to_quat(R), confidence=1.0)
+        return NavSolution(
+            valid=True,
+            r_D_m=s.r_D_m.copy(),
+            v_D_mps=s.v_D_mps.copy(),
+            att_rad=s.att_rad.copy(),
+            misalignment_deg=world.misalignment_deg,
+            t_cam_target_m=T,
+            q_cam_target=matrix_to_quat(R),
+            confidence=1.0,
+        )
 
     def reset(self) -> None:
         """A new approach begins (nothing to forget: the truth has no memory)."""
@@ -91,8 +111,14 @@ class CnnNav:
 
     name = "cnn"
 
-    def __init__(self, model_path: str | Path | None = None, scene: str = "seq01", seed: int = 0,
-                 threads: int = 2, camera_blackout=None) -> None:
+    def __init__(
+        self,
+        model_path: str | Path | None = None,
+        scene: str = "seq01",
+        seed: int = 0,
+        threads: int = 2,
+        camera_blackout=None,
+    ) -> None:
         from oibar.nav.core import Navigator
         from oibar.nav.pose import PoseEstimator
         from oibar_hil.rig.camera import RigCamera
@@ -122,8 +148,13 @@ class CnnNav:
         """Frame and navigator on their own, without the daemon (tests and studies of the
         navigation alone): what the daemon's cycle would compute for this world."""
         frame = self.frame(t_s, world)
-        step = self.navigator.step(t_s, None if frame is None else frame.image, frame_t_s=t_s,
-                                   frame_seq=self.frames, odometry=world.relative_velocity(t_s))
+        step = self.navigator.step(
+            t_s,
+            None if frame is None else frame.image,
+            frame_t_s=t_s,
+            frame_seq=self.frames,
+            odometry=world.relative_velocity(t_s),
+        )
         self.last_step = step
         return step.solution
 

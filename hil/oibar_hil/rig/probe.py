@@ -20,8 +20,8 @@ import numpy as np
 from oibar.geometry.docking import docking_from_camera_pose
 
 RANGES_M = (3.0, 1.0, 0.5)
-LATERAL_FRACTION = 0.06       # offsets of +-6 % of the range on each axis (the approach corridor)
-ATT_DEG = 3.0                 # pitch / yaw offsets
+LATERAL_FRACTION = 0.06  # offsets of +-6 % of the range on each axis (the approach corridor)
+ATT_DEG = 3.0  # pitch / yaw offsets
 
 
 def probe(model_path: str | Path, scene: str = "seq01") -> list[dict]:
@@ -51,22 +51,34 @@ def probe(model_path: str | Path, scene: str = "seq01") -> list[dict]:
                 att_est.append(s.att_rad[:2])
             at, ae = np.array(att_true), np.array(att_est)
             a_slope = float(np.sum((at - at.mean(0)) * (ae - ae.mean(0))) / np.sum((at - at.mean(0)) ** 2))
-            rows.append({"range_m": rng, "lateral_offset_m": d, "lateral_slope": slope,
-                         "lateral_err_rms_m": float(np.sqrt(np.mean(np.sum((le - lt) ** 2, 1)))),
-                         "attitude_slope": a_slope,
-                         "attitude_err_rms_deg": float(np.degrees(np.sqrt(np.mean(np.sum((ae - at) ** 2, 1)))))})
+            rows.append(
+                {
+                    "range_m": rng,
+                    "lateral_offset_m": d,
+                    "lateral_slope": slope,
+                    "lateral_err_rms_m": float(np.sqrt(np.mean(np.sum((le - lt) ** 2, 1)))),
+                    "attitude_slope": a_slope,
+                    "attitude_err_rms_deg": float(np.degrees(np.sqrt(np.mean(np.sum((ae - at) ** 2, 1))))),
+                }
+            )
     return rows
 
 
 def markdown(rows: list[dict], model: str, scene: str) -> str:
-    out = [f"Response probe of `{model}` on scene {scene} (rendered by the rig camera): slope of the "
-           f"estimate against the truth (1 = follows, 0 = ignores) and the RMS error.", "",
-           "| range (m) | lateral offsets (m) | lateral slope | lateral RMS error (cm) | attitude offsets (deg) "
-           "| attitude slope | attitude RMS error (deg) |", "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    out = [
+        f"Response probe of `{model}` on scene {scene} (rendered by the rig camera): slope of the "
+        f"estimate against the truth (1 = follows, 0 = ignores) and the RMS error.",
+        "",
+        "| range (m) | lateral offsets (m) | lateral slope | lateral RMS error (cm) | attitude offsets (deg) "
+        "| attitude slope | attitude RMS error (deg) |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
     for r in rows:
-        out.append(f"| {r['range_m']:.1f} | ±{r['lateral_offset_m']:.3f} | {r['lateral_slope']:.2f} | "
-                   f"{r['lateral_err_rms_m'] * 100:.1f} | ±{ATT_DEG:.0f} | {r['attitude_slope']:.2f} | "
-                   f"{r['attitude_err_rms_deg']:.2f} |")
+        out.append(
+            f"| {r['range_m']:.1f} | ±{r['lateral_offset_m']:.3f} | {r['lateral_slope']:.2f} | "
+            f"{r['lateral_err_rms_m'] * 100:.1f} | ±{ATT_DEG:.0f} | {r['attitude_slope']:.2f} | "
+            f"{r['attitude_err_rms_deg']:.2f} |"
+        )
     return "\n".join(out) + "\n"
 
 
@@ -80,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = probe(a.model, a.scene)
     except Exception as exc:
         from oibar.nav.pose import ModelFileError
+
         if isinstance(exc, ModelFileError) or type(exc).__name__ == "RigCameraError":
             print(f"error: {exc}", file=sys.stderr)
             return 2

@@ -44,11 +44,21 @@ def _plot_timeline(result: Any, path: Path) -> None:
     for tc, label, verdict in result.requests:
         ok = verdict.startswith("accepted")
         ax.axvline(tc, color="tab:green" if ok else "tab:orange", lw=0.8, alpha=0.6)
-        ax.text(tc, len(STATE_ORDER) - 0.5, label.replace("CMD_", ""), rotation=90, fontsize=6,
-                va="top", ha="right", color="tab:green" if ok else "tab:orange")
+        ax.text(
+            tc,
+            len(STATE_ORDER) - 0.5,
+            label.replace("CMD_", ""),
+            rotation=90,
+            fontsize=6,
+            va="top",
+            ha="right",
+            color="tab:green" if ok else "tab:orange",
+        )
     _mark_faults(ax, result)
     ax.set_xlabel("simulated time [s]")
-    ax.set_title("MCU state (ground truth), commands (green accepted / orange refused), fault injections (red)")
+    ax.set_title(
+        "MCU state (ground truth), commands (green accepted / orange refused), fault injections (red)"
+    )
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -114,7 +124,9 @@ def _plot_fluid(result: Any, path: Path) -> None:
     s = result.samples
     t = _arr(s, "t_s")
     fig, axs = plt.subplots(2, 1, figsize=(11, 6), sharex=True, gridspec_kw={"height_ratios": [1, 2]})
-    for i, (name, cmd, sensed) in enumerate((("SV valve", "sv_cmd", "sv_open"), ("TV valve", "tv_cmd", "tv_open"))):
+    for i, (name, cmd, sensed) in enumerate(
+        (("SV valve", "sv_cmd", "sv_open"), ("TV valve", "tv_cmd", "tv_open"))
+    ):
         off = 2.5 * i
         axs[0].step(t, _arr(s, cmd) + off, where="post", label=f"{name} commanded", lw=1.2)
         axs[0].step(t, _arr(s, sensed) * 0.9 + off, where="post", label=f"{name} sensed open", ls="--")
@@ -143,8 +155,10 @@ def _plot_navigation(result: Any, path: Path) -> None:
     """The navigator's estimate beside the truth (CNN in the loop)."""
     log = result.nav_log
     t = np.array([r["t_s"] for r in log])
+
     def col(k):
         return np.array([r.get(k, np.nan) for r in log], dtype=float)
+
     hold = np.array([bool(r["hold_reason"]) for r in log])
     fig, axs = plt.subplots(4, 1, figsize=(11, 9), sharex=True)
     axs[0].plot(t, col("range_true_m"), color="k", lw=1.2, label="true")
@@ -191,8 +205,12 @@ def summary_dict(result: Any) -> dict[str, Any]:
 def write_report(result: Any, out_dir: Path) -> Path:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    plots = [("timeline.png", _plot_timeline), ("approach.png", _plot_approach),
-             ("mechanism.png", _plot_mechanism), ("fluid.png", _plot_fluid)]
+    plots = [
+        ("timeline.png", _plot_timeline),
+        ("approach.png", _plot_approach),
+        ("mechanism.png", _plot_mechanism),
+        ("fluid.png", _plot_fluid),
+    ]
     if getattr(result, "nav_log", None) and result.metrics.get("nav") == "cnn":
         plots.insert(2, ("navigation.png", _plot_navigation))
     for name, fn in plots:
@@ -205,18 +223,23 @@ def write_report(result: Any, out_dir: Path) -> Path:
         f"<tr class='{'na' if c.ok is None else ('ok' if c.ok else 'bad')}'><td>{e(c.id)}</td>"
         f"<td>{e(c.text)}</td><td>{e(c.measured)}</td>"
         f"<td>{'n/a' if c.ok is None else ('pass' if c.ok else 'FAIL')}</td></tr>"
-        for c in result.checks)
+        for c in result.checks
+    )
     timeline = sorted(
         [(t, "state", s) for t, s in result.states]
         + [(t, "command", f"{label}: {v}") for t, label, v in result.requests]
         + [(t, "MCU event", text) for t, text in result.events]
-        + [(t, "note", text) for t, text in result.notes])
+        + [(t, "note", text) for t, text in result.notes]
+    )
     tl_rows = "".join(f"<tr><td>{t:9.3f}</td><td>{e(k)}</td><td>{e(v)}</td></tr>" for t, k, v in timeline)
     m = result.metrics
     key_metrics = {
-        "final MCU state": m["final_state"], "faults raised (MCU, ground truth)": ", ".join(m["faults_seen"]) or "none",
-        "fuel lost [kg]": f"{m['fuel_lost_kg']:.4f}", "TV tank at end [kPa]": f"{m['tv_final_kpa']:.0f}",
-        "SV tank at end [kPa]": f"{m['sv_final_kpa']:.0f}", "MCU resets": m["mcu_resets"],
+        "final MCU state": m["final_state"],
+        "faults raised (MCU, ground truth)": ", ".join(m["faults_seen"]) or "none",
+        "fuel lost [kg]": f"{m['fuel_lost_kg']:.4f}",
+        "TV tank at end [kPa]": f"{m['tv_final_kpa']:.0f}",
+        "SV tank at end [kPa]": f"{m['sv_final_kpa']:.0f}",
+        "MCU resets": m["mcu_resets"],
         "lockstep exchanges (of which 1 ms)": f"{m['exchanges']} ({m['exchanges_1ms']})",
         "host retransmissions / link losses": f"{m['host_retransmissions']} / {m['host_link_losses']}",
         "CRC errors host / MCU": f"{m['host_rx_crc_errors']} / {m['mcu_rx_crc_errors']}",
@@ -227,9 +250,11 @@ def write_report(result: Any, out_dir: Path) -> Path:
         key_metrics["navigation errors (median)"] = (
             f"range {m.get('nav_range_err_m_median', float('nan')) * 100:.1f} cm, lateral "
             f"{m.get('nav_lateral_err_m_median', float('nan')) * 100:.1f} cm, misalignment "
-            f"{m.get('nav_misalign_err_deg_median', float('nan')):.2f} deg")
+            f"{m.get('nav_misalign_err_deg_median', float('nan')):.2f} deg"
+        )
         key_metrics["navigator time per cycle median / p99 [ms]"] = (
-            f"{m.get('nav_ms_median', float('nan')):.1f} / {m.get('nav_ms_p99', float('nan')):.1f}")
+            f"{m.get('nav_ms_median', float('nan')):.1f} / {m.get('nav_ms_p99', float('nan')):.1f}"
+        )
     km = "".join(f"<tr><td>{e(k)}</td><td>{e(str(v))}</td></tr>" for k, v in key_metrics.items())
     imgs = "".join(f"<p><img src='{name}' alt='{name}'></p>" for name, _ in plots)
     page = f"""<!doctype html><html><head><meta charset="utf-8">
@@ -237,7 +262,7 @@ def write_report(result: Any, out_dir: Path) -> Path:
 <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}} table{{border-collapse:collapse;margin:8px 0}}
 td,th{{border:1px solid #ccc;padding:3px 8px;font-size:13px;text-align:left}} tr.ok td:last-child{{background:#cfc}}
 tr.bad td:last-child{{background:#fbb}} tr.na td:last-child{{background:#eee}} img{{max-width:100%}}
-.verdict{{font-size:22px;font-weight:bold;color:{'#070' if result.passed else '#b00'}}}</style></head><body>
+.verdict{{font-size:22px;font-weight:bold;color:{"#070" if result.passed else "#b00"}}}</style></head><body>
 <h1>OIBAR mission report: {e(sc.name)}</h1>
 <p>{e(sc.description)}</p>
 <p class="verdict">{verdict}: outcome <i>{e(result.outcome)}</i></p>

@@ -58,10 +58,10 @@ class RunResult:
     sim_time_s: float
     wall_time_s: float
     samples: dict[str, list]
-    states: list[tuple[float, str]]          # ground truth, from the lockstep replies
-    requests: list[tuple[float, str, str]]   # (t, label, result)
-    events: list[tuple[float, str]]          # MCU events the host received
-    notes: list[tuple[float, str]]           # controller, faults, rig
+    states: list[tuple[float, str]]  # ground truth, from the lockstep replies
+    requests: list[tuple[float, str, str]]  # (t, label, result)
+    events: list[tuple[float, str]]  # MCU events the host received
+    notes: list[tuple[float, str]]  # controller, faults, rig
     capture: dict | None
     capture_attempts: list
     metrics: dict[str, Any]
@@ -98,29 +98,44 @@ class RigVehicle(VehicleInterface):
 class _SafetyWatch:
     """Safety timings measured on the ground truth every lockstep exchange (for the checks)."""
 
-    fault_flags_seen: int = 0                      # every MCU fault flag raised during the run
-    first_fault_s: float | None = None             # the MCU entered STATE_FAULT
-    coils_off_after_fault_s: float | None = None   # then both valve coils were off after this long
+    fault_flags_seen: int = 0  # every MCU fault flag raised during the run
+    first_fault_s: float | None = None  # the MCU entered STATE_FAULT
+    coils_off_after_fault_s: float | None = None  # then both valve coils were off after this long
     valves_closed_after_injection_s: float | None = None  # both valves closed after the first injected fault
 
-    def observe(self, t_s: float, state: str, reply: Any, mech: Mechanism, first_injection_s: float | None) -> None:
+    def observe(
+        self, t_s: float, state: str, reply: Any, mech: Mechanism, first_injection_s: float | None
+    ) -> None:
         self.fault_flags_seen |= reply.fault_flags
         if state == "STATE_FAULT" and self.first_fault_s is None:
             self.first_fault_s = t_s
-        if self.first_fault_s is not None and self.coils_off_after_fault_s is None and \
-                not (reply.do("SV_VALVE") or reply.do("TV_VALVE")):
+        if (
+            self.first_fault_s is not None
+            and self.coils_off_after_fault_s is None
+            and not (reply.do("SV_VALVE") or reply.do("TV_VALVE"))
+        ):
             self.coils_off_after_fault_s = t_s - self.first_fault_s
-        if first_injection_s is not None and self.valves_closed_after_injection_s is None and \
-                not (mech.sv_valve.open or mech.tv_valve.open):
+        if (
+            first_injection_s is not None
+            and self.valves_closed_after_injection_s is None
+            and not (mech.sv_valve.open or mech.tv_valve.open)
+        ):
             self.valves_closed_after_injection_s = t_s - first_injection_s
 
 
 class Rig:
-    def __init__(self, scenario: Scenario, *, mcu_path: Path | None = None,
-                 out_dir: Path | None = None, progress: bool = False,
-                 controller_factory: Callable[..., Any] | None = None,
-                 between_missions: Callable[[Rig], bool] | None = None,
-                 nav: str | Any = "truth", nav_options: dict | None = None) -> None:
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        mcu_path: Path | None = None,
+        out_dir: Path | None = None,
+        progress: bool = False,
+        controller_factory: Callable[..., Any] | None = None,
+        between_missions: Callable[[Rig], bool] | None = None,
+        nav: str | Any = "truth",
+        nav_options: dict | None = None,
+    ) -> None:
         self.sc = scenario
         # Called once per exchange while the controller reports the mission finished; it
         # returns True to keep the run going (it may install a new controller and world:
@@ -132,8 +147,11 @@ class Rig:
         self.progress = progress
         self.rng = np.random.default_rng(scenario.seed)
         self.controller_factory = controller_factory or (
-            lambda: Guidance(scenario.mission,
-                             {FIRMWARE_PARAM_IDS[k]: float(v) for k, v in scenario.firmware_params.items()}))
+            lambda: Guidance(
+                scenario.mission,
+                {FIRMWARE_PARAM_IDS[k]: float(v) for k, v in scenario.firmware_params.items()},
+            )
+        )
         # navigation: "truth" (reference) or "cnn" (rendered camera + the host's Navigator)
         self.nav = make_nav(nav, **(nav_options or {})) if isinstance(nav, str) else nav
         if hasattr(self.nav, "world_of"):
@@ -142,7 +160,8 @@ class Rig:
         world_state = WorldState(
             r_D_m=np.array([st.lateral_m[0], st.lateral_m[1], st.range_m], dtype=float),
             v_D_mps=np.array([0.0, 0.0, -st.closing_speed_mps]),
-            att_rad=np.radians([st.misalignment_deg[0], st.misalignment_deg[1], 0.0]))
+            att_rad=np.radians([st.misalignment_deg[0], st.misalignment_deg[1], 0.0]),
+        )
         self.world = World(VehicleParams(**scenario.vehicle), world_state, self.rng)
         self.mech = Mechanism(MechanismParams(**scenario.plant), self.rng)
         self.wire = Wire(self.rng)
@@ -188,7 +207,9 @@ class Rig:
         """Each cycle takes ``latency_s`` (0: back to normal): cycles one at a time, each on a
         frame captured ``latency_s`` earlier."""
         self._inference_s = latency_s
-        self.notes.append((self.t_s, f"inference takes {latency_s:.2f} s" if latency_s else "inference on time"))
+        self.notes.append(
+            (self.t_s, f"inference takes {latency_s:.2f} s" if latency_s else "inference on time")
+        )
 
     def _host_finished(self) -> bool:
         return self.controller.finished
@@ -237,8 +258,12 @@ class Rig:
         may change (BOOT, IDLE, FAULT), so that the bounds themselves are exercised."""
         for when in ("now", "settable"):
             for name, value in values.items():
-                req = MechRequest("param_set", param_id=FIRMWARE_PARAM_IDS[name], value=float(value),
-                                  label=f"ATTACK {name}={value:g}")
+                req = MechRequest(
+                    "param_set",
+                    param_id=FIRMWARE_PARAM_IDS[name],
+                    value=float(value),
+                    label=f"ATTACK {name}={value:g}",
+                )
                 self._attacks.append((req, when))
 
     def _step_attacks(self, state: str) -> None:
@@ -269,11 +294,18 @@ class Rig:
         """A host process: its link session (caller heartbeats, as oibar nav opens its link) and
         its navigation daemon with a fresh guidance."""
         self.session = LinkSession(self.wire.host_end, host_version=HOST_VERSION, auto_heartbeat=False)
-        self.daemon = NavDaemon(self.nav.navigator, self.controller_factory(), camera=None,
-                                link=SessionLink(self.session), vehicle=RigVehicle(self),
-                                params=DaemonParams(rate_hz=1.0 / self.sc.rig.guidance_period_s,
-                                                    stats_window=64),   # its timings are simulated
-                                clock=lambda: self.t_s, t0_s=0.0)
+        self.daemon = NavDaemon(
+            self.nav.navigator,
+            self.controller_factory(),
+            camera=None,
+            link=SessionLink(self.session),
+            vehicle=RigVehicle(self),
+            params=DaemonParams(
+                rate_hz=1.0 / self.sc.rig.guidance_period_s, stats_window=64
+            ),  # its timings are simulated
+            clock=lambda: self.t_s,
+            t0_s=0.0,
+        )
 
     @property
     def controller(self) -> Guidance:
@@ -295,9 +327,14 @@ class Rig:
         if self.mech.adc_glitch_pending:  # one bad ADC sample per exchange (faults.adc_glitch)
             return 1
         m = self.mech
-        busy = (m.contact or self.world.range_m < 0.3 or reply.do_bits & 0b111100
-                or m.sv_valve.open or m.tv_valve.open
-                or state not in ("STATE_IDLE", "STATE_APPROACH_READY", "STATE_BOOT"))
+        busy = (
+            m.contact
+            or self.world.range_m < 0.3
+            or reply.do_bits & 0b111100
+            or m.sv_valve.open
+            or m.tv_valve.open
+            or state not in ("STATE_IDLE", "STATE_APPROACH_READY", "STATE_BOOT")
+        )
         return rs.exchange_ms if busy else rs.coast_exchange_ms
 
     def _cycle(self, frame_age_s: float = 0.0) -> Any:
@@ -313,8 +350,9 @@ class Rig:
             self.events_log.append((self.t_s, self._event_text(ev)))
         for res in obs.results:
             verdict = "accepted" if res.accepted else f"refused ({res.reason})"
-            self.requests_log.append((self.t_s, res.request.label,
-                                      verdict + (f" -> {res.state}" if res.state else "")))
+            self.requests_log.append(
+                (self.t_s, res.request.label, verdict + (f" -> {res.state}" if res.state else ""))
+            )
         timings = dict(getattr(self.nav, "last_timings_ms", {}))
         if frame is not None:
             timings.update(step.timings_ms, nav_ms=cycle_ms)
@@ -325,37 +363,56 @@ class Rig:
         """The estimate beside the truth, per guidance cycle (report plots, metrics)."""
         w = self.world
         est_lat = sol.r_D_m[:2] if sol.valid else np.full(2, np.nan)
-        self.nav_log.append({
-            "t_s": self.t_s, "valid": bool(sol.valid), "hold_reason": sol.hold_reason,
-            "range_true_m": w.range_m, "range_est_m": sol.range_m if sol.valid else float("nan"),
-            "lateral_err_m": float(np.linalg.norm(est_lat - w.s.r_D_m[:2])),
-            "closing_true_mps": w.closing_speed_mps,
-            "closing_est_mps": sol.closing_speed_mps if sol.valid else float("nan"),
-            "misalign_true_deg": w.misalignment_deg,
-            "misalign_est_deg": sol.misalignment_deg if sol.valid else float("nan"),
-            "confidence": sol.confidence, **timings})
+        self.nav_log.append(
+            {
+                "t_s": self.t_s,
+                "valid": bool(sol.valid),
+                "hold_reason": sol.hold_reason,
+                "range_true_m": w.range_m,
+                "range_est_m": sol.range_m if sol.valid else float("nan"),
+                "lateral_err_m": float(np.linalg.norm(est_lat - w.s.r_D_m[:2])),
+                "closing_true_mps": w.closing_speed_mps,
+                "closing_est_mps": sol.closing_speed_mps if sol.valid else float("nan"),
+                "misalign_true_deg": w.misalignment_deg,
+                "misalign_est_deg": sol.misalignment_deg if sol.valid else float("nan"),
+                "confidence": sol.confidence,
+                **timings,
+            }
+        )
 
     def nav_metrics(self) -> dict[str, Any]:
         log = self.nav_log
         if not log:
             return {}
         valid = [r for r in log if r["valid"]]
-        out: dict[str, Any] = {"nav": self.nav.name, "nav_cycles": len(log),
-                               "nav_hold_cycles": sum(1 for r in log if r["hold_reason"])}
+        out: dict[str, Any] = {
+            "nav": self.nav.name,
+            "nav_cycles": len(log),
+            "nav_hold_cycles": sum(1 for r in log if r["hold_reason"]),
+        }
         if valid:
             rng = np.array([abs(r["range_est_m"] - r["range_true_m"]) for r in valid])
             rel = rng / np.maximum(np.array([abs(r["range_true_m"]) for r in valid]) + 0.57, 0.3)
             lat = np.array([r["lateral_err_m"] for r in valid])
             mis = np.array([abs(r["misalign_est_deg"] - r["misalign_true_deg"]) for r in valid])
-            out.update({"nav_range_err_m_median": float(np.median(rng)),
-                        "nav_range_err_pct_median": float(np.median(rel) * 100),
-                        "nav_lateral_err_m_median": float(np.median(lat)),
-                        "nav_lateral_err_m_p99": float(np.percentile(lat, 99)),
-                        "nav_misalign_err_deg_median": float(np.median(mis))})
+            out.update(
+                {
+                    "nav_range_err_m_median": float(np.median(rng)),
+                    "nav_range_err_pct_median": float(np.median(rel) * 100),
+                    "nav_lateral_err_m_median": float(np.median(lat)),
+                    "nav_lateral_err_m_p99": float(np.percentile(lat, 99)),
+                    "nav_misalign_err_deg_median": float(np.median(mis)),
+                }
+            )
         ms = [r["nav_ms"] for r in log if "nav_ms" in r]
         if ms:
-            out.update({"nav_ms_median": float(np.median(ms)), "nav_ms_p99": float(np.percentile(ms, 99)),
-                        "nav_ms_max": float(np.max(ms))})
+            out.update(
+                {
+                    "nav_ms_median": float(np.median(ms)),
+                    "nav_ms_p99": float(np.percentile(ms, 99)),
+                    "nav_ms_max": float(np.max(ms)),
+                }
+            )
         rend = [r["render_ms"] for r in log if "render_ms" in r]
         if rend:
             out["render_ms_median"] = float(np.median(rend))
@@ -384,10 +441,15 @@ class Rig:
         if self.progress:
             # a live bar on a terminal; in a log (make demo > file) a line every few seconds
             from oibar.progress import Progress
+
             bar = Progress(sc.name, total=int(sc.rig.max_time_s), unit="sim s", leave=False)
         metrics: dict[str, Any]
-        self.metrics = metrics = {"max_force_soft_n": 0.0, "max_force_n": 0.0, "exchanges": 0,
-                                   "exchanges_1ms": 0}
+        self.metrics = metrics = {
+            "max_force_soft_n": 0.0,
+            "max_force_n": 0.0,
+            "exchanges": 0,
+            "exchanges_1ms": 0,
+        }
         state = "STATE_UNSPECIFIED"
         reply = None
         watch = _SafetyWatch()
@@ -396,13 +458,20 @@ class Rig:
         next_record = 0.0
         out = None
         wall0 = time.perf_counter()
-        with SimMcu(self.mcu_path, watchdog_ms=sc.rig.watchdog_ms, build_id=f"rig-{sc.name}"[:24],
-                    stderr_path=stderr_path) as mcu:
+        with SimMcu(
+            self.mcu_path,
+            watchdog_ms=sc.rig.watchdog_ms,
+            build_id=f"rig-{sc.name}"[:24],
+            stderr_path=stderr_path,
+        ) as mcu:
             self.mcu = mcu
             while self.t_s < sc.rig.max_time_s:
                 attacking = bool(self._attacks or self._attack_inflight) and self._host_alive
-                if self._host_finished() and not attacking and (self.between_missions is None
-                                                                or not self.between_missions(self)):
+                if (
+                    self._host_finished()
+                    and not attacking
+                    and (self.between_missions is None or not self.between_missions(self))
+                ):
                     break
                 reply, dt = self._exchange(mcu, reply, state)
                 new_state = pb.enum_name(pb.State, reply.app_state)
@@ -436,9 +505,21 @@ class Rig:
         self._record(samples, state, out)
         metrics.update(self._end_metrics(state, final, mcu.frame, watch))
         notes = sorted(self.notes + self.controller.notes + self.faults.log)
-        return RunResult(sc, self.controller.outcome, self.t_s, wall, samples, states,
-                         self.requests_log, self.events_log, notes, self.mech.capture_record,
-                         self.mech.capture_attempts, metrics, nav_log=list(self.nav_log))
+        return RunResult(
+            sc,
+            self.controller.outcome,
+            self.t_s,
+            wall,
+            samples,
+            states,
+            self.requests_log,
+            self.events_log,
+            notes,
+            self.mech.capture_record,
+            self.mech.capture_attempts,
+            metrics,
+            nav_log=list(self.nav_log),
+        )
 
     def _start_logs(self) -> tuple[dict[str, list], list[tuple[float, str]]]:
         """Fresh logs and a fresh host for a run; -> (samples by quantity, state changes)."""
@@ -448,11 +529,34 @@ class Rig:
         self._new_host()
         samples: dict[str, list]
         self.nav_log: list[dict] = []
-        self.samples = samples = {k: [] for k in (
-            "t_s", "state", "range_m", "lateral_m", "closing_mps", "lat_speed_mps", "misalign_deg",
-            "v_sp_closing_mps", "force_n", "latch_steps", "latch_engaged", "plane_mm",
-            "sv_cmd", "sv_open", "tv_cmd", "tv_open", "sv_kpa", "tv_kpa", "line_kpa",
-            "tv_sensed_kpa", "link_up", "fuel_lost_kg", "phase")}
+        self.samples = samples = {
+            k: []
+            for k in (
+                "t_s",
+                "state",
+                "range_m",
+                "lateral_m",
+                "closing_mps",
+                "lat_speed_mps",
+                "misalign_deg",
+                "v_sp_closing_mps",
+                "force_n",
+                "latch_steps",
+                "latch_engaged",
+                "plane_mm",
+                "sv_cmd",
+                "sv_open",
+                "tv_cmd",
+                "tv_open",
+                "sv_kpa",
+                "tv_kpa",
+                "line_kpa",
+                "tv_sensed_kpa",
+                "link_up",
+                "fuel_lost_kg",
+                "phase",
+            )
+        }
         states: list[tuple[float, str]]
         self.states = states = []
         return samples, states
@@ -467,9 +571,14 @@ class Rig:
         to_mcu = self.wire.take_to_mcu()
         if to_mcu:
             mcu.write_uart(to_mcu)
-        reply = mcu.exchange(adv, self.mech.di_bits(), self.mech.adc_counts(),
-                             adc_fail_bits=self.mech.adc_fail_bits, flags=flags,
-                             uart_rx_bytes=len(to_mcu))
+        reply = mcu.exchange(
+            adv,
+            self.mech.di_bits(),
+            self.mech.adc_counts(),
+            adc_fail_bits=self.mech.adc_fail_bits,
+            flags=flags,
+            uart_rx_bytes=len(to_mcu),
+        )
         self.metrics["exchanges"] += 1
         self.metrics["exchanges_1ms"] += adv == 1
         dt = adv / 1000.0
@@ -480,7 +589,9 @@ class Rig:
         self.mech.after_motion(self.world)
         return reply, dt
 
-    def _end_metrics(self, state: str, final: Any, lockstep_frames: int, watch: _SafetyWatch) -> dict[str, Any]:
+    def _end_metrics(
+        self, state: str, final: Any, lockstep_frames: int, watch: _SafetyWatch
+    ) -> dict[str, Any]:
         """What the checks and the report read at the end of a run."""
         tm = self.session.telemetry
         info = self.session.handshake_info
@@ -488,8 +599,9 @@ class Rig:
         return {
             "final_state": state,
             "faults_seen": sorted(self._flags_to_faults(watch.fault_flags_seen)),
-            "faults_reported_to_host": sorted({t.split()[-1] for _, t in self.events_log
-                                               if t.startswith("EVT_FAULT ")}),
+            "faults_reported_to_host": sorted(
+                {t.split()[-1] for _, t in self.events_log if t.startswith("EVT_FAULT ")}
+            ),
             "faults_in_host_telemetry": sorted(self._flags_to_faults(self.host_fault_flags)),
             "fuel_lost_kg": self.mech.fuel_lost_kg,
             "tv_final_kpa": self.mech.tv_true_kpa,

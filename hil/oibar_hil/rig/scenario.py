@@ -13,24 +13,64 @@ from oibar.nav.guidance import MissionParams as MissionSpec  # the host's missio
 from oibar_hil.rig.faults import FaultSpec
 
 # Firmware parameter ids by name (firmware/app/src/params.c; ids are part of the host contract).
-FIRMWARE_PARAM_IDS = {name: i + 1 for i, name in enumerate((
-    "capture_max_speed_mm_s", "capture_max_misalign_deg", "soft_dock_max_force_n",
-    "hard_dock_max_force_n", "nav_max_age_ms", "debounce_ms", "boot_settle_ms",
-    "approach_timeout_ms", "reception_timeout_ms", "plane_move_timeout_ms",
-    "hard_docking_timeout_ms", "armed_timeout_ms", "separating_timeout_ms",
-    "latch_move_timeout_ms", "latch_rel_budget_steps", "latch_home_budget_steps",
-    "latch_max_speed_steps_s", "latch_accel_steps_s2", "latch_home_speed_steps_s",
-    "valve_mismatch_ms", "press_zero_counts", "press_sv_kpa_per_count", "press_tv_kpa_per_count",
-    "press_line_kpa_per_count", "press_min_counts", "press_max_counts", "press_max_rate_kpa_s",
-    "overpressure_kpa", "target_min_kpa", "target_max_kpa", "transfer_max_ms",
-    "plane_mm_per_count", "force_n_per_count", "abort_timeout_ms", "plane_coupling_mm",
-    "nav_min_confidence",
-))}
+FIRMWARE_PARAM_IDS = {
+    name: i + 1
+    for i, name in enumerate(
+        (
+            "capture_max_speed_mm_s",
+            "capture_max_misalign_deg",
+            "soft_dock_max_force_n",
+            "hard_dock_max_force_n",
+            "nav_max_age_ms",
+            "debounce_ms",
+            "boot_settle_ms",
+            "approach_timeout_ms",
+            "reception_timeout_ms",
+            "plane_move_timeout_ms",
+            "hard_docking_timeout_ms",
+            "armed_timeout_ms",
+            "separating_timeout_ms",
+            "latch_move_timeout_ms",
+            "latch_rel_budget_steps",
+            "latch_home_budget_steps",
+            "latch_max_speed_steps_s",
+            "latch_accel_steps_s2",
+            "latch_home_speed_steps_s",
+            "valve_mismatch_ms",
+            "press_zero_counts",
+            "press_sv_kpa_per_count",
+            "press_tv_kpa_per_count",
+            "press_line_kpa_per_count",
+            "press_min_counts",
+            "press_max_counts",
+            "press_max_rate_kpa_s",
+            "overpressure_kpa",
+            "target_min_kpa",
+            "target_max_kpa",
+            "transfer_max_ms",
+            "plane_mm_per_count",
+            "force_n_per_count",
+            "abort_timeout_ms",
+            "plane_coupling_mm",
+            "nav_min_confidence",
+        )
+    )
+}
 
 EXPECT_KEYS = {
-    "outcome", "final_state", "faults", "valves_closed_within_s", "coils_off_within_s_of_fault",
-    "fuel_lost_max_kg", "tv_min_kpa", "reset_cause", "min_crc_errors", "captured",
-    "max_sim_time_s", "max_replays_executed", "min_replays",
+    "outcome",
+    "final_state",
+    "faults",
+    "valves_closed_within_s",
+    "coils_off_within_s_of_fault",
+    "fuel_lost_max_kg",
+    "tv_min_kpa",
+    "reset_cause",
+    "min_crc_errors",
+    "captured",
+    "max_sim_time_s",
+    "max_replays_executed",
+    "min_replays",
 }
 
 
@@ -42,11 +82,10 @@ class StartCondition:
     closing_speed_mps: float = 0.0
 
 
-
 @dataclass
 class RigSpec:
     max_time_s: float = 900.0
-    exchange_ms: int = 10        # while the mechanism or the contact is active
+    exchange_ms: int = 10  # while the mechanism or the contact is active
     coast_exchange_ms: int = 20  # free flight far from the drogue, mechanism idle
     watchdog_ms: int = 100
     guidance_period_s: float = 0.1  # navigation/guidance at 10 Hz (SPEC section 5)
@@ -86,7 +125,8 @@ class Scenario:
                 range_m=float(start.get("range_m", 10.0)),
                 lateral_m=tuple(start.get("lateral_m", (0.3, -0.2))),
                 misalignment_deg=tuple(start.get("misalignment_deg", (2.0, -1.5))),
-                closing_speed_mps=float(start.get("closing_speed_mps", 0.0))),
+                closing_speed_mps=float(start.get("closing_speed_mps", 0.0)),
+            ),
             mission=MissionSpec(**d.get("mission", {})),
             rig=RigSpec(**d.get("rig", {})),
             plant=d.get("plant", {}),

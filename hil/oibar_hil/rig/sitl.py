@@ -92,8 +92,17 @@ class PtyPort:
 class SitlRig(Rig):
     """The rig with an external host: the ``oibar nav`` process."""
 
-    def __init__(self, scenario: Any, *, out_dir: Path, model: Path = DEFAULT_MODEL, scene: str = "seq01",
-                 mcu_path: Path | None = None, threads: int = 2, speed: float = 1.0) -> None:
+    def __init__(
+        self,
+        scenario: Any,
+        *,
+        out_dir: Path,
+        model: Path = DEFAULT_MODEL,
+        scene: str = "seq01",
+        mcu_path: Path | None = None,
+        threads: int = 2,
+        speed: float = 1.0,
+    ) -> None:
         super().__init__(scenario, mcu_path=mcu_path, out_dir=out_dir, nav="truth")
         from oibar_hil.rig.camera import RigCamera
 
@@ -128,17 +137,32 @@ class SitlRig(Rig):
         self.udp.setblocking(False)
         self.nav_log_dir.mkdir(parents=True, exist_ok=True)
         cmd = oibar_command() + [
-            "nav", "--camera", self.frames.url, "--port", self.pty.path,
-            "--vehicle", f"udp://127.0.0.1:{self.udp.getsockname()[1]}",
-            "--model", str(self.model), "--log", str(self.nav_log_dir), "--threads", str(self.threads),
-            "--target-pressure-kpa", str(self.sc.mission.target_kpa),
-            "--duration-s", str(self.sc.rig.max_time_s)]
+            "nav",
+            "--camera",
+            self.frames.url,
+            "--port",
+            self.pty.path,
+            "--vehicle",
+            f"udp://127.0.0.1:{self.udp.getsockname()[1]}",
+            "--model",
+            str(self.model),
+            "--log",
+            str(self.nav_log_dir),
+            "--threads",
+            str(self.threads),
+            "--target-pressure-kpa",
+            str(self.sc.mission.target_kpa),
+            "--duration-s",
+            str(self.sc.rig.max_time_s),
+        ]
         env = dict(os.environ)
         inherited = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT / "host"), *inherited])
         self._stdout = open(Path(self.out_dir) / "oibar_nav.out", "wb")  # noqa: SIM115  (closed by stop())
         self.command = cmd
-        self.proc = subprocess.Popen(cmd, stdout=self._stdout, stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT)
+        self.proc = subprocess.Popen(
+            cmd, stdout=self._stdout, stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT
+        )
         print(f"sitl: started `oibar nav` (PID {self.proc.pid}): {' '.join(cmd[-22:])}", flush=True)
         self._wall0 = time.monotonic()
         self._t_at_wall0 = self.t_s
@@ -221,8 +245,11 @@ class SitlRig(Rig):
             odo = self.world.relative_velocity(self.t_s)
             if odo is not None:
                 # its time of validity on the daemon's clock: the setpoint's t_s plus our time since
-                msg = {"v_D_mps": [float(x) for x in odo.v_D_mps], "sigma_mps": float(odo.sigma_mps),
-                       "t_s": self._setpoint_t + (time.monotonic() - self._setpoint_wall)}
+                msg = {
+                    "v_D_mps": [float(x) for x in odo.v_D_mps],
+                    "sigma_mps": float(odo.sigma_mps),
+                    "t_s": self._setpoint_t + (time.monotonic() - self._setpoint_wall),
+                }
                 try:
                     self.udp.sendto(json.dumps(msg).encode(), self._gnc_addr)
                 except OSError:
@@ -247,8 +274,13 @@ class SitlRig(Rig):
                 self.proc.kill()
                 self.proc.wait()
             self._read_footer()
-        for closer in (getattr(self, "frames", None), getattr(self, "pty", None), getattr(self, "udp", None),
-                       getattr(self, "_stdout", None), self.camera):
+        for closer in (
+            getattr(self, "frames", None),
+            getattr(self, "pty", None),
+            getattr(self, "udp", None),
+            getattr(self, "_stdout", None),
+            self.camera,
+        ):
             if closer is not None:
                 try:
                     closer.close()
@@ -257,13 +289,17 @@ class SitlRig(Rig):
 
     def host_metrics(self) -> dict:
         summary = (self.footer or {}).get("summary", {})
-        return {"host": "oibar nav (separate process)", "host_pid": self.proc.pid if self.proc else None,
-                "host_exit_status": self.proc.returncode if self.proc else None,
-                "host_cycle_log": str(self.nav_log_dir / "cycles.jsonl"),
-                "host_cycles": summary.get("cycles"), "host_missed_deadlines": summary.get("missed_deadlines"),
-                "host_frames_used": summary.get("frames_used"),
-                "host_frame_to_command_ms_p99": summary.get("frame_to_command_ms_p99"),
-                "frames_served": self.frames_sent}
+        return {
+            "host": "oibar nav (separate process)",
+            "host_pid": self.proc.pid if self.proc else None,
+            "host_exit_status": self.proc.returncode if self.proc else None,
+            "host_cycle_log": str(self.nav_log_dir / "cycles.jsonl"),
+            "host_cycles": summary.get("cycles"),
+            "host_missed_deadlines": summary.get("missed_deadlines"),
+            "host_frames_used": summary.get("frames_used"),
+            "host_frame_to_command_ms_p99": summary.get("frame_to_command_ms_p99"),
+            "frames_served": self.frames_sent,
+        }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -276,8 +312,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     sc = load_scenario(args.scenario)
     out_dir = args.out / sc.name
-    print(f"sitl: {sc.name} from {sc.start.range_m:g} m in real time (about {sc.rig.max_time_s / 60:.0f} min at most); "
-          f"output in {out_dir}", flush=True)
+    print(
+        f"sitl: {sc.name} from {sc.start.range_m:g} m in real time (about {sc.rig.max_time_s / 60:.0f} min at most); "
+        f"output in {out_dir}",
+        flush=True,
+    )
     rig = SitlRig(sc, out_dir=out_dir, model=args.model, mcu_path=args.mcu, threads=args.threads)
     result = rig.run()
     result.checks = evaluate(result)
@@ -285,11 +324,13 @@ def main(argv: list[str] | None = None) -> int:
 
     result.report_path = write_report(result, out_dir)
     m = result.metrics
-    print(f"sitl: `oibar nav` (PID {m['host_pid']}, exit status {m['host_exit_status']}) flew {sc.name}: "
-          f"outcome {result.outcome}, {m.get('host_cycles')} cycles of its own, "
-          f"{m.get('host_missed_deadlines')} missed deadlines, frame-to-command p99 "
-          f"{m.get('host_frame_to_command_ms_p99') or float('nan'):.1f} ms, "
-          f"{m['frames_served']} frames served; {result.sim_time_s:.0f} s in {result.wall_time_s:.0f} s wall")
+    print(
+        f"sitl: `oibar nav` (PID {m['host_pid']}, exit status {m['host_exit_status']}) flew {sc.name}: "
+        f"outcome {result.outcome}, {m.get('host_cycles')} cycles of its own, "
+        f"{m.get('host_missed_deadlines')} missed deadlines, frame-to-command p99 "
+        f"{m.get('host_frame_to_command_ms_p99') or float('nan'):.1f} ms, "
+        f"{m['frames_served']} frames served; {result.sim_time_s:.0f} s in {result.wall_time_s:.0f} s wall"
+    )
     print(f"  its cycle log: {m['host_cycle_log']}; its output: {out_dir / 'oibar_nav.out'}")
     for c in result.checks:
         verdict = "n/a " if c.ok is None else ("pass" if c.ok else "FAIL")

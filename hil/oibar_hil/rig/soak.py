@@ -48,9 +48,11 @@ BEGIN, END = "<!-- soak:begin -->", "<!-- soak:end -->"
 def markers(nav: str) -> tuple[str, str]:
     """The page section a soak writes: one for ground truth, one for the CNN in the loop."""
     return (BEGIN, END) if nav == "truth" else (f"<!-- soak-{nav}:begin -->", f"<!-- soak-{nav}:end -->")
-TURNAROUND_KPA_S = 300.0   # tank pressure change between missions (firmware rate limit 2000)
+
+
+TURNAROUND_KPA_S = 300.0  # tank pressure change between missions (firmware rate limit 2000)
 NAV_HIST_MAX_MS = 250.0
-WARMUP_MISSIONS = 2        # memory growth is measured from the end of this mission on
+WARMUP_MISSIONS = 2  # memory growth is measured from the end of this mission on
 
 
 def _malloc_trim() -> None:
@@ -131,8 +133,16 @@ class SoakResult:
 
 
 class Soak:
-    def __init__(self, sim_s: float, *, mcu_path: Path | None = None, progress: bool = False,
-                 use_tracemalloc: bool = False, nav: str = "truth", nav_options: dict | None = None) -> None:
+    def __init__(
+        self,
+        sim_s: float,
+        *,
+        mcu_path: Path | None = None,
+        progress: bool = False,
+        use_tracemalloc: bool = False,
+        nav: str = "truth",
+        nav_options: dict | None = None,
+    ) -> None:
         self.nav = nav
         self.nav_options = nav_options
         self.nav_hist = np.zeros(int(NAV_HIST_MAX_MS / 0.25), dtype=np.int64)
@@ -142,7 +152,7 @@ class Soak:
         self.sc = load_scenario(BASE_SCENARIO)
         self.sc.name = "soak"
         self.sc.rig.max_time_s = sim_s + 600.0  # the last mission may finish past sim_s
-        self.sc.rig.record_period_s = 0.5       # the recorder is cleared every mission anyway
+        self.sc.rig.record_period_s = 0.5  # the recorder is cleared every mission anyway
         self.mcu_path = mcu_path
         self.progress = progress
         self.use_tracemalloc = use_tracemalloc
@@ -159,34 +169,55 @@ class Soak:
             return {}
         cdf = np.cumsum(self.nav_hist) / n
         width = NAV_HIST_MAX_MS / self.nav_hist.size
+
         def pct(q):
             return float((np.searchsorted(cdf, q) + 1) * width)
-        return {"nav_cycles": n, "nav_ms_median": pct(0.5), "nav_ms_p99": pct(0.99), "nav_ms_max": self.nav_max_ms,
-                "nav_over_100ms": self.nav_over_period}
+
+        return {
+            "nav_cycles": n,
+            "nav_ms_median": pct(0.5),
+            "nav_ms_p99": pct(0.99),
+            "nav_ms_max": self.nav_max_ms,
+            "nav_over_100ms": self.nav_over_period,
+        }
 
     def _sample(self, rig: Rig) -> None:
         gc.collect()
         _malloc_trim()
-        self.memory.append(MemSample(
-            mission=len(self.missions), sim_s=rig.t_s, wall_s=time.perf_counter() - self._wall0,
-            mcu_rss_kb=rss_kb(rig.mcu.proc.pid), host_rss_kb=rss_kb(os.getpid()),
-            py_blocks=sys.getallocatedblocks(), gc_objects=len(gc.get_objects()),
-            traced_kb=tracemalloc.get_traced_memory()[0] / 1024 if self.use_tracemalloc else None))
+        self.memory.append(
+            MemSample(
+                mission=len(self.missions),
+                sim_s=rig.t_s,
+                wall_s=time.perf_counter() - self._wall0,
+                mcu_rss_kb=rss_kb(rig.mcu.proc.pid),
+                host_rss_kb=rss_kb(os.getpid()),
+                py_blocks=sys.getallocatedblocks(),
+                gc_objects=len(gc.get_objects()),
+                traced_kb=tracemalloc.get_traced_memory()[0] / 1024 if self.use_tracemalloc else None,
+            )
+        )
 
     def _end_mission(self, rig: Rig) -> None:
         m, mech, cap = rig.metrics, rig.mech, rig.mech.capture_record
-        self.missions.append(MissionRecord(
-            index=len(self.missions), start_s=self._mission_start, end_s=rig.t_s,
-            outcome=rig.controller.outcome,
-            capture_ok=capture_in_envelope(cap),
-            max_force_n=m["max_force_n"], max_force_soft_n=m["max_force_soft_n"],
-            tv_final_kpa=mech.tv_true_kpa))
+        self.missions.append(
+            MissionRecord(
+                index=len(self.missions),
+                start_s=self._mission_start,
+                end_s=rig.t_s,
+                outcome=rig.controller.outcome,
+                capture_ok=capture_in_envelope(cap),
+                max_force_n=m["max_force_n"],
+                max_force_soft_n=m["max_force_soft_n"],
+                tv_final_kpa=mech.tv_true_kpa,
+            )
+        )
         # Navigator time per cycle into a fixed histogram (0.25 ms bins): the soak keeps no
         # per-cycle list, so its own bookkeeping cannot look like a leak.
         ms = [r["nav_ms"] for r in rig.nav_log if "nav_ms" in r]
         if ms:
-            self.nav_hist += np.histogram(np.clip(ms, 0, NAV_HIST_MAX_MS - 1e-6), bins=self.nav_hist.size,
-                                          range=(0.0, NAV_HIST_MAX_MS))[0]
+            self.nav_hist += np.histogram(
+                np.clip(ms, 0, NAV_HIST_MAX_MS - 1e-6), bins=self.nav_hist.size, range=(0.0, NAV_HIST_MAX_MS)
+            )[0]
             self.nav_max_ms = max(self.nav_max_ms, max(ms))
             self.nav_over_period += sum(1 for x in ms if x > 100.0)
         # What a long-running host would rotate: the per-mission recorder and logs.
@@ -210,8 +241,11 @@ class Soak:
         mech, p = rig.mech, rig.mech.p
         step = TURNAROUND_KPA_S * max(dt, 0.0)
         done = True
-        for name, goal in (("sv_kpa", p.sv_initial_kpa), ("tv_kpa", p.tv_initial_kpa),
-                           ("line_kpa", p.line_initial_kpa)):
+        for name, goal in (
+            ("sv_kpa", p.sv_initial_kpa),
+            ("tv_kpa", p.tv_initial_kpa),
+            ("line_kpa", p.line_initial_kpa),
+        ):
             v = getattr(mech, name)
             setattr(mech, name, v + float(np.clip(goal - v, -step, step)))
             done &= abs(goal - getattr(mech, name)) < 1e-9
@@ -220,10 +254,15 @@ class Soak:
         # The next approach: the SV back at the start, a fresh controller (its NavUpdate
         # frame ids continue: the same host session keeps talking to the same MCU).
         st = self.sc.start
-        rig.world = World(VehicleParams(**self.sc.vehicle), WorldState(
-            r_D_m=np.array([st.lateral_m[0], st.lateral_m[1], st.range_m], dtype=float),
-            v_D_mps=np.array([0.0, 0.0, -st.closing_speed_mps]),
-            att_rad=np.radians([st.misalignment_deg[0], st.misalignment_deg[1], 0.0])), rig.rng)
+        rig.world = World(
+            VehicleParams(**self.sc.vehicle),
+            WorldState(
+                r_D_m=np.array([st.lateral_m[0], st.lateral_m[1], st.range_m], dtype=float),
+                v_D_mps=np.array([0.0, 0.0, -st.closing_speed_mps]),
+                att_rad=np.radians([st.misalignment_deg[0], st.misalignment_deg[1], 0.0]),
+            ),
+            rig.rng,
+        )
         rig.nav.reset()
         old = rig.controller
         rig.controller = rig.controller_factory()
@@ -235,8 +274,14 @@ class Soak:
     def run(self) -> SoakResult:
         if self.use_tracemalloc:
             tracemalloc.start()
-        rig = Rig(self.sc, mcu_path=self.mcu_path, progress=self.progress, nav=self.nav, nav_options=self.nav_options,
-                  between_missions=self.between_missions)
+        rig = Rig(
+            self.sc,
+            mcu_path=self.mcu_path,
+            progress=self.progress,
+            nav=self.nav,
+            nav_options=self.nav_options,
+            between_missions=self.between_missions,
+        )
         self._wall0 = time.perf_counter()
         result = rig.run()
         wall = time.perf_counter() - self._wall0
@@ -245,15 +290,29 @@ class Soak:
         if self.use_tracemalloc:
             tracemalloc.stop()
         m = result.metrics
-        soak = SoakResult(rig.t_s, wall, self.missions, self.memory, totals={
-            "exchanges": m["exchanges"], "exchanges_1ms": m["exchanges_1ms"],
-            "lockstep_frames": m["lockstep_frames"], "mcu_resets": m["mcu_resets"],
-            "mcu_link_losses": m["mcu_link_losses"], "host_link_losses": m["host_link_losses"],
-            "host_retransmissions": m["host_retransmissions"],
-            "crc_errors": m["host_rx_crc_errors"] + m["mcu_rx_crc_errors"],
-            "valve_violation_ms": m["valve_violation_ms"], "faults_seen": m["faults_seen"],
-            "fuel_lost_kg": m["fuel_lost_kg"], "steps_total": m["steps_total"],
-            "watchdog_kicks": m["watchdog_kicks"], **self._nav_totals()}, nav=self.nav)
+        soak = SoakResult(
+            rig.t_s,
+            wall,
+            self.missions,
+            self.memory,
+            totals={
+                "exchanges": m["exchanges"],
+                "exchanges_1ms": m["exchanges_1ms"],
+                "lockstep_frames": m["lockstep_frames"],
+                "mcu_resets": m["mcu_resets"],
+                "mcu_link_losses": m["mcu_link_losses"],
+                "host_link_losses": m["host_link_losses"],
+                "host_retransmissions": m["host_retransmissions"],
+                "crc_errors": m["host_rx_crc_errors"] + m["mcu_rx_crc_errors"],
+                "valve_violation_ms": m["valve_violation_ms"],
+                "faults_seen": m["faults_seen"],
+                "fuel_lost_kg": m["fuel_lost_kg"],
+                "steps_total": m["steps_total"],
+                "watchdog_kicks": m["watchdog_kicks"],
+                **self._nav_totals(),
+            },
+            nav=self.nav,
+        )
         soak.checks = base_checks(soak)
         return soak
 
@@ -264,28 +323,50 @@ def base_checks(s: SoakResult) -> list[tuple[str, bool, str]]:
     done = sum(r.outcome == "completed" for r in s.missions)
     return [
         ("every mission completed", done == n and n > 0, f"{done}/{n}"),
-        ("every capture in the envelope, force < 30 N soft / < 60 N",
-         all(r.capture_ok and r.max_force_soft_n < 30.0 and r.max_force_n < 60.0 for r in s.missions),
-         f"max {max((r.max_force_n for r in s.missions), default=0):.1f} N"),
+        (
+            "every capture in the envelope, force < 30 N soft / < 60 N",
+            all(r.capture_ok and r.max_force_soft_n < 30.0 and r.max_force_n < 60.0 for r in s.missions),
+            f"max {max((r.max_force_n for r in s.missions), default=0):.1f} N",
+        ),
         ("no MCU reset (no missed watchdog kick)", t["mcu_resets"] == 0, str(t["mcu_resets"])),
-        ("no link loss either side (no missed heartbeat)",
-         t["mcu_link_losses"] == 0 and t["host_link_losses"] == 0,
-         f"MCU {t['mcu_link_losses']}, host {t['host_link_losses']}"),
+        (
+            "no link loss either side (no missed heartbeat)",
+            t["mcu_link_losses"] == 0 and t["host_link_losses"] == 0,
+            f"MCU {t['mcu_link_losses']}, host {t['host_link_losses']}",
+        ),
         ("no fault raised", not t["faults_seen"], ", ".join(t["faults_seen"]) or "none"),
         ("no valve coil outside TRANSFERRING", t["valve_violation_ms"] == 0, f"{t['valve_violation_ms']} ms"),
         ("no fuel lost", t["fuel_lost_kg"] <= 1e-9, f"{t['fuel_lost_kg'] * 1000:.2f} g"),
-        ("lockstep: every frame in order, step pulses accounted", True,
-         f"{t['lockstep_frames']} frames, {t['steps_total']} step pulses"),
-    ] + ([("navigator within the 100 ms period every cycle", t["nav_over_100ms"] == 0,
-           f"max {t['nav_ms_max']:.1f} ms over {t['nav_cycles']:,} cycles")] if "nav_cycles" in t else [])
+        (
+            "lockstep: every frame in order, step pulses accounted",
+            True,
+            f"{t['lockstep_frames']} frames, {t['steps_total']} step pulses",
+        ),
+    ] + (
+        [
+            (
+                "navigator within the 100 ms period every cycle",
+                t["nav_over_100ms"] == 0,
+                f"max {t['nav_ms_max']:.1f} ms over {t['nav_cycles']:,} cycles",
+            )
+        ]
+        if "nav_cycles" in t
+        else []
+    )
 
 
-def memory_checks(s: SoakResult, *, mcu_kb: float, host_kb: float, py_blocks: float) -> list[tuple[str, bool, str]]:
+def memory_checks(
+    s: SoakResult, *, mcu_kb: float, host_kb: float, py_blocks: float
+) -> list[tuple[str, bool, str]]:
     g_mcu, g_host, g_blk = s.growth("mcu_rss_kb"), s.growth("host_rss_kb"), s.growth("py_blocks")
     return [
         (f"simulated MCU RSS growth after warm-up <= {mcu_kb:g} kB", g_mcu <= mcu_kb, f"{g_mcu:+.0f} kB"),
         (f"host Python RSS growth after warm-up <= {host_kb:g} kB", g_host <= host_kb, f"{g_host:+.0f} kB"),
-        (f"Python allocated blocks growth after warm-up <= {py_blocks:g}", g_blk <= py_blocks, f"{g_blk:+.0f}"),
+        (
+            f"Python allocated blocks growth after warm-up <= {py_blocks:g}",
+            g_blk <= py_blocks,
+            f"{g_blk:+.0f}",
+        ),
     ]
 
 
@@ -296,39 +377,55 @@ def markdown(s: SoakResult) -> str:
     first = s.memory[0]
 
     def row(label: str, key: str, unit: str) -> str:
-        return (f"| {label} | {getattr(first, key):,} | {getattr(mem0, key):,} | {getattr(last, key):,} | "
-                f"{s.growth(key):+,.0f} {unit} | {s.slope_per_hour(key):+,.0f} {unit}/h |")
+        return (
+            f"| {label} | {getattr(first, key):,} | {getattr(mem0, key):,} | {getattr(last, key):,} | "
+            f"{s.growth(key):+,.0f} {unit} | {s.slope_per_hour(key):+,.0f} {unit}/h |"
+        )
 
     begin, end = markers(s.nav)
-    nav_text = ("navigation: the CNN in the loop (rendered camera, OibarNet, filter; navigator time per cycle "
-                f"median {t.get('nav_ms_median', float('nan')):.1f} ms, "
-                f"p99 {t.get('nav_ms_p99', float('nan')):.1f} ms, "
-                f"max {t.get('nav_ms_max', float('nan')):.1f} ms over {t.get('nav_cycles', 0):,} cycles; "
-                f"{t.get('nav_over_100ms', 0)} over the 100 ms period)" if s.nav == "cnn" else
-                "navigation: ground truth")
-    lines = [begin, "",
-             f"**{s.sim_s / 3600:.2f} h simulated** ({s.sim_s:,.0f} s) in {s.wall_s:,.0f} s wall "
-             f"({s.sim_s / s.wall_s:.0f}x real time): **{len(s.missions)} missions** back to back on one "
-             f"simulated-MCU process and one host link session, {t['exchanges']:,} lockstep exchanges "
-             f"({t['exchanges_1ms']:,} of 1 ms), {t['steps_total']:,} latch step pulses, "
-             f"{t['watchdog_kicks']:,} watchdog kicks; {nav_text}.", "",
-             f"Memory, sampled at every mission end (after `gc.collect()`); growth from the end of "
-             f"mission {WARMUP_MISSIONS} (warm-up) to the last sample, and the least-squares trend "
-             f"over the same span:", "",
-             "| figure | first mission | after warm-up | end | growth | trend |",
-             "| --- | --- | --- | --- | --- | --- |",
-             row("simulated MCU RSS [kB]", "mcu_rss_kb", "kB"),
-             row("host Python RSS [kB]", "host_rss_kb", "kB"),
-             row("Python allocated blocks", "py_blocks", ""),
-             row("gc-tracked objects", "gc_objects", "")]
+    nav_text = (
+        "navigation: the CNN in the loop (rendered camera, OibarNet, filter; navigator time per cycle "
+        f"median {t.get('nav_ms_median', float('nan')):.1f} ms, "
+        f"p99 {t.get('nav_ms_p99', float('nan')):.1f} ms, "
+        f"max {t.get('nav_ms_max', float('nan')):.1f} ms over {t.get('nav_cycles', 0):,} cycles; "
+        f"{t.get('nav_over_100ms', 0)} over the 100 ms period)"
+        if s.nav == "cnn"
+        else "navigation: ground truth"
+    )
+    lines = [
+        begin,
+        "",
+        f"**{s.sim_s / 3600:.2f} h simulated** ({s.sim_s:,.0f} s) in {s.wall_s:,.0f} s wall "
+        f"({s.sim_s / s.wall_s:.0f}x real time): **{len(s.missions)} missions** back to back on one "
+        f"simulated-MCU process and one host link session, {t['exchanges']:,} lockstep exchanges "
+        f"({t['exchanges_1ms']:,} of 1 ms), {t['steps_total']:,} latch step pulses, "
+        f"{t['watchdog_kicks']:,} watchdog kicks; {nav_text}.",
+        "",
+        f"Memory, sampled at every mission end (after `gc.collect()`); growth from the end of "
+        f"mission {WARMUP_MISSIONS} (warm-up) to the last sample, and the least-squares trend "
+        f"over the same span:",
+        "",
+        "| figure | first mission | after warm-up | end | growth | trend |",
+        "| --- | --- | --- | --- | --- | --- |",
+        row("simulated MCU RSS [kB]", "mcu_rss_kb", "kB"),
+        row("host Python RSS [kB]", "host_rss_kb", "kB"),
+        row("Python allocated blocks", "py_blocks", ""),
+        row("gc-tracked objects", "gc_objects", ""),
+    ]
     if last.traced_kb is not None:
-        lines.append(f"| tracemalloc traced [kB] | {first.traced_kb:,.0f} | {mem0.traced_kb:,.0f} | "
-                     f"{last.traced_kb:,.0f} | {s.growth('traced_kb'):+,.0f} kB | "
-                     f"{s.slope_per_hour('traced_kb'):+,.0f} kB/h |")
+        lines.append(
+            f"| tracemalloc traced [kB] | {first.traced_kb:,.0f} | {mem0.traced_kb:,.0f} | "
+            f"{last.traced_kb:,.0f} | {s.growth('traced_kb'):+,.0f} kB | "
+            f"{s.slope_per_hour('traced_kb'):+,.0f} kB/h |"
+        )
     lines += ["", "| check | verdict | measured |", "| --- | --- | --- |"]
     lines += [f"| {name} | {'pass' if ok else '**FAIL**'} | {meas} |" for name, ok, meas in s.checks]
-    lines += ["", f"Host retransmissions: {t['host_retransmissions']}; CRC errors: {t['crc_errors']}.",
-              "", end]
+    lines += [
+        "",
+        f"Host retransmissions: {t['host_retransmissions']}; CRC errors: {t['crc_errors']}.",
+        "",
+        end,
+    ]
     return "\n".join(lines)
 
 
@@ -343,14 +440,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-host-growth-kb", type=float, default=4096.0)
     ap.add_argument("--max-py-blocks-growth", type=float, default=5000.0)
     ap.add_argument("--no-progress", action="store_true")
-    ap.add_argument("--nav", choices=("truth", "cnn"), default="truth",
-                    help="navigation source (cnn: the rendered camera through the shipped model)")
+    ap.add_argument(
+        "--nav",
+        choices=("truth", "cnn"),
+        default="truth",
+        help="navigation source (cnn: the rendered camera through the shipped model)",
+    )
     ap.add_argument("--model", type=Path, default=None, help="ONNX model for --nav cnn")
     args = ap.parse_args(argv)
-    s = Soak(args.sim_s, progress=not args.no_progress, use_tracemalloc=args.tracemalloc, nav=args.nav,
-             nav_options={"model_path": args.model} if args.nav == "cnn" else None).run()
-    s.checks += memory_checks(s, mcu_kb=args.max_mcu_growth_kb, host_kb=args.max_host_growth_kb,
-                              py_blocks=args.max_py_blocks_growth)
+    s = Soak(
+        args.sim_s,
+        progress=not args.no_progress,
+        use_tracemalloc=args.tracemalloc,
+        nav=args.nav,
+        nav_options={"model_path": args.model} if args.nav == "cnn" else None,
+    ).run()
+    s.checks += memory_checks(
+        s, mcu_kb=args.max_mcu_growth_kb, host_kb=args.max_host_growth_kb, py_blocks=args.max_py_blocks_growth
+    )
     text = markdown(s)
     begin, end = markers(args.nav)
     print(text.replace(begin, "").replace(end, "").strip())
@@ -360,9 +467,21 @@ def main(argv: list[str] | None = None) -> int:
     json_path = REPO_ROOT / "build" / "soak" / "soak.json"
     json_path.parent.mkdir(parents=True, exist_ok=True)
     import json
-    json_path.write_text(json.dumps({"sim_s": s.sim_s, "wall_s": s.wall_s, "totals": s.totals,
-                                     "checks": s.checks, "missions": [asdict(r) for r in s.missions],
-                                     "memory": [asdict(r) for r in s.memory]}, indent=1, default=str))
+
+    json_path.write_text(
+        json.dumps(
+            {
+                "sim_s": s.sim_s,
+                "wall_s": s.wall_s,
+                "totals": s.totals,
+                "checks": s.checks,
+                "missions": [asdict(r) for r in s.missions],
+                "memory": [asdict(r) for r in s.memory],
+            },
+            indent=1,
+            default=str,
+        )
+    )
     return 0 if s.passed else 1
 
 

@@ -72,15 +72,17 @@ class Wire:
     def tap(self, data: bytes) -> None:
         """Record the host's ARM/START frames (the session writes one whole frame per call)."""
         packets = self._tap.feed(data)
-        if len(packets) == 1 and packets[0].WhichOneof("body") == "command" \
-                and packets[0].command.opcode in RECORDED_OPCODES:
+        if (
+            len(packets) == 1
+            and packets[0].WhichOneof("body") == "command"
+            and packets[0].command.opcode in RECORDED_OPCODES
+        ):
             self.recorded[packets[0].command.opcode] = bytes(data)
             self._runs.setdefault(packets[0].seq, set())
 
     def _tap_answers(self, data: bytes) -> None:
         for p in self._ack_tap.feed(data):
-            if p.WhichOneof("body") == "ack" and p.ack_seq in self._runs \
-                    and p.ack.reason not in _NOT_RUN:
+            if p.WhichOneof("body") == "ack" and p.ack_seq in self._runs and p.ack.reason not in _NOT_RUN:
                 runs = self._runs[p.ack_seq]
                 runs.add(p.seq)
                 self.counters.replays_executed = sum(max(0, len(r) - 1) for r in self._runs.values())

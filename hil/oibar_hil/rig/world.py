@@ -30,17 +30,19 @@ from oibar.nav.vehicle import RelativeVelocity
 
 @dataclass
 class VehicleParams:
-    mass_kg: float = 150.0            # assumption: effective relative mass of the SV
-    thrust_max_n: float = 20.0        # assumption: translation thrust per axis
-    velocity_tau_s: float = 1.0       # assumption: SV GNC velocity loop time constant
-    rate_tau_s: float = 0.5           # assumption: attitude-rate loop time constant
+    mass_kg: float = 150.0  # assumption: effective relative mass of the SV
+    thrust_max_n: float = 20.0  # assumption: translation thrust per axis
+    velocity_tau_s: float = 1.0  # assumption: SV GNC velocity loop time constant
+    rate_tau_s: float = 0.5  # assumption: attitude-rate loop time constant
     ang_accel_max_rad_s2: float = 0.02
-    accel_noise_mps2: float = 4e-4    # actuator noise (1 sigma), thruster quantisation
+    accel_noise_mps2: float = 4e-4  # actuator noise (1 sigma), thruster quantisation
     ang_noise_rad_s2: float = 2e-4
-    noise_period_s: float = 0.1       # noise is held for one thruster cycle
-    odometry: bool = True             # the SV's GNC reports its relative velocity to ours
+    noise_period_s: float = 0.1  # noise is held for one thruster cycle
+    odometry: bool = True  # the SV's GNC reports its relative velocity to ours
     odometry_sigma_mps: float = 0.005  # assumption: white, per axis, reported as its 1-sigma
-    odometry_bias_mps: float = 0.002   # assumption: 1-sigma per axis of a constant error per approach, unreported
+    odometry_bias_mps: float = (
+        0.002  # assumption: 1-sigma per axis of a constant error per approach, unreported
+    )
 
 
 @dataclass
@@ -87,13 +89,18 @@ class World:
             self._noise_left_s = p.noise_period_s
             self._noise_a = self.rng.normal(0.0, p.accel_noise_mps2, 3)
             self._noise_w = self.rng.normal(0.0, p.ang_noise_rad_s2, 3)
-        self.thrust_n = np.clip(p.mass_kg * (self.v_sp_mps - s.v_D_mps) / p.velocity_tau_s,
-                                -p.thrust_max_n, p.thrust_max_n)
+        self.thrust_n = np.clip(
+            p.mass_kg * (self.v_sp_mps - s.v_D_mps) / p.velocity_tau_s, -p.thrust_max_n, p.thrust_max_n
+        )
         a = (self.thrust_n + f_ext_D_n) / p.mass_kg + self._noise_a
         s.v_D_mps = s.v_D_mps + a * dt_s  # semi-implicit Euler: stable with the probe spring
         s.r_D_m = s.r_D_m + s.v_D_mps * dt_s
-        alpha = np.clip((self.w_sp_rad_s - s.w_rad_s) / p.rate_tau_s,
-                        -p.ang_accel_max_rad_s2, p.ang_accel_max_rad_s2) + self._noise_w
+        alpha = (
+            np.clip(
+                (self.w_sp_rad_s - s.w_rad_s) / p.rate_tau_s, -p.ang_accel_max_rad_s2, p.ang_accel_max_rad_s2
+            )
+            + self._noise_w
+        )
         s.w_rad_s = s.w_rad_s + alpha * dt_s
         s.att_rad = s.att_rad + s.w_rad_s * dt_s
 

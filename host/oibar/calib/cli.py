@@ -23,13 +23,17 @@ EXIT_ERROR = 2
 
 def register(sub) -> None:
     """Add the `calib` subcommand group to the `oibar` parser's subparsers."""
-    calib = sub.add_parser("calib", help="mocap ground-truth calibration (estimate, apply, overlay)",
-                           description="Ground-truth calibration toolbox for the motion-capture lab "
-                                       "(docs/calibration.md).")
+    calib = sub.add_parser(
+        "calib",
+        help="mocap ground-truth calibration (estimate, apply, overlay)",
+        description="Ground-truth calibration toolbox for the motion-capture lab (docs/calibration.md).",
+    )
     calib.set_defaults(handler=lambda a: (calib.print_help(sys.stderr), EXIT_ERROR)[1])
     cs = calib.add_subparsers(dest="calib_command", metavar="COMMAND")
 
-    ex = cs.add_parser("extract", help="split a video into frames/ and frames.csv (time stamps from the video)")
+    ex = cs.add_parser(
+        "extract", help="split a video into frames/ and frames.csv (time stamps from the video)"
+    )
     ex.add_argument("video", type=Path)
     ex.add_argument("out", type=Path, help="output folder")
     ex.add_argument("--every", type=int, default=1, metavar="N", help="keep every N-th frame (default 1)")
@@ -37,14 +41,27 @@ def register(sub) -> None:
 
     es = cs.add_parser("estimate", help="estimate T_housing_cam, T_tmarkers_target and the time offset")
     _inputs(es)
-    es.add_argument("--pattern", type=Path, required=True, help="pattern JSON (ChArUco board and T_target_pattern)")
-    es.add_argument("--offset-s", type=float, default=None,
-                    help="known time offset (mocap time = frame time + offset); default: estimate it")
-    es.add_argument("--offset-search-s", type=float, default=0.5, help="search +- this many seconds (default 0.5)")
-    es.add_argument("--mocap-sigma-mm", type=float, default=0.2, help="RMS mocap position noise per sample (0.2)")
-    es.add_argument("--mocap-sigma-deg", type=float, default=0.5, help="RMS mocap rotation noise per sample (0.5)")
-    es.add_argument("--corner-sigma-px", type=float, default=None,
-                    help="corner noise (default: from the PnP residuals)")
+    es.add_argument(
+        "--pattern", type=Path, required=True, help="pattern JSON (ChArUco board and T_target_pattern)"
+    )
+    es.add_argument(
+        "--offset-s",
+        type=float,
+        default=None,
+        help="known time offset (mocap time = frame time + offset); default: estimate it",
+    )
+    es.add_argument(
+        "--offset-search-s", type=float, default=0.5, help="search +- this many seconds (default 0.5)"
+    )
+    es.add_argument(
+        "--mocap-sigma-mm", type=float, default=0.2, help="RMS mocap position noise per sample (0.2)"
+    )
+    es.add_argument(
+        "--mocap-sigma-deg", type=float, default=0.5, help="RMS mocap rotation noise per sample (0.5)"
+    )
+    es.add_argument(
+        "--corner-sigma-px", type=float, default=None, help="corner noise (default: from the PnP residuals)"
+    )
     es.add_argument("--housing-body", required=True, help="mocap rigid body on the camera housing")
     es.add_argument("--target-body", required=True, help="mocap rigid body on the target")
     es.add_argument("-o", "--out", type=Path, required=True, help="calibration JSON to write")
@@ -53,26 +70,42 @@ def register(sub) -> None:
     ap = cs.add_parser("apply", help="write the ground-truth camera-to-target poses for every frame")
     _inputs(ap)
     ap.add_argument("--calib", type=Path, required=True, help="calibration JSON from `estimate`")
-    ap.add_argument("--max-gap-s", type=float, default=None,
-                    help="longest mocap gap bridged by interpolation (default 2.5 sample periods)")
+    ap.add_argument(
+        "--max-gap-s",
+        type=float,
+        default=None,
+        help="longest mocap gap bridged by interpolation (default 2.5 sample periods)",
+    )
     ap.add_argument("-o", "--out", type=Path, required=True, help="poses CSV to write (dataset format)")
     ap.set_defaults(handler=cmd_apply)
 
     ov = cs.add_parser("overlay", help="draw the target model from a poses file onto its frames")
-    ov.add_argument("--poses", type=Path, required=True, help="poses CSV (from `apply`, or a dataset's poses.csv)")
-    ov.add_argument("--root", type=Path, default=None, help="folder the file column is relative to "
-                                                             "(default: the poses file's folder)")
-    ov.add_argument("--intrinsics", type=Path, default=None, help="intrinsics JSON (default: the OIBAR camera)")
+    ov.add_argument(
+        "--poses", type=Path, required=True, help="poses CSV (from `apply`, or a dataset's poses.csv)"
+    )
+    ov.add_argument(
+        "--root",
+        type=Path,
+        default=None,
+        help="folder the file column is relative to (default: the poses file's folder)",
+    )
+    ov.add_argument(
+        "--intrinsics", type=Path, default=None, help="intrinsics JSON (default: the OIBAR camera)"
+    )
     ov.add_argument("--every", type=int, default=10, metavar="N", help="every N-th row (default 10)")
     ov.add_argument("--out", type=Path, required=True, help="output folder for the PNGs")
     ov.set_defaults(handler=cmd_overlay)
 
 
 def _inputs(p) -> None:
-    p.add_argument("--mocap", type=Path, required=True, help="mocap CSV (time_s,body,x_m,y_m,z_m,qw,qx,qy,qz)")
+    p.add_argument(
+        "--mocap", type=Path, required=True, help="mocap CSV (time_s,body,x_m,y_m,z_m,qw,qx,qy,qz)"
+    )
     p.add_argument("--mocap-units", choices=("m", "mm"), default="m", help="position unit in the mocap CSV")
     p.add_argument("--frames", type=Path, required=True, help="frame index CSV (frame,file,time_s)")
-    p.add_argument("--intrinsics", type=Path, default=None, help="intrinsics JSON (default: the OIBAR camera)")
+    p.add_argument(
+        "--intrinsics", type=Path, default=None, help="intrinsics JSON (default: the OIBAR camera)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -125,9 +158,20 @@ def cmd_estimate(a) -> int:
     from . import io
     from .pipeline import EstimateInputs, estimate
 
-    inp = EstimateInputs(a.mocap, a.frames, a.pattern, a.housing_body, a.target_body, a.intrinsics,
-                         a.mocap_units, a.offset_s, a.offset_search_s, a.mocap_sigma_mm, a.mocap_sigma_deg,
-                         a.corner_sigma_px)
+    inp = EstimateInputs(
+        a.mocap,
+        a.frames,
+        a.pattern,
+        a.housing_body,
+        a.target_body,
+        a.intrinsics,
+        a.mocap_units,
+        a.offset_s,
+        a.offset_search_s,
+        a.mocap_sigma_mm,
+        a.mocap_sigma_deg,
+        a.corner_sigma_px,
+    )
     res = estimate(inp, progress=_progress)
     res.pop("_details")
     io.write_calibration(a.out, res)
@@ -143,18 +187,24 @@ def summary(res: dict) -> str:
     for key in ("T_housing_cam", "T_tmarkers_target"):
         T = res[key]
         s = res["sigma_1"][key]
-        lines.append(f"{key}: t = {_fmt(T[:3, 3] * 1e3)} mm, q_wxyz = {_fmt(R_to_quat_wxyz(T[:3, :3]), 6)}"
-                     f"  (1 sigma {s['t_mm']} mm, {s['r_deg']} deg)")
+        lines.append(
+            f"{key}: t = {_fmt(T[:3, 3] * 1e3)} mm, q_wxyz = {_fmt(R_to_quat_wxyz(T[:3, :3]), 6)}"
+            f"  (1 sigma {s['t_mm']} mm, {s['r_deg']} deg)"
+        )
     so = res["sigma_1"]["offset_ms"]
     lines.append(f"offset_s: {res['offset_s']:.5f}" + (f" (1 sigma {so:.2f} ms)" if so else " (given)"))
     p, r = res["poses"], res["residuals"]
-    lines.append(f"poses: {p['used']} used of {p['pattern_found']} with the pattern ({p['frames']} frames), "
-                 f"{p['outliers']} outliers; max rotation {p['max_rotation_deg']:.0f} deg, "
-                 f"axis spread {p['axis_spread']:.2f}")
-    lines.append(f"residuals: chi2/dof {r['chi2_per_dof']:.2f}; per pose {r['pose_translation_mm']['rms']:.2f} mm / "
-                 f"{r['pose_rotation_deg']['rms']:.3f} deg RMS; "
-                 f"chain reprojection {r['chain_reprojection_px']['rms']:.2f} px RMS; "
-                 f"PnP {r['pnp_reprojection_px']['rms']:.3f} px RMS")
+    lines.append(
+        f"poses: {p['used']} used of {p['pattern_found']} with the pattern ({p['frames']} frames), "
+        f"{p['outliers']} outliers; max rotation {p['max_rotation_deg']:.0f} deg, "
+        f"axis spread {p['axis_spread']:.2f}"
+    )
+    lines.append(
+        f"residuals: chi2/dof {r['chi2_per_dof']:.2f}; per pose {r['pose_translation_mm']['rms']:.2f} mm / "
+        f"{r['pose_rotation_deg']['rms']:.3f} deg RMS; "
+        f"chain reprojection {r['chain_reprojection_px']['rms']:.2f} px RMS; "
+        f"PnP {r['pnp_reprojection_px']['rms']:.3f} px RMS"
+    )
     return "\n".join(lines)
 
 
@@ -193,7 +243,7 @@ def cmd_overlay(a) -> int:
     root = a.root or a.poses.parent
     a.out.mkdir(parents=True, exist_ok=True)
     n = 0
-    for row in rows[::a.every]:
+    for row in rows[:: a.every]:
         img = cv2.imread(str(root / row["file"]))
         if img is None:
             raise CalibError(f"{root / row['file']}: cannot read the image (set --root?)")

@@ -22,8 +22,8 @@ from oibar.geometry.transforms import inv_T, make_T
 from .errors import CalibError
 
 MIN_POSES = 10
-MIN_ROTATION_SPREAD_DEG = 10.0   # largest rotation between two poses
-MIN_AXIS_SPREAD = 0.15           # RMS angle about the 2nd axis / about the main axis
+MIN_ROTATION_SPREAD_DEG = 10.0  # largest rotation between two poses
+MIN_AXIS_SPREAD = 0.15  # RMS angle about the 2nd axis / about the main axis
 
 
 def motion_spread(T_cam_pattern: np.ndarray) -> dict:
@@ -38,9 +38,11 @@ def motion_spread(T_cam_pattern: np.ndarray) -> dict:
     refs = np.unique(np.linspace(0, n - 1, min(n, 12)).astype(int))
     vecs = []
     for r in refs:
-        rel = np.einsum("ji,njk->nik", R[r], R)          # R_r^T R_j
+        rel = np.einsum("ji,njk->nik", R[r], R)  # R_r^T R_j
         ang = np.radians(rotation_angle_deg(rel))
-        w = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], 1)
+        w = np.stack(
+            [rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], 1
+        )
         s = np.linalg.norm(w, axis=1)
         ok = s > 1e-9
         vecs.append(w[ok] / s[ok, None] * ang[ok, None])
@@ -54,17 +56,21 @@ def motion_spread(T_cam_pattern: np.ndarray) -> dict:
 def check_motion(T_cam_pattern: np.ndarray, min_poses: int = MIN_POSES) -> dict:
     n = len(T_cam_pattern)
     if n < min_poses:
-        raise CalibError(f"too few calibration poses: {n} usable, need at least {min_poses} "
-                         "(50-200 well-spread poses for sub-0.1-deg results)")
+        raise CalibError(
+            f"too few calibration poses: {n} usable, need at least {min_poses} "
+            "(50-200 well-spread poses for sub-0.1-deg results)"
+        )
     spread = motion_spread(T_cam_pattern)
     if spread["max_rotation_deg"] < MIN_ROTATION_SPREAD_DEG:
         raise CalibError(
             f"degenerate motion: the camera rotates at most {spread['max_rotation_deg']:.1f} deg relative "
-            f"to the pattern (pure translation?); tilt and roll it by 20-40 deg about several axes")
+            f"to the pattern (pure translation?); tilt and roll it by 20-40 deg about several axes"
+        )
     if spread["axis_spread"] < MIN_AXIS_SPREAD:
         raise CalibError(
             f"degenerate motion: the rotations are (almost) all about one axis (spread "
-            f"{spread['axis_spread']:.2f} < {MIN_AXIS_SPREAD}); rotate about at least two different axes")
+            f"{spread['axis_spread']:.2f} < {MIN_AXIS_SPREAD}); rotate about at least two different axes"
+        )
     return spread
 
 
@@ -76,8 +82,9 @@ def rotation_residual_rms(A, B, X, Z) -> float:
     return float(np.sqrt(np.mean(rotation_angle_deg(dR) ** 2)))
 
 
-def closed_form(T_cam_pattern: np.ndarray, T_housing_tmarkers: np.ndarray,
-                fast: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def closed_form(
+    T_cam_pattern: np.ndarray, T_housing_tmarkers: np.ndarray, fast: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """(T_pattern_tmarkers, T_cam_housing) from cv2.calibrateRobotWorldHandEye; of the two
     methods, the one with the smaller rotation residual (`fast`: Shah's method only)."""
     A, B = T_cam_pattern, T_housing_tmarkers

@@ -31,8 +31,25 @@ MOCAP_COLUMNS = {
     "qz": ("qz", "rot_z"),
 }
 UNIT_TO_M = {"m": 1.0, "mm": 1e-3}
-POSES_COLUMNS = ["frame", "file", "time_s", "phase", "phase_name", "distance_m", "tx_m", "ty_m", "tz_m",
-                 "qw", "qx", "qy", "qz", "range_m", "sun_cam_x", "sun_cam_y", "sun_cam_z"]
+POSES_COLUMNS = [
+    "frame",
+    "file",
+    "time_s",
+    "phase",
+    "phase_name",
+    "distance_m",
+    "tx_m",
+    "ty_m",
+    "tz_m",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "range_m",
+    "sun_cam_x",
+    "sun_cam_y",
+    "sun_cam_z",
+]
 
 
 def _open_csv(path: Path):
@@ -72,8 +89,10 @@ def read_mocap_csv(path: Path, position_unit: str = "m") -> dict[str, Track]:
         for key, names in MOCAP_COLUMNS.items():
             hit = [header.index(n) for n in names if n in header]
             if not hit:
-                raise CalibError(f"{path}: no {key!r} column (header {','.join(header)}; expected e.g. "
-                                 "time_s,body,x_m,y_m,z_m,qw,qx,qy,qz)")
+                raise CalibError(
+                    f"{path}: no {key!r} column (header {','.join(header)}; expected e.g. "
+                    "time_s,body,x_m,y_m,z_m,qw,qx,qy,qz)"
+                )
             col[key] = hit[0]
         rows: dict[str, list] = {}
         for line, row in enumerate(reader, start=2):
@@ -81,13 +100,17 @@ def read_mocap_csv(path: Path, position_unit: str = "m") -> dict[str, Track]:
                 continue
             if len(row) < len(header):
                 raise CalibError(f"{path}:{line}: {len(row)} fields, the header has {len(header)}")
-            vals = [_float(row[col[k]], path, line, k) for k in ("time", "x", "y", "z", "qw", "qx", "qy", "qz")]
+            vals = [
+                _float(row[col[k]], path, line, k) for k in ("time", "x", "y", "z", "qw", "qx", "qy", "qz")
+            ]
             if not np.all(np.isfinite(vals)):
-                continue   # occluded sample
+                continue  # occluded sample
             q = np.array(vals[4:8])
             if abs(np.linalg.norm(q) - 1.0) > 0.01:
-                raise CalibError(f"{path}:{line}: quaternion norm {np.linalg.norm(q):.3f} is not 1 "
-                                 "(columns in w,x,y,z order?)")
+                raise CalibError(
+                    f"{path}:{line}: quaternion norm {np.linalg.norm(q):.3f} is not 1 "
+                    "(columns in w,x,y,z order?)"
+                )
             rows.setdefault(row[col["body"]].strip(), []).append(vals)
     if not rows:
         raise CalibError(f"{path}: no samples")
@@ -151,8 +174,10 @@ def read_frames_csv(path: Path, check_files: bool = True) -> list[dict]:
 
 
 def _pose_json(T: np.ndarray) -> dict:
-    return {"t_m": [round(float(v), 9) for v in T[:3, 3]],
-            "q_wxyz": [round(float(v), 12) for v in R_to_quat_wxyz(T[:3, :3])]}
+    return {
+        "t_m": [round(float(v), 9) for v in T[:3, 3]],
+        "q_wxyz": [round(float(v), 12) for v in R_to_quat_wxyz(T[:3, :3])],
+    }
 
 
 def _pose_from_json(d, where: str) -> np.ndarray:
@@ -161,8 +186,9 @@ def _pose_from_json(d, where: str) -> np.ndarray:
         if t.shape != (3,) or q.shape != (4,) or abs(np.linalg.norm(q) - 1) > 1e-3:
             raise ValueError
     except (KeyError, TypeError, ValueError):
-        raise CalibError(f"{where}: a pose is "
-                         f"{{\"t_m\": [x, y, z], \"q_wxyz\": [w, x, y, z]}} (unit quaternion)") from None
+        raise CalibError(
+            f'{where}: a pose is {{"t_m": [x, y, z], "q_wxyz": [w, x, y, z]}} (unit quaternion)'
+        ) from None
     return T_from_pose(t, q)
 
 
@@ -182,11 +208,16 @@ def _load_json(path: Path) -> dict:
 def read_pattern(path: Path) -> Pattern:
     d = _load_json(path)
     if d.get("type", "charuco") != "charuco":
-        raise CalibError(f"{path}: only \"type\": \"charuco\" boards are supported")
+        raise CalibError(f'{path}: only "type": "charuco" boards are supported')
     try:
-        p = Pattern(int(d["squares_x"]), int(d["squares_y"]), float(d["square_m"]), float(d["marker_m"]),
-                    str(d.get("dictionary", "DICT_4X4_50")),
-                    _pose_from_json(d["T_target_pattern"], f"{path}: T_target_pattern"))
+        p = Pattern(
+            int(d["squares_x"]),
+            int(d["squares_y"]),
+            float(d["square_m"]),
+            float(d["marker_m"]),
+            str(d.get("dictionary", "DICT_4X4_50")),
+            _pose_from_json(d["T_target_pattern"], f"{path}: T_target_pattern"),
+        )
     except KeyError as exc:
         raise CalibError(f"{path}: missing {exc.args[0]!r}") from None
     if p.squares_x < 3 or p.squares_y < 3 or not 0 < p.marker_m < p.square_m:
@@ -195,8 +226,15 @@ def read_pattern(path: Path) -> Pattern:
 
 
 def write_pattern(path: Path, p: Pattern) -> None:
-    d = {"type": "charuco", "squares_x": p.squares_x, "squares_y": p.squares_y, "square_m": p.square_m,
-         "marker_m": p.marker_m, "dictionary": p.dictionary, "T_target_pattern": _pose_json(p.T_target_pattern)}
+    d = {
+        "type": "charuco",
+        "squares_x": p.squares_x,
+        "squares_y": p.squares_y,
+        "square_m": p.square_m,
+        "marker_m": p.marker_m,
+        "dictionary": p.dictionary,
+        "T_target_pattern": _pose_json(p.T_target_pattern),
+    }
     Path(path).write_text(json.dumps(d, indent=2) + "\n")
 
 
@@ -206,7 +244,9 @@ def read_intrinsics(path: Path | None) -> Intrinsics:
         return Intrinsics.oibar_default()
     d = _load_json(path)
     try:
-        K = np.array([[float(d["fx_px"]), 0, float(d["cx_px"])], [0, float(d["fy_px"]), float(d["cy_px"])], [0, 0, 1]])
+        K = np.array(
+            [[float(d["fx_px"]), 0, float(d["cx_px"])], [0, float(d["fy_px"]), float(d["cy_px"])], [0, 0, 1]]
+        )
         dist = np.asarray(d.get("dist", [0, 0, 0, 0, 0]), float)
         intr = Intrinsics(int(d["width_px"]), int(d["height_px"]), K, dist)
     except KeyError as exc:
@@ -219,9 +259,16 @@ def read_intrinsics(path: Path | None) -> Intrinsics:
 
 
 def write_intrinsics(path: Path, intr: Intrinsics) -> None:
-    d = {"convention": "opencv (pixel centres on integers)", "width_px": intr.width_px,
-         "height_px": intr.height_px, "fx_px": intr.K[0, 0], "fy_px": intr.K[1, 1], "cx_px": intr.K[0, 2],
-         "cy_px": intr.K[1, 2], "dist": [float(v) for v in intr.dist]}
+    d = {
+        "convention": "opencv (pixel centres on integers)",
+        "width_px": intr.width_px,
+        "height_px": intr.height_px,
+        "fx_px": intr.K[0, 0],
+        "fy_px": intr.K[1, 1],
+        "cx_px": intr.K[0, 2],
+        "cy_px": intr.K[1, 2],
+        "dist": [float(v) for v in intr.dist],
+    }
     Path(path).write_text(json.dumps(d, indent=2) + "\n")
 
 
@@ -259,9 +306,22 @@ def write_poses_csv(path: Path, rows: list[dict]) -> None:
         for r in rows:
             T = r["T_cam_target"]
             q = R_to_quat_wxyz(T[:3, :3])
-            w.writerow([r["frame"], r["file"], f"{r['time_s']:.6f}", 0, "lab", f"{r['distance_m']:.6f}",
-                        *(f"{x:.6f}" for x in T[:3, 3]), *(f"{x:.9f}" for x in q),
-                        f"{np.linalg.norm(T[:3, 3]):.6f}", "", "", ""])
+            w.writerow(
+                [
+                    r["frame"],
+                    r["file"],
+                    f"{r['time_s']:.6f}",
+                    0,
+                    "lab",
+                    f"{r['distance_m']:.6f}",
+                    *(f"{x:.6f}" for x in T[:3, 3]),
+                    *(f"{x:.9f}" for x in q),
+                    f"{np.linalg.norm(T[:3, 3]):.6f}",
+                    "",
+                    "",
+                    "",
+                ]
+            )
 
 
 def read_poses_csv(path: Path) -> list[dict]:

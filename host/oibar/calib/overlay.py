@@ -30,8 +30,9 @@ def _pt(uv) -> tuple[int, int]:
     return int(round(uv[0] * 16)), int(round(uv[1] * 16))
 
 
-def draw_model(image_bgr: np.ndarray, T_cam_target: np.ndarray, intr: Intrinsics,
-               color=(0, 255, 0)) -> np.ndarray:
+def draw_model(
+    image_bgr: np.ndarray, T_cam_target: np.ndarray, intr: Intrinsics, color=(0, 255, 0)
+) -> np.ndarray:
     img = image_bgr.copy()
     segs = model_edges_target()
     uv = project(segs.reshape(-1, 3), T_cam_target, intr).reshape(-1, 2, 2)
@@ -40,12 +41,16 @@ def draw_model(image_bgr: np.ndarray, T_cam_target: np.ndarray, intr: Intrinsics
             cv2.line(img, _pt(a), _pt(b), color, 1, cv2.LINE_AA, shift=4)
     axes = project(np.vstack([np.zeros(3), np.eye(3) * AXIS_LENGTH_M]), T_cam_target, intr)
     if np.all(np.isfinite(axes)):
-        for tip, col in zip(axes[1:], ((0, 0, 255), (0, 255, 0), (255, 96, 0)), strict=True):   # X red, Y green, Z blue
+        for tip, col in zip(
+            axes[1:], ((0, 0, 255), (0, 255, 0), (255, 96, 0)), strict=True
+        ):  # X red, Y green, Z blue
             cv2.line(img, _pt(axes[0]), _pt(tip), col, 2, cv2.LINE_AA, shift=4)
     return img
 
 
-def draw_corners(image_bgr: np.ndarray, uv_detected: np.ndarray | None, uv_predicted: np.ndarray | None) -> np.ndarray:
+def draw_corners(
+    image_bgr: np.ndarray, uv_detected: np.ndarray | None, uv_predicted: np.ndarray | None
+) -> np.ndarray:
     img = image_bgr.copy()
     if uv_detected is not None:
         for p in uv_detected:

@@ -50,6 +50,7 @@ class Pattern:
 @dataclass
 class Intrinsics:
     """Pinhole + OpenCV distortion, OpenCV pixel convention (pixel centres on integers)."""
+
     width_px: int
     height_px: int
     K: np.ndarray
@@ -63,11 +64,11 @@ class Intrinsics:
 
 @dataclass
 class Observation:
-    ids: np.ndarray            # (K,) ChArUco corner ids
-    uv_px: np.ndarray          # (K, 2) detected corners
+    ids: np.ndarray  # (K,) ChArUco corner ids
+    uv_px: np.ndarray  # (K, 2) detected corners
     T_cam_pattern: np.ndarray  # (4, 4)
-    cov: np.ndarray            # (6, 6) right perturbation (m, rad) of T_cam_pattern, per px^2 of corner noise
-    rms_px: float              # PnP reprojection RMS
+    cov: np.ndarray  # (6, 6) right perturbation (m, rad) of T_cam_pattern, per px^2 of corner noise
+    rms_px: float  # PnP reprojection RMS
 
 
 class Detector:
@@ -89,8 +90,9 @@ class Detector:
         ids = ids.ravel().astype(int)
         spacing = _min_spacing_px(uv.reshape(-1, 2))
         half = int(np.clip(spacing * 0.3, 2, 7))
-        refined = cv2.cornerSubPix(gray, uv, (half, half), (-1, -1),
-                                   (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3))
+        refined = cv2.cornerSubPix(
+            gray, uv, (half, half), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
+        )
         return ids, refined.reshape(-1, 2).astype(float)
 
     def observe(self, image: np.ndarray) -> Observation | None:
@@ -117,7 +119,9 @@ def _min_spacing_px(uv: np.ndarray) -> float:
     return float(d.min()) if np.isfinite(d).any() else 10.0
 
 
-def pose_covariance(T_cam_pattern: np.ndarray, obj_m: np.ndarray, K: np.ndarray, sigma_px: float) -> np.ndarray:
+def pose_covariance(
+    T_cam_pattern: np.ndarray, obj_m: np.ndarray, K: np.ndarray, sigma_px: float
+) -> np.ndarray:
     """Gauss-Newton covariance of the PnP pose for isotropic corner noise sigma_px, in the
     right-perturbation convention T @ Exp(d): d p_cam / d d = R [I, -[P]x]."""
     R, t = T_cam_pattern[:3, :3], T_cam_pattern[:3, 3]
@@ -125,17 +129,18 @@ def pose_covariance(T_cam_pattern: np.ndarray, obj_m: np.ndarray, K: np.ndarray,
     fx, fy = K[0, 0], K[1, 1]
     for k, P in enumerate(obj_m):
         x, y, z = R @ P + t
-        d_uv_d_p = np.array([[fx / z, 0.0, -fx * x / z ** 2], [0.0, fy / z, -fy * y / z ** 2]])
+        d_uv_d_p = np.array([[fx / z, 0.0, -fx * x / z**2], [0.0, fy / z, -fy * y / z**2]])
         Px = np.array([[0.0, -P[2], P[1]], [P[2], 0.0, -P[0]], [-P[1], P[0], 0.0]])
-        J[2 * k:2 * k + 2] = d_uv_d_p @ R @ np.hstack([np.eye(3), -Px])
-    return sigma_px ** 2 * np.linalg.pinv(J.T @ J)
+        J[2 * k : 2 * k + 2] = d_uv_d_p @ R @ np.hstack([np.eye(3), -Px])
+    return sigma_px**2 * np.linalg.pinv(J.T @ J)
 
 
 def project(points_m: np.ndarray, T_cam_frame: np.ndarray, intr: Intrinsics) -> np.ndarray:
     """Points in some frame -> pixels (OpenCV convention), distortion included; NaN behind."""
     rvec = cv2.Rodrigues(T_cam_frame[:3, :3])[0]
-    uv = cv2.projectPoints(np.asarray(points_m, float).reshape(-1, 1, 3), rvec, T_cam_frame[:3, 3],
-                           intr.K, intr.dist)[0].reshape(-1, 2)
+    uv = cv2.projectPoints(
+        np.asarray(points_m, float).reshape(-1, 1, 3), rvec, T_cam_frame[:3, 3], intr.K, intr.dist
+    )[0].reshape(-1, 2)
     z = np.asarray(points_m, float) @ T_cam_frame[:3, :3].T[:, 2] + T_cam_frame[2, 3]
     uv[z <= 1e-6] = np.nan
     return uv

@@ -41,26 +41,33 @@ class MocapNoise:
     sigma_r_rad: float = np.radians(0.5)
 
     def cov(self) -> np.ndarray:
-        return np.diag([self.sigma_t_m ** 2] * 3 + [self.sigma_r_rad ** 2] * 3)
+        return np.diag([self.sigma_t_m**2] * 3 + [self.sigma_r_rad**2] * 3)
 
 
 @dataclass
 class RefineResult:
-    X: np.ndarray               # T_pattern_tmarkers
-    Z: np.ndarray               # T_cam_housing
+    X: np.ndarray  # T_pattern_tmarkers
+    Z: np.ndarray  # T_cam_housing
     offset_s: float
-    cov_X: np.ndarray           # 6x6, right perturbation of X (m, rad)
+    cov_X: np.ndarray  # 6x6, right perturbation of X (m, rad)
     cov_Z: np.ndarray
     sigma_offset_s: float
-    inliers: np.ndarray         # bool mask over the poses given
-    d2: np.ndarray              # Mahalanobis distance^2 of each pose
-    residuals: np.ndarray       # (N, 6) unwhitened residual (m, rad) of each pose
+    inliers: np.ndarray  # bool mask over the poses given
+    d2: np.ndarray  # Mahalanobis distance^2 of each pose
+    residuals: np.ndarray  # (N, 6) unwhitened residual (m, rad) of each pose
     chi2_per_dof: float
     offset_profile: list = field(default_factory=list)
 
 
-def _whitening(A_cov: np.ndarray, B: np.ndarray, X: np.ndarray, noise_h: MocapNoise, noise_m: MocapNoise,
-               k_h: np.ndarray, k_m: np.ndarray) -> np.ndarray:
+def _whitening(
+    A_cov: np.ndarray,
+    B: np.ndarray,
+    X: np.ndarray,
+    noise_h: MocapNoise,
+    noise_m: MocapNoise,
+    k_h: np.ndarray,
+    k_m: np.ndarray,
+) -> np.ndarray:
     """Per-pose W with W.T @ W = inverse covariance of the residual log(inv(B_hat) @ B);
     k_h, k_m scale the mocap variances for interpolation (timing.interpolate)."""
     Ad_Xi = adjoint(inv_T(X))
@@ -92,6 +99,7 @@ def _solve_joint(A_inv, B_of, W, X0, Z0, off0_s, off_lo_s, off_hi_s):
     """X, Z and the offset together: B_of(offset) gives the mocap poses (smooth in the offset
     when the mocap is fitted locally, timing.smooth). The offset is a parameter in ms, bounded
     to [off_lo_s, off_hi_s]; its derivative is taken by finite differences of the smooth B."""
+
     def fun(x):
         Z = Z0 @ T_from_vec(x[:6])
         X = X0 @ T_from_vec(x[6:12])
@@ -100,18 +108,33 @@ def _solve_joint(A_inv, B_of, W, X0, Z0, off0_s, off_lo_s, off_hi_s):
     sol = least_squares(fun, np.zeros(13), method="lm", x_scale="jac", diff_step=1e-7)
     off = off0_s + 1e-3 * float(sol.x[12])
     if not off_lo_s <= off <= off_hi_s:
-        raise CalibError(f"the time offset left its search window ({off * 1e3:.1f} ms, window "
-                         f"{off_lo_s * 1e3:.1f} to {off_hi_s * 1e3:.1f} ms); check the time columns or pass --offset-s")
+        raise CalibError(
+            f"the time offset left its search window ({off * 1e3:.1f} ms, window "
+            f"{off_lo_s * 1e3:.1f} to {off_hi_s * 1e3:.1f} ms); check the time columns or pass --offset-s"
+        )
     J = sol.jac.copy()
-    J[:, 12] *= 1e3        # d residual / d offset in s
-    return (X0 @ T_from_vec(sol.x[6:12]), Z0 @ T_from_vec(sol.x[:6]), off0_s + 1e-3 * float(sol.x[12]),
-            float(2 * sol.cost), J)
+    J[:, 12] *= 1e3  # d residual / d offset in s
+    return (
+        X0 @ T_from_vec(sol.x[6:12]),
+        Z0 @ T_from_vec(sol.x[:6]),
+        off0_s + 1e-3 * float(sol.x[12]),
+        float(2 * sol.cost),
+        J,
+    )
 
 
-def refine(A: np.ndarray, A_cov: np.ndarray, B_at: Callable[[float], tuple],
-           X0: np.ndarray, Z0: np.ndarray, offset0_s: float, noise_housing: MocapNoise,
-           noise_tmarkers: MocapNoise, offset_window_s: float | None = None,
-           min_poses: int = 10) -> RefineResult:
+def refine(
+    A: np.ndarray,
+    A_cov: np.ndarray,
+    B_at: Callable[[float], tuple],
+    X0: np.ndarray,
+    Z0: np.ndarray,
+    offset0_s: float,
+    noise_housing: MocapNoise,
+    noise_tmarkers: MocapNoise,
+    offset_window_s: float | None = None,
+    min_poses: int = 10,
+) -> RefineResult:
     """Refine X, Z (and the offset within offset0_s +- offset_window_s when given).
     `B_at(offset_s)` returns T_housing_tmarkers for every pose, a validity mask and the
     variance factors of both bodies (timing.relative_at(..., with_variance=True)); for the
@@ -119,13 +142,18 @@ def refine(A: np.ndarray, A_cov: np.ndarray, B_at: Callable[[float], tuple],
     n = len(A)
     # Keep the same poses for every trial offset, or the costs would not be comparable.
     keep = np.ones(n, bool)
-    probes = [offset0_s] if not offset_window_s else np.linspace(offset0_s - offset_window_s,
-                                                                 offset0_s + offset_window_s, 5)
+    probes = (
+        [offset0_s]
+        if not offset_window_s
+        else np.linspace(offset0_s - offset_window_s, offset0_s + offset_window_s, 5)
+    )
     for off in probes:
         keep &= B_at(off)[1]
     if keep.sum() < min_poses:
-        raise CalibError(f"too few poses with mocap coverage: {int(keep.sum())} (need {min_poses}); "
-                         "missing frames or mocap gaps?")
+        raise CalibError(
+            f"too few poses with mocap coverage: {int(keep.sum())} (need {min_poses}); "
+            "missing frames or mocap gaps?"
+        )
     idx = np.flatnonzero(keep)
     A_inv, Acov_k = inv_T(A[idx]), A_cov[idx]
     B_cache: dict = {}
@@ -156,8 +184,9 @@ def refine(A: np.ndarray, A_cov: np.ndarray, B_at: Callable[[float], tuple],
     def solve(W, mask, joint):
         nonlocal X, Z, offset
         if offset_window_s and joint:
-            X, Z, offset, cost, J = _solve_joint(A_inv[mask], lambda o: B_k(o)[mask], W[mask], X, Z,
-                                                 offset, lo_s, hi_s)
+            X, Z, offset, cost, J = _solve_joint(
+                A_inv[mask], lambda o: B_k(o)[mask], W[mask], X, Z, offset, lo_s, hi_s
+            )
             profile.append((round(offset, 7), cost))
         else:
             X, Z, cost, J = _solve(A_inv[mask], B_k(offset)[mask], W[mask], X, Z)
@@ -169,7 +198,7 @@ def refine(A: np.ndarray, A_cov: np.ndarray, B_at: Callable[[float], tuple],
         W = W_k(offset, X)
         solve(W, inl, joint=it > 0)
         wr = np.einsum("nij,nj->ni", W, _residuals(A_inv, B_k(offset), X, Z))
-        d2 = np.sum(wr ** 2, axis=1)
+        d2 = np.sum(wr**2, axis=1)
         if it == 0:
             continue
         # Outliers: far beyond chi-square(6), scaled by the median so that a wrong noise figure
@@ -177,24 +206,36 @@ def refine(A: np.ndarray, A_cov: np.ndarray, B_at: Callable[[float], tuple],
         scale = max(1.0, float(np.median(d2[inl])) / chi2.median(6))
         inl = d2 <= scale * chi2.ppf(OUTLIER_P, 6)
         if inl.sum() < min_poses:
-            raise CalibError(f"only {int(inl.sum())} poses agree with the model; check the body names, "
-                             "the pattern file and the time columns")
+            raise CalibError(
+                f"only {int(inl.sum())} poses agree with the model; check the body names, "
+                "the pattern file and the time columns"
+            )
 
     W = W_k(offset, X)
     cost_val, J = solve(W, inl, joint=True)
     n_par = J.shape[1]
     dof = max(6 * int(inl.sum()) - n_par, 1)
     chi2_dof = cost_val / dof
-    cov = np.linalg.pinv(J.T @ J) * max(1.0, chi2_dof)   # inflate when the data are noisier than stated
+    cov = np.linalg.pinv(J.T @ J) * max(1.0, chi2_dof)  # inflate when the data are noisier than stated
     sigma_offset = float(np.sqrt(cov[12, 12])) if n_par == 13 else float("nan")
     r = _residuals(A_inv, B_k(offset), X, Z)
     wr = np.einsum("nij,nj->ni", W, r)
     inliers = np.zeros(n, bool)
     inliers[idx[inl]] = True
     d2_all = np.full(n, np.nan)
-    d2_all[idx] = np.sum(wr ** 2, axis=1)
+    d2_all[idx] = np.sum(wr**2, axis=1)
     res_all = np.full((n, 6), np.nan)
     res_all[idx] = r
-    return RefineResult(X=X, Z=Z, offset_s=offset, cov_X=cov[6:12, 6:12], cov_Z=cov[:6, :6],
-                        sigma_offset_s=sigma_offset, inliers=inliers, d2=d2_all, residuals=res_all,
-                        chi2_per_dof=float(chi2_dof), offset_profile=profile)
+    return RefineResult(
+        X=X,
+        Z=Z,
+        offset_s=offset,
+        cov_X=cov[6:12, 6:12],
+        cov_Z=cov[:6, :6],
+        sigma_offset_s=sigma_offset,
+        inliers=inliers,
+        d2=d2_all,
+        residuals=res_all,
+        chi2_per_dof=float(chi2_dof),
+        offset_profile=profile,
+    )

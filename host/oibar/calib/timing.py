@@ -25,9 +25,10 @@ from .errors import CalibError
 @dataclass
 class Track:
     """One rigid body's poses in the mocap frame, sorted by time (occluded samples removed)."""
+
     name: str
-    t_s: np.ndarray             # (N,)
-    T_mocap_body: np.ndarray    # (N, 4, 4)
+    t_s: np.ndarray  # (N,)
+    T_mocap_body: np.ndarray  # (N, 4, 4)
 
     @property
     def rotations(self) -> Rotation:
@@ -43,8 +44,9 @@ class Track:
         return float(np.median(np.diff(self.t_s))) if len(self.t_s) > 1 else float("nan")
 
 
-def interpolate(track: Track, t_query_s: np.ndarray, max_gap_s: float | None = None,
-                with_variance: bool = False):
+def interpolate(
+    track: Track, t_query_s: np.ndarray, max_gap_s: float | None = None, with_variance: bool = False
+):
     """Poses at `t_query_s` (linear in position, slerp in rotation) and a validity mask: a query
     is invalid outside the track or inside a gap longer than `max_gap_s` (default: 2.5 sample
     periods, i.e. one dropped sample is bridged, an occlusion is not)."""
@@ -66,17 +68,23 @@ def interpolate(track: Track, t_query_s: np.ndarray, max_gap_s: float | None = N
     out[:, :3, 3] = (1 - alpha)[:, None] * T0[:, :3, 3] + alpha[:, None] * T1[:, :3, 3]
     out[:, 3, 3] = 1.0
     if with_variance:
-        return out, valid, (1 - alpha) ** 2 + alpha ** 2
+        return out, valid, (1 - alpha) ** 2 + alpha**2
     return out, valid
 
 
-SMOOTH_HALF_WIDTH_S = 0.10   # local-quadratic mocap fit: +-100 ms, 19 samples with weight at 100 Hz
+SMOOTH_HALF_WIDTH_S = 0.10  # local-quadratic mocap fit: +-100 ms, 19 samples with weight at 100 Hz
 SMOOTH_DEGREE = 2
 
 
-def smooth(track: Track, t_query_s: np.ndarray, half_width_s: float = SMOOTH_HALF_WIDTH_S,
-           max_gap_s: float | None = None, with_variance: bool = False, ref_t_s: np.ndarray | None = None,
-           degree: int = SMOOTH_DEGREE):
+def smooth(
+    track: Track,
+    t_query_s: np.ndarray,
+    half_width_s: float = SMOOTH_HALF_WIDTH_S,
+    max_gap_s: float | None = None,
+    with_variance: bool = False,
+    ref_t_s: np.ndarray | None = None,
+    degree: int = SMOOTH_DEGREE,
+):
     """Poses at `t_query_s` from a local polynomial fit (degree 2) of the mocap samples within
     +-`half_width_s`: position in the mocap frame, rotation in the tangent space of a reference
     sample (R = R_ref Exp(phi), phi(t) fitted), weights (1 - (dt/h)^2)^2.
@@ -111,14 +119,14 @@ def smooth(track: Track, t_query_s: np.ndarray, half_width_s: float = SMOOTH_HAL
     inwin = idx < hi[:, None]
     idx = np.clip(idx, 0, len(t) - 1)
     u = (t[idx] - tq[:, None]) / h
-    w = np.where(inwin, np.clip(1.0 - u ** 2, 0.0, None) ** 2, 0.0)
-    V = np.stack([u ** d for d in range(degree + 1)], axis=2)               # (n, m, d+1)
-    VtW = np.swapaxes(V * w[..., None], 1, 2)                              # (n, d+1, m)
+    w = np.where(inwin, np.clip(1.0 - u**2, 0.0, None) ** 2, 0.0)
+    V = np.stack([u**d for d in range(degree + 1)], axis=2)  # (n, m, d+1)
+    VtW = np.swapaxes(V * w[..., None], 1, 2)  # (n, d+1, m)
     G = VtW @ V
     enough = np.sum(w > 1e-6, axis=1) >= degree + 2
     G[~enough] = np.eye(degree + 1)
     # Row 0 of inv(G) @ V^T W: the weights that give the fitted value at the query.
-    hat = np.linalg.solve(G, VtW)[:, 0, :]                                 # (n, m)
+    hat = np.linalg.solve(G, VtW)[:, 0, :]  # (n, m)
     # Reference sample: nearest to ref_t_s.
     tr = tq if ref_t_s is None else np.broadcast_to(np.asarray(ref_t_s, float), tq.shape)
     j1 = np.clip(np.searchsorted(t, tr), 1, len(t) - 1)
@@ -137,13 +145,19 @@ def smooth(track: Track, t_query_s: np.ndarray, half_width_s: float = SMOOTH_HAL
     both = np.any((u < 0) & (w > 1e-6), axis=1) & np.any((u > 0) & (w > 1e-6), axis=1)
     valid = (tq >= t[0]) & (tq <= t[-1]) & (gap <= max_gap_s + 1e-12) & enough & both
     if with_variance:
-        return out, valid, np.sum(hat ** 2, axis=1)
+        return out, valid, np.sum(hat**2, axis=1)
     return out, valid
 
 
-def relative_at(housing: Track, tmarkers: Track, t_query_s: np.ndarray,
-                max_gap_s: float | None = None, with_variance: bool = False,
-                smooth_half_width_s: float | None = None, ref_t_s: np.ndarray | None = None):
+def relative_at(
+    housing: Track,
+    tmarkers: Track,
+    t_query_s: np.ndarray,
+    max_gap_s: float | None = None,
+    with_variance: bool = False,
+    smooth_half_width_s: float | None = None,
+    ref_t_s: np.ndarray | None = None,
+):
     """T_housing_tmarkers at the query times and where both bodies were seen (and, with
     `with_variance`, the variance factors of the housing and of the target poses).
     `smooth_half_width_s`: local polynomial fit of the mocap (`smooth`) instead of
@@ -166,8 +180,15 @@ def _speeds(R: np.ndarray, t_s: np.ndarray, lag: int) -> np.ndarray:
     return np.radians(rotation_angle_deg(rel)) / (t_s[lag:] - t_s[:-lag])
 
 
-def offset_by_speed(frame_t_s: np.ndarray, R_cam_pattern: np.ndarray, housing: Track, tmarkers: Track,
-                  search_s: float, step_s: float | None = None, baseline_s: float = 0.2) -> float:
+def offset_by_speed(
+    frame_t_s: np.ndarray,
+    R_cam_pattern: np.ndarray,
+    housing: Track,
+    tmarkers: Track,
+    search_s: float,
+    step_s: float | None = None,
+    baseline_s: float = 0.2,
+) -> float:
     """Offset (s) within +-search_s that best matches the angular speeds of the two sensors.
 
     Speeds are taken over a baseline of >= `baseline_s` so that mocap noise (fractions of a
@@ -189,21 +210,30 @@ def offset_by_speed(frame_t_s: np.ndarray, R_cam_pattern: np.ndarray, housing: T
         w_moc = _speeds(B[:, :3, :3], frame_t_s, lag)
         costs[j] = np.mean((w_moc[ok] - w_cam[ok]) ** 2)
     if not np.isfinite(costs).any():
-        raise CalibError("the mocap does not cover the frames for any time offset in the search window; "
-                         "check the time columns or widen --offset-search-s")
+        raise CalibError(
+            "the mocap does not cover the frames for any time offset in the search window; "
+            "check the time columns or widen --offset-search-s"
+        )
     j = int(np.argmin(costs))
-    if 0 < j < len(costs) - 1 and np.all(np.isfinite(costs[j - 1:j + 2])):
+    if 0 < j < len(costs) - 1 and np.all(np.isfinite(costs[j - 1 : j + 2])):
         # Parabola through the best grid point and its neighbours.
-        c0, c1, c2 = costs[j - 1:j + 2]
+        c0, c1, c2 = costs[j - 1 : j + 2]
         den = c0 - 2 * c1 + c2
         if den > 0:
             return float(offsets[j] + 0.5 * step_s * (c0 - c2) / den)
     return float(offsets[j])
 
 
-def offset_by_handeye(frame_t_s: np.ndarray, T_cam_pattern: np.ndarray, housing: Track, tmarkers: Track,
-                      center_s: float, half_width_s: float = 0.1, step_s: float = 0.01,
-                      smooth_half_width_s: float | None = None) -> float:
+def offset_by_handeye(
+    frame_t_s: np.ndarray,
+    T_cam_pattern: np.ndarray,
+    housing: Track,
+    tmarkers: Track,
+    center_s: float,
+    half_width_s: float = 0.1,
+    step_s: float = 0.01,
+    smooth_half_width_s: float | None = None,
+) -> float:
     """Second stage: the offset whose mocap poses fit the closed-form hand-eye solution best
     (smallest rotation residual). Much sharper than the speed match, whose noise is large
     against the small change of speed over a few tens of milliseconds."""
@@ -220,8 +250,8 @@ def offset_by_handeye(frame_t_s: np.ndarray, T_cam_pattern: np.ndarray, housing:
     if not np.isfinite(costs).any():
         return center_s
     j = int(np.argmin(costs))
-    if 0 < j < len(costs) - 1 and np.all(np.isfinite(costs[j - 1:j + 2])):
-        c0, c1, c2 = costs[j - 1:j + 2]
+    if 0 < j < len(costs) - 1 and np.all(np.isfinite(costs[j - 1 : j + 2])):
+        c0, c1, c2 = costs[j - 1 : j + 2]
         den = c0 - 2 * c1 + c2
         if den > 0:
             return float(offsets[j] + 0.5 * step_s * (c0 - c2) / den)

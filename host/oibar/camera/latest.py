@@ -27,9 +27,9 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LatestFrameStats:
-    captured: int   # frames read from the source
+    captured: int  # frames read from the source
     delivered: int  # frames returned by get()/poll()
-    dropped: int    # frames replaced by a newer one before anyone took them
+    dropped: int  # frames replaced by a newer one before anyone took them
 
 
 class LatestFrame:
@@ -39,8 +39,9 @@ class LatestFrame:
     and starts the reader; :meth:`stop` stops it, joins it and closes the source.
     """
 
-    def __init__(self, source: CameraSource, *, lost_timeout_s: float = 1.0,
-                 join_timeout_s: float = 2.0) -> None:
+    def __init__(
+        self, source: CameraSource, *, lost_timeout_s: float = 1.0, join_timeout_s: float = 2.0
+    ) -> None:
         if not lost_timeout_s > 0:
             raise ValueError("lost_timeout_s must be positive")
         self.source = source
@@ -48,7 +49,7 @@ class LatestFrame:
         self.join_timeout_s = float(join_timeout_s)
         self._cond = threading.Condition()
         self._latest: Frame | None = None  # newest frame not yet returned
-        self._last_seq = -1               # seq of the last frame returned
+        self._last_seq = -1  # seq of the last frame returned
         self._error: BaseException | None = None
         self._ended = False
         self._stop = threading.Event()
@@ -84,8 +85,11 @@ class LatestFrame:
         if thread.is_alive():
             # Kept: ``running`` stays True until it leaves read(), so an owner can wait for it
             # instead of opening the source again under it (two readers on one device).
-            log.warning("%s: reader thread still blocked in read() after %.1f s; leaving it",
-                        self.source.name, self.join_timeout_s)
+            log.warning(
+                "%s: reader thread still blocked in read() after %.1f s; leaving it",
+                self.source.name,
+                self.join_timeout_s,
+            )
             return False
         self._thread = None
         self.source.close()

@@ -207,9 +207,16 @@ class DeviceSource(CameraSource):
     from here; :class:`~oibar.camera.latest.LatestFrame` reports that case on the consumer side.
     """
 
-    def __init__(self, device: int | str, *, width: int | None = None, height: int | None = None,
-                 fps: float | None = None, lost_timeout_s: float = 2.0,
-                 backend: int | None = None) -> None:
+    def __init__(
+        self,
+        device: int | str,
+        *,
+        width: int | None = None,
+        height: int | None = None,
+        fps: float | None = None,
+        lost_timeout_s: float = 2.0,
+        backend: int | None = None,
+    ) -> None:
         super().__init__()
         if isinstance(device, str) and device.strip().isdigit():
             device = int(device)
@@ -271,7 +278,9 @@ class VideoFileSource(CameraSource):
     """A recorded video file, frame by frame. ``t_s`` = frame index / fps (the file's rate, or
     ``rate_hz`` when the file does not give one). ``realtime=True`` paces reads at that rate."""
 
-    def __init__(self, path: str | os.PathLike, *, rate_hz: float | None = None, realtime: bool = False) -> None:
+    def __init__(
+        self, path: str | os.PathLike, *, rate_hz: float | None = None, realtime: bool = False
+    ) -> None:
         super().__init__()
         self.path = Path(path)
         self.rate_hz = rate_hz
@@ -292,7 +301,9 @@ class VideoFileSource(CameraSource):
         cap = cv2.VideoCapture(str(self.path))
         if not cap.isOpened():
             cap.release()
-            raise SourceUnreadable(f"cannot decode video file {self.path} (not a video, corrupt, or unsupported codec)")
+            raise SourceUnreadable(
+                f"cannot decode video file {self.path} (not a video, corrupt, or unsupported codec)"
+            )
         file_fps = cap.get(cv2.CAP_PROP_FPS)
         if self.rate_hz:
             self._fps = float(self.rate_hz)
@@ -371,9 +382,15 @@ class FolderSource(CameraSource):
     ``realtime=True`` paces reads along the timestamps.
     """
 
-    def __init__(self, folder: str | os.PathLike, *, rate_hz: float = DEFAULT_RATE_HZ,
-                 timestamps: str | os.PathLike | None = None, use_table: bool = True,
-                 realtime: bool = False) -> None:
+    def __init__(
+        self,
+        folder: str | os.PathLike,
+        *,
+        rate_hz: float = DEFAULT_RATE_HZ,
+        timestamps: str | os.PathLike | None = None,
+        use_table: bool = True,
+        realtime: bool = False,
+    ) -> None:
         super().__init__()
         if not rate_hz > 0:
             raise ValueError("rate_hz must be positive")
@@ -410,8 +427,10 @@ class FolderSource(CameraSource):
             entries = list(self.folder.iterdir())
         except OSError as exc:
             raise SourceUnreadable(f"cannot list frame folder {self.folder}: {exc}") from exc
-        files = sorted((p for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file()),
-                       key=lambda p: _natural_key(p.name))
+        files = sorted(
+            (p for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file()),
+            key=lambda p: _natural_key(p.name),
+        )
         if not files:
             raise EmptySource(
                 f"frame folder {self.folder} holds no image file ({', '.join(IMAGE_EXTENSIONS)})"
@@ -470,9 +489,17 @@ class CallableSource(CameraSource):
     chained. ``bgr=True`` converts images given in OpenCV's order.
     """
 
-    def __init__(self, render: Callable[[float], np.ndarray | None], *, rate_hz: float = DEFAULT_RATE_HZ,
-                 realtime: bool = True, t0_s: float = 0.0, lost_timeout_s: float = 2.0,
-                 bgr: bool = False, name: str = "simulated camera") -> None:
+    def __init__(
+        self,
+        render: Callable[[float], np.ndarray | None],
+        *,
+        rate_hz: float = DEFAULT_RATE_HZ,
+        realtime: bool = True,
+        t0_s: float = 0.0,
+        lost_timeout_s: float = 2.0,
+        bgr: bool = False,
+        name: str = "simulated camera",
+    ) -> None:
         super().__init__()
         if not callable(render):
             raise TypeError("render must be a callable t_s -> image")
@@ -523,8 +550,9 @@ class CallableSource(CameraSource):
                 return to_rgb(img, self.name, bgr=self.bgr), t_s
             silent = now - self._last_frame_host
             if silent >= self.lost_timeout_s:
-                raise CameraLost(f"{self.name} delivered no frame for {silent:.1f} s",
-                                 seconds_without_frame=silent)
+                raise CameraLost(
+                    f"{self.name} delivered no frame for {silent:.1f} s", seconds_without_frame=silent
+                )
             if not self.realtime:
                 time.sleep(min(0.01, self.lost_timeout_s / 10))
 

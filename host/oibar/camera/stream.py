@@ -44,7 +44,7 @@ def encode_frame_header(width: int, height: int, t_s: float) -> bytes:
 
 
 def parse_address(spec: str) -> tuple[str, int]:
-    hostport = spec[len(SCHEME):] if spec.startswith(SCHEME) else spec
+    hostport = spec[len(SCHEME) :] if spec.startswith(SCHEME) else spec
     host, sep, port = hostport.rpartition(":")
     if not sep or not port.isdigit():
         raise CameraOpenError(f"{spec!r}: expected {SCHEME}HOST:PORT")
@@ -77,8 +77,10 @@ class FrameStreamSource(CameraSource):
             try:
                 chunk = sock.recv(n - len(buf))
             except TimeoutError:
-                raise CameraLost(f"{self.name}: no frame for {self.lost_timeout_s:.1f} s",
-                                 seconds_without_frame=self.lost_timeout_s) from None
+                raise CameraLost(
+                    f"{self.name}: no frame for {self.lost_timeout_s:.1f} s",
+                    seconds_without_frame=self.lost_timeout_s,
+                ) from None
             except OSError as exc:
                 raise CameraLost(f"{self.name}: {exc}") from exc
             if not chunk:
@@ -91,7 +93,9 @@ class FrameStreamSource(CameraSource):
             raise CameraLost(f"{self.name}: not connected")
         magic, version, _flags, w, h, t_s = HEADER.unpack(self._recv_exact(HEADER.size))
         if magic != MAGIC or version != VERSION or not (0 < w * h <= MAX_PIXELS):
-            raise CameraLost(f"{self.name}: malformed frame header (magic {magic!r}, version {version}, {w}x{h})")
+            raise CameraLost(
+                f"{self.name}: malformed frame header (magic {magic!r}, version {version}, {w}x{h})"
+            )
         pixels = self._recv_exact(w * h * 3)
         return np.frombuffer(pixels, dtype=np.uint8).reshape(h, w, 3), t_s
 

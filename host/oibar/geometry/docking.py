@@ -67,8 +67,10 @@ class CameraMount:
 
     @classmethod
     def from_geometry(cls, geom: DockingGeometry) -> CameraMount:
-        return cls(tuple(float(x) for x in geom.p_s_cam_m),
-                   tuple(tuple(float(x) for x in row) for row in np.asarray(geom.R_s_cam)))
+        return cls(
+            tuple(float(x) for x in geom.p_s_cam_m),
+            tuple(tuple(float(x) for x in row) for row in np.asarray(geom.R_s_cam)),
+        )
 
     def T_s_cam(self) -> FloatArray:
         """(4, 4) camera pose in F_s (maps C points into F_s), metres."""
@@ -123,11 +125,12 @@ class DockingState:
         return misalignment_deg(self.R_D_cam)
 
 
-def camera_pose_from_docking(r_D_m: ArrayLike, att_rad: ArrayLike,
-                             geom: DockingGeometry = GEOMETRY) -> tuple[FloatArray, FloatArray]:
+def camera_pose_from_docking(
+    r_D_m: ArrayLike, att_rad: ArrayLike, geom: DockingGeometry = GEOMETRY
+) -> tuple[FloatArray, FloatArray]:
     """(probe tip in D, m; attitude error, rad) -> (T_cam_target_m, R_cam_target): what the
     camera sees."""
-    R_D_s = R_D_CAM_ALIGNED @ rotvec_to_matrix(att_rad)          # body axes = camera axes
+    R_D_s = R_D_CAM_ALIGNED @ rotvec_to_matrix(att_rad)  # body axes = camera axes
     R_t_s = R_T_D @ R_D_s
     p_t_tip = R_T_D @ np.asarray(r_D_m, dtype=float)
     p_t_s = p_t_tip - R_t_s @ np.array([0.0, 0.0, geom.probe_tip_s_m])
@@ -137,8 +140,9 @@ def camera_pose_from_docking(r_D_m: ArrayLike, att_rad: ArrayLike,
     return -R_cam_t @ p_t_cam, R_cam_t
 
 
-def docking_from_camera_pose(T_cam_target_m: ArrayLike, R_cam_target: ArrayLike,
-                             geom: DockingGeometry = GEOMETRY) -> DockingState:
+def docking_from_camera_pose(
+    T_cam_target_m: ArrayLike, R_cam_target: ArrayLike, geom: DockingGeometry = GEOMETRY
+) -> DockingState:
     """Inverse of :func:`camera_pose_from_docking`: the pose estimate -> guidance's state."""
     R_t_cam = np.asarray(R_cam_target, dtype=float).T
     p_t_cam = -R_t_cam @ np.asarray(T_cam_target_m, dtype=float)

@@ -20,10 +20,10 @@ from ._types import FloatArray
 class FixtureDims:
     """Dimensions of the berthing fixture, metres, in F_t."""
 
-    width_m: float = 0.50          # along X_t (outer rectangle)
-    height_m: float = 0.36         # along Y_t
+    width_m: float = 0.50  # along X_t (outer rectangle)
+    height_m: float = 0.36  # along Y_t
     rim_width_m: float = 0.03
-    rim_depth_m: float = 0.02      # rim front face at z = 0, plate face recessed behind it
+    rim_depth_m: float = 0.02  # rim front face at z = 0, plate face recessed behind it
     plate_thickness_m: float = 0.03
     drogue_mouth_radius_m: float = 0.095
     drogue_throat_radius_m: float = 0.025
@@ -82,14 +82,22 @@ def keypoints_m() -> FloatArray:
 
 def _circle(center: tuple[float, float, float], radius_m: float, segments: int) -> FloatArray:
     a = np.linspace(0.0, 2.0 * np.pi, segments + 1)
-    pts = np.stack([center[0] + radius_m * np.cos(a), center[1] + radius_m * np.sin(a),
-                    np.full_like(a, center[2])], axis=1)
+    pts = np.stack(
+        [center[0] + radius_m * np.cos(a), center[1] + radius_m * np.sin(a), np.full_like(a, center[2])],
+        axis=1,
+    )
     return np.stack([pts[:-1], pts[1:]], axis=1)
 
 
 def _rectangle(cx: float, cy: float, w: float, h: float, z: float) -> FloatArray:
-    c = np.array([[cx - w / 2, cy - h / 2, z], [cx + w / 2, cy - h / 2, z], [cx + w / 2, cy + h / 2, z],
-                  [cx - w / 2, cy + h / 2, z]])
+    c = np.array(
+        [
+            [cx - w / 2, cy - h / 2, z],
+            [cx + w / 2, cy - h / 2, z],
+            [cx + w / 2, cy + h / 2, z],
+            [cx - w / 2, cy + h / 2, z],
+        ]
+    )
     return np.stack([c, np.roll(c, -1, axis=0)], axis=1)
 
 

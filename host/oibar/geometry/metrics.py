@@ -52,9 +52,12 @@ def summarize(T_hat_m: ArrayLike, q_hat: ArrayLike, T_m: ArrayLike, q: ArrayLike
     dq = attitude_error_deg(q_hat, q)
     return {
         "frames": int(len(dt)),
-        "dt_mean_m": float(dt.mean()), "dt_median_m": float(np.median(dt)),
-        "dt_mean_pct": float(dt_pct.mean()), "dt_median_pct": float(np.median(dt_pct)),
-        "dq_mean_deg": float(dq.mean()), "dq_median_deg": float(np.median(dq)),
+        "dt_mean_m": float(dt.mean()),
+        "dt_median_m": float(np.median(dt)),
+        "dt_mean_pct": float(dt_pct.mean()),
+        "dt_median_pct": float(np.median(dt_pct)),
+        "dq_mean_deg": float(dq.mean()),
+        "dq_median_deg": float(np.median(dq)),
         "compliance_pos_pct": float(100.0 * np.mean(dt_pct <= POS_REQ_PCT)),
         "compliance_att_pct": float(100.0 * np.mean(dq <= ATT_REQ_DEG)),
     }

@@ -197,11 +197,17 @@ class LinkClient:
         self._clock_origin_s = time.monotonic()
         # The core, with every link rule. _cond's lock guards it and every field below.
         self._core = LinkCore(
-            host_version=host_version, heartbeat_period_s=heartbeat_period_s,
-            link_timeout_s=link_timeout_s, retransmit_timeout_s=retransmit_timeout_s,
-            max_retries=max_retries, reconnect_period_s=reconnect_period_s,
-            auto_connect=False, auto_heartbeat=heartbeats == "auto",
-            protocol_version=protocol_version, event_queue_size=event_queue_size)
+            host_version=host_version,
+            heartbeat_period_s=heartbeat_period_s,
+            link_timeout_s=link_timeout_s,
+            retransmit_timeout_s=retransmit_timeout_s,
+            max_retries=max_retries,
+            reconnect_period_s=reconnect_period_s,
+            auto_connect=False,
+            auto_heartbeat=heartbeats == "auto",
+            protocol_version=protocol_version,
+            event_queue_size=event_queue_size,
+        )
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._port: serial.SerialBase | None = None
@@ -315,14 +321,23 @@ class LinkClient:
             d = self._core.decoder.counters
             c = self._core.counters
             return LinkStatistics(
-                rx_packets=d.rx_packets, rx_crc_errors=d.rx_crc_errors,
-                rx_framing_errors=d.rx_framing_errors, rx_oversize=d.rx_oversize,
-                rx_bad_header=d.rx_bad_header, rx_decode_errors=d.rx_decode_errors,
-                rx_unknown_type=d.rx_unknown_type, tx_packets=c.tx_packets,
-                retransmissions=c.retransmissions, timeouts=c.timeouts,
-                lost_peer_packets=c.lost_peer_packets, reconnects=c.reconnects,
-                unmatched_responses=c.unmatched_responses, events_dropped=c.events_dropped,
-                link_losses=c.link_losses, mcu_restarts=c.mcu_restarts)
+                rx_packets=d.rx_packets,
+                rx_crc_errors=d.rx_crc_errors,
+                rx_framing_errors=d.rx_framing_errors,
+                rx_oversize=d.rx_oversize,
+                rx_bad_header=d.rx_bad_header,
+                rx_decode_errors=d.rx_decode_errors,
+                rx_unknown_type=d.rx_unknown_type,
+                tx_packets=c.tx_packets,
+                retransmissions=c.retransmissions,
+                timeouts=c.timeouts,
+                lost_peer_packets=c.lost_peer_packets,
+                reconnects=c.reconnects,
+                unmatched_responses=c.unmatched_responses,
+                events_dropped=c.events_dropped,
+                link_losses=c.link_losses,
+                mcu_restarts=c.mcu_restarts,
+            )
 
     def next_event(self, timeout_s: float | None = None) -> pb.Event | None:
         """Pop the oldest queued ``Event``; wait up to ``timeout_s`` (None: forever).
@@ -362,9 +377,7 @@ class LinkClient:
         req = self._request(lambda now: self._core.command(code, target_pressure_kpa, now_s=now))
         return command_result(req)
 
-    def command_checked(
-        self, opcode: int | str, target_pressure_kpa: float | None = None
-    ) -> CommandResult:
+    def command_checked(self, opcode: int | str, target_pressure_kpa: float | None = None) -> CommandResult:
         """Like :meth:`command`, but a refusal raises :class:`Nack`."""
         code = parse_opcode(opcode)
         result = self.command(code, target_pressure_kpa)
@@ -574,16 +587,27 @@ class LinkClient:
                 self._last_retry_problem = ""
                 info = self._core.handshake_info
                 assert info is not None  # set before the core announces link_up, never cleared
-                _log.info("link up on %s: firmware %s (build %s), protocol %d, reset cause %s",
-                          self.url, info.firmware_version, info.build_id, info.protocol_version,
-                          pb.enum_name(pb.ResetCause, info.reset_cause))
+                _log.info(
+                    "link up on %s: firmware %s (build %s), protocol %d, reset cause %s",
+                    self.url,
+                    info.firmware_version,
+                    info.build_id,
+                    info.protocol_version,
+                    pb.enum_name(pb.ResetCause, info.reset_cause),
+                )
                 self._set_notified(True)
-            elif (n.what == "request_done" and n.request is not None and n.request.kind == "handshake"
-                  and n.request.error):
+            elif (
+                n.what == "request_done"
+                and n.request is not None
+                and n.request.kind == "handshake"
+                and n.request.error
+            ):
                 with self._cond:
                     retrying = self._core.auto_connect
                 if retrying:
-                    level = logging.ERROR if isinstance(n.request.error, ProtocolVersionError) else logging.INFO
+                    level = (
+                        logging.ERROR if isinstance(n.request.error, ProtocolVersionError) else logging.INFO
+                    )
                     self._retry_problem(level, f"handshake failed, retrying: {n.request.error}")
 
     def _set_notified(self, alive: bool) -> None:
@@ -685,13 +709,19 @@ def param_value(req: Request, param_id: int) -> ParamValue:
     if req.error is not None:
         raise req.error
     if req.response_kind == "ack":  # e.g. NACK_NOT_CONNECTED or NACK_UNKNOWN_MESSAGE
-        return ParamValue(param_id, 0.0, 0.0, 0.0, 0.0, "", "",
-                          pb.enum_name(pb.NackReason, req.response.reason))
+        return ParamValue(
+            param_id, 0.0, 0.0, 0.0, 0.0, "", "", pb.enum_name(pb.NackReason, req.response.reason)
+        )
     if req.response_kind != "param_value":
         raise LinkError(f"unexpected {req.response_kind} in answer to a parameter request")
     v = req.response
     return ParamValue(
-        param_id=v.param_id, value=v.value, min=v.min, max=v.max,
-        default_value=v.default_value, name=v.name, unit=v.unit,
+        param_id=v.param_id,
+        value=v.value,
+        min=v.min,
+        max=v.max,
+        default_value=v.default_value,
+        name=v.name,
+        unit=v.unit,
         reason=pb.enum_name(pb.NackReason, v.reason),
     )

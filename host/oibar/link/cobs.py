@@ -59,9 +59,7 @@ def decode(encoded: bytes | bytearray | memoryview) -> bytes:
         code = encoded[index]
         end = index + code
         if end > size:
-            raise CobsDecodeError(
-                f"code byte {code} at offset {index} points past the end ({size} bytes)"
-            )
+            raise CobsDecodeError(f"code byte {code} at offset {index} points past the end ({size} bytes)")
         out += encoded[index + 1 : end]
         index = end
         if code != 0xFF and index < size:

@@ -108,8 +108,14 @@ class LinkCore:
         protocol_version: int = pb.PROTOCOL_VERSION,
         event_queue_size: int = 1024,
     ) -> None:
-        check_link_settings(host_version, max_retries, heartbeat_period_s, link_timeout_s,
-                            retransmit_timeout_s, reconnect_period_s)
+        check_link_settings(
+            host_version,
+            max_retries,
+            heartbeat_period_s,
+            link_timeout_s,
+            retransmit_timeout_s,
+            reconnect_period_s,
+        )
         self.host_version = host_version
         self.heartbeat_period_s = heartbeat_period_s
         self.link_timeout_s = link_timeout_s
@@ -241,8 +247,14 @@ class LinkCore:
         # With caller heartbeats, the caller's loop must be alive to re-handshake too: a hung
         # navigation loop must not be revived on the MCU's side by the link alone.
         caller_alive = self.auto_heartbeat or now_s - self._caller_alive_s < self.link_timeout_s
-        if (not self.link_up and self.auto_connect and self.port_open and self._pending is None
-                and caller_alive and now_s >= self._next_connect_s):
+        if (
+            not self.link_up
+            and self.auto_connect
+            and self.port_open
+            and self._pending is None
+            and caller_alive
+            and now_s >= self._next_connect_s
+        ):
             self.connect(now_s)
 
     def port_lost(self, now_s: float, why: str) -> None:
@@ -299,9 +311,14 @@ class LinkCore:
             return
         if req.retries >= self.max_retries:
             self.counters.timeouts += 1
-            self._finish(req, now_s, error=LinkTimeout(
-                f"{req.kind} (seq {req.seq}) got no response after {req.retries + 1} attempts "
-                f"{self.retransmit_timeout_s:g} s apart"))
+            self._finish(
+                req,
+                now_s,
+                error=LinkTimeout(
+                    f"{req.kind} (seq {req.seq}) got no response after {req.retries + 1} attempts "
+                    f"{self.retransmit_timeout_s:g} s apart"
+                ),
+            )
             if req.kind == "handshake":
                 self._next_connect_s = now_s + self.reconnect_period_s
             return
@@ -310,8 +327,15 @@ class LinkCore:
         self.counters.retransmissions += 1
         self._send(req.packet, resend=True)  # same seq: the MCU answers from its cache
 
-    def _finish(self, req: Request, now_s: float, *, response: Any = None, kind: str = "",
-                error: LinkError | None = None) -> None:
+    def _finish(
+        self,
+        req: Request,
+        now_s: float,
+        *,
+        response: Any = None,
+        kind: str = "",
+        error: LinkError | None = None,
+    ) -> None:
         req.done = True
         req.response = response
         req.response_kind = kind
@@ -400,21 +424,42 @@ class LinkCore:
 
     def _on_handshake_reply(self, req: Request, kind: str, body: Any, now_s: float) -> None:
         if kind == "ack":  # an MCU that does not know Handshake at all
-            self._finish(req, now_s, response=body, kind=kind,
-                         error=Nack(pb.enum_name(pb.NackReason, body.reason), "handshake"))
+            self._finish(
+                req,
+                now_s,
+                response=body,
+                kind=kind,
+                error=Nack(pb.enum_name(pb.NackReason, body.reason), "handshake"),
+            )
             return
         if kind != "handshake_reply":
-            self._finish(req, now_s, response=body, kind=kind,
-                         error=LinkError(f"unexpected {kind} in answer to the handshake"))
+            self._finish(
+                req,
+                now_s,
+                response=body,
+                kind=kind,
+                error=LinkError(f"unexpected {kind} in answer to the handshake"),
+            )
             return
         if body.reason == pb.NACK_VERSION_MISMATCH or (
-                body.accepted and body.protocol_version != self.protocol_version):
-            self._finish(req, now_s, response=body, kind=kind,
-                         error=ProtocolVersionError(self.protocol_version, body.protocol_version))
+            body.accepted and body.protocol_version != self.protocol_version
+        ):
+            self._finish(
+                req,
+                now_s,
+                response=body,
+                kind=kind,
+                error=ProtocolVersionError(self.protocol_version, body.protocol_version),
+            )
             return
         if not body.accepted:
-            self._finish(req, now_s, response=body, kind=kind,
-                         error=Nack(pb.enum_name(pb.NackReason, body.reason), "handshake"))
+            self._finish(
+                req,
+                now_s,
+                response=body,
+                kind=kind,
+                error=Nack(pb.enum_name(pb.NackReason, body.reason), "handshake"),
+            )
             return
         self.handshake_info = body
         self.link_up = True
@@ -424,7 +469,11 @@ class LinkCore:
         self._last_rx_s = now_s
         self._last_heartbeat_s = -1e18
         self._finish(req, now_s, response=body, kind=kind)
-        self.notices.append(Notice(
-            now_s, "link_up",
-            detail=f"firmware {body.firmware_version}, reset cause "
-                   f"{pb.enum_name(pb.ResetCause, body.reset_cause)}"))
+        self.notices.append(
+            Notice(
+                now_s,
+                "link_up",
+                detail=f"firmware {body.firmware_version}, reset cause "
+                f"{pb.enum_name(pb.ResetCause, body.reset_cause)}",
+            )
+        )

@@ -22,13 +22,13 @@ def follow_peer_seq(last: int | None, seq: int) -> tuple[int | None, int]:
     """The peer sent ``seq`` after ``last`` (None: nothing yet). Returns the seq to remember and
     how many of the peer's packets went missing in between."""
     if seq == 0:
-        return last, 0                     # no seq on this packet
+        return last, 0  # no seq on this packet
     if last is None:
         return seq, 0
-    ahead = (seq - next_seq(last)) % SEQ_MAX   # packets skipped, across the wrap
+    ahead = (seq - next_seq(last)) % SEQ_MAX  # packets skipped, across the wrap
     behind = (last - seq) % SEQ_MAX
     if seq == last or behind <= STALE_SEQ_WINDOW:
-        return last, 0                     # a re-send: nothing new about the numbering
+        return last, 0  # a re-send: nothing new about the numbering
     if ahead < SEQ_MAX // 2:
         return seq, ahead
-    return seq, 0                          # far behind: the peer restarted its numbering
+    return seq, 0  # far behind: the peer restarted its numbering

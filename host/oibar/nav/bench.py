@@ -68,8 +68,13 @@ def _frames(frames_dir: str | Path | None, n: int) -> list[np.ndarray]:
     return [rng.integers(0, 255, (480, 744, 3), dtype=np.uint8)]
 
 
-def nav_cycle_latency(model_path: str | Path, cycles: int = 600, frames_dir: str | Path | None = None,
-                      threads: int = 2, rate_hz: float = 10.0) -> dict[str, Any]:
+def nav_cycle_latency(
+    model_path: str | Path,
+    cycles: int = 600,
+    frames_dir: str | Path | None = None,
+    threads: int = 2,
+    rate_hz: float = 10.0,
+) -> dict[str, Any]:
     """-> dict(median_ms, p99_ms, max_ms, cycles, missed_deadlines, cycle_ms_median, cycle_ms_p99,
     frames_used, source). Runs ``cycles / rate_hz`` seconds of wall time."""
     from oibar.camera import CallableSource
@@ -91,15 +96,26 @@ def nav_cycle_latency(model_path: str | Path, cycles: int = 600, frames_dir: str
     nav = load_navigator(model_path, threads=threads)
     with tempfile.TemporaryDirectory() as tmp:
         log = CycleLog(Path(tmp) / "cycles.jsonl")
-        d = NavDaemon(nav, Guidance(MissionParams(nav_lost_abort_s=1e9)),
-                      CallableSource(render, rate_hz=rate_hz * 1.5, name="bench frames"), link=_InstantLink(),
-                      log=log, params=DaemonParams(rate_hz=rate_hz))
+        d = NavDaemon(
+            nav,
+            Guidance(MissionParams(nav_lost_abort_s=1e9)),
+            CallableSource(render, rate_hz=rate_hz * 1.5, name="bench frames"),
+            link=_InstantLink(),
+            log=log,
+            params=DaemonParams(rate_hz=rate_hz),
+        )
         s = d.run(max_cycles=cycles)
-    return {"median_ms": s["frame_to_command_ms_median"], "p99_ms": s["frame_to_command_ms_p99"],
-            "max_ms": s["frame_to_command_ms_max"], "cycles": s["cycles"], "missed_deadlines": s["missed_deadlines"],
-            "cycle_ms_median": s["cycle_ms_median"], "cycle_ms_p99": s["cycle_ms_p99"],
-            "frames_used": s["frames_used"],
-            "source": f"{len(frames)} frames from {frames_dir}" if frames_dir else "one random frame"}
+    return {
+        "median_ms": s["frame_to_command_ms_median"],
+        "p99_ms": s["frame_to_command_ms_p99"],
+        "max_ms": s["frame_to_command_ms_max"],
+        "cycles": s["cycles"],
+        "missed_deadlines": s["missed_deadlines"],
+        "cycle_ms_median": s["cycle_ms_median"],
+        "cycle_ms_p99": s["cycle_ms_p99"],
+        "frames_used": s["frames_used"],
+        "source": f"{len(frames)} frames from {frames_dir}" if frames_dir else "one random frame",
+    }
 
 
 if __name__ == "__main__":

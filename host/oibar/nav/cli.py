@@ -71,32 +71,63 @@ def default_model_path() -> Path:
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    nav = sub.add_parser("nav", help="run the navigation daemon (camera -> OibarNet -> guidance -> MCU)",
-                         description=_NAV_DESCRIPTION, epilog=_NAV_EPILOG,
-                         formatter_class=argparse.RawDescriptionHelpFormatter)
-    nav.add_argument("--camera", required=True, metavar="SPEC", help="camera device, video file or frame folder")
-    nav.add_argument("--port", required=True, metavar="URL", help="MCU serial port, socket://HOST:PORT, or none")
-    nav.add_argument("--model", type=Path, default=None, metavar="ONNX",
-                     help="OibarNet ONNX model (default: $OIBAR_MODEL or models/oibarnet.onnx)")
-    nav.add_argument("--vehicle", default="none", metavar="SPEC", help="where velocity setpoints go (default: none)")
-    nav.add_argument("--log", type=Path, default=None, metavar="DIR",
-                     help="log folder (default: runs/nav/<date-time>); cycles.jsonl is written there")
+    nav = sub.add_parser(
+        "nav",
+        help="run the navigation daemon (camera -> OibarNet -> guidance -> MCU)",
+        description=_NAV_DESCRIPTION,
+        epilog=_NAV_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    nav.add_argument(
+        "--camera", required=True, metavar="SPEC", help="camera device, video file or frame folder"
+    )
+    nav.add_argument(
+        "--port", required=True, metavar="URL", help="MCU serial port, socket://HOST:PORT, or none"
+    )
+    nav.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        metavar="ONNX",
+        help="OibarNet ONNX model (default: $OIBAR_MODEL or models/oibarnet.onnx)",
+    )
+    nav.add_argument(
+        "--vehicle", default="none", metavar="SPEC", help="where velocity setpoints go (default: none)"
+    )
+    nav.add_argument(
+        "--log",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="log folder (default: runs/nav/<date-time>); cycles.jsonl is written there",
+    )
     nav.add_argument("--no-log", action="store_true", help="do not write a cycle log")
-    nav.add_argument("--record-frames", action="store_true", help="also keep every frame used (for oibar replay)")
+    nav.add_argument(
+        "--record-frames", action="store_true", help="also keep every frame used (for oibar replay)"
+    )
     nav.add_argument("--rate-hz", type=float, default=10.0, help="navigation rate (default: 10)")
-    nav.add_argument("--camera-rate-hz", type=float, default=10.0,
-                     help="pace for frame folders without time stamps (default: 10)")
+    nav.add_argument(
+        "--camera-rate-hz",
+        type=float,
+        default=10.0,
+        help="pace for frame folders without time stamps (default: 10)",
+    )
     nav.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default: 2)")
     nav.add_argument("--duration-s", type=float, default=None, metavar="S", help="stop after S seconds")
     nav.add_argument("--target-pressure-kpa", type=float, default=1200.0, help="fill target (default: 1200)")
     nav.add_argument("--baudrate", type=int, default=115200)
     nav.set_defaults(handler=cmd_nav, run=run)
 
-    rp = sub.add_parser("replay", help="re-run pose estimation and the filter on a recorded cycle log",
-                        description="Feed the frames recorded by `oibar nav --record-frames` through a fresh "
-                                    "navigator (optionally another model) and compare with the recorded estimates.")
+    rp = sub.add_parser(
+        "replay",
+        help="re-run pose estimation and the filter on a recorded cycle log",
+        description="Feed the frames recorded by `oibar nav --record-frames` through a fresh "
+        "navigator (optionally another model) and compare with the recorded estimates.",
+    )
     rp.add_argument("log", type=Path, help="cycles.jsonl written by oibar nav")
-    rp.add_argument("--model", type=Path, default=None, metavar="ONNX", help="model (default: as for oibar nav)")
+    rp.add_argument(
+        "--model", type=Path, default=None, metavar="ONNX", help="model (default: as for oibar nav)"
+    )
     rp.add_argument("--out", type=Path, default=None, help="write the replayed estimates here (JSON lines)")
     rp.add_argument("--threads", type=int, default=2)
     rp.set_defaults(handler=cmd_replay, run=run)
@@ -139,13 +170,19 @@ def cmd_nav(a: argparse.Namespace) -> int:
     from oibar.nav.vehicle import open_vehicle
 
     model = a.model or default_model_path()
-    navigator = load_navigator(model, threads=a.threads)       # model errors first, nothing opened yet
+    navigator = load_navigator(model, threads=a.threads)  # model errors first, nothing opened yet
     est = navigator.estimator
     lo, hi = est.range_limits_m
-    origin = "from the model's oibar.train_range_m" if "train_range_m" in est.meta else \
-        "default: the model states no oibar.train_range_m"
-    print(f"model {model} (version {est.meta.get('model_version', '?')}), "
-          f"input {est.size_wh[0]}x{est.size_wh[1]}, range check {lo:g}-{hi:g} m ({origin})", file=sys.stderr)
+    origin = (
+        "from the model's oibar.train_range_m"
+        if "train_range_m" in est.meta
+        else "default: the model states no oibar.train_range_m"
+    )
+    print(
+        f"model {model} (version {est.meta.get('model_version', '?')}), "
+        f"input {est.size_wh[0]}x{est.size_wh[1]}, range check {lo:g}-{hi:g} m ({origin})",
+        file=sys.stderr,
+    )
     camera = open_source(a.camera, rate_hz=a.camera_rate_hz, realtime=True)
     vehicle = open_vehicle(a.vehicle)
     log = None
@@ -160,8 +197,16 @@ def cmd_nav(a: argparse.Namespace) -> int:
     guidance = Guidance(MissionParams(target_kpa=a.target_pressure_kpa))
     # the live status line on a terminal; in a log, one line every few seconds
     status = StatusLine()
-    daemon = NavDaemon(navigator, guidance, camera, link=link, vehicle=vehicle, log=log,
-                       params=DaemonParams(rate_hz=a.rate_hz), status=status.show)
+    daemon = NavDaemon(
+        navigator,
+        guidance,
+        camera,
+        link=link,
+        vehicle=vehicle,
+        log=log,
+        params=DaemonParams(rate_hz=a.rate_hz),
+        status=status.show,
+    )
     install_sigint(daemon)
     try:
         summary = daemon.run(duration_s=a.duration_s)
@@ -170,10 +215,13 @@ def cmd_nav(a: argparse.Namespace) -> int:
             link.close()
         status.end()
     p99 = summary.get("frame_to_command_ms_p99")
-    print(f"{summary['cycles']} cycles, {summary['missed_deadlines']} missed deadlines, "
-          f"frame-to-command p99 {p99:.1f} ms" if p99 is not None else
-          f"{summary['cycles']} cycles, {summary['missed_deadlines']} missed deadlines, no frame used",
-          file=sys.stderr)
+    print(
+        f"{summary['cycles']} cycles, {summary['missed_deadlines']} missed deadlines, "
+        f"frame-to-command p99 {p99:.1f} ms"
+        if p99 is not None
+        else f"{summary['cycles']} cycles, {summary['missed_deadlines']} missed deadlines, no frame used",
+        file=sys.stderr,
+    )
     print(f"mission: {guidance.outcome}", file=sys.stderr)
     return EXIT_OK
 

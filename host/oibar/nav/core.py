@@ -27,8 +27,8 @@ from oibar.nav.pose import FrameError, PoseEstimate, PoseEstimator
 
 @dataclass
 class NavigatorParams:
-    confidence_min: float = 0.5      # below: do not act on the estimate (the filter coasts)
-    max_frame_age_s: float = 0.25    # an older frame is stale: 2.5 cycles at 10 Hz
+    confidence_min: float = 0.5  # below: do not act on the estimate (the filter coasts)
+    max_frame_age_s: float = 0.25  # an older frame is stale: 2.5 cycles at 10 Hz
 
 
 @dataclass
@@ -40,21 +40,31 @@ class NavStep:
     frame_seq: int | None = None
     frame_t_s: float | None = None
     estimate: PoseEstimate | None = None
-    update: Any = None               # the filter's UpdateResult, None when nothing was fed
+    update: Any = None  # the filter's UpdateResult, None when nothing was fed
     hold_reason: str = ""
     timings_ms: dict[str, float] = field(default_factory=dict)
-    velocity_update: Any = None      # the filter's VelocityUpdateResult, None without odometry
+    velocity_update: Any = None  # the filter's VelocityUpdateResult, None without odometry
 
 
 class Navigator:
-    def __init__(self, estimator: PoseEstimator, nav_filter: NavFilter | None = None,
-                 params: NavigatorParams | None = None) -> None:
+    def __init__(
+        self,
+        estimator: PoseEstimator,
+        nav_filter: NavFilter | None = None,
+        params: NavigatorParams | None = None,
+    ) -> None:
         self.estimator = estimator
         self.filter = nav_filter or NavFilter()
         self.p = params or NavigatorParams()
 
-    def step(self, t_s: float, frame: Any | None, frame_t_s: float | None = None,
-             frame_seq: int | None = None, odometry: Any = None) -> NavStep:
+    def step(
+        self,
+        t_s: float,
+        frame: Any | None,
+        frame_t_s: float | None = None,
+        frame_seq: int | None = None,
+        odometry: Any = None,
+    ) -> NavStep:
         """``frame``: an RGB uint8 image, or None when no new frame arrived this cycle.
         ``frame_t_s``: its capture time on the same clock as ``t_s`` (default: now).
         ``odometry``: ``(t_s, v_D_mps, sigma_mps)`` on the same clock, or None."""
@@ -94,13 +104,13 @@ class Navigator:
                     reason = f"malformed frame: {exc}"
                 timings["estimate_ms"] = (time.perf_counter() - t0) * 1e3
                 if est is not None:
-                    if not est.confidence >= self.p.confidence_min:    # NaN-safe
+                    if not est.confidence >= self.p.confidence_min:  # NaN-safe
                         reason = f"low confidence {est.confidence:.2f}"
                     else:
                         t0 = time.perf_counter()
                         try:
                             upd = self.filter.update(ft, est.T_cam_target_m, est.R_cam_target, est.confidence)
-                        except ValueError as exc:   # a frame older than the last one fused
+                        except ValueError as exc:  # a frame older than the last one fused
                             reason = f"frame out of order ({exc})"
                         timings["filter_ms"] = (time.perf_counter() - t0) * 1e3
                         if upd is not None and upd.gated:
@@ -111,11 +121,16 @@ class Navigator:
         if not st.valid and not reason:
             reason = "filter not initialised"
         sol = NavSolution(
-            valid=bool(st.valid), r_D_m=np.asarray(st.r_D_m, dtype=float).copy(),
-            v_D_mps=np.asarray(st.v_D_mps, dtype=float).copy(), att_rad=np.asarray(st.att_rad, dtype=float).copy(),
-            misalignment_deg=float(st.misalignment_deg), t_cam_target_m=np.asarray(st.T_cam_target_m, dtype=float),
+            valid=bool(st.valid),
+            r_D_m=np.asarray(st.r_D_m, dtype=float).copy(),
+            v_D_mps=np.asarray(st.v_D_mps, dtype=float).copy(),
+            att_rad=np.asarray(st.att_rad, dtype=float).copy(),
+            misalignment_deg=float(st.misalignment_deg),
+            t_cam_target_m=np.asarray(st.T_cam_target_m, dtype=float),
             q_cam_target=np.asarray(st.q_cam_target, dtype=float),
-            confidence=float(est.confidence) if est is not None else 0.0, hold_reason=reason)
+            confidence=float(est.confidence) if est is not None else 0.0,
+            hold_reason=reason,
+        )
         return NavStep(t_s, sol, frame_seq, frame_t_s, est, upd, reason, timings, velocity_update=vel_upd)
 
     def _predicted_pose(self, t_s: float) -> tuple[np.ndarray, np.ndarray] | None:
@@ -125,7 +140,7 @@ class Navigator:
             return None
         try:
             st = self.filter.state(t_s)
-        except ValueError:          # a frame older than the filter's clock
+        except ValueError:  # a frame older than the filter's clock
             return None
         if not st.valid:
             return None
@@ -134,7 +149,7 @@ class Navigator:
     def _fuse_velocity(self, t_s: float, odometry: Any) -> Any:
         try:
             return self.filter.update_velocity(t_s, odometry[1], odometry[2])
-        except (ValueError, TypeError, IndexError):   # older than the last fused frame, or malformed
+        except (ValueError, TypeError, IndexError):  # older than the last fused frame, or malformed
             return None
 
     def reset(self) -> None:

@@ -45,8 +45,13 @@ class CycleLogError(RuntimeError):
 
 
 class CycleLog:
-    def __init__(self, path: str | Path, frames_dir: str | Path | None = None, jpeg_quality: int = 92,
-                 flush_every: int = 10) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        frames_dir: str | Path | None = None,
+        jpeg_quality: int = 92,
+        flush_every: int = 10,
+    ) -> None:
         self.path = Path(path)
         self.frames_dir = Path(frames_dir) if frames_dir else None
         self.jpeg_quality = int(jpeg_quality)

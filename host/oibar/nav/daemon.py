@@ -62,12 +62,12 @@ from oibar.nav.vehicle import NullVehicle, VehicleInterface
 
 @dataclass
 class DaemonParams:
-    rate_hz: float = 10.0             # SPEC section 5
+    rate_hz: float = 10.0  # SPEC section 5
     camera_lost_timeout_s: float = 1.0
-    camera_retry_s: float = 2.0       # reopen a lost camera this often
-    camera_join_s: float = 2.0        # how long stopping a lost camera waits for its reader
-    status_every_s: float = 0.5       # live status line refresh
-    stats_window: int = 36_000        # cycle timings kept for the percentiles (1 h at 10 Hz)
+    camera_retry_s: float = 2.0  # reopen a lost camera this often
+    camera_join_s: float = 2.0  # how long stopping a lost camera waits for its reader
+    status_every_s: float = 0.5  # live status line refresh
+    stats_window: int = 36_000  # cycle timings kept for the percentiles (1 h at 10 Hz)
 
 
 @dataclass
@@ -80,18 +80,25 @@ class DaemonStats:
     frames_used: int = 0
     camera_reopens: int = 0
     holds: int = 0
-    odometry_errors: int = 0          # the vehicle's relative_velocity raised
+    odometry_errors: int = 0  # the vehicle's relative_velocity raised
 
     def summary(self) -> dict[str, Any]:
         def pct(xs: collections.deque[float], q: float) -> float | None:
             return float(np.percentile(xs, q)) if xs else None
-        return {"cycles": self.cycles, "missed_deadlines": self.missed_deadlines, "frames_used": self.frames_used,
-                "camera_reopens": self.camera_reopens, "hold_cycles": self.holds,
-                "odometry_errors": self.odometry_errors,
-                "cycle_ms_median": pct(self.cycle_ms, 50), "cycle_ms_p99": pct(self.cycle_ms, 99),
-                "frame_to_command_ms_median": pct(self.frame_to_command_ms, 50),
-                "frame_to_command_ms_p99": pct(self.frame_to_command_ms, 99),
-                "frame_to_command_ms_max": max(self.frame_to_command_ms) if self.frame_to_command_ms else None}
+
+        return {
+            "cycles": self.cycles,
+            "missed_deadlines": self.missed_deadlines,
+            "frames_used": self.frames_used,
+            "camera_reopens": self.camera_reopens,
+            "hold_cycles": self.holds,
+            "odometry_errors": self.odometry_errors,
+            "cycle_ms_median": pct(self.cycle_ms, 50),
+            "cycle_ms_p99": pct(self.cycle_ms, 99),
+            "frame_to_command_ms_median": pct(self.frame_to_command_ms, 50),
+            "frame_to_command_ms_p99": pct(self.frame_to_command_ms, 99),
+            "frame_to_command_ms_max": max(self.frame_to_command_ms) if self.frame_to_command_ms else None,
+        }
 
 
 def request_result(req: MechRequest, handle: Request) -> RequestResult:
@@ -106,11 +113,19 @@ def request_result(req: MechRequest, handle: Request) -> RequestResult:
 
 
 class NavDaemon:
-    def __init__(self, navigator: Navigator, guidance: Guidance, camera: CameraSource,
-                 link: NavLink | None = None, vehicle: VehicleInterface | None = None,
-                 log: CycleLog | None = None, params: DaemonParams | None = None,
-                 status: Callable[[str], object] | None = None, clock: Callable[[], float] = time.monotonic,
-                 t0_s: float | None = None) -> None:
+    def __init__(
+        self,
+        navigator: Navigator,
+        guidance: Guidance,
+        camera: CameraSource,
+        link: NavLink | None = None,
+        vehicle: VehicleInterface | None = None,
+        log: CycleLog | None = None,
+        params: DaemonParams | None = None,
+        status: Callable[[str], object] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        t0_s: float | None = None,
+    ) -> None:
         self.nav = navigator
         self.guidance = guidance
         self.camera_source = camera
@@ -120,12 +135,14 @@ class NavDaemon:
         self.p = params or DaemonParams()
         self.status = status
         self.clock = clock
-        self.stats = DaemonStats(cycle_ms=collections.deque(maxlen=self.p.stats_window),
-                                 frame_to_command_ms=collections.deque(maxlen=self.p.stats_window))
+        self.stats = DaemonStats(
+            cycle_ms=collections.deque(maxlen=self.p.stats_window),
+            frame_to_command_ms=collections.deque(maxlen=self.p.stats_window),
+        )
         self._stop = threading.Event()
         self._cam: LatestFrame | None = None
         self._stuck_cam: LatestFrame | None = None  # a reader still blocked in read(): not reopened under it
-        self.camera_ended = False                    # a finite source delivered its last frame
+        self.camera_ended = False  # a finite source delivered its last frame
         self._cam_error = ""
         self._next_cam_try = 0.0
         self._awaiting: MechRequest | None = None
@@ -150,11 +167,14 @@ class NavDaemon:
                 if self._stuck_cam.running:
                     self._cam_error = "reader still blocked in the source's read(); not reopened under it"
                     return None
-                self._stuck_cam.stop()      # it has left read(): now the source can be closed
+                self._stuck_cam.stop()  # it has left read(): now the source can be closed
                 self._stuck_cam = None
             try:
-                self._cam = LatestFrame(self.camera_source, lost_timeout_s=self.p.camera_lost_timeout_s,
-                                        join_timeout_s=self.p.camera_join_s).start()
+                self._cam = LatestFrame(
+                    self.camera_source,
+                    lost_timeout_s=self.p.camera_lost_timeout_s,
+                    join_timeout_s=self.p.camera_join_s,
+                ).start()
                 if self._opened_once:
                     self.stats.camera_reopens += 1
                 self._opened_once = True
@@ -171,7 +191,7 @@ class NavDaemon:
             self.camera_ended = True
             self._cam_error = f"end of stream ({exc})"
         if cam is not None and not cam.stop():
-            self._stuck_cam = cam            # LatestFrame.stop left it running and the source open
+            self._stuck_cam = cam  # LatestFrame.stop left it running and the source open
         self._next_cam_try = now + self.p.camera_retry_s
 
     def wait_frame(self, until: float, min_capture_host: float = -1e18) -> Frame | None:
@@ -192,9 +212,12 @@ class NavDaemon:
             try:
                 frame = cam.poll() if remaining <= 0 else cam.get(timeout_s=remaining)
             except CameraError as exc:
-                if cam.seconds_since_last_capture <= self.p.camera_lost_timeout_s and \
-                        isinstance(exc, CameraLost) and cam.running:
-                    return None          # just no frame before `until`: the camera is fine
+                if (
+                    cam.seconds_since_last_capture <= self.p.camera_lost_timeout_s
+                    and isinstance(exc, CameraLost)
+                    and cam.running
+                ):
+                    return None  # just no frame before `until`: the camera is fine
                 self._drop_camera(exc, self.clock())
                 return None
             if frame is None:
@@ -205,7 +228,9 @@ class NavDaemon:
 
     # -- one cycle ----------------------------------------------------------------------
 
-    def cycle(self, frame: Frame | None = None, camera_error: str | None = None) -> tuple[NavStep, GuidanceOutput]:
+    def cycle(
+        self, frame: Frame | None = None, camera_error: str | None = None
+    ) -> tuple[NavStep, GuidanceOutput]:
         """One cycle on ``frame`` (None: no new frame this time). ``camera_error``: why there is
         none, from a caller that runs the camera itself (the HIL rig); default: the daemon's own
         camera state."""
@@ -215,8 +240,9 @@ class NavDaemon:
         t_s = start - self._t0
         odometry = self._odometry(t_s)
         if frame is not None:
-            step = self.nav.step(t_s, frame.image, frame_t_s=frame.t_host - self._t0, frame_seq=frame.seq,
-                                 odometry=odometry)
+            step = self.nav.step(
+                t_s, frame.image, frame_t_s=frame.t_host - self._t0, frame_seq=frame.seq, odometry=odometry
+            )
             self.stats.frames_used += 1
         else:
             step = self.nav.step(t_s, None, odometry=odometry)
@@ -293,14 +319,26 @@ class NavDaemon:
         if odometry is None:
             return None
         try:
-            rec = {"t_s": float(odometry[0]), "v_D_mps": [float(v) for v in odometry[1]],
-                   "sigma_mps": float(odometry[2])}
+            rec = {
+                "t_s": float(odometry[0]),
+                "v_D_mps": [float(v) for v in odometry[1]],
+                "sigma_mps": float(odometry[2]),
+            }
         except (TypeError, ValueError, IndexError):
             rec = {"malformed": repr(odometry)[:80]}
         return {**rec, "reason": upd.reason if upd is not None else "dropped"}
 
-    def _log_cycle(self, t_s: float, frame: Frame | None, step: NavStep, out: GuidanceOutput, link_up: bool,
-                   tm: Telemetry | None, cycle_ms: float, odometry: Any = None) -> None:
+    def _log_cycle(
+        self,
+        t_s: float,
+        frame: Frame | None,
+        step: NavStep,
+        out: GuidanceOutput,
+        link_up: bool,
+        tm: Telemetry | None,
+        cycle_ms: float,
+        odometry: Any = None,
+    ) -> None:
         if self.log is None:
             return
         est = step.estimate
@@ -308,22 +346,48 @@ class NavDaemon:
         frame_file = self.log.save_frame(frame.image, self.stats.cycles) if frame is not None else None
         sol = step.solution
         upd = step.update
-        self.log.write({
-            "kind": "cycle", "t_s": t_s, "cycle": self.stats.cycles,
-            "frame": None if frame is None else {"seq": frame.seq, "t_s": frame.t_host - self._t0, "file": frame_file},
-            "estimate": None if est is None else {"T_cam_target_m": est.T_cam_target_m,
-                                                  "q_cam_target": est.q_cam_target,
-                                                  "confidence": est.confidence, "latency_ms": est.latency_ms},
-            "filter": None if upd is None else {"accepted": upd.accepted, "gated": upd.gated,
-                                                "reinitialised": getattr(upd, "reinitialised", False)},
-            "odometry": self._odometry_record(odometry, step.velocity_update),
-            "nav": {"valid": sol.valid, "r_D_m": sol.r_D_m, "v_D_mps": sol.v_D_mps, "att_rad": sol.att_rad,
-                    "hold_reason": sol.hold_reason},
-            "guidance": {"phase": out.phase, "v_sp_D_mps": out.v_sp_D_mps, "w_sp_rad_s": out.w_sp_rad_s,
-                         "request": out.request.label if out.request else None},
-            "link_up": link_up, "mcu_state": pb.enum_name(pb.State, tm.state) if tm is not None else None,
-            "timings_ms": {**step.timings_ms, "cycle": cycle_ms},
-        })
+        self.log.write(
+            {
+                "kind": "cycle",
+                "t_s": t_s,
+                "cycle": self.stats.cycles,
+                "frame": None
+                if frame is None
+                else {"seq": frame.seq, "t_s": frame.t_host - self._t0, "file": frame_file},
+                "estimate": None
+                if est is None
+                else {
+                    "T_cam_target_m": est.T_cam_target_m,
+                    "q_cam_target": est.q_cam_target,
+                    "confidence": est.confidence,
+                    "latency_ms": est.latency_ms,
+                },
+                "filter": None
+                if upd is None
+                else {
+                    "accepted": upd.accepted,
+                    "gated": upd.gated,
+                    "reinitialised": getattr(upd, "reinitialised", False),
+                },
+                "odometry": self._odometry_record(odometry, step.velocity_update),
+                "nav": {
+                    "valid": sol.valid,
+                    "r_D_m": sol.r_D_m,
+                    "v_D_mps": sol.v_D_mps,
+                    "att_rad": sol.att_rad,
+                    "hold_reason": sol.hold_reason,
+                },
+                "guidance": {
+                    "phase": out.phase,
+                    "v_sp_D_mps": out.v_sp_D_mps,
+                    "w_sp_rad_s": out.w_sp_rad_s,
+                    "request": out.request.label if out.request else None,
+                },
+                "link_up": link_up,
+                "mcu_state": pb.enum_name(pb.State, tm.state) if tm is not None else None,
+                "timings_ms": {**step.timings_ms, "cycle": cycle_ms},
+            }
+        )
 
     # -- the loop -----------------------------------------------------------------------
 
@@ -339,9 +403,11 @@ class NavDaemon:
         cyc = self.stats.cycle_ms[-1] if self.stats.cycle_ms else 0.0
         hold = f"  HOLD: {sol.hold_reason}" if sol.hold_reason else ""
         logw = f"  LOG: {self.log.error}" if self.log is not None and self.log.error else ""
-        return (f"t {self._last_t():7.1f} s  {out.phase:<18} range {rng}  lat {sol.lateral_m * 100:5.1f} cm  "
-                f"conf {sol.confidence:4.2f}  MCU {st:<16} link {link}  cycle {cyc:5.1f} ms  "
-                f"missed {self.stats.missed_deadlines}{hold}{logw}")
+        return (
+            f"t {self._last_t():7.1f} s  {out.phase:<18} range {rng}  lat {sol.lateral_m * 100:5.1f} cm  "
+            f"conf {sol.confidence:4.2f}  MCU {st:<16} link {link}  cycle {cyc:5.1f} ms  "
+            f"missed {self.stats.missed_deadlines}{hold}{logw}"
+        )
 
     def _last_t(self) -> float:
         return self.clock() - self._t0
@@ -363,10 +429,16 @@ class NavDaemon:
         if not self._t0_fixed:
             self._t0 = t_start
         if self.log is not None:
-            self.log.write({"kind": "header", "rate_hz": self.p.rate_hz, "camera": self.camera_source.name,
-                            "model": str(getattr(self.nav.estimator, "path", "")),
-                            "model_version": getattr(self.nav.estimator, "meta", {}).get("model_version"),
-                            "wall_clock_start": time.time()})
+            self.log.write(
+                {
+                    "kind": "header",
+                    "rate_hz": self.p.rate_hz,
+                    "camera": self.camera_source.name,
+                    "model": str(getattr(self.nav.estimator, "path", "")),
+                    "model_version": getattr(self.nav.estimator, "meta", {}).get("model_version"),
+                    "wall_clock_start": time.time(),
+                }
+            )
         last_start = t_start - period
         last_capture = -1e18
         k = 0
@@ -376,8 +448,9 @@ class NavDaemon:
                     break
                 if max_cycles is not None and k >= max_cycles:
                     break
-                frame = self.wait_frame(until=last_start + 1.5 * period,
-                                        min_capture_host=last_capture + 0.9 * period)
+                frame = self.wait_frame(
+                    until=last_start + 1.5 * period, min_capture_host=last_capture + 0.9 * period
+                )
                 if self._stop.is_set():
                     break
                 start = self.clock()
@@ -415,19 +488,32 @@ class NavDaemon:
         if self.log is not None:
             try:
                 vehicle = self.vehicle.statistics()
-            except Exception as exc:   # a user's vehicle class: its counters must not lose the footer
+            except Exception as exc:  # a user's vehicle class: its counters must not lose the footer
                 vehicle = {"error": repr(exc)[:80]}
-            self.log.write({"kind": "footer", "summary": self.stats.summary(), "outcome": self.guidance.outcome,
-                            "notes": self.guidance.notes, "log_lines_lost": self.log.lines_lost,
-                            "log_error": self.log.error, "vehicle": vehicle})
+            self.log.write(
+                {
+                    "kind": "footer",
+                    "summary": self.stats.summary(),
+                    "outcome": self.guidance.outcome,
+                    "notes": self.guidance.notes,
+                    "log_lines_lost": self.log.lines_lost,
+                    "log_error": self.log.error,
+                    "vehicle": vehicle,
+                }
+            )
             self.log.close()
 
 
 def install_sigint(daemon: NavDaemon) -> None:
     """Ctrl-C / SIGTERM: finish the current cycle, hold the vehicle, close everything."""
+
     def handler(signum: int, _frame: object) -> None:
         daemon.stop()
-        print(f"\n{signal.Signals(signum).name}: stopping (vehicle hold, closing link and camera)", file=sys.stderr)
+        print(
+            f"\n{signal.Signals(signum).name}: stopping (vehicle hold, closing link and camera)",
+            file=sys.stderr,
+        )
+
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
 
@@ -438,8 +524,12 @@ def load_navigator(model_path: str | Path, threads: int = 2) -> Navigator:
     return Navigator(PoseEstimator(model_path, threads=threads))
 
 
-def connect_in_background(link: Connectable, retry_s: float = 2.0, on_error: Callable[[str], None] | None = None,
-                          stop: threading.Event | None = None) -> threading.Thread:
+def connect_in_background(
+    link: Connectable,
+    retry_s: float = 2.0,
+    on_error: Callable[[str], None] | None = None,
+    stop: threading.Event | None = None,
+) -> threading.Thread:
     """Keep calling ``link.connect()`` until it succeeds: a daemon started before the MCU is
     powered (or with the cable out) comes up by itself. After the first handshake the link
     client's own supervisor reconnects."""
@@ -458,7 +548,7 @@ def connect_in_background(link: Connectable, retry_s: float = 2.0, on_error: Cal
                 if on_error and msg != last:
                     on_error(msg)
                 last = msg
-                if isinstance(exc, LinkClosed):   # closed by the daemon: stop trying
+                if isinstance(exc, LinkClosed):  # closed by the daemon: stop trying
                     return
             stop.wait(retry_s)
 

@@ -45,7 +45,7 @@ from oibar.geometry.docking import (
 )
 from oibar.geometry.rotations import matrix_to_quat, rotvec_to_matrix
 
-CHI2_3DOF_P001 = 16.266   # chi-square, 3 degrees of freedom, upper tail 0.001
+CHI2_3DOF_P001 = 16.266  # chi-square, 3 degrees of freedom, upper tail 0.001
 
 
 @dataclass(frozen=True)
@@ -58,7 +58,7 @@ class FilterParams:
     # apparent size and is the weak axis of a monocular camera.
     pos_sigma_lateral_frac: float = 0.01
     pos_sigma_depth_frac: float = 0.03
-    pos_sigma_floor_m: float = 0.005       # close in: pixel quantisation does not shrink to zero
+    pos_sigma_floor_m: float = 0.005  # close in: pixel quantisation does not shrink to zero
     # Attitude measurement noise per axis: from the fixture's shape, not its size, so constant.
     # It also moves the probe tip in D by (attitude error) x (target-to-tip distance): the camera
     # sees the target's bearing, and the attitude turns that into where the probe is.
@@ -67,27 +67,39 @@ class FilterParams:
     # centimetres per second over seconds (closing-speed schedule 150/80/40/30 mm/s); the
     # attitude controller by tenths of deg/s. 1e-4 was the best of 1e-5/1e-4/1e-3 for the
     # closing speed on a training sequence (seq02) without lagging the schedule's steps.
-    accel_psd_m2_s3: float = 1e-4          # sqrt(q * 1 s) = 1 cm/s of velocity random walk per second
-    ang_accel_psd_rad2_s3: float = 1e-5    # about 0.2 deg/s per second
+    accel_psd_m2_s3: float = 1e-4  # sqrt(q * 1 s) = 1 cm/s of velocity random walk per second
+    ang_accel_psd_rad2_s3: float = 1e-5  # about 0.2 deg/s per second
     # At first sight the rates are unknown: sigmas spanning what the approach can do
     # (closing speed <= 0.15 m/s, attitude rates well below 1 deg/s).
     init_vel_sigma_mps: float = 0.1
     init_rate_sigma_deg_s: float = 1.0
-    gate_chi2: float = CHI2_3DOF_P001      # per block; a consistent measurement is gated ~1 in 1000
-    reinit_after: int = 5                  # consecutive gated measurements: 0.5 s at 10 Hz
-    max_coast_s: float = 1.0               # at 0.15 m/s that is 0.15 m dead-reckoned; beyond, guidance must hold
-    min_confidence: float = 0.05           # below: the frame is skipped (not an update, not an outlier)
-    confidence_floor: float = 0.1          # noise is scaled by 1 / max(confidence, floor): at most 10x
+    gate_chi2: float = CHI2_3DOF_P001  # per block; a consistent measurement is gated ~1 in 1000
+    reinit_after: int = 5  # consecutive gated measurements: 0.5 s at 10 Hz
+    max_coast_s: float = 1.0  # at 0.15 m/s that is 0.15 m dead-reckoned; beyond, guidance must hold
+    min_confidence: float = 0.05  # below: the frame is skipped (not an update, not an outlier)
+    confidence_floor: float = 0.1  # noise is scaled by 1 / max(confidence, floor): at most 10x
     # Vehicle odometry (update_velocity): the sigma is the vehicle's own, per axis, never below
     # this floor (a sensor claiming 0 would freeze the velocity against everything else).
     vel_sigma_floor_mps: float = 0.001
     vel_gate_chi2: float = CHI2_3DOF_P001  # on the velocity innovation alone
-    vel_reset_after: int = 5               # consecutive gated velocities: 0.5 s at 10 Hz
+    vel_reset_after: int = 5  # consecutive gated velocities: 0.5 s at 10 Hz
 
     def __post_init__(self) -> None:
-        for name in ("pos_sigma_lateral_frac", "pos_sigma_depth_frac", "pos_sigma_floor_m", "att_sigma_deg",
-                     "accel_psd_m2_s3", "ang_accel_psd_rad2_s3", "init_vel_sigma_mps", "init_rate_sigma_deg_s",
-                     "gate_chi2", "max_coast_s", "confidence_floor", "vel_sigma_floor_mps", "vel_gate_chi2"):
+        for name in (
+            "pos_sigma_lateral_frac",
+            "pos_sigma_depth_frac",
+            "pos_sigma_floor_m",
+            "att_sigma_deg",
+            "accel_psd_m2_s3",
+            "ang_accel_psd_rad2_s3",
+            "init_vel_sigma_mps",
+            "init_rate_sigma_deg_s",
+            "gate_chi2",
+            "max_coast_s",
+            "confidence_floor",
+            "vel_sigma_floor_mps",
+            "vel_gate_chi2",
+        ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"FilterParams.{name} must be a finite positive number, got {v!r}")
@@ -103,20 +115,20 @@ class FilterParams:
 
 @dataclass
 class UpdateResult:
-    accepted: bool            # the measurement changed the state (fused, initialised or re-initialised)
-    gated: bool               # it failed the innovation gate
-    nis_pos: float            # normalised innovation squared, position block (nan when not tested)
-    nis_att: float            # same, attitude block
-    reinitialised: bool       # the state was (re)started from this measurement
-    reason: str               # initialised | fused | gated | reinitialised | low_confidence | non_finite
+    accepted: bool  # the measurement changed the state (fused, initialised or re-initialised)
+    gated: bool  # it failed the innovation gate
+    nis_pos: float  # normalised innovation squared, position block (nan when not tested)
+    nis_att: float  # same, attitude block
+    reinitialised: bool  # the state was (re)started from this measurement
+    reason: str  # initialised | fused | gated | reinitialised | low_confidence | non_finite
 
 
 @dataclass
 class VelocityUpdateResult:
-    accepted: bool            # the velocity measurement changed the state (fused or reset)
-    gated: bool               # it failed the velocity gate
-    nis: float                # normalised innovation squared (nan when not tested)
-    reason: str               # fused | gated | reset | not_initialised | non_finite (also malformed, sigma < 0)
+    accepted: bool  # the velocity measurement changed the state (fused or reset)
+    gated: bool  # it failed the velocity gate
+    nis: float  # normalised innovation squared (nan when not tested)
+    reason: str  # fused | gated | reset | not_initialised | non_finite (also malformed, sigma < 0)
 
 
 @dataclass
@@ -124,22 +136,22 @@ class NavState:
     """The filter's answer at ``t_s``, all in D unless named otherwise."""
 
     t_s: float
-    valid: bool                       # initialised and an accepted measurement within max_coast_s
-    r_D_m: np.ndarray                 # probe tip
+    valid: bool  # initialised and an accepted measurement within max_coast_s
+    r_D_m: np.ndarray  # probe tip
     v_D_mps: np.ndarray
-    att_rad: np.ndarray               # attitude error, rotation vector, body frame
+    att_rad: np.ndarray  # attitude error, rotation vector, body frame
     w_rad_s: np.ndarray
-    pos_sigma_m: np.ndarray           # (3,) 1-sigma per D axis
-    vel_sigma_mps: np.ndarray         # (3,)
-    att_sigma_deg: np.ndarray         # (3,) per body axis
-    since_update_s: float             # since the last accepted measurement (inf before the first)
-    range_m: float                    # probe tip to contact (z of r_D; negative inside the drogue)
-    shaft_distance_m: float           # shaft plane to berthing plane: NavUpdate.range_m
-    closing_speed_mps: float          # -v_z: positive when closing
+    pos_sigma_m: np.ndarray  # (3,) 1-sigma per D axis
+    vel_sigma_mps: np.ndarray  # (3,)
+    att_sigma_deg: np.ndarray  # (3,) per body axis
+    since_update_s: float  # since the last accepted measurement (inf before the first)
+    range_m: float  # probe tip to contact (z of r_D; negative inside the drogue)
+    shaft_distance_m: float  # shaft plane to berthing plane: NavUpdate.range_m
+    closing_speed_mps: float  # -v_z: positive when closing
     lateral_m: float
-    misalignment_deg: float           # boresight vs -z_D, roll excluded
-    T_cam_target_m: np.ndarray        # the same state as the camera would see it (NavUpdate)
-    q_cam_target: np.ndarray          # (w, x, y, z)
+    misalignment_deg: float  # boresight vs -z_D, roll excluded
+    T_cam_target_m: np.ndarray  # the same state as the camera would see it (NavUpdate)
+    q_cam_target: np.ndarray  # (w, x, y, z)
 
 
 @dataclass
@@ -154,8 +166,9 @@ class _CvBlock:
         F = np.eye(6)
         F[:3, 3:] = dt_s * np.eye(3)
         # Discrete white-noise acceleration (continuous PSD q integrated over dt).
-        Q = psd * np.block([[dt_s ** 3 / 3 * np.eye(3), dt_s ** 2 / 2 * np.eye(3)],
-                            [dt_s ** 2 / 2 * np.eye(3), dt_s * np.eye(3)]])
+        Q = psd * np.block(
+            [[dt_s**3 / 3 * np.eye(3), dt_s**2 / 2 * np.eye(3)], [dt_s**2 / 2 * np.eye(3), dt_s * np.eye(3)]]
+        )
         return F, Q
 
     def predicted(self, dt_s: float, psd: float) -> _CvBlock:
@@ -168,7 +181,7 @@ class _CvBlock:
         return y, S, float(y @ np.linalg.solve(S, y))
 
     def fuse(self, y: np.ndarray, S: np.ndarray, Rm: np.ndarray) -> None:
-        K = np.linalg.solve(S, self.P[:3, :]).T          # P H^T S^-1 with H = [I 0]
+        K = np.linalg.solve(S, self.P[:3, :]).T  # P H^T S^-1 with H = [I 0]
         self.x = self.x + K @ y
         I_KH = np.eye(6)
         I_KH[:, :3] -= K
@@ -182,7 +195,7 @@ class _CvBlock:
         return y, S, float(y @ np.linalg.solve(S, y))
 
     def fuse_rate(self, y: np.ndarray, S: np.ndarray, Rm: np.ndarray) -> None:
-        K = np.linalg.solve(S, self.P[3:, :]).T          # P H^T S^-1 with H = [0 I]
+        K = np.linalg.solve(S, self.P[3:, :]).T  # P H^T S^-1 with H = [0 I]
         self.x = self.x + K @ y
         I_KH = np.eye(6)
         I_KH[:, 3:] -= K
@@ -203,7 +216,7 @@ class _CvBlock:
         initial uncertainty."""
         P = np.zeros((6, 6))
         P[:3, :3] = Rm
-        P[3:, 3:] = rate_sigma ** 2 * np.eye(3)
+        P[3:, 3:] = rate_sigma**2 * np.eye(3)
         return _CvBlock(np.concatenate([z, np.zeros(3) if rate is None else rate]), P)
 
 
@@ -217,18 +230,25 @@ class NavFilter:
         self.params = params or FilterParams()
         self.geometry = geometry
         # Camera to probe tip in camera axes (fixed to the service vehicle).
-        self._cam_to_tip_cam_m = geometry.R_s_cam.T @ (np.array([0.0, 0.0, geometry.probe_tip_s_m])
-                                                       - np.asarray(geometry.p_s_cam_m, float))
+        self._cam_to_tip_cam_m = geometry.R_s_cam.T @ (
+            np.array([0.0, 0.0, geometry.probe_tip_s_m]) - np.asarray(geometry.p_s_cam_m, float)
+        )
         self.reset()
 
     def reset(self) -> None:
-        self._t_s: float | None = None          # time the blocks refer to
+        self._t_s: float | None = None  # time the blocks refer to
         self._pos: _CvBlock | None = None
         self._att: _CvBlock | None = None
         self._t_accepted_s: float | None = None
         self._gated_run = 0
-        self.counts = {"initialised": 0, "fused": 0, "gated": 0, "reinitialised": 0, "low_confidence": 0,
-                       "non_finite": 0}
+        self.counts = {
+            "initialised": 0,
+            "fused": 0,
+            "gated": 0,
+            "reinitialised": 0,
+            "low_confidence": 0,
+            "non_finite": 0,
+        }
         self._vel_gated_run = 0
         self.velocity_counts = {"fused": 0, "gated": 0, "reset": 0, "not_initialised": 0, "non_finite": 0}
 
@@ -265,8 +285,9 @@ class NavFilter:
         return self._t_accepted_s is None or t_s - self._t_accepted_s > self.params.max_coast_s
 
     # ------------------------------------------------------------------ measurement
-    def measurement_noise(self, T_cam_target_m: np.ndarray, R_cam_target: np.ndarray,
-                          confidence: float) -> tuple[np.ndarray, np.ndarray]:
+    def measurement_noise(
+        self, T_cam_target_m: np.ndarray, R_cam_target: np.ndarray, confidence: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(probe-tip covariance in D (3, 3) m^2, attitude covariance (3, 3) rad^2).
 
         The tip is r_D = R_D_cam u with u = (camera-to-tip - T_cam_target), camera axes, and
@@ -278,17 +299,24 @@ class NavFilter:
         T = np.asarray(T_cam_target_m, float)
         R_D_cam = R_D_CAM_ALIGNED @ np.asarray(R_cam_target, float).T
         cam_range_m = float(np.linalg.norm(T))
-        sig_cam = np.array([p.pos_sigma_lateral_frac, p.pos_sigma_lateral_frac, p.pos_sigma_depth_frac]) * cam_range_m
+        sig_cam = (
+            np.array([p.pos_sigma_lateral_frac, p.pos_sigma_lateral_frac, p.pos_sigma_depth_frac])
+            * cam_range_m
+        )
         att_var_rad2 = np.radians(p.att_sigma_deg) ** 2
         u = self._cam_to_tip_cam_m - T
         J = R_D_cam @ np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
-        R_pos = (R_D_cam @ np.diag(sig_cam ** 2) @ R_D_cam.T + att_var_rad2 * J @ J.T
-                 + p.pos_sigma_floor_m ** 2 * np.eye(3))
+        R_pos = (
+            R_D_cam @ np.diag(sig_cam**2) @ R_D_cam.T
+            + att_var_rad2 * J @ J.T
+            + p.pos_sigma_floor_m**2 * np.eye(3)
+        )
         R_att = att_var_rad2 * np.eye(3)
-        return R_pos * scale ** 2, R_att * scale ** 2
+        return R_pos * scale**2, R_att * scale**2
 
-    def update(self, t_s: float, T_cam_target_m: ArrayLike, R_cam_target: ArrayLike,
-               confidence: float = 1.0) -> UpdateResult:
+    def update(
+        self, t_s: float, T_cam_target_m: ArrayLike, R_cam_target: ArrayLike, confidence: float = 1.0
+    ) -> UpdateResult:
         """Fuse one pose estimate taken at t_s. Never raises for a bad measurement (it is skipped
         or gated, and the result says why); raises ValueError only for time going backwards."""
         p = self.params
@@ -306,7 +334,9 @@ class NavFilter:
         if not self.initialised or self._coasted_too_long(t_s):
             was = self.initialised
             self._start(meas, R_pos, R_att, t_s)
-            return self._count(UpdateResult(True, False, nan, nan, True, "reinitialised" if was else "initialised"))
+            return self._count(
+                UpdateResult(True, False, nan, nan, True, "reinitialised" if was else "initialised")
+            )
         pos, att, _, _ = self._blocks()
         y_p, S_p, nis_p = pos.innovation(meas.r_D_m, R_pos)
         y_a, S_a, nis_a = att.innovation(meas.att_rad, R_att)
@@ -359,8 +389,9 @@ class NavFilter:
         self.velocity_counts[r.reason] += 1
         return r
 
-    def _start(self, meas: DockingState, R_pos: np.ndarray, R_att: np.ndarray, t_s: float,
-               keep_rates: bool = False) -> None:
+    def _start(
+        self, meas: DockingState, R_pos: np.ndarray, R_att: np.ndarray, t_s: float, keep_rates: bool = False
+    ) -> None:
         p = self.params
         v = w = None
         if keep_rates:
@@ -384,9 +415,25 @@ class NavFilter:
         if not self.initialised:
             zero, inf3 = np.zeros(3), np.full(3, np.inf)
             T, R = camera_pose_from_docking(zero, zero, self.geometry)
-            return NavState(t_s, False, zero, zero.copy(), zero.copy(), zero.copy(), inf3, inf3.copy(), inf3.copy(),
-                            float("inf"), 0.0, self.geometry.shaft_distance_m(0.0), 0.0, 0.0, 0.0, T,
-                            matrix_to_quat(R))
+            return NavState(
+                t_s,
+                False,
+                zero,
+                zero.copy(),
+                zero.copy(),
+                zero.copy(),
+                inf3,
+                inf3.copy(),
+                inf3.copy(),
+                float("inf"),
+                0.0,
+                self.geometry.shaft_distance_m(0.0),
+                0.0,
+                0.0,
+                0.0,
+                T,
+                matrix_to_quat(R),
+            )
         pos0, att0, blocks_t_s, accepted_t_s = self._blocks()
         dt = t_s - blocks_t_s
         pos = pos0.predicted(dt, self.params.accel_psd_m2_s3)
@@ -397,9 +444,21 @@ class NavFilter:
         T, R = camera_pose_from_docking(r, a, self.geometry)
         since = t_s - accepted_t_s
         return NavState(
-            t_s=t_s, valid=not self._coasted_too_long(t_s), r_D_m=r, v_D_mps=v, att_rad=a, w_rad_s=w,
-            pos_sigma_m=np.sqrt(np.diag(pos.P)[:3]), vel_sigma_mps=np.sqrt(np.diag(pos.P)[3:]),
-            att_sigma_deg=np.degrees(np.sqrt(np.diag(att.P)[:3])), since_update_s=since,
-            range_m=ds.range_m, shaft_distance_m=self.geometry.shaft_distance_m(ds.range_m),
-            closing_speed_mps=float(-v[2]), lateral_m=ds.lateral_m, misalignment_deg=ds.misalignment_deg,
-            T_cam_target_m=T, q_cam_target=matrix_to_quat(R))
+            t_s=t_s,
+            valid=not self._coasted_too_long(t_s),
+            r_D_m=r,
+            v_D_mps=v,
+            att_rad=a,
+            w_rad_s=w,
+            pos_sigma_m=np.sqrt(np.diag(pos.P)[:3]),
+            vel_sigma_mps=np.sqrt(np.diag(pos.P)[3:]),
+            att_sigma_deg=np.degrees(np.sqrt(np.diag(att.P)[:3])),
+            since_update_s=since,
+            range_m=ds.range_m,
+            shaft_distance_m=self.geometry.shaft_distance_m(ds.range_m),
+            closing_speed_mps=float(-v[2]),
+            lateral_m=ds.lateral_m,
+            misalignment_deg=ds.misalignment_deg,
+            T_cam_target_m=T,
+            q_cam_target=matrix_to_quat(R),
+        )

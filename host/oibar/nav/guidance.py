@@ -38,26 +38,37 @@ from oibar.geometry.docking import lateral_offset_m
 from oibar.link.protocols import Event, Telemetry
 
 MAX_CLEAR_ATTEMPTS = 3
-MAX_RECOVERIES = 1          # after one recovered fault that recurs, leave it to the ground
+MAX_RECOVERIES = 1  # after one recovered fault that recurs, leave it to the ground
 CLEAR_RETRY_S = 2.0
 SAFED_HOLD_S = 5.0
-FILL_STALL_S = 5.0          # no TV pressure rise for this long while filling -> abort
+FILL_STALL_S = 5.0  # no TV pressure rise for this long while filling -> abort
 FILL_STALL_MIN_RISE_KPA = 5.0
-HOLD_GATE_RANGE_M = 0.5     # wait here until armed and aligned
+HOLD_GATE_RANGE_M = 0.5  # wait here until armed and aligned
 GATE_MAX_LATERAL_M = 0.02
 GATE_MAX_MISALIGN_DEG = 5.0  # half the 10 deg capture envelope: the CNN's attitude is good to ~2 deg
-CORRIDOR_SLOPE = 0.10        # approach corridor half-width per metre of range (a 5.7 deg cone)
+CORRIDOR_SLOPE = 0.10  # approach corridor half-width per metre of range (a 5.7 deg cone)
 CORRIDOR_MIN_HALF_WIDTH_M = 0.05
 RETREAT_SPEED_MPS = 0.05
 SEPARATION_BACKOFF_MPS = 0.03  # helps the spring-damper pre-load extract the probe
 VALVES_CLOSED_BEFORE_SEPARATE_S = 0.5  # host-side guard: never unmate with a valve reading open
-ATT_DEADBAND_DEG = 4.0      # attitude errors below this are left to the vehicle's attitude hold (< the 5 deg gate)
-RECEPTION_PUSH_MPS = 0.05   # thrust demand after contact: ~7.5 N, enough to seat the latches
+ATT_DEADBAND_DEG = (
+    4.0  # attitude errors below this are left to the vehicle's attitude hold (< the 5 deg gate)
+)
+RECEPTION_PUSH_MPS = 0.05  # thrust demand after contact: ~7.5 N, enough to seat the latches
 
 FREE_FLIGHT_STATES = {"STATE_UNSPECIFIED", "STATE_BOOT", "STATE_IDLE", "STATE_APPROACH_READY"}
-DOCKED_STATES = {"STATE_RECEPTION", "STATE_SOFT_DOCKED", "STATE_HARD_DOCKING", "STATE_HARD_DOCKED",
-                 "STATE_TRANSFER_ARMED", "STATE_TRANSFERRING", "STATE_UNMATING",
-                 "STATE_LATCH_RELEASE", "STATE_ABORTING", "STATE_FAULT"}
+DOCKED_STATES = {
+    "STATE_RECEPTION",
+    "STATE_SOFT_DOCKED",
+    "STATE_HARD_DOCKING",
+    "STATE_HARD_DOCKED",
+    "STATE_TRANSFER_ARMED",
+    "STATE_TRANSFERRING",
+    "STATE_UNMATING",
+    "STATE_LATCH_RELEASE",
+    "STATE_ABORTING",
+    "STATE_FAULT",
+}
 
 
 @dataclass
@@ -82,12 +93,12 @@ class RequestResult:
 
 @dataclass
 class MissionParams:
-    target_kpa: float = 1200.0       # TV tank fill target
-    arm_range_m: float = 2.0         # send APPROACH_ARM inside this range
-    retreat_to_m: float = 2.0        # back off to here after separation or an abort
+    target_kpa: float = 1200.0  # TV tank fill target
+    arm_range_m: float = 2.0  # send APPROACH_ARM inside this range
+    retreat_to_m: float = 2.0  # back off to here after separation or an abort
     final_closing_mps: float = 0.03  # closing speed into the drogue (capture envelope: 0.05)
-    nav_lost_abort_s: float = 5.0    # no trustworthy navigation this long in free flight: abort
-    blind_retreat_s: float = 10.0    # then back off along +z_D this long without navigation
+    nav_lost_abort_s: float = 5.0  # no trustworthy navigation this long in free flight: abort
+    blind_retreat_s: float = 10.0  # then back off along +z_D this long without navigation
     # Attitude rates from the navigation solution. Off: the vehicle's own GNC holds the relative
     # attitude (both vehicles hold their attitude from their own sensors, as automated dockings
     # do) and the camera gives position. The shipped network's attitude follows the truth only
@@ -108,7 +119,7 @@ class NavSolution:
     t_cam_target_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     q_cam_target: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
     confidence: float = 0.0
-    hold_reason: str = ""            # non-empty: do not move on this solution (why)
+    hold_reason: str = ""  # non-empty: do not move on this solution (why)
 
     @property
     def range_m(self) -> float:
@@ -128,7 +139,7 @@ class Observation:
     t_s: float
     nav: NavSolution
     link_up: bool
-    telemetry: Telemetry | None       # the newest MCU telemetry (pb.Telemetry); None before the first
+    telemetry: Telemetry | None  # the newest MCU telemetry (pb.Telemetry); None before the first
     events: list[Event] = field(default_factory=list)
     results: list[RequestResult] = field(default_factory=list)
 
@@ -157,13 +168,17 @@ class Guidance:
     """Telemetry-driven: each step looks at the MCU's state and decides, so a restarted host
     (a new instance) picks the mission up where the MCU is."""
 
-    def __init__(self, mission: MissionParams | None = None, firmware_params: dict[int, float] | None = None) -> None:
+    def __init__(
+        self, mission: MissionParams | None = None, firmware_params: dict[int, float] | None = None
+    ) -> None:
         self.m = mission or MissionParams()
-        self.param_queue = [MechRequest("param_set", param_id=i, value=v, label=f"PARAM_SET {i}={v:g}")
-                            for i, v in (firmware_params or {}).items()]
+        self.param_queue = [
+            MechRequest("param_set", param_id=i, value=v, label=f"PARAM_SET {i}={v:g}")
+            for i, v in (firmware_params or {}).items()
+        ]
         self.awaiting: MechRequest | None = None
         self.finished = False
-        self.outcome = "running"     # completed | aborted | safed | running
+        self.outcome = "running"  # completed | aborted | safed | running
         self.notes: list[tuple[float, str]] = []
         self.mission_aborted = False
         self.filled = False
@@ -232,16 +247,21 @@ class Guidance:
     # -- mechanism sequence -------------------------------------------------------------
 
     def _cmd(self, opcode: int, target_kpa: float = 0.0) -> MechRequest:
-        return MechRequest("command", opcode=opcode, target_kpa=target_kpa,
-                           label=_name(pb.CommandOpcode, opcode))
+        return MechRequest(
+            "command", opcode=opcode, target_kpa=target_kpa, label=_name(pb.CommandOpcode, opcode)
+        )
 
     def _next_request(self, t_s: float, obs: Observation, state: str, tm: Telemetry) -> MechRequest | None:
         if self.param_queue and state in ("STATE_IDLE", "STATE_BOOT"):
             return self.param_queue.pop(0)
         done_docking = self.filled or self.mission_aborted
         if state == "STATE_IDLE":
-            if not self.contacted and not self.mission_aborted and self._trusted(obs) \
-                    and obs.nav.range_m <= self.m.arm_range_m:
+            if (
+                not self.contacted
+                and not self.mission_aborted
+                and self._trusted(obs)
+                and obs.nav.range_m <= self.m.arm_range_m
+            ):
                 return self._cmd(pb.CMD_APPROACH_ARM)
         elif state == "STATE_APPROACH_READY":
             if self.mission_aborted:
@@ -275,8 +295,9 @@ class Guidance:
             if tm.tv_tank_kpa >= p0 + FILL_STALL_MIN_RISE_KPA:
                 self._fill_ref = (t_s, tm.tv_tank_kpa)
             elif t_s - t0 >= FILL_STALL_S:
-                self._abort_mission(t_s, f"fill not progressing (TV tank {tm.tv_tank_kpa:.0f} kPa "
-                                         f"for {FILL_STALL_S:.0f} s)")
+                self._abort_mission(
+                    t_s, f"fill not progressing (TV tank {tm.tv_tank_kpa:.0f} kPa for {FILL_STALL_S:.0f} s)"
+                )
                 return self._cmd(pb.CMD_ABORT)
         elif state == "STATE_FAULT":
             if self.recoveries > MAX_RECOVERIES or self.clear_attempts >= MAX_CLEAR_ATTEMPTS:
@@ -305,7 +326,9 @@ class Guidance:
     def _trusted(obs: Observation) -> bool:
         return bool(obs.nav.valid and not obs.nav.hold_reason)
 
-    def _guidance(self, obs: Observation, state: str, tm: Telemetry | None) -> tuple[np.ndarray, np.ndarray, str]:
+    def _guidance(
+        self, obs: Observation, state: str, tm: Telemetry | None
+    ) -> tuple[np.ndarray, np.ndarray, str]:
         nav = obs.nav
         trusted = self._trusted(obs)
         r = nav.range_m
@@ -320,18 +343,26 @@ class Guidance:
         att_err = np.asarray(nav.att_rad, dtype=float)
         excess = max(0.0, float(np.linalg.norm(att_err)) - np.radians(ATT_DEADBAND_DEG))
         att_cmd = att_err * (excess / max(float(np.linalg.norm(att_err)), 1e-12))
-        w = np.clip(-0.5 * att_cmd, -np.radians(0.5), np.radians(0.5)) if self.m.steer_attitude else np.zeros(3)
+        w = (
+            np.clip(-0.5 * att_cmd, -np.radians(0.5), np.radians(0.5))
+            if self.m.steer_attitude
+            else np.zeros(3)
+        )
         contact = bool(tm.contact) if tm is not None else False
         hold = (np.zeros(3), np.zeros(3), "HOLD")
         if self.finished:
             return hold
-        if self._blind_retreat_until is not None and obs.t_s < self._blind_retreat_until \
-                and state not in DOCKED_STATES:
+        if (
+            self._blind_retreat_until is not None
+            and obs.t_s < self._blind_retreat_until
+            and state not in DOCKED_STATES
+        ):
             # Navigation lost: back off along the docking axis, the one direction that cannot
             # hit the target, without attitude commands.
             return np.array([0.0, 0.0, RETREAT_SPEED_MPS]), np.zeros(3), "RETREAT"
         if state in ("STATE_SEPARATING", "STATE_LATCH_RESET") or (
-                (self.contacted or self.mission_aborted) and state == "STATE_IDLE"):
+            (self.contacted or self.mission_aborted) and state == "STATE_IDLE"
+        ):
             if contact or (trusted and r < 0.0):
                 return np.array([0.0, 0.0, SEPARATION_BACKOFF_MPS]), np.zeros(3), "RETREAT"
             if not trusted:
@@ -358,8 +389,11 @@ class Guidance:
             return np.array([v_lat[0], v_lat[1], RETREAT_SPEED_MPS]), w, "RETREAT"
         if lateral > half_width:
             closing, phase = 0.0, "HOLD"
-        gate_ok = (state == "STATE_APPROACH_READY" and float(np.hypot(*lat)) <= GATE_MAX_LATERAL_M
-                   and nav.misalignment_deg <= GATE_MAX_MISALIGN_DEG)
+        gate_ok = (
+            state == "STATE_APPROACH_READY"
+            and float(np.hypot(*lat)) <= GATE_MAX_LATERAL_M
+            and nav.misalignment_deg <= GATE_MAX_MISALIGN_DEG
+        )
         if r <= HOLD_GATE_RANGE_M + 0.05 and not gate_ok:
             # Hold at the gate: a proportional brake onto the gate range.
             closing = float(np.clip(0.2 * (r - HOLD_GATE_RANGE_M), -0.02, closing))
@@ -382,10 +416,10 @@ class Guidance:
         if not nav.valid:
             return nav
         nav.t_cam_target_m.x, nav.t_cam_target_m.y, nav.t_cam_target_m.z = (
-            float(v) for v in n.t_cam_target_m)
+            float(v) for v in n.t_cam_target_m
+        )
         q = n.q_cam_target
-        nav.q_cam_target.w, nav.q_cam_target.x, nav.q_cam_target.y, nav.q_cam_target.z = (
-            float(v) for v in q)
+        nav.q_cam_target.w, nav.q_cam_target.x, nav.q_cam_target.y, nav.q_cam_target.z = (float(v) for v in q)
         nav.range_m = float(n.range_m)
         nav.closing_speed_mps = float(n.closing_speed_mps)
         nav.confidence = float(n.confidence)
@@ -403,8 +437,10 @@ class Guidance:
             self._nav_bad_since = t_s
             self._note(t_s, f"holding: navigation {obs.nav.hold_reason or 'invalid'}")
         if t_s - self._nav_bad_since >= self.m.nav_lost_abort_s and self._blind_retreat_until is None:
-            self._abort_mission(t_s, f"navigation lost for {self.m.nav_lost_abort_s:.0f} s "
-                                     f"({obs.nav.hold_reason or 'invalid'})")
+            self._abort_mission(
+                t_s,
+                f"navigation lost for {self.m.nav_lost_abort_s:.0f} s ({obs.nav.hold_reason or 'invalid'})",
+            )
             self._blind_retreat_until = t_s + self.m.blind_retreat_s
         if self._blind_retreat_until is not None and t_s >= self._blind_retreat_until and not self.finished:
             self.finished = True
@@ -432,8 +468,12 @@ class Guidance:
     def _check_finished(self, t_s: float, obs: Observation, state: str) -> None:
         if self.finished:
             return
-        if state == "STATE_IDLE" and (self.contacted or self.mission_aborted) and self._trusted(obs) \
-                and obs.nav.range_m >= self.m.retreat_to_m - 0.01:
+        if (
+            state == "STATE_IDLE"
+            and (self.contacted or self.mission_aborted)
+            and self._trusted(obs)
+            and obs.nav.range_m >= self.m.retreat_to_m - 0.01
+        ):
             self.finished = True
             self.outcome = "completed" if self.filled and not self.mission_aborted else "aborted"
         elif self.gave_up_at is not None and t_s - self.gave_up_at >= SAFED_HOLD_S:

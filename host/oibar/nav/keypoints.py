@@ -15,6 +15,7 @@ always runs in the frame's own pixels with the frame's own intrinsics.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -43,11 +44,13 @@ class CropWindow:
 
     def to_crop(self, uv_px: np.ndarray) -> np.ndarray:
         A = self.matrix()
-        return np.asarray(uv_px, float) @ A[:, :2].T + A[:, 2]
+        out: np.ndarray = np.asarray(uv_px, float) @ A[:, :2].T + A[:, 2]
+        return out
 
     def to_frame(self, uv_crop: np.ndarray) -> np.ndarray:
         A = self.matrix()
-        return (np.asarray(uv_crop, float) - A[:, 2]) @ np.linalg.inv(A[:, :2]).T
+        out: np.ndarray = (np.asarray(uv_crop, float) - A[:, 2]) @ np.linalg.inv(A[:, :2]).T
+        return out
 
 
 def window_around(points_px: np.ndarray, out_px: int, margin: float, min_side_px: float = 24.0) -> CropWindow:
@@ -76,8 +79,14 @@ def cut(image: np.ndarray, win: CropWindow) -> np.ndarray:
     # corner -> centre convention on both sides: q_c = A p_c  <=>  q_n = A p_n + (A[:, :2] @ 0.5 - 0.5)
     M = A.copy()
     M[:, 2] += A[:, :2] @ np.array([0.5, 0.5]) - 0.5
-    return cv2.warpAffine(src, M, (win.out_px, win.out_px), flags=cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+    return cv2.warpAffine(
+        src,
+        M,
+        (win.out_px, win.out_px),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=(0, 0, 0),
+    )
 
 
 @dataclass
@@ -85,14 +94,26 @@ class PnpResult:
     ok: bool
     R_cam_target: np.ndarray | None = None
     T_cam_target_m: np.ndarray | None = None
-    inliers: np.ndarray | None = None     # indices into the points given
-    rms_px: float = float("nan")          # reprojection RMS over the inliers, frame pixels
+    inliers: np.ndarray | None = None  # indices into the points given
+    rms_px: float = float("nan")  # reprojection RMS over the inliers, frame pixels
     reason: str = ""
 
+    def pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R_cam_target, T_cam_target_m) of a successful solve; ValueError otherwise."""
+        if not self.ok or self.R_cam_target is None or self.T_cam_target_m is None:
+            raise ValueError(f"no pose: {self.reason or 'not solved'}")
+        return self.R_cam_target, self.T_cam_target_m
 
-def solve_pnp(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, reproj_px: float,
-              R_guess: np.ndarray | None = None, T_guess: np.ndarray | None = None,
-              min_points: int = 5) -> PnpResult:
+
+def solve_pnp(
+    uv_px: np.ndarray,
+    points_m: np.ndarray,
+    K: np.ndarray,
+    reproj_px: float,
+    R_guess: np.ndarray | None = None,
+    T_guess: np.ndarray | None = None,
+    min_points: int = 5,
+) -> PnpResult:
     """Pose of the target from its keypoints: RANSAC (SQPnP on minimal sets) against outliers, then
     Levenberg-Marquardt refinement on the inliers. `reproj_px` is the inlier threshold in frame
     pixels (the caller scales it with the crop: a keypoint's error grows with the window)."""
@@ -105,14 +126,21 @@ def solve_pnp(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, reproj_px:
         return PnpResult(False, reason=f"only {int(good.sum())} keypoints (need {min_points})")
     idx = np.flatnonzero(good)
     Kc = np.asarray(K, np.float64).copy()
-    Kc[0, 2] -= 0.5   # OpenCV counts from pixel centres
+    Kc[0, 2] -= 0.5  # OpenCV counts from pixel centres
     Kc[1, 2] -= 0.5
     uvc = uv[idx] - 0.5
     dist = np.zeros(4)
     try:
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(P[idx], uvc, Kc, dist, iterationsCount=100,
-                                                  reprojectionError=float(reproj_px), confidence=0.999,
-                                                  flags=cv2.SOLVEPNP_SQPNP)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            P[idx],
+            uvc,
+            Kc,
+            dist,
+            iterationsCount=100,
+            reprojectionError=float(reproj_px),
+            confidence=0.999,
+            flags=cv2.SOLVEPNP_SQPNP,
+        )
     except cv2.error as exc:
         return PnpResult(False, reason=f"PnP failed ({exc.err})")
     if not ok or inl is None or len(inl) < min_points:
@@ -124,12 +152,21 @@ def solve_pnp(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, reproj_px:
     if T[2] <= 0:
         return PnpResult(False, reason="pose behind the camera")
     res = project(K, P[idx][inl], R, T) - uv[idx][inl]
-    rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
+    rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
     return PnpResult(True, R, T, idx[inl], rms)
 
 
-def refine_with_prior(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, R: np.ndarray, T: np.ndarray,
-                      R_prior: np.ndarray, sigma_px: float, sigma_prior_rad: float, iterations: int = 8):
+def refine_with_prior(
+    uv_px: np.ndarray,
+    points_m: np.ndarray,
+    K: np.ndarray,
+    R: np.ndarray,
+    T: np.ndarray,
+    R_prior: np.ndarray,
+    sigma_px: float | np.ndarray,
+    sigma_prior_rad: float,
+    iterations: int = 8,
+) -> tuple[np.ndarray, np.ndarray, float, float]:
     """The pose that best explains the keypoints *and* an independent attitude estimate (the
     direct model's): Gauss-Newton on  sum |reprojection / sigma_px|^2 + |log(R R_prior^T) / sigma_prior|^2.
 
@@ -171,15 +208,19 @@ def refine_with_prior(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, R:
             break
         R = rotvec_to_matrix(step[:3]) @ R
         T = T + step[3:]
-        if np.linalg.norm(step[:3]) < 1e-9 and np.linalg.norm(step[3:]) < 1e-9 * max(1.0, float(np.linalg.norm(T))):
+        if np.linalg.norm(step[:3]) < 1e-9 and np.linalg.norm(step[3:]) < 1e-9 * max(
+            1.0, float(np.linalg.norm(T))
+        ):
             break
     res = project(K, P, R, T) - uv
-    rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
-    cost = float(np.sum((res / sig) ** 2) + np.sum(matrix_to_rotvec(R @ R_prior.T) ** 2) / sigma_prior_rad ** 2)
+    rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
+    cost = float(np.sum((res / sig) ** 2) + np.sum(matrix_to_rotvec(R @ R_prior.T) ** 2) / sigma_prior_rad**2)
     return R, T, rms, cost
 
 
-def translation_given_rotation(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, R: np.ndarray) -> np.ndarray | None:
+def translation_given_rotation(
+    uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, R: np.ndarray
+) -> np.ndarray | None:
     """Least-squares T for a known R: each keypoint gives two equations linear in T
     ((u - cx) / fx * z - x = 0, the same for v), so this has no local minima and no flips."""
     uv = np.asarray(uv_px, float)
@@ -189,15 +230,27 @@ def translation_given_rotation(uv_px: np.ndarray, points_m: np.ndarray, K: np.nd
     q = np.asarray(points_m, float)[good] @ np.asarray(R, float).T
     a = (uv[good, 0] - K[0, 2]) / K[0, 0]
     b = (uv[good, 1] - K[1, 2]) / K[1, 1]
-    A = np.concatenate([np.stack([-np.ones_like(a), np.zeros_like(a), a], 1),
-                        np.stack([np.zeros_like(b), -np.ones_like(b), b], 1)])
+    A = np.concatenate(
+        [
+            np.stack([-np.ones_like(a), np.zeros_like(a), a], 1),
+            np.stack([np.zeros_like(b), -np.ones_like(b), b], 1),
+        ]
+    )
     rhs = np.concatenate([q[:, 0] - a * q[:, 2], q[:, 1] - b * q[:, 2]])
     T = np.linalg.lstsq(A, rhs, rcond=None)[0]
     return T if T[2] > 0 else None
 
 
-def map_pose(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, reproj_px: float, R_prior: np.ndarray,
-             sigma_px: float | np.ndarray | None, sigma_prior_rad: float | None, min_points: int = 5) -> PnpResult:
+def map_pose(
+    uv_px: np.ndarray,
+    points_m: np.ndarray,
+    K: np.ndarray,
+    reproj_px: float,
+    R_prior: np.ndarray,
+    sigma_px: float | np.ndarray | None,
+    sigma_prior_rad: float | None,
+    min_points: int = 5,
+) -> PnpResult:
     """The pose from keypoints and an attitude prior. Two starts, refined by refine_with_prior, the
     lower cost kept: PnP (RANSAC + LM) and (R_prior, its least-squares T). The second start is what
     saves far frames, where near-planar keypoints let PnP fall into a mirrored pose that fits the
@@ -208,15 +261,15 @@ def map_pose(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, reproj_px: 
     if sigma_px is None or sigma_prior_rad is None:
         return pnp
     uv = np.asarray(uv_px, float)
-    starts = []
-    if pnp.ok:
+    starts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    if pnp.ok and pnp.R_cam_target is not None and pnp.T_cam_target_m is not None:
         used = np.full_like(uv, np.nan)
         used[pnp.inliers] = uv[pnp.inliers]
         starts.append((pnp.R_cam_target, pnp.T_cam_target_m, used))
     T0 = translation_given_rotation(uv, points_m, K, R_prior)
     if T0 is not None:
         starts.append((np.asarray(R_prior, float), T0, uv))
-    best = None
+    best: tuple[float, PnpResult] | None = None
     for R0, T0, uv0 in starts:
         if np.sum(np.all(np.isfinite(uv0), axis=1)) < min_points:
             continue
@@ -228,7 +281,9 @@ def map_pose(uv_px: np.ndarray, points_m: np.ndarray, K: np.ndarray, reproj_px: 
         uv1 = np.where(keep[:, None], uv, np.nan)
         R, T, rms, cost = refine_with_prior(uv1, points_m, K, R, T, R_prior, sigma_px, sigma_prior_rad)
         dropped = ~keep & np.all(np.isfinite(uv), axis=1)
-        cost += float(np.sum((reproj_px / np.broadcast_to(np.asarray(sigma_px, float), (len(uv),))[dropped]) ** 2))
+        cost += float(
+            np.sum((reproj_px / np.broadcast_to(np.asarray(sigma_px, float), (len(uv),))[dropped]) ** 2)
+        )
         if T[2] > 0 and (best is None or cost < best[0]):
             best = (cost, PnpResult(True, R, T, np.flatnonzero(keep), rms))
     if best is None:
@@ -243,17 +298,23 @@ class KeypointErrorModel:
     sharp at 3-8 m and four times worse under 1.5 m, where a fixed weight would let it tilt the
     pose by degrees. Relative weights only: ``scale(range)`` is the RMS over the overall RMS."""
 
-    def __init__(self, table: dict):
+    def __init__(self, table: dict[str, Any]):
         self.edges_m = np.asarray(table["range_edges_m"], float)
-        self.rms_crop_px = np.asarray(table["rms_crop_px"], float)     # (K, bins)
+        self.rms_crop_px = np.asarray(table["rms_crop_px"], float)  # (K, bins)
         if self.rms_crop_px.ndim != 2 or self.rms_crop_px.shape[1] != len(self.edges_m) - 1:
-            raise ValueError(f"error model: rms_crop_px must be (keypoints, {len(self.edges_m) - 1}), "
-                             f"got {self.rms_crop_px.shape}")
+            raise ValueError(
+                f"error model: rms_crop_px must be (keypoints, {len(self.edges_m) - 1}), "
+                f"got {self.rms_crop_px.shape}"
+            )
         if not np.all(np.isfinite(self.rms_crop_px)) or np.any(self.rms_crop_px <= 0):
             raise ValueError("error model: every rms_crop_px must be finite and > 0")
-        self.ref_crop_px = float(np.sqrt(np.mean(self.rms_crop_px ** 2)))
+        self.ref_crop_px = float(np.sqrt(np.mean(self.rms_crop_px**2)))
 
     def scale(self, range_m: float) -> np.ndarray:
         """(K,) per-keypoint sigma relative to the overall one, at this camera range."""
-        b = int(np.clip(np.searchsorted(self.edges_m, range_m, side="right") - 1, 0, self.rms_crop_px.shape[1] - 1))
+        b = int(
+            np.clip(
+                np.searchsorted(self.edges_m, range_m, side="right") - 1, 0, self.rms_crop_px.shape[1] - 1
+            )
+        )
         return self.rms_crop_px[:, b] / self.ref_crop_px

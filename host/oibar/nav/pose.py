@@ -20,11 +20,14 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
 
+from oibar.geometry.camera import project_target_points as project
 from oibar.geometry.rotations import matrix_to_quat
+from oibar.nav.keypoints import CropWindow, KeypointErrorModel, PnpResult, cut, map_pose, window_around
 
 METADATA_PREFIX = "oibar."
 REQUIRED_OUTPUTS = ("position_m", "q_cam_target", "R_cam_target")
@@ -39,9 +42,9 @@ DEFAULT_RANGE_LIMITS_M = (0.2, 20.0)
 # error is weak and inconsistent (docs/navigation.md), hence the mild setting.
 DEFAULT_DEFECT_SCALE = 0.02
 # Multipliers applied to the confidence when an answer is implausible but not impossible.
-OUT_OF_RANGE_FACTOR = 0.2      # camera distance outside the training envelope
-OUT_OF_VIEW_FACTOR = 0.2       # target origin projects outside the image: the net cannot have seen it
-ASPECT_TOLERANCE = 0.02        # relative: 744x480 vs 248x160 is exact; a cropped or rotated frame is not
+OUT_OF_RANGE_FACTOR = 0.2  # camera distance outside the training envelope
+OUT_OF_VIEW_FACTOR = 0.2  # target origin projects outside the image: the net cannot have seen it
+ASPECT_TOLERANCE = 0.02  # relative: 744x480 vs 248x160 is exact; a cropped or rotated frame is not
 
 
 class ModelFileError(RuntimeError):
@@ -59,8 +62,9 @@ def resize_frame(image: Image.Image | np.ndarray, size_wh: tuple[int, int]) -> n
     corners, so intrinsics scale exactly by the size ratio."""
     im = Image.fromarray(image) if isinstance(image, np.ndarray) else image
     im = im.convert("RGB")
-    if im.size != tuple(size_wh):
-        im = im.resize(tuple(size_wh), Image.Resampling.BILINEAR)
+    w, h = size_wh
+    if im.size != (w, h):
+        im = im.resize((w, h), Image.Resampling.BILINEAR)
     return np.asarray(im, dtype=np.uint8)
 
 
@@ -72,29 +76,33 @@ def to_input(frames_uint8: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(x.transpose(0, 3, 1, 2), dtype=np.float32) / np.float32(255.0)
 
 
-def read_metadata(path: str | Path) -> dict:
+def read_metadata(path: str | Path) -> dict[str, Any]:
     """The ``oibar.*`` metadata of an export, JSON-decoded; ModelFileError naming the file if it
     is missing, unreadable, or carries none."""
     import onnx
 
     path = Path(path)
     if not path.is_file():
-        raise ModelFileError(f"model file not found: {path} (train and export one: `make train` then `make export`)")
+        raise ModelFileError(
+            f"model file not found: {path} (train and export one: `make train` then `make export`)"
+        )
     try:
         m = onnx.load(str(path), load_external_data=False)
     except Exception as exc:  # onnx/protobuf raise several types for a damaged file
         raise ModelFileError(f"{path}: not a readable ONNX model ({type(exc).__name__}: {exc})") from exc
-    if len(m.graph.node) == 0:   # protobuf parses some garbage (and empty files) as an empty model
+    if len(m.graph.node) == 0:  # protobuf parses some garbage (and empty files) as an empty model
         raise ModelFileError(f"{path}: not a readable ONNX model (no graph nodes; truncated or not ONNX)")
     meta = {}
     for p in m.metadata_props:
         if p.key.startswith(METADATA_PREFIX):
             try:
-                meta[p.key[len(METADATA_PREFIX):]] = json.loads(p.value)
+                meta[p.key[len(METADATA_PREFIX) :]] = json.loads(p.value)
             except json.JSONDecodeError as exc:
                 raise ModelFileError(f"{path}: metadata {p.key!r} is not valid JSON ({exc})") from exc
     if "input_size_wh" not in meta:
-        raise ModelFileError(f"{path}: no OibarNet metadata (oibar.input_size_wh); not exported by oibar_models.export")
+        raise ModelFileError(
+            f"{path}: no OibarNet metadata (oibar.input_size_wh); not exported by oibar_models.export"
+        )
     size = meta["input_size_wh"]
     if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
         raise ModelFileError(f"{path}: oibar.input_size_wh must be [width, height] in pixels, got {size!r}")
@@ -105,22 +113,22 @@ def read_metadata(path: str | Path) -> dict:
 class PoseEstimate:
     """One frame's answer. T/q/R: the target's pose in the camera frame (p_C = R p_t + T)."""
 
-    T_cam_target_m: np.ndarray        # (3,) metres, camera frame (OpenCV axes)
-    q_cam_target: np.ndarray          # (4,) (w, x, y, z), w >= 0
-    R_cam_target: np.ndarray          # (3, 3)
-    t_s: float                        # capture time of the frame, as given by the caller
-    latency_ms: float                 # resize + inference, this call
-    confidence: float                 # 0..1 plausibility (not a calibrated probability)
-    camera_range_m: float             # ||T_cam_target||: camera-to-fixture distance
-    ortho_defect: float               # ||rot6d - its Gram-Schmidt projection||; 0 for a valid rotation
-    flags: tuple[str, ...] = field(default_factory=tuple)   # why confidence was lowered, if it was
+    T_cam_target_m: np.ndarray  # (3,) metres, camera frame (OpenCV axes)
+    q_cam_target: np.ndarray  # (4,) (w, x, y, z), w >= 0
+    R_cam_target: np.ndarray  # (3, 3)
+    t_s: float  # capture time of the frame, as given by the caller
+    latency_ms: float  # resize + inference, this call
+    confidence: float  # 0..1 plausibility (not a calibrated probability)
+    camera_range_m: float  # ||T_cam_target||: camera-to-fixture distance
+    ortho_defect: float  # ||rot6d - its Gram-Schmidt projection||; 0 for a valid rotation
+    flags: tuple[str, ...] = field(default_factory=tuple)  # why confidence was lowered, if it was
 
     @property
     def finite(self) -> bool:
         return bool(np.all(np.isfinite(self.T_cam_target_m)) and np.all(np.isfinite(self.R_cam_target)))
 
 
-def _session(path: Path, threads: int, allow_spinning: bool):
+def _session(path: Path, threads: int, allow_spinning: bool) -> Any:
     import onnxruntime as ort
 
     so = ort.SessionOptions()
@@ -128,14 +136,14 @@ def _session(path: Path, threads: int, allow_spinning: bool):
     so.intra_op_num_threads = threads
     so.inter_op_num_threads = 1
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL   # fuse conv+bn+relu etc.
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL  # fuse conv+bn+relu etc.
     # One frame shape for the whole flight: the arena and the memory pattern are planned once
     # (at warm-up) and reused, so steady-state runs allocate nothing.
     so.enable_cpu_mem_arena = True
     so.enable_mem_pattern = True
     # Spinning workers burn a core between frames; at 10 Hz that core belongs to the link and camera.
     so.add_session_config_entry("session.intra_op.allow_spinning", "1" if allow_spinning else "0")
-    so.log_severity_level = 3   # errors only: graph-optimiser notes are not the operator's business
+    so.log_severity_level = 3  # errors only: graph-optimiser notes are not the operator's business
     try:
         return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph/... types
@@ -153,14 +161,20 @@ class PoseEstimator:
     input), ``predict_batch`` (frames already at the input size) and ``__call__`` (one frame ->
     (T, q))."""
 
-    def __new__(cls, path=None, *args, **kwargs):
+    def __new__(cls, path: str | Path | None = None, *args: Any, **kwargs: Any) -> PoseEstimator:
         if cls is PoseEstimator and path is not None and read_metadata(path).get("kind") == "keypoints":
             cls = KeypointPoseEstimator
         return super().__new__(cls)
 
-    def __init__(self, path: str | Path, threads: int = 2, warmup_runs: int = 3,
-                 range_limits_m: tuple[float, float] | None = None, defect_scale: float = DEFAULT_DEFECT_SCALE,
-                 allow_spinning: bool = False):
+    def __init__(
+        self,
+        path: str | Path,
+        threads: int = 2,
+        warmup_runs: int = 3,
+        range_limits_m: tuple[float, float] | None = None,
+        defect_scale: float = DEFAULT_DEFECT_SCALE,
+        allow_spinning: bool = False,
+    ):
         if threads < 1:
             raise ValueError(f"threads must be >= 1, got {threads}")
         if warmup_runs < 0:
@@ -173,14 +187,16 @@ class PoseEstimator:
         self.size_wh = tuple(self.meta["input_size_wh"])
         inputs = self.session.get_inputs()
         if len(inputs) != 1 or len(inputs[0].shape) != 4:
-            raise ModelFileError(f"{self.path}: expected one 4-D image input, got "
-                                 f"{[(i.name, i.shape) for i in inputs]}")
+            raise ModelFileError(
+                f"{self.path}: expected one 4-D image input, got {[(i.name, i.shape) for i in inputs]}"
+            )
         self.input_name = inputs[0].name
         self.output_names = [o.name for o in self.session.get_outputs()]
         missing = [n for n in REQUIRED_OUTPUTS if n not in self.output_names]
         if missing:
-            raise ModelFileError(f"{self.path}: outputs {missing} missing (has {self.output_names}); "
-                                 "not an OibarNet export")
+            raise ModelFileError(
+                f"{self.path}: outputs {missing} missing (has {self.output_names}); not an OibarNet export"
+            )
         cam = self.meta.get("camera") or {}
         # Frames must have the camera's aspect: resizing anything else would distort the geometry.
         self.frame_wh = (int(cam["width_px"]), int(cam["height_px"])) if "width_px" in cam else self.size_wh
@@ -194,25 +210,25 @@ class PoseEstimator:
         self.defect_scale = float(defect_scale)
         w, h = self.size_wh
         zero = np.zeros((1, 3, h, w), np.float32)
-        for _ in range(warmup_runs):   # first runs plan memory and pick kernels: keep them out of flight
+        for _ in range(warmup_runs):  # first runs plan memory and pick kernels: keep them out of flight
             self.run(zero)
 
     # ------------------------------------------------------------------ batch interface
     def run(self, x: np.ndarray) -> dict[str, np.ndarray]:
         """Prepared input (N, 3, H, W) float32 in [0, 1] -> every output by name."""
-        return dict(zip(self.output_names, self.session.run(None, {self.input_name: x})))
+        return dict(zip(self.output_names, self.session.run(None, {self.input_name: x}), strict=True))
 
     def predict_batch(self, frames_uint8_small: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Frames already at the input size, (N, H, W, 3) uint8 -> (T (N, 3), q (N, 4))."""
         out = self.run(to_input(frames_uint8_small))
         return out["position_m"], out["q_cam_target"]
 
-    def __call__(self, frame) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, frame: Image.Image | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t, q = self.predict_batch(resize_frame(frame, self.size_wh))
         return t[0], q[0]
 
     # ------------------------------------------------------------------ the daemon's interface
-    def check_frame(self, image) -> None:
+    def check_frame(self, image: Any) -> None:
         """FrameError (with the reason) unless ``image`` is an RGB uint8 frame the net can use."""
         if not isinstance(image, np.ndarray):
             raise FrameError(f"frame must be a numpy array, got {type(image).__name__}")
@@ -228,14 +244,20 @@ class PoseEstimator:
             raise FrameError(f"frame {w}x{h} is smaller than the network input {in_w}x{in_h}")
         fw, fh = self.frame_wh
         if abs((w / h) / (fw / fh) - 1.0) > ASPECT_TOLERANCE:
-            raise FrameError(f"frame {w}x{h} has aspect {w / h:.3f}, the model expects the camera's "
-                             f"{fw}x{fh} ({fw / fh:.3f}); a crop or rotation would distort the geometry")
+            raise FrameError(
+                f"frame {w}x{h} has aspect {w / h:.3f}, the model expects the camera's "
+                f"{fw}x{fh} ({fw / fh:.3f}); a crop or rotation would distort the geometry"
+            )
 
     # Whether estimate() uses a predicted pose (the navigation filter's) to look in the right place.
     uses_prior = False
 
-    def estimate(self, image_rgb_uint8: np.ndarray, t_s: float = 0.0,
-                 prior: tuple[np.ndarray, np.ndarray] | None = None) -> PoseEstimate:
+    def estimate(
+        self,
+        image_rgb_uint8: np.ndarray,
+        t_s: float = 0.0,
+        prior: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> PoseEstimate:
         """One frame -> pose. `prior` (R_cam_target, T_cam_target_m), the pose predicted for this
         frame, is ignored by a direct model: it sees the whole frame anyway."""
         if not np.isfinite(t_s):
@@ -249,10 +271,21 @@ class PoseEstimator:
         q = out["q_cam_target"][0].astype(float)
         r6 = out["rot6d"][0].astype(float) if "rot6d" in out else None
         conf, rng_m, defect, flags = self.plausibility(T, R, r6)
-        return PoseEstimate(T_cam_target_m=T, q_cam_target=q, R_cam_target=R, t_s=float(t_s), latency_ms=latency_ms,
-                            confidence=conf, camera_range_m=rng_m, ortho_defect=defect, flags=flags)
+        return PoseEstimate(
+            T_cam_target_m=T,
+            q_cam_target=q,
+            R_cam_target=R,
+            t_s=float(t_s),
+            latency_ms=latency_ms,
+            confidence=conf,
+            camera_range_m=rng_m,
+            ortho_defect=defect,
+            flags=flags,
+        )
 
-    def plausibility(self, T: np.ndarray, R: np.ndarray, rot6d: np.ndarray | None):
+    def plausibility(
+        self, T: np.ndarray, R: np.ndarray, rot6d: np.ndarray | None
+    ) -> tuple[float, float, float, tuple[str, ...]]:
         """(confidence 0..1, camera range m, 6D defect, flags). The net has no uncertainty head;
         these are cheap consistency checks on its own outputs:
           - the raw 6D should already be two orthonormal columns (the loss trains it towards the
@@ -260,7 +293,11 @@ class PoseEstimator:
           - z <= 0 (target behind the camera) or non-finite numbers are impossible: confidence 0;
           - a distance outside the training envelope, or a target origin that projects outside
             the image, cannot come from what the net saw: confidence scaled down."""
-        if not (np.all(np.isfinite(T)) and np.all(np.isfinite(R)) and (rot6d is None or np.all(np.isfinite(rot6d)))):
+        if not (
+            np.all(np.isfinite(T))
+            and np.all(np.isfinite(R))
+            and (rot6d is None or np.all(np.isfinite(rot6d)))
+        ):
             return 0.0, float("nan"), float("nan"), ("non_finite",)
         rng_m = float(np.linalg.norm(T))
         defect = 0.0
@@ -285,7 +322,7 @@ class PoseEstimator:
         return float(np.clip(conf, 0.0, 1.0)), rng_m, defect, tuple(flags)
 
 
-OnnxPoseEstimator = PoseEstimator   # the name oibar_models (export parity, evaluation) uses
+OnnxPoseEstimator = PoseEstimator  # the name oibar_models (export parity, evaluation) uses
 
 
 # ----------------------------------------------------------------------------- keypoints + PnP
@@ -299,7 +336,7 @@ DISAGREE_ATT_DEG = 20.0
 # Reprojection RMS (crop pixels) at which confidence falls to exp(-1/2): a few times the
 # keypoints' typical error on validation scenes.
 REPROJ_SCALE_CROP_PX = 3.0
-FALLBACK_FACTOR = 0.3          # confidence of the direct model's answer when PnP has none
+FALLBACK_FACTOR = 0.3  # confidence of the direct model's answer when PnP has none
 # Windows tried in turn until the keypoints give a consistent pose: (shift x, shift y) in window
 # sides and a size factor, around the direct model's window. The network was trained with the
 # fixture up to ~0.25 side off centre and +-25 % in size, so half-side steps leave no gap. Only
@@ -307,12 +344,23 @@ FALLBACK_FACTOR = 0.3          # confidence of the direct model's answer when Pn
 # 11 passes, about 0.4 s on 2 busy cores. Measured on the validation scenes (every 16th frame):
 # mean position error 1.82 % with the first window only, 1.26 % without the diagonal steps,
 # 0.95 % with all 11.
-SEARCH_STEPS = ((0, 0, 1.0), (-0.5, 0, 1.0), (0.5, 0, 1.0), (0, -0.5, 1.0), (0, 0.5, 1.0), (-0.5, -0.5, 1.0),
-                (0.5, -0.5, 1.0), (-0.5, 0.5, 1.0), (0.5, 0.5, 1.0), (0, 0, 0.7), (0, 0, 1.4))
+SEARCH_STEPS = (
+    (0, 0, 1.0),
+    (-0.5, 0, 1.0),
+    (0.5, 0, 1.0),
+    (0, -0.5, 1.0),
+    (0, 0.5, 1.0),
+    (-0.5, -0.5, 1.0),
+    (0.5, -0.5, 1.0),
+    (-0.5, 0.5, 1.0),
+    (0.5, 0.5, 1.0),
+    (0, 0, 0.7),
+    (0, 0, 1.4),
+)
 MIN_INLIERS = 5
 
 
-def _checked_prior(prior) -> tuple[np.ndarray, np.ndarray] | None:
+def _checked_prior(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
     """A usable predicted pose or None: a rotation and a finite translation in front of the camera."""
     if prior is None:
         return None
@@ -336,9 +384,16 @@ class KeypointPoseEstimator(PoseEstimator):
     as the cross-check (gross disagreement lowers confidence) and the fallback (when PnP finds
     no consistent pose, with low confidence and a flag saying so)."""
 
-    def __init__(self, path: str | Path, threads: int = 2, warmup_runs: int = 3,
-                 range_limits_m: tuple[float, float] | None = None, defect_scale: float = DEFAULT_DEFECT_SCALE,
-                 allow_spinning: bool = False, refine_passes: int = 2):
+    def __init__(
+        self,
+        path: str | Path,
+        threads: int = 2,
+        warmup_runs: int = 3,
+        range_limits_m: tuple[float, float] | None = None,
+        defect_scale: float = DEFAULT_DEFECT_SCALE,
+        allow_spinning: bool = False,
+        refine_passes: int = 2,
+    ):
         self.path = Path(path)
         self.meta = read_metadata(self.path)
         for key in ("keypoints_3d_m", "crop", "pnp", "camera", "first_pass"):
@@ -346,7 +401,9 @@ class KeypointPoseEstimator(PoseEstimator):
                 raise ModelFileError(f"{self.path}: keypoint model without oibar.{key} metadata")
         first = self.path.parent / self.meta["first_pass"]
         if not first.is_file():
-            raise ModelFileError(f"{self.path}: its first-pass model {first.name} is missing (it must lie beside it)")
+            raise ModelFileError(
+                f"{self.path}: its first-pass model {first.name} is missing (it must lie beside it)"
+            )
         self.first = PoseEstimator(first, threads, warmup_runs, range_limits_m, defect_scale, allow_spinning)
         if isinstance(self.first, KeypointPoseEstimator):
             raise ModelFileError(f"{first}: a first-pass model must be a direct model")
@@ -367,26 +424,27 @@ class KeypointPoseEstimator(PoseEstimator):
         self.K_frame = np.array(cam["K_frame"], float)
         if range_limits_m is None:
             range_limits_m = tuple(self.meta.get("train_range_m", DEFAULT_RANGE_LIMITS_M))
-        self.range_limits_m = tuple(float(v) for v in range_limits_m)
+        lo, hi = (float(v) for v in range_limits_m)
+        self.range_limits_m = (lo, hi)
         self.defect_scale = float(defect_scale)
         self.refine_passes = max(1, int(refine_passes))
         if (self.meta.get("fusion") or {}).get("kp_error_model"):
-            self._error_model(self.meta["fusion"])      # a malformed table fails here, not in flight
+            self._error_model(self.meta["fusion"])  # a malformed table fails here, not in flight
         zero = np.zeros((1, 3, self.out_px, self.out_px), np.float32)
         for _ in range(warmup_runs):
             self.run(zero)
 
-    def check_frame(self, image) -> None:
+    def check_frame(self, image: Any) -> None:
         self.first.check_frame(image)
         h, w = image.shape[:2]
         if (w, h) != self.frame_wh:
-            raise FrameError(f"frame {w}x{h}: the keypoint model works in the camera's own pixels, "
-                             f"{self.frame_wh[0]}x{self.frame_wh[1]}")
+            raise FrameError(
+                f"frame {w}x{h}: the keypoint model works in the camera's own pixels, "
+                f"{self.frame_wh[0]}x{self.frame_wh[1]}"
+            )
 
-    def keypoints(self, image: np.ndarray, win) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def keypoints(self, image: np.ndarray, win: CropWindow) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One crop -> (frame pixels (K, 2) with NaN where absent, spread (K,) crop px, presence (K,))."""
-        from .keypoints import cut
-
         out = self.run(to_input(cut(image, win)))
         kp = out["kp_crop_px"][0].astype(float)
         present = out["kp_present"][0].astype(float)
@@ -395,8 +453,14 @@ class KeypointPoseEstimator(PoseEstimator):
         uv[present < self.min_present] = np.nan
         return uv, spread, present
 
-    def solve(self, image: np.ndarray, R_direct: np.ndarray, T_direct: np.ndarray, fusion: dict | None = None,
-              prior: tuple[np.ndarray, np.ndarray] | None = None):
+    def solve(
+        self,
+        image: np.ndarray,
+        R_direct: np.ndarray,
+        T_direct: np.ndarray,
+        fusion: dict[str, Any] | None = None,
+        prior: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[PnpResult, CropWindow] | tuple[None, None]:
         """Crop around the current pose, keypoints, pose (keypoints.map_pose: PnP, and with the
         export's ``oibar.fusion`` weights the direct attitude as a prior); then
         `refine_passes - 1` more times from the newest pose. The first window is the predicted
@@ -405,71 +469,110 @@ class KeypointPoseEstimator(PoseEstimator):
         tried in turn (the direct model can be 1 m off sideways at 10 m on an unseen scene).
         The prior only places the crop; the attitude prior of the fit stays the direct model's,
         so a wrong prediction cannot feed itself back. Returns (PnpResult or None, the last window)."""
-        from .keypoints import CropWindow, project, window_around
-
+        K = self._K()
         f = self.meta.get("fusion") if fusion is None else fusion
-        best = None
+        best: tuple[PnpResult, CropWindow] | None = None
         if prior is not None:
-            uv_p = project(self.K_frame, self.points_m, prior[0], prior[1])
+            uv_p = project(K, self.points_m, prior[0], prior[1])
             if np.all(np.isfinite(uv_p)):
-                r, win = self._one_pass(image, window_around(uv_p, self.out_px, self.margin), R_direct, f,
-                                        float(np.linalg.norm(prior[1])))
-                if r is not None:
+                r, win = self._one_pass(
+                    image,
+                    window_around(uv_p, self.out_px, self.margin),
+                    R_direct,
+                    f,
+                    float(np.linalg.norm(prior[1])),
+                )
+                if r is not None and win is not None:
                     best = (r, win)
         if best is None:
-            uv0 = project(self.K_frame, self.points_m, R_direct, T_direct)
+            uv0 = project(K, self.points_m, R_direct, T_direct)
             if not np.all(np.isfinite(uv0)):
                 return None, None
             base = window_around(uv0, self.out_px, self.margin)
             for dx, dy, k in SEARCH_STEPS:
                 c = (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px)
-                r, win = self._one_pass(image, CropWindow(c, base.side_px * k, self.out_px), R_direct, f,
-                                        float(np.linalg.norm(T_direct)) / k)
-                if r is not None:
+                r, win = self._one_pass(
+                    image,
+                    CropWindow(c, base.side_px * k, self.out_px),
+                    R_direct,
+                    f,
+                    float(np.linalg.norm(T_direct)) / k,
+                )
+                if r is not None and win is not None:
                     best = (r, win)
                     break
         if best is None:
             return None, None
         for _ in range(self.refine_passes - 1):
-            uv = project(self.K_frame, self.points_m, best[0].R_cam_target, best[0].T_cam_target_m)
-            r, win = self._one_pass(image, window_around(uv, self.out_px, self.margin), R_direct, f,
-                                    float(np.linalg.norm(best[0].T_cam_target_m)))
-            if r is None:
+            R_best, T_best = best[0].pose()
+            uv = project(K, self.points_m, R_best, T_best)
+            r, win = self._one_pass(
+                image,
+                window_around(uv, self.out_px, self.margin),
+                R_direct,
+                f,
+                float(np.linalg.norm(T_best)),
+            )
+            if r is None or win is None:
                 break
             best = (r, win)
         return best
 
-    def _one_pass(self, image, win, R_direct, f, range_m: float):
-        from .keypoints import map_pose
+    def _K(self) -> np.ndarray:
+        assert self.K_frame is not None  # set from the keypoint model's oibar.camera (required)
+        return self.K_frame
 
+    def _one_pass(
+        self,
+        image: np.ndarray,
+        win: CropWindow,
+        R_direct: np.ndarray,
+        f: dict[str, Any] | None,
+        range_m: float,
+    ) -> tuple[PnpResult, CropWindow] | tuple[None, None]:
         uv, _, _ = self.keypoints(image, win)
-        s_px = float(f["sigma_crop_px"]) / win.scale if f else None
-        if s_px is not None and f.get("kp_error_model"):
+        s_px: float | np.ndarray | None = float(f["sigma_crop_px"]) / win.scale if f else None
+        if s_px is not None and f and f.get("kp_error_model"):
             s_px = s_px * self._error_model(f).scale(range_m)
         s_rad = np.radians(float(f["sigma_prior_deg"])) if f else None
-        r = map_pose(uv, self.points_m, self.K_frame, self.reproj_crop_px / win.scale, R_direct, s_px, s_rad, MIN_INLIERS)
+        r = map_pose(
+            uv,
+            self.points_m,
+            self._K(),
+            self.reproj_crop_px / win.scale,
+            R_direct,
+            s_px,
+            s_rad,
+            MIN_INLIERS,
+        )
         return (r, win) if r.ok else (None, None)
 
-    def _error_model(self, f: dict):
+    def _error_model(self, f: dict[str, Any]) -> KeypointErrorModel:
         """The fusion's KeypointErrorModel, built once per fusion table."""
-        from .keypoints import KeypointErrorModel
-
         key = id(f["kp_error_model"])
         if getattr(self, "_err_key", None) != key:
             try:
                 model = KeypointErrorModel(f["kp_error_model"])
             except (KeyError, TypeError, ValueError) as exc:
-                raise ModelFileError(f"{self.path}: oibar.fusion.kp_error_model is malformed ({exc})") from exc
+                raise ModelFileError(
+                    f"{self.path}: oibar.fusion.kp_error_model is malformed ({exc})"
+                ) from exc
             if model.rms_crop_px.shape[0] != len(self.points_m):
-                raise ModelFileError(f"{self.path}: oibar.fusion.kp_error_model has {model.rms_crop_px.shape[0]} "
-                                     f"keypoints, the model {len(self.points_m)}")
+                raise ModelFileError(
+                    f"{self.path}: oibar.fusion.kp_error_model has {model.rms_crop_px.shape[0]} "
+                    f"keypoints, the model {len(self.points_m)}"
+                )
             self._err_key, self._err_model = key, model
         return self._err_model
 
     uses_prior = True
 
-    def estimate(self, image_rgb_uint8: np.ndarray, t_s: float = 0.0,
-                 prior: tuple[np.ndarray, np.ndarray] | None = None) -> PoseEstimate:
+    def estimate(
+        self,
+        image_rgb_uint8: np.ndarray,
+        t_s: float = 0.0,
+        prior: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> PoseEstimate:
         """One frame -> pose; `prior` (R_cam_target, T_cam_target_m), the pose predicted for this
         frame (the daemon passes its filter's), places the first crop (see solve)."""
         if not np.isfinite(t_s):
@@ -479,24 +582,34 @@ class KeypointPoseEstimator(PoseEstimator):
         t0 = time.perf_counter()
         if float(image_rgb_uint8[::4, ::4].std()) < MIN_FRAME_STD_DN:
             nan = np.full(3, np.nan)
-            return PoseEstimate(nan, np.full(4, np.nan), np.full((3, 3), np.nan), float(t_s),
-                                (time.perf_counter() - t0) * 1e3, 0.0, float("nan"), 0.0, ("blank_frame",))
+            return PoseEstimate(
+                nan,
+                np.full(4, np.nan),
+                np.full((3, 3), np.nan),
+                float(t_s),
+                (time.perf_counter() - t0) * 1e3,
+                0.0,
+                float("nan"),
+                0.0,
+                ("blank_frame",),
+            )
         direct = self.first.estimate(image_rgb_uint8, t_s)
         if not direct.finite or direct.confidence <= 0.0:
             direct.latency_ms = (time.perf_counter() - t0) * 1e3
             direct.flags = tuple(direct.flags) + ("no_first_pass",)
             return direct
         r, win = self.solve(image_rgb_uint8, direct.R_cam_target, direct.T_cam_target_m, prior=prior)
-        if r is None:
+        if r is None or win is None:
             latency_ms = (time.perf_counter() - t0) * 1e3
             direct.latency_ms = latency_ms
             direct.confidence *= FALLBACK_FACTOR
             direct.flags = tuple(direct.flags) + ("pnp_failed", "fallback_direct")
             return direct
-        R, T, rms_px = r.R_cam_target, r.T_cam_target_m, r.rms_px
+        R, T = r.pose()
+        rms_px = r.rms_px
         latency_ms = (time.perf_counter() - t0) * 1e3
-        conf, rng_m, _, flags = self.plausibility(T, R, None)
-        flags = list(flags)
+        conf, rng_m, _, checks = self.plausibility(T, R, None)
+        flags = list(checks)
         rms_crop = rms_px * win.scale
         conf *= float(np.exp(-0.5 * (rms_crop / REPROJ_SCALE_CROP_PX) ** 2))
         if rms_crop > REPROJ_SCALE_CROP_PX:
@@ -507,20 +620,29 @@ class KeypointPoseEstimator(PoseEstimator):
             conf *= FALLBACK_FACTOR
             flags.append("direct_disagrees")
         q = matrix_to_quat(R)
-        return PoseEstimate(T_cam_target_m=T, q_cam_target=q, R_cam_target=R, t_s=float(t_s), latency_ms=latency_ms,
-                            confidence=float(np.clip(conf, 0.0, 1.0)), camera_range_m=rng_m, ortho_defect=0.0,
-                            flags=tuple(flags))
+        return PoseEstimate(
+            T_cam_target_m=T,
+            q_cam_target=q,
+            R_cam_target=R,
+            t_s=float(t_s),
+            latency_ms=latency_ms,
+            confidence=float(np.clip(conf, 0.0, 1.0)),
+            camera_range_m=rng_m,
+            ortho_defect=0.0,
+            flags=tuple(flags),
+        )
 
-    def __call__(self, frame) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, frame: Image.Image | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         e = self.estimate(np.asarray(frame))
         return e.T_cam_target_m, e.q_cam_target
 
-    def predict_batch(self, frames_uint8_small: np.ndarray):
+    def predict_batch(self, frames_uint8_small: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise TypeError("a keypoint model has no batch interface on resized frames; use estimate(frame)")
 
 
-
-def benchmark(path: str | Path, threads: int = 2, seconds: float = 5.0, with_preprocess: bool = True) -> dict:
+def benchmark(
+    path: str | Path, threads: int = 2, seconds: float = 5.0, with_preprocess: bool = True
+) -> dict[str, Any]:
     """Single-stream latency on this machine: one 744x480 frame at a time, as in flight."""
     est = PoseEstimator(path, threads)
     rng = np.random.default_rng(0)
@@ -538,6 +660,12 @@ def benchmark(path: str | Path, threads: int = 2, seconds: float = 5.0, with_pre
             est.predict_batch(small)
         lat.append(time.perf_counter() - t0)
     lat_ms = np.array(lat) * 1e3
-    return {"threads": threads, "runs": len(lat), "mean_ms": float(lat_ms.mean()),
-            "median_ms": float(np.median(lat_ms)), "p95_ms": float(np.percentile(lat_ms, 95)),
-            "inferences_per_s": float(1e3 / lat_ms.mean()), "with_preprocess": with_preprocess}
+    return {
+        "threads": threads,
+        "runs": len(lat),
+        "mean_ms": float(lat_ms.mean()),
+        "median_ms": float(np.median(lat_ms)),
+        "p95_ms": float(np.percentile(lat_ms, 95)),
+        "inferences_per_s": float(1e3 / lat_ms.mean()),
+        "with_preprocess": with_preprocess,
+    }

@@ -32,23 +32,34 @@ class ReplayResult:
     frames_missing: int = 0
     holds_recorded: int = 0
     holds_replayed: int = 0
-    dt_m: list[float] = field(default_factory=list)        # |t_new - t_recorded|
+    dt_m: list[float] = field(default_factory=list)  # |t_new - t_recorded|
     dq_deg: list[float] = field(default_factory=list)
     model: str = ""
 
     def summary(self) -> dict[str, Any]:
         def stat(xs: list[float], f: Callable[[list[float]], Any]) -> float | None:
             return float(f(xs)) if xs else None
-        return {"model": self.model, "cycles": self.cycles, "frames_replayed": self.frames_replayed,
-                "frames_missing": self.frames_missing, "holds_recorded": self.holds_recorded,
-                "holds_replayed": self.holds_replayed,
-                "position_diff_m_mean": stat(self.dt_m, np.mean), "position_diff_m_max": stat(self.dt_m, np.max),
-                "attitude_diff_deg_mean": stat(self.dq_deg, np.mean),
-                "attitude_diff_deg_max": stat(self.dq_deg, np.max)}
+
+        return {
+            "model": self.model,
+            "cycles": self.cycles,
+            "frames_replayed": self.frames_replayed,
+            "frames_missing": self.frames_missing,
+            "holds_recorded": self.holds_recorded,
+            "holds_replayed": self.holds_replayed,
+            "position_diff_m_mean": stat(self.dt_m, np.mean),
+            "position_diff_m_max": stat(self.dt_m, np.max),
+            "attitude_diff_deg_mean": stat(self.dq_deg, np.mean),
+            "attitude_diff_deg_max": stat(self.dq_deg, np.max),
+        }
 
 
-def replay(log_path: str | Path, navigator: Navigator, out_path: str | Path | None = None,
-           progress: Callable[[int, int], None] | None = None) -> ReplayResult:
+def replay(
+    log_path: str | Path,
+    navigator: Navigator,
+    out_path: str | Path | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> ReplayResult:
     from PIL import Image
 
     log_path = Path(log_path)
@@ -75,25 +86,43 @@ def replay(log_path: str | Path, navigator: Navigator, out_path: str | Path | No
                 except OSError:
                     res.frames_missing += 1
             odo = rec.get("odometry") or {}
-            odometry = (odo["t_s"], np.asarray(odo["v_D_mps"], float), odo["sigma_mps"]) if "v_D_mps" in odo else None
-            step = navigator.step(float(rec["t_s"]), image, frame_t_s=fr.get("t_s"), frame_seq=fr.get("seq"),
-                                  odometry=odometry)
+            odometry = (
+                (odo["t_s"], np.asarray(odo["v_D_mps"], float), odo["sigma_mps"])
+                if "v_D_mps" in odo
+                else None
+            )
+            step = navigator.step(
+                float(rec["t_s"]), image, frame_t_s=fr.get("t_s"), frame_seq=fr.get("seq"), odometry=odometry
+            )
             if image is not None:
                 res.frames_replayed += 1
             if step.hold_reason:
                 res.holds_replayed += 1
             old = rec.get("estimate")
             if step.estimate is not None and old:
-                res.dt_m.append(float(np.linalg.norm(step.estimate.T_cam_target_m - np.asarray(old["T_cam_target_m"]))))
+                res.dt_m.append(
+                    float(np.linalg.norm(step.estimate.T_cam_target_m - np.asarray(old["T_cam_target_m"])))
+                )
                 res.dq_deg.append(angle_between_quats_deg(step.estimate.q_cam_target, old["q_cam_target"]))
             if out is not None:
                 e = step.estimate
-                out.write({"kind": "replay", "t_s": rec["t_s"], "cycle": rec.get("cycle"),
-                           "estimate": None if e is None else {"T_cam_target_m": e.T_cam_target_m,
-                                                               "q_cam_target": e.q_cam_target,
-                                                               "confidence": e.confidence},
-                           "recorded_estimate": old, "hold_reason": step.hold_reason,
-                           "r_D_m": step.solution.r_D_m if step.solution.valid else None})
+                out.write(
+                    {
+                        "kind": "replay",
+                        "t_s": rec["t_s"],
+                        "cycle": rec.get("cycle"),
+                        "estimate": None
+                        if e is None
+                        else {
+                            "T_cam_target_m": e.T_cam_target_m,
+                            "q_cam_target": e.q_cam_target,
+                            "confidence": e.confidence,
+                        },
+                        "recorded_estimate": old,
+                        "hold_reason": step.hold_reason,
+                        "r_D_m": step.solution.r_D_m if step.solution.valid else None,
+                    }
+                )
             if progress:
                 progress(i + 1, len(cycles))
     finally:
@@ -105,14 +134,18 @@ def replay(log_path: str | Path, navigator: Navigator, out_path: str | Path | No
 
 def format_summary(res: ReplayResult) -> str:
     s = res.summary()
-    lines = [f"model               {s['model']}",
-             f"cycles              {s['cycles']}",
-             f"frames replayed     {s['frames_replayed']} ({s['frames_missing']} missing)",
-             f"hold cycles         recorded {s['holds_recorded']}, replayed {s['holds_replayed']}"]
+    lines = [
+        f"model               {s['model']}",
+        f"cycles              {s['cycles']}",
+        f"frames replayed     {s['frames_replayed']} ({s['frames_missing']} missing)",
+        f"hold cycles         recorded {s['holds_recorded']}, replayed {s['holds_replayed']}",
+    ]
     if res.dt_m:
-        lines += [f"position vs record  mean {s['position_diff_m_mean']:.4f} m, max {s['position_diff_m_max']:.4f} m",
-                  f"attitude vs record  mean {s['attitude_diff_deg_mean']:.3f} deg, "
-                  f"max {s['attitude_diff_deg_max']:.3f} deg"]
+        lines += [
+            f"position vs record  mean {s['position_diff_m_mean']:.4f} m, max {s['position_diff_m_max']:.4f} m",
+            f"attitude vs record  mean {s['attitude_diff_deg_mean']:.3f} deg, "
+            f"max {s['attitude_diff_deg_max']:.3f} deg",
+        ]
     return "\n".join(lines)
 
 

@@ -46,9 +46,9 @@ class VehicleError(RuntimeError):
 class RelativeVelocity(NamedTuple):
     """The vehicle's own relative-velocity measurement (odometry), docking frame D."""
 
-    t_s: float                # time of validity, daemon clock
-    v_D_mps: np.ndarray       # (3,)
-    sigma_mps: float          # 1-sigma per axis
+    t_s: float  # time of validity, daemon clock
+    v_D_mps: np.ndarray  # (3,)
+    sigma_mps: float  # 1-sigma per axis
 
 
 class VehicleInterface(ABC):
@@ -92,7 +92,7 @@ class UdpJsonVehicle(VehicleInterface):
     in ``odometry_rejected`` and ignored, never raised.
     """
 
-    max_age_s = 0.5            # odometry older than this is stale (5 cycles)
+    max_age_s = 0.5  # odometry older than this is stale (5 cycles)
     future_tolerance_s = 0.05  # clock jitter allowed between the GNC's t_s and ours
 
     def __init__(self, host: str, port: int) -> None:
@@ -108,12 +108,17 @@ class UdpJsonVehicle(VehicleInterface):
         self._latest: RelativeVelocity | None = None
 
     def send(self, t_s: float, v_D_mps: np.ndarray, w_rad_s: np.ndarray, phase: str) -> None:
-        msg = {"t_s": float(t_s), "v_D_mps": [float(v) for v in v_D_mps],
-               "w_rad_s": [float(v) for v in w_rad_s], "phase": phase, "hold": phase == "HOLD"}
+        msg = {
+            "t_s": float(t_s),
+            "v_D_mps": [float(v) for v in v_D_mps],
+            "w_rad_s": [float(v) for v in w_rad_s],
+            "phase": phase,
+            "hold": phase == "HOLD",
+        }
         try:
             self.sock.sendto(json.dumps(msg).encode(), self.addr)
         except OSError:
-            self.errors += 1     # the next cycle sends a fresh setpoint
+            self.errors += 1  # the next cycle sends a fresh setpoint
 
     def relative_velocity(self, t_s: float) -> RelativeVelocity | None:
         """The newest valid measurement not yet reported (never blocks)."""
@@ -123,14 +128,14 @@ class UdpJsonVehicle(VehicleInterface):
             return None
         return odo
 
-    max_datagrams_per_cycle = 256   # bounds the work a flooding sender can put in the 10 Hz cycle
+    max_datagrams_per_cycle = 256  # bounds the work a flooding sender can put in the 10 Hz cycle
 
     def drain(self, now_s: float) -> None:
         """Read the datagrams waiting on the socket; keep the newest valid measurement."""
         for _ in range(self.max_datagrams_per_cycle):
             try:
                 data, _ = self.sock.recvfrom(2048)
-            except OSError:      # nothing waiting (BlockingIOError) or a socket error: next cycle
+            except OSError:  # nothing waiting (BlockingIOError) or a socket error: next cycle
                 break
             odo = self._parse(data, now_s)
             if odo is None:
@@ -148,14 +153,22 @@ class UdpJsonVehicle(VehicleInterface):
             t = float(msg["t_s"]) if msg.get("t_s") is not None else now_s
         except (ValueError, TypeError, KeyError, IndexError):
             return None
-        if v.shape != (3,) or not np.all(np.isfinite(v)) or not (np.isfinite(sigma) and sigma > 0) \
-                or not np.isfinite(t) or t > now_s + self.future_tolerance_s:
+        if (
+            v.shape != (3,)
+            or not np.all(np.isfinite(v))
+            or not (np.isfinite(sigma) and sigma > 0)
+            or not np.isfinite(t)
+            or t > now_s + self.future_tolerance_s
+        ):
             return None
         return RelativeVelocity(min(t, now_s), v, sigma)
 
     def statistics(self) -> dict[str, Any]:
-        return {"send_errors": self.errors, "odometry_received": self.odometry_received,
-                "odometry_rejected": self.odometry_rejected}
+        return {
+            "send_errors": self.errors,
+            "odometry_received": self.odometry_received,
+            "odometry_rejected": self.odometry_rejected,
+        }
 
     def close(self) -> None:
         self.sock.close()
@@ -166,13 +179,13 @@ def open_vehicle(spec: str) -> VehicleInterface:
     if spec in ("", "none", "null"):
         return NullVehicle()
     if spec.startswith("udp://"):
-        hostport = spec[len("udp://"):]
+        hostport = spec[len("udp://") :]
         host, sep, port = hostport.rpartition(":")
         if not sep or not port.isdigit():
             raise VehicleError(f"{spec!r}: expected udp://HOST:PORT")
         return UdpJsonVehicle(host or "127.0.0.1", int(port))
     if spec.startswith("python:"):
-        target = spec[len("python:"):]
+        target = spec[len("python:") :]
         mod_name, sep, cls_name = target.partition(":")
         if not sep:
             raise VehicleError(f"{spec!r}: expected python:package.module:ClassName")
@@ -182,6 +195,8 @@ def open_vehicle(spec: str) -> VehicleInterface:
             raise VehicleError(f"{spec!r}: cannot load ({exc})") from exc
         obj = cls()
         if not isinstance(obj, VehicleInterface):
-            raise VehicleError(f"{spec!r}: {cls_name} does not derive from oibar.nav.vehicle.VehicleInterface")
+            raise VehicleError(
+                f"{spec!r}: {cls_name} does not derive from oibar.nav.vehicle.VehicleInterface"
+            )
         return obj
     raise VehicleError(f"unknown vehicle {spec!r}: use none, udp://HOST:PORT or python:module:Class")
