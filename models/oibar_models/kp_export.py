@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from oibar.geometry.camera import PinholeCamera
+
 from . import __version__
 from .config import ConfigError, parse_override
 from .kp_engine import KpConfig, keypoints_m, load_kp_config
@@ -24,13 +26,15 @@ from .kpnet import FIXTURE_KEYPOINTS, ExportWrapper, KeypointNet
 
 METADATA_PREFIX = "oibar."
 OUTPUT_NAMES = ["kp_crop_px", "kp_spread_px", "kp_present"]
+_CAM = PinholeCamera()
+# The flight camera as the export's metadata carries it (the runtime reads K_frame from there).
 CAMERA = {
-    "fx_px": 583.3333333333334,
-    "fy_px": 583.3333333333334,
-    "cx_px": 372.0,
-    "cy_px": 240.0,
-    "width_px": 744,
-    "height_px": 480,
+    "fx_px": _CAM.fx_px,
+    "fy_px": _CAM.fy_px,
+    "cx_px": _CAM.cx_px,
+    "cy_px": _CAM.cy_px,
+    "width_px": _CAM.width_px,
+    "height_px": _CAM.height_px,
     "pixel_convention": "continuous, origin at the top-left image corner, pixel centres at i + 0.5",
 }
 
@@ -38,7 +42,7 @@ CAMERA = {
 def metadata_for(
     cfg: KpConfig, ck: dict, first_pass: str, train_range_m: tuple[float, float], fusion: dict | None = None
 ) -> dict:
-    K = [[CAMERA["fx_px"], 0.0, CAMERA["cx_px"]], [0.0, CAMERA["fy_px"], CAMERA["cy_px"]], [0.0, 0.0, 1.0]]
+    K = _CAM.K.tolist()
     n = cfg.model.out_px
     return {
         "kind": "keypoints",

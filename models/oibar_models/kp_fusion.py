@@ -35,22 +35,42 @@ ERROR_RANGE_EDGES_M = (0.0, 1.0, 1.5, 2.0, 3.0, 5.0, 8.0, 100.0)
 MIN_RMS_CROP_PX = 0.1  # a floor: no keypoint is trusted beyond the heat map's resolution
 
 
-def collect(est, seqs, stride: int) -> list[dict]:
-    """Frames, the direct model's pose for each (the first pass does not depend on the weights),
-    and the keypoints' errors in a crop around the true pose (crop pixels, NaN where not found)."""
+def collect(est, seqs, stride: int, track: bool = True) -> list[dict]:
+    """Every `stride`-th frame, the direct model's pose for each (the first pass does not depend
+    on the weights), the keypoints' errors in a crop around the true pose (crop pixels, NaN where
+    not found) and, with `track`, the pose predicted from the estimator's answers on every frame
+    before it (kp_evaluate.Predictor), as the daemon's filter gives it: the grid then scores the
+    weights on the frames the estimator really crops, not on first-pass misses it never meets
+    in flight."""
     from oibar.nav.keypoints import project, window_around
+
+    from .kp_evaluate import Predictor
 
     rows = []
     for seq in seqs:
-        for k in range(0, len(seq), stride):
+        pred = Predictor() if track else None
+        for k in range(0, len(seq), 1 if track else stride):
             img = np.asarray(Image.open(seq.dir / seq.files[k]).convert("RGB"))
+            t_s = float(seq.time_s[k])
+            prior = pred.predict(t_s) if pred else None
+            if pred:
+                pred.add(t_s, est.estimate(img, t_s, prior=prior))
+            if k % stride:
+                continue
             T, q = seq.T_cam_target[k], seq.q_cam_target[k]
             uv_true = project(est.K_frame, est.points_m, quat_to_matrix_np(q), T)
             win = window_around(uv_true, est.out_px, est.margin)
             uv, _, _ = est.keypoints(img, win)
             err = np.linalg.norm(uv - uv_true, axis=1) * win.scale
             rows.append(
-                {"img": img, "T": T, "q": q, "direct": est.first.estimate(img), "kp_err_crop_px": err}
+                {
+                    "img": img,
+                    "T": T,
+                    "q": q,
+                    "direct": est.first.estimate(img),
+                    "kp_err_crop_px": err,
+                    "prior": prior,
+                }
             )
     return rows
 
@@ -85,7 +105,9 @@ def score_grid(est, rows: list[dict], progress: bool, err_model: dict | None = N
         T_hat, q_hat = [], []
         for row in rows:
             d = row["direct"]
-            r, _ = est.solve(row["img"], d.R_cam_target, d.T_cam_target_m, fusion=fusion)
+            r, _ = est.solve(
+                row["img"], d.R_cam_target, d.T_cam_target_m, fusion=fusion, prior=row.get("prior")
+            )
             R_, T_ = (
                 (r.R_cam_target, r.T_cam_target_m) if r is not None else (d.R_cam_target, d.T_cam_target_m)
             )
@@ -121,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", type=Path, default=REPO_ROOT / "models/oibarnet.onnx")
     ap.add_argument("--stride", type=int, default=16)
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/oibarnet_kp/fusion.json")
+    ap.add_argument("--single", action="store_true", help="score every frame alone (no predicted pose)")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
     est = PoseEstimator(a.model)
@@ -130,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     seqs = [
         load_sequence(REPO_ROOT / "data/val" / s.name) for s in load_set(REPO_ROOT / "models/scenes/val.json")
     ]
-    rows = collect(est, seqs, a.stride)
+    rows = collect(est, seqs, a.stride, track=not a.single)
     em = error_model(rows, float(est.reproj_crop_px))
     grid = score_grid(est, rows, not a.no_progress, em)
     best = min(grid, key=lambda g: g["score"])
@@ -145,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
                 "chosen_on": "validation scenes (models/scenes/val.json)",
                 "frames": len(rows),
                 "stride": a.stride,
+                "mode": "single" if a.single else "track",
                 "best": best,
                 "grid": grid,
                 "kp_error_model": em,

@@ -26,7 +26,7 @@ import numpy as np
 from PIL import Image
 
 from oibar.geometry.camera import project_target_points as project
-from oibar.geometry.rotations import matrix_to_quat
+from oibar.geometry.rotations import matrix_to_quat, rotation_angle_deg
 from oibar.nav.keypoints import CropWindow, KeypointErrorModel, PnpResult, cut, map_pose, window_around
 
 METADATA_PREFIX = "oibar."
@@ -615,7 +615,7 @@ class KeypointPoseEstimator(PoseEstimator):
         if rms_crop > REPROJ_SCALE_CROP_PX:
             flags.append("reprojection")
         dpos = float(np.linalg.norm(T - direct.T_cam_target_m)) / max(rng_m, 1e-6)
-        datt = float(np.degrees(np.arccos(np.clip((np.trace(R.T @ direct.R_cam_target) - 1) / 2, -1, 1))))
+        datt = rotation_angle_deg(R.T @ direct.R_cam_target)
         if dpos > DISAGREE_POS_FRACTION or datt > DISAGREE_ATT_DEG:
             conf *= FALLBACK_FACTOR
             flags.append("direct_disagrees")
