@@ -286,3 +286,33 @@ def test_a_checkpoint_with_fewer_keypoints_grows_into_the_new_head():
     assert torch.equal(w_new[: len(names) - 1], w_old) and torch.equal(w_new[-1], w_old[centre])
     assert torch.equal(new.state_dict()["present.weight"][-1], old.state_dict()["present.weight"][centre])
     assert torch.equal(new.state_dict()["lateral.0.weight"], old.state_dict()["lateral.0.weight"])
+
+
+def test_the_error_model_is_each_keypoints_rms_per_range_bin():
+    """kp_fusion.error_model: RMS per keypoint and range bin, errors clipped at the inlier
+    threshold (RANSAC drops worse ones), a bin with under 5 answers takes the keypoint's overall
+    RMS, and every entry at least the floor."""
+    from oibar.nav.keypoints import KeypointErrorModel
+    from oibar_models.kp_fusion import ERROR_RANGE_EDGES_M, MIN_RMS_CROP_PX, error_model
+
+    rows = []
+    for i in range(40):
+        rng_m = 0.5 if i < 20 else 4.0
+        err = [0.2, 1.5 if rng_m < 1 else 0.3, 0.0]
+        if i == 0:
+            err[1] = 50.0  # one wild miss: clipped to the threshold, not 50 px
+        rows.append({"T": np.array([0.0, 0.0, rng_m]), "kp_err_crop_px": np.array(err)})
+    rows.append({"T": np.array([0.0, 0.0, 10.0]), "kp_err_crop_px": np.array([9.0, 9.0, np.nan])})
+    t = error_model(rows, clip_crop_px=4.0)
+    rms = np.array(t["rms_crop_px"])
+    assert t["range_edges_m"] == list(ERROR_RANGE_EDGES_M) and rms.shape == (3, len(ERROR_RANGE_EDGES_M) - 1)
+    near, mid, far = 0, ERROR_RANGE_EDGES_M.index(3.0), len(ERROR_RANGE_EDGES_M) - 2
+    assert rms[0, near] == pytest.approx(0.2) and rms[0, mid] == pytest.approx(0.2)
+    assert rms[1, near] == pytest.approx(np.sqrt((19 * 1.5**2 + 4.0**2) / 20), rel=1e-3)
+    assert rms[1, mid] == pytest.approx(0.3)
+    assert rms[1, far] == pytest.approx(
+        np.sqrt((19 * 1.5**2 + 16 + 20 * 0.09 + 16) / 41), rel=1e-3
+    )  # 1 answer
+    assert np.all(rms[2] == MIN_RMS_CROP_PX)  # never wrong: the floor
+    m = KeypointErrorModel(t)  # what the estimator loads from the export
+    assert m.scale(0.5)[1] > 4 * m.scale(4.0)[1]
