@@ -316,3 +316,33 @@ def test_the_error_model_is_each_keypoints_rms_per_range_bin():
     assert np.all(rms[2] == MIN_RMS_CROP_PX)  # never wrong: the floor
     m = KeypointErrorModel(t)  # what the estimator loads from the export
     assert m.scale(0.5)[1] > 4 * m.scale(4.0)[1]
+
+
+@pytest.mark.parametrize(
+    "table, match",
+    [
+        ({"range_edges_m": [0.0, 1.0], "rms_crop_px": [[0.5, 0.3]]}, "malformed"),
+        ({"range_edges_m": [0.0, 100.0], "rms_crop_px": [[0.5]] * 3}, "has 3 keypoints"),
+        ({"rms_crop_px": [[0.5]]}, "malformed"),
+    ],
+)
+def test_a_malformed_error_model_is_refused_when_the_model_opens(tmp_path, table, match):
+    """The shipped model with its oibar.fusion.kp_error_model damaged: ModelFileError at
+    construction, naming the file, never an exception in the middle of a flight."""
+    import onnx
+
+    from oibar.nav.pose import ModelFileError, PoseEstimator
+
+    m = onnx.load(str(REPO / "models/oibarnet.onnx"))
+    for p in m.metadata_props:
+        if p.key == "oibar.fusion":
+            fusion = json.loads(p.value)
+            assert "kp_error_model" in fusion  # the shipped model has one
+            fusion["kp_error_model"] = table
+            p.value = json.dumps(fusion)
+    out = tmp_path / "oibarnet.onnx"
+    onnx.save(m, str(out))
+    (tmp_path / "oibarnet_lite.onnx").symlink_to(REPO / "models/oibarnet_lite.onnx")
+    with pytest.raises(ModelFileError, match=match) as exc:
+        PoseEstimator(out, warmup_runs=0)
+    assert str(out) in str(exc.value)

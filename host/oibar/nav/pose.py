@@ -549,10 +549,10 @@ class KeypointPoseEstimator(PoseEstimator):
 
     def _error_model(self, f: dict[str, Any]) -> KeypointErrorModel:
         """The fusion's KeypointErrorModel, built once per fusion table."""
-        key = id(f["kp_error_model"])
-        if getattr(self, "_err_key", None) != key:
+        table = f["kp_error_model"]
+        if getattr(self, "_err_table", None) is not table:  # held, so its identity cannot be reused
             try:
-                model = KeypointErrorModel(f["kp_error_model"])
+                model = KeypointErrorModel(table)
             except (KeyError, TypeError, ValueError) as exc:
                 raise ModelFileError(
                     f"{self.path}: oibar.fusion.kp_error_model is malformed ({exc})"
@@ -562,7 +562,7 @@ class KeypointPoseEstimator(PoseEstimator):
                     f"{self.path}: oibar.fusion.kp_error_model has {model.rms_crop_px.shape[0]} "
                     f"keypoints, the model {len(self.points_m)}"
                 )
-            self._err_key, self._err_model = key, model
+            self._err_table, self._err_model = table, model
         return self._err_model
 
     uses_prior = True
