@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from oibar.dataset_format import POSES_COLUMNS
 from oibar.geometry.camera import PinholeCamera
 from oibar.geometry.docking import MOUNT
 from oibar.geometry.fixture import FIXTURE
@@ -236,27 +237,7 @@ def write_poses_csv(path: Path, plan: SequencePlan) -> None:
     sun_cam = np.einsum("nij,nj->ni", R_cam_lvlh, plan.sun_lvlh)
     out = io.StringIO()
     w = csv.writer(out, lineterminator="\n")
-    w.writerow(
-        [
-            "frame",
-            "file",
-            "time_s",
-            "phase",
-            "phase_name",
-            "distance_m",
-            "tx_m",
-            "ty_m",
-            "tz_m",
-            "qw",
-            "qx",
-            "qy",
-            "qz",
-            "range_m",
-            "sun_cam_x",
-            "sun_cam_y",
-            "sun_cam_z",
-        ]
-    )
+    w.writerow(POSES_COLUMNS)
     for k in range(plan.n_frames):
         t, q = plan.T_cam_target[k], plan.q_cam_target[k]
         w.writerow(

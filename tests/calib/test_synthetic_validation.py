@@ -11,6 +11,7 @@ import pytest
 from oibar.calib import io
 from oibar.calib.pnp import Detector, project
 from oibar.cli import main
+from oibar.dataset_format import POSES_COLUMNS
 from oibar.geometry.rotations import rotation_angle_deg
 from oibar.geometry.transforms import T_from_pose, inv_T, pose_error
 from oibar_hil.calib_synth import SynthConfig, T_target_cam_at, frame_times
@@ -88,7 +89,7 @@ def test_apply_gives_time_aligned_ground_truth(calib, recording, truth, tmp_path
     )
     with open(out, newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert list(rows[0].keys()) == io.POSES_COLUMNS
+    assert tuple(rows[0].keys()) == POSES_COLUMNS
     assert len(rows) == truth["n_frames"]
     cfg = SynthConfig()
     T_true = inv_T(T_target_cam_at(frame_times(cfg) + cfg.offset_s, cfg))

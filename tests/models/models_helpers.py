@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
+from oibar.dataset_format import POSES_COLUMNS
 from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
 from oibar.geometry.rotations import rot_x, rot_y, rot_z
 
@@ -73,27 +74,7 @@ def write_sequence(seq_dir: Path, n: int, seed: int) -> None:
         )
     with open(seq_dir / "poses.csv", "w", newline="") as fh:
         w = csv.writer(fh, lineterminator="\n")
-        w.writerow(
-            [
-                "frame",
-                "file",
-                "time_s",
-                "phase",
-                "phase_name",
-                "distance_m",
-                "tx_m",
-                "ty_m",
-                "tz_m",
-                "qw",
-                "qx",
-                "qy",
-                "qz",
-                "range_m",
-                "sun_cam_x",
-                "sun_cam_y",
-                "sun_cam_z",
-            ]
-        )
+        w.writerow(POSES_COLUMNS)
         w.writerows(rows)
     files["poses.csv"] = hashlib.sha256((seq_dir / "poses.csv").read_bytes()).hexdigest()
     manifest = {

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from oibar.dataset_format import POSES_COLUMNS
 from oibar.geometry.rotations import matrix_to_quat as R_to_quat_wxyz
 from oibar.geometry.transforms import T_from_pose
 
@@ -31,25 +32,6 @@ MOCAP_COLUMNS = {
     "qz": ("qz", "rot_z"),
 }
 UNIT_TO_M = {"m": 1.0, "mm": 1e-3}
-POSES_COLUMNS = [
-    "frame",
-    "file",
-    "time_s",
-    "phase",
-    "phase_name",
-    "distance_m",
-    "tx_m",
-    "ty_m",
-    "tz_m",
-    "qw",
-    "qx",
-    "qy",
-    "qz",
-    "range_m",
-    "sun_cam_x",
-    "sun_cam_y",
-    "sun_cam_z",
-]
 
 
 def _open_csv(path: Path):
