@@ -177,25 +177,15 @@ def plot_bins(path: Path, title: str, bins: dict) -> None:
     plt.close(fig)
 
 
+TABLE_COLUMNS = [
+    ("frames", "frames", "{:d}"),
+    ("answered_pct", "answered (%)", "{:.1f}"),
+    *(c for c in metrics.TABLE_COLUMNS if c[0] not in ("frames", "dt_mean_m", "dt_median_m")),
+]
+
+
 def table(rows: list[tuple[str, str, dict]]) -> str:
-    cols = [
-        ("frames", "frames", "{:d}"),
-        ("answered_pct", "answered (%)", "{:.1f}"),
-        ("dt_mean_pct", "dt mean (%)", "{:.2f}"),
-        ("dt_median_pct", "dt median (%)", "{:.2f}"),
-        ("dq_mean_deg", "dq mean (deg)", "{:.2f}"),
-        ("dq_median_deg", "dq median (deg)", "{:.2f}"),
-        ("compliance_pos_pct", "pos <= 5 % (%)", "{:.2f}"),
-        ("compliance_att_pct", "att <= 5 deg (%)", "{:.2f}"),
-    ]
-    out = [
-        "| sequence | model | " + " | ".join(c[1] for c in cols) + " |",
-        "| --- | --- | " + " | ".join("---:" for _ in cols) + " |",
-    ]
-    for seq, model, s in rows:
-        cells = [fmt.format(s[k]) if k in s and s[k] is not None else "" for k, _, fmt in cols]
-        out.append(f"| {seq} | {model} | " + " | ".join(cells) + " |")
-    return "\n".join(out)
+    return metrics.markdown_table(rows, TABLE_COLUMNS)
 
 
 def main(argv: list[str] | None = None) -> int:

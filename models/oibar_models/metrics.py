@@ -29,13 +29,15 @@ TABLE_COLUMNS = [
 ]
 
 
-def markdown_table(rows: list[tuple[str, str, dict]]) -> str:
-    """rows: (sequence, model, summary) -> a markdown table as in the paper's per-sequence tables."""
-    head = "| sequence | model | " + " | ".join(c[1] for c in TABLE_COLUMNS) + " |"
-    sep = "| --- | --- | " + " | ".join("---:" for _ in TABLE_COLUMNS) + " |"
+def markdown_table(
+    rows: list[tuple[str, str, dict]], columns: list[tuple[str, str, str]] = TABLE_COLUMNS
+) -> str:
+    """rows: (sequence, model, summary) -> a markdown table as in the paper's per-sequence tables;
+    `columns`: (summary key, heading, format). A key a summary lacks (or holds None) is an empty cell."""
+    head = "| sequence | model | " + " | ".join(c[1] for c in columns) + " |"
+    sep = "| --- | --- | " + " | ".join("---:" for _ in columns) + " |"
     lines = [head, sep]
     for seq, model, s in rows:
-        lines.append(
-            f"| {seq} | {model} | " + " | ".join(fmt.format(s[k]) for k, _, fmt in TABLE_COLUMNS) + " |"
-        )
+        cells = [fmt.format(s[k]) if s.get(k) is not None else "" for k, _, fmt in columns]
+        lines.append(f"| {seq} | {model} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
