@@ -128,6 +128,15 @@ class PoseEstimate:
         return bool(np.all(np.isfinite(self.T_cam_target_m)) and np.all(np.isfinite(self.R_cam_target)))
 
 
+def _range_limits(meta: dict[str, Any], given: tuple[float, float] | None) -> tuple[float, float]:
+    """The camera-distance envelope: as given, else the export's training range, else the default."""
+    limits = given if given is not None else tuple(meta.get("train_range_m", DEFAULT_RANGE_LIMITS_M))
+    lo, hi = (float(v) for v in limits)
+    if not 0 <= lo < hi:
+        raise ValueError(f"range_limits_m must be (low, high) with 0 <= low < high, got {limits}")
+    return lo, hi
+
+
 def _session(path: Path, threads: int, allow_spinning: bool) -> Any:
     import onnxruntime as ort
 
@@ -201,12 +210,7 @@ class PoseEstimator:
         # Frames must have the camera's aspect: resizing anything else would distort the geometry.
         self.frame_wh = (int(cam["width_px"]), int(cam["height_px"])) if "width_px" in cam else self.size_wh
         self.K_frame = np.array(cam["K_frame"], float) if "K_frame" in cam else None
-        if range_limits_m is None:
-            range_limits_m = tuple(self.meta.get("train_range_m", DEFAULT_RANGE_LIMITS_M))
-        lo, hi = (float(v) for v in range_limits_m)
-        if not 0 <= lo < hi:
-            raise ValueError(f"range_limits_m must be (low, high) with 0 <= low < high, got {range_limits_m}")
-        self.range_limits_m = (lo, hi)
+        self.range_limits_m = _range_limits(self.meta, range_limits_m)
         self.defect_scale = float(defect_scale)
         w, h = self.size_wh
         zero = np.zeros((1, 3, h, w), np.float32)
@@ -422,10 +426,7 @@ class KeypointPoseEstimator(PoseEstimator):
         cam = self.meta["camera"]
         self.frame_wh = (int(cam["width_px"]), int(cam["height_px"]))
         self.K_frame = np.array(cam["K_frame"], float)
-        if range_limits_m is None:
-            range_limits_m = tuple(self.meta.get("train_range_m", DEFAULT_RANGE_LIMITS_M))
-        lo, hi = (float(v) for v in range_limits_m)
-        self.range_limits_m = (lo, hi)
+        self.range_limits_m = _range_limits(self.meta, range_limits_m)
         self.defect_scale = float(defect_scale)
         self.refine_passes = max(1, int(refine_passes))
         if (self.meta.get("fusion") or {}).get("kp_error_model"):
