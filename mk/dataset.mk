@@ -8,7 +8,7 @@ dataset: setup ## render the 12 synthetic sequences into data/synthetic (resumab
 	@$(PY) -m oibar_hil.dataset --out $(DATASET_DIR) --workers $(JOBS) $(DATASET_ARGS)
 
 # The keypoint model's scene sets (issue 15), from the committed spec files in models/scenes/:
-# train (48 scenes) and validation (12 scenes) are our own, disjoint from each other and from the
+# train (54 scenes) and validation (16 scenes) are our own, disjoint from each other and from the
 # paper's test sequences 1 and 8 (`make dataset DATASET_ARGS="--seqs 1,8"` renders those).
 # SHARD=i/N renders every N-th scene from the i-th, for batch schedulers.
 SHARD ?=

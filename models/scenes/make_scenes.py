@@ -3,7 +3,7 @@
 Deterministic: the same script writes the same files. Test is the paper's sequences 1 and 8, read
 once per shipped model. Train and validation are our own scenes: all six ports, both backgrounds,
 Sun angles over the sunlit part of the orbit, envelope runs (misalignment up to 10 deg), sensor
-noise and blur, each with its own trajectory seed. Validation also holds turned runs (the chaser
+noise and blur, each with its own trajectory seed. Training and validation also hold turned runs (the chaser
 misaligned by 1.5-5 deg from 10 m to contact, as in the rig's mission), appended after the
 others so the earlier scenes stay as they were. A scene that shares a test scene's port and
 background is kept at least 15 deg of Sun elevation away from it; validation scenes keep the
@@ -95,6 +95,10 @@ def main() -> None:
     taken = TEST_KEYS + [(s["port"], s["background"], s["sun_elevation_deg"]) for s in train]
     val = scenes("va", 30000, 1, rng, taken)
     val += turned("va", len(val), 30000 + len(val), 4, rng, taken)
+    # Turned training runs, drawn after validation so every earlier scene stays as it was; their
+    # Sun keeps clear of the validation scenes too (model 0.6.0: the demo's turned approach).
+    taken += [(s["port"], s["background"], s["sun_elevation_deg"]) for s in val]
+    train += turned("tr", len(train), 20000 + len(train), 6, rng, taken)
     sets = {
         "train": {"set": "train", "scenes": train},
         "val": {"set": "val", "scenes": val},
