@@ -35,13 +35,14 @@ dataset-envelope: setup ## render the envelope-mode test sequence (seq01_envelop
 	@$(PY) -m oibar_hil.dataset --out $(ENVELOPE_DIR) --seqs 1 --envelope --workers $(JOBS)
 
 # The shipped model since 0.4.0 (issue 15): keypoints on a full-resolution crop + PnP, with the
-# direct model above as its first pass and attitude prior. Two training stages; the export
+# direct model above as its first pass (and the attitude prior the fit leans on, unless the
+# keypoint network's own attitude head wins on validation). Four training stages; the export
 # chooses the prior's weights on the validation scenes (kp_fusion), then writes them into the file.
-KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints/oibarnet_kp_stage2.yaml models/configs/keypoints/oibarnet_kp_stage3.yaml
-KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage3.yaml
+KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints/oibarnet_kp_stage2.yaml models/configs/keypoints/oibarnet_kp_stage3.yaml models/configs/keypoints/oibarnet_kp_stage4.yaml
+KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage4.yaml
 KP_EVAL_ARGS ?= --sets val test
 
-train-kp: setup ## train the keypoint model, both stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
+train-kp: setup ## train the keypoint model, all four stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
 	@for c in $(KP_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.kp_train --config $$c $(TRAIN_ARGS) || exit 1; done
 
 export-kp: setup ## export the keypoint model to models/oibarnet.onnx: best checkpoint, prior weights chosen on validation, parity-checked

@@ -1,10 +1,11 @@
 """Training samples for the keypoint network: a full-resolution crop around the fixture, with
-the keypoints' crop coordinates as labels.
+the keypoints' crop coordinates and the attitude as the crop shows it as labels.
 
 The window is the one flight cuts (oibar.nav.keypoints.window_around the projected keypoints of a
 rough pose), perturbed the way a rough pose is wrong: centre shifted, side scaled, turned a little.
 Any 2-D affine of the crop maps the labels exactly (they are image points), so the geometric
-augmentation needs no approximation. Photometric augmentation: brightness, contrast, gamma,
+augmentation needs no approximation (the attitude label is taken in the window's own camera,
+turn included: oibar.nav.keypoints.attitude_in_crop_deg). Photometric augmentation: brightness, contrast, gamma,
 colour gain, Gaussian noise, blur, JPEG re-encoding.
 """
 
@@ -18,8 +19,9 @@ import numpy as np
 import torch
 from PIL import Image
 
+from oibar.geometry.docking import R_cam_target_aligned
 from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
-from oibar.nav.keypoints import CropWindow, cut, project, window_around
+from oibar.nav.keypoints import CropWindow, attitude_in_crop_deg, cut, project, window_around
 
 from .data import Sequence, load_sequence
 
@@ -120,6 +122,7 @@ class CropDataset(torch.utils.data.Dataset):
             train,
             seed,
         )
+        self.R_ref = R_cam_target_aligned()
         self.view_limit_deg = None if view_limit_deg is None else np.asarray(view_limit_deg, float)
         self.items = (
             frames if frames is not None else [(s, k) for s, sc in enumerate(scenes) for k in range(len(sc))]
@@ -155,6 +158,7 @@ class CropDataset(torch.utils.data.Dataset):
         return {
             "image": torch.from_numpy(np.ascontiguousarray(crop.transpose(2, 0, 1))).float().div_(255.0),
             "kp_crop_px": torch.from_numpy(kp.astype(np.float32)),
+            "att_deg": torch.from_numpy(attitude_in_crop_deg(win, sc.K, R, self.R_ref).astype(np.float32)),
             "visible": torch.from_numpy(vis),
             "A": torch.from_numpy(win.matrix().astype(np.float64)),
             "T": torch.from_numpy(np.asarray(T, np.float64)),

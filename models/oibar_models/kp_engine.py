@@ -66,6 +66,7 @@ class KpTrain:
     heat_loss_weight: float = 1.0  # cross-entropy against a Gaussian at the true point
     coord_loss_weight: float = 1.0  # L1 of the soft-argmax position, crop pixels / 10
     present_loss_weight: float = 0.2
+    att_loss_weight: float = 0.1  # L1 of the attitude head, degrees (model 0.6.0)
     heat_sigma_px: float = 4.0  # crop pixels (one heat-map cell = 4 px)
     val_every: int = 500
     ckpt_every_s: float = 300.0
@@ -133,6 +134,17 @@ def load_grown(net: KeypointNet, state: dict, src_names: list[str] | None = None
     return [n for n in names if n not in src_names]
 
 
+def with_fresh_attitude_head(net: KeypointNet, state: dict) -> bool:
+    """A checkpoint from before the attitude head (model <= 0.5.0) lacks its weights: fill them in
+    from `net`'s own initialisation (in place, so the load stays strict for everything else).
+    True when it did."""
+    own = {k: v for k, v in net.state_dict().items() if k.startswith("attitude.")}
+    if any(k in state for k in own):
+        return False
+    state.update({k: v.clone() for k, v in own.items()})
+    return True
+
+
 # ----------------------------------------------------------------------------- distributed
 def dist_info() -> tuple[int, int, int]:
     """(rank, world size, local rank) from torchrun's environment; (0, 1, 0) otherwise."""
@@ -151,7 +163,13 @@ def pick_device(name: str, local_rank: int) -> torch.device:
 
 # ----------------------------------------------------------------------------- loss
 def kp_loss(
-    heat: torch.Tensor, present: torch.Tensor, kp_t: torch.Tensor, vis: torch.Tensor, t: KpTrain
+    heat: torch.Tensor,
+    present: torch.Tensor,
+    kp_t: torch.Tensor,
+    vis: torch.Tensor,
+    t: KpTrain,
+    att: torch.Tensor | None = None,
+    att_t: torch.Tensor | None = None,
 ) -> dict:
     kp, spread, logp = soft_argmax(heat)
     w = vis.float()
@@ -167,8 +185,14 @@ def kp_loss(
     ce = (-(g * logp).sum(dim=(-2, -1)) * w).sum() / n_vis
     pres = F.binary_cross_entropy_with_logits(present, w)
     total = t.coord_loss_weight * coord + t.heat_loss_weight * ce + t.present_loss_weight * pres
+    extra = {}
+    if att is not None and att_t is not None:
+        att_l1 = (att - att_t).abs().sum(-1).mean()
+        total = total + t.att_loss_weight * att_l1
+        extra["att_l1_deg"] = att_l1.detach()
     return {
         "loss": total,
+        **extra,
         "coord": coord.detach(),
         "heat": ce.detach(),
         "present": pres.detach(),
@@ -181,6 +205,19 @@ def lr_at(step: int, t: KpTrain) -> float:
         return t.lr * (step + 1) / t.warmup_steps
     x = (step - t.warmup_steps) / max(1, t.steps - t.warmup_steps)
     return t.lr_min + 0.5 * (t.lr - t.lr_min) * (1 + math.cos(math.pi * min(1.0, x)))
+
+
+def attitude_error_deg(att_deg: np.ndarray, att_true_deg: np.ndarray) -> np.ndarray:
+    """Angle (deg) between the head's attitudes and the labels, both rotation vectors in deg
+    about the same reference."""
+    from oibar.geometry.rotations import rotation_angle_deg, rotvec_to_matrix
+
+    return np.array(
+        [
+            rotation_angle_deg(rotvec_to_matrix(np.radians(a)) @ rotvec_to_matrix(np.radians(b)).T)
+            for a, b in zip(att_deg, att_true_deg, strict=True)
+        ]
+    )
 
 
 # ----------------------------------------------------------------------------- pose from a batch
@@ -209,8 +246,13 @@ def validate(net, ds: CropDataset, device, t: KpTrain, batch: int = 32) -> dict:
     net.eval()
     loader = torch.utils.data.DataLoader(ds, batch_size=batch, shuffle=False, num_workers=t.workers)
     T_hat, q_hat, T_true, q_true, rng, kp_err, failed = [], [], [], [], [], [], 0
+    att_err, att_rng = [], []
     for b in loader:
-        heat, present = net(b["image"].to(device))
+        heat, present, att = net(b["image"].to(device))
+        att_err.append(
+            attitude_error_deg(att.cpu().numpy().astype(float), b["att_deg"].numpy().astype(float))
+        )
+        att_rng.append(b["T"].numpy().astype(float))
         kp, _, _ = soft_argmax(heat)
         kp_np, pres = kp.cpu().numpy().astype(float), torch.sigmoid(present).cpu().numpy()
         vis = b["visible"].numpy()
@@ -237,6 +279,12 @@ def validate(net, ds: CropDataset, device, t: KpTrain, batch: int = 32) -> dict:
     s["pnp_failed"] = failed
     s["frames_total"] = len(ds)
     s["kp_err_crop_px_mean"] = float(np.concatenate(kp_err).mean()) if kp_err else float("nan")
+    if att_err:
+        e, r = np.concatenate(att_err), np.linalg.norm(np.concatenate(att_rng), axis=1)
+        s["att_head_deg_mean"] = float(e.mean())
+        for lo, hi in ((0, 3), (3, 8), (8, 100)):
+            sel = (r >= lo) & (r < hi)
+            s[f"att_head_deg_{lo}_{hi}m"] = float(e[sel].mean()) if sel.any() else float("nan")
     # Selection score: the keypoints' own error (crop pixels), what the network controls. PnP alone
     # on far frames is dominated by mirrored poses that the flight estimator's attitude prior
     # removes (keypoints.map_pose), so its pose error would pick checkpoints by chance. Failed
@@ -332,6 +380,11 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         if not src.is_file():
             raise ConfigError(f"train.init_from: checkpoint not found: {src}")
         state = torch.load(src, map_location=device, weights_only=False)["model"]
+        fresh_head = with_fresh_attitude_head(net, state)
+        if lead and fresh_head:
+            print(
+                "the attitude head starts from random weights (an earlier model without it)", file=sys.stderr
+            )
         if state["present.weight"].shape[0] < len(kp):  # an earlier model with fewer keypoints
             grown = load_grown(net, state)
             if lead:
@@ -372,8 +425,16 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         b = next(loader)
         for g in opt.param_groups:
             g["lr"] = lr_at(step, t)
-        heat, present = model(b["image"].to(device, non_blocking=True))
-        losses = kp_loss(heat, present, b["kp_crop_px"].to(device), b["visible"].to(device), t)
+        heat, present, att = model(b["image"].to(device, non_blocking=True))
+        losses = kp_loss(
+            heat,
+            present,
+            b["kp_crop_px"].to(device),
+            b["visible"].to(device),
+            t,
+            att,
+            b["att_deg"].to(device),
+        )
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         opt.step()

@@ -18,14 +18,16 @@ import numpy as np
 import torch
 
 from oibar.geometry.camera import PinholeCamera
+from oibar.geometry.docking import R_cam_target_aligned
 
 from . import __version__
 from .config import ConfigError, parse_override
-from .kp_engine import KpConfig, keypoints_m, load_kp_config
+from .kp_engine import KpConfig, keypoints_m, load_kp_config, with_fresh_attitude_head
 from .kpnet import FIXTURE_KEYPOINTS, ExportWrapper, KeypointNet
 
 METADATA_PREFIX = "oibar."
 OUTPUT_NAMES = ["kp_crop_px", "kp_spread_px", "kp_present"]
+ATT_OUTPUT = "att_crop_deg"  # only from a checkpoint with the attitude head (model >= 0.6.0)
 _CAM = PinholeCamera()
 # The flight camera as the export's metadata carries it (the runtime reads K_frame from there).
 CAMERA = {
@@ -67,7 +69,21 @@ def metadata_for(
         "steps_trained": ck.get("step"),
         "val": ck.get("val", {}),
         "camera": {**CAMERA, "K_frame": K},
+        **({"attitude_head": attitude_head_meta()} if has_attitude_head(ck["model"]) else {}),
         **({"fusion": fusion} if fusion else {}),
+    }
+
+
+def has_attitude_head(state: dict) -> bool:
+    return any(k.startswith("attitude.") for k in state)
+
+
+def attitude_head_meta() -> dict:
+    """What the attitude head's output is measured from (kpnet.py; oibar.nav.keypoints)."""
+    return {
+        "output": ATT_OUTPUT,
+        "R_ref": R_cam_target_aligned().tolist(),
+        "units": "deg, rotation vector of R_crop_target R_ref^T",
     }
 
 
@@ -77,8 +93,13 @@ def export_onnx(
     import onnx
 
     net = KeypointNet(len(FIXTURE_KEYPOINTS), cfg.model.width, pretrained=False)
-    net.load_state_dict(ck["model"])
-    wrapper = ExportWrapper(net.eval()).eval()
+    state = dict(ck["model"])
+    head = has_attitude_head(state)
+    if not head:  # a checkpoint from before the head (<= 0.5.0): exported without it
+        with_fresh_attitude_head(net, state)
+    net.load_state_dict(state)
+    wrapper = ExportWrapper(net.eval(), attitude=head).eval()
+    names = OUTPUT_NAMES + ([ATT_OUTPUT] if head else [])
     n = cfg.model.out_px
     dummy = torch.rand(2, 3, n, n)
     out_path = Path(out_path)
@@ -90,8 +111,8 @@ def export_onnx(
             dummy,
             str(tmp),
             input_names=["image"],
-            output_names=OUTPUT_NAMES,
-            dynamic_axes={k: {0: "batch"} for k in ["image"] + OUTPUT_NAMES},
+            output_names=names,
+            dynamic_axes={k: {0: "batch"} for k in ["image", *names]},
             opset_version=cfg.export.opset,
             dynamo=False,
         )
@@ -164,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
             }
             if best.get("kp_error_model"):
                 fusion["kp_error_model"] = best["kp_error_model"]
+            if best.get("attitude_prior"):
+                fusion["attitude_prior"] = best["attitude_prior"]
     export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0), fusion)
     print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0

@@ -1,8 +1,9 @@
 """Choose, on the validation scenes, how the keypoint estimator weighs the PnP keypoints against
-the direct model's attitude (oibar.nav.keypoints.refine_with_prior): a grid of (keypoint sigma in
-crop pixels, attitude-prior sigma in degrees, with or without the per-keypoint error model),
-scored with the paper's metrics (metrics.score), "no prior" included. The winner goes into the
-export's metadata (`kp_export --fusion FILE`).
+an attitude prior (oibar.nav.keypoints.refine_with_prior): a grid of (whose attitude is the
+prior: the direct model's, or the keypoint network's own attitude head when the model has one;
+keypoint sigma in crop pixels; attitude-prior sigma in degrees; with or without the
+per-keypoint error model), scored with the paper's metrics (metrics.score), "no prior" included.
+The winner goes into the export's metadata (`kp_export --fusion FILE`).
 
 The error model (oibar.nav.keypoints.KeypointErrorModel) is measured here too: each keypoint's
 RMS error per range bin, in crops cut around the true pose of the validation frames (errors past
@@ -93,13 +94,26 @@ def error_model(rows: list[dict], clip_crop_px: float) -> dict:
     return {"range_edges_m": list(ERROR_RANGE_EDGES_M), "rms_crop_px": np.round(table, 4).tolist()}
 
 
+def fusion_grid(err_model: dict | None, head: bool) -> list[tuple]:
+    """(attitude prior, keypoint sigma, prior sigma, error model) to score. The head's prior is
+    tried with the error model only when there is one (it won with the direct prior, 0.5.0)."""
+    models = [None] if err_model is None else [None, err_model]
+    grid = [
+        ("direct", p, d, m) for m in models for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None
+    ]
+    if head:
+        grid += [("head", p, d, models[-1]) for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None]
+    grid.append((None, None, None, None))
+    return grid
+
+
 def score_grid(est, rows: list[dict], progress: bool, err_model: dict | None = None) -> list[dict]:
     out = []
-    models = [None] if err_model is None else [None, err_model]
-    grid = [(p, d, m) for m in models for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None]
-    grid.append((None, None, None))
-    for s_px, s_deg, em in grid:
+    grid = fusion_grid(err_model, getattr(est, "R_att_ref", None) is not None)
+    for source, s_px, s_deg, em in grid:
         fusion = {"sigma_crop_px": s_px, "sigma_prior_deg": s_deg} if s_deg is not None else {}
+        if source == "head":
+            fusion["attitude_prior"] = "head"
         if em is not None:
             fusion["kp_error_model"] = em
         T_hat, q_hat = [], []
@@ -120,12 +134,16 @@ def score_grid(est, rows: list[dict], progress: bool, err_model: dict | None = N
             np.array([r["q"] for r in rows]),
         )
         s.update(
-            sigma_crop_px=s_px, sigma_prior_deg=s_deg, error_model=em is not None, score=metrics.score(s)
+            attitude_prior=source,
+            sigma_crop_px=s_px,
+            sigma_prior_deg=s_deg,
+            error_model=em is not None,
+            score=metrics.score(s),
         )
         out.append(s)
         if progress:
             print(
-                f"sigma_kp {s_px} px{' x error model' if em else ''}, prior {s_deg} deg: "
+                f"sigma_kp {s_px} px{' x error model' if em else ''}, {source} prior {s_deg} deg: "
                 f"dt {s['dt_mean_pct']:.3f} % (median {s['dt_median_pct']:.3f}) "
                 f"dq {s['dq_mean_deg']:.3f} deg (median {s['dq_median_deg']:.3f}) score {s['score']:.4f}",
                 file=sys.stderr,
@@ -178,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
         + "\n"
     )
     print(
-        f"best: sigma_kp {best['sigma_crop_px']} crop px, prior {best['sigma_prior_deg']} deg: "
+        f"best: sigma_kp {best['sigma_crop_px']} crop px, {best['attitude_prior']} prior "
+        f"{best['sigma_prior_deg']} deg: "
         f"dt {best['dt_mean_pct']:.3f} %, dq {best['dq_mean_deg']:.3f} deg -> {a.out}"
     )
     return 0

@@ -14,6 +14,13 @@ than the keypoints' own error. The drogue's throat, 0.18 m deep inside the funne
 crop px per degree at any range: it is the one point that carries the attitude (model 0.5.0).
 It hides behind the funnel wall when seen more than ~29 deg off the fixture's axis
 (KEYPOINT_VIEW_LIMIT_DEG, used for the training labels' visibility).
+
+A third head (model 0.6.0) regresses the fixture's attitude as the crop shows it: the rotation
+vector, in degrees, of R_crop_target R_ref^T, where R_crop_target is the target's attitude in
+the crop's own camera (boresight through the window centre, turned with the window;
+`oibar.nav.keypoints.R_crop_cam`) and R_ref the aligned vehicles' attitude. It can replace the
+248x160 direct model as the attitude prior of the keypoint fit: beyond 8 m the keypoints alone
+cannot tell a degree of tilt, and the prior decides the attitude there.
 """
 
 from __future__ import annotations
@@ -27,6 +34,20 @@ from oibar.geometry.fixture import FIXTURE_KEYPOINTS, KEYPOINT_VIEW_LIMIT_DEG
 from .efficientnet_lite import EfficientNetLite, load_pretrained
 
 STRIDE = 4
+ATT_CHANNELS, ATT_GRID = 64, 4
+
+
+class GridResize(nn.Module):
+    """Resample a map to g x g (bilinear). At the shipped 128 px crop the stride-32 map is 4x4
+    already (identity); other crop sizes work too, which adaptive pooling cannot export to ONNX
+    when g does not divide the map."""
+
+    def __init__(self, g: int):
+        super().__init__()
+        self.g = g
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.interpolate(x, size=(self.g, self.g), mode="bilinear", align_corners=False)
 
 
 class KeypointNet(nn.Module):
@@ -46,17 +67,29 @@ class KeypointNet(nn.Module):
             nn.Conv2d(width, n_keypoints, 1),
         )
         self.present = nn.Linear(bb.tap_channels[-1], n_keypoints)
+        # attitude: the stride-32 map keeps a 4x4 layout (pooling it flat would lose where the
+        # shading and the rim's foreshortening are), then two linear layers
+        self.attitude = nn.Sequential(
+            nn.Conv2d(bb.tap_channels[-1], ATT_CHANNELS, 1),
+            nn.ReLU(inplace=True),
+            GridResize(ATT_GRID),
+            nn.Flatten(),
+            nn.Linear(ATT_CHANNELS * ATT_GRID * ATT_GRID, 128),
+            nn.ReLU(inplace=True),
+            nn.Linear(128, 3),
+        )
         self.n_keypoints = n_keypoints
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """RGB [0, 1] (N, 3, S, S) -> heat-map logits (N, K, S/4, S/4), presence logits (N, K)."""
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """RGB [0, 1] (N, 3, S, S) -> heat-map logits (N, K, S/4, S/4), presence logits (N, K),
+        attitude in the crop (N, 3): rotation vector of R_crop_target R_ref^T, degrees."""
         taps = self.backbone.features(x)
         y = self.lateral[-1](taps[-1])
         for lat, tap in zip(reversed(self.lateral[:-1]), reversed(taps[:-1]), strict=True):
             y = F.interpolate(y, size=tap.shape[-2:], mode="bilinear", align_corners=False) + lat(tap)
         heat = self.head(y)
         present = self.present(taps[-1].mean(dim=(2, 3)))
-        return heat, present
+        return heat, present, self.attitude(taps[-1])
 
 
 def view_limits_deg(names: list[str] | tuple[str, ...]) -> list[float]:
@@ -81,13 +114,16 @@ def soft_argmax(heat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.T
 
 
 class ExportWrapper(nn.Module):
-    """What the ONNX graph computes: crop -> keypoints (crop px), their spread, presence 0..1."""
+    """What the ONNX graph computes: crop -> keypoints (crop px), their spread, presence 0..1,
+    and with `attitude` the attitude in the crop (rotation vector, deg)."""
 
-    def __init__(self, net: KeypointNet):
+    def __init__(self, net: KeypointNet, attitude: bool = True):
         super().__init__()
-        self.net = net
+        self.net, self.attitude = net, attitude
 
     def forward(self, image: torch.Tensor):
-        heat, present = self.net(image)
+        heat, present, att_deg = self.net(image)
         kp, spread, _ = soft_argmax(heat)
-        return kp, spread, torch.sigmoid(present)
+        if not self.attitude:
+            return kp, spread, torch.sigmoid(present)
+        return kp, spread, torch.sigmoid(present), att_deg

@@ -211,29 +211,30 @@ def test_error_model_scales_by_range_and_refuses_bad_tables():
         KeypointErrorModel({"range_edges_m": [0.0, 1.0, 2.0], "rms_crop_px": [[0.5, 0.0]]})
 
 
-def _bare_estimator(R_true, T_true):
+def _bare_estimator(R_true, T_true, R_head=None, fusion=None):
     """A KeypointPoseEstimator without networks: its 'keypoint network' reports the true points
-    when the crop holds the fixture's centre, nothing otherwise (what a trained net does)."""
-    from oibar.nav.pose import KeypointPoseEstimator
+    when the crop holds the fixture's centre, nothing otherwise (what a trained net does), and
+    `R_head` as its attitude head's reading."""
+    from oibar.nav.pose import CropReading, KeypointPoseEstimator
 
     est = object.__new__(KeypointPoseEstimator)
     est.K_frame, est.points_m, est.out_px, est.margin = K, DEEP, 128, 1.25
     est.reproj_crop_px, est.refine_passes, est.meta = (
         4.0,
         2,
-        {"fusion": {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0}},
+        {"fusion": fusion or {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0}},
     )
     truth = project(K, DEEP, R_true, T_true)
     centre = truth.mean(0)
     est.crops = []
 
-    def keypoints(image, win):
+    def read_crop(image, win):
         est.crops.append(win)
         inside = np.all(np.abs(win.to_crop(centre[None])[0] - win.out_px / 2) < win.out_px * 0.3)
         uv = truth.copy() if inside else np.full_like(truth, np.nan)
-        return uv, np.zeros(len(uv)), np.ones(len(uv))
+        return CropReading(uv, np.zeros(len(uv)), np.ones(len(uv)), R_head)
 
-    est.keypoints = keypoints
+    est.read_crop = read_crop
     return est
 
 
@@ -266,3 +267,70 @@ def test_an_unusable_prediction_is_ignored_and_a_malformed_one_refused():
     assert _checked_prior((2 * R, T)) is None  # not a rotation
     with pytest.raises(ValueError, match="prior must be"):
         _checked_prior((R, T[:2]))
+
+
+def test_the_crop_camera_turns_with_the_window():
+    """R_crop_cam: a camera looking through the window's centre, rolled with the window, sees the
+    points where the crop has them (to the affine crop's own approximation, < 2 crop px at the corners here);
+    the opposite roll would put them 10+ px off."""
+    from oibar.nav.keypoints import R_crop_cam
+
+    R, T = _pose(np.radians([2.0, -3.0, 1.0]), (0.4, -0.25, 4.0))
+    uv = project(K, DEEP, R, T)
+    P_cam = DEEP @ R.T + T
+    base = window_around(uv, 128, 1.25)
+    assert abs(base.center_px[0] - K[0, 2]) > 50  # off the boresight: the ray matters
+    for angle in (0.0, 0.25, -0.25):
+        win = CropWindow(base.center_px, base.side_px, 128, angle)
+        p = P_cam @ R_crop_cam(win, K).T
+        q = K[0, 0] * win.scale * p[:, :2] / p[:, 2:3] + 64.0
+        assert np.abs(q - win.to_crop(uv)).max() < 2.0, angle
+        if angle:
+            flipped = CropWindow(base.center_px, base.side_px, 128, -angle)
+            p = P_cam @ R_crop_cam(flipped, K).T
+            q = K[0, 0] * win.scale * p[:, :2] / p[:, 2:3] + 64.0
+            assert np.abs(q - win.to_crop(uv)).max() > 10.0
+    centred = CropWindow((K[0, 2], K[1, 2]), 100.0, 128)
+    assert np.allclose(R_crop_cam(centred, K), np.eye(3))
+
+
+def test_the_attitude_in_a_crop_maps_back_to_the_camera():
+    from oibar.nav.keypoints import attitude_from_crop, attitude_in_crop_deg
+
+    R_ref = rotvec_to_matrix(np.radians([0.0, 180.0, 0.0]))
+    R, T = _pose(np.radians([2.0, -3.0, 1.0]), (0.4, -0.25, 4.0))
+    win = CropWindow((500.0, 150.0), 90.0, 128, 0.2)
+    att = attitude_in_crop_deg(win, K, R, R_ref)
+    assert np.allclose(attitude_from_crop(win, K, att, R_ref), R, atol=1e-12)
+    # the crop's roll is part of what the crop shows: the label turns with it
+    att0 = attitude_in_crop_deg(CropWindow((500.0, 150.0), 90.0, 128, 0.0), K, R, R_ref)
+    assert _att_deg(rotvec_to_matrix(np.radians(att)), rotvec_to_matrix(np.radians(att0))) == pytest.approx(
+        np.degrees(0.2), abs=1e-6
+    )
+
+
+@pytest.mark.parametrize("source", ["head", "direct", None])
+def test_the_attitude_head_is_the_fits_prior_when_the_fusion_says_so(monkeypatch, source):
+    """fusion.attitude_prior = "head": each crop's own attitude reading is the prior of that
+    crop's fit; "direct" or absent: the direct model's attitude, as before 0.6.0."""
+    import oibar.nav.pose as pose
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 6.0))
+    R_head = R @ rotvec_to_matrix(np.radians([1.0, 0.0, 0.0]))
+    R_direct = R @ rotvec_to_matrix(np.radians([0.0, -4.0, 0.0]))
+    fusion = {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0}
+    if source:
+        fusion["attitude_prior"] = source
+    est = _bare_estimator(R, T, R_head=R_head, fusion=fusion)
+    seen = []
+    real = pose.map_pose
+
+    def spy(uv, P, K_, reproj, R_prior, *a):
+        seen.append(R_prior)
+        return real(uv, P, K_, reproj, R_prior, *a)
+
+    monkeypatch.setattr(pose, "map_pose", spy)
+    r, _ = est.solve(np.zeros((480, 744, 3), np.uint8), R_direct, T)
+    assert r is not None and len(seen) == 2
+    want = R_head if source == "head" else R_direct
+    assert all(np.allclose(s, want) for s in seen)

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from oibar.nav.keypoints import window_around
 from oibar_models.config import ConfigError
 from oibar_models.efficientnet_lite import EfficientNetLite, WeightsError, load_pretrained, weights_path
 from oibar_models.kp_data import CropAugment, CropDataset, open_scenes
@@ -141,6 +142,33 @@ def test_crop_labels_follow_the_fixture(tiny_dataset):
     assert checked > 10
 
 
+def test_the_attitude_label_is_what_the_turned_crop_shows(tiny_dataset):
+    """Each crop's attitude label, read back through its own window (position, size and turn of
+    the augmentation), gives the frame's true R_cam_target; two crops of one frame turned
+    differently carry labels that differ by that turn."""
+    from oibar.geometry.rotations import quat_to_matrix, rotation_angle_deg
+    from oibar.nav.keypoints import CropWindow, attitude_from_crop
+
+    sc = open_scenes(tiny_dataset, ["seq02"])
+    ds = CropDataset(sc, keypoints_m(), 96, CropAugment(), train=True)
+    rolls = []
+    for _ in range(2):
+        b = ds[5]
+        A = b["A"].numpy()
+        angle = float(np.arctan2(A[1, 0], A[0, 0]))
+        scale = float(np.sqrt(np.linalg.det(A[:, :2])))
+        centre = np.linalg.solve(A[:, :2], np.full(2, 48.0) - A[:, 2])
+        win = CropWindow(tuple(centre), 96 / scale, 96, angle)
+        R = attitude_from_crop(win, sc[0].K, b["att_deg"].numpy().astype(float), ds.R_ref)
+        assert rotation_angle_deg(R.T @ quat_to_matrix(sc[0].q_cam_target[5])) < 1e-3
+        rolls.append((angle, b["att_deg"].numpy().astype(float)))
+    (a0, att0), (a1, att1) = rolls
+    from oibar.geometry.rotations import rotvec_to_matrix
+
+    turn = rotation_angle_deg(rotvec_to_matrix(np.radians(att0)) @ rotvec_to_matrix(np.radians(att1)).T)
+    assert abs(a0 - a1) > 0.01 and turn == pytest.approx(np.degrees(abs(a0 - a1)), abs=0.5)
+
+
 def _smoke_overrides(tiny_dataset, kp_sets, run_dir) -> list[str]:
     return [
         f"data.train_spec={kp_sets / 'train.json'}",
@@ -189,6 +217,13 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     )
     est = PoseEstimator(out, warmup_runs=1)
     assert isinstance(est, KeypointPoseEstimator)
+    assert est.R_att_ref is not None and "att_crop_deg" in est.output_names
+    assert all("val_att_head_deg_mean" in r for r in rows)
+    reading = est.read_crop(
+        np.zeros((480, 744, 3), np.uint8), window_around(np.array([[300.0, 200]]), 64, 1.25)
+    )
+    assert reading.R_cam_target_head is not None
+    assert np.allclose(reading.R_cam_target_head @ reading.R_cam_target_head.T, np.eye(3))
     from oibar_models.kpnet import FIXTURE_KEYPOINTS
 
     assert (
@@ -288,6 +323,23 @@ def test_a_checkpoint_with_fewer_keypoints_grows_into_the_new_head():
     assert torch.equal(new.state_dict()["lateral.0.weight"], old.state_dict()["lateral.0.weight"])
 
 
+def test_a_checkpoint_without_the_attitude_head_loads_with_a_fresh_one():
+    """Stage 4 starts from stage 3, which has no attitude head: its weights load unchanged and the
+    head keeps the new network's own initialisation; a checkpoint with a head is left alone."""
+    from oibar_models.kp_engine import with_fresh_attitude_head
+    from oibar_models.kpnet import FIXTURE_KEYPOINTS, KeypointNet
+
+    old = {k: v for k, v in KeypointNet(len(FIXTURE_KEYPOINTS), 16, pretrained=False).state_dict().items()}
+    old = {k: v for k, v in old.items() if not k.startswith("attitude.")}
+    new = KeypointNet(len(FIXTURE_KEYPOINTS), 16, pretrained=False)
+    init = {k: v.clone() for k, v in new.state_dict().items() if k.startswith("attitude.")}
+    assert init and with_fresh_attitude_head(new, old)
+    new.load_state_dict(old)  # strict: every other key is there
+    assert all(torch.equal(new.state_dict()[k], v) for k, v in init.items())
+    assert torch.equal(new.state_dict()["lateral.0.weight"], old["lateral.0.weight"])
+    assert not with_fresh_attitude_head(new, new.state_dict())
+
+
 def test_the_error_model_is_each_keypoints_rms_per_range_bin():
     """kp_fusion.error_model: RMS per keypoint and range bin, errors clipped at the inlier
     threshold (RANSAC drops worse ones), a bin with under 5 answers takes the keypoint's overall
@@ -316,6 +368,46 @@ def test_the_error_model_is_each_keypoints_rms_per_range_bin():
     assert np.all(rms[2] == MIN_RMS_CROP_PX)  # never wrong: the floor
     m = KeypointErrorModel(t)  # what the estimator loads from the export
     assert m.scale(0.5)[1] > 4 * m.scale(4.0)[1]
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda meta: meta["fusion"].update(attitude_prior="both"), "attitude_prior must be one of"),
+        (
+            lambda meta: (meta.pop("attitude_head", None), meta["fusion"].update(attitude_prior="head")),
+            "asks for the attitude head, which it lacks",
+        ),
+        (
+            lambda meta: meta.update(attitude_head={"output": "att_crop_deg", "R_ref": [[2, 0, 0]] * 3}),
+            "not a rotation",
+        ),
+        (lambda meta: meta.update(attitude_head={"R_ref": np.eye(3).tolist()}), "attitude_head is malformed"),
+        (
+            lambda meta: meta.update(attitude_head={"output": "nope", "R_ref": np.eye(3).tolist()}),
+            "'nope' is missing",
+        ),
+    ],
+)
+def test_a_model_whose_attitude_prior_cannot_work_is_refused_when_it_opens(tmp_path, edit, match):
+    import onnx
+
+    from oibar.nav.pose import ModelFileError, PoseEstimator
+
+    m = onnx.load(str(REPO / "models/oibarnet.onnx"))
+    meta = {
+        p.key[len("oibar.") :]: json.loads(p.value) for p in m.metadata_props if p.key.startswith("oibar.")
+    }
+    edit(meta)
+    del m.metadata_props[:]
+    for k, v in meta.items():
+        p = m.metadata_props.add()
+        p.key, p.value = "oibar." + k, json.dumps(v)
+    out = tmp_path / "oibarnet.onnx"
+    onnx.save(m, str(out))
+    (tmp_path / "oibarnet_lite.onnx").symlink_to(REPO / "models/oibarnet_lite.onnx")
+    with pytest.raises(ModelFileError, match=match):
+        PoseEstimator(out, warmup_runs=0)
 
 
 @pytest.mark.parametrize(

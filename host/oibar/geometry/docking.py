@@ -152,3 +152,9 @@ def docking_from_camera_pose(
     R_D_s = R_T_D @ R_t_s
     att = matrix_to_rotvec(R_D_CAM_ALIGNED.T @ R_D_s)
     return DockingState(r_D_m=R_T_D @ p_t_tip, att_rad=att, R_D_cam=R_D_s @ geom.R_s_cam)
+
+
+def R_cam_target_aligned(geom: DockingGeometry = GEOMETRY) -> FloatArray:
+    """The attitude the camera sees when the vehicles are aligned (no attitude error): the
+    reference the keypoint model's attitude head is measured from."""
+    return camera_pose_from_docking(np.zeros(3), np.zeros(3), geom)[1]

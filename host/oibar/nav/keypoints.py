@@ -21,6 +21,7 @@ import numpy as np
 
 from oibar.geometry.camera import project_target_points as project  # noqa: F401  (target points -> px, corner convention)
 from oibar.geometry.fixture import FIXTURE_KEYPOINTS  # noqa: F401  (re-exported)
+from oibar.geometry.rotations import matrix_to_rotvec, rotvec_to_matrix
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,40 @@ def cut(image: np.ndarray, win: CropWindow) -> np.ndarray:
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=(0, 0, 0),
     )
+
+
+def R_crop_cam(win: CropWindow, K: np.ndarray) -> np.ndarray:
+    """The crop's own camera: boresight through the window centre, x and y turned with the
+    window. Maps camera vectors into it. Why: a crop shows the fixture as a camera pointed at it
+    would, so an attitude read from the crop is relative to that camera (allocentric), not to
+    the real one. Rotating image coordinates by the window's angle is rolling that camera about
+    its boresight by the same angle."""
+    c = np.linalg.solve(np.asarray(K, float), np.array([*win.center_px, 1.0]))
+    d = c / np.linalg.norm(c)
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, d)
+    s = float(np.linalg.norm(axis))
+    Q = np.eye(3) if s < 1e-12 else rotvec_to_matrix(axis / s * np.arctan2(s, float(d @ z)))  # cam <- virtual
+    ca, sa = np.cos(win.angle_rad), np.sin(win.angle_rad)
+    roll = np.array([[ca, -sa, 0.0], [sa, ca, 0.0], [0.0, 0.0, 1.0]])
+    out: np.ndarray = roll @ Q.T
+    return out
+
+
+def attitude_in_crop_deg(
+    win: CropWindow, K: np.ndarray, R_cam_target: np.ndarray, R_ref: np.ndarray
+) -> np.ndarray:
+    """The attitude head's label: rotation vector (deg) of R_crop_target R_ref^T."""
+    R = R_crop_cam(win, K) @ np.asarray(R_cam_target, float) @ np.asarray(R_ref, float).T
+    out: np.ndarray = np.degrees(matrix_to_rotvec(R))
+    return out
+
+
+def attitude_from_crop(win: CropWindow, K: np.ndarray, att_deg: np.ndarray, R_ref: np.ndarray) -> np.ndarray:
+    """Inverse of attitude_in_crop_deg: the head's output -> R_cam_target."""
+    R_crop_target = rotvec_to_matrix(np.radians(np.asarray(att_deg, float))) @ np.asarray(R_ref, float)
+    out: np.ndarray = R_crop_cam(win, K).T @ R_crop_target
+    return out
 
 
 @dataclass

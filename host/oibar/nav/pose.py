@@ -27,7 +27,15 @@ from PIL import Image
 
 from oibar.geometry.camera import project_target_points as project
 from oibar.geometry.rotations import matrix_to_quat, rotation_angle_deg
-from oibar.nav.keypoints import CropWindow, KeypointErrorModel, PnpResult, cut, map_pose, window_around
+from oibar.nav.keypoints import (
+    CropWindow,
+    KeypointErrorModel,
+    PnpResult,
+    attitude_from_crop,
+    cut,
+    map_pose,
+    window_around,
+)
 
 METADATA_PREFIX = "oibar."
 REQUIRED_OUTPUTS = ("position_m", "q_cam_target", "R_cam_target")
@@ -380,6 +388,21 @@ def _checked_prior(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
     return R, T
 
 
+ATTITUDE_PRIORS = ("direct", "head")  # oibar.fusion.attitude_prior: whose attitude the fit leans on
+
+
+@dataclass
+class CropReading:
+    """What the keypoint network reads from one crop: keypoints in frame pixels (K, 2), NaN where
+    absent; their spread (K,) crop px; presence (K,) 0..1; the attitude head's R_cam_target
+    (None for a model without the head)."""
+
+    uv_px: np.ndarray
+    spread_crop_px: np.ndarray
+    present: np.ndarray
+    R_cam_target_head: np.ndarray | None = None
+
+
 class KeypointPoseEstimator(PoseEstimator):
     """Keypoints + PnP (issue 15): the direct model (the first pass, a file beside this one named
     by ``oibar.first_pass``) places a crop at full resolution around the fixture; the keypoint
@@ -431,6 +454,14 @@ class KeypointPoseEstimator(PoseEstimator):
         self.refine_passes = max(1, int(refine_passes))
         if (self.meta.get("fusion") or {}).get("kp_error_model"):
             self._error_model(self.meta["fusion"])  # a malformed table fails here, not in flight
+        self.R_att_ref = self._attitude_head()
+        if (self.meta.get("fusion") or {}).get("attitude_prior", "direct") not in ATTITUDE_PRIORS:
+            raise ModelFileError(
+                f"{self.path}: oibar.fusion.attitude_prior must be one of {ATTITUDE_PRIORS}, "
+                f"got {self.meta['fusion']['attitude_prior']!r}"
+            )
+        if (self.meta.get("fusion") or {}).get("attitude_prior") == "head" and self.R_att_ref is None:
+            raise ModelFileError(f"{self.path}: its fusion asks for the attitude head, which it lacks")
         zero = np.zeros((1, 3, self.out_px, self.out_px), np.float32)
         for _ in range(warmup_runs):
             self.run(zero)
@@ -444,15 +475,41 @@ class KeypointPoseEstimator(PoseEstimator):
                 f"{self.frame_wh[0]}x{self.frame_wh[1]}"
             )
 
-    def keypoints(self, image: np.ndarray, win: CropWindow) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One crop -> (frame pixels (K, 2) with NaN where absent, spread (K,) crop px, presence (K,))."""
+    def _attitude_head(self) -> np.ndarray | None:
+        """R_ref of the attitude head (model >= 0.6.0), None for a model without one."""
+        head = self.meta.get("attitude_head")
+        if head is None:
+            return None
+        try:
+            R_ref = np.asarray(head["R_ref"], float)
+            name = str(head["output"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelFileError(f"{self.path}: oibar.attitude_head is malformed ({exc})") from exc
+        if R_ref.shape != (3, 3) or not np.allclose(R_ref @ R_ref.T, np.eye(3), atol=1e-6):
+            raise ModelFileError(f"{self.path}: oibar.attitude_head.R_ref is not a rotation matrix")
+        if name not in self.output_names:
+            raise ModelFileError(f"{self.path}: the attitude head's output {name!r} is missing")
+        return R_ref
+
+    def read_crop(self, image: np.ndarray, win: CropWindow) -> CropReading:
+        """One crop through the keypoint network (CropReading)."""
         out = self.run(to_input(cut(image, win)))
         kp = out["kp_crop_px"][0].astype(float)
         present = out["kp_present"][0].astype(float)
         spread = out["kp_spread_px"][0].astype(float) if "kp_spread_px" in out else np.zeros(len(kp))
         uv = win.to_frame(kp)
         uv[present < self.min_present] = np.nan
-        return uv, spread, present
+        R_head = None
+        if self.R_att_ref is not None:
+            att = out[self.meta["attitude_head"]["output"]][0].astype(float)
+            if np.all(np.isfinite(att)):
+                R_head = attitude_from_crop(win, self._K(), att, self.R_att_ref)
+        return CropReading(uv, spread, present, R_head)
+
+    def keypoints(self, image: np.ndarray, win: CropWindow) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One crop -> (frame pixels (K, 2) with NaN where absent, spread (K,) crop px, presence (K,))."""
+        r = self.read_crop(image, win)
+        return r.uv_px, r.spread_crop_px, r.present
 
     def solve(
         self,
@@ -531,7 +588,13 @@ class KeypointPoseEstimator(PoseEstimator):
         f: dict[str, Any] | None,
         range_m: float,
     ) -> tuple[PnpResult, CropWindow] | tuple[None, None]:
-        uv, _, _ = self.keypoints(image, win)
+        reading = self.read_crop(image, win)
+        uv = reading.uv_px
+        # the attitude prior: the head's reading of this crop when the fusion says so (0.6.0),
+        # else the direct model's
+        R_prior = R_direct
+        if f and f.get("attitude_prior") == "head" and reading.R_cam_target_head is not None:
+            R_prior = reading.R_cam_target_head
         s_px: float | np.ndarray | None = float(f["sigma_crop_px"]) / win.scale if f else None
         if s_px is not None and f and f.get("kp_error_model"):
             s_px = s_px * self._error_model(f).scale(range_m)
@@ -541,7 +604,7 @@ class KeypointPoseEstimator(PoseEstimator):
             self.points_m,
             self._K(),
             self.reproj_crop_px / win.scale,
-            R_direct,
+            R_prior,
             s_px,
             s_rad,
             MIN_INLIERS,
