@@ -187,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
                 fusion["kp_error_model"] = best["kp_error_model"]
             if best.get("attitude_prior"):
                 fusion["attitude_prior"] = best["attitude_prior"]
+            if best.get("prior_error_model"):
+                fusion["prior_error_model"] = best["prior_error_model"]
     export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0), fusion)
     print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0

@@ -34,6 +34,8 @@ SIGMA_CROP_PX = (0.5, 1.0, 2.0)
 SIGMA_PRIOR_DEG = (1.0, 2.0, 3.0, 5.0, 8.0, None)  # None: PnP alone
 ERROR_RANGE_EDGES_M = (0.0, 1.0, 1.5, 2.0, 3.0, 5.0, 8.0, 100.0)
 MIN_RMS_CROP_PX = 0.1  # a floor: no keypoint is trusted beyond the heat map's resolution
+PRIOR_CLIP_DEG = 20.0
+MIN_RMS_DEG = 0.05
 
 
 def collect(est, seqs, stride: int, track: bool = True) -> list[dict]:
@@ -59,21 +61,57 @@ def collect(est, seqs, stride: int, track: bool = True) -> list[dict]:
             if k % stride:
                 continue
             T, q = seq.T_cam_target[k], seq.q_cam_target[k]
-            uv_true = project(est.K_frame, est.points_m, quat_to_matrix_np(q), T)
+            R_true = quat_to_matrix_np(q)
+            uv_true = project(est.K_frame, est.points_m, R_true, T)
             win = window_around(uv_true, est.out_px, est.margin)
-            uv, _, _ = est.keypoints(img, win)
-            err = np.linalg.norm(uv - uv_true, axis=1) * win.scale
+            reading = est.read_crop(img, win)
+            err = np.linalg.norm(reading.uv_px - uv_true, axis=1) * win.scale
+            direct = est.first.estimate(img)
             rows.append(
                 {
                     "img": img,
                     "T": T,
                     "q": q,
-                    "direct": est.first.estimate(img),
+                    "direct": direct,
                     "kp_err_crop_px": err,
                     "prior": prior,
+                    "prior_err_deg": {
+                        "direct": _angle_deg(direct.R_cam_target, R_true),
+                        "head": _angle_deg(reading.R_cam_target_head, R_true),
+                    },
                 }
             )
     return rows
+
+
+def _angle_deg(R: np.ndarray | None, R_true: np.ndarray) -> float:
+    from oibar.geometry.rotations import rotation_angle_deg
+
+    if R is None or not np.all(np.isfinite(R)):
+        return float("nan")
+    return rotation_angle_deg(np.asarray(R).T @ R_true)
+
+
+def prior_error_model(rows: list[dict], source: str) -> dict | None:
+    """Per range bin, the RMS error (deg) of one attitude prior ("direct" or "head") on the
+    validation frames, errors clipped at PRIOR_CLIP_DEG (a gross miss is the search's business,
+    not the weight's); a bin with under 5 answers takes the overall RMS. None when the source
+    never answered (a model without the head)."""
+    err = np.minimum(np.array([r["prior_err_deg"][source] for r in rows], float), PRIOR_CLIP_DEG)
+    if not np.any(np.isfinite(err)):
+        return None
+    rng = np.array([float(np.linalg.norm(r["T"])) for r in rows])
+    overall = float(np.sqrt(np.nanmean(err**2)))
+    edges = np.asarray(ERROR_RANGE_EDGES_M)
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=False):
+        e = err[(rng >= lo) & (rng < hi)]
+        e = e[np.isfinite(e)]
+        out.append(float(np.sqrt(np.mean(e**2))) if len(e) >= 5 else overall)
+    return {
+        "range_edges_m": list(ERROR_RANGE_EDGES_M),
+        "rms_deg": np.round(np.maximum(out, MIN_RMS_DEG), 4).tolist(),
+    }
 
 
 def error_model(rows: list[dict], clip_crop_px: float) -> dict:
@@ -94,28 +132,37 @@ def error_model(rows: list[dict], clip_crop_px: float) -> dict:
     return {"range_edges_m": list(ERROR_RANGE_EDGES_M), "rms_crop_px": np.round(table, 4).tolist()}
 
 
-def fusion_grid(err_model: dict | None, head: bool) -> list[tuple]:
-    """(attitude prior, keypoint sigma, prior sigma, error model) to score. The head's prior is
-    tried with the error model only when there is one (it won with the direct prior, 0.5.0)."""
+def fusion_grid(err_model: dict | None, prior_models: dict[str, dict | None]) -> list[tuple]:
+    """(attitude prior, keypoint sigma, prior sigma, keypoint error model, prior error model) to
+    score. The direct prior as 0.5.0 chose it (with and without the keypoint error model); each
+    prior with a prior error model (`prior_models`, None: that source has none) with the keypoint
+    error model, which won in 0.5.0; the head also without its prior error model; PnP alone."""
+    sig = [(p, d) for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None]
     models = [None] if err_model is None else [None, err_model]
-    grid = [
-        ("direct", p, d, m) for m in models for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None
-    ]
-    if head:
-        grid += [("head", p, d, models[-1]) for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None]
-    grid.append((None, None, None, None))
+    grid = [("direct", p, d, m, None) for m in models for p, d in sig]
+    for source, pem in prior_models.items():
+        if pem is None:
+            continue
+        if source == "head":
+            grid += [("head", p, d, models[-1], None) for p, d in sig]
+        grid += [(source, p, d, models[-1], pem) for p, d in sig]
+    grid.append((None, None, None, None, None))
     return grid
 
 
-def score_grid(est, rows: list[dict], progress: bool, err_model: dict | None = None) -> list[dict]:
+def score_grid(
+    est, rows: list[dict], progress: bool, err_model: dict | None = None, prior_models: dict | None = None
+) -> list[dict]:
     out = []
-    grid = fusion_grid(err_model, getattr(est, "R_att_ref", None) is not None)
-    for source, s_px, s_deg, em in grid:
+    grid = fusion_grid(err_model, prior_models or {})
+    for source, s_px, s_deg, em, pem in grid:
         fusion = {"sigma_crop_px": s_px, "sigma_prior_deg": s_deg} if s_deg is not None else {}
         if source == "head":
             fusion["attitude_prior"] = "head"
         if em is not None:
             fusion["kp_error_model"] = em
+        if pem is not None:
+            fusion["prior_error_model"] = pem
         T_hat, q_hat = [], []
         for row in rows:
             d = row["direct"]
@@ -138,12 +185,14 @@ def score_grid(est, rows: list[dict], progress: bool, err_model: dict | None = N
             sigma_crop_px=s_px,
             sigma_prior_deg=s_deg,
             error_model=em is not None,
+            prior_em=pem is not None,
             score=metrics.score(s),
         )
         out.append(s)
         if progress:
             print(
-                f"sigma_kp {s_px} px{' x error model' if em else ''}, {source} prior {s_deg} deg: "
+                f"sigma_kp {s_px} px{' x error model' if em else ''}, {source} prior {s_deg} deg"
+                f"{' x its error model' if pem else ''}: "
                 f"dt {s['dt_mean_pct']:.3f} % (median {s['dt_median_pct']:.3f}) "
                 f"dq {s['dq_mean_deg']:.3f} deg (median {s['dq_median_deg']:.3f}) score {s['score']:.4f}",
                 file=sys.stderr,
@@ -173,10 +222,13 @@ def main(argv: list[str] | None = None) -> int:
     ]
     rows = collect(est, seqs, a.stride, track=not a.single)
     em = error_model(rows, float(est.reproj_crop_px))
-    grid = score_grid(est, rows, not a.no_progress, em)
+    pems = {source: prior_error_model(rows, source) for source in ("direct", "head")}
+    grid = score_grid(est, rows, not a.no_progress, em, pems)
     best = min(grid, key=lambda g: g["score"])
     if best.get("error_model"):
         best["kp_error_model"] = em
+    if best.get("prior_em"):
+        best["prior_error_model"] = pems[best["attitude_prior"]]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     for g in grid:
         g.pop("img", None)
@@ -190,6 +242,7 @@ def main(argv: list[str] | None = None) -> int:
                 "best": best,
                 "grid": grid,
                 "kp_error_model": em,
+                "prior_error_models": pems,
             },
             indent=1,
         )

@@ -334,3 +334,35 @@ def test_the_attitude_head_is_the_fits_prior_when_the_fusion_says_so(monkeypatch
     assert r is not None and len(seen) == 2
     want = R_head if source == "head" else R_direct
     assert all(np.allclose(s, want) for s in seen)
+
+
+def test_the_prior_error_model_weighs_the_prior_by_range(monkeypatch):
+    """fusion.prior_error_model: the prior's sigma at a range is sigma_prior_deg times that bin's
+    RMS over the overall RMS; a bad table is refused."""
+    import oibar.nav.pose as pose
+    from oibar.nav.keypoints import PriorErrorModel
+
+    table = {"range_edges_m": [0.0, 3.0, 8.0, 100.0], "rms_deg": [2.0, 0.5, 2.0]}
+    m = PriorErrorModel(table)
+    ref = np.sqrt((4 + 0.25 + 4) / 3)
+    assert m.scale(5.0) == pytest.approx(0.5 / ref) and m.scale(50.0) == pytest.approx(2.0 / ref)
+    assert m.scale(500.0) == m.scale(50.0) and m.scale(-1.0) == m.scale(1.0)
+    with pytest.raises(ValueError, match="must have 3 entries"):
+        PriorErrorModel({"range_edges_m": [0.0, 3.0, 8.0, 100.0], "rms_deg": [1.0, 2.0]})
+    with pytest.raises(ValueError, match="finite and > 0"):
+        PriorErrorModel({"range_edges_m": [0.0, 1.0], "rms_deg": [0.0]})
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 5.0))
+    fusion = {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0, "prior_error_model": table}
+    est = _bare_estimator(R, T, fusion=fusion)
+    seen = []
+    real = pose.map_pose
+
+    def spy(uv, P, K_, reproj, R_prior, s_px, s_rad, *a):
+        seen.append(s_rad)
+        return real(uv, P, K_, reproj, R_prior, s_px, s_rad, *a)
+
+    monkeypatch.setattr(pose, "map_pose", spy)
+    r, _ = est.solve(np.zeros((480, 744, 3), np.uint8), R, T)
+    assert r is not None and seen
+    assert all(s == pytest.approx(np.radians(2.0) * 0.5 / ref) for s in seen)

@@ -340,6 +340,35 @@ def test_a_checkpoint_without_the_attitude_head_loads_with_a_fresh_one():
     assert not with_fresh_attitude_head(new, new.state_dict())
 
 
+def test_the_prior_error_model_is_each_priors_rms_per_range_bin():
+    """kp_fusion.prior_error_model: per range bin the RMS of one prior's attitude error, clipped
+    at PRIOR_CLIP_DEG; a thin bin takes the overall RMS; a prior that never answered has none."""
+    from oibar.nav.keypoints import PriorErrorModel
+    from oibar_models.kp_fusion import ERROR_RANGE_EDGES_M, PRIOR_CLIP_DEG, prior_error_model
+
+    rows = []
+    for i in range(30):
+        near = i < 20
+        head = 2.0 if near else 0.5
+        if i == 0:
+            head = 90.0  # a gross miss: clipped
+        rows.append(
+            {"T": np.array([0.0, 0.0, 0.5 if near else 4.0]), "prior_err_deg": {"head": head, "direct": None}}
+        )
+    pem = prior_error_model(rows, "head")
+    bins = np.asarray(ERROR_RANGE_EDGES_M)
+    near_bin, mid_bin = np.searchsorted(bins, 0.5, "right") - 1, np.searchsorted(bins, 4.0, "right") - 1
+    want_near = np.sqrt((PRIOR_CLIP_DEG**2 + 19 * 4.0) / 20)
+    assert pem["rms_deg"][near_bin] == pytest.approx(want_near, abs=1e-3)
+    assert pem["rms_deg"][mid_bin] == pytest.approx(0.5)
+    overall = np.sqrt((PRIOR_CLIP_DEG**2 + 19 * 4.0 + 10 * 0.25) / 30)
+    assert pem["rms_deg"][-1] == pytest.approx(overall, abs=1e-3)  # no frame there
+    PriorErrorModel(pem)  # what the estimator will read
+    for r in rows:
+        r["prior_err_deg"]["direct"] = float("nan")
+    assert prior_error_model(rows, "direct") is None
+
+
 def test_the_error_model_is_each_keypoints_rms_per_range_bin():
     """kp_fusion.error_model: RMS per keypoint and range bin, errors clipped at the inlier
     threshold (RANSAC drops worse ones), a bin with under 5 answers takes the keypoint's overall
@@ -386,6 +415,12 @@ def test_the_error_model_is_each_keypoints_rms_per_range_bin():
         (
             lambda meta: meta.update(attitude_head={"output": "nope", "R_ref": np.eye(3).tolist()}),
             "'nope' is missing",
+        ),
+        (
+            lambda meta: meta["fusion"].update(
+                prior_error_model={"range_edges_m": [0, 1], "rms_deg": [1, 2]}
+            ),
+            "prior_error_model is malformed",
         ),
     ],
 )

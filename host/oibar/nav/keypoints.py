@@ -353,3 +353,27 @@ class KeypointErrorModel:
             )
         )
         return self.rms_crop_px[:, b] / self.ref_crop_px
+
+
+class PriorErrorModel:
+    """How far the attitude prior is off, by camera range: RMS error (deg) per range bin,
+    measured on the validation scenes (oibar_models.kp_fusion) and shipped in the export's
+    ``oibar.fusion.prior_error_model``. The attitude head reads a degree well at 3-8 m and worse
+    at 10 m and close in; a fixed prior weight would trust it as much everywhere. Relative:
+    ``scale(range)`` is the bin's RMS over the overall RMS, so ``sigma_prior_deg`` keeps its
+    meaning as the typical weight."""
+
+    def __init__(self, table: dict[str, Any]):
+        self.edges_m = np.asarray(table["range_edges_m"], float)
+        self.rms_deg = np.asarray(table["rms_deg"], float)
+        if self.rms_deg.ndim != 1 or len(self.rms_deg) != len(self.edges_m) - 1:
+            raise ValueError(
+                f"prior error model: rms_deg must have {len(self.edges_m) - 1} entries, got {self.rms_deg.shape}"
+            )
+        if not np.all(np.isfinite(self.rms_deg)) or np.any(self.rms_deg <= 0):
+            raise ValueError("prior error model: every rms_deg must be finite and > 0")
+        self.ref_deg = float(np.sqrt(np.mean(self.rms_deg**2)))
+
+    def scale(self, range_m: float) -> float:
+        b = int(np.clip(np.searchsorted(self.edges_m, range_m, side="right") - 1, 0, len(self.rms_deg) - 1))
+        return float(self.rms_deg[b] / self.ref_deg)

@@ -31,6 +31,7 @@ from oibar.nav.keypoints import (
     CropWindow,
     KeypointErrorModel,
     PnpResult,
+    PriorErrorModel,
     attitude_from_crop,
     cut,
     map_pose,
@@ -454,6 +455,8 @@ class KeypointPoseEstimator(PoseEstimator):
         self.refine_passes = max(1, int(refine_passes))
         if (self.meta.get("fusion") or {}).get("kp_error_model"):
             self._error_model(self.meta["fusion"])  # a malformed table fails here, not in flight
+        if (self.meta.get("fusion") or {}).get("prior_error_model"):
+            self._prior_error_model(self.meta["fusion"])
         self.R_att_ref = self._attitude_head()
         if (self.meta.get("fusion") or {}).get("attitude_prior", "direct") not in ATTITUDE_PRIORS:
             raise ModelFileError(
@@ -599,6 +602,8 @@ class KeypointPoseEstimator(PoseEstimator):
         if s_px is not None and f and f.get("kp_error_model"):
             s_px = s_px * self._error_model(f).scale(range_m)
         s_rad = np.radians(float(f["sigma_prior_deg"])) if f else None
+        if s_rad is not None and f and f.get("prior_error_model"):
+            s_rad *= self._prior_error_model(f).scale(range_m)
         r = map_pose(
             uv,
             self.points_m,
@@ -628,6 +633,19 @@ class KeypointPoseEstimator(PoseEstimator):
                 )
             self._err_table, self._err_model = table, model
         return self._err_model
+
+    def _prior_error_model(self, f: dict[str, Any]) -> PriorErrorModel:
+        """The fusion's PriorErrorModel, built once per table."""
+        table = f["prior_error_model"]
+        if getattr(self, "_prior_table", None) is not table:
+            try:
+                model = PriorErrorModel(table)
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ModelFileError(
+                    f"{self.path}: oibar.fusion.prior_error_model is malformed ({exc})"
+                ) from exc
+            self._prior_table, self._prior_model = table, model
+        return self._prior_model
 
     uses_prior = True
 
