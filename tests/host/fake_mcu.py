@@ -101,6 +101,7 @@ class FakeMcu:
     ) -> None:
         self.protocol_version = protocol_version
         self.telemetry_period_s = telemetry_period_s
+        self.telemetry_muted = False
         self.heartbeat_period_s = heartbeat_period_s
         self.link_timeout_s = link_timeout_s
         self.firmware_version = firmware_version
@@ -201,6 +202,10 @@ class FakeMcu:
     def forget_host(self) -> None:
         """Drop back to unconnected without telling the host (as after a quick reset)."""
         self._call(self._forget_host_now)
+
+    def mute_telemetry(self, muted: bool) -> None:
+        """Send no telemetry (heartbeats and answers go on) while `muted`."""
+        self._call(lambda: setattr(self, "telemetry_muted", muted))
 
     def reboot(self) -> None:
         """Restart as after a watchdog reset: uptime and seq from zero, host forgotten, the
@@ -544,7 +549,7 @@ class FakeMcu:
         self._send_packet(packet)
 
     def _send_telemetry(self) -> None:
-        if self._conn is None:
+        if self._conn is None or self.telemetry_muted:
             return
         packet = self._packet()
         t = packet.telemetry
