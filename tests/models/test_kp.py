@@ -144,29 +144,25 @@ def test_crop_labels_follow_the_fixture(tiny_dataset):
 
 def test_the_attitude_label_is_what_the_turned_crop_shows(tiny_dataset):
     """Each crop's attitude label, read back through its own window (position, size and turn of
-    the augmentation), gives the frame's true R_cam_target; two crops of one frame turned
-    differently carry labels that differ by that turn."""
+    the augmentation), gives the frame's true R_cam_target (how a turn changes the label:
+    tests/host/test_nav_keypoints.py)."""
     from oibar.geometry.rotations import quat_to_matrix, rotation_angle_deg
     from oibar.nav.keypoints import CropWindow, attitude_from_crop
 
     sc = open_scenes(tiny_dataset, ["seq02"])
     ds = CropDataset(sc, keypoints_m(), 96, CropAugment(), train=True)
-    rolls = []
-    for _ in range(2):
-        b = ds[5]
+    angles = []
+    for k in (0, 5, 9, 5):
+        b = ds[k]
         A = b["A"].numpy()
         angle = float(np.arctan2(A[1, 0], A[0, 0]))
         scale = float(np.sqrt(np.linalg.det(A[:, :2])))
         centre = np.linalg.solve(A[:, :2], np.full(2, 48.0) - A[:, 2])
         win = CropWindow(tuple(centre), 96 / scale, 96, angle)
         R = attitude_from_crop(win, sc[0].K, b["att_deg"].numpy().astype(float), ds.R_ref)
-        assert rotation_angle_deg(R.T @ quat_to_matrix(sc[0].q_cam_target[5])) < 1e-3
-        rolls.append((angle, b["att_deg"].numpy().astype(float)))
-    (a0, att0), (a1, att1) = rolls
-    from oibar.geometry.rotations import rotvec_to_matrix
-
-    turn = rotation_angle_deg(rotvec_to_matrix(np.radians(att0)) @ rotvec_to_matrix(np.radians(att1)).T)
-    assert abs(a0 - a1) > 0.01 and turn == pytest.approx(np.degrees(abs(a0 - a1)), abs=0.5)
+        assert rotation_angle_deg(R.T @ quat_to_matrix(sc[0].q_cam_target[k])) < 1e-3
+        angles.append(angle)
+    assert np.ptp(angles) > 0.01  # the crops were turned
 
 
 def _smoke_overrides(tiny_dataset, kp_sets, run_dir) -> list[str]:
