@@ -211,13 +211,18 @@ def test_error_model_scales_by_range_and_refuses_bad_tables():
         KeypointErrorModel({"range_edges_m": [0.0, 1.0, 2.0], "rms_crop_px": [[0.5, 0.0]]})
 
 
-def _bare_estimator(R_true, T_true, R_head=None, fusion=None):
+def _bare_estimator(
+    R_true, T_true, R_head=None, fusion=None, zoom=False, max_side_ratio=np.inf, noise_px=0.0
+):
     """A KeypointPoseEstimator without networks: its 'keypoint network' reports the true points
-    when the crop holds the fixture's centre, nothing otherwise (what a trained net does), and
-    `R_head` as its attitude head's reading."""
+    when the crop holds the fixture's centre and is at most `max_side_ratio` times the fixture's
+    own window, nothing otherwise (what a trained net does), `noise_px` (crop px, seeded) added;
+    and `R_head` as its attitude head's reading. Its batch run (the zoom search) says "present"
+    for the crops that would give keypoints."""
     from oibar.nav.pose import CropReading, KeypointPoseEstimator
 
     est = object.__new__(KeypointPoseEstimator)
+    est.zoom_search = zoom
     est.K_frame, est.points_m, est.out_px, est.margin = K, DEEP, 128, 1.25
     est.reproj_crop_px, est.refine_passes, est.meta = (
         4.0,
@@ -226,15 +231,36 @@ def _bare_estimator(R_true, T_true, R_head=None, fusion=None):
     )
     truth = project(K, DEEP, R_true, T_true)
     centre = truth.mean(0)
+    own_side = window_around(truth, 128, 1.25).side_px
     est.crops = []
+    rng = np.random.default_rng(1)
+
+    def sees(win):
+        inside = np.all(np.abs(win.to_crop(centre[None])[0] - win.out_px / 2) < win.out_px * 0.3)
+        return bool(inside and win.side_px <= max_side_ratio * own_side)
 
     def read_crop(image, win):
         est.crops.append(win)
-        inside = np.all(np.abs(win.to_crop(centre[None])[0] - win.out_px / 2) < win.out_px * 0.3)
-        uv = truth.copy() if inside else np.full_like(truth, np.nan)
+        if sees(win):
+            uv = (
+                win.to_frame(win.to_crop(truth) + rng.normal(0.0, noise_px, truth.shape))
+                if noise_px
+                else truth.copy()
+            )
+        else:
+            uv = np.full_like(truth, np.nan)
         return CropReading(uv, np.zeros(len(uv)), np.ones(len(uv)), R_head)
 
-    est.read_crop = read_crop
+    est.batches = []
+
+    def run(x):  # the zoom search's batch: only presence and spread are read
+        est.batches.append(len(x))
+        return {
+            "kp_present": np.zeros((len(x), len(DEEP))),
+            "kp_spread_px": np.full((len(x), len(DEEP)), 8.0),
+        }
+
+    est.read_crop, est.run, est.sees = read_crop, run, sees
     return est
 
 
@@ -246,7 +272,9 @@ def test_the_predicted_pose_places_the_first_crop():
     T_direct = T + (1.6, 0.0, 0.0)
     est = _bare_estimator(R, T)
     r, _ = est.solve(image, R, T_direct)
-    assert r is None and len(est.crops) == 11  # the whole search, in vain
+    assert (
+        r is None and len(est.crops) == 11
+    )  # the whole search, in vain (no zoom: the window's size is right)
     est = _bare_estimator(R, T)
     r, _ = est.solve(image, R, T_direct, prior=(R, T + (0.05, 0.02, 0.1)))
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
@@ -366,3 +394,78 @@ def test_the_prior_error_model_weighs_the_prior_by_range(monkeypatch):
     r, _ = est.solve(np.zeros((480, 744, 3), np.uint8), R, T)
     assert r is not None and seen
     assert all(s == pytest.approx(np.radians(2.0) * 0.5 / ref) for s in seen)
+
+
+def test_a_weak_fit_does_not_stop_the_search():
+    """A fit whose keypoints miss by more than STRONG_FIT_RMS_CROP_PX (what a 'fixture' drawn on
+    the station's structure gives) does not end the search; the strong fit found later wins.
+    With nothing strong anywhere, the best weak fit comes back (estimate flags it weak_fit)."""
+    from oibar.nav.pose import STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 6.0))
+    image = np.zeros((480, 744, 3), np.uint8)
+    est = _bare_estimator(R, T, noise_px=3.0)  # every window that sees it gives a weak fit
+    r, win = est.solve(image, R, T)
+    assert r is not None and fit_rms_crop_px(r, win) > STRONG_FIT_RMS_CROP_PX
+    assert len(est.crops) == 11  # the whole search ran: nothing strong stopped it
+    # a strong fit behind a weak first window: the first window sees the fixture badly
+    est = _bare_estimator(R, T)
+    good_read = est.read_crop
+
+    def first_one_weak(image, win):
+        reading = good_read(image, win)
+        if len(est.crops) == 1:
+            reading.uv_px = reading.uv_px + np.random.default_rng(0).normal(
+                0, 3.0 / win.scale, reading.uv_px.shape
+            )
+        return reading
+
+    est.read_crop = first_one_weak
+    r, win = est.solve(image, R, T)
+    assert r is not None and fit_rms_crop_px(r, win) <= STRONG_FIT_RMS_CROP_PX
+    assert np.linalg.norm(r.T_cam_target_m - T) < 1e-3 and len(est.crops) > 2  # searched on
+
+
+def test_the_zoom_search_finds_a_far_fixture_the_first_pass_took_for_a_near_one():
+    """The first pass puts the fixture 5x closer than it is: its window is 5x too large and the
+    keypoint network (trained on windows within ~1.3x of the fixture's) finds nothing there.
+    The zoom search reads smaller windows inside it in one batch and solves the most
+    fixture-like; without it the frame has no answer."""
+    from oibar.nav.pose import ZOOM_STEPS, ZOOM_TRY
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 9.0))
+    image = np.zeros((480, 744, 3), np.uint8)
+    T_direct = T / 5.0
+    est = _bare_estimator(R, T, max_side_ratio=1.4)
+    r, _ = est.solve(image, R, T_direct)
+    assert r is None and len(est.crops) == 11 and not est.batches
+    est = _bare_estimator(R, T, max_side_ratio=1.4, zoom=True)
+    seen = est.run
+
+    def run(x):  # presence says which crops hold the fixture
+        out = seen(x)
+        ok = [est.sees(w) for w in est.zoom_windows_last]
+        out["kp_present"][ok] = 1.0
+        out["kp_spread_px"][ok] = 1.0
+        return out
+
+    real_zoom = type(est)._zoom_windows
+
+    def zoom_windows(image, base):
+        from oibar.nav.keypoints import CropWindow
+
+        est.zoom_windows_last = [
+            CropWindow(
+                (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px),
+                base.side_px * k,
+                base.out_px,
+            )
+            for dx, dy, k in ZOOM_STEPS
+        ]
+        return real_zoom(est, image, base)
+
+    est.run, est._zoom_windows = run, zoom_windows
+    r, _ = est.solve(image, R, T_direct)
+    assert est.batches == [len(ZOOM_STEPS)]
+    assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
+    assert len(est.crops) <= 11 + ZOOM_TRY + 1  # the search, at most ZOOM_TRY zoomed, one refinement

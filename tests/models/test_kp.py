@@ -469,3 +469,30 @@ def test_a_malformed_error_model_is_refused_when_the_model_opens(tmp_path, table
     with pytest.raises(ModelFileError, match=match) as exc:
         PoseEstimator(out, warmup_runs=0)
     assert str(out) in str(exc.value)
+
+
+def test_a_weak_fit_comes_back_flagged_with_low_confidence(monkeypatch):
+    """When the search finds nothing better than a weak fit (keypoints missing by more than
+    STRONG_FIT_RMS_CROP_PX), the estimate says so: flag weak_fit, confidence x FALLBACK_FACTOR,
+    never the confidence of a good fit."""
+    from oibar.nav.keypoints import CropWindow, PnpResult
+    from oibar.nav.pose import FALLBACK_FACTOR, STRONG_FIT_RMS_CROP_PX, PoseEstimator
+
+    est = PoseEstimator(REPO / "models/oibarnet.onnx", warmup_runs=0)
+    frame = np.random.default_rng(0).integers(0, 255, (480, 744, 3), dtype=np.uint8)
+    direct = est.first.estimate(frame)
+    win = CropWindow((372.0, 240.0), 64.0, 128)
+
+    def answer(rms_crop_px):
+        def solve(image, R, T, fusion=None, prior=None):
+            r = PnpResult(
+                True, direct.R_cam_target, direct.T_cam_target_m, np.arange(14), rms_crop_px / win.scale
+            )
+            return r, win
+
+        monkeypatch.setattr(est, "solve", solve)
+        return est.estimate(frame)
+
+    good, weak = answer(0.5), answer(STRONG_FIT_RMS_CROP_PX + 0.3)
+    assert "weak_fit" not in good.flags and "weak_fit" in weak.flags
+    assert good.confidence > 0.5 and weak.confidence < FALLBACK_FACTOR * good.confidence + 1e-9
