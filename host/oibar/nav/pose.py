@@ -383,7 +383,7 @@ STRONG_FIT_RMS_CROP_PX = 1.2
 # steps in the first pass's window sides) and the ZOOM_TRY most keypoint-like (presence, tight
 # heat maps) are solved: the first pass can take a far fixture for a near one and put a window
 # 5-25x too large around it. Cost: one batch of 34 crops (~0.15-0.25 s on 2 cores), only on
-# frames with nothing better (a cold start or a lost track).
+# frames with nothing better and no predicted pose (a cold start or a lost track).
 ZOOM_STEPS = tuple(
     (dx, dy, k)
     for k, offs in ((0.5, (-0.25, 0.0, 0.25)), (0.25, (-0.3, -0.15, 0.0, 0.15, 0.3)))
@@ -600,7 +600,9 @@ class KeypointPoseEstimator(PoseEstimator):
                         *self._one_pass(image, win, R_direct, f, float(np.linalg.norm(T_direct)) / k)
                     ):
                         break
-        if best is None and base is not None and self.zoom_search:
+        # the zoom only on a cold start or a lost track: with a prediction its ~0.2 s would come
+        # out of the 100 ms frame budget on every weak far frame of a healthy track
+        if best is None and base is not None and self.zoom_search and prior is None:
             for zwin, k in self._zoom_windows(image, base):
                 if consider(*self._one_pass(image, zwin, R_direct, f, float(np.linalg.norm(T_direct)) / k)):
                     break
