@@ -134,12 +134,13 @@ def error_model(rows: list[dict], clip_crop_px: float) -> dict:
 
 def fusion_grid(err_model: dict | None, prior_models: dict[str, dict | None]) -> list[tuple]:
     """(attitude prior, keypoint sigma, prior sigma, keypoint error model, prior error model) to
-    score. The direct prior as 0.5.0 chose it (with and without the keypoint error model); each
-    prior with a prior error model (`prior_models`, None: that source has none) with the keypoint
-    error model, which won in 0.5.0; the head also without its prior error model; PnP alone."""
+    score, for the priors named in `prior_models` (its value None: that source has no error
+    model, a model without the head). The direct prior as 0.5.0 chose it (with and without the
+    keypoint error model); each prior with its prior error model and the keypoint error model,
+    which won in 0.5.0; the head also without its prior error model; PnP alone."""
     sig = [(p, d) for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None]
     models = [None] if err_model is None else [None, err_model]
-    grid = [("direct", p, d, m, None) for m in models for p, d in sig]
+    grid = [("direct", p, d, m, None) for m in models for p, d in sig] if "direct" in prior_models else []
     for source, pem in prior_models.items():
         if pem is None:
             continue
@@ -154,7 +155,7 @@ def score_grid(
     est, rows: list[dict], progress: bool, err_model: dict | None = None, prior_models: dict | None = None
 ) -> list[dict]:
     out = []
-    grid = fusion_grid(err_model, prior_models or {})
+    grid = fusion_grid(err_model, {"direct": None} if prior_models is None else prior_models)
     for source, s_px, s_deg, em, pem in grid:
         fusion = {"sigma_crop_px": s_px, "sigma_prior_deg": s_deg} if s_deg is not None else {}
         if source == "head":
@@ -211,8 +212,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stride", type=int, default=16)
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/oibarnet_kp/fusion.json")
     ap.add_argument("--single", action="store_true", help="score every frame alone (no predicted pose)")
+    ap.add_argument(
+        "--priors",
+        default="direct,head",
+        help="attitude priors to score, comma-separated (direct, head; default both)",
+    )
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
+    sources = [p.strip() for p in a.priors.split(",") if p.strip()]
+    if not sources or any(p not in ("direct", "head") for p in sources):
+        print(f"error: --priors: direct and/or head, got {a.priors!r}", file=sys.stderr)
+        return 2
     est = PoseEstimator(a.model)
     if not isinstance(est, KeypointPoseEstimator):
         print(f"error: {a.model} is not a keypoint model", file=sys.stderr)
@@ -223,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = collect(est, seqs, a.stride, track=not a.single)
     em = error_model(rows, float(est.reproj_crop_px))
     pems = {source: prior_error_model(rows, source) for source in ("direct", "head")}
-    grid = score_grid(est, rows, not a.no_progress, em, pems)
+    grid = score_grid(est, rows, not a.no_progress, em, {k: v for k, v in pems.items() if k in sources})
     best = min(grid, key=lambda g: g["score"])
     if best.get("error_model"):
         best["kp_error_model"] = em

@@ -365,6 +365,27 @@ def test_the_prior_error_model_is_each_priors_rms_per_range_bin():
     assert prior_error_model(rows, "direct") is None
 
 
+def test_the_fusion_grid_scores_the_priors_asked_for():
+    """kp_fusion.fusion_grid: the direct prior as before, the head (with and without its error
+    model) only when the model has one and it is asked for (`--priors`), PnP alone always."""
+    from oibar_models.kp_fusion import SIGMA_CROP_PX, SIGMA_PRIOR_DEG, fusion_grid
+
+    em, pem = {"kp": 1}, {"rms_deg": [1.0]}
+    n_sig = len(SIGMA_CROP_PX) * (len(SIGMA_PRIOR_DEG) - 1)
+    both = fusion_grid(em, {"direct": pem, "head": pem})
+    sources = [g[0] for g in both]
+    assert sources.count("direct") == 3 * n_sig and sources.count("head") == 2 * n_sig
+    assert both[-1] == (None, None, None, None, None)
+    assert all(g[4] is pem for g in both if g[0] == "head" and g[4] is not None)
+    direct_only = fusion_grid(em, {"direct": pem})
+    assert {g[0] for g in direct_only} == {"direct", None}
+    no_head_model = fusion_grid(em, {"direct": None, "head": None})
+    assert [g[0] for g in no_head_model].count("direct") == 2 * n_sig and "head" not in {
+        g[0] for g in no_head_model
+    }
+    assert {g[0] for g in fusion_grid(em, {"head": pem})} == {"head", None}
+
+
 def test_the_error_model_is_each_keypoints_rms_per_range_bin():
     """kp_fusion.error_model: RMS per keypoint and range bin, errors clipped at the inlier
     threshold (RANSAC drops worse ones), a bin with under 5 answers takes the keypoint's overall
