@@ -682,36 +682,32 @@ class KeypointPoseEstimator(PoseEstimator):
         )
         return (r, win) if r.ok else (None, None)
 
-    def _error_model(self, f: dict[str, Any]) -> KeypointErrorModel:
-        """The fusion's KeypointErrorModel, built once per fusion table."""
-        table = f["kp_error_model"]
-        if getattr(self, "_err_table", None) is not table:  # held, so its identity cannot be reused
+    def _fusion_table(self, f: dict[str, Any], key: str, build: Any) -> Any:
+        """`build(f[key])`, made once per table and held (holding the table keeps its identity
+        from being reused); a malformed table is a ModelFileError naming the file."""
+        table = f[key]
+        cache: dict[str, tuple[Any, Any]] = self.__dict__.setdefault("_fusion_tables", {})
+        if key not in cache or cache[key][0] is not table:
             try:
-                model = KeypointErrorModel(table)
+                cache[key] = (table, build(table))
             except (KeyError, TypeError, ValueError) as exc:
-                raise ModelFileError(
-                    f"{self.path}: oibar.fusion.kp_error_model is malformed ({exc})"
-                ) from exc
-            if model.rms_crop_px.shape[0] != len(self.points_m):
-                raise ModelFileError(
-                    f"{self.path}: oibar.fusion.kp_error_model has {model.rms_crop_px.shape[0]} "
-                    f"keypoints, the model {len(self.points_m)}"
-                )
-            self._err_table, self._err_model = table, model
-        return self._err_model
+                raise ModelFileError(f"{self.path}: oibar.fusion.{key} is malformed ({exc})") from exc
+        return cache[key][1]
+
+    def _error_model(self, f: dict[str, Any]) -> KeypointErrorModel:
+        """The fusion's KeypointErrorModel (one row per keypoint of this model)."""
+        model: KeypointErrorModel = self._fusion_table(f, "kp_error_model", KeypointErrorModel)
+        if model.rms_crop_px.shape[0] != len(self.points_m):
+            raise ModelFileError(
+                f"{self.path}: oibar.fusion.kp_error_model has {model.rms_crop_px.shape[0]} "
+                f"keypoints, the model {len(self.points_m)}"
+            )
+        return model
 
     def _prior_error_model(self, f: dict[str, Any]) -> PriorErrorModel:
-        """The fusion's PriorErrorModel, built once per table."""
-        table = f["prior_error_model"]
-        if getattr(self, "_prior_table", None) is not table:
-            try:
-                model = PriorErrorModel(table)
-            except (KeyError, TypeError, ValueError) as exc:
-                raise ModelFileError(
-                    f"{self.path}: oibar.fusion.prior_error_model is malformed ({exc})"
-                ) from exc
-            self._prior_table, self._prior_model = table, model
-        return self._prior_model
+        """The fusion's PriorErrorModel."""
+        model: PriorErrorModel = self._fusion_table(f, "prior_error_model", PriorErrorModel)
+        return model
 
     uses_prior = True
 
