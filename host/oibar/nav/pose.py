@@ -750,11 +750,10 @@ class KeypointPoseEstimator(PoseEstimator):
             direct.flags = tuple(direct.flags) + ("pnp_failed", "fallback_direct")
             return direct
         R, T = r.pose()
-        rms_px = r.rms_px
         latency_ms = (time.perf_counter() - t0) * 1e3
         conf, rng_m, _, checks = self.plausibility(T, R, None)
         flags = list(checks)
-        rms_crop = rms_px * win.scale
+        rms_crop = fit_rms_crop_px(r, win)
         conf *= float(np.exp(-0.5 * (rms_crop / REPROJ_SCALE_CROP_PX) ** 2))
         if rms_crop > REPROJ_SCALE_CROP_PX:
             flags.append("reprojection")
