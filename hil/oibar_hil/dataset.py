@@ -79,6 +79,8 @@ class SequenceSpec:
     frame_stride: int = 1
     # A chaser that stays misaligned by this much from 10 m to contact (trajectory.generate).
     turned_deg: float = 0.0
+    # A chaser that wanders up to this far off the docking axis below 10 m (trajectory.generate).
+    offaxis_m: float = 0.0
 
     def validate(self) -> None:
         if self.frame_stride < 1:
@@ -98,6 +100,8 @@ class SequenceSpec:
                 f"{self.name}: turned_deg must be 0-10 deg (the mechanism's capture limit), "
                 f"got {self.turned_deg}"
             )
+        if not 0.0 <= self.offaxis_m <= 1.0:
+            raise ValueError(f"{self.name}: offaxis_m must be 0-1 m, got {self.offaxis_m}")
 
 
 def spec_dict(spec: SequenceSpec) -> dict:
@@ -108,6 +112,8 @@ def spec_dict(spec: SequenceSpec) -> dict:
         del d["frame_stride"]
     if d.get("turned_deg") == 0.0:
         del d["turned_deg"]
+    if d.get("offaxis_m") == 0.0:
+        del d["offaxis_m"]
     return d
 
 
@@ -161,7 +167,9 @@ def plan_sequence(
     spec: SequenceSpec, frames_limit: int | None = None, params: TrajectoryParams | None = None
 ) -> SequencePlan:
     spec.validate()
-    traj = generate(spec.seed, envelope=spec.envelope, params=params, turned_deg=spec.turned_deg)
+    traj = generate(
+        spec.seed, envelope=spec.envelope, params=params, turned_deg=spec.turned_deg, offaxis_m=spec.offaxis_m
+    )
     port = PORTS[spec.port]
     cp = camera_poses(traj, port)
     keep = np.arange(0, len(traj), spec.frame_stride)

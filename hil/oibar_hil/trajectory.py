@@ -129,12 +129,23 @@ def _segment(p0: np.ndarray, p1: np.ndarray, speed_mps: float, p: TrajectoryPara
 
 
 def generate(
-    seed: int, envelope: bool = False, params: TrajectoryParams | None = None, turned_deg: float = 0.0
+    seed: int,
+    envelope: bool = False,
+    params: TrajectoryParams | None = None,
+    turned_deg: float = 0.0,
+    offaxis_m: float = 0.0,
 ) -> Trajectory:
     """`turned_deg` > 0: the chaser keeps a constant misalignment of that size (about a random
     axis in the berthing plane, from its own generator so the rest of the trajectory is the same
     as without) from 10 m to contact, on top of everything else: the case of a vehicle that
-    never lines up, as in the rig's nominal mission (2.5 deg). The paper's phases align it."""
+    never lines up, as in the rig's nominal mission (2.5 deg). The paper's phases align it.
+
+    `offaxis_m` > 0: from the end of phase 1 to contact the chaser wanders off the docking axis
+    (off_axis_offsets: up to `offaxis_m`, and never more than OFFAXIS_MAX_ANGLE of the view
+    from the fixture, so it stays in the picture close in), again from its own generator. The
+    paper's phases hold it within 1-2 cm of the axis below 10 m, so a network trained on them
+    alone has never seen the fixture's depth (the drogue's throat) from the side: it reads a
+    lateral offset as a rotation, which is what a closed loop that is off the axis shows it."""
     p = params or TrajectoryParams()
     rng = np.random.default_rng(seed)
     dt = p.dt_s
@@ -241,6 +252,11 @@ def generate(
         phase.append(PHASE_ALIGNMENT_SOFT_DOCK)
         z = z_new
 
+    if offaxis_m:
+        off = off_axis_offsets(np.random.default_rng([seed, 11]), np.stack(pos)[:, 2], offaxis_m, n1, dt)
+        pos = [q + np.array([o[0], o[1], 0.0]) for q, o in zip(pos, off, strict=True)]
+        dv = np.gradient(off, dt, axis=0)
+        vel = [v + np.array([w[0], w[1], 0.0]) for v, w in zip(vel, dv, strict=True)]
     if turned_deg:
         a = np.random.default_rng([seed, 7]).uniform(0.0, 2 * np.pi)
         turn = np.radians(turned_deg) * np.array([np.cos(a), np.sin(a), 0.0])
@@ -255,6 +271,7 @@ def generate(
         "envelope_misalignment_deg": float(np.degrees(np.linalg.norm(env_rotvec))),
         "envelope_closing_speed_mps": float(env_speed) if envelope else None,
         "turned_deg": float(turned_deg),
+        "offaxis_m": float(offaxis_m),
     }
     return Trajectory(
         t_s=np.round(np.arange(n) * dt, 6),
@@ -268,6 +285,30 @@ def generate(
         envelope=envelope,
         info=info,
     )
+
+
+OFFAXIS_MAX_ANGLE = 0.15  # lateral offset / distance (8.5 deg): the fixture stays in view at 0.5 m
+OFFAXIS_PERIOD_S = (40.0, 120.0)  # the wander's slowest and fastest turn about the axis, s
+
+
+def off_axis_offsets(
+    rng: np.random.Generator, z_m: np.ndarray, max_m: float, first: int, dt_s: float
+) -> np.ndarray:
+    """(n, 2) lateral offsets (m) for samples at z (chaser z in F_t, negative): 0 before sample
+    `first`, then ramping in over 20 s to a slow wander. Its size drifts between 30 % and 100 %
+    of max_m and its direction turns at a random rate, both smooth; capped at
+    OFFAXIS_MAX_ANGLE x distance."""
+    n = len(z_m)
+    t = np.maximum(np.arange(n) - first, 0) * dt_s
+    phase0, phase1 = rng.uniform(0.0, 2 * np.pi, 2)
+    w_dir = 2 * np.pi / rng.uniform(*OFFAXIS_PERIOD_S) * rng.choice([-1.0, 1.0])
+    w_mag = 2 * np.pi / rng.uniform(*OFFAXIS_PERIOD_S)
+    mag = max_m * (0.65 + 0.35 * np.sin(phase1 + w_mag * t))
+    mag = np.minimum(mag, OFFAXIS_MAX_ANGLE * np.abs(z_m))
+    ramp = np.array([_smoothstep(x) for x in t / 20.0])
+    ramp[: min(first, n)] = 0.0
+    a = phase0 + w_dir * t
+    return (ramp * mag)[:, None] * np.stack([np.cos(a), np.sin(a)], axis=1)
 
 
 def _smoothstep(x: float) -> float:

@@ -107,3 +107,40 @@ def test_a_turn_beyond_the_capture_limit_is_refused():
     )
     with pytest.raises(ValueError, match="turned_deg"):
         spec.validate()
+
+
+@pytest.mark.parametrize("seed", [20054, 30016, 7])
+def test_an_off_axis_run_wanders_off_the_axis_and_keeps_the_fixture_in_view(seed):
+    """The off-axis runs (what a closed loop does and the paper's phases never show): the same
+    closing motion and attitude as the plain run, phase 1 untouched, then lateral offsets of tens
+    of centimetres at 2-8 m, never more than OFFAXIS_MAX_ANGLE of the distance, and smooth."""
+    from oibar_hil.trajectory import OFFAXIS_MAX_ANGLE, PHASE_ACQUISITION
+
+    plain, off = generate(seed), generate(seed, offaxis_m=0.4)
+    np.testing.assert_array_equal(plain.p_t_s[:, 2], off.p_t_s[:, 2])
+    np.testing.assert_array_equal(plain.R_t_s, off.R_t_s)
+    acq = plain.phase == PHASE_ACQUISITION
+    np.testing.assert_array_equal(plain.p_t_s[acq], off.p_t_s[acq])
+    shift = np.hypot(*(off.p_t_s[:, :2] - plain.p_t_s[:, :2]).T)
+    dist = off.distance_m
+    assert np.all(shift <= OFFAXIS_MAX_ANGLE * dist + 1e-9) and shift.max() <= 0.4 + 1e-9
+    mid = (dist > 2.0) & (dist < 8.0)
+    assert np.median(shift[mid]) > 0.1  # genuinely off the axis, not a jitter
+    assert np.all(np.abs(np.diff(shift)) / P.dt_s < 0.15)  # a drift, not jumps between frames
+    # the velocities gain the wander's rate of change
+    o = off.p_t_s[:, :2] - plain.p_t_s[:, :2]
+    dv = off.v_t_s[:, :2] - plain.v_t_s[:, :2]
+    assert np.max(np.abs(np.diff(o, axis=0) / P.dt_s - 0.5 * (dv[1:] + dv[:-1]))) < 0.005
+    assert off.info["offaxis_m"] == 0.4
+
+
+def test_an_off_axis_wander_beyond_a_metre_is_refused():
+    from oibar_hil.dataset import SequenceSpec, spec_dict
+
+    spec = SequenceSpec(
+        name="x", port=1, approach="+V-bar", sun_elevation_deg=60.0, background="iss", seed=1, offaxis_m=1.5
+    )
+    with pytest.raises(ValueError, match="offaxis_m"):
+        spec.validate()
+    # a spec without the field keeps the identity its datasets were written with
+    assert "offaxis_m" not in spec_dict(SequenceSpec("y", 1, "+V-bar", 60.0, "iss", 1))
