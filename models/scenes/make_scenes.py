@@ -4,8 +4,9 @@ Deterministic: the same script writes the same files. Test is the paper's sequen
 once per shipped model. Train and validation are our own scenes: all six ports, both backgrounds,
 Sun angles over the sunlit part of the orbit, envelope runs (misalignment up to 10 deg), sensor
 noise and blur, each with its own trajectory seed. Training and validation also hold turned runs (the chaser
-misaligned by 1.5-5 deg from 10 m to contact, as in the rig's mission), appended after the
-others so the earlier scenes stay as they were. A scene that shares a test scene's port and
+misaligned by 1.5-5 deg from 10 m to contact, as in the rig's mission) and off-axis runs (the
+chaser wandering 0.2-0.4 m off the docking axis below 10 m), appended after the others so the
+earlier scenes stay as they were. A scene that shares a test scene's port and
 background is kept at least 15 deg of Sun elevation away from it; validation scenes keep the
 same distance from training scenes, so validation figures are not test figures in disguise
 (oibar_models.scenes checks this again when a config is loaded).
@@ -89,6 +90,31 @@ def turned(
     return out
 
 
+def off_axis(
+    prefix: str, first: int, seed0: int, n: int, rng: np.random.Generator, avoid: list[tuple]
+) -> list[dict]:
+    """n runs that wander 0.2-0.4 m off the docking axis below 10 m, ports cycling through all
+    six, backgrounds alternating, every other one also turned 1.5-5 deg: the closed loop's views
+    (a guidance that follows its own estimate off the axis), which the paper's phases never show."""
+    out = []
+    for j in range(n):
+        port, bg = int(j % 6 + 1), ("iss", "perlin")[(j // 6 + j) % 2]
+        s = {
+            "name": f"{prefix}{first + j:03d}",
+            "port": port,
+            "approach": PORT_APPROACH[port],
+            "sun_elevation_deg": _sun(rng, port, bg, avoid),
+            "background": bg,
+            "seed": seed0 + j,
+            "frame_stride": STRIDE,
+            "offaxis_m": float(np.round(rng.uniform(0.2, 0.4), 2)),
+        }
+        if j % 2:
+            s["turned_deg"] = float(np.round(rng.uniform(1.5, 5.0), 1))
+        out.append(s)
+    return out
+
+
 def main() -> None:
     rng = np.random.default_rng(20261123)
     train = scenes("tr", 20000, 4, rng, TEST_KEYS)
@@ -99,6 +125,13 @@ def main() -> None:
     # Sun keeps clear of the validation scenes too (model 0.6.0: the demo's turned approach).
     taken += [(s["port"], s["background"], s["sun_elevation_deg"]) for s in val]
     train += turned("tr", len(train), 20000 + len(train), 6, rng, taken)
+    # Off-axis runs (model 0.7.0), validation then training, appended the same way: the network
+    # had read a 30 cm lateral offset at 3 m as a 6 deg rotation (the drogue's throat, the one
+    # keypoint off the berthing plane, had only ever been seen from the axis).
+    taken += [(s["port"], s["background"], s["sun_elevation_deg"]) for s in train[-6:]]
+    val += off_axis("va", len(val), 30000 + len(val), 6, rng, taken)
+    taken += [(s["port"], s["background"], s["sun_elevation_deg"]) for s in val[-6:]]
+    train += off_axis("tr", len(train), 20000 + len(train), 18, rng, taken)
     sets = {
         "train": {"set": "train", "scenes": train},
         "val": {"set": "val", "scenes": val},
