@@ -1,6 +1,7 @@
 """The HIL rig's rendered camera (oibar_hil.rig.camera): same frames as the synthetic dataset
 for the same pose and time, and the fixture where the pinhole model puts it."""
 
+import json
 import threading
 from pathlib import Path
 
@@ -26,6 +27,8 @@ from oibar_hil.meshes import (
 )
 from oibar_hil.ports import PORTS
 from oibar_hil.rig.camera import OrbitClock, RigCamera, RigCameraError, pose_to_lvlh
+
+REPO = Path(__file__).resolve().parents[2]
 
 SEQ01 = PAPER_SEQUENCES[1]  # iss background, port 1 (+V-bar): the default scene
 SEQ07 = PAPER_SEQUENCES[7]  # perlin background, port 4 (-R-bar): another port, approach and backdrop
@@ -59,6 +62,29 @@ def test_unknown_scene_is_a_clear_error():
         RigCamera(scene="seq13")
     with pytest.raises(RigCameraError, match="unknown scene"):
         RigCamera(scene=1)
+
+
+def test_a_scene_set_files_scene_can_be_the_loops_look(tmp_path):
+    from oibar_hil.rig.camera import scene_spec
+
+    val = REPO / "models/scenes/val.json"
+    spec = scene_spec(f"{val}:va013")
+    stored = next(s for s in json.loads(val.read_text())["scenes"] if s["name"] == "va013")
+    assert (spec.name, spec.port, spec.sun_elevation_deg, spec.background, spec.turned_deg) == (
+        "va013",
+        stored["port"],
+        stored["sun_elevation_deg"],
+        stored["background"],
+        stored["turned_deg"],
+    )
+    with pytest.raises(RigCameraError, match="unknown scene 'va999' in .*va000"):
+        scene_spec(f"{val}:va999")
+    with pytest.raises(RigCameraError, match="cannot read the scene spec"):
+        scene_spec(f"{tmp_path / 'missing.json'}:va000")
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"scenes": [{"name": "x1", "port": 9}]}))
+    with pytest.raises(RigCameraError, match="scene 0"):
+        scene_spec(f"{bad}:x1")
 
 
 def test_mount_and_probe_have_one_source():

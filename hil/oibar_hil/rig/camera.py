@@ -32,13 +32,14 @@ from __future__ import annotations
 import io
 import threading
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from oibar.geometry.camera import PinholeCamera
 from oibar.geometry.docking import GEOMETRY, DockingGeometry, camera_pose_from_docking
 
-from ..dataset import PAPER_SEQUENCES, SUN_UPDATE_S, SequenceSpec, encode_image
+from ..dataset import PAPER_SEQUENCES, SUN_UPDATE_S, DatasetError, SequenceSpec, encode_image, load_spec_file
 from ..orbit import DEFAULT_TLE, TargetOrbit, julian_date, parse_utc
 from ..ports import PORTS, Port
 from ..render import RenderSettings
@@ -61,15 +62,28 @@ class RenderedFrame:
 
 
 def scene_spec(scene: str | SequenceSpec) -> SequenceSpec:
-    """A paper sequence name (seq01..seq12) or a full SequenceSpec -> a validated spec."""
+    """A paper sequence name (seq01..seq12), ``FILE:NAME`` (scene NAME of a scene-set file such
+    as models/scenes/val.json: the closed loop on a validation scene's look, so a choice made
+    in the loop need not be made on a test scene's) or a full SequenceSpec -> a validated spec."""
     if isinstance(scene, SequenceSpec):
         spec = scene
     elif isinstance(scene, str) and scene in SCENES:
         spec = SCENES[scene]
+    elif isinstance(scene, str) and ":" in scene:
+        path, name = scene.rsplit(":", 1)
+        try:
+            found = {s.name: s for s in load_spec_file(Path(path))}
+        except DatasetError as exc:
+            raise RigCameraError(f"scene {scene!r}: {exc}") from exc
+        if name not in found:
+            raise RigCameraError(
+                f"unknown scene {name!r} in {path} (it has {', '.join(sorted(found)) or 'none'})"
+            )
+        spec = found[name]
     else:
         raise RigCameraError(
             f"unknown scene {scene!r}: give one of the paper's sequences "
-            f"({', '.join(sorted(SCENES))}) or a SequenceSpec"
+            f"({', '.join(sorted(SCENES))}), FILE:NAME of a scene-set file, or a SequenceSpec"
         )
     try:
         spec.validate()

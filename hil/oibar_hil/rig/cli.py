@@ -81,6 +81,12 @@ def _print_nav(r: RunResult) -> None:
         f"(p99 {m.get('nav_lateral_err_m_p99', float('nan')) * 100:.1f} cm), "
         f"misalignment error median {m.get('nav_misalign_err_deg_median', float('nan')):.2f} deg"
     )
+    if "nav_lateral_err_m_p95_below_5m" in m:
+        print(
+            f"  below 5 m: lateral error p95 {m['nav_lateral_err_m_p95_below_5m'] * 100:.1f} cm, "
+            f"max {m['nav_lateral_err_m_max_below_5m'] * 100:.1f} cm; misalignment error p95 "
+            f"{m['nav_misalign_err_deg_p95_below_5m']:.2f} deg"
+        )
     print(
         f"  navigator time per cycle (frame in -> solution out, render excluded): median "
         f"{m.get('nav_ms_median', float('nan')):.1f} ms, p99 {m.get('nav_ms_p99', float('nan')):.1f} ms, "
@@ -108,7 +114,10 @@ def main(argv: list[str] | None = None) -> int:
         "models/oibarnet_lite.onnx is its first pass)",
     )
     ap.add_argument(
-        "--scene", default="seq01", help="rendered scene for --nav cnn (a dataset sequence, default seq01)"
+        "--scene",
+        default="seq01",
+        help="rendered scene for --nav cnn: a paper sequence (default seq01) or FILE:NAME, a scene of "
+        "a scene-set file (models/scenes/val.json:va013: the loop on a validation scene's look)",
     )
     ap.add_argument("--start-range-m", type=float, default=None, help="override the scenario's start range")
     ap.add_argument("--json", type=Path, default=None, help="also write the results' metrics as JSON here")
