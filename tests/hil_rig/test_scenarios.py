@@ -3,6 +3,7 @@ mission of `make demo`. Each must reach its declared outcome and pass every chec
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from oibar_hil.rig.cli import SCENARIO_DIR, run_scenario
@@ -44,3 +45,35 @@ def test_run_progress_in_a_log_is_plain_lines_not_carriage_returns(sim_mcu_path,
     lines = [ln for ln in err.splitlines() if ln.startswith("nominal_short:")]
     assert len(lines) >= 2, err  # the start and the end (and one per 5 s of wall time between)
     assert lines[0].startswith("nominal_short: 0/4 sim s") and "/4 sim s" in lines[-1]
+
+
+def test_the_navigation_metrics_below_5_m_take_only_the_near_cycles():
+    """Issue 15's closed-loop target is read below 5 m: the far cycles (larger errors that matter
+    less) and the held ones stay out of those figures, and the whole-mission figures keep them."""
+    from types import SimpleNamespace
+
+    from oibar_hil.rig.runner import NEAR_RANGE_M, Rig
+
+    def row(rng_m, lat_err_m, mis_est_deg, valid=True):
+        return {
+            "t_s": 0.0,
+            "valid": valid,
+            "hold_reason": "" if valid else "no_fix",
+            "range_true_m": rng_m,
+            "range_est_m": rng_m,
+            "lateral_err_m": lat_err_m,
+            "misalign_true_deg": 2.5,
+            "misalign_est_deg": mis_est_deg,
+        }
+
+    far = [row(8.0, 0.30, 5.0) for _ in range(50)]
+    near = [row(NEAR_RANGE_M * k / 21, 0.01 * k, 2.5 + 0.01 * k) for k in range(1, 21)]
+    held = [row(2.0, 9.0, 90.0, valid=False)]
+    inside = [row(-0.05, 0.5, 2.5)]  # probe inside the drogue: not an approach cycle
+    m = Rig.nav_metrics(SimpleNamespace(nav_log=far + near + held + inside, nav=SimpleNamespace(name="cnn")))
+    lat = 0.01 * np.arange(1, 21)
+    assert m["nav_lateral_err_m_max_below_5m"] == pytest.approx(0.20)
+    assert m["nav_lateral_err_m_p95_below_5m"] == pytest.approx(np.percentile(lat, 95))
+    assert m["nav_misalign_err_deg_p95_below_5m"] == pytest.approx(np.percentile(0.01 * np.arange(1, 21), 95))
+    assert m["nav_lateral_err_m_p99"] > 0.29  # the whole mission's figure still sees the far cycles
+    assert m["nav_hold_cycles"] == 1

@@ -252,6 +252,12 @@ def write_report(result: Any, out_dir: Path) -> Path:
             f"{m.get('nav_lateral_err_m_median', float('nan')) * 100:.1f} cm, misalignment "
             f"{m.get('nav_misalign_err_deg_median', float('nan')):.2f} deg"
         )
+        if "nav_lateral_err_m_p95_below_5m" in m:
+            key_metrics["navigation below 5 m: lateral p95 / max, misalignment p95"] = (
+                f"{m['nav_lateral_err_m_p95_below_5m'] * 100:.1f} / "
+                f"{m['nav_lateral_err_m_max_below_5m'] * 100:.1f} cm, "
+                f"{m['nav_misalign_err_deg_p95_below_5m']:.2f} deg"
+            )
         key_metrics["navigator time per cycle median / p99 [ms]"] = (
             f"{m.get('nav_ms_median', float('nan')):.1f} / {m.get('nav_ms_p99', float('nan')):.1f}"
         )

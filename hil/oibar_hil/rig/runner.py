@@ -45,6 +45,7 @@ from oibar_hil.rig.world import VehicleParams, World, WorldState
 REPO_ROOT = Path(__file__).resolve().parents[3]
 DEFAULT_MCU = REPO_ROOT / "build" / "fw-host" / "port" / "sim" / "oibar_sim_mcu"
 HOST_VERSION = "oibar-rig-0.1"  # Handshake.host_version holds 16 bytes
+NEAR_RANGE_M = 5.0  # the closed-loop navigation metrics' "below 5 m" (probe tip to drogue)
 
 
 def default_mcu_path() -> Path:
@@ -404,6 +405,17 @@ class Rig:
                     "nav_misalign_err_deg_median": float(np.median(mis)),
                 }
             )
+            # The pose network's closed-loop target (issue 15): lateral <= 5 cm below 5 m, where
+            # guidance lines the probe up; far out the error is larger and matters less.
+            near = np.array([0.0 < r["range_true_m"] < NEAR_RANGE_M for r in valid])
+            if near.any():
+                out.update(
+                    {
+                        "nav_lateral_err_m_p95_below_5m": float(np.percentile(lat[near], 95)),
+                        "nav_lateral_err_m_max_below_5m": float(np.max(lat[near])),
+                        "nav_misalign_err_deg_p95_below_5m": float(np.percentile(mis[near], 95)),
+                    }
+                )
         ms = [r["nav_ms"] for r in log if "nav_ms" in r]
         if ms:
             out.update(
