@@ -38,7 +38,7 @@ dataset-envelope: setup ## render the envelope-mode test sequence (seq01_envelop
 # direct model above as its first pass (and the attitude prior the fit leans on, unless the
 # keypoint network's own attitude head wins on validation). Four training stages; the export
 # chooses the prior's weights on the validation scenes (kp_fusion), then writes them into the file.
-KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints/oibarnet_kp_stage2.yaml models/configs/keypoints/oibarnet_kp_stage3.yaml models/configs/keypoints/oibarnet_kp_stage4.yaml
+KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints/oibarnet_kp_stage2.yaml models/configs/keypoints/oibarnet_kp_stage3.yaml models/configs/keypoints/oibarnet_kp_stage4.yaml models/configs/keypoints/oibarnet_kp_stage5.yaml
 KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage4.yaml
 KP_EVAL_ARGS ?= --sets val test
 # 0.6.0: the fit's attitude prior is the direct model's. On validation the attitude head was as
@@ -46,7 +46,7 @@ KP_EVAL_ARGS ?= --sets val test
 # its reading drifted to 7-10 deg at 1 m once guidance had followed it off axis (docs/model_card.md).
 KP_FUSION_ARGS ?= --priors direct
 
-train-kp: setup ## train the keypoint model, all four stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
+train-kp: setup ## train the keypoint model, all five stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
 	@for c in $(KP_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.kp_train --config $$c $(TRAIN_ARGS) || exit 1; done
 
 export-kp: setup ## export the keypoint model to models/oibarnet.onnx: best checkpoint, prior weights chosen on validation, parity-checked
