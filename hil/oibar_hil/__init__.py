@@ -8,4 +8,7 @@ physics, sim-MCU runner) is `oibar_hil.rig`. Rotations, the camera model, the do
 the fixture's numbers come from `oibar.geometry`, shared with flight and training.
 """
 
-__version__ = "0.1.0"
+# 0.2.0: the port adapters leave the drogue's room free and the throat's latch bore is dark, so
+# the throat keypoint is visible where it is (datasets written by 0.1.0 are refused on resume:
+# re-render them with --force).
+__version__ = "0.2.0"

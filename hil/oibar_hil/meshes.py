@@ -65,6 +65,12 @@ class Part:
 
 
 # ----------------------------------------------------------------------------- fixture
+def drogue_envelope(d: FixtureDims = FIXTURE) -> mf.Manifold:
+    """The drogue funnel's outside: what a port adapter behind the fixture must leave free."""
+    r_m, r_t = d.drogue_mouth_radius_m, d.drogue_throat_radius_m
+    return _frustum(r_m + 0.02, r_t + 0.02, d.rim_depth_m - 0.008, d.rim_depth_m + d.drogue_depth_m + 0.08)
+
+
 def berthing_fixture(d: FixtureDims = FIXTURE) -> list[Part]:
     w, h = d.width_m, d.height_m
     z_plate0 = d.rim_depth_m
@@ -97,11 +103,17 @@ def berthing_fixture(d: FixtureDims = FIXTURE) -> list[Part]:
 
     # Drogue funnel: a cone shell behind the plate, lip flush with the plate face.
     r_m, r_t, depth = d.drogue_mouth_radius_m, d.drogue_throat_radius_m, d.drogue_depth_m
-    outer = _frustum(r_m + 0.02, r_t + 0.02, z_plate0 - 0.008, z_plate0 + depth + 0.08)
+    outer = drogue_envelope(d)
     inner = _frustum(r_m, r_t, z_plate0 - 0.009, z_plate0 + depth) + _frustum(
         r_t, r_t, z_plate0 + depth - 0.001, z_plate0 + depth + 0.06
     )
     drogue = outer - inner
+    # The latch bore at the funnel's bottom: a dark opening (no light reaches down a 5 cm hole;
+    # the rasteriser has no occlusion term, so it is given a dark material). It marks the throat,
+    # the fixture's one deep keypoint (FIXTURE_KEYPOINTS' drogue_throat, 0.18 m), where the image
+    # shows it: lit like the funnel, the throat had no feature of its own and keypoint networks
+    # learned the funnel's centre instead, which is the same point only when seen from the axis.
+    bore = _frustum(r_t, r_t, z_plate0 + depth, z_plate0 + depth + 0.004)
 
     couplings = None
     for x, y in d.couplings_xy_m:
@@ -121,6 +133,7 @@ def berthing_fixture(d: FixtureDims = FIXTURE) -> list[Part]:
         Part(_to_trimesh(plate), (0.72, 0.72, 0.75), 0.6, ID_PLATE),
         Part(_to_trimesh(bosses), (0.70, 0.50, 0.28), 0.5, ID_PIN_GUIDE),
         Part(_to_trimesh(drogue), (0.82, 0.82, 0.85), 0.8, ID_DROGUE),
+        Part(_to_trimesh(bore), (0.03, 0.03, 0.035), 0.05, ID_DROGUE),
         Part(_to_trimesh(couplings), (0.85, 0.65, 0.22), 0.7, ID_COUPLING),
         Part(_to_trimesh(connector), (0.06, 0.06, 0.07), 0.2, ID_CONNECTOR),
     ]
@@ -251,10 +264,13 @@ def station(target_port: int) -> list[Part]:
             parts.append(Part(_tbox((0.3, 0.3, 0.3), (truss_x, y, truss_z)), (0.5, 0.5, 0.5), 0.2, ID_TRUSS))
     # Adapters and fixtures on the six ports.
     for number, port in PORTS.items():
+        # The adapter leaves the drogue's room free: a solid one had its front face 5 cm behind
+        # the plate, across the funnel, hiding its bottom and the throat keypoint (0.18 m).
         a = _to_trimesh(
             _frustum(
                 0.30, 0.30, FIXTURE.rim_depth_m + FIXTURE.plate_thickness_m - 0.001, ADAPTER_LENGTH_M + 0.3
             )
+            - drogue_envelope()
         )
         collar = _to_trimesh(_frustum(0.55, 0.55, ADAPTER_LENGTH_M - 0.15, ADAPTER_LENGTH_M + 0.3))
         for m in (a, collar):

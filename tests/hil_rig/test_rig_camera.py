@@ -204,14 +204,15 @@ def test_fixture_lands_where_the_pinhole_model_says(cam, pose):
         return ids[np.floor(uv[:, 1]).astype(int), np.floor(uv[:, 0]).astype(int)]
 
     # Through the mouth (F_t origin, and 0.7 mouth radii around it) one sees into the drogue
-    # (the adapter closes it 5 cm deep); 1.35 radii out, just beyond the drogue's lip (1.21
-    # radii), one sees the fixture's face. A mouth more than ~0.15 radii (14 mm) off the
-    # projected origin puts some of the outer points on the lip or into the mouth.
+    # (the port adapter behind the plate leaves its room free since generator 0.2.0); 1.35 radii
+    # out, just beyond the drogue's lip (1.21 radii), one sees the fixture's face. A mouth more
+    # than ~0.15 radii (14 mm) off the projected origin puts some of the outer points on the
+    # lip or into the mouth.
     a = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
     ring = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1) * FIXTURE.drogue_mouth_radius_m
     inner = np.vstack([[0.0, 0.0, 0.0], 0.7 * ring])
     outer = 1.35 * ring + [0.0, 0.0, FIXTURE.rim_depth_m]
-    assert set(ids_at(inner)) <= {ID_DROGUE, ID_ADAPTER}, ids_at(inner)
+    assert set(ids_at(inner)) == {ID_DROGUE}, ids_at(inner)
     assert set(ids_at(outer)) <= FACE, ids_at(outer)
     assert ID_PLATE in set(ids_at(outer))
 
@@ -227,6 +228,34 @@ def test_fixture_lands_where_the_pinhole_model_says(cam, pose):
     # The shaded frame agrees: the rim (dark anodised, rgb 0.10) is darker than the plate (0.72).
     img = frame.image.astype(float).mean(axis=2)
     assert np.median(img[ids == ID_BOUNDARY]) < np.median(img[ids == ID_PLATE])
+
+
+THROAT_VIEWS = [  # probe tip in D (m), attitude (rad): on the axis, off it, off it and turned
+    (np.array([0.0, 0.0, 1.0]), np.zeros(3)),
+    (np.array([0.30, -0.20, 1.0]), np.zeros(3)),
+    (np.array([-0.25, 0.15, 2.5]), np.radians([2.0, -1.5, 0.0])),
+    (np.array([0.40, 0.30, 4.0]), np.zeros(3)),
+]
+
+
+@pytest.mark.parametrize("view", range(len(THROAT_VIEWS)))
+def test_the_throat_keypoint_is_seen_where_it_projects(cam, view):
+    """The drogue's throat (FIXTURE_KEYPOINTS' drogue_throat, 0.18 m deep, the one keypoint off
+    the berthing plane) is a dark opening at the funnel's bottom, and from the axis or off it the
+    pixel where the label projects it shows that opening. With generator 0.1.0 a solid port
+    adapter crossed the funnel 5 cm deep: the label's pixel showed the adapter's face, so a
+    network could only learn the funnel's centre, which moves with the view differently."""
+    r_D, att = THROAT_VIEWS[view]
+    frame = cam.render(r_D, att)
+    ids = cam.render_ids(r_D, att)
+    uv = cam.camera.project(
+        transform_points(np.array([[0.0, 0.0, 0.18]]), frame.R_cam_target, frame.T_cam_target_m)
+    )
+    u, v = np.floor(uv[0]).astype(int)
+    assert ids[v, u] == ID_DROGUE, ids[v - 2 : v + 3, u - 2 : u + 3]
+    img = frame.image.astype(float).mean(axis=2)
+    funnel = img[ids == ID_DROGUE]
+    assert img[v, u] < np.percentile(funnel, 10), (img[v, u], np.percentile(funnel, [10, 50]))
 
 
 def test_renders_from_another_thread(cam):
