@@ -39,6 +39,20 @@ def _sun(rng: np.random.Generator, port: int, bg: str, avoid: list[tuple]) -> fl
             return sun
 
 
+def _scene(name: str, port: int, bg: str, seed: int, rng: np.random.Generator, avoid: list[tuple]) -> dict:
+    """A scene's common fields; its Sun is drawn here (before any field the caller adds, so the
+    draws keep their order and the committed sets stay as they were)."""
+    return {
+        "name": name,
+        "port": port,
+        "approach": PORT_APPROACH[port],
+        "sun_elevation_deg": _sun(rng, port, bg, avoid),
+        "background": bg,
+        "seed": seed,
+        "frame_stride": STRIDE,
+    }
+
+
 def scenes(
     prefix: str, seed0: int, per_cell: int, rng: np.random.Generator, avoid: list[tuple]
 ) -> list[dict]:
@@ -48,15 +62,7 @@ def scenes(
         for bg in ("iss", "perlin"):
             for _ in range(per_cell):
                 kind = rng.choice(["nominal", "envelope", "noise", "blur"], p=[0.4, 0.25, 0.2, 0.15])
-                s = {
-                    "name": f"{prefix}{i:03d}",
-                    "port": port,
-                    "approach": PORT_APPROACH[port],
-                    "sun_elevation_deg": _sun(rng, port, bg, avoid),
-                    "background": bg,
-                    "seed": seed0 + i,
-                    "frame_stride": STRIDE,
-                }
+                s = _scene(f"{prefix}{i:03d}", port, bg, seed0 + i, rng, avoid)
                 if kind == "envelope":
                     s["envelope"] = True
                 elif kind == "noise":
@@ -75,18 +81,9 @@ def turned(
     out = []
     for j, port in enumerate(rng.choice(np.arange(1, 7), n, replace=False)):
         port, bg = int(port), ("iss", "perlin")[j % 2]
-        out.append(
-            {
-                "name": f"{prefix}{first + j:03d}",
-                "port": port,
-                "approach": PORT_APPROACH[port],
-                "sun_elevation_deg": _sun(rng, port, bg, avoid),
-                "background": bg,
-                "seed": seed0 + j,
-                "frame_stride": STRIDE,
-                "turned_deg": float(np.round(rng.uniform(1.5, 5.0), 1)),
-            }
-        )
+        s = _scene(f"{prefix}{first + j:03d}", port, bg, seed0 + j, rng, avoid)
+        s["turned_deg"] = float(np.round(rng.uniform(1.5, 5.0), 1))
+        out.append(s)
     return out
 
 
@@ -99,16 +96,8 @@ def off_axis(
     out = []
     for j in range(n):
         port, bg = int(j % 6 + 1), ("iss", "perlin")[(j // 6 + j) % 2]
-        s = {
-            "name": f"{prefix}{first + j:03d}",
-            "port": port,
-            "approach": PORT_APPROACH[port],
-            "sun_elevation_deg": _sun(rng, port, bg, avoid),
-            "background": bg,
-            "seed": seed0 + j,
-            "frame_stride": STRIDE,
-            "offaxis_m": float(np.round(rng.uniform(0.2, 0.4), 2)),
-        }
+        s = _scene(f"{prefix}{first + j:03d}", port, bg, seed0 + j, rng, avoid)
+        s["offaxis_m"] = float(np.round(rng.uniform(0.2, 0.4), 2))
         if j % 2:
             s["turned_deg"] = float(np.round(rng.uniform(1.5, 5.0), 1))
         out.append(s)
