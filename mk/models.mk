@@ -36,15 +36,17 @@ dataset-envelope: setup ## render the envelope-mode test sequence (seq01_envelop
 
 # The shipped model since 0.4.0 (issue 15): keypoints on a full-resolution crop + PnP, with the
 # direct model above as its first pass (and the attitude prior the fit leans on, unless the
-# keypoint network's own attitude head wins on validation). Four training stages; the export
+# keypoint network's own attitude head wins on validation). Five training stages; the export
 # chooses the prior's weights on the validation scenes (kp_fusion), then writes them into the file.
 KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints/oibarnet_kp_stage2.yaml models/configs/keypoints/oibarnet_kp_stage3.yaml models/configs/keypoints/oibarnet_kp_stage4.yaml models/configs/keypoints/oibarnet_kp_stage5.yaml
-KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage4.yaml
+KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage5.yaml
 KP_EVAL_ARGS ?= --sets val test
-# 0.6.0: the fit's attitude prior is the direct model's. On validation the attitude head was as
-# good (16 scenes, tracking: 2.02 % / 1.12 deg vs 2.02 % / 1.24 deg), but in the closed-loop demo
-# its reading drifted to 7-10 deg at 1 m once guidance had followed it off axis (docs/model_card.md).
-KP_FUSION_ARGS ?= --priors direct
+# 0.7.0: both priors scored (the direct model's and the crop's attitude head) on the 22
+# validation scenes, every 24th frame in tracking mode (docs/data/kp_fusion_grid_070.json); the
+# direct one won, 2 crop px : 5 deg. 0.6.0 had been limited to the direct prior because the head
+# drifted in the closed loop off the axis; the cause was the throat hidden behind the port
+# adapter (docs/synthetic.md, generator 0.2.0), not the head.
+KP_FUSION_ARGS ?= --priors direct,head --stride 24
 
 train-kp: setup ## train the keypoint model, all five stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
 	@for c in $(KP_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.kp_train --config $$c $(TRAIN_ARGS) || exit 1; done

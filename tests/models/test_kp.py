@@ -471,8 +471,9 @@ def test_a_model_whose_attitude_prior_cannot_work_is_refused_when_it_opens(tmp_p
     ],
 )
 def test_a_malformed_error_model_is_refused_when_the_model_opens(tmp_path, table, match):
-    """The shipped model with its oibar.fusion.kp_error_model damaged: ModelFileError at
-    construction, naming the file, never an exception in the middle of a flight."""
+    """The shipped model with a damaged oibar.fusion.kp_error_model (put in: 0.7.0's fusion
+    chose to weigh every keypoint alike): ModelFileError at construction, naming the file, never
+    an exception in the middle of a flight."""
     import onnx
 
     from oibar.nav.pose import ModelFileError, PoseEstimator
@@ -481,7 +482,6 @@ def test_a_malformed_error_model_is_refused_when_the_model_opens(tmp_path, table
     for p in m.metadata_props:
         if p.key == "oibar.fusion":
             fusion = json.loads(p.value)
-            assert "kp_error_model" in fusion  # the shipped model has one
             fusion["kp_error_model"] = table
             p.value = json.dumps(fusion)
     out = tmp_path / "oibarnet.onnx"
