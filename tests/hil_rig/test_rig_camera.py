@@ -16,7 +16,6 @@ from oibar.geometry.transforms import transform_points
 from oibar_hil import dataset
 from oibar_hil.dataset import PAPER_SEQUENCES, plan_sequence
 from oibar_hil.meshes import (
-    ID_ADAPTER,
     ID_BOUNDARY,
     ID_CONNECTOR,
     ID_COUPLING,
