@@ -288,7 +288,8 @@ def generate(
 
 
 OFFAXIS_MAX_ANGLE = 0.15  # lateral offset / distance (8.5 deg): the fixture stays in view at 0.5 m
-OFFAXIS_PERIOD_S = (40.0, 120.0)  # the wander's slowest and fastest turn about the axis, s
+# the shortest and longest period of the wander's two slow motions (turn about the axis, size), s
+OFFAXIS_PERIOD_S = (40.0, 120.0)
 
 
 def off_axis_offsets(
