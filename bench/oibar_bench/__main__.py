@@ -2,7 +2,7 @@
 
     python -m oibar_bench                        everything (~15 min on 2 cores)
     python -m oibar_bench --quick                short time boxes, a subset (~1 min)
-    python -m oibar_bench --only pose,link       some sections (the page keeps every heading)
+    python -m oibar_bench --only pose,link       some sections (the page keeps the other tables)
 
 A measurement that fails does not stop the others: its table says why, and the exit status
 is 1 at the end.
@@ -21,7 +21,7 @@ from pathlib import Path
 
 from . import firmware, hil, link, machine, nav, pose, render  # noqa: F401  (register the measurements)
 from .core import REGISTRY, ROOT, SECTIONS, Context, Result, load_average
-from .report import write_json, write_markdown
+from .report import previous_blocks, write_json, write_markdown
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -81,10 +81,14 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     duration = time.monotonic() - t0
+    # An --only run keeps the page's other tables (they say so) instead of dropping them.
+    keep = previous_blocks(a.out.read_text()) if a.only and a.out.is_file() else None
     write_markdown(
         a.out,
         info=info,
         results=results,
+        keep_from=keep,
+        registry=sorted(REGISTRY, key=lambda m: (list(SECTIONS).index(m.section), m.order)),
         quick=a.quick,
         banner=a.banner,
         command=command,

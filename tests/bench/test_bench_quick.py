@@ -85,6 +85,57 @@ Linker script and memory map
 """
 
 
+def test_an_only_run_keeps_the_tables_it_did_not_measure_again(tmp_path):
+    """`make bench BENCH_ARGS=--only pose.shipped` used to rewrite docs/benchmarks.md with that one
+    table and drop the rest of the page; now the others stay, marked as kept, in page order."""
+    from oibar_bench.report import KEPT_NOTE, previous_blocks, write_markdown
+
+    cols = [("what", "what"), ("ms", "median (ms)")]
+    a = core.Measurement("pose.a", "Table A", cols, lambda ctx: None, 1)
+    b = core.Measurement("pose.b", "Table B", cols, lambda ctx: None, 2)
+    c = core.Measurement("link.c", "Table C", cols, lambda ctx: None, 1)
+    registry = [a, b, c]
+    page = tmp_path / "bench.md"
+
+    def write(results, keep=None):
+        write_markdown(
+            page,
+            info={},
+            results=results,
+            quick=False,
+            banner=None,
+            command="x",
+            duration_s=1.0,
+            load_start="0",
+            load_end="0",
+            keep_from=keep,
+            registry=registry,
+        )
+
+    meta = {"seconds": 1.0, "load": "0"}
+    write([(m, core.Result([{"what": m.key, "ms": 1.5}], [f"note {m.key}"]), meta) for m in registry])
+    write(
+        [(b, core.Result([{"what": "pose.b", "ms": 9.5}], ["re-measured"]), meta)],
+        previous_blocks(page.read_text()),
+    )
+    text = page.read_text()
+    assert text.index("### Table A") < text.index("### Table B") < text.index("### Table C")
+    blocks = previous_blocks(text)
+    assert f"| pose.a | {core.fmt(1.5)} |" in blocks["Table A"] and KEPT_NOTE in blocks["Table A"]
+    assert f"| link.c | {core.fmt(1.5)} |" in blocks["Table C"] and KEPT_NOTE in blocks["Table C"]
+    assert f"| pose.b | {core.fmt(9.5)} |" in blocks["Table B"] and KEPT_NOTE not in blocks["Table B"]
+    assert f"| pose.b | {core.fmt(1.5)} |" not in text
+    # only the sections with no table at all (none here but pose and link) say "not run"
+    assert text.count("(not run: `--only` left this section out)") == len(core.SECTIONS) - 2
+    # kept twice: one note, not two
+    write([(b, core.Result([{"what": "pose.b", "ms": 9.0}], []), meta)], previous_blocks(text))
+    assert previous_blocks(page.read_text())["Table A"].count(KEPT_NOTE) == 1
+    # without a previous page an --only run still says what it left out
+    page.unlink()
+    write([(b, core.Result([{"what": "pose.b", "ms": 9.0}], []), meta)])
+    assert page.read_text().count("(not run: `--only` left this section out)") == len(core.SECTIONS) - 1
+
+
 def test_map_parser_groups_sections_by_module(tmp_path):
     p = tmp_path / "x.map"
     p.write_text(MAP_TEXT)
