@@ -8,7 +8,9 @@ estimator, frame in to pose out.
 Two modes (`--modes`): `single`, every frame on its own (the paper's protocol), and `track`,
 where each frame also gets the pose predicted from the previous answers (constant velocity over
 the last two confident ones), as the daemon gives its filter's: a keypoint model then places its
-first crop there. Direct models ignore the prediction, so they run in `single` only.
+first crop there, and its recent strong fits can overrule the direct model (oibar.nav.fit_history);
+in `single` the estimator forgets before every frame. Direct models ignore the prediction, so
+they run in `single` only.
 
 Test sequences (1 and 8) are read once per shipped model for its card: `--sets test`. Choices
 are made with `--sets val`.
@@ -87,6 +89,7 @@ class Predictor:
 def run_sequence(est, seq, stride: int, progress: bool, track: bool = False) -> dict:
     idx = np.arange(0, len(seq), stride)
     pred = Predictor() if track else None
+    est.forget()  # nothing carried over from another sequence
     T_hat = np.full((len(idx), 3), np.nan)
     q_hat = np.full((len(idx), 4), np.nan)
     conf = np.zeros(len(idx))
@@ -100,7 +103,11 @@ def run_sequence(est, seq, stride: int, progress: bool, track: bool = False) -> 
         img = np.asarray(Image.open(seq.dir / seq.files[k]).convert("RGB"))
         t_s = float(seq.time_s[k])
         t0 = time.perf_counter()
-        e = est.estimate(img, t_s, prior=pred.predict(t_s)) if pred else est.estimate(img, t_s)
+        if pred:
+            e = est.estimate(img, t_s, prior=pred.predict(t_s))
+        else:
+            est.forget()  # single: each frame on its own, no earlier fit confirms it
+            e = est.estimate(img, t_s)
         lat[j] = (time.perf_counter() - t0) * 1e3
         if pred:
             pred.add(t_s, e)

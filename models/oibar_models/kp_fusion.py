@@ -52,6 +52,7 @@ def collect(est, seqs, stride: int, track: bool = True) -> list[dict]:
     rows = []
     for seq in seqs:
         pred = Predictor() if track else None
+        est.forget()
         for k in range(0, len(seq), 1 if track else stride):
             img = np.asarray(Image.open(seq.dir / seq.files[k]).convert("RGB"))
             t_s = float(seq.time_s[k])

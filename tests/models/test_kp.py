@@ -517,3 +517,104 @@ def test_a_weak_fit_comes_back_flagged_with_low_confidence(monkeypatch):
     good, weak = answer(0.5), answer(STRONG_FIT_RMS_CROP_PX + 0.3)
     assert "weak_fit" not in good.flags and "weak_fit" in weak.flags
     assert good.confidence > 0.5 and weak.confidence < FALLBACK_FACTOR * good.confidence + 1e-9
+
+
+def _fits_answering(est, monkeypatch, frame, rms_crop_px=0.5):
+    """est.solve replaced: each call answers the next (R, T) of a list, with the given RMS."""
+    from oibar.nav.keypoints import CropWindow, PnpResult
+
+    win = CropWindow((372.0, 240.0), 64.0, 128)
+    queue: list = []
+
+    def solve(image, R, T, fusion=None, prior=None):
+        R_fit, T_fit = queue.pop(0)
+        return PnpResult(True, R_fit, T_fit, np.arange(14), rms_crop_px / win.scale), win
+
+    monkeypatch.setattr(est, "solve", solve)
+
+    def answer(R_fit, T_fit, t_s):
+        queue.append((R_fit, T_fit))
+        return est.estimate(frame, t_s)
+
+    return answer
+
+
+def test_a_run_of_agreeing_strong_fits_overrules_the_direct_model(monkeypatch):
+    """One strong fit far from the direct model: low confidence, `direct_disagrees`. The third
+    of a run of strong fits that agree with one another (frames 0.2 s apart) is believed: flagged
+    `direct_overruled`, confidence of a good fit. Fits that do not agree with one another, frames
+    without advancing time, weak fits, and a forgotten history confirm nothing."""
+    from oibar.nav.fit_history import CONFIRM_WINDOW_S
+    from oibar.nav.pose import FALLBACK_FACTOR, STRONG_FIT_RMS_CROP_PX, PoseEstimator
+
+    est = PoseEstimator(REPO / "models/oibarnet.onnx", warmup_runs=0)
+    frame = np.random.default_rng(0).integers(0, 255, (480, 744, 3), dtype=np.uint8)
+    direct = est.first.estimate(frame)
+    R = direct.R_cam_target
+    ray = direct.T_cam_target_m / np.linalg.norm(direct.T_cam_target_m)
+    # on the direct model's ray (in view), in range, far more than 50 % off the direct model
+    far = (0.5 if np.linalg.norm(direct.T_cam_target_m) > 3.0 else 10.0) * ray
+    assert np.linalg.norm(far - direct.T_cam_target_m) / np.linalg.norm(far) > 0.5
+    answer = _fits_answering(est, monkeypatch, frame)
+
+    first = answer(R, far, 1.0)
+    assert "direct_disagrees" in first.flags and first.confidence <= FALLBACK_FACTOR + 1e-9
+    second = answer(R, far * 0.995, 1.2)
+    assert "direct_disagrees" in second.flags
+    third = answer(R, far * 0.99, 1.4)
+    assert "direct_overruled" in third.flags and "direct_disagrees" not in third.flags
+    assert third.confidence > 0.5
+    np.testing.assert_allclose(third.T_cam_target_m, far * 0.99)
+
+    # frames without a time (t_s stays 0): nothing confirms them
+    est.forget()
+    for _ in range(4):
+        e = answer(R, far, 0.0)
+        assert "direct_disagrees" in e.flags and e.confidence <= FALLBACK_FACTOR + 1e-9
+    # fits that jump about (30 % of the range each frame) confirm nothing
+    est.forget()
+    for i, s in enumerate((1.0, 1.3, 1.0 / 1.3, 1.6)):
+        e = answer(R, far * s, 2.0 + 0.2 * i)
+    assert "direct_disagrees" in e.flags and "direct_overruled" not in e.flags
+    # a history older than its window does not count
+    est.forget()
+    answer(R, far, 10.0)
+    answer(R, far, 10.2)
+    late = answer(R, far, 10.2 + CONFIRM_WINDOW_S + 0.1)
+    assert "direct_disagrees" in late.flags
+    # forget() drops the run
+    est.forget()
+    assert "direct_disagrees" in answer(R, far, 20.4).flags
+
+    # weak fits are neither confirmed nor remembered
+    est.forget()
+    weak_answer = _fits_answering(est, monkeypatch, frame, STRONG_FIT_RMS_CROP_PX + 0.3)
+    for i in range(3):
+        e = weak_answer(R, far, 30.0 + 0.2 * i)
+        assert "direct_disagrees" in e.flags and "direct_overruled" not in e.flags
+    answer = _fits_answering(est, monkeypatch, frame)
+    assert "direct_disagrees" in answer(R, far, 30.6).flags
+
+
+def test_the_fit_history_compares_only_fits_it_can(monkeypatch):
+    """FitHistory: a time going backwards starts afresh; the agreement allows for the chaser's
+    motion over the time between two fits; at most HISTORY_LEN fits are kept."""
+    from oibar.nav.fit_history import CONFIRM_SPEED_MPS, HISTORY_LEN, FitHistory
+
+    h = FitHistory()
+    I3 = np.eye(3)
+    T = np.array([0.0, 0.0, 1.0])
+    h.advance(0.0)
+    h.add(0.0, T, I3)
+    h.advance(1.0)
+    # 1 m range: 10 % + what 1 s of motion allows
+    assert h.agreeing(1.0, T + [0, 0, 0.1 + CONFIRM_SPEED_MPS - 0.01], I3) == 1
+    assert h.agreeing(1.0, T + [0, 0, 0.1 + CONFIRM_SPEED_MPS + 0.01], I3) == 0
+    turned = np.array([[1, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
+    assert h.agreeing(1.0, T, turned) == 0  # 17 deg
+    h.advance(0.5)  # time went back: a new sequence
+    assert h.fits == []
+    for i in range(HISTORY_LEN + 3):
+        h.advance(0.01 * (i + 1))
+        h.add(0.01 * (i + 1), T, I3)
+    assert len(h.fits) == HISTORY_LEN and h.fits[-1][0] == pytest.approx(0.01 * (HISTORY_LEN + 3))

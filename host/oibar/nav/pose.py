@@ -27,6 +27,7 @@ from PIL import Image
 
 from oibar.geometry.camera import project_target_points as project
 from oibar.geometry.rotations import matrix_to_quat, rotation_angle_deg
+from oibar.nav.fit_history import FitHistory
 from oibar.nav.keypoints import (
     CropWindow,
     KeypointErrorModel,
@@ -265,6 +266,10 @@ class PoseEstimator:
     # Whether estimate() uses a predicted pose (the navigation filter's) to look in the right place.
     uses_prior = False
 
+    def forget(self) -> None:
+        """Drop what earlier frames left (a new sequence, or frames to be judged each on its
+        own). A direct model keeps nothing."""
+
     def estimate(
         self,
         image_rgb_uint8: np.ndarray,
@@ -480,6 +485,7 @@ class KeypointPoseEstimator(PoseEstimator):
         self.range_limits_m = _range_limits(self.meta, range_limits_m)
         self.defect_scale = float(defect_scale)
         self.refine_passes = max(1, int(refine_passes))
+        self.fit_history = FitHistory()  # recent strong fits: a run of them can overrule the direct model
         if (self.meta.get("fusion") or {}).get("kp_error_model"):
             self._error_model(self.meta["fusion"])  # a malformed table fails here, not in flight
         if (self.meta.get("fusion") or {}).get("prior_error_model"):
@@ -711,6 +717,9 @@ class KeypointPoseEstimator(PoseEstimator):
 
     uses_prior = True
 
+    def forget(self) -> None:
+        self.fit_history.forget()
+
     def estimate(
         self,
         image_rgb_uint8: np.ndarray,
@@ -724,6 +733,7 @@ class KeypointPoseEstimator(PoseEstimator):
         self.check_frame(image_rgb_uint8)
         prior = _checked_prior(prior)
         t0 = time.perf_counter()
+        self.fit_history.advance(float(t_s))
         if float(image_rgb_uint8[::4, ::4].std()) < MIN_FRAME_STD_DN:
             nan = np.full(3, np.nan)
             return PoseEstimate(
@@ -762,9 +772,16 @@ class KeypointPoseEstimator(PoseEstimator):
             flags.append("weak_fit")
         dpos = float(np.linalg.norm(T - direct.T_cam_target_m)) / max(rng_m, 1e-6)
         datt = rotation_angle_deg(R.T @ direct.R_cam_target)
+        strong = rms_crop <= STRONG_FIT_RMS_CROP_PX
         if dpos > DISAGREE_POS_FRACTION or datt > DISAGREE_ATT_DEG:
-            conf *= FALLBACK_FACTOR
-            flags.append("direct_disagrees")
+            # one frame cannot tell which is wrong; a run of strong fits that agree can (fit_history)
+            if strong and self.fit_history.confirmed(t_s, T, R):
+                flags.append("direct_overruled")
+            else:
+                conf *= FALLBACK_FACTOR
+                flags.append("direct_disagrees")
+        if strong:
+            self.fit_history.add(t_s, T, R)
         q = matrix_to_quat(R)
         return PoseEstimate(
             T_cam_target_m=T,
