@@ -396,6 +396,12 @@ ZOOM_STEPS = tuple(
     for dx in offs
 )
 ZOOM_TRY = 3
+# When the zoom's windows still give no strong fit, the most fixture-like of them is zoomed into
+# the same way, down to windows of ZOOM_MIN_SIDE_PX (a fixture beyond the 20 m envelope): the
+# first pass can put a 10 m fixture at 0.4 m, a window 10-25x too large (validation scene va012,
+# whose keypoints are read to 0.3-0.7 crop px in the right window), which one level (4x) misses.
+ZOOM_LEVELS = 3
+ZOOM_MIN_SIDE_PX = 24.0
 
 
 def _checked_prior(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
@@ -561,9 +567,9 @@ class KeypointPoseEstimator(PoseEstimator):
         window is the predicted pose's (`prior`, from the navigation filter) when there is one.
         When that gives no strong fit (STRONG_FIT_RMS_CROP_PX), the windows of SEARCH_STEPS
         around the direct model's pose are tried in turn (the direct model can be 1 m off
-        sideways at 10 m on an unseen scene), then ZOOM_STEPS inside it (`zoom_search`). The
-        prediction only places a crop, never the attitude prior, so a wrong prediction cannot
-        feed itself back. Returns (PnpResult, its window): the first strong fit, else the
+        sideways at 10 m on an unseen scene), then ZOOM_STEPS inside it, level after level
+        (`zoom_search`, ZOOM_LEVELS). The prediction only places a crop, never the attitude
+        prior, so a wrong prediction cannot feed itself back. Returns (PnpResult, its window): the first strong fit, else the
         best weak one (lowest RMS), else (None, None)."""
         K = self._K()
         f = self.meta.get("fusion") if fusion is None else fusion
@@ -609,9 +615,22 @@ class KeypointPoseEstimator(PoseEstimator):
         # the zoom only on a cold start or a lost track: with a prediction its ~0.2 s would come
         # out of the 100 ms frame budget on every weak far frame of a healthy track
         if best is None and base is not None and self.zoom_search and prior is None:
-            for zwin, k in self._zoom_windows(image, base):
-                if consider(*self._one_pass(image, zwin, R_direct, f, float(np.linalg.norm(T_direct)) / k)):
+            zbase, k_base = base, 1.0
+            for _ in range(ZOOM_LEVELS):
+                ranked = self._zoom_windows(image, zbase)
+                for zwin, k in ranked:
+                    k_total = k_base * k
+                    if consider(
+                        *self._one_pass(image, zwin, R_direct, f, float(np.linalg.norm(T_direct)) / k_total)
+                    ):
+                        break
+                if (
+                    best is not None
+                    or not ranked
+                    or ranked[0][0].side_px * min(z[2] for z in ZOOM_STEPS) < ZOOM_MIN_SIDE_PX
+                ):
                     break
+                zbase, k_base = ranked[0][0], k_base * ranked[0][1]
         if best is None:
             return weak if weak is not None else (None, None)
         for _ in range(self.refine_passes - 1):
