@@ -569,8 +569,8 @@ class KeypointPoseEstimator(PoseEstimator):
         around the direct model's pose are tried in turn (the direct model can be 1 m off
         sideways at 10 m on an unseen scene), then ZOOM_STEPS inside it, level after level
         (`zoom_search`, ZOOM_LEVELS). The prediction only places a crop, never the attitude
-        prior, so a wrong prediction cannot feed itself back. Returns (PnpResult, its window): the first strong fit, else the
-        best weak one (lowest RMS), else (None, None)."""
+        prior, so a wrong prediction cannot feed itself back. Returns (PnpResult, its window):
+        the first strong fit, else the best weak one (lowest RMS), else (None, None)."""
         K = self._K()
         f = self.meta.get("fusion") if fusion is None else fusion
         best: tuple[PnpResult, CropWindow] | None = None
