@@ -224,6 +224,7 @@ def _bare_estimator(
     est = object.__new__(KeypointPoseEstimator)
     est.zoom_search = zoom
     est.K_frame, est.points_m, est.out_px, est.margin = K, DEEP, 128, 1.25
+    est.range_limits_m = (0.2, 20.0)
     est.reproj_crop_px, est.refine_passes, est.meta = (
         4.0,
         2,
@@ -519,7 +520,40 @@ def test_the_zoom_goes_down_level_by_level_to_a_fixture_twenty_times_farther(mon
     r, _ = est.solve(image, R, T_direct)
     assert len(est.batches) >= 2, est.batches
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
+    assert min(w.side_px for w in est.crops) >= pose.ZOOM_MIN_SIDE_PX
     monkeypatch.setattr(pose, "ZOOM_LEVELS", 1)
     est = estimator()
     r, _ = est.solve(image, R, T_direct)
     assert est.batches == [len(pose.ZOOM_STEPS)] and r is None
+
+
+def test_no_zoom_window_is_smaller_than_a_fixture_in_the_envelope():
+    """A first pass that puts a far fixture a little nearer draws a small window already; the
+    zoom must not cut it into windows smaller than ZOOM_MIN_SIDE_PX, where the keypoint network
+    reads noise (a fit at 40 m)."""
+    import oibar.nav.pose as pose
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
+    est = _bare_estimator(R, T, zoom=True)
+    base = window_around(project(K, DEEP, R, T * 0.6), 128, 1.25)
+    assert base.side_px * 0.25 < pose.ZOOM_MIN_SIDE_PX <= base.side_px * 0.5
+    wins = est._zoom_windows(np.zeros((480, 744, 3), np.uint8), base)
+    assert wins and all(w.side_px >= pose.ZOOM_MIN_SIDE_PX for w, _ in wins)
+    assert est.batches == [sum(1 for *_, k in pose.ZOOM_STEPS if k == 0.5)]
+
+
+def test_a_weak_fit_inside_the_range_envelope_is_preferred_to_a_tighter_one_outside():
+    """With no strong fit, solve returns the best weak one: inside the range envelope first,
+    then the lowest RMS. A tiny window's fit at 40 m must not win on its RMS alone."""
+    from oibar.nav.keypoints import CropWindow, PnpResult
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
+    est = _bare_estimator(R, T)
+    win = CropWindow((372.0, 240.0), 64.0, 128)
+    near = PnpResult(True, R, T, np.arange(8), 2.0 / win.scale)
+    far = PnpResult(True, R, T * 4.0, np.arange(8), 1.5 / win.scale)
+    assert est._weak_rank(near, win) < est._weak_rank(far, win)
+    answers = iter([(far, win), (near, win)] + [(None, None)] * 20)
+    est._one_pass = lambda *a, **k: next(answers)
+    r, _ = est.solve(np.zeros((480, 744, 3), np.uint8), R, T)
+    assert r is near

@@ -401,7 +401,7 @@ ZOOM_TRY = 3
 # first pass can put a 10 m fixture at 0.4 m, a window 10-25x too large (validation scene va012,
 # whose keypoints are read to 0.3-0.7 crop px in the right window), which one level (4x) misses.
 ZOOM_LEVELS = 3
-ZOOM_MIN_SIDE_PX = 24.0
+ZOOM_MIN_SIDE_PX = 24.0  # no zoom window smaller (the fixture's window at ~15 m)
 
 
 def _checked_prior(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
@@ -584,7 +584,7 @@ class KeypointPoseEstimator(PoseEstimator):
             if fit_rms_crop_px(r, win) <= STRONG_FIT_RMS_CROP_PX:
                 best = (r, win)
                 return True
-            if weak is None or fit_rms_crop_px(r, win) < fit_rms_crop_px(*weak):
+            if weak is None or self._weak_rank(r, win) < self._weak_rank(*weak):
                 weak = (r, win)
             return False
 
@@ -624,11 +624,7 @@ class KeypointPoseEstimator(PoseEstimator):
                         *self._one_pass(image, zwin, R_direct, f, float(np.linalg.norm(T_direct)) / k_total)
                     ):
                         break
-                if (
-                    best is not None
-                    or not ranked
-                    or ranked[0][0].side_px * min(z[2] for z in ZOOM_STEPS) < ZOOM_MIN_SIDE_PX
-                ):
+                if best is not None or not ranked:
                     break
                 zbase, k_base = ranked[0][0], k_base * ranked[0][1]
         if best is None:
@@ -648,6 +644,14 @@ class KeypointPoseEstimator(PoseEstimator):
             best = (r, rwin)
         return best
 
+    def _weak_rank(self, r: PnpResult, win: CropWindow) -> tuple[bool, float]:
+        """Which weak fit to return when no strong one is found: one inside the range envelope
+        before any outside it (a tiny zoom window can fit noise at 40 m with a lower RMS), then
+        the lowest RMS."""
+        range_m = float(np.linalg.norm(r.pose()[1]))
+        inside = self.range_limits_m[0] <= range_m <= self.range_limits_m[1]
+        return (not inside, fit_rms_crop_px(r, win))
+
     def _zoom_windows(self, image: np.ndarray, base: CropWindow) -> list[tuple[CropWindow, float]]:
         """ZOOM_STEPS' windows read in one batch; the ZOOM_TRY that look most like the fixture
         (mean presence x exp(-mean spread / 4 crop px)) with their size factors, best first."""
@@ -661,7 +665,10 @@ class KeypointPoseEstimator(PoseEstimator):
                 k,
             )
             for dx, dy, k in ZOOM_STEPS
+            if base.side_px * k >= ZOOM_MIN_SIDE_PX  # smaller than a fixture within the envelope
         ]
+        if not wins:
+            return []
         out = self.run(np.concatenate([to_input(cut(image, w)) for w, _ in wins]))
         present = out["kp_present"].astype(float).mean(axis=1)
         spread = (
