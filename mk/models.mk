@@ -47,11 +47,11 @@ KP_EVAL_ARGS ?= --sets val test
 # drifted in the closed loop off the axis; the cause was the throat hidden behind the port
 # adapter (docs/synthetic.md, generator 0.2.0), not the head.
 KP_FUSION_ARGS ?= --priors direct,head --stride 24
-# 0.8.0 (stage 6) keeps 0.7.0's weights, the grid's file committed: the grid re-run for stage 6's
-# weights had been collected with an estimator that still returned noise fits from tiny zoom
-# windows, and 0.8.0 was measured on validation (and in the closed loop) with these. Empty
-# (`make export-kp KP_FUSION_JSON=`) runs the grid again and exports with its choice.
-KP_FUSION_JSON ?= docs/data/kp_fusion_grid_070.json
+# 0.8.1 (stage 6): the grid above re-run on stage 6's weights with the 0.8.0 estimator chose the
+# crop's attitude head as prior, 1 crop px : 3 deg, both error models (score 0.0301; 0.7.0's
+# direct 2 : 5 scored 0.0339), committed so that the export is reproducible without the 22-min
+# grid. Empty (`make export-kp KP_FUSION_JSON=`) runs the grid again and exports with its choice.
+KP_FUSION_JSON ?= docs/data/kp_fusion_grid_081.json
 
 train-kp: setup ## train the keypoint model, all six stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
 	@for c in $(KP_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.kp_train --config $$c $(TRAIN_ARGS) || exit 1; done
