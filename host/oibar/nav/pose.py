@@ -397,7 +397,7 @@ ZOOM_STEPS = tuple(
 )
 ZOOM_TRY = 3
 # When the zoom's windows still give no strong fit, the most fixture-like of them is zoomed into
-# the same way, down to windows of ZOOM_MIN_SIDE_PX (a fixture beyond the 20 m envelope): the
+# the same way, never into windows smaller than ZOOM_MIN_SIDE_PX: the
 # first pass can put a 10 m fixture at 0.4 m, a window 10-25x too large (validation scene va012,
 # whose keypoints are read to 0.3-0.7 crop px in the right window), which one level (4x) misses.
 ZOOM_LEVELS = 3
@@ -570,7 +570,7 @@ class KeypointPoseEstimator(PoseEstimator):
         sideways at 10 m on an unseen scene), then ZOOM_STEPS inside it, level after level
         (`zoom_search`, ZOOM_LEVELS). The prediction only places a crop, never the attitude
         prior, so a wrong prediction cannot feed itself back. Returns (PnpResult, its window):
-        the first strong fit, else the best weak one (lowest RMS), else (None, None)."""
+        the first strong fit, else the best weak one (`_weak_rank`), else (None, None)."""
         K = self._K()
         f = self.meta.get("fusion") if fusion is None else fusion
         best: tuple[PnpResult, CropWindow] | None = None
