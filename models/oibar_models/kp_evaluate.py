@@ -61,6 +61,14 @@ def model_label(path: Path, meta: dict) -> str:
     return f"{path.stem} {meta.get('model_version', '?')}"
 
 
+def model_labels(paths: list[Path], metas: list[dict]) -> list[str]:
+    """One label per model, unique: "stem version", with the folder added where two files
+    would share it (two exports of one network with other fusions), else the whole path."""
+    base = [model_label(p, m) for p, m in zip(paths, metas, strict=True)]
+    out = [f"{b} ({p.parent.name})" if base.count(b) > 1 else b for b, p in zip(base, paths, strict=True)]
+    return [f"{b} ({p})" if out.count(o) > 1 else o for o, b, p in zip(out, base, paths, strict=True)]
+
+
 TRACK_MIN_CONFIDENCE = 0.5  # the daemon's NavigatorParams.confidence_min: what its filter fuses
 TRACK_MAX_GAP_S = 3.0  # an older answer predicts nothing (the filter's coast limit)
 
@@ -219,13 +227,14 @@ def main(argv: list[str] | None = None) -> int:
     rows, bins_by_set = [], {}
     try:
         ests = []
-        for p in a.models:
+        labels = model_labels(a.models, [read_metadata(p) for p in a.models])
+        for p, label in zip(a.models, labels, strict=True):
             est = PoseEstimator(p)
             for mode in a.modes:
                 if mode == "single":
-                    ests.append((model_label(p, read_metadata(p)), est, False))
+                    ests.append((label, est, False))
                 elif est.uses_prior:
-                    ests.append((model_label(p, read_metadata(p)) + " tracking", est, True))
+                    ests.append((label + " tracking", est, True))
     except ModelFileError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -618,3 +618,17 @@ def test_the_fit_history_compares_only_fits_it_can(monkeypatch):
         h.advance(0.01 * (i + 1))
         h.add(0.01 * (i + 1), T, I3)
     assert len(h.fits) == HISTORY_LEN and h.fits[-1][0] == pytest.approx(0.01 * (HISTORY_LEN + 3))
+
+
+def test_two_exports_of_one_network_get_their_own_labels_in_the_evaluation():
+    """kp_evaluate.model_labels: two files with the same name and version (one network exported
+    with two fusions) are told apart by their folder, or by their path; others keep the short
+    label. (Before, the second silently overwrote the first's results.)"""
+    from oibar_models.kp_evaluate import model_labels
+
+    v = {"model_version": "0.8.1"}
+    paths = [Path("a/g8/oibarnet.onnx"), Path("a/g100/oibarnet.onnx"), Path("models/oibarnet_lite.onnx")]
+    labels = model_labels(paths, [v, v, {"model_version": "0.3.0"}])
+    assert labels == ["oibarnet 0.8.1 (g8)", "oibarnet 0.8.1 (g100)", "oibarnet_lite 0.3.0"]
+    same_folder = [Path("x/m/oibarnet.onnx"), Path("y/m/oibarnet.onnx")]
+    assert len(set(model_labels(same_folder, [v, v]))) == 2
