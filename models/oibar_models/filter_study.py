@@ -124,7 +124,7 @@ def run_sequence(est: PoseEstimator, truth: Truth, params: FilterParams, progres
                 out["r_D_raw"][k] = docking_from_camera_pose(e.T_cam_target_m, e.R_cam_target).r_D_m
             conf[k], lat_ms[k], flags[k] = e.confidence, e.latency_ms, "|".join(e.flags)
             t0 = time.perf_counter()
-            reasons[k] = nav.update(t_s, e.T_cam_target_m, e.R_cam_target, e.confidence).reason
+            reasons[k] = nav.update(t_s, *e.measurement(), e.confidence).reason  # as the daemon fuses
             upd_ms[k] = (time.perf_counter() - t0) * 1e3
         if nav.initialised:
             st = nav.state(t_s)

@@ -647,3 +647,28 @@ def test_bench_link_stub_accepts_commands():
 
     req = _InstantLink().submit_command(pb.CMD_APPROACH_ARM)
     assert req.done and req.response.accepted and req.response_kind == "ack"
+
+
+class PriorFreeEstimator(TruthEstimator):
+    """A keypoint-like estimator whose prior-free measurement sits 0.1 m sideways of its pose."""
+
+    def estimate(self, image, t_s=0.0):
+        e = super().estimate(image, t_s)
+        e.T_meas_cam_target_m = e.T_cam_target_m + np.array([0.1, 0.0, 0.0])
+        e.R_meas_cam_target = e.R_cam_target.copy()
+        return e
+
+
+def test_the_navigator_fuses_the_prior_free_measurement_not_the_prior_leaning_pose():
+    """The filter is fed PoseEstimate.measurement(): an attitude prior that leans every frame the
+    same way is a bias the filter cannot average out (model card 0.8.1, closed loop lateral p95
+    7.8-14.3 cm below 5 m on validation looks with the fused pose fed)."""
+    nav = Navigator(PriorFreeEstimator(0.9))
+    for k in range(5):
+        s = nav.step(0.1 * k, grey(), frame_t_s=0.1 * k)
+    st = nav.filter.state(0.4)
+    assert np.linalg.norm(st.T_cam_target_m - (s.estimate.T_cam_target_m + [0.1, 0.0, 0.0])) < 0.01
+    nav = Navigator(TruthEstimator(0.9))  # no measurement of its own: the pose itself
+    for k in range(5):
+        s = nav.step(0.1 * k, grey(), frame_t_s=0.1 * k)
+    assert np.linalg.norm(nav.filter.state(0.4).T_cam_target_m - s.estimate.T_cam_target_m) < 0.01

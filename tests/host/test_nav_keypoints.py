@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oibar.geometry.rotations import rotvec_to_matrix
+from oibar.geometry.rotations import rotation_angle_deg, rotvec_to_matrix
 from oibar.nav.keypoints import CropWindow, cut, project, solve_pnp, window_around
 
 K = np.array([[583.3333, 0, 372.0], [0, 583.3333, 240.0], [0, 0, 1]])
@@ -397,6 +397,39 @@ def test_the_prior_error_model_weighs_the_prior_by_range(monkeypatch):
     assert all(s == pytest.approx(np.radians(2.0) * 0.5 / ref) for s in seen)
 
 
+def test_a_fit_with_a_prior_carries_its_prior_free_twin_for_the_filter():
+    """map_pose with a prior keeps the same keypoints' PnP alone as `no_prior`; a prior that is
+    off by 2 deg pulls the fused pose, not the twin, which is what the estimator hands a filter
+    (measurement_without_prior) unless it lies grossly off the fused pose (a mirrored far fit)."""
+    from oibar.nav.keypoints import PnpResult, map_pose
+    from oibar.nav.pose import MEAS_MAX_ATT_DEV_DEG, measurement_without_prior
+
+    R, T = _pose(np.radians([1.0, -0.5, 0.3]), (0.2, -0.1, 4.0))
+    uv = project(K, DEEP, R, T) + np.random.default_rng(3).normal(0, 0.05, (len(DEEP), 2))
+    R_prior = rotvec_to_matrix(np.radians([2.0, 0.0, 0.0])) @ R  # a biased head
+    fused = map_pose(uv, DEEP, K, 2.0, R_prior, 0.5, np.radians(1.0))
+    alone = map_pose(uv, DEEP, K, 2.0, R_prior, None, None)
+    assert fused.ok and alone.ok and alone.no_prior is None
+    assert fused.no_prior is not None and np.allclose(fused.no_prior.R_cam_target, alone.R_cam_target)
+
+    def off_deg(Ra):
+        return rotation_angle_deg(Ra.T @ R)
+
+    assert off_deg(fused.R_cam_target) > 0.8 and off_deg(alone.R_cam_target) < 0.4  # (1.2, 0.2)
+    T_m, R_m = measurement_without_prior(fused, fused.T_cam_target_m, fused.R_cam_target)
+    assert np.allclose(R_m, alone.R_cam_target) and np.allclose(T_m, alone.T_cam_target_m)
+    assert measurement_without_prior(alone, alone.T_cam_target_m, alone.R_cam_target) == (None, None)
+    flipped = PnpResult(
+        True,
+        rotvec_to_matrix(np.radians([MEAS_MAX_ATT_DEV_DEG + 5, 0, 0])) @ fused.R_cam_target,
+        fused.T_cam_target_m,
+    )
+    fused.no_prior = flipped
+    assert measurement_without_prior(fused, fused.T_cam_target_m, fused.R_cam_target) == (None, None)
+    fused.no_prior = PnpResult(True, fused.R_cam_target, fused.T_cam_target_m * 1.2)
+    assert measurement_without_prior(fused, fused.T_cam_target_m, fused.R_cam_target) == (None, None)
+
+
 def test_a_weak_fit_does_not_stop_the_search():
     """A fit whose keypoints miss by more than STRONG_FIT_RMS_CROP_PX (what a 'fixture' drawn on
     the station's structure gives) does not end the search; the strong fit found later wins.
@@ -432,7 +465,7 @@ def test_the_zoom_search_finds_a_far_fixture_the_first_pass_took_for_a_near_one(
     keypoint network (trained on windows within ~1.3x of the fixture's) finds nothing there.
     The zoom search reads smaller windows inside it in one batch and solves the most
     fixture-like; without it the frame has no answer."""
-    from oibar.nav.pose import ZOOM_STEPS, ZOOM_TRY
+    from oibar.nav.pose import WIDE_STEPS, ZOOM_STEPS, ZOOM_TRY
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 9.0))
     image = np.zeros((480, 744, 3), np.uint8)
@@ -452,8 +485,9 @@ def test_the_zoom_search_finds_a_far_fixture_the_first_pass_took_for_a_near_one(
 
     real_zoom = type(est)._zoom_windows
 
-    def zoom_windows(image, base):
+    def zoom_windows(image, base, wide=False):
         from oibar.nav.keypoints import CropWindow
+        from oibar.nav.pose import zoom_steps
 
         est.zoom_windows_last = [
             CropWindow(
@@ -461,16 +495,16 @@ def test_the_zoom_search_finds_a_far_fixture_the_first_pass_took_for_a_near_one(
                 base.side_px * k,
                 base.out_px,
             )
-            for dx, dy, k in ZOOM_STEPS
+            for dx, dy, k in zoom_steps(wide)
         ]
-        return real_zoom(est, image, base)
+        return real_zoom(est, image, base, wide)
 
     est.run, est._zoom_windows = run, zoom_windows
     r, _ = est.solve(image, R, T_direct, prior=(R, T + (2.0, 0.0, 0.0)))
     assert not est.batches  # with a prediction (a track), never: its cost would hit every weak frame
     est.crops.clear()
     r, _ = est.solve(image, R, T_direct)
-    assert est.batches == [len(ZOOM_STEPS)]
+    assert est.batches == [len(ZOOM_STEPS) + len(WIDE_STEPS)]
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     assert len(est.crops) <= 11 + ZOOM_TRY + 1  # the search, at most ZOOM_TRY zoomed, one refinement
 
@@ -494,16 +528,16 @@ def test_the_zoom_goes_down_level_by_level_to_a_fixture_twenty_times_farther(mon
         seen, windows = est.run, []
         real_zoom = type(est)._zoom_windows
 
-        def zoom_windows(image, base):
+        def zoom_windows(image, base, wide=False):
             windows[:] = [
                 CropWindow(
                     (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px),
                     base.side_px * k,
                     base.out_px,
                 )
-                for dx, dy, k in pose.ZOOM_STEPS
+                for dx, dy, k in pose.zoom_steps(wide)
             ]
-            return real_zoom(est, image, base)
+            return real_zoom(est, image, base, wide)
 
         def run(x):  # a window holding the fixture looks more fixture-like the tighter it is
             out = seen(x)
@@ -524,7 +558,62 @@ def test_the_zoom_goes_down_level_by_level_to_a_fixture_twenty_times_farther(mon
     monkeypatch.setattr(pose, "ZOOM_LEVELS", 1)
     est = estimator()
     r, _ = est.solve(image, R, T_direct)
+    # and no double windows around a first pass that has the scale wrong (WIDE_MAX_SIDE_PX)
     assert est.batches == [len(pose.ZOOM_STEPS)] and r is None
+
+
+def test_the_first_zoom_level_looks_around_a_first_pass_that_missed_sideways(monkeypatch):
+    """A first pass with the right range but the fixture 1.65 of its windows off (validation
+    scene va003's look at 10 m: every cold start came out weak until the mission timed out).
+    SEARCH_STEPS and the zoom inside the first pass's window cannot reach it; the first zoom
+    level's WIDE_STEPS (double windows out to two sides away) can, and the next level zooms
+    into the one that holds it."""
+    import oibar.nav.pose as pose
+    from oibar.nav.keypoints import CropWindow
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.0, 0.15, 10.0))
+    image = np.zeros((480, 744, 3), np.uint8)
+    side = window_around(project(K, DEEP, R, T), 128, 1.25).side_px
+    T_direct = T + np.array([0.0, -1.65 * side * T[2] / K[1, 1], 0.0])  # 1.65 windows up
+
+    def estimator():
+        est = _bare_estimator(R, T, max_side_ratio=1.4, zoom=True)
+        truth = project(K, DEEP, R, T)
+        centre, own_side = truth.mean(0), window_around(truth, 128, 1.25).side_px
+        seen, windows = est.run, []
+        real_zoom = type(est)._zoom_windows
+
+        def zoom_windows(image, base, wide=False):
+            windows[:] = [
+                CropWindow(
+                    (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px),
+                    base.side_px * k,
+                    base.out_px,
+                )
+                for dx, dy, k in pose.zoom_steps(wide)
+                if base.side_px * k >= pose.ZOOM_MIN_SIDE_PX  # as the real one drops them
+            ]
+            return real_zoom(est, image, base, wide)
+
+        def run(x):  # a window holding the fixture looks more fixture-like the tighter it is
+            out = seen(x)
+            out["kp_spread_px"] = np.full_like(out["kp_present"], 30.0)
+            for i, w in enumerate(windows):
+                if np.all(np.abs(w.to_crop(centre[None])[0] - w.out_px / 2) < w.out_px * 0.3):
+                    out["kp_present"][i] = 1.0
+                    out["kp_spread_px"][i] = w.side_px / own_side
+            return out
+
+        est.run, est._zoom_windows = run, zoom_windows
+        return est
+
+    est = estimator()
+    r, _ = est.solve(image, R, T_direct)
+    assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
+    monkeypatch.setattr(pose, "WIDE_STEPS", ())
+    est = estimator()
+    r, _ = est.solve(image, R, T_direct)
+    assert r is None
 
 
 def test_no_zoom_window_is_smaller_than_a_fixture_in_the_envelope():

@@ -109,7 +109,8 @@ class Navigator:
                     else:
                         t0 = time.perf_counter()
                         try:
-                            upd = self.filter.update(ft, est.T_cam_target_m, est.R_cam_target, est.confidence)
+                            T_m, R_m = est.measurement()  # prior-free where it differs (PoseEstimate)
+                            upd = self.filter.update(ft, T_m, R_m, est.confidence)
                         except ValueError as exc:  # a frame older than the last one fused
                             reason = f"frame out of order ({exc})"
                         timings["filter_ms"] = (time.perf_counter() - t0) * 1e3

@@ -132,6 +132,8 @@ class PnpResult:
     inliers: np.ndarray | None = None  # indices into the points given
     rms_px: float = float("nan")  # reprojection RMS over the inliers, frame pixels
     reason: str = ""
+    # a fit that leaned on an attitude prior: the same keypoints' PnP alone (None when it failed)
+    no_prior: PnpResult | None = None
 
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
         """(R_cam_target, T_cam_target_m) of a successful solve; ValueError otherwise."""
@@ -291,7 +293,8 @@ def map_pose(
     saves far frames, where near-planar keypoints let PnP fall into a mirrored pose that fits the
     pixels as well as the true one. Keypoints further than `reproj_px` from the chosen pose are
     dropped and the pose refined again. Without a prior (sigma None): PnP alone. `sigma_px`: one
-    number, or one per keypoint (the export's error model, KeypointErrorModel)."""
+    number, or one per keypoint (the export's error model, KeypointErrorModel). A fit with the
+    prior carries the PnP-alone one as `no_prior` (what a filter should fuse: see PoseEstimate)."""
     pnp = solve_pnp(uv_px, points_m, K, reproj_px, min_points=min_points)
     if sigma_px is None or sigma_prior_rad is None:
         return pnp
@@ -323,6 +326,7 @@ def map_pose(
             best = (cost, PnpResult(True, R, T, np.flatnonzero(keep), rms))
     if best is None:
         return PnpResult(False, reason=pnp.reason or "no consistent pose with the attitude prior")
+    best[1].no_prior = pnp if pnp.ok else None
     return best[1]
 
 

@@ -132,10 +132,23 @@ class PoseEstimate:
     camera_range_m: float  # ||T_cam_target||: camera-to-fixture distance
     ortho_defect: float  # ||rot6d - its Gram-Schmidt projection||; 0 for a valid rotation
     flags: tuple[str, ...] = field(default_factory=tuple)  # why confidence was lowered, if it was
+    # What a filter should fuse, when it differs from the pose above: the same keypoints solved
+    # without the attitude prior. The prior (the crop's attitude head) makes each frame's pose
+    # better on its own but pulls the tilt toward "aligned" on every frame alike, an error a
+    # filter cannot average away; PnP alone is noisier and unbiased (docs/model_card.md).
+    T_meas_cam_target_m: np.ndarray | None = None
+    R_meas_cam_target: np.ndarray | None = None
 
     @property
     def finite(self) -> bool:
         return bool(np.all(np.isfinite(self.T_cam_target_m)) and np.all(np.isfinite(self.R_cam_target)))
+
+    def measurement(self) -> tuple[np.ndarray, np.ndarray]:
+        """(T_cam_target_m, R_cam_target) for a filter: the prior-free pose when there is one,
+        else the pose itself."""
+        if self.T_meas_cam_target_m is not None and self.R_meas_cam_target is not None:
+            return self.T_meas_cam_target_m, self.R_meas_cam_target
+        return self.T_cam_target_m, self.R_cam_target
 
 
 def _range_limits(meta: dict[str, Any], given: tuple[float, float] | None) -> tuple[float, float]:
@@ -396,6 +409,25 @@ ZOOM_STEPS = tuple(
     for dx in offs
 )
 ZOOM_TRY = 3
+# The zoom's first level also reads windows twice the first pass's size around it, out to two
+# of its sides away (5x5): on an unseen look (validation scene va003's, the demo's approach from
+# 10 m) the first pass put the fixture 1.65 window sides off, beyond SEARCH_STEPS' reach, and
+# every cold-start frame came out weak until the mission timed out. A fixture-holding double
+# window ranks first by its tight heat maps (0.046 vs <= 0.014 for its neighbours and 0.001 for
+# background), and the next level zooms into it. 25 more crops in that batch, on cold starts only,
+# and only while the double windows stay within WIDE_MAX_SIDE_PX (the frame's height): a first
+# pass that took a far fixture for a near one (va012: windows of 250-900 px around a 35-55 px
+# fixture) has the scale wrong, not the place, and double windows there ranked the station's
+# structure first (va012 tracking 3.4 -> 19 % before this bound).
+WIDE_STEPS = tuple((dx, dy, 2.0) for dy in (-2.0, -1.0, 0.0, 1.0, 2.0) for dx in (-2.0, -1.0, 0.0, 1.0, 2.0))
+WIDE_MAX_SIDE_PX = 480.0
+
+
+def zoom_steps(wide: bool) -> tuple[tuple[float, float, float], ...]:
+    """(dx, dy in base window sides, size factor) of one zoom level's batch."""
+    return ZOOM_STEPS + (WIDE_STEPS if wide else ())
+
+
 # When the zoom's windows still give no strong fit, the most fixture-like of them is zoomed into
 # the same way, never into windows smaller than ZOOM_MIN_SIDE_PX: the
 # first pass can put a 10 m fixture at 0.4 m, a window 10-25x too large (validation scene va012,
@@ -426,6 +458,28 @@ def fit_rms_crop_px(r: PnpResult, win: CropWindow) -> float:
 
 
 ATTITUDE_PRIORS = ("direct", "head")  # oibar.fusion.attitude_prior: whose attitude the fit leans on
+# The prior-free fit is handed to the filter only while it stays near the fused one: beyond these
+# it is a gross PnP failure (a far frame's mirrored pose), not the prior's bias, which is ~0.5-2
+# deg and ~1 % of the range on the validation scenes.
+MEAS_MAX_ATT_DEV_DEG = 10.0
+MEAS_MAX_POS_DEV_FRACTION = 0.10
+
+
+def measurement_without_prior(
+    r: PnpResult, T: np.ndarray, R: np.ndarray
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The fit's prior-free pose (r.no_prior) for a filter, or (None, None) when the fit had no
+    prior, PnP alone failed, or it lies grossly off the fused pose (MEAS_MAX_*)."""
+    alone = r.no_prior
+    if alone is None or not alone.ok:
+        return None, None
+    R_a, T_a = alone.pose()
+    range_m = float(np.linalg.norm(T))
+    if float(np.linalg.norm(T_a - T)) > MEAS_MAX_POS_DEV_FRACTION * range_m:
+        return None, None
+    if rotation_angle_deg(R_a.T @ R) > MEAS_MAX_ATT_DEV_DEG:
+        return None, None
+    return np.asarray(T_a, float), np.asarray(R_a, float)
 
 
 @dataclass
@@ -616,8 +670,9 @@ class KeypointPoseEstimator(PoseEstimator):
         # out of the 100 ms frame budget on every weak far frame of a healthy track
         if best is None and base is not None and self.zoom_search and prior is None:
             zbase, k_base = base, 1.0
-            for _ in range(ZOOM_LEVELS):
-                ranked = self._zoom_windows(image, zbase)
+            for level in range(ZOOM_LEVELS):
+                wide = level == 0 and zbase.side_px * 2.0 <= WIDE_MAX_SIDE_PX
+                ranked = self._zoom_windows(image, zbase, wide=wide)
                 for zwin, k in ranked:
                     k_total = k_base * k
                     if consider(
@@ -652,9 +707,12 @@ class KeypointPoseEstimator(PoseEstimator):
         inside = self.range_limits_m[0] <= range_m <= self.range_limits_m[1]
         return (not inside, fit_rms_crop_px(r, win))
 
-    def _zoom_windows(self, image: np.ndarray, base: CropWindow) -> list[tuple[CropWindow, float]]:
-        """ZOOM_STEPS' windows read in one batch; the ZOOM_TRY that look most like the fixture
-        (mean presence x exp(-mean spread / 4 crop px)) with their size factors, best first."""
+    def _zoom_windows(
+        self, image: np.ndarray, base: CropWindow, wide: bool = False
+    ) -> list[tuple[CropWindow, float]]:
+        """ZOOM_STEPS' windows (and WIDE_STEPS' with `wide`) read in one batch; the ZOOM_TRY
+        that look most like the fixture (mean presence x exp(-mean spread / 4 crop px)) with
+        their size factors, best first."""
         wins = [
             (
                 CropWindow(
@@ -664,7 +722,7 @@ class KeypointPoseEstimator(PoseEstimator):
                 ),
                 k,
             )
-            for dx, dy, k in ZOOM_STEPS
+            for dx, dy, k in zoom_steps(wide)
             if base.side_px * k >= ZOOM_MIN_SIDE_PX  # smaller than a fixture within the envelope
         ]
         if not wins:
@@ -809,6 +867,7 @@ class KeypointPoseEstimator(PoseEstimator):
         if strong:
             self.fit_history.add(t_s, T, R)
         q = matrix_to_quat(R)
+        T_meas, R_meas = measurement_without_prior(r, T, R)
         return PoseEstimate(
             T_cam_target_m=T,
             q_cam_target=q,
@@ -819,6 +878,8 @@ class KeypointPoseEstimator(PoseEstimator):
             camera_range_m=rng_m,
             ortho_defect=0.0,
             flags=tuple(flags),
+            T_meas_cam_target_m=T_meas,
+            R_meas_cam_target=R_meas,
         )
 
     def __call__(self, frame: Image.Image | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
