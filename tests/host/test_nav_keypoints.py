@@ -509,54 +509,62 @@ def test_the_zoom_search_finds_a_far_fixture_the_first_pass_took_for_a_near_one(
     assert len(est.crops) <= 11 + ZOOM_TRY + 1  # the search, at most ZOOM_TRY zoomed, one refinement
 
 
+def _zooming_estimator(R, T, background_spread_px=8.0):
+    """A bare estimator whose zoom batch says which windows hold the fixture: presence 1 and a
+    spread that grows with the window (a tighter window looks more fixture-like), the rest
+    `background_spread_px`."""
+    import oibar.nav.pose as pose
+    from oibar.nav.keypoints import CropWindow
+
+    est = _bare_estimator(R, T, max_side_ratio=1.4, zoom=True)
+    truth = project(K, DEEP, R, T)
+    centre, own_side = truth.mean(0), window_around(truth, 128, 1.25).side_px
+    seen, windows = est.run, []
+    real_zoom = type(est)._zoom_windows
+
+    def zoom_windows(image, base, wide=False):
+        windows[:] = [
+            CropWindow(
+                (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px),
+                base.side_px * k,
+                base.out_px,
+            )
+            for dx, dy, k in pose.zoom_steps(wide)
+            if base.side_px * k >= pose.ZOOM_MIN_SIDE_PX  # as the real one drops them
+        ]
+        return real_zoom(est, image, base, wide)
+
+    def run(x):
+        out = seen(x)
+        out["kp_spread_px"] = np.full_like(out["kp_present"], background_spread_px)
+        for i, w in enumerate(windows):
+            if np.all(np.abs(w.to_crop(centre[None])[0] - w.out_px / 2) < w.out_px * 0.3):
+                out["kp_present"][i] = 1.0
+                out["kp_spread_px"][i] = w.side_px / own_side
+        return out
+
+    est.run, est._zoom_windows = run, zoom_windows
+    return est
+
+
 def test_the_zoom_goes_down_level_by_level_to_a_fixture_twenty_times_farther(monkeypatch):
     """A first pass that puts a 10 m fixture at 0.5 m (validation scene va012) draws a window 20x
     the fixture's: one level of zoom (at best 4x smaller) still sees nothing the keypoint
     network can read. The search zooms again into the most fixture-like window of each level
     until it finds it."""
     import oibar.nav.pose as pose
-    from oibar.nav.keypoints import CropWindow
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
     image = np.zeros((480, 744, 3), np.uint8)
     T_direct = T / 20.0
 
-    def estimator():
-        est = _bare_estimator(R, T, max_side_ratio=1.4, zoom=True)
-        truth = project(K, DEEP, R, T)
-        centre, own_side = truth.mean(0), window_around(truth, 128, 1.25).side_px
-        seen, windows = est.run, []
-        real_zoom = type(est)._zoom_windows
-
-        def zoom_windows(image, base, wide=False):
-            windows[:] = [
-                CropWindow(
-                    (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px),
-                    base.side_px * k,
-                    base.out_px,
-                )
-                for dx, dy, k in pose.zoom_steps(wide)
-            ]
-            return real_zoom(est, image, base, wide)
-
-        def run(x):  # a window holding the fixture looks more fixture-like the tighter it is
-            out = seen(x)
-            for i, w in enumerate(windows):
-                if np.all(np.abs(w.to_crop(centre[None])[0] - w.out_px / 2) < w.out_px * 0.3):
-                    out["kp_present"][i] = 1.0
-                    out["kp_spread_px"][i] = w.side_px / own_side
-            return out
-
-        est.run, est._zoom_windows = run, zoom_windows
-        return est
-
-    est = estimator()
+    est = _zooming_estimator(R, T)
     r, _ = est.solve(image, R, T_direct)
     assert len(est.batches) >= 2, est.batches
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     assert min(w.side_px for w in est.crops) >= pose.ZOOM_MIN_SIDE_PX
     monkeypatch.setattr(pose, "ZOOM_LEVELS", 1)
-    est = estimator()
+    est = _zooming_estimator(R, T)
     r, _ = est.solve(image, R, T_direct)
     # and no double windows around a first pass that has the scale wrong (WIDE_MAX_SIDE_PX)
     assert est.batches == [len(pose.ZOOM_STEPS)] and r is None
@@ -569,49 +577,17 @@ def test_the_first_zoom_level_looks_around_a_first_pass_that_missed_sideways(mon
     level's WIDE_STEPS (double windows out to two sides away) can, and the next level zooms
     into the one that holds it."""
     import oibar.nav.pose as pose
-    from oibar.nav.keypoints import CropWindow
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.0, 0.15, 10.0))
     image = np.zeros((480, 744, 3), np.uint8)
     side = window_around(project(K, DEEP, R, T), 128, 1.25).side_px
     T_direct = T + np.array([0.0, -1.65 * side * T[2] / K[1, 1], 0.0])  # 1.65 windows up
 
-    def estimator():
-        est = _bare_estimator(R, T, max_side_ratio=1.4, zoom=True)
-        truth = project(K, DEEP, R, T)
-        centre, own_side = truth.mean(0), window_around(truth, 128, 1.25).side_px
-        seen, windows = est.run, []
-        real_zoom = type(est)._zoom_windows
-
-        def zoom_windows(image, base, wide=False):
-            windows[:] = [
-                CropWindow(
-                    (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px),
-                    base.side_px * k,
-                    base.out_px,
-                )
-                for dx, dy, k in pose.zoom_steps(wide)
-                if base.side_px * k >= pose.ZOOM_MIN_SIDE_PX  # as the real one drops them
-            ]
-            return real_zoom(est, image, base, wide)
-
-        def run(x):  # a window holding the fixture looks more fixture-like the tighter it is
-            out = seen(x)
-            out["kp_spread_px"] = np.full_like(out["kp_present"], 30.0)
-            for i, w in enumerate(windows):
-                if np.all(np.abs(w.to_crop(centre[None])[0] - w.out_px / 2) < w.out_px * 0.3):
-                    out["kp_present"][i] = 1.0
-                    out["kp_spread_px"][i] = w.side_px / own_side
-            return out
-
-        est.run, est._zoom_windows = run, zoom_windows
-        return est
-
-    est = estimator()
+    est = _zooming_estimator(R, T, background_spread_px=30.0)
     r, _ = est.solve(image, R, T_direct)
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     monkeypatch.setattr(pose, "WIDE_STEPS", ())
-    est = estimator()
+    est = _zooming_estimator(R, T, background_spread_px=30.0)
     r, _ = est.solve(image, R, T_direct)
     assert r is None
 
