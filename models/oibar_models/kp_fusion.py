@@ -5,6 +5,11 @@ keypoint sigma in crop pixels; attitude-prior sigma in degrees; with or without 
 per-keypoint error model), scored with the paper's metrics (metrics.score), "no prior" included.
 The winner goes into the export's metadata (`kp_export --fusion FILE`).
 
+The grid scores frames one by one, which is what `estimate()` returns; it cannot see an error the
+prior repeats on every frame (the head's tilt shrunk toward "aligned"). That is why the
+navigator's filter is fed the same keypoints' prior-free fit (oibar.nav.pose.PoseEstimate.
+measurement), chosen on the closed loop of validation looks (docs/model_card.md, 2026-11-24).
+
 The error model (oibar.nav.keypoints.KeypointErrorModel) is measured here too: each keypoint's
 RMS error per range bin, in crops cut around the true pose of the validation frames (errors past
 the PnP inlier threshold clipped to it: RANSAC drops those anyway).
