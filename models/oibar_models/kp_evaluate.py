@@ -82,8 +82,8 @@ class Predictor:
 
     def add(self, t_s: float, e) -> None:
         if e.finite and e.confidence >= TRACK_MIN_CONFIDENCE:
-            T, R = e.measurement() if hasattr(e, "measurement") else (e.T_cam_target_m, e.R_cam_target)
-            self.hist = (self.hist + [(t_s, T, R)])[-2:]  # what the daemon's filter is fed
+            T, R = e.measurement()  # what the daemon's filter is fed
+            self.hist = (self.hist + [(t_s, T, R)])[-2:]
 
     def predict(self, t_s: float):
         if not self.hist or t_s - self.hist[-1][0] > TRACK_MAX_GAP_S:
