@@ -351,12 +351,7 @@ class KeypointErrorModel:
 
     def scale(self, range_m: float) -> np.ndarray:
         """(K,) per-keypoint sigma relative to the overall one, at this camera range."""
-        b = int(
-            np.clip(
-                np.searchsorted(self.edges_m, range_m, side="right") - 1, 0, self.rms_crop_px.shape[1] - 1
-            )
-        )
-        return self.rms_crop_px[:, b] / self.ref_crop_px
+        return self.rms_crop_px[:, range_bin(self.edges_m, range_m)] / self.ref_crop_px
 
 
 class PriorErrorModel:
@@ -379,5 +374,9 @@ class PriorErrorModel:
         self.ref_deg = float(np.sqrt(np.mean(self.rms_deg**2)))
 
     def scale(self, range_m: float) -> float:
-        b = int(np.clip(np.searchsorted(self.edges_m, range_m, side="right") - 1, 0, len(self.rms_deg) - 1))
-        return float(self.rms_deg[b] / self.ref_deg)
+        return float(self.rms_deg[range_bin(self.edges_m, range_m)] / self.ref_deg)
+
+
+def range_bin(edges_m: np.ndarray, range_m: float) -> int:
+    """The bin of `range_m` among `edges_m` (N + 1 rising edges -> 0..N-1; outside: the end bins)."""
+    return int(np.clip(np.searchsorted(edges_m, range_m, side="right") - 1, 0, len(edges_m) - 2))
