@@ -4,6 +4,7 @@ PnP thresholds, the camera, the first-pass model to use beside it, the training 
 validation figures. Parity against PyTorch is checked before the file is written.
 
 python -m oibar_models.kp_export --config models/configs/keypoints/oibarnet_kp.yaml [--checkpoint best|last]
+    [--fusion FUSION.json] [--mirror-reading]
 """
 
 from __future__ import annotations
@@ -42,7 +43,12 @@ CAMERA = {
 
 
 def metadata_for(
-    cfg: KpConfig, ck: dict, first_pass: str, train_range_m: tuple[float, float], fusion: dict | None = None
+    cfg: KpConfig,
+    ck: dict,
+    first_pass: str,
+    train_range_m: tuple[float, float],
+    fusion: dict | None = None,
+    mirror_reading: bool = False,
 ) -> dict:
     K = _CAM.K.tolist()
     n = cfg.model.out_px
@@ -71,6 +77,8 @@ def metadata_for(
         "camera": {**CAMERA, "K_frame": K},
         **({"attitude_head": attitude_head_meta()} if has_attitude_head(ck["model"]) else {}),
         **({"fusion": fusion} if fusion else {}),
+        # the refining pass reads each crop with its mirror image (KeypointPoseEstimator.read_crop)
+        "mirror_reading": bool(mirror_reading),
     }
 
 
@@ -88,7 +96,13 @@ def attitude_head_meta() -> dict:
 
 
 def export_onnx(
-    cfg: KpConfig, ck: dict, out_path: Path, first_pass: str, train_range_m, fusion: dict | None = None
+    cfg: KpConfig,
+    ck: dict,
+    out_path: Path,
+    first_pass: str,
+    train_range_m,
+    fusion: dict | None = None,
+    mirror_reading: bool = False,
 ) -> Path:
     import onnx
 
@@ -117,7 +131,7 @@ def export_onnx(
             dynamo=False,
         )
     m = onnx.load(str(tmp))
-    for k, v in metadata_for(cfg, ck, first_pass, train_range_m, fusion).items():
+    for k, v in metadata_for(cfg, ck, first_pass, train_range_m, fusion, mirror_reading).items():
         p = m.metadata_props.add()
         p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
     m.producer_name = "oibar_models.kp_export"
@@ -156,6 +170,11 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="the JSON of `python -m oibar_models.kp_fusion` (weights chosen on validation scenes)",
     )
+    ap.add_argument(
+        "--mirror-reading",
+        action="store_true",
+        help="the refining pass averages each crop's reading with its mirror image's (chosen on the closed loop)",
+    )
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
     try:
@@ -189,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
                 fusion["attitude_prior"] = best["attitude_prior"]
             if best.get("prior_error_model"):
                 fusion["prior_error_model"] = best["prior_error_model"]
-    export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0), fusion)
+    export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0), fusion, a.mirror_reading)
     print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0
 

@@ -142,6 +142,39 @@ def test_crop_labels_follow_the_fixture(tiny_dataset):
     assert checked > 10
 
 
+def test_a_mirrored_crop_carries_mirrored_labels(tiny_dataset, monkeypatch):
+    """augment.p_mirror: the crop is flipped left-right and its labels with it. Every visible rim
+    corner still sits on the drawn rim (its twin's label, flipped, is where it now shows), and
+    the attitude label is the unmirrored one with y and z turned over; the same draw without
+    the mirror gives the crop it flipped."""
+    import oibar_models.kp_data as kd
+    from oibar.nav.keypoints import MIRROR_ATT
+
+    sc = open_scenes(tiny_dataset, ["seq02"])
+    plain = CropAugment(p_photometric=0, p_noise=0, p_blur=0, p_jpeg=0)
+    mirror = CropAugment(p_photometric=0, p_noise=0, p_blur=0, p_jpeg=0, p_mirror=1.0)
+    real_rng = np.random.default_rng
+    checked = 0
+    for i in range(0, 48, 4):
+        monkeypatch.setattr(kd.np.random, "default_rng", lambda seed=None, i=i: real_rng(100 + i))
+        a = CropDataset(sc, keypoints_m(), 96, plain, train=True)[i]
+        b = CropDataset(sc, keypoints_m(), 96, mirror, train=True)[i]
+        assert b["mirrored"] and not a["mirrored"]
+        assert torch.equal(b["image"], a["image"].flip(-1))
+        assert np.allclose(b["att_deg"].numpy(), a["att_deg"].numpy() * MIRROR_ATT, atol=1e-5)
+        img = b["image"].numpy().max(0)
+        for (u, v), vis in zip(b["kp_crop_px"].numpy()[:4], b["visible"].numpy()[:4], strict=True):
+            if vis and 2 < u < 94 and 2 < v < 94:
+                assert img[int(v) - 2 : int(v) + 3, int(u) - 2 : int(u) + 3].max() > 0.4, (i, u, v)
+                checked += 1
+        assert b["kp_crop_px"][0, 0] == pytest.approx(96 - float(a["kp_crop_px"][1, 0]), abs=1e-4)
+    assert checked > 10
+    with pytest.raises(ValueError, match="symmetric"):
+        lopsided = keypoints_m().copy()
+        lopsided[4, 0] += 0.01
+        CropDataset(sc, lopsided, 96, mirror, train=True)
+
+
 def test_the_attitude_label_is_what_the_turned_crop_shows(tiny_dataset):
     """Each crop's attitude label, read back through its own window (position, size and turn of
     the augmentation), gives the frame's true R_cam_target (how a turn changes the label:
@@ -214,6 +247,7 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     est = PoseEstimator(out, warmup_runs=1)
     assert isinstance(est, KeypointPoseEstimator)
     assert est.R_att_ref is not None and "att_crop_deg" in est.output_names
+    assert est.meta["mirror_reading"] is False and est.mirror is None  # read once unless the export says
     assert all("val_att_head_deg_mean" in r for r in rows)
     reading = est.read_crop(
         np.zeros((480, 744, 3), np.uint8), window_around(np.array([[300.0, 200]]), 64, 1.25)
@@ -225,6 +259,13 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     assert (
         est.points_m.shape == (len(FIXTURE_KEYPOINTS), 3) and est.meta["first_pass"] == "oibarnet_lite.onnx"
     )
+
+    mirrored = tmp_path / "models" / "kp_mirror.onnx"
+    args = ["--config", str(CONFIG), "--out", str(mirrored), "--mirror-reading"]
+    assert export_main([*args, *_smoke_overrides(tiny_dataset, kp_sets, run)]) == 0
+    est_m = PoseEstimator(mirrored, warmup_runs=1)
+    assert est_m.meta["mirror_reading"] is True and est_m.mirror is not None
+    assert PoseEstimator(mirrored, warmup_runs=1, mirror=False).mirror is None  # the caller overrules
 
     # bad input: never a confident wrong pose
     black = np.zeros((480, 744, 3), np.uint8)

@@ -380,3 +380,23 @@ class PriorErrorModel:
 def range_bin(edges_m: np.ndarray, range_m: float) -> int:
     """The bin of `range_m` among `edges_m` (N + 1 rising edges -> 0..N-1; outside: the end bins)."""
     return int(np.clip(np.searchsorted(edges_m, range_m, side="right") - 1, 0, len(edges_m) - 2))
+
+
+MIRROR_ATT = np.array([1.0, -1.0, -1.0])
+"""A rotation vector seen in a left-right mirrored image of a left-right symmetric target:
+a reflection keeps the axial x component and turns y and z over."""
+
+
+def mirror_permutation(points_m: np.ndarray, tol_m: float = 1e-6) -> np.ndarray | None:
+    """For a left-right symmetric point set (each point has a twin at -x, same y and z): the index
+    of each point's twin (a point on the axis is its own). None when a point has no twin: a
+    mirrored image would then show a different target."""
+    P = np.asarray(points_m, float)
+    twin = np.empty(len(P), int)
+    for i, (x, y, z) in enumerate(P):
+        d = np.linalg.norm(P - np.array([-x, y, z]), axis=1)
+        j = int(np.argmin(d))
+        if d[j] > tol_m:
+            return None
+        twin[i] = j
+    return twin
