@@ -26,6 +26,7 @@ from oibar.nav.keypoints import (
     CropWindow,
     attitude_in_crop_deg,
     cut,
+    mirror_crop_px,
     mirror_permutation,
     project,
     window_around,
@@ -179,8 +180,7 @@ class CropDataset(torch.utils.data.Dataset):
         mirrored = bool(self.train and self.twin is not None and rng.random() < self.aug.p_mirror)
         if mirrored:  # A, T and R stay the frame's: validation (never mirrored) reads them
             crop = crop[:, ::-1]
-            kp = kp[self.twin]
-            kp[:, 0] = self.out_px - kp[:, 0]
+            kp = mirror_crop_px(kp, self.twin, self.out_px)
             vis = vis[self.twin]
             att = att * MIRROR_ATT
         return {

@@ -37,6 +37,7 @@ from oibar.nav.keypoints import (
     attitude_from_crop,
     cut,
     map_pose,
+    mirror_crop_px,
     mirror_permutation,
     window_around,
 )
@@ -620,8 +621,7 @@ class KeypointPoseEstimator(PoseEstimator):
             disagree = None
             for k in out:
                 if k == "kp_crop_px":
-                    m = out[k][1][self.mirror]
-                    m[:, 0] = self.out_px - m[:, 0]
+                    m = mirror_crop_px(out[k][1], self.mirror, self.out_px)
                     disagree = np.linalg.norm(out[k][0] - m, axis=1) > MIRROR_AGREE_CROP_PX
                 elif self.R_att_ref is not None and k == self.meta["attitude_head"]["output"]:
                     m = out[k][1] * MIRROR_ATT
