@@ -406,6 +406,6 @@ def mirror_crop_px(kp_crop_px: np.ndarray, twin: np.ndarray, out_px: int) -> np.
     """Keypoints (K, 2) read in (or labelled for) a crop, as they lie in its left-right mirror
     image: each keypoint takes its twin's place (mirror_permutation), u -> out_px - u (corner
     convention). Its own inverse."""
-    m = np.array(kp_crop_px, float)[twin]
+    m: np.ndarray = np.array(kp_crop_px, float)[twin]
     m[:, 0] = out_px - m[:, 0]
     return m
