@@ -212,7 +212,7 @@ def test_error_model_scales_by_range_and_refuses_bad_tables():
 
 
 def _bare_estimator(
-    R_true, T_true, R_head=None, fusion=None, zoom=False, max_side_ratio=np.inf, noise_px=0.0
+    R_true, T_true, R_head=None, fusion=None, zoom=False, max_side_ratio=np.inf, noise_px=0.0, out_px=128
 ):
     """A KeypointPoseEstimator without networks: its 'keypoint network' reports the true points
     when the crop holds the fixture's centre and is at most `max_side_ratio` times the fixture's
@@ -223,7 +223,7 @@ def _bare_estimator(
 
     est = object.__new__(KeypointPoseEstimator)
     est.zoom_search = zoom
-    est.K_frame, est.points_m, est.out_px, est.margin = K, DEEP, 128, 1.25
+    est.K_frame, est.points_m, est.out_px, est.margin = K, DEEP, out_px, 1.25
     est.range_limits_m = (0.2, 20.0)
     est.reproj_crop_px, est.refine_passes, est.meta = (
         4.0,
@@ -232,7 +232,7 @@ def _bare_estimator(
     )
     truth = project(K, DEEP, R_true, T_true)
     centre = truth.mean(0)
-    own_side = window_around(truth, 128, 1.25).side_px
+    own_side = window_around(truth, out_px, 1.25).side_px
     est.crops, est.mirrored = [], []
     rng = np.random.default_rng(1)
 
@@ -459,6 +459,30 @@ def test_a_weak_fit_does_not_stop_the_search():
     r, win = est.solve(image, R, T)
     assert r is not None and fit_rms_crop_px(r, win) <= STRONG_FIT_RMS_CROP_PX
     assert np.linalg.norm(r.T_cam_target_m - T) < 1e-3 and len(est.crops) > 2  # searched on
+
+
+def test_a_bigger_crop_is_held_to_the_same_fraction_of_its_crop():
+    """The fit thresholds were measured on 128 px crops. A model reading a 256 px crop whose
+    keypoints are as good relative to the fixture (twice the error in its own crop pixels) must
+    get the same verdict: a strong fit in the first window, not a search run to the end and a
+    weak answer."""
+    from oibar.nav.pose import STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 6.0))
+    image = np.zeros((480, 744, 3), np.uint8)
+    rms = {}
+    for out_px in (128, 256):
+        est = _bare_estimator(R, T, noise_px=0.6 * out_px / 128, out_px=out_px)
+        r, win = est.solve(image, R, T)
+        assert r is not None and win.out_px == out_px
+        rms[out_px] = fit_rms_crop_px(r, win)
+        # strong at once: the first window and the refining pass, no search
+        assert rms[out_px] <= STRONG_FIT_RMS_CROP_PX and len(est.crops) <= 3, (out_px, rms[out_px])
+        # in the crop's own pixels the 256 px fit misses by more than the threshold
+        own_px = float(r.rms_px) * win.scale
+        assert own_px == pytest.approx(rms[out_px] * out_px / 128)
+    assert float(r.rms_px) * win.scale > STRONG_FIT_RMS_CROP_PX
+    assert rms[256] == pytest.approx(rms[128], rel=0.3)
 
 
 def test_the_zoom_search_finds_a_far_fixture_the_first_pass_took_for_a_near_one():

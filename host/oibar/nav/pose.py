@@ -455,9 +455,17 @@ def _checked_prior(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
     return R, T
 
 
+# The thresholds above and below in crop pixels (REPROJ_SCALE_CROP_PX, STRONG_FIT_RMS_CROP_PX,
+# MIRROR_AGREE_CROP_PX) were measured on models reading a 128 px crop. A model with another crop
+# size (`oibar.crop.out_px`) reads the same fixture over more or fewer pixels, so it is held to
+# the same fraction of its crop: every threshold is in pixels of a CROP_REF_PX crop.
+CROP_REF_PX = 128
+
+
 def fit_rms_crop_px(r: PnpResult, win: CropWindow) -> float:
-    """A fit's reprojection RMS over its inliers, in the crop's pixels."""
-    return float(r.rms_px) * win.scale
+    """A fit's reprojection RMS over its inliers, in pixels of a CROP_REF_PX crop (for the shipped
+    128 px models: the crop's own pixels)."""
+    return float(r.rms_px) * win.scale * CROP_REF_PX / win.out_px
 
 
 # Mirror reading (read_crop): on the fixture the two readings of a keypoint agree to 0.2 crop px
@@ -622,7 +630,10 @@ class KeypointPoseEstimator(PoseEstimator):
             for k in out:
                 if k == "kp_crop_px":
                     m = mirror_crop_px(out[k][1], self.mirror, self.out_px)
-                    disagree = np.linalg.norm(out[k][0] - m, axis=1) > MIRROR_AGREE_CROP_PX
+                    disagree = (
+                        np.linalg.norm(out[k][0] - m, axis=1)
+                        > MIRROR_AGREE_CROP_PX * self.out_px / CROP_REF_PX
+                    )
                 elif self.R_att_ref is not None and k == self.meta["attitude_head"]["output"]:
                     m = out[k][1] * MIRROR_ATT
                 else:  # per keypoint: presence, spread
