@@ -120,6 +120,20 @@ def main(argv: list[str] | None = None) -> int:
         "a scene-set file (models/scenes/val.json:va013: the loop on a validation scene's look)",
     )
     ap.add_argument("--start-range-m", type=float, default=None, help="override the scenario's start range")
+    ap.add_argument(
+        "--misalignment-deg",
+        type=float,
+        nargs=2,
+        metavar=("PITCH", "YAW"),
+        default=None,
+        help="override the scenario's start misalignment (the chaser turned about its pitch and yaw axes)",
+    )
+    ap.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="override the scenario's seed (the world's actuator noise, the wire, the camera's sensor noise)",
+    )
     ap.add_argument("--json", type=Path, default=None, help="also write the results' metrics as JSON here")
     sub = ap.add_subparsers(dest="cmd", required=True)
     sub.add_parser("demo", help="the nominal mission from 10 m")
@@ -143,6 +157,10 @@ def main(argv: list[str] | None = None) -> int:
         sc = load_scenario(path)
         if args.start_range_m is not None:
             sc.start.range_m = args.start_range_m
+        if args.misalignment_deg is not None:
+            sc.start.misalignment_deg = tuple(args.misalignment_deg)
+        if args.seed is not None:
+            sc.seed = args.seed
         try:
             r = run_scenario(
                 sc,
@@ -186,6 +204,7 @@ def main(argv: list[str] | None = None) -> int:
                         "wall_time_s": r.wall_time_s,
                         "speed_factor": r.speed_factor,
                         "metrics": r.metrics,
+                        "capture": r.capture,
                     }
                     for r in results
                 ],
