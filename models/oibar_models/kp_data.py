@@ -28,6 +28,7 @@ from oibar.nav.keypoints import (
     cut,
     mirror_crop_px,
     mirror_permutation,
+    mirror_symmetric_attitude,
     project,
     window_around,
 )
@@ -138,12 +139,10 @@ class CropDataset(torch.utils.data.Dataset):
         )
         self.R_ref = R_cam_target_aligned()
         self.twin = mirror_permutation(keypoints_m) if aug.p_mirror > 0 else None
-        if aug.p_mirror > 0:
-            M = np.diag([-1.0, 1.0, 1.0])
-            if self.twin is None or not np.allclose(M @ self.R_ref @ M, self.R_ref):
-                raise ValueError(
-                    "augment.p_mirror needs a left-right symmetric keypoint set and reference attitude"
-                )
+        if aug.p_mirror > 0 and (self.twin is None or not mirror_symmetric_attitude(self.R_ref)):
+            raise ValueError(
+                "augment.p_mirror needs a left-right symmetric keypoint set and reference attitude"
+            )
         self.view_limit_deg = None if view_limit_deg is None else np.asarray(view_limit_deg, float)
         self.items = (
             frames if frames is not None else [(s, k) for s, sc in enumerate(scenes) for k in range(len(sc))]

@@ -470,6 +470,19 @@ def test_the_error_model_is_each_keypoints_rms_per_range_bin():
             "not a rotation",
         ),
         (lambda meta: meta.update(attitude_head={"R_ref": np.eye(3).tolist()}), "attitude_head is malformed"),
+        (  # a reference turned about y reads differently in the mirror: MIRROR_ATT would be wrong
+            lambda meta: (
+                meta.update(mirror_reading=True),
+                meta["attitude_head"].update(
+                    R_ref=[[np.cos(0.2), 0, np.sin(0.2)], [0, 1, 0], [-np.sin(0.2), 0, np.cos(0.2)]]
+                ),
+            ),
+            "mirror reading needs a left-right symmetric",
+        ),
+        (  # a keypoint without a twin
+            lambda meta: (meta.update(mirror_reading=True), meta["keypoints_3d_m"][0].__setitem__(0, 0.123)),
+            "mirror reading needs a left-right symmetric",
+        ),
         (
             lambda meta: meta.update(attitude_head={"output": "nope", "R_ref": np.eye(3).tolist()}),
             "'nope' is missing",

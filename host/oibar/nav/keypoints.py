@@ -402,6 +402,16 @@ def mirror_permutation(points_m: np.ndarray, tol_m: float = 1e-6) -> np.ndarray 
     return twin
 
 
+MIRROR_X = np.diag([-1.0, 1.0, 1.0])  # a left-right reflection of the camera's (and the fixture's) x
+
+
+def mirror_symmetric_attitude(R: np.ndarray) -> bool:
+    """Whether an attitude looks the same in a left-right mirror image (M R M = R). The attitude
+    head reads R_crop_target R_ref^T; its mirror reading maps back by MIRROR_ATT only when R_ref
+    is such an attitude (identity, every export so far)."""
+    return bool(np.allclose(MIRROR_X @ np.asarray(R, float) @ MIRROR_X, R, atol=1e-6))
+
+
 def mirror_crop_px(kp_crop_px: np.ndarray, twin: np.ndarray, out_px: int) -> np.ndarray:
     """Keypoints (K, 2) read in (or labelled for) a crop, as they lie in its left-right mirror
     image: each keypoint takes its twin's place (mirror_permutation), u -> out_px - u (corner

@@ -39,6 +39,7 @@ from oibar.nav.keypoints import (
     map_pose,
     mirror_crop_px,
     mirror_permutation,
+    mirror_symmetric_attitude,
     window_around,
 )
 
@@ -575,6 +576,15 @@ class KeypointPoseEstimator(PoseEstimator):
         if mirror is None:
             mirror = bool(self.meta.get("mirror_reading", False))
         self.mirror = mirror_permutation(self.points_m) if mirror else None
+        if mirror and (
+            self.mirror is None
+            or (self.R_att_ref is not None and not mirror_symmetric_attitude(self.R_att_ref))
+        ):
+            raise ModelFileError(
+                f"{self.path}: the mirror reading needs a left-right symmetric keypoint set and "
+                "attitude-head reference (oibar.keypoints_3d_m, oibar.attitude_head.R_ref); this "
+                "model has not: export it without --mirror-reading"
+            )
         if (self.meta.get("fusion") or {}).get("attitude_prior", "direct") not in ATTITUDE_PRIORS:
             raise ModelFileError(
                 f"{self.path}: oibar.fusion.attitude_prior must be one of {ATTITUDE_PRIORS}, "
