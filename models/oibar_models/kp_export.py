@@ -24,6 +24,7 @@ from oibar.geometry.docking import R_cam_target_aligned
 from . import __version__
 from .config import ConfigError, parse_override
 from .kp_engine import KpConfig, keypoints_m, load_kp_config, with_fresh_attitude_head
+from .kp_fusion import FUSION_REF_CROP_PX
 from .kpnet import FIXTURE_KEYPOINTS, ExportWrapper, KeypointNet
 
 METADATA_PREFIX = "oibar."
@@ -194,7 +195,16 @@ def main(argv: list[str] | None = None) -> int:
     # The training scenes span camera ranges 0.3-10.6 m; the runtime flags answers well outside.
     fusion = None
     if a.fusion:
-        best = json.loads(a.fusion.read_text())["best"]
+        doc = json.loads(a.fusion.read_text())
+        best = doc["best"]
+        fusion_px = int(doc.get("out_px", FUSION_REF_CROP_PX))
+        if fusion_px != cfg.model.out_px:
+            print(
+                f"error: {a.fusion} weighs keypoints in pixels of a {fusion_px} px crop; this model reads "
+                f"{cfg.model.out_px} px: run `python -m oibar_models.kp_fusion` on it and export with that",
+                file=sys.stderr,
+            )
+            return 2
         if best.get("sigma_prior_deg") is not None:
             fusion = {
                 "sigma_crop_px": best["sigma_crop_px"],

@@ -35,7 +35,8 @@ from .config import REPO_ROOT
 from .data import load_sequence
 from .scenes import load_set
 
-SIGMA_CROP_PX = (0.5, 1.0, 2.0)
+SIGMA_CROP_PX = (0.5, 1.0, 2.0)  # at a 128 px crop; scaled with the model's crop (fusion_grid)
+FUSION_REF_CROP_PX = 128  # the crop every grid before 2026-11-25 was run at (JSONs without out_px)
 SIGMA_PRIOR_DEG = (1.0, 2.0, 3.0, 5.0, 8.0, None)  # None: PnP alone
 ERROR_RANGE_EDGES_M = (0.0, 1.0, 1.5, 2.0, 3.0, 5.0, 8.0, 100.0)
 MIN_RMS_CROP_PX = 0.1  # a floor: no keypoint is trusted beyond the heat map's resolution
@@ -138,13 +139,17 @@ def error_model(rows: list[dict], clip_crop_px: float) -> dict:
     return {"range_edges_m": list(ERROR_RANGE_EDGES_M), "rms_crop_px": np.round(table, 4).tolist()}
 
 
-def fusion_grid(err_model: dict | None, prior_models: dict[str, dict | None]) -> list[tuple]:
+def fusion_grid(
+    err_model: dict | None, prior_models: dict[str, dict | None], crop_scale: float = 1.0
+) -> list[tuple]:
     """(attitude prior, keypoint sigma, prior sigma, keypoint error model, prior error model) to
     score, for the priors named in `prior_models` (its value None: that source has no error
     model, a model without the head). The direct prior as 0.5.0 chose it (with and without the
     keypoint error model); each prior with its prior error model and the keypoint error model,
-    which won in 0.5.0; the head also without its prior error model; PnP alone."""
-    sig = [(p, d) for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None]
+    which won in 0.5.0; the head also without its prior error model; PnP alone. `crop_scale`:
+    the model's crop over FUSION_REF_CROP_PX (a 192 px crop reads the fixture over 1.5x the
+    pixels, so its keypoint sigmas are 1.5x)."""
+    sig = [(p * crop_scale, d) for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None]
     models = [None] if err_model is None else [None, err_model]
     grid = [("direct", p, d, m, None) for m in models for p, d in sig] if "direct" in prior_models else []
     for source, pem in prior_models.items():
@@ -161,7 +166,11 @@ def score_grid(
     est, rows: list[dict], progress: bool, err_model: dict | None = None, prior_models: dict | None = None
 ) -> list[dict]:
     out = []
-    grid = fusion_grid(err_model, {"direct": None} if prior_models is None else prior_models)
+    grid = fusion_grid(
+        err_model,
+        {"direct": None} if prior_models is None else prior_models,
+        est.out_px / FUSION_REF_CROP_PX,
+    )
     for source, s_px, s_deg, em, pem in grid:
         fusion = {"sigma_crop_px": s_px, "sigma_prior_deg": s_deg} if s_deg is not None else {}
         if source == "head":
@@ -252,6 +261,7 @@ def main(argv: list[str] | None = None) -> int:
         json.dumps(
             {
                 "chosen_on": "validation scenes (models/scenes/val.json)",
+                "out_px": est.out_px,  # the crop the sigmas are in (kp_export checks it)
                 "frames": len(rows),
                 "stride": a.stride,
                 "mode": "single" if a.single else "track",

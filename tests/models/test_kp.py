@@ -267,6 +267,22 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     assert est_m.meta["mirror_reading"] is True and est_m.mirror is not None
     assert PoseEstimator(mirrored, warmup_runs=1, mirror=False).mirror is None  # the caller overrules
 
+    # fusion weights chosen for another crop size are refused (their sigmas are in its pixels)
+    best = json.loads((REPO / "docs/data/kp_fusion_grid_081.json").read_text())["best"]
+    fused = tmp_path / "models" / "kp_fused.onnx"
+    args = ["--config", str(CONFIG), "--out", str(fused), "--fusion"]
+    for doc, ok in (
+        ({"best": best}, False),
+        ({"best": best, "out_px": 128}, False),
+        ({"best": best, "out_px": 64}, True),
+    ):
+        (tmp_path / "fusion.json").write_text(json.dumps(doc))
+        rc = export_main(
+            [*args, str(tmp_path / "fusion.json"), *_smoke_overrides(tiny_dataset, kp_sets, run)]
+        )
+        assert rc == (0 if ok else 2) and fused.is_file() == ok
+    assert PoseEstimator(fused, warmup_runs=0).meta["fusion"]["sigma_crop_px"] == best["sigma_crop_px"]
+
     # bad input: never a confident wrong pose
     black = np.zeros((480, 744, 3), np.uint8)
     e = est.estimate(black)
@@ -425,6 +441,10 @@ def test_the_fusion_grid_scores_the_priors_asked_for():
         g[0] for g in no_head_model
     }
     assert {g[0] for g in fusion_grid(em, {"head": pem})} == {"head", None}
+    # a 192 px crop reads the fixture over 1.5x the pixels: its keypoint sigmas are 1.5x
+    at128 = {g[1] for g in fusion_grid(em, {"head": pem}) if g[1] is not None}
+    at192 = {g[1] for g in fusion_grid(em, {"head": pem}, crop_scale=1.5) if g[1] is not None}
+    assert at128 == set(SIGMA_CROP_PX) and at192 == {1.5 * p for p in SIGMA_CROP_PX}
 
 
 def test_the_error_model_is_each_keypoints_rms_per_range_bin():
