@@ -37,3 +37,15 @@ fault-matrix: firmware-host gen ## HIL fault matrix: every fault in every phase,
 
 soak: firmware-host gen ## soak: the mission looped for SOAK_S (3600) simulated s, memory and deadlines (SOAK_NAV=cnn: CNN in the loop); docs/reliability.md
 	@$(RIG_PY).soak --sim-s $(SOAK_S) --nav $(SOAK_NAV) --doc $(ROOT)/docs/reliability.md
+
+# Issue 15: choosing between pose models in the closed loop. The demo's mission on validation
+# scenes' looks, several runs per look (start ranges x start turns), paired against the first
+# model, mean +- standard error; every run cached under build/looks (an interrupted study resumes).
+#   make looks LOOKS_MODELS="models/oibarnet.onnx runs/cand/oibarnet.onnx"
+LOOKS_MODELS ?= models/oibarnet.onnx
+LOOKS_ARGS   ?= --starts 10,9 --turns 2:-1.5,-2:1.5 --jobs 1
+
+.PHONY: looks
+
+looks: firmware-host gen ## closed loop on 10 validation looks x starts x turns per model (LOOKS_MODELS), paired error bars; build/looks/
+	@$(RIG_PY).looks $(foreach m,$(LOOKS_MODELS),--model $(m)) $(LOOKS_ARGS) --json $(BUILD)/looks/summary.json --plot $(BUILD)/looks/looks.png
