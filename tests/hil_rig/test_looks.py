@@ -155,3 +155,16 @@ def test_the_rig_command_line_takes_the_studys_start_seed_and_turn(tmp_path, mon
     assert sc.start.range_m == 9.0 and sc.seed == 7 and tuple(sc.start.misalignment_deg) == (-2.0, 1.5)
     got = looks.result_from_json(key, json.loads((tmp_path / "r.json").read_text()))
     assert got.capture_lateral_m == pytest.approx(0.002)
+
+
+def test_the_cache_follows_the_flight_code(tmp_path):
+    """Runs are cached per flight-code version: an edit to the host's or the rig's code (a filter
+    default, say) gives another code tag, an edit to the study itself does not."""
+    for rel in ("host/oibar/nav/filter.py", "hil/oibar_hil/rig/runner.py", "hil/oibar_hil/rig/looks.py"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text("x = 1\n")
+    first = looks.code_tag(tmp_path)
+    (tmp_path / "hil/oibar_hil/rig/looks.py").write_text("x = 2\n")
+    assert looks.code_tag(tmp_path) == first
+    (tmp_path / "host/oibar/nav/filter.py").write_text("x = 2\n")
+    assert looks.code_tag(tmp_path) != first

@@ -11,8 +11,9 @@ from 10 m and 5.3 cm from 9 m for the same model). A choice between models needs
 per look and the difference measured *paired* (the same look, start, seed and turn for both).
 
 Each run is ``python -m oibar_hil.rig.cli --nav cnn --scene SPEC:LOOK demo`` with the start range,
-seed and start turn (pitch:yaw, degrees) given; its metrics JSON under ``--out`` is the cache: a
-run already there is not run again, so an interrupted study resumes where it stopped and a new
+seed and start turn (pitch:yaw, degrees) given; its metrics JSON under
+``--out/code-<hash of the host's and rig's sources>/<model>-<hash>/`` is the cache: a run already
+there is not run again, so an interrupted study resumes where it stopped and a new
 model is compared against the old ones' runs for free. ``--model truth`` flies ground-truth
 navigation (the floor: what the rig adds without the camera).
 
@@ -82,6 +83,20 @@ def model_tag(path: str) -> str:
         raise FileNotFoundError(f"model {path}: no such file")
     h = hashlib.sha256(p.read_bytes()).hexdigest()[:10]
     return f"{p.stem}-{h}"
+
+
+def code_tag(root: Path = REPO_ROOT) -> str:
+    """The flight code's version for the cache: a hash of the host's and the rig's Python
+    sources (this study's own module excluded). A run is deterministic for a model file *and*
+    this code: a change to the filter's defaults, say, flies every run again."""
+    h = hashlib.sha256()
+    for base in (root / "host" / "oibar", root / "hil" / "oibar_hil"):
+        for f in sorted(base.rglob("*.py")):
+            if f.name == "looks.py" and f.parent.name == "rig":
+                continue
+            h.update(str(f.relative_to(root)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:10]
 
 
 def parse_turns(text: str) -> list[tuple[float, float]]:
@@ -350,7 +365,9 @@ def main(argv: list[str] | None = None) -> int:
     keys = [
         RunKey(t, lk, r, s, tn) for s in seeds for tn in turns for r in starts for lk in looks for t in tags
     ]
-    results = run_study(keys, paths, args.spec, args.out, args.jobs, progress=not args.no_progress)
+    # runs are cached per flight-code version: another filter default flies everything again
+    out = args.out / f"code-{code_tag()}"
+    results = run_study(keys, paths, args.spec, out, args.jobs, progress=not args.no_progress)
     summary = summarise(results, tags)
     print_table(summary, labels)
     if args.json:
