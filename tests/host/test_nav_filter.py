@@ -374,3 +374,31 @@ def test_without_odometry_the_filter_is_unchanged():
 def test_bad_odometry_parameters_are_refused(bad):
     with pytest.raises(ValueError, match=f"FilterParams.{next(iter(bad))}"):
         FilterParams(**bad)
+
+
+def test_a_position_random_walk_lets_a_far_range_bias_fade():
+    """The camera's lateral error is range x the attitude error of its view: a bias that shrinks
+    as the vehicle closes in. With the odometry pinning the velocity and no random walk, the
+    position block averages every measurement since the start and keeps the far-range bias; a
+    random walk (pos_rw_psd_m2_s) gives it a finite memory (docs/navigation.md)."""
+
+    def fly(params):
+        f, rng = NavFilter(params), np.random.default_rng(3)
+        lateral_err = []
+        for k in range(600):  # 60 s, from 8 m closing at 0.1 m/s
+            t = k * DT_S
+            r = np.array([0.0, 0.0, 8.0 - 0.1 * t])
+            bias = 0.01 * r[2]  # 1 cm per metre of range: ~0.6 deg of view attitude error
+            r_meas = r + np.array([bias, 0.0, 0.0]) + rng.normal(0.0, 0.002, 3)
+            f.update(t, *camera_pose_from_docking(r_meas, np.zeros(3)))
+            f.update_velocity(t, np.array([0.0, 0.0, -0.1]), 0.001)
+            if r[2] < 3.0:
+                lateral_err.append(f.state(t).r_D_m[0] - r[0] - 0.01 * r[2])  # beyond the bias of now
+        return float(np.mean(lateral_err))
+
+    stale = fly(FilterParams())
+    fresh = fly(FilterParams(pos_rw_psd_m2_s=1e-4))
+    assert stale > 0.01, stale  # centimetres of bias carried from far away
+    assert abs(fresh) < 0.4 * stale, (fresh, stale)
+    with pytest.raises(ValueError, match="pos_rw_psd_m2_s"):
+        FilterParams(pos_rw_psd_m2_s=-1e-5)

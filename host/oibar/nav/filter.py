@@ -69,6 +69,13 @@ class FilterParams:
     # closing speed on a training sequence (seq02) without lagging the schedule's steps.
     accel_psd_m2_s3: float = 1e-4  # sqrt(q * 1 s) = 1 cm/s of velocity random walk per second
     ang_accel_psd_rad2_s3: float = 1e-5  # about 0.2 deg/s per second
+    # Position random walk (m^2/s) on the probe tip, beside the white acceleration. With the
+    # vehicle's odometry pinning the velocity, the position block otherwise averages every
+    # measurement since the start, and the camera's error is not white: it is range x the
+    # attitude error of the fixture's view, a bias that shrinks as the range does. A random walk
+    # gives the average a finite memory, so far-range bias fades as the vehicle closes in.
+    # 0: no random walk.
+    pos_rw_psd_m2_s: float = 0.0
     # At first sight the rates are unknown: sigmas spanning what the approach can do
     # (closing speed <= 0.15 m/s, attitude rates well below 1 deg/s).
     init_vel_sigma_mps: float = 0.1
@@ -103,6 +110,10 @@ class FilterParams:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"FilterParams.{name} must be a finite positive number, got {v!r}")
+        if not (np.isfinite(self.pos_rw_psd_m2_s) and self.pos_rw_psd_m2_s >= 0):
+            raise ValueError(
+                f"FilterParams.pos_rw_psd_m2_s must be finite and >= 0, got {self.pos_rw_psd_m2_s!r}"
+            )
         for name in ("reinit_after", "vel_reset_after"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
@@ -271,6 +282,8 @@ class NavFilter:
         if self._pos is not None and self._att is not None and self._t_s is not None and t_s > self._t_s:
             dt = t_s - self._t_s
             self._pos = self._pos.predicted(dt, self.params.accel_psd_m2_s3)
+            if self.params.pos_rw_psd_m2_s > 0:
+                self._pos.P[:3, :3] += self.params.pos_rw_psd_m2_s * dt * np.eye(3)
             self._att = self._att.predicted(dt, self.params.ang_accel_psd_rad2_s3)
         self._t_s = t_s
 
