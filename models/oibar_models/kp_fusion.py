@@ -29,6 +29,7 @@ from PIL import Image
 
 from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
 from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
+from oibar.nav.pose import CROP_REF_PX
 
 from . import metrics
 from .config import REPO_ROOT
@@ -36,7 +37,9 @@ from .data import load_sequence
 from .scenes import load_set
 
 SIGMA_CROP_PX = (0.5, 1.0, 2.0)  # at a 128 px crop; scaled with the model's crop (fusion_grid)
-FUSION_REF_CROP_PX = 128  # the crop every grid before 2026-11-25 was run at (JSONs without out_px)
+# the crop every grid before out_px was recorded was run at (a JSON without out_px); the same
+# reference the estimator holds its crop-pixel thresholds to
+FUSION_REF_CROP_PX = CROP_REF_PX
 SIGMA_PRIOR_DEG = (1.0, 2.0, 3.0, 5.0, 8.0, None)  # None: PnP alone
 ERROR_RANGE_EDGES_M = (0.0, 1.0, 1.5, 2.0, 3.0, 5.0, 8.0, 100.0)
 MIN_RMS_CROP_PX = 0.1  # a floor: no keypoint is trusted beyond the heat map's resolution
