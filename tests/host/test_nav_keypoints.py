@@ -746,3 +746,39 @@ def test_only_the_refining_pass_reads_the_mirror():
     est = _bare_estimator(R, T, noise_px=3.0)  # nothing strong: no refining pass, no mirror
     r, _ = est.solve(image, R, T)
     assert r is not None and len(est.mirrored) == 11 and not any(est.mirrored)
+
+
+@pytest.mark.parametrize("out_px", [128, 192])
+def test_a_keypoint_with_a_broad_heat_map_is_not_there(out_px):
+    """On the fixture every heat map is ~5.7 px wide (in 128 px crop terms); a crop of the station's
+    structure gives broad ones that PnP can still fit (va012's cold start: six keypoints spread
+    8.5-25 px, a 0.42 m answer for a 10 m fixture at confidence 0.94). Keypoints broader than
+    MAX_SPREAD_CROP_PX (scaled with the crop) are dropped like absent ones; with too few left
+    there is no fit to be confident about."""
+    from oibar.nav.pose import MAX_SPREAD_CROP_PX, KeypointPoseEstimator
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 4.0))
+    truth = project(K, POINTS, R, T)
+    win = window_around(truth, out_px, 1.25)
+    scale = out_px / 128
+    n = len(POINTS)
+    spread = np.full(n, 5.7 * scale)
+    spread[:8] = (MAX_SPREAD_CROP_PX + 1.0) * scale  # eight broad: five tight ones remain
+
+    est = object.__new__(KeypointPoseEstimator)
+    est.path, est.points_m, est.out_px, est.min_present, est.K_frame = "test.onnx", POINTS, out_px, 0.5, K
+    est.meta, est.R_att_ref, est.mirror = {}, None, None
+
+    def run(x):
+        return {
+            "kp_crop_px": win.to_crop(truth)[None].astype(np.float32),
+            "kp_present": np.ones((1, n), np.float32),
+            "kp_spread_px": spread[None].astype(np.float32),
+        }
+
+    est.run = run
+    image = np.zeros((480, 744, 3), np.uint8)
+    r = est.read_crop(image, win)
+    assert np.all(np.isnan(r.uv_px[:8])) and np.allclose(r.uv_px[8:], truth[8:], atol=1e-3)
+    spread[:8] = (MAX_SPREAD_CROP_PX - 0.5) * scale  # tight enough: all kept
+    assert np.all(np.isfinite(est.read_crop(image, win).uv_px))

@@ -476,6 +476,14 @@ def fit_rms_crop_px(r: PnpResult, win: CropWindow) -> float:
 # readings disagree by more than this is not there.
 MIRROR_AGREE_CROP_PX = 2.0
 
+# A keypoint is where its heat map is tight. On the fixture the spread (the heat map's width,
+# CROP_REF_PX terms) is 5.7 px (median; max 6.8 for 0.8.1 and 7.4 for 0.11.0 over 15 500 keypoints
+# in windows cut around the true pose on every validation scene, every 9th frame). A crop of the
+# station's structure can still give a few keypoints that PnP fits within STRONG_FIT_RMS_CROP_PX:
+# on va012's cold start (the first pass takes the 10 m fixture for a 0.45 m one) 0.11.0's fit of
+# six keypoints spread 8.5-25 px answered 0.42 m at confidence 0.94. Broader than this: not there.
+MAX_SPREAD_CROP_PX = 9.0
+
 ATTITUDE_PRIORS = ("direct", "head")  # oibar.fusion.attitude_prior: whose attitude the fit leans on
 # The prior-free fit is handed to the filter only while it stays near the fused one: beyond these
 # it is a gross PnP failure (a far frame's mirrored pose), not the prior's bias, which is ~0.5-2
@@ -655,7 +663,7 @@ class KeypointPoseEstimator(PoseEstimator):
         present = out["kp_present"]
         spread = out["kp_spread_px"] if "kp_spread_px" in out else np.zeros(len(kp))
         uv = win.to_frame(kp)
-        uv[present < self.min_present] = np.nan
+        uv[(present < self.min_present) | (spread > MAX_SPREAD_CROP_PX * self.out_px / CROP_REF_PX)] = np.nan
         R_head = None
         if self.R_att_ref is not None:
             att = out[self.meta["attitude_head"]["output"]]
@@ -773,7 +781,7 @@ class KeypointPoseEstimator(PoseEstimator):
         self, image: np.ndarray, base: CropWindow, wide: bool = False
     ) -> list[tuple[CropWindow, float]]:
         """ZOOM_STEPS' windows (and WIDE_STEPS' with `wide`) read in one batch; the ZOOM_TRY
-        that look most like the fixture (mean presence x exp(-mean spread / 4 crop px)) with
+        that look most like the fixture (mean presence x exp(-mean spread / 4 px, CROP_REF_PX terms)) with
         their size factors, best first."""
         wins = [
             (
@@ -794,7 +802,7 @@ class KeypointPoseEstimator(PoseEstimator):
         spread = (
             out["kp_spread_px"].astype(float).mean(axis=1) if "kp_spread_px" in out else np.zeros(len(wins))
         )
-        score = present * np.exp(-spread / 4.0)
+        score = present * np.exp(-spread * CROP_REF_PX / self.out_px / 4.0)
         return [wins[i] for i in np.argsort(-score)[:ZOOM_TRY]]
 
     def _K(self) -> np.ndarray:
