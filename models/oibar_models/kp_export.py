@@ -4,7 +4,7 @@ PnP thresholds, the camera, the first-pass model to use beside it, the training 
 validation figures. Parity against PyTorch is checked before the file is written.
 
 python -m oibar_models.kp_export --config models/configs/keypoints/oibarnet_kp.yaml [--checkpoint best|last]
-    [--fusion FUSION.json] [--mirror-reading]
+    [--fusion FUSION.json] [--mirror-reading] [--filter-measurement prior_free|fused]
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import torch
 
 from oibar.geometry.camera import PinholeCamera
 from oibar.geometry.docking import R_cam_target_aligned
+from oibar.nav.pose import FILTER_MEASUREMENTS
 
 from . import __version__
 from .config import ConfigError, parse_override
@@ -50,6 +51,7 @@ def metadata_for(
     train_range_m: tuple[float, float],
     fusion: dict | None = None,
     mirror_reading: bool = False,
+    filter_measurement: str = "prior_free",
 ) -> dict:
     K = _CAM.K.tolist()
     n = cfg.model.out_px
@@ -80,6 +82,8 @@ def metadata_for(
         **({"fusion": fusion} if fusion else {}),
         # the refining pass reads each crop with its mirror image (KeypointPoseEstimator.read_crop)
         "mirror_reading": bool(mirror_reading),
+        # what the navigation filter is fed (oibar.nav.pose.FILTER_MEASUREMENTS)
+        "filter_measurement": filter_measurement,
     }
 
 
@@ -104,6 +108,7 @@ def export_onnx(
     train_range_m,
     fusion: dict | None = None,
     mirror_reading: bool = False,
+    filter_measurement: str = "prior_free",
 ) -> Path:
     import onnx
 
@@ -132,7 +137,9 @@ def export_onnx(
             dynamo=False,
         )
     m = onnx.load(str(tmp))
-    for k, v in metadata_for(cfg, ck, first_pass, train_range_m, fusion, mirror_reading).items():
+    for k, v in metadata_for(
+        cfg, ck, first_pass, train_range_m, fusion, mirror_reading, filter_measurement
+    ).items():
         p = m.metadata_props.add()
         p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
     m.producer_name = "oibar_models.kp_export"
@@ -176,6 +183,13 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="the refining pass averages each crop's reading with its mirror image's (chosen on the closed loop)",
     )
+    ap.add_argument(
+        "--filter-measurement",
+        choices=FILTER_MEASUREMENTS,
+        default="prior_free",
+        help="what the navigation filter is fed: the keypoints' PnP alone, or the fused pose "
+        "(chosen on the closed loop)",
+    )
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
     try:
@@ -218,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
                 fusion["attitude_prior"] = best["attitude_prior"]
             if best.get("prior_error_model"):
                 fusion["prior_error_model"] = best["prior_error_model"]
-    export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0), fusion, a.mirror_reading)
+    export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0), fusion, a.mirror_reading, a.filter_measurement)
     print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0
 

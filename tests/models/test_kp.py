@@ -513,6 +513,7 @@ def test_the_error_model_is_each_keypoints_rms_per_range_bin():
             ),
             "prior_error_model is malformed",
         ),
+        (lambda meta: meta.update(filter_measurement="both"), "filter_measurement must be one of"),
     ],
 )
 def test_a_model_whose_attitude_prior_cannot_work_is_refused_when_it_opens(tmp_path, edit, match):
@@ -706,3 +707,42 @@ def test_two_exports_of_one_network_get_their_own_labels_in_the_evaluation():
     assert labels == ["oibarnet 0.8.1 (g8)", "oibarnet 0.8.1 (g100)", "oibarnet_lite 0.3.0"]
     same_folder = [Path("x/m/oibarnet.onnx"), Path("y/m/oibarnet.onnx")]
     assert len(set(model_labels(same_folder, [v, v]))) == 2
+
+
+@pytest.mark.parametrize("setting", [None, "prior_free", "fused"])
+def test_the_export_says_what_the_navigation_filter_is_fed(tmp_path, monkeypatch, setting):
+    """`oibar.filter_measurement` (kp_export --filter-measurement, chosen per network on the closed
+    loop): the filter is fed the keypoints' PnP alone ("prior_free", also when an older export
+    does not say) or the fused pose itself ("fused": a network whose attitude head beats PnP
+    alone at range)."""
+    import onnx
+
+    from oibar.nav.keypoints import CropWindow, PnpResult
+    from oibar.nav.pose import PoseEstimator
+
+    m = onnx.load(str(REPO / "models/oibarnet.onnx"))
+    for p in list(m.metadata_props):
+        if p.key == "oibar.filter_measurement":
+            m.metadata_props.remove(p)
+    if setting is not None:
+        p = m.metadata_props.add()
+        p.key, p.value = "oibar.filter_measurement", json.dumps(setting)
+    out = tmp_path / "oibarnet.onnx"
+    onnx.save(m, str(out))
+    (tmp_path / "oibarnet_lite.onnx").symlink_to(REPO / "models/oibarnet_lite.onnx")
+    est = PoseEstimator(out, warmup_runs=0)
+    frame = np.random.default_rng(0).integers(0, 255, (480, 744, 3), dtype=np.uint8)
+    direct = est.first.estimate(frame)
+    R, T = direct.R_cam_target, direct.T_cam_target_m
+    T_alone = T * 1.02  # PnP alone: 2 % off the fused pose, well inside MEAS_MAX_POS_DEV_FRACTION
+    win = CropWindow((372.0, 240.0), 64.0, 128)
+
+    def solve(image, R_, T_, fusion=None, prior=None):
+        alone = PnpResult(True, R, T_alone, np.arange(14), 0.1)
+        return PnpResult(True, R, T, np.arange(14), 0.5 / win.scale, no_prior=alone), win
+
+    monkeypatch.setattr(est, "solve", solve)
+    e = est.estimate(frame, 1.0)
+    T_fed, _ = e.measurement()
+    np.testing.assert_allclose(e.T_cam_target_m, T)
+    np.testing.assert_allclose(T_fed, T if setting == "fused" else T_alone)

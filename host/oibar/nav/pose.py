@@ -490,6 +490,10 @@ ATTITUDE_PRIORS = ("direct", "head")  # oibar.fusion.attitude_prior: whose attit
 # deg and ~1 % of the range on the validation scenes.
 MEAS_MAX_ATT_DEV_DEG = 10.0
 MEAS_MAX_POS_DEV_FRACTION = 0.10
+# What the filter is fed (``oibar.filter_measurement``, chosen per network on the closed loop):
+# "prior_free" (the default, 0.8.1: its attitude head pulls every frame's tilt toward aligned
+# alike) or "fused" (the pose itself: a network whose head is better than PnP alone at range).
+FILTER_MEASUREMENTS = ("prior_free", "fused")
 
 
 def measurement_without_prior(
@@ -592,6 +596,12 @@ class KeypointPoseEstimator(PoseEstimator):
                 f"{self.path}: the mirror reading needs a left-right symmetric keypoint set and "
                 "attitude-head reference (oibar.keypoints_3d_m, oibar.attitude_head.R_ref); this "
                 "model has not: export it without --mirror-reading"
+            )
+        self.filter_measurement = self.meta.get("filter_measurement", "prior_free")
+        if self.filter_measurement not in FILTER_MEASUREMENTS:
+            raise ModelFileError(
+                f"{self.path}: oibar.filter_measurement must be one of {FILTER_MEASUREMENTS}, "
+                f"got {self.filter_measurement!r}"
             )
         if (self.meta.get("fusion") or {}).get("attitude_prior", "direct") not in ATTITUDE_PRIORS:
             raise ModelFileError(
@@ -938,7 +948,9 @@ class KeypointPoseEstimator(PoseEstimator):
         if strong:
             self.fit_history.add(t_s, T, R)
         q = matrix_to_quat(R)
-        T_meas, R_meas = measurement_without_prior(r, T, R)
+        T_meas, R_meas = (
+            measurement_without_prior(r, T, R) if self.filter_measurement == "prior_free" else (None, None)
+        )
         return PoseEstimate(
             T_cam_target_m=T,
             q_cam_target=q,
