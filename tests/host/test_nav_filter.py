@@ -211,6 +211,23 @@ def test_measurement_noise_grows_with_range_and_depth_is_noisiest():
     assert np.sqrt(tiny[2, 2]) >= f.params.pos_sigma_floor_m
 
 
+def test_attitude_noise_can_grow_with_range():
+    """att_sigma_per_m_deg adds range x that to the attitude noise (in quadrature): far views,
+    whose tilt PnP observes poorly, weigh less, in the attitude and in the tip they move. Off by
+    default; negative or non-finite values are refused."""
+    aligned = np.eye(3)
+    flat, grows = NavFilter(), NavFilter(FilterParams(att_sigma_per_m_deg=0.5))
+    for range_m in (1.0, 8.0):
+        T = np.array([0.0, 0.0, range_m])
+        p_flat, a_flat = flat.measurement_noise(T, aligned, 1.0)
+        p_grow, a_grow = grows.measurement_noise(T, aligned, 1.0)
+        np.testing.assert_allclose(np.degrees(np.sqrt(np.diag(a_flat))), 1.5)
+        np.testing.assert_allclose(np.degrees(np.sqrt(np.diag(a_grow))), np.hypot(1.5, 0.5 * range_m))
+        assert p_grow[0, 0] > p_flat[0, 0]
+    with pytest.raises(ValueError, match="att_sigma_per_m_deg"):
+        FilterParams(att_sigma_per_m_deg=-0.1)
+
+
 def test_attitude_noise_reaches_the_probe_tip_as_the_model_says():
     """Monte Carlo: attitude-only noise on (T, R), pushed through docking_from_camera_pose,
     gives the probe-tip covariance the filter assumes (it grows with range: lateral)."""

@@ -63,6 +63,11 @@ class FilterParams:
     # It also moves the probe tip in D by (attitude error) x (target-to-tip distance): the camera
     # sees the target's bearing, and the attitude turns that into where the probe is.
     att_sigma_deg: float = 1.5
+    # Attitude noise that grows with the camera's range (deg per metre, added in quadrature):
+    # PnP's tilt of a near-planar fixture is poorly observed far out (candidate 0.11.0's far
+    # views tilted 3-6 deg beyond 6 m on va007's look while 0.3 deg at 2-4 m). 0 (off) until
+    # flown on the looks study.
+    att_sigma_per_m_deg: float = 0.0
     # Process noise: white acceleration. Docking thrust changes the relative velocity by
     # centimetres per second over seconds (closing-speed schedule 150/80/40/30 mm/s); the
     # attitude controller by tenths of deg/s. 1e-4 was the best of 1e-5/1e-4/1e-3 for the
@@ -114,6 +119,10 @@ class FilterParams:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"FilterParams.{name} must be a finite positive number, got {v!r}")
+        if not (np.isfinite(self.att_sigma_per_m_deg) and self.att_sigma_per_m_deg >= 0):
+            raise ValueError(
+                f"FilterParams.att_sigma_per_m_deg must be finite and >= 0, got {self.att_sigma_per_m_deg!r}"
+            )
         if not (np.isfinite(self.pos_rw_psd_m2_s) and self.pos_rw_psd_m2_s >= 0):
             raise ValueError(
                 f"FilterParams.pos_rw_psd_m2_s must be finite and >= 0, got {self.pos_rw_psd_m2_s!r}"
@@ -320,7 +329,7 @@ class NavFilter:
             np.array([p.pos_sigma_lateral_frac, p.pos_sigma_lateral_frac, p.pos_sigma_depth_frac])
             * cam_range_m
         )
-        att_var_rad2 = np.radians(p.att_sigma_deg) ** 2
+        att_var_rad2 = np.radians(p.att_sigma_deg) ** 2 + np.radians(p.att_sigma_per_m_deg * cam_range_m) ** 2
         u = self._cam_to_tip_cam_m - T
         J = R_D_cam @ np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
         R_pos = (
