@@ -65,8 +65,9 @@ class FilterParams:
     att_sigma_deg: float = 1.5
     # Attitude noise that grows with the camera's range (deg per metre, added in quadrature):
     # PnP's tilt of a near-planar fixture is poorly observed far out (candidate 0.11.0's far
-    # views tilted 3-6 deg beyond 6 m on va007's look while 0.3 deg at 2-4 m). 0 (off) until
-    # flown on the looks study.
+    # views tilted 3-6 deg beyond 6 m on va007's look while 0.3 deg at 2-4 m). Off (0): 0.5
+    # deg/m was better on the 20 looks-study runs it was tried on (-0.33 cm paired) but tied on
+    # 20 unflown ones (+0.04 cm; docs/navigation.md).
     att_sigma_per_m_deg: float = 0.0
     # Process noise: white acceleration. Docking thrust changes the relative velocity by
     # centimetres per second over seconds (closing-speed schedule 150/80/40/30 mm/s); the
