@@ -49,3 +49,16 @@ LOOKS_ARGS   ?= --starts 10,9 --turns 2:-1.5,-2:1.5 --jobs 1
 
 looks: firmware-host gen ## closed loop on 10 validation looks x starts x turns per model (LOOKS_MODELS), paired error bars; build/looks/
 	@$(RIG_PY).looks $(foreach m,$(LOOKS_MODELS),--model $(m)) $(LOOKS_ARGS) --json $(BUILD)/looks/summary.json --plot $(BUILD)/looks/looks.png
+
+# Issue 15: does the estimate follow what guidance needs? Single frames with the probe tip moved
+# sideways and the vehicle turned, at 3, 1 and 0.5 m, on every validation scene; slopes +- their
+# standard errors, split into bearing and view (hil/oibar_hil/rig/probe.py).
+#   make probe PROBE_SCENES=seq01      a test scene: to report a shipped model, never to tune on
+PROBE_MODEL  ?= models/oibarnet.onnx
+PROBE_SCENES ?= val
+
+.PHONY: probe
+
+probe: gen ## response probe: does the estimate follow offsets and turns at 3/1/0.5 m? validation scenes; build/probe/
+	@$(RIG_PY).probe --model $(PROBE_MODEL) --scenes $(PROBE_SCENES) --md $(BUILD)/probe/probe.md \
+	  --json $(BUILD)/probe/probe.json --plot $(BUILD)/probe/probe.png
