@@ -159,12 +159,25 @@ def test_the_rig_command_line_takes_the_studys_start_seed_and_turn(tmp_path, mon
 
 def test_the_cache_follows_the_flight_code(tmp_path):
     """Runs are cached per flight-code version: an edit to the host's or the rig's code (a filter
-    default, say) gives another code tag, an edit to the study itself does not."""
-    for rel in ("host/oibar/nav/filter.py", "hil/oibar_hil/rig/runner.py", "hil/oibar_hil/rig/looks.py"):
+    default, say) or to the firmware the simulated MCU is built from gives another code tag; an
+    edit to the study itself, or to the probe, does not."""
+    rels = (
+        "host/oibar/nav/filter.py",
+        "hil/oibar_hil/rig/runner.py",
+        "hil/oibar_hil/rig/looks.py",
+        "hil/oibar_hil/rig/probe.py",
+        "firmware/app/latch.c",
+        "proto/oibar.proto",
+    )
+    for rel in rels:
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_text("x = 1\n")
-    first = looks.code_tag(tmp_path)
-    (tmp_path / "hil/oibar_hil/rig/looks.py").write_text("x = 2\n")
-    assert looks.code_tag(tmp_path) == first
-    (tmp_path / "host/oibar/nav/filter.py").write_text("x = 2\n")
-    assert looks.code_tag(tmp_path) != first
+    tags = {looks.code_tag(tmp_path)}
+    for rel in ("hil/oibar_hil/rig/looks.py", "hil/oibar_hil/rig/probe.py"):
+        (tmp_path / rel).write_text("x = 2\n")
+        assert looks.code_tag(tmp_path) in tags, rel
+    for rel in ("host/oibar/nav/filter.py", "firmware/app/latch.c", "proto/oibar.proto"):
+        (tmp_path / rel).write_text("x = 2\n")
+        tag = looks.code_tag(tmp_path)
+        assert tag not in tags, rel
+        tags.add(tag)

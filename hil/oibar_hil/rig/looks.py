@@ -12,7 +12,7 @@ per look and the difference measured *paired* (the same look, start, seed and tu
 
 Each run is ``python -m oibar_hil.rig.cli --nav cnn --scene SPEC:LOOK demo`` with the start range,
 seed and start turn (pitch:yaw, degrees) given; its metrics JSON under
-``--out/code-<hash of the host's and rig's sources>/<model>-<hash>/`` is the cache: a run already
+``--out/code-<hash of the host's, rig's and firmware's sources>/<model>-<hash>/`` is the cache: a run already
 there is not run again, so an interrupted study resumes where it stopped and a new
 model is compared against the old ones' runs for free. ``--model truth`` flies ground-truth
 navigation (the floor: what the rig adds without the camera).
@@ -87,15 +87,24 @@ def model_tag(path: str) -> str:
 
 def code_tag(root: Path = REPO_ROOT) -> str:
     """The flight code's version for the cache: a hash of the host's and the rig's Python
-    sources (this study's own module excluded). A run is deterministic for a model file *and*
-    this code: a change to the filter's defaults, say, flies every run again."""
+    sources (this study's own module and the probe excluded), the firmware's sources (the
+    simulated MCU every run flies is built from them) and the link's protocol. A run is
+    deterministic for a model file *and* this code: a change to the filter's defaults, or to
+    the latch's timeouts, flies every run again."""
     h = hashlib.sha256()
+    files: list[Path] = []
     for base in (root / "host" / "oibar", root / "hil" / "oibar_hil"):
-        for f in sorted(base.rglob("*.py")):
-            if f.name == "looks.py" and f.parent.name == "rig":
-                continue
-            h.update(str(f.relative_to(root)).encode())
-            h.update(f.read_bytes())
+        files += [
+            f
+            for f in sorted(base.rglob("*.py"))
+            if not (f.parent.name == "rig" and f.name in ("looks.py", "probe.py"))
+        ]
+    for pattern in ("*.c", "*.h", "CMakeLists.txt", "*.cmake"):
+        files += sorted((root / "firmware").rglob(pattern))
+    files += sorted((root / "proto").glob("*"))
+    for f in files:
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
     return h.hexdigest()[:10]
 
 
