@@ -4,7 +4,13 @@ PnP thresholds, the camera, the first-pass model to use beside it, the training 
 validation figures. Parity against PyTorch is checked before the file is written.
 
 python -m oibar_models.kp_export --config models/configs/keypoints/oibarnet_kp.yaml [--checkpoint best|last]
-    [--fusion FUSION.json] [--mirror-reading] [--filter-measurement prior_free|fused]
+    [--fusion FUSION.json] [--mirror-reading] [--turned-reading-deg DEG] [--filter-measurement prior_free|fused]
+
+The flight reading options (how the refining pass reads its window, what the filter is fed) are
+chosen on the closed loop after training; `--retag` sets them on an existing export, the network
+untouched, without its checkpoint:
+
+python -m oibar_models.kp_export --retag models/oibarnet.onnx --turned-reading-deg 8 [--out OUT.onnx]
 """
 
 from __future__ import annotations
@@ -52,6 +58,7 @@ def metadata_for(
     fusion: dict | None = None,
     mirror_reading: bool = False,
     filter_measurement: str = "prior_free",
+    turned_reading_deg: float = 0.0,
 ) -> dict:
     K = _CAM.K.tolist()
     n = cfg.model.out_px
@@ -84,6 +91,8 @@ def metadata_for(
         "mirror_reading": bool(mirror_reading),
         # what the navigation filter is fed (oibar.nav.pose.FILTER_MEASUREMENTS)
         "filter_measurement": filter_measurement,
+        # the refining pass also reads its window turned by +- this many degrees (read_crop)
+        "turned_reading_deg": float(turned_reading_deg),
     }
 
 
@@ -109,6 +118,7 @@ def export_onnx(
     fusion: dict | None = None,
     mirror_reading: bool = False,
     filter_measurement: str = "prior_free",
+    turned_reading_deg: float = 0.0,
 ) -> Path:
     import onnx
 
@@ -138,7 +148,7 @@ def export_onnx(
         )
     m = onnx.load(str(tmp))
     for k, v in metadata_for(
-        cfg, ck, first_pass, train_range_m, fusion, mirror_reading, filter_measurement
+        cfg, ck, first_pass, train_range_m, fusion, mirror_reading, filter_measurement, turned_reading_deg
     ).items():
         p = m.metadata_props.add()
         p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
@@ -160,11 +170,55 @@ def export_onnx(
     return out_path
 
 
+def retag(src: Path, out: Path, options: dict) -> Path:
+    """A copy of the export `src` at `out` (may be `src`) with the flight reading `options`
+    (metadata keys without the prefix: mirror_reading, turned_reading_deg, filter_measurement)
+    set; the graph untouched. Checked by opening it as the flight runtime does when its first
+    pass lies beside it. ValueError for an option that is not a reading option."""
+    import onnx
+
+    from oibar.nav.pose import KeypointPoseEstimator, read_metadata
+
+    allowed = {"mirror_reading", "turned_reading_deg", "filter_measurement"}
+    if set(options) - allowed:
+        raise ValueError(
+            f"not a reading option: {sorted(set(options) - allowed)} (allowed: {sorted(allowed)})"
+        )
+    meta = read_metadata(src)  # ModelFileError for a missing or foreign file
+    if meta.get("kind") != "keypoints":
+        raise ValueError(f"{src}: not a keypoint model export (oibar.kind = {meta.get('kind')!r})")
+    m = onnx.load(str(src))
+    props = {p.key: p.value for p in m.metadata_props}
+    for k, v in options.items():
+        props[METADATA_PREFIX + k] = json.dumps(v)
+    del m.metadata_props[:]
+    for k, v in props.items():
+        p = m.metadata_props.add()
+        p.key, p.value = k, v
+    out = Path(out)
+    tmp = out.with_suffix(".tmp.onnx")
+    onnx.save(m, str(tmp))
+    if (out.parent / meta["first_pass"]).is_file():
+        try:
+            KeypointPoseEstimator(tmp, warmup_runs=0)
+        except Exception:
+            tmp.unlink(missing_ok=True)
+            raise
+    tmp.replace(out)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m oibar_models.kp_export", description=__doc__.split("\n\n")[0]
     )
-    ap.add_argument("--config", required=True)
+    ap.add_argument("--config", default=None, help="the trained model's config (not with --retag)")
+    ap.add_argument(
+        "--retag",
+        type=Path,
+        default=None,
+        help="an existing export: set the reading options given here on it, the network untouched",
+    )
     ap.add_argument("--checkpoint", default="best", help="best | last | a path")
     ap.add_argument("--out", default=None, help="ONNX path (default: the config's export.onnx_path)")
     ap.add_argument(
@@ -181,17 +235,54 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--mirror-reading",
         action="store_true",
+        default=None,
         help="the refining pass averages each crop's reading with its mirror image's (chosen on the closed loop)",
+    )
+    ap.add_argument(
+        "--turned-reading-deg",
+        type=float,
+        default=None,
+        help="the refining pass also reads its window turned by +- this many degrees and averages "
+        "the keypoints (0: read once; chosen on validation and the closed loop)",
     )
     ap.add_argument(
         "--filter-measurement",
         choices=FILTER_MEASUREMENTS,
-        default="prior_free",
-        help="what the navigation filter is fed: the keypoints' PnP alone, or the fused pose "
-        "(chosen on the closed loop)",
+        default=None,
+        help="what the navigation filter is fed: the keypoints' PnP alone (default), or the fused "
+        "pose (chosen on the closed loop)",
     )
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
+    if a.retag is not None:
+        options = {
+            k: v
+            for k, v in (
+                ("mirror_reading", a.mirror_reading),
+                ("turned_reading_deg", a.turned_reading_deg),
+                ("filter_measurement", a.filter_measurement),
+            )
+            if v is not None
+        }
+        if a.config or a.fusion or a.overrides or not options:
+            print(
+                "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
+                "--filter-measurement) and --out only",
+                file=sys.stderr,
+            )
+            return 2
+        from oibar.nav.pose import ModelFileError
+
+        try:
+            out = retag(a.retag, Path(a.out) if a.out else a.retag, options)
+        except (ModelFileError, ValueError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        print(f"{out}: reading options set: {json.dumps(options)}")
+        return 0
+    if not a.config:
+        print("error: --config is required (or --retag an existing export)", file=sys.stderr)
+        return 2
     try:
         cfg = load_kp_config(a.config, parse_override(a.overrides))
     except ConfigError as exc:
@@ -232,7 +323,17 @@ def main(argv: list[str] | None = None) -> int:
                 fusion["attitude_prior"] = best["attitude_prior"]
             if best.get("prior_error_model"):
                 fusion["prior_error_model"] = best["prior_error_model"]
-    export_onnx(cfg, ck, out, a.first_pass, (0.25, 12.0), fusion, a.mirror_reading, a.filter_measurement)
+    export_onnx(
+        cfg,
+        ck,
+        out,
+        a.first_pass,
+        (0.25, 12.0),
+        fusion,
+        bool(a.mirror_reading),
+        a.filter_measurement or "prior_free",
+        a.turned_reading_deg or 0.0,
+    )
     print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0
 

@@ -74,7 +74,7 @@ def collect(est, seqs, stride: int, track: bool = True) -> list[dict]:
             R_true = quat_to_matrix_np(q)
             uv_true = project(est.K_frame, est.points_m, R_true, T)
             win = window_around(uv_true, est.out_px, est.margin)
-            reading = est.read_crop(img, win, mirror=True)  # as the refining pass reads it
+            reading = est.read_crop(img, win, refining=True)  # as the refining pass reads it
             err = np.linalg.norm(reading.uv_px - uv_true, axis=1) * win.scale
             direct = est.first.estimate(img)
             rows.append(

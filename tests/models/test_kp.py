@@ -746,3 +746,33 @@ def test_the_export_says_what_the_navigation_filter_is_fed(tmp_path, monkeypatch
     T_fed, _ = e.measurement()
     np.testing.assert_allclose(e.T_cam_target_m, T)
     np.testing.assert_allclose(T_fed, T if setting == "fused" else T_alone)
+
+
+def test_retag_sets_the_reading_options_of_an_export_and_leaves_the_network_alone(tmp_path):
+    """The flight reading options are chosen on the closed loop after training; `kp_export
+    --retag` sets them on an existing export (the shipped 0.8.1 has no checkpoint here). The
+    graph stays byte for byte; a value the runtime would refuse never reaches the file."""
+    import shutil
+
+    import onnx
+
+    from oibar.nav.pose import KeypointPoseEstimator, read_metadata
+    from oibar_models.kp_export import main as export_main
+
+    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
+        shutil.copy(REPO / "models" / name, tmp_path / name)
+    model = tmp_path / "oibarnet.onnx"
+    before = onnx.load(str(model)).graph.SerializeToString()
+    meta_before = read_metadata(model)
+
+    assert export_main(["--retag", str(model), "--turned-reading-deg", "8"]) == 0
+    assert onnx.load(str(model)).graph.SerializeToString() == before
+    meta = read_metadata(model)
+    assert meta["turned_reading_deg"] == 8.0
+    assert {k: v for k, v in meta.items() if k != "turned_reading_deg"} == meta_before
+    assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_deg == 8.0
+
+    assert export_main(["--retag", str(model), "--turned-reading-deg", "40"]) == 2  # refused
+    assert read_metadata(model)["turned_reading_deg"] == 8.0 and not list(tmp_path.glob("*.tmp.onnx"))
+    assert export_main(["--retag", str(tmp_path / "oibarnet_lite.onnx"), "--turned-reading-deg", "8"]) == 2
+    assert export_main(["--retag", str(model)]) == 2  # nothing to set

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -496,6 +496,11 @@ MEAS_MAX_POS_DEV_FRACTION = 0.10
 FILTER_MEASUREMENTS = ("prior_free", "fused")
 
 
+# The largest turn of the refining pass's extra readings: the network was trained on crops
+# turned up to 15 deg (kp_data.CropAugment.angle_deg); beyond, it reads crops it never saw.
+MAX_TURNED_READING_DEG = 15.0
+
+
 def measurement_without_prior(
     r: PnpResult, T: np.ndarray, R: np.ndarray
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -544,6 +549,7 @@ class KeypointPoseEstimator(PoseEstimator):
         refine_passes: int = 2,
         zoom_search: bool = True,
         mirror: bool | None = None,
+        turned_reading_deg: float | None = None,
     ):
         self.path = Path(path)
         self.zoom_search = bool(zoom_search)
@@ -597,6 +603,21 @@ class KeypointPoseEstimator(PoseEstimator):
                 "attitude-head reference (oibar.keypoints_3d_m, oibar.attitude_head.R_ref); this "
                 "model has not: export it without --mirror-reading"
             )
+        # the refining pass's turned readings: as the export says (``oibar.turned_reading_deg``,
+        # chosen per network on validation and the closed loop), unless told
+        turned = (
+            self.meta.get("turned_reading_deg", 0.0) if turned_reading_deg is None else turned_reading_deg
+        )
+        if (
+            isinstance(turned, bool)
+            or not isinstance(turned, int | float)
+            or not 0.0 <= float(turned) <= MAX_TURNED_READING_DEG
+        ):
+            raise ModelFileError(
+                f"{self.path}: oibar.turned_reading_deg must be a number of degrees in "
+                f"[0, {MAX_TURNED_READING_DEG:g}] (0: read once), got {turned!r}"
+            )
+        self.turned_reading_deg = float(turned)
         self.filter_measurement = self.meta.get("filter_measurement", "prior_free")
         if self.filter_measurement not in FILTER_MEASUREMENTS:
             raise ModelFileError(
@@ -639,21 +660,59 @@ class KeypointPoseEstimator(PoseEstimator):
             raise ModelFileError(f"{self.path}: the attitude head's output {name!r} is missing")
         return R_ref
 
-    def read_crop(self, image: np.ndarray, win: CropWindow, mirror: bool = False) -> CropReading:
-        """One crop through the keypoint network (CropReading). With `mirror` (and a left-right
-        symmetric fixture, `self.mirror`) the crop and its mirror image go through together and
-        their readings are averaged, the mirror's mapped back (u -> S - u, each keypoint from
-        its twin, the head's rotation vector turned over): the network's own left-right leaning
-        cancels. 0.8.1 reads a -0.24 deg tilt about y on every validation frame at 2-5 m and
-        +0.12 deg in the mirror; averaged, -0.06 deg (docs/model_card.md, 2026-11-24). Only for
-        a window already known to hold the fixture (`solve`'s refining pass): averaged with its
-        mirror, a crop of anything makes a symmetric pattern that PnP fits well."""
-        crop = cut(image, win)
-        if not mirror or self.mirror is None:
-            out = {k: v[0].astype(float) for k, v in self.run(to_input(crop)).items()}
+    def read_crop(self, image: np.ndarray, win: CropWindow, refining: bool = False) -> CropReading:
+        """One window through the keypoint network (CropReading). In the refining pass
+        (`refining`: a window cut around a strong fit) the export can ask for more readings of
+        the same window, all in one batch, averaged in frame pixels:
+
+        - its mirror image (``oibar.mirror_reading``, a left-right symmetric fixture,
+          `self.mirror`): the mirror's reading mapped back (u -> S - u, each keypoint from its
+          twin, the head's rotation vector turned over), so the network's own left-right leaning
+          cancels. 0.8.1 reads a -0.24 deg tilt about y on every validation frame at 2-5 m and
+          +0.12 deg in the mirror; averaged, -0.06 deg (docs/model_card.md, 2026-11-24).
+        - the window turned by +-``oibar.turned_reading_deg`` about its centre (a camera rolled
+          about its boresight: the network was trained on crops turned up to 15 deg). Each
+          reading's keypoints go back to the frame through its own window; a keypoint counts
+          where most readings see it. 0.8.1 at 8 deg: validation attitude 0.84 -> 0.81 deg, the
+          filter's measurement 0.86 -> 0.82 (docs/model_card.md, 2026-11-25).
+
+        Only for a window already known to hold the fixture: averaged with its mirror, a crop of
+        anything makes a symmetric pattern that PnP fits well."""
+        wins = [win]
+        if refining and self.turned_reading_deg > 0:
+            a = float(np.radians(self.turned_reading_deg))
+            wins += [replace(win, angle_rad=win.angle_rad + a), replace(win, angle_rad=win.angle_rad - a)]
+        mirror = refining and self.mirror is not None
+        crops = [cut(image, w) for w in wins]
+        batch = [c for crop in crops for c in ((crop, crop[:, ::-1]) if mirror else (crop,))]
+        out = {k: v.astype(float) for k, v in self.run(to_input(np.stack(batch))).items()}
+        per = 2 if mirror else 1
+        readings = [
+            self._reading(w, {k: v[i * per : (i + 1) * per] for k, v in out.items()})
+            for i, w in enumerate(wins)
+        ]
+        if len(readings) == 1:
+            return readings[0]
+        uv = np.stack([r.uv_px for r in readings])
+        seen = np.isfinite(uv[..., 0])
+        mean_uv = np.full_like(readings[0].uv_px, np.nan)
+        keep = seen.sum(0) * 2 > len(readings)
+        for j in np.flatnonzero(keep):
+            mean_uv[j] = uv[seen[:, j], j].mean(0)
+        return CropReading(
+            mean_uv,
+            np.mean([r.spread_crop_px for r in readings], axis=0),
+            np.mean([r.present for r in readings], axis=0),
+            readings[0].R_cam_target_head,  # the head reads its own window's allocentric attitude
+        )
+
+    def _reading(self, win: CropWindow, out: dict[str, np.ndarray]) -> CropReading:
+        """The network's outputs for one window (one row, or two: the crop and its mirror image,
+        averaged as read_crop says) -> CropReading, keypoints in frame pixels."""
+        if len(out["kp_crop_px"]) == 1:
+            out = {k: v[0] for k, v in out.items()}
         else:
-            both = self.run(to_input(np.stack([crop, crop[:, ::-1]])))
-            out = {k: v.astype(float) for k, v in both.items()}
+            assert self.mirror is not None  # two rows only for a mirror reading
             disagree = None
             for k in out:
                 if k == "kp_crop_px":
@@ -772,7 +831,7 @@ class KeypointPoseEstimator(PoseEstimator):
                 R_direct,
                 f,
                 float(np.linalg.norm(T_best)),
-                mirror=True,
+                refining=True,
             )
             if r is None or rwin is None or fit_rms_crop_px(r, rwin) > STRONG_FIT_RMS_CROP_PX:
                 break
@@ -826,9 +885,9 @@ class KeypointPoseEstimator(PoseEstimator):
         R_direct: np.ndarray,
         f: dict[str, Any] | None,
         range_m: float,
-        mirror: bool = False,
+        refining: bool = False,
     ) -> tuple[PnpResult, CropWindow] | tuple[None, None]:
-        reading = self.read_crop(image, win, mirror)
+        reading = self.read_crop(image, win, refining)
         uv = reading.uv_px
         # the attitude prior: the head's reading of this crop when the fusion says so (0.6.0),
         # else the direct model's
@@ -881,6 +940,7 @@ class KeypointPoseEstimator(PoseEstimator):
         return model
 
     uses_prior = True
+    turned_reading_deg = 0.0  # read_crop's turned readings (set from the export in __init__)
 
     def forget(self) -> None:
         self.fit_history.forget()
