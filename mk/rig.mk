@@ -42,6 +42,8 @@ soak: firmware-host gen ## soak: the mission looped for SOAK_S (3600) simulated 
 # scenes' looks, several runs per look (start ranges x start turns), paired against the first
 # model, mean +- standard error; every run cached under build/looks (an interrupted study resumes).
 #   make looks LOOKS_MODELS="models/oibarnet.onnx runs/cand/oibarnet.onnx"
+#   make looks LOOKS_ARGS="--looks held-out --starts 10 --turns 2:-1.5 --jobs 2"   the twelve looks no
+#   choice was made on: confirm a choice there too (the flight code holds an edge on the default ten)
 LOOKS_MODELS ?= models/oibarnet.onnx
 LOOKS_ARGS   ?= --starts 10,9 --turns 2:-1.5,-2:1.5 --jobs 1
 

@@ -181,3 +181,15 @@ def test_the_cache_follows_the_flight_code(tmp_path):
         tag = looks.code_tag(tmp_path)
         assert tag not in tags, rel
         tags.add(tag)
+
+
+def test_the_held_out_looks_are_the_validation_looks_no_choice_used(capsys):
+    from oibar_hil.dataset import load_spec_file
+
+    names = {s.name for s in load_spec_file(looks.REPO_ROOT / looks.DEFAULT_SPEC)}
+    assert not set(looks.HELD_OUT_LOOKS) & set(looks.DEFAULT_LOOKS)
+    assert set(looks.HELD_OUT_LOOKS) | set(looks.DEFAULT_LOOKS) == names
+    # a set's name stands for its looks; only a name that is neither is refused
+    assert looks.main(["--model", "truth", "--looks", "held-out,va999"]) == 2
+    err = capsys.readouterr().err
+    assert "['va999']" in err and "held-out" not in err
