@@ -158,22 +158,15 @@ def summarise(frames: list[dict]) -> list[dict]:
             "scenes": len({f["scene"] for f in at}),
         }
         for name, prefix in (("est", ""), ("meas", "meas_")):
-            b, se = slope_fit(
-                arr(lat, "lateral_true_m"), arr(lat, f"lateral_{name}_m"), [f["scene"] for f in lat]
-            )
-            row[f"{prefix}lateral_slope"], row[f"{prefix}lateral_slope_se"] = b, se
-            err = arr(lat, f"lateral_{name}_m") - arr(lat, "lateral_true_m")
-            row[f"{prefix}lateral_err_rms_m"] = (
-                float(np.sqrt(np.mean(np.sum(err**2, 1)))) if len(lat) else float("nan")
-            )
-            b, se = slope_fit(
-                arr(att, "attitude_true_rad"), arr(att, f"attitude_{name}_rad"), [f["scene"] for f in att]
-            )
-            row[f"{prefix}attitude_slope"], row[f"{prefix}attitude_slope_se"] = b, se
-            err = arr(att, f"attitude_{name}_rad") - arr(att, "attitude_true_rad")
-            row[f"{prefix}attitude_err_rms_deg"] = (
-                float(np.degrees(np.sqrt(np.mean(np.sum(err**2, 1))))) if len(att) else float("nan")
-            )
+            for kind, rows, unit, scale in (
+                ("lateral", lat, "m", 1.0),
+                ("attitude", att, "rad", float(np.degrees(1.0))),
+            ):
+                truth, est = arr(rows, f"{kind}_true_{unit}"), arr(rows, f"{kind}_{name}_{unit}")
+                b, se = slope_fit(truth, est, [f["scene"] for f in rows])
+                row[f"{prefix}{kind}_slope"], row[f"{prefix}{kind}_slope_se"] = b, se
+                rms = float(np.sqrt(np.mean(np.sum((est - truth) ** 2, 1)))) * scale if rows else float("nan")
+                row[f"{prefix}{kind}_err_rms_{'m' if kind == 'lateral' else 'deg'}"] = rms
             b, se = slope_fit(arr(ok, "view_true"), arr(ok, f"view_{name}"), [f["scene"] for f in ok])
             row[f"{prefix}view_slope"], row[f"{prefix}view_slope_se"] = b, se
         row["bearing_slope"], row["bearing_slope_se"] = slope_fit(
