@@ -212,7 +212,15 @@ def test_error_model_scales_by_range_and_refuses_bad_tables():
 
 
 def _bare_estimator(
-    R_true, T_true, R_head=None, fusion=None, zoom=False, max_side_ratio=np.inf, noise_px=0.0, out_px=128
+    R_true,
+    T_true,
+    R_head=None,
+    fusion=None,
+    zoom=False,
+    max_side_ratio=np.inf,
+    noise_px=0.0,
+    out_px=128,
+    scan=False,
 ):
     """A KeypointPoseEstimator without networks: its 'keypoint network' reports the true points
     when the crop holds the fixture's centre and is at most `max_side_ratio` times the fixture's
@@ -222,7 +230,7 @@ def _bare_estimator(
     from oibar.nav.pose import CropReading, KeypointPoseEstimator
 
     est = object.__new__(KeypointPoseEstimator)
-    est.zoom_search = zoom
+    est.zoom_search, est.scan_search = zoom, scan
     est.K_frame, est.points_m, est.out_px, est.margin = K, DEEP, out_px, 1.25
     est.range_limits_m = (0.2, 20.0)
     est.reproj_crop_px, est.refine_passes, est.meta = (
@@ -630,6 +638,120 @@ def test_no_zoom_window_is_smaller_than_a_fixture_in_the_envelope():
     wins = est._zoom_windows(np.zeros((480, 744, 3), np.uint8), base)
     assert wins and all(w.side_px >= pose.ZOOM_MIN_SIDE_PX for w, _ in wins)
     assert est.batches == [sum(1 for *_, k in pose.ZOOM_STEPS if k == 0.5)]
+
+
+def test_the_scan_windows_cover_the_frame_within_a_quarter_side():
+    """Some scan window holds every frame point within a quarter of its side of its centre (per
+    axis), as the keypoint network was trained; the outer windows sit flush with the edges."""
+    from oibar.nav.pose import SCAN_SIDE_PX, SCAN_STRIDE, scan_windows
+
+    wins = scan_windows((744, 480), SCAN_SIDE_PX, SCAN_STRIDE, 128)
+    c = np.array([w.center_px for w in wins])
+    assert {w.side_px for w in wins} == {SCAN_SIDE_PX}
+    assert c[:, 0].min() == SCAN_SIDE_PX / 2 and c[:, 0].max() == 744 - SCAN_SIDE_PX / 2
+    assert c[:, 1].min() == SCAN_SIDE_PX / 2 and c[:, 1].max() == 480 - SCAN_SIDE_PX / 2
+    gx, gy = np.meshgrid(np.linspace(SCAN_SIDE_PX / 2, 744 - SCAN_SIDE_PX / 2, 97), np.linspace(32, 448, 53))
+    pts = np.c_[gx.ravel(), gy.ravel()]
+    off = np.abs(pts[:, None, :] - c[None]).max(axis=2).min(axis=1)  # the nearest window, per axis
+    assert off.max() <= 0.25 * SCAN_SIDE_PX + 1e-9
+    assert len(wins) == 23 * 14
+    one = scan_windows((60, 40), 64.0, 0.5, 128)  # a frame smaller than a window: one, centred
+    assert [w.center_px for w in one] == [(30.0, 20.0)]
+
+
+def _scanning_estimator(R, T, scan):
+    """A bare estimator whose first pass and zoom find nothing, and whose keypoint network reads
+    a window holding the fixture exactly when it is within 1.4x of the fixture's own window and
+    roughly (2 crop px of noise: a weak fit) when it is up to 2.5x; the scan's batch scores the
+    windows that hold the fixture's centre by how tight they are."""
+    from oibar.nav.pose import CropReading
+
+    est = _bare_estimator(R, T, zoom=False, scan=scan)
+    truth = project(K, DEEP, R, T)
+    centre, own_side = truth.mean(0), window_around(truth, 128, 1.25).side_px
+    rng = np.random.default_rng(3)
+
+    def holds(win):
+        return bool(np.all(np.abs(win.to_crop(centre[None])[0] - win.out_px / 2) < win.out_px * 0.3))
+
+    def read_crop(image, win, refining=False):
+        est.crops.append(win)
+        ratio = win.side_px / own_side
+        if not holds(win) or ratio > 2.5:
+            return CropReading(np.full_like(truth, np.nan), np.zeros(len(truth)), np.ones(len(truth)), None)
+        noise = 0.0 if ratio <= 1.4 else 2.0
+        uv = win.to_frame(win.to_crop(truth) + rng.normal(0.0, noise, truth.shape))
+        return CropReading(uv, np.zeros(len(truth)), np.ones(len(truth)), None)
+
+    def likeness(image, wins):
+        est.batches.append(len(wins))
+        return np.array([1.0 / (1.0 + w.side_px / own_side) if holds(w) else 0.0 for w in wins])
+
+    est.read_crop, est._fixture_likeness = read_crop, likeness
+    return est
+
+
+def test_the_scan_finds_a_far_fixture_the_first_pass_misplaced_and_misjudged():
+    """Validation scene va012's cold start: the first pass reads a 10 m fixture at ~0.5 m, its
+    window is ~20x too large and off to one side; SEARCH_STEPS and the zoom find nothing. The
+    scan reads the whole frame in 64 px windows (1.8x this fixture's), solves the most
+    fixture-like: a weak fit, then again in the window that fit draws: a strong one. Without the
+    scan the frame has no answer; with a prediction (a track) the scan never runs."""
+    from oibar.nav.pose import SCAN_BATCH, SCAN_SIDE_PX, STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
+    image = np.zeros((480, 744, 3), np.uint8)
+    T_direct = (T + np.array([-2.0, 1.0, 0.0])) / 20.0
+    assert 1.4 < SCAN_SIDE_PX / window_around(project(K, DEEP, R, T), 128, 1.25).side_px < 2.5
+
+    est = _scanning_estimator(R, T, scan=False)
+    r, _ = est.solve(image, R, T_direct)
+    assert r is None and not est.batches
+    est = _scanning_estimator(R, T, scan=True)
+    r, win = est.solve(image, R, T_direct, prior=(R, T + (3.0, 0.0, 0.0)))
+    assert r is None and not est.batches  # a track's weak frame never pays for the scan
+    est = _scanning_estimator(R, T, scan=True)
+    r, win = est.solve(image, R, T_direct)
+    assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
+    assert fit_rms_crop_px(r, win) <= STRONG_FIT_RMS_CROP_PX
+    n = 23 * 14
+    assert est.batches == [SCAN_BATCH] * (n // SCAN_BATCH) + [n % SCAN_BATCH]
+    scan_reads = [w for w in est.crops if w.side_px == SCAN_SIDE_PX]
+    assert len(scan_reads) == 1  # the best-ranked held it; its weak fit drew the strong window
+    assert len(est.crops) == 11 + 1 + 1 + 1  # the search, the scan's window, its redraw, refinement
+
+
+def test_the_latest_strong_fit_places_the_first_crop_when_there_is_no_prediction():
+    """While the filter waits for a run of strong fits (the direct model disagrees), the
+    estimator's own latest strong fit places the first crop: one crop, not the whole search
+    again. A prediction, when there is one, comes first; and it is only a place: a wrong hint
+    costs one crop and the search goes on."""
+    from oibar.nav.fit_history import FitHistory
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
+    image = np.zeros((480, 744, 3), np.uint8)
+    T_direct = T / 20.0
+    est = _scanning_estimator(R, T, scan=True)
+    r, _ = est.solve(image, R, T_direct, hint=(R, T + (0.05, 0.0, 0.1)))
+    assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
+    assert len(est.crops) == 2 and not est.batches  # the hint's window, one refinement
+    est = _scanning_estimator(R, T, scan=True)
+    r, _ = est.solve(image, R, T_direct, hint=(R, T + (3.0, 0.0, 0.0)))
+    assert r is not None and len(est.crops) == 1 + 11 + 3 and est.batches  # wrong hint: the search
+    est = _scanning_estimator(R, T, scan=True)
+    r, _ = est.solve(image, R, T_direct, prior=(R, T + (0.05, 0.0, 0.1)), hint=(R, T + (3.0, 0.0, 0.0)))
+    assert r is not None and len(est.crops) == 2
+
+    h = FitHistory()
+    assert h.latest() is None
+    h.advance(1.0)
+    h.add(1.0, T, R)
+    h.advance(1.1)
+    h.add(1.1, T + 0.1, R)
+    R_l, T_l = h.latest()
+    assert np.allclose(T_l, T + 0.1) and np.allclose(R_l, R)
+    h.advance(1.1 + 6.0)  # older than the window: nothing to place a crop with
+    assert h.latest() is None
 
 
 def test_a_weak_fit_inside_the_range_envelope_is_preferred_to_a_tighter_one_outside():

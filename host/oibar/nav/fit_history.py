@@ -71,6 +71,13 @@ class FitHistory:
                 n += 1
         return n
 
+    def latest(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(R_cam_target, T_cam_target_m) of the newest remembered fit, or None."""
+        if not self.fits:
+            return None
+        _, T_m, R = self.fits[-1]
+        return R.copy(), T_m.copy()
+
     def confirmed(self, t_s: float, T_m: np.ndarray, R: np.ndarray) -> bool:
         return self.agreeing(t_s, T_m, R) >= CONFIRM_EARLIER
 

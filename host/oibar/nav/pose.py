@@ -438,6 +438,41 @@ def zoom_steps(wide: bool) -> tuple[tuple[float, float, float], ...]:
 # whose keypoints are read to 0.3-0.7 crop px in the right window), which one level (4x) misses.
 ZOOM_LEVELS = 3
 ZOOM_MIN_SIDE_PX = 24.0  # no zoom window smaller (the fixture's window at ~15 m)
+# The last resort of a cold start: when the prediction, SEARCH_STEPS and the zoom give no strong
+# fit, the whole frame is read in windows of SCAN_SIDE_PX, SCAN_STRIDE sides apart (so some
+# window holds the fixture within a quarter side of its centre, as in training), in batches of
+# SCAN_BATCH, and the SCAN_TRY most fixture-like are solved. The zoom follows the first pass,
+# whose scale can be wrong and whose place can be 0.5-2 windows off at once: on validation scene
+# va012's look (shadowed, 9-10.5 m) the first pass read 0.45 m and the zoom never found the
+# 35-40 px fixture (14 of 52 cold frames beyond 4 m weak; the rig's mission from 9 m never locked
+# and aborted). Windows of 64 px (1.6-2.7x a far fixture's, 6-15 m) ranked the fixture's first
+# on every one of the 16 cold frames of the validation scenes where the search failed (its score
+# 0.04-0.21, the best elsewhere <= 0.04 but for its neighbours). Cost: ~320 crops, ~0.7 s on 2
+# cores, on cold frames that found nothing else (nearer fixtures are the first pass's strength).
+SCAN_SIDE_PX = 64.0
+SCAN_STRIDE = 0.5
+SCAN_BATCH = 64
+SCAN_TRY = 3
+
+
+def scan_windows(frame_wh: tuple[int, int], side_px: float, stride: float, out_px: int) -> list[CropWindow]:
+    """Square windows of side_px covering the frame, centres `stride` sides apart (row-major),
+    the outer ones flush with the frame's edges."""
+    w, h = frame_wh
+    step = side_px * stride
+    windows = []
+    for cy in _spaced(h, side_px, step):
+        for cx in _spaced(w, side_px, step):
+            windows.append(CropWindow((cx, cy), side_px, out_px))
+    return windows
+
+
+def _spaced(length_px: float, side_px: float, step_px: float) -> np.ndarray:
+    """Window centres along one axis: from side/2 to length - side/2, at most step_px apart."""
+    if length_px <= side_px:
+        return np.array([length_px / 2.0])
+    n = int(np.ceil((length_px - side_px) / step_px - 1e-9)) + 1
+    return np.linspace(side_px / 2.0, length_px - side_px / 2.0, n)
 
 
 def _checked_prior(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
@@ -548,11 +583,13 @@ class KeypointPoseEstimator(PoseEstimator):
         allow_spinning: bool = False,
         refine_passes: int = 2,
         zoom_search: bool = True,
+        scan_search: bool = True,
         mirror: bool | None = None,
         turned_reading_deg: float | None = None,
     ):
         self.path = Path(path)
         self.zoom_search = bool(zoom_search)
+        self.scan_search = bool(scan_search)
         self.meta = read_metadata(self.path)
         for key in ("keypoints_3d_m", "crop", "pnp", "camera", "first_pass"):
             if key not in self.meta:
@@ -752,6 +789,7 @@ class KeypointPoseEstimator(PoseEstimator):
         T_direct: np.ndarray,
         fusion: dict[str, Any] | None = None,
         prior: tuple[np.ndarray, np.ndarray] | None = None,
+        hint: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[PnpResult, CropWindow] | tuple[None, None]:
         """Crop around the current pose, keypoints, pose (keypoints.map_pose: PnP, and with the
         export's ``oibar.fusion`` an attitude prior: the direct model's or the crop's own
@@ -760,9 +798,12 @@ class KeypointPoseEstimator(PoseEstimator):
         When that gives no strong fit (STRONG_FIT_RMS_CROP_PX), the windows of SEARCH_STEPS
         around the direct model's pose are tried in turn (the direct model can be 1 m off
         sideways at 10 m on an unseen scene), then ZOOM_STEPS inside it, level after level
-        (`zoom_search`, ZOOM_LEVELS). The prediction only places a crop, never the attitude
-        prior, so a wrong prediction cannot feed itself back. Returns (PnpResult, its window):
-        the first strong fit, else the best weak one (`_weak_rank`), else (None, None)."""
+        (`zoom_search`, ZOOM_LEVELS), then the scan of the whole frame (`scan_search`,
+        SCAN_SIDE_PX). Without a prediction, `hint` (the estimator's own latest strong fit, when
+        the filter has not taken it yet) places the first crop instead. The prediction and the
+        hint only place a crop, never the attitude prior, so a wrong one cannot feed itself back.
+        Returns (PnpResult, its window): the first strong fit, else the best weak one
+        (`_weak_rank`), else (None, None)."""
         K = self._K()
         f = self.meta.get("fusion") if fusion is None else fusion
         best: tuple[PnpResult, CropWindow] | None = None
@@ -780,8 +821,9 @@ class KeypointPoseEstimator(PoseEstimator):
                 weak = (r, win)
             return False
 
-        if prior is not None:
-            uv_p = project(K, self.points_m, prior[0], prior[1])
+        placed = prior if prior is not None else hint
+        if placed is not None:
+            uv_p = project(K, self.points_m, placed[0], placed[1])
             if np.all(np.isfinite(uv_p)):
                 consider(
                     *self._one_pass(
@@ -789,7 +831,7 @@ class KeypointPoseEstimator(PoseEstimator):
                         window_around(uv_p, self.out_px, self.margin),
                         R_direct,
                         f,
-                        float(np.linalg.norm(prior[1])),
+                        float(np.linalg.norm(placed[1])),
                     )
                 )
         base: CropWindow | None = None
@@ -820,6 +862,26 @@ class KeypointPoseEstimator(PoseEstimator):
                 if best is not None or not ranked:
                     break
                 zbase, k_base = ranked[0][0], k_base * ranked[0][1]
+        if best is None and prior is None and self.scan_search:
+            for swin in self._scan_ranked(image):
+                r, rwin = self._one_pass(image, swin, R_direct, f, self._range_for_side_m(swin.side_px))
+                if consider(r, rwin):
+                    break
+                if r is None:
+                    continue
+                # a weak fit from a window of a guessed size is close (validation: within 10 % of
+                # the range): read again in the window its own pose draws
+                uv_r = project(K, self.points_m, *r.pose())
+                if np.all(np.isfinite(uv_r)) and consider(
+                    *self._one_pass(
+                        image,
+                        window_around(uv_r, self.out_px, self.margin),
+                        R_direct,
+                        f,
+                        float(np.linalg.norm(r.pose()[1])),
+                    )
+                ):
+                    break
         if best is None:
             return weak if weak is not None else (None, None)
         for _ in range(self.refine_passes - 1):
@@ -866,13 +928,36 @@ class KeypointPoseEstimator(PoseEstimator):
         ]
         if not wins:
             return []
-        out = self.run(np.concatenate([to_input(cut(image, w)) for w, _ in wins]))
+        score = self._fixture_likeness(image, [w for w, _ in wins])
+        return [wins[i] for i in np.argsort(-score)[:ZOOM_TRY]]
+
+    def _fixture_likeness(self, image: np.ndarray, wins: list[CropWindow]) -> np.ndarray:
+        """How much each window looks like the fixture, read in one batch: mean presence x
+        exp(-mean heat-map spread / 4 px, CROP_REF_PX terms)."""
+        out = self.run(np.concatenate([to_input(cut(image, w)) for w in wins]))
         present = out["kp_present"].astype(float).mean(axis=1)
         spread = (
             out["kp_spread_px"].astype(float).mean(axis=1) if "kp_spread_px" in out else np.zeros(len(wins))
         )
-        score = present * np.exp(-spread * CROP_REF_PX / self.out_px / 4.0)
-        return [wins[i] for i in np.argsort(-score)[:ZOOM_TRY]]
+        score: np.ndarray = present * np.exp(-spread * CROP_REF_PX / self.out_px / 4.0)
+        return score
+
+    def _scan_ranked(self, image: np.ndarray) -> list[CropWindow]:
+        """The scan's windows (SCAN_SIDE_PX over the whole frame), read SCAN_BATCH at a time;
+        the SCAN_TRY most fixture-like, best first."""
+        h, w = image.shape[:2]
+        wins = scan_windows((w, h), SCAN_SIDE_PX, SCAN_STRIDE, self.out_px)
+        score = np.concatenate(
+            [self._fixture_likeness(image, wins[i : i + SCAN_BATCH]) for i in range(0, len(wins), SCAN_BATCH)]
+        )
+        return [wins[i] for i in np.argsort(-score, kind="stable")[:SCAN_TRY]]
+
+    def _range_for_side_m(self, side_px: float) -> float:
+        """The range at which the fixture, seen head-on, fills a window of side_px (its
+        keypoints' larger extent across the boresight x the crop margin): the scale the range
+        error models are read at when nothing else says how far the fixture is."""
+        extent_m = float(np.max(np.ptp(self.points_m[:, :2], axis=0)))
+        return float(self._K()[0, 0]) * extent_m * self.margin / max(side_px, 1e-6)
 
     def _K(self) -> np.ndarray:
         assert self.K_frame is not None  # set from the keypoint model's oibar.camera (required)
@@ -977,7 +1062,13 @@ class KeypointPoseEstimator(PoseEstimator):
             direct.latency_ms = (time.perf_counter() - t0) * 1e3
             direct.flags = tuple(direct.flags) + ("no_first_pass",)
             return direct
-        r, win = self.solve(image_rgb_uint8, direct.R_cam_target, direct.T_cam_target_m, prior=prior)
+        # without a prediction, the estimator's own latest strong fit places the first crop: the
+        # filter waits for a run of them (fit_history) when the direct model disagrees, and each
+        # cold frame would otherwise pay for the whole search again
+        hint = self.fit_history.latest() if prior is None else None
+        r, win = self.solve(
+            image_rgb_uint8, direct.R_cam_target, direct.T_cam_target_m, prior=prior, hint=hint
+        )
         if r is None or win is None:
             latency_ms = (time.perf_counter() - t0) * 1e3
             direct.latency_ms = latency_ms
