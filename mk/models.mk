@@ -5,7 +5,7 @@ TRAIN_ARGS   ?=
 EVAL_ARGS    ?=
 TEMPORAL_ARGS ?=
 
-.PHONY: train export eval temporal train-kp export-kp eval-kp
+.PHONY: train export eval temporal train-kp export-kp eval-kp recover-kp
 
 # The shipped model takes two stages: the base network, then the keypoint branch fine-tuned
 # from it (models/configs/oibarnet_lite.yaml says why). A MODEL_CONFIG given on the command
@@ -67,3 +67,12 @@ endif
 
 eval-kp: setup ## the flight estimator on validation and test scenes: tables, range bins, latency (runs/eval_kp)
 	@$(PY) -m oibar_models.kp_evaluate --models models/oibarnet.onnx models/oibarnet_lite.onnx $(KP_EVAL_ARGS)
+
+# The shipped keypoint model as a checkpoint (runs/ is not committed, and a fresh machine has
+# none): its ONNX weights with the batch norms unfolded and calibrated on the training crops,
+# parity-checked against the file. A config's `train.init_from: runs/recovered/oibarnet_kp.pt`
+# then fine-tunes the shipped network instead of retraining its stages.
+RECOVER_FROM ?= models/oibarnet.onnx
+recover-kp: setup ## the shipped keypoint model's ONNX back into a trainable checkpoint (runs/recovered/oibarnet_kp.pt; calibrated on data/train)
+	@$(PY) -m oibar_models.kp_recover $(RECOVER_FROM) --out runs/recovered/oibarnet_kp.pt \
+	  $(if $(wildcard $(ROOT)/data/train/*/poses.csv),--calibrate data/train,)
