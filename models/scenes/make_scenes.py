@@ -88,16 +88,23 @@ def turned(
 
 
 def off_axis(
-    prefix: str, first: int, seed0: int, n: int, rng: np.random.Generator, avoid: list[tuple]
+    prefix: str,
+    first: int,
+    seed0: int,
+    n: int,
+    rng: np.random.Generator,
+    avoid: list[tuple],
+    offaxis_m: tuple[float, float] = (0.2, 0.4),
 ) -> list[dict]:
-    """n runs that wander 0.2-0.4 m off the docking axis below 10 m, ports cycling through all
-    six, backgrounds alternating, every other one also turned 1.5-5 deg: the closed loop's views
-    (a guidance that follows its own estimate off the axis), which the paper's phases never show."""
+    """n runs that wander `offaxis_m` (0.2-0.4 m) off the docking axis below 10 m, ports cycling
+    through all six, backgrounds alternating, every other one also turned 1.5-5 deg: the closed
+    loop's views (a guidance that follows its own estimate off the axis), which the paper's phases
+    never show. The wander is capped at 8.5 deg of the view (it binds below ~5 m for 0.45-0.9 m)."""
     out = []
     for j in range(n):
         port, bg = int(j % 6 + 1), ("iss", "perlin")[(j // 6 + j) % 2]
         s = _scene(f"{prefix}{first + j:03d}", port, bg, seed0 + j, rng, avoid)
-        s["offaxis_m"] = float(np.round(rng.uniform(0.2, 0.4), 2))
+        s["offaxis_m"] = float(np.round(rng.uniform(*offaxis_m), 2))
         if j % 2:
             s["turned_deg"] = float(np.round(rng.uniform(1.5, 5.0), 1))
         out.append(s)
@@ -121,6 +128,13 @@ def main() -> None:
     val += off_axis("va", len(val), 30000 + len(val), 6, rng, taken)
     taken += [(s["port"], s["background"], s["sun_elevation_deg"]) for s in val[-6:]]
     train += off_axis("tr", len(train), 20000 + len(train), 18, rng, taken)
+    # Wide-view runs (model 0.12.0), training only, appended the same way; their Sun keeps clear
+    # of the test and validation scenes (training scenes may share theirs). Why: in the 72
+    # earlier training scenes the view from the fixture is within 0.1 deg of the nominal
+    # approach's on half the frames at every range (within 1.1-1.8 deg on 90 % at 3-8 m), and the
+    # network reads views at 0.54-0.72 of the truth (the probe's view slope).
+    clear = TEST_KEYS + [(s["port"], s["background"], s["sun_elevation_deg"]) for s in val]
+    train += off_axis("tr", len(train), 20000 + len(train), 24, rng, clear, offaxis_m=(0.45, 0.9))
     sets = {
         "train": {"set": "train", "scenes": train},
         "val": {"set": "val", "scenes": val},
