@@ -109,6 +109,29 @@ def attitude_head_meta() -> dict:
     }
 
 
+def export_graph(
+    net: KeypointNet, attitude: bool, out_px: int, opset: int, path: Path
+) -> tuple[ExportWrapper, torch.Tensor]:
+    """Write `net`'s ONNX graph as the flight file holds it (no metadata yet; kp_recover rebuilds
+    its reference graph the same way). Returns the wrapper and the input it was traced on."""
+    wrapper = ExportWrapper(net.eval(), attitude=attitude).eval()
+    names = OUTPUT_NAMES + ([ATT_OUTPUT] if attitude else [])
+    dummy = torch.rand(2, 3, out_px, out_px)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(
+            wrapper,
+            dummy,
+            str(path),
+            input_names=["image"],
+            output_names=names,
+            dynamic_axes={k: {0: "batch"} for k in ["image", *names]},
+            opset_version=opset,
+            dynamo=False,
+        )
+    return wrapper, dummy
+
+
 def export_onnx(
     cfg: KpConfig,
     ck: dict,
@@ -128,24 +151,9 @@ def export_onnx(
     if not head:  # a checkpoint from before the head (<= 0.5.0): exported without it
         with_fresh_attitude_head(net, state)
     net.load_state_dict(state)
-    wrapper = ExportWrapper(net.eval(), attitude=head).eval()
-    names = OUTPUT_NAMES + ([ATT_OUTPUT] if head else [])
-    n = cfg.model.out_px
-    dummy = torch.rand(2, 3, n, n)
     out_path = Path(out_path)
     tmp = out_path.with_suffix(".tmp.onnx")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(
-            wrapper,
-            dummy,
-            str(tmp),
-            input_names=["image"],
-            output_names=names,
-            dynamic_axes={k: {0: "batch"} for k in ["image", *names]},
-            opset_version=cfg.export.opset,
-            dynamo=False,
-        )
+    wrapper, dummy = export_graph(net, head, cfg.model.out_px, cfg.export.opset, tmp)
     m = onnx.load(str(tmp))
     for k, v in metadata_for(
         cfg, ck, first_pass, train_range_m, fusion, mirror_reading, filter_measurement, turned_reading_deg

@@ -29,16 +29,15 @@ import argparse
 import json
 import sys
 import tempfile
-import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
+from .kp_export import ATT_OUTPUT, export_graph
 from .kpnet import ExportWrapper, KeypointNet
 
-ATT_OUTPUT = "att_crop_deg"
 PARITY_TOL = 1e-3  # crop px, probability or degree: what export_onnx itself holds the export to
 
 
@@ -88,23 +87,6 @@ def folded_pairs(net: KeypointNet, out_px: int) -> list[tuple[str, str]]:
     return pairs
 
 
-def _export(net: KeypointNet, attitude: bool, out_px: int, opset: int, path: Path) -> None:
-    wrapper = ExportWrapper(net.eval(), attitude=attitude).eval()
-    names = ["kp_crop_px", "kp_spread_px", "kp_present"] + ([ATT_OUTPUT] if attitude else [])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(
-            wrapper,
-            torch.rand(2, 3, out_px, out_px),
-            str(path),
-            input_names=["image"],
-            output_names=names,
-            dynamic_axes={k: {0: "batch"} for k in ["image", *names]},
-            opset_version=opset,
-            dynamo=False,
-        )
-
-
 def recover(path: Path) -> tuple[KeypointNet, dict, list[tuple[str, str]]]:
     """The export at `path` -> (KeypointNet in eval mode computing what it computes, its
     metadata, the folded (conv, batch norm) pairs). Batch norms carry the folded bias and
@@ -139,7 +121,7 @@ def recover(path: Path) -> tuple[KeypointNet, dict, list[tuple[str, str]]]:
 
     with tempfile.TemporaryDirectory() as tmp:
         ref_path = Path(tmp) / "ref.onnx"
-        _export(net, attitude, out_px, opset, ref_path)
+        export_graph(net, attitude, out_px, opset, ref_path)
         ref = onnx.load(str(ref_path))
     ref_inits = {i.name: numpy_helper.to_array(i) for i in ref.graph.initializer}
 

@@ -12,10 +12,10 @@ import pytest
 import torch
 from torch import nn
 
+from oibar_models.kp_export import export_graph
 from oibar_models.kp_recover import (
     PARITY_TOL,
     RecoverError,
-    _export,
     calibrate,
     main,
     parity,
@@ -51,7 +51,7 @@ def trained_export(tmp_path_factory):
                 m.running_mean.normal_(0.0, 0.3)
                 m.running_var.uniform_(0.5, 2.0)
     path = tmp_path_factory.mktemp("kp") / "kp.onnx"
-    _export(net.eval(), True, OUT_PX, 17, path)
+    export_graph(net.eval(), True, OUT_PX, 17, path)
     _tag(
         path,
         kind="keypoints",
