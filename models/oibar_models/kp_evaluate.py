@@ -205,7 +205,7 @@ def table(rows: list[tuple[str, str, dict]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from oibar.nav.pose import ModelFileError, PoseEstimator, read_metadata
+    from oibar.nav.pose import KeypointPoseEstimator, ModelFileError, PoseEstimator, read_metadata
 
     ap = argparse.ArgumentParser(
         prog="python -m oibar_models.kp_evaluate", description=__doc__.split("\n\n")[0]
@@ -231,6 +231,11 @@ def main(argv: list[str] | None = None) -> int:
         labels = model_labels(a.models, [read_metadata(p) for p in a.models])
         for p, label in zip(a.models, labels, strict=True):
             est = PoseEstimator(p)
+            if isinstance(est, KeypointPoseEstimator):
+                # frames judged one by one (and tracking frames 1.6 s apart) have no cycle to keep:
+                # each gets the whole cold search, none is carried to the next frame
+                # (pose.COLD_CROP_BUDGET; the closed loop, `make looks`, flies the budget)
+                est.cold_crop_budget = None
             for mode in a.modes:
                 if mode == "single":
                     ests.append((label, est, False))

@@ -245,6 +245,9 @@ def main(argv: list[str] | None = None) -> int:
     if not isinstance(est, KeypointPoseEstimator):
         print(f"error: {a.model} is not a keypoint model", file=sys.stderr)
         return 2
+    # the grid solves unrelated frames one by one, with no cycle to keep: the whole cold search on
+    # each, none carried from one frame to the next (pose.COLD_CROP_BUDGET)
+    est.cold_crop_budget = None
     seqs = [
         load_sequence(REPO_ROOT / "data/val" / s.name) for s in load_set(REPO_ROOT / "models/scenes/val.json")
     ]

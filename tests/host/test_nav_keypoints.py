@@ -221,16 +221,19 @@ def _bare_estimator(
     noise_px=0.0,
     out_px=128,
     scan=False,
+    cold_crop_budget=None,
 ):
     """A KeypointPoseEstimator without networks: its 'keypoint network' reports the true points
     when the crop holds the fixture's centre and is at most `max_side_ratio` times the fixture's
     own window, nothing otherwise (what a trained net does), `noise_px` (crop px, seeded) added;
     and `R_head` as its attitude head's reading. Its batch run (the zoom search) says "present"
-    for the crops that would give keypoints."""
+    for the crops that would give keypoints. No crop budget unless given: the whole cold search
+    on one frame."""
     from oibar.nav.pose import CropReading, KeypointPoseEstimator
 
     est = object.__new__(KeypointPoseEstimator)
     est.zoom_search, est.scan_search = zoom, scan
+    est.cold_crop_budget = cold_crop_budget
     est.K_frame, est.points_m, est.out_px, est.margin = K, DEEP, out_px, 1.25
     est.range_limits_m = (0.2, 20.0)
     est.reproj_crop_px, est.refine_passes, est.meta = (
@@ -659,14 +662,14 @@ def test_the_scan_windows_cover_the_frame_within_a_quarter_side():
     assert [w.center_px for w in one] == [(30.0, 20.0)]
 
 
-def _scanning_estimator(R, T, scan):
+def _scanning_estimator(R, T, scan, cold_crop_budget=None):
     """A bare estimator whose first pass and zoom find nothing, and whose keypoint network reads
     a window holding the fixture exactly when it is within 1.4x of the fixture's own window and
     roughly (2 crop px of noise: a weak fit) when it is up to 2.5x; the scan's batch scores the
     windows that hold the fixture's centre by how tight they are."""
     from oibar.nav.pose import CropReading
 
-    est = _bare_estimator(R, T, zoom=False, scan=scan)
+    est = _bare_estimator(R, T, zoom=False, scan=scan, cold_crop_budget=cold_crop_budget)
     truth = project(K, DEEP, R, T)
     centre, own_side = truth.mean(0), window_around(truth, 128, 1.25).side_px
     rng = np.random.default_rng(3)
@@ -752,6 +755,219 @@ def test_the_latest_strong_fit_places_the_first_crop_when_there_is_no_prediction
     assert np.allclose(T_l, T + 0.1) and np.allclose(R_l, R)
     h.advance(1.1 + 6.0)  # older than the window: nothing to place a crop with
     assert h.latest() is None
+
+
+# va012's cold start, as in the scan's test above: the first pass reads a 10 m fixture at ~0.5 m
+# and off to one side; only the scan finds it (11 + 322 + 2 crops, and the refining pass's one)
+FAR_R, FAR_T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
+FAR_T_DIRECT = (FAR_T + np.array([-2.0, 1.0, 0.0])) / 20.0
+
+
+def _with_first_pass(est, R_direct, T_direct):
+    """A bare estimator that can `estimate`: a fake first pass answering (R_direct, T_direct)
+    with confidence 1, and a frame with texture (not blank)."""
+    from types import SimpleNamespace
+
+    from oibar.geometry.rotations import matrix_to_quat
+    from oibar.nav.fit_history import FitHistory
+    from oibar.nav.pose import PoseEstimate
+
+    def first_pass(image, t_s=0.0):
+        q = matrix_to_quat(R_direct)
+        rng_m = float(np.linalg.norm(T_direct))
+        return PoseEstimate(T_direct.copy(), q, R_direct.copy(), t_s, 0.0, 1.0, rng_m, 0.0, ())
+
+    est.first = SimpleNamespace(check_frame=lambda image: None, estimate=first_pass)
+    est.fit_history, est.filter_measurement, est.frame_wh = FitHistory(), "prior_free", (744, 480)
+    est.defect_scale = 0.02
+    return est, np.random.default_rng(0).integers(0, 255, (480, 744, 3), dtype=np.uint8)
+
+
+def _reads(est):
+    """The windows est reads, in order, from now on: ("crop", centre, side) for one window through
+    the keypoint network, ("batch", ((centre, side), ...)) for a batch of fixture-likeness."""
+    log = []
+    read_crop, likeness = est.read_crop, est._fixture_likeness
+
+    def logged_read(image, win, refining=False):
+        log.append(("crop", win.center_px, win.side_px))
+        return read_crop(image, win, refining)
+
+    def logged_likeness(image, wins):
+        log.append(("batch", tuple((w.center_px, w.side_px) for w in wins)))
+        return likeness(image, wins)
+
+    est.read_crop, est._fixture_likeness = logged_read, logged_likeness
+    return log
+
+
+def _crops(log):
+    return sum(1 if kind == "crop" else len(what[0]) for kind, *what in log)
+
+
+def test_a_cold_frame_reads_no_more_crops_than_its_budget():
+    """Without the budget a cold frame that reaches the scan reads 336 crops here (~1.8 s with
+    the shipped model on 2 cores: past the MCU's 1 s link timeout). With it the frame stops at
+    the budget, with no strong fit: the direct model's answer, low confidence, flagged
+    `searching`."""
+    from oibar.nav.pose import COLD_CROP_BUDGET, FALLBACK_FACTOR
+
+    est, frame = _with_first_pass(_scanning_estimator(FAR_R, FAR_T, scan=True), FAR_R, FAR_T_DIRECT)
+    log = _reads(est)
+    e = est.estimate(frame, 1.0)
+    assert _crops(log) > 300 and "searching" not in e.flags  # the whole search in one frame
+
+    est, frame = _with_first_pass(
+        _scanning_estimator(FAR_R, FAR_T, scan=True, cold_crop_budget=COLD_CROP_BUDGET),
+        FAR_R,
+        FAR_T_DIRECT,
+    )
+    log = _reads(est)
+    e = est.estimate(frame, 1.0)
+    assert _crops(log) <= COLD_CROP_BUDGET
+    assert "searching" in e.flags and "fallback_direct" in e.flags
+    assert e.confidence <= FALLBACK_FACTOR + 1e-9  # never a fit the filter would take
+
+
+def test_the_carried_search_finds_what_the_whole_search_finds_frame_by_frame():
+    """Frames 0.3 s apart (the daemon's cycle while a cold search runs), each within the budget:
+    the scan goes on where the last frame stopped, ranks every window it scored over the frames
+    and solves the same window as the whole search on one frame, to the same answer. The frames
+    before give provisional answers (`searching`, low confidence)."""
+    from oibar.nav.pose import COLD_CROP_BUDGET, FALLBACK_FACTOR, SCAN_SIDE_PX
+
+    est, frame = _with_first_pass(_scanning_estimator(FAR_R, FAR_T, scan=True), FAR_R, FAR_T_DIRECT)
+    log = _reads(est)
+    whole = est.estimate(frame, 1.0)
+    solved = [what for kind, *what in log if kind == "crop" and what[1] == SCAN_SIDE_PX]
+    assert np.linalg.norm(whole.T_cam_target_m - FAR_T) < 1e-3
+
+    est, frame = _with_first_pass(
+        _scanning_estimator(FAR_R, FAR_T, scan=True, cold_crop_budget=COLD_CROP_BUDGET),
+        FAR_R,
+        FAR_T_DIRECT,
+    )
+    log = _reads(est)
+    scored = []
+    for k in range(10):
+        log.clear()
+        e = est.estimate(frame, 1.0 + 0.3 * k)
+        scored += [w for kind, *what in log if kind == "batch" for w in what[0]]
+        if "searching" not in e.flags:
+            break
+        assert _crops(log) <= COLD_CROP_BUDGET and e.confidence <= FALLBACK_FACTOR + 1e-9
+    assert k >= 5, k  # 335 crops (the refining pass aside) in frames of 60
+    assert _crops(log) <= COLD_CROP_BUDGET + 1  # + the refining pass of the strong fit found
+    assert [what for kind, *what in log if kind == "crop" and what[1] == SCAN_SIDE_PX] == solved
+    assert len(scored) == 23 * 14 and len(set(scored)) == len(scored)  # each scan window once
+    assert np.allclose(e.T_cam_target_m, whole.T_cam_target_m) and e.flags == whole.flags
+    assert e.confidence == pytest.approx(whole.confidence)
+
+
+def test_the_carried_zoom_goes_down_its_levels_frame_by_frame():
+    """The zoom carried over frames (a 10 m fixture taken for a 0.5 m one): each level's batch
+    and its solves as the frames' budgets allow, to the fixture the whole search finds."""
+    from oibar.nav.pose import COLD_CROP_BUDGET
+
+    image = np.zeros((480, 744, 3), np.uint8)
+    est = _zooming_estimator(FAR_R, FAR_T)
+    whole, _ = est.solve(image, FAR_R, FAR_T / 20.0)
+    assert whole is not None and len(est.batches) >= 2
+    assert len(est.crops) + sum(est.batches) > COLD_CROP_BUDGET
+
+    est = _zooming_estimator(FAR_R, FAR_T)
+    est.cold_crop_budget = COLD_CROP_BUDGET
+    frames = 0
+    while frames < 10:
+        frames += 1
+        est.crops.clear(), est.batches.clear()
+        r, _ = est.solve(image, FAR_R, FAR_T / 20.0)
+        if est._cold is None:
+            break
+        assert len(est.crops) + sum(est.batches) <= COLD_CROP_BUDGET
+    assert frames >= 2 and len(est.crops) + sum(est.batches) <= COLD_CROP_BUDGET + 1
+    assert np.allclose(r.T_cam_target_m, whole.T_cam_target_m)
+
+
+def test_a_carried_search_ends_on_a_prediction_an_age_a_new_sequence_or_forget():
+    """A carried search goes on only while its scores hold: a prediction (a track again) ends
+    it, and so do COLD_CARRY_MAX_AGE_S of frame time since its first frame, a frame whose time
+    does not advance, and forget(). A frame that goes on reads no SEARCH_STEPS (its first read
+    is the scan's batch); one that starts afresh reads them first."""
+    from oibar.nav.pose import COLD_CARRY_MAX_AGE_S, COLD_CROP_BUDGET, SEARCH_STEPS
+
+    def carrying():
+        est, frame = _with_first_pass(
+            _scanning_estimator(FAR_R, FAR_T, scan=True, cold_crop_budget=COLD_CROP_BUDGET),
+            FAR_R,
+            FAR_T_DIRECT,
+        )
+        assert "searching" in est.estimate(frame, 1.0).flags
+        return est, frame, _reads(est)
+
+    def afresh(log):
+        return [kind for kind, *_ in log[: len(SEARCH_STEPS)]] == ["crop"] * len(SEARCH_STEPS)
+
+    est, frame, log = carrying()
+    assert "searching" in est.estimate(frame, 1.0 + COLD_CARRY_MAX_AGE_S - 0.1).flags
+    assert log[0][0] == "batch"  # went on
+    est, frame, log = carrying()
+    est.estimate(frame, 1.0 + COLD_CARRY_MAX_AGE_S + 0.1)
+    assert afresh(log)
+    est, frame, log = carrying()
+    est.estimate(frame, 1.0)  # time not advancing: a new sequence
+    assert afresh(log)
+    est, frame, log = carrying()
+    est.forget()
+    est.estimate(frame, 1.1)
+    assert afresh(log)
+    est, frame, log = carrying()
+    e = est.estimate(frame, 1.1, prior=(FAR_R, FAR_T + (3.0, 0.0, 0.0)))  # a prediction that misses
+    assert "searching" not in e.flags and all(kind == "crop" for kind, *_ in log)  # no cold search
+    log.clear()
+    est.estimate(frame, 1.2)
+    assert afresh(log)  # the next cold frame starts afresh
+
+
+@pytest.mark.parametrize("scene", ["scan", "zoom", "zoom_levels"])
+def test_a_cold_frame_within_its_budget_reads_what_it_reads_without_one(scene):
+    """The budget changes nothing for a frame whose search fits it: the same windows read in
+    the same order (single crops and batches) and the same answer as with no budget, down to
+    a budget of exactly what the frame reads (the refining pass aside); one crop less stops it."""
+
+    def run(budget):
+        if scene == "scan":
+            est = _scanning_estimator(FAR_R, FAR_T, scan=True, cold_crop_budget=budget)
+            T_direct = FAR_T_DIRECT
+        else:
+            est = _zooming_estimator(FAR_R, FAR_T)
+            est.cold_crop_budget = budget
+            T_direct = FAR_T / (5.0 if scene == "zoom" else 20.0)
+        log = _reads(est)
+        r, win = est.solve(np.zeros((480, 744, 3), np.uint8), FAR_R, T_direct)
+        return log, r, est._cold
+
+    log, r, _ = run(None)
+    assert r is not None and np.linalg.norm(r.T_cam_target_m - FAR_T) < 1e-3
+    needed = _crops(log) - 1  # the refining pass is outside the budget
+    for budget in (needed, needed + 50):
+        log_b, r_b, cold = run(budget)
+        assert log_b == log and cold is None
+        assert np.array_equal(r_b.T_cam_target_m, r.T_cam_target_m)
+    log_b, r_b, cold = run(needed - 1)
+    assert cold is not None and (r_b is None or not np.allclose(r_b.T_cam_target_m, FAR_T, atol=1e-3))
+
+
+def test_a_budget_below_the_zooms_first_batch_is_refused():
+    """A budget that could never read the zoom's first batch (and the hint's crop) would stall
+    the cold search for good."""
+    from pathlib import Path
+
+    from oibar.nav.pose import MIN_COLD_CROP_BUDGET, KeypointPoseEstimator
+
+    model = Path(__file__).resolve().parents[2] / "models/oibarnet.onnx"
+    with pytest.raises(ValueError, match="cold_crop_budget"):
+        KeypointPoseEstimator(model, cold_crop_budget=MIN_COLD_CROP_BUDGET - 1, warmup_runs=0)
 
 
 def test_a_weak_fit_inside_the_range_envelope_is_preferred_to_a_tighter_one_outside():

@@ -453,6 +453,27 @@ SCAN_SIDE_PX = 64.0
 SCAN_STRIDE = 0.5
 SCAN_BATCH = 64
 SCAN_TRY = 3
+# Crops one cold frame may read through the keypoint network (the hint's and SEARCH_STEPS' count
+# but are never cut short; past the budget the zoom and the scan stop and go on in the next
+# frames, ColdSearch), so that no cycle nears the MCU's 1 s link timeout: the whole cold search
+# reads up to ~480 crops (1 + 11, three zoom levels of 34-59 + 3, the scan's 322 + 6); a frame
+# that reaches the scan took 1.8-2.0 s (376 crops, 3 noise frames). A crop costs about the same
+# read alone or in a batch: 4.6 ms a single pass (read + PnP), 4.8 ms a crop in a batch of 64
+# (307 ms, p90 340), and the first pass 5.6 ms (medians; 2 vCPU Debian, no GPU, onnxruntime 2
+# threads, the cores shared with training: upper bounds). With 60 crops the same frames took 7
+# cycles each of 290 ms (median; p90 328, at most 336). Fewer would never fit the zoom's first
+# batch (59) beside the hint's crop (MIN_COLD_CROP_BUDGET). A frame that runs only SEARCH_STEPS
+# (12 crops, ~60 ms) is not affected; nor is the refining pass after a strong fit (outside the
+# budget: 1 crop for the shipped model).
+COLD_CROP_BUDGET = 60
+MIN_COLD_CROP_BUDGET = len(ZOOM_STEPS) + len(WIDE_STEPS) + 1  # the largest batch, the hint's crop
+# A carried cold search is dropped this long (frame time) after its first frame. Its scores and
+# windows stay valid while the fixture barely moves in the image: on the validation scenes it
+# moves at most 7 px/s at 6-15 m (median 0.5 px/s), and a scan window holds it within a quarter
+# of its 64 px side of its centre, as the keypoint network was trained. The longest search takes
+# 10 frames at COLD_CROP_BUDGET, 2.7 s at the ~0.3 s a cold cycle takes in the daemon; the scan's
+# scores are then at most 7 frames (1.8 s, 13 px) old when its windows are solved.
+COLD_CARRY_MAX_AGE_S = 3.0
 
 
 def scan_windows(frame_wh: tuple[int, int], side_px: float, stride: float, out_px: int) -> list[CropWindow]:
@@ -565,6 +586,24 @@ class CropReading:
     R_cam_target_head: np.ndarray | None = None
 
 
+@dataclass
+class ColdSearch:
+    """Where a cold search (the zoom, then the scan) stopped when its frame's crop budget ran out
+    (COLD_CROP_BUDGET), for the next frames to go on from: the zoom level under way, its base
+    window and, once read, its windows to solve; the scan's scores so far. Which of the ranked
+    windows have been solved (`tried`) holds for either."""
+
+    level: int  # the zoom level under way; ZOOM_LEVELS: the scan
+    base: CropWindow | None = None  # the zoom level's base window
+    k_base: float = 1.0  # its size factor against the first pass's window
+    ranked: list[tuple[CropWindow, float]] | None = None  # the level's windows to solve (None: unread)
+    scan_scores: list[np.ndarray] = field(default_factory=list)  # the scan's, batch by batch
+    tried: int = 0  # ranked windows solved so far
+    # its first frame's time and the latest one's (estimate stamps them; NaN: never stamped)
+    t_first_s: float = float("nan")
+    t_last_s: float = float("nan")
+
+
 class KeypointPoseEstimator(PoseEstimator):
     """Keypoints + PnP (issue 15): the direct model (the first pass, a file beside this one named
     by ``oibar.first_pass``) places a crop at full resolution around the fixture; the keypoint
@@ -586,10 +625,18 @@ class KeypointPoseEstimator(PoseEstimator):
         scan_search: bool = True,
         mirror: bool | None = None,
         turned_reading_deg: float | None = None,
+        cold_crop_budget: int | None = COLD_CROP_BUDGET,
     ):
         self.path = Path(path)
         self.zoom_search = bool(zoom_search)
         self.scan_search = bool(scan_search)
+        # None: no budget (a tool that judges frames one by one, with no cycle to keep)
+        if cold_crop_budget is not None and cold_crop_budget < MIN_COLD_CROP_BUDGET:
+            raise ValueError(
+                f"cold_crop_budget must be at least {MIN_COLD_CROP_BUDGET} crops (the zoom's first "
+                f"batch and the hint's crop), or None; got {cold_crop_budget}"
+            )
+        self.cold_crop_budget = cold_crop_budget
         self.meta = read_metadata(self.path)
         for key in ("keypoints_3d_m", "crop", "pnp", "camera", "first_pass"):
             if key not in self.meta:
@@ -802,6 +849,10 @@ class KeypointPoseEstimator(PoseEstimator):
         SCAN_SIDE_PX). Without a prediction, `hint` (the estimator's own latest strong fit, when
         the filter has not taken it yet) places the first crop instead. The prediction and the
         hint only place a crop, never the attitude prior, so a wrong one cannot feed itself back.
+        The zoom and the scan (the cold search) stop where the frame's crops would pass
+        `cold_crop_budget` and leave where they stopped for the next call to go on from, without
+        SEARCH_STEPS (`_cold`; estimate drops it when it is too old): a caller that solves
+        unrelated frames calls forget() between them, or builds the estimator without a budget.
         Returns (PnpResult, its window): the first strong fit, else the best weak one
         (`_weak_rank`), else (None, None)."""
         K = self._K()
@@ -821,10 +872,15 @@ class KeypointPoseEstimator(PoseEstimator):
                 weak = (r, win)
             return False
 
+        # a cold search carried from earlier frames goes on here; a prediction ends it
+        cold = self._cold if prior is None else None
+        self._cold = None
+        crops = 0  # read for this frame, counted against the cold search's budget
         placed = prior if prior is not None else hint
         if placed is not None:
             uv_p = project(K, self.points_m, placed[0], placed[1])
             if np.all(np.isfinite(uv_p)):
+                crops += 1
                 consider(
                     *self._one_pass(
                         image,
@@ -835,53 +891,31 @@ class KeypointPoseEstimator(PoseEstimator):
                     )
                 )
         base: CropWindow | None = None
-        if best is None:
+        # SEARCH_STEPS are never cut short (they run with a prediction too); a carried search skips
+        # them: they found nothing on its first frame, and the fixture has barely moved since
+        if best is None and cold is None:
             uv0 = project(K, self.points_m, R_direct, T_direct)
             if np.all(np.isfinite(uv0)):
                 base = window_around(uv0, self.out_px, self.margin)
                 for dx, dy, k in SEARCH_STEPS:
                     c = (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px)
                     win = CropWindow(c, base.side_px * k, self.out_px)
+                    crops += 1
                     if consider(
                         *self._one_pass(image, win, R_direct, f, float(np.linalg.norm(T_direct)) / k)
                     ):
                         break
-        # the zoom only on a cold start or a lost track: with a prediction its ~0.2 s would come
-        # out of the 100 ms frame budget on every weak far frame of a healthy track
-        if best is None and base is not None and self.zoom_search and prior is None:
-            zbase, k_base = base, 1.0
-            for level in range(ZOOM_LEVELS):
-                wide = level == 0 and zbase.side_px * 2.0 <= WIDE_MAX_SIDE_PX
-                ranked = self._zoom_windows(image, zbase, wide=wide)
-                for zwin, k in ranked:
-                    k_total = k_base * k
-                    if consider(
-                        *self._one_pass(image, zwin, R_direct, f, float(np.linalg.norm(T_direct)) / k_total)
-                    ):
-                        break
-                if best is not None or not ranked:
-                    break
-                zbase, k_base = ranked[0][0], k_base * ranked[0][1]
-        if best is None and prior is None and self.scan_search:
-            for swin in self._scan_ranked(image):
-                r, rwin = self._one_pass(image, swin, R_direct, f, self._range_for_side_m(swin.side_px))
-                if consider(r, rwin):
-                    break
-                if r is None:
-                    continue
-                # a weak fit from a window of a guessed size is close (validation: within 10 % of
-                # the range): read again in the window its own pose draws
-                uv_r = project(K, self.points_m, *r.pose())
-                if np.all(np.isfinite(uv_r)) and consider(
-                    *self._one_pass(
-                        image,
-                        window_around(uv_r, self.out_px, self.margin),
-                        R_direct,
-                        f,
-                        float(np.linalg.norm(r.pose()[1])),
-                    )
-                ):
-                    break
+            # the zoom and the scan only on a cold start or a lost track: with a prediction their
+            # cost would come out of the 100 ms frame budget on every weak far frame of a healthy track
+            if best is None and prior is None:
+                if base is not None and self.zoom_search:
+                    cold = ColdSearch(level=0, base=base)
+                elif self.scan_search:
+                    cold = ColdSearch(level=ZOOM_LEVELS)
+        if best is None and cold is not None:
+            budget = np.inf if self.cold_crop_budget is None else self.cold_crop_budget
+            if not self._cold_search(image, cold, R_direct, T_direct, f, consider, budget - crops):
+                self._cold = cold  # out of crops: the next frames go on (estimate flags `searching`)
         if best is None:
             return weak if weak is not None else (None, None)
         for _ in range(self.refine_passes - 1):
@@ -914,7 +948,15 @@ class KeypointPoseEstimator(PoseEstimator):
         """ZOOM_STEPS' windows (and WIDE_STEPS' with `wide`) read in one batch; the ZOOM_TRY
         that look most like the fixture (mean presence x exp(-mean spread / 4 px, CROP_REF_PX terms)) with
         their size factors, best first."""
-        wins = [
+        wins = self._zoom_candidates(base, wide)
+        if not wins:
+            return []
+        score = self._fixture_likeness(image, [w for w, _ in wins])
+        return [wins[i] for i in np.argsort(-score)[:ZOOM_TRY]]
+
+    def _zoom_candidates(self, base: CropWindow, wide: bool) -> list[tuple[CropWindow, float]]:
+        """The windows (with their size factors) one zoom level reads around `base`."""
+        return [
             (
                 CropWindow(
                     (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px),
@@ -926,10 +968,6 @@ class KeypointPoseEstimator(PoseEstimator):
             for dx, dy, k in zoom_steps(wide)
             if base.side_px * k >= ZOOM_MIN_SIDE_PX  # smaller than a fixture within the envelope
         ]
-        if not wins:
-            return []
-        score = self._fixture_likeness(image, [w for w, _ in wins])
-        return [wins[i] for i in np.argsort(-score)[:ZOOM_TRY]]
 
     def _fixture_likeness(self, image: np.ndarray, wins: list[CropWindow]) -> np.ndarray:
         """How much each window looks like the fixture, read in one batch: mean presence x
@@ -942,15 +980,87 @@ class KeypointPoseEstimator(PoseEstimator):
         score: np.ndarray = present * np.exp(-spread * CROP_REF_PX / self.out_px / 4.0)
         return score
 
-    def _scan_ranked(self, image: np.ndarray) -> list[CropWindow]:
-        """The scan's windows (SCAN_SIDE_PX over the whole frame), read SCAN_BATCH at a time;
-        the SCAN_TRY most fixture-like, best first."""
+    def _cold_search(
+        self,
+        image: np.ndarray,
+        c: ColdSearch,
+        R_direct: np.ndarray,
+        T_direct: np.ndarray,
+        f: dict[str, Any] | None,
+        consider: Any,
+        crops_left: float,
+    ) -> bool:
+        """Go on with the cold search `c`: the zoom's levels (`_zoom_windows`), then the scan
+        (SCAN_SIDE_PX windows over the whole frame, read SCAN_BATCH at a time, the SCAN_TRY most
+        fixture-like solved). True when it is over (`consider` kept a strong fit, or nothing is
+        left to try); False when the next read would take more than `crops_left` crops: `c` then
+        says where to go on."""
+        K = self._K()
+        range_m = float(np.linalg.norm(T_direct))
+        while c.level < ZOOM_LEVELS:  # the zoom
+            assert c.base is not None
+            if c.ranked is None:
+                wide = c.level == 0 and c.base.side_px * 2.0 <= WIDE_MAX_SIDE_PX
+                n = len(self._zoom_candidates(c.base, wide))
+                if n > crops_left:
+                    return False
+                crops_left -= n
+                c.ranked = self._zoom_windows(image, c.base, wide=wide)
+            while c.tried < len(c.ranked):
+                if crops_left < 1:
+                    return False
+                crops_left -= 1
+                zwin, k = c.ranked[c.tried]
+                c.tried += 1
+                if consider(*self._one_pass(image, zwin, R_direct, f, range_m / (c.k_base * k))):
+                    return True
+            if c.ranked and c.level + 1 < ZOOM_LEVELS:  # zoom again, into the most fixture-like
+                c.level, c.base, c.k_base = c.level + 1, c.ranked[0][0], c.k_base * c.ranked[0][1]
+                c.ranked, c.tried = None, 0
+            else:  # on to the scan
+                c.level, c.base, c.ranked, c.tried = ZOOM_LEVELS, None, None, 0
+        if not self.scan_search:
+            return True
         h, w = image.shape[:2]
         wins = scan_windows((w, h), SCAN_SIDE_PX, SCAN_STRIDE, self.out_px)
-        score = np.concatenate(
-            [self._fixture_likeness(image, wins[i : i + SCAN_BATCH]) for i in range(0, len(wins), SCAN_BATCH)]
-        )
-        return [wins[i] for i in np.argsort(-score, kind="stable")[:SCAN_TRY]]
+        read = sum(len(s) for s in c.scan_scores)
+        while read < len(wins):
+            n = int(min(SCAN_BATCH, len(wins) - read, crops_left))
+            if n < 1:
+                return False
+            c.scan_scores.append(self._fixture_likeness(image, wins[read : read + n]))
+            read, crops_left = read + n, crops_left - n
+        # ranked over every window scored, on this frame or the last ones: the fixture moves only
+        # a few pixels in between (COLD_CARRY_MAX_AGE_S)
+        ranked = [wins[i] for i in np.argsort(-np.concatenate(c.scan_scores), kind="stable")[:SCAN_TRY]]
+        while c.tried < len(ranked):
+            swin = ranked[c.tried]
+            if crops_left < 1:
+                return False
+            crops_left -= 1
+            r, rwin = self._one_pass(image, swin, R_direct, f, self._range_for_side_m(swin.side_px))
+            if consider(r, rwin):
+                return True
+            if r is not None:
+                # a weak fit from a window of a guessed size is close (validation: within 10 % of
+                # the range): read again in the window its own pose draws
+                uv_r = project(K, self.points_m, *r.pose())
+                if np.all(np.isfinite(uv_r)):
+                    if crops_left < 1:
+                        return False  # the next frame reads this window again, then redraws
+                    crops_left -= 1
+                    if consider(
+                        *self._one_pass(
+                            image,
+                            window_around(uv_r, self.out_px, self.margin),
+                            R_direct,
+                            f,
+                            float(np.linalg.norm(r.pose()[1])),
+                        )
+                    ):
+                        return True
+            c.tried += 1
+        return True
 
     def _range_for_side_m(self, side_px: float) -> float:
         """The range at which the fixture, seen head-on, fills a window of side_px (its
@@ -1026,9 +1136,12 @@ class KeypointPoseEstimator(PoseEstimator):
 
     uses_prior = True
     turned_reading_deg = 0.0  # read_crop's turned readings (set from the export in __init__)
+    cold_crop_budget: int | None = COLD_CROP_BUDGET  # (set in __init__)
+    _cold: ColdSearch | None = None  # a cold search that goes on in the next frames (solve)
 
     def forget(self) -> None:
         self.fit_history.forget()
+        self._cold = None
 
     def estimate(
         self,
@@ -1044,6 +1157,11 @@ class KeypointPoseEstimator(PoseEstimator):
         prior = _checked_prior(prior)
         t0 = time.perf_counter()
         self.fit_history.advance(float(t_s))
+        # a cold search carried from earlier frames (solve) goes on while its scores still hold,
+        # and never across a frame whose time does not advance (a new sequence)
+        cold = self._cold
+        if cold is not None and not cold.t_last_s < t_s <= cold.t_first_s + COLD_CARRY_MAX_AGE_S:
+            self._cold = None
         if float(image_rgb_uint8[::4, ::4].std()) < MIN_FRAME_STD_DN:
             nan = np.full(3, np.nan)
             return PoseEstimate(
@@ -1069,11 +1187,19 @@ class KeypointPoseEstimator(PoseEstimator):
         r, win = self.solve(
             image_rgb_uint8, direct.R_cam_target, direct.T_cam_target_m, prior=prior, hint=hint
         )
+        # the cold search ran out of this frame's crops and goes on in the next frames: the answer
+        # (no strong fit, so its confidence is already low) is provisional
+        searching: tuple[str, ...] = ()
+        if self._cold is not None:
+            searching = ("searching",)
+            if np.isnan(self._cold.t_first_s):
+                self._cold.t_first_s = float(t_s)
+            self._cold.t_last_s = float(t_s)
         if r is None or win is None:
             latency_ms = (time.perf_counter() - t0) * 1e3
             direct.latency_ms = latency_ms
             direct.confidence *= FALLBACK_FACTOR
-            direct.flags = tuple(direct.flags) + ("pnp_failed", "fallback_direct")
+            direct.flags = tuple(direct.flags) + ("pnp_failed", "fallback_direct") + searching
             return direct
         R, T = r.pose()
         latency_ms = (time.perf_counter() - t0) * 1e3
@@ -1086,6 +1212,7 @@ class KeypointPoseEstimator(PoseEstimator):
         if rms_crop > STRONG_FIT_RMS_CROP_PX:  # the search found nothing better (solve)
             conf *= FALLBACK_FACTOR
             flags.append("weak_fit")
+        flags += searching
         dpos = float(np.linalg.norm(T - direct.T_cam_target_m)) / max(rng_m, 1e-6)
         datt = rotation_angle_deg(R.T @ direct.R_cam_target)
         strong = rms_crop <= STRONG_FIT_RMS_CROP_PX
