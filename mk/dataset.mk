@@ -11,10 +11,12 @@ dataset: setup ## render the 12 synthetic sequences into data/synthetic (resumab
 # train (54 scenes) and validation (16 scenes) are our own, disjoint from each other and from the
 # paper's test sequences 1 and 8 (`make dataset DATASET_ARGS="--seqs 1,8"` renders those).
 # SHARD=i/N renders every N-th scene from the i-th, for batch schedulers.
+# TRAIN_SPEC=models/scenes/train_turned.json adds the 24 turned runs of the 2026-11-27 study.
 SHARD ?=
+TRAIN_SPEC ?= models/scenes/train.json
 .PHONY: dataset-train dataset-val
-dataset-train: setup ## render the training scenes (models/scenes/train.json) into data/train (resumable; SHARD=i/N)
-	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/train --spec models/scenes/train.json --workers $(JOBS) $(if $(SHARD),--shard $(SHARD))
+dataset-train: setup ## render the training scenes (TRAIN_SPEC, models/scenes/train.json) into data/train (resumable; SHARD=i/N)
+	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/train --spec $(TRAIN_SPEC) --workers $(JOBS) $(if $(SHARD),--shard $(SHARD))
 
 dataset-val: setup ## render the validation scenes (models/scenes/val.json) into data/val (resumable; SHARD=i/N)
 	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/val --spec models/scenes/val.json --workers $(JOBS) $(if $(SHARD),--shard $(SHARD))

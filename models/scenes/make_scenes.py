@@ -111,6 +111,28 @@ def off_axis(
     return out
 
 
+def turned_runs(
+    prefix: str,
+    first: int,
+    seed0: int,
+    n: int,
+    rng: np.random.Generator,
+    avoid: list[tuple],
+    turned_deg: tuple[float, float] = (3.0, 6.0),
+) -> list[dict]:
+    """n runs turned `turned_deg` (3-6 deg) from 10 m to contact, ports cycling through all six,
+    backgrounds alternating, every other one also 0.2-0.4 m off the axis."""
+    out = []
+    for j in range(n):
+        port, bg = int(j % 6 + 1), ("iss", "perlin")[(j // 6 + j) % 2]
+        s = _scene(f"{prefix}{first + j:03d}", port, bg, seed0 + j, rng, avoid)
+        s["turned_deg"] = float(np.round(rng.uniform(*turned_deg), 1))
+        if j % 2:
+            s["offaxis_m"] = float(np.round(rng.uniform(0.2, 0.4), 2))
+        out.append(s)
+    return out
+
+
 def main() -> None:
     rng = np.random.default_rng(20261123)
     train = scenes("tr", 20000, 4, rng, TEST_KEYS)
@@ -135,8 +157,14 @@ def main() -> None:
     # network reads views at 0.54-0.72 of the truth (the probe's view slope).
     clear = TEST_KEYS + [(s["port"], s["background"], s["sun_elevation_deg"]) for s in val]
     train += off_axis("tr", len(train), 20000 + len(train), 24, rng, clear, offaxis_m=(0.45, 0.9))
+    # Turned runs, 3-6 deg (the 2026-11-27 study), in a training set of their own that holds
+    # train.json's scenes too, so train.json and every model trained on it stay as they were. Why:
+    # on more than half of train.json's frames the chaser is exactly aligned, at every range, and
+    # close in 0.13.0 reads a turn at 0.8 of the truth (the probe's attitude slope at 1 and 0.5 m).
+    train_turned = train + turned_runs("tr", len(train), 20000 + len(train), 24, rng, clear)
     sets = {
         "train": {"set": "train", "scenes": train},
+        "train_turned": {"set": "train", "scenes": train_turned},
         "val": {"set": "val", "scenes": val},
         "test": {"set": "test", "scenes": TEST},
     }
