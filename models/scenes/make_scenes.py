@@ -87,6 +87,29 @@ def turned(
     return out
 
 
+def _cycling_runs(
+    prefix: str,
+    first: int,
+    seed0: int,
+    n: int,
+    rng: np.random.Generator,
+    avoid: list[tuple],
+    always: tuple[str, tuple[float, float], int],
+    odd: tuple[str, tuple[float, float], int],
+) -> list[dict]:
+    """n runs, ports cycling through all six, backgrounds alternating; each run draws the field
+    `always` names, every other one also the field `odd` names: (field, (low, high), decimals),
+    drawn in that order (the committed sets depend on it)."""
+    out = []
+    for j in range(n):
+        port, bg = int(j % 6 + 1), ("iss", "perlin")[(j // 6 + j) % 2]
+        s = _scene(f"{prefix}{first + j:03d}", port, bg, seed0 + j, rng, avoid)
+        for field, (lo, hi), decimals in (always, odd) if j % 2 else (always,):
+            s[field] = float(np.round(rng.uniform(lo, hi), decimals))
+        out.append(s)
+    return out
+
+
 def off_axis(
     prefix: str,
     first: int,
@@ -100,37 +123,9 @@ def off_axis(
     through all six, backgrounds alternating, every other one also turned 1.5-5 deg: the closed
     loop's views (a guidance that follows its own estimate off the axis), which the paper's phases
     never show. The wander is capped at 8.5 deg of the view (it binds below ~5 m for 0.45-0.9 m)."""
-    out = []
-    for j in range(n):
-        port, bg = int(j % 6 + 1), ("iss", "perlin")[(j // 6 + j) % 2]
-        s = _scene(f"{prefix}{first + j:03d}", port, bg, seed0 + j, rng, avoid)
-        s["offaxis_m"] = float(np.round(rng.uniform(*offaxis_m), 2))
-        if j % 2:
-            s["turned_deg"] = float(np.round(rng.uniform(1.5, 5.0), 1))
-        out.append(s)
-    return out
-
-
-def turned_runs(
-    prefix: str,
-    first: int,
-    seed0: int,
-    n: int,
-    rng: np.random.Generator,
-    avoid: list[tuple],
-    turned_deg: tuple[float, float] = (3.0, 6.0),
-) -> list[dict]:
-    """n runs turned `turned_deg` (3-6 deg) from 10 m to contact, ports cycling through all six,
-    backgrounds alternating, every other one also 0.2-0.4 m off the axis."""
-    out = []
-    for j in range(n):
-        port, bg = int(j % 6 + 1), ("iss", "perlin")[(j // 6 + j) % 2]
-        s = _scene(f"{prefix}{first + j:03d}", port, bg, seed0 + j, rng, avoid)
-        s["turned_deg"] = float(np.round(rng.uniform(*turned_deg), 1))
-        if j % 2:
-            s["offaxis_m"] = float(np.round(rng.uniform(0.2, 0.4), 2))
-        out.append(s)
-    return out
+    return _cycling_runs(
+        prefix, first, seed0, n, rng, avoid, ("offaxis_m", offaxis_m, 2), ("turned_deg", (1.5, 5.0), 1)
+    )
 
 
 def main() -> None:
@@ -161,7 +156,18 @@ def main() -> None:
     # train.json's scenes too, so train.json and every model trained on it stay as they were. Why:
     # on more than half of train.json's frames the chaser is exactly aligned, at every range, and
     # close in 0.13.0 reads a turn at 0.8 of the truth (the probe's attitude slope at 1 and 0.5 m).
-    train_turned = train + turned_runs("tr", len(train), 20000 + len(train), 24, rng, clear)
+    # 3-6 deg from 10 m to contact, every other run also 0.2-0.4 m off the axis
+    turned_wide = _cycling_runs(
+        "tr",
+        len(train),
+        20000 + len(train),
+        24,
+        rng,
+        clear,
+        ("turned_deg", (3.0, 6.0), 1),
+        ("offaxis_m", (0.2, 0.4), 2),
+    )
+    train_turned = train + turned_wide
     sets = {
         "train": {"set": "train", "scenes": train},
         "train_turned": {"set": "train", "scenes": train_turned},
