@@ -8,14 +8,14 @@ dataset: setup ## render the 12 synthetic sequences into data/synthetic (resumab
 	@$(PY) -m oibar_hil.dataset --out $(DATASET_DIR) --workers $(JOBS) $(DATASET_ARGS)
 
 # The keypoint model's scene sets (issue 15), from the committed spec files in models/scenes/:
-# train (54 scenes) and validation (16 scenes) are our own, disjoint from each other and from the
+# train (96 scenes) and validation (22 scenes) are our own, disjoint from each other and from the
 # paper's test sequences 1 and 8 (`make dataset DATASET_ARGS="--seqs 1,8"` renders those).
 # SHARD=i/N renders every N-th scene from the i-th, for batch schedulers.
 # TRAIN_SPEC=models/scenes/train_turned.json adds the 24 turned runs of the 2026-11-27 study.
 SHARD ?=
 TRAIN_SPEC ?= models/scenes/train.json
 .PHONY: dataset-train dataset-val
-dataset-train: setup ## render the training scenes (TRAIN_SPEC, models/scenes/train.json) into data/train (resumable; SHARD=i/N)
+dataset-train: setup ## render the training scenes (TRAIN_SPEC, default models/scenes/train.json) into data/train (resumable; SHARD=i/N)
 	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/train --spec $(TRAIN_SPEC) --workers $(JOBS) $(if $(SHARD),--shard $(SHARD))
 
 dataset-val: setup ## render the validation scenes (models/scenes/val.json) into data/val (resumable; SHARD=i/N)

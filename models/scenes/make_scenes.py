@@ -156,7 +156,7 @@ def main() -> None:
     # train.json's scenes too, so train.json and every model trained on it stay as they were. Why:
     # on more than half of train.json's frames the chaser is exactly aligned, at every range, and
     # close in 0.13.0 reads a turn at 0.8 of the truth (the probe's attitude slope at 1 and 0.5 m).
-    # 3-6 deg from 10 m to contact, every other run also 0.2-0.4 m off the axis
+    # Every other one is also 0.2-0.4 m off the axis.
     turned_wide = _cycling_runs(
         "tr",
         len(train),
