@@ -77,6 +77,10 @@ class KpTrain:
     reproj_crop_px: float = 4.0  # PnP inlier threshold, crop pixels
     min_present: float = 0.5
     init_from: str = ""  # a checkpoint to start from (a second stage); ignored when resuming
+    # Wall-clock budget of the whole run (s; 0 = none), for a lent machine held for minutes: once
+    # the warm-up is over, the schedule is shortened to the steps that fit (`fit_steps`), so the
+    # learning rate still anneals to lr_min instead of being cut off mid-cosine.
+    time_budget_s: float = 0.0
 
 
 @dataclass
@@ -205,6 +209,15 @@ def lr_at(step: int, t: KpTrain) -> float:
         return t.lr * (step + 1) / t.warmup_steps
     x = (step - t.warmup_steps) / max(1, t.steps - t.warmup_steps)
     return t.lr_min + 0.5 * (t.lr - t.lr_min) * (1 + math.cos(math.pi * min(1.0, x)))
+
+
+def fit_steps(step: int, rate_steps_per_s: float, left_s: float, cap: int, margin: float = 0.9) -> int:
+    """The schedule length that a time budget allows: the steps done, plus what `rate` gets
+    through in `margin` of the time left (validation and the last save take the rest), never more
+    than `cap` (the config's steps) nor fewer than the steps already done."""
+    if rate_steps_per_s <= 0 or left_s <= 0:
+        return step
+    return max(step, min(cap, step + int(rate_steps_per_s * left_s * margin)))
 
 
 def attitude_error_deg(att_deg: np.ndarray, att_true_deg: np.ndarray) -> np.ndarray:
@@ -374,6 +387,7 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
     net = KeypointNet(len(kp), cfg.model.width, pretrained=cfg.model.pretrained).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     step, best = 0, {"score": float("inf")}
+    ck_fitted: int | None = None
     last = run / "last.pt"
     if not last.is_file() and t.init_from:
         src = cfg.path(t.init_from)
@@ -401,6 +415,9 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         net.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optim"])
         step, best = ck["step"], ck.get("best", best)
+        ck_fitted = ck.get("steps_fitted")
+        if t.time_budget_s and ck.get("steps_fitted"):  # a schedule fitted to the budget stays fitted
+            t.steps = min(t.steps, int(ck["steps_fitted"]))
         if lead:
             print(f"resuming {run.name} at step {step}/{t.steps}", file=sys.stderr)
     model = torch.nn.parallel.DistributedDataParallel(net) if world > 1 else net
@@ -413,12 +430,19 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
             sampler=sampler,
             num_workers=t.workers,
             persistent_workers=t.workers > 0,
+            pin_memory=device.type == "cuda",
             drop_last=True,
         )
     )
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True  # fixed crop size: let cuDNN pick its kernels once
     log = Logger(run / "log.jsonl", lead, progress)
     t_ckpt = time.monotonic()
     t0, step0 = time.monotonic(), step
+    t_start = time.monotonic()  # the budget counts from here: set-up and data loading are before it
+    fit_at = step + max(t.warmup_steps - step, 0) if t.time_budget_s else -1
+    fitted: int | None = None
+    t_rate, step_rate = t0, step
     running: dict[str, float] = {}
     net.train()
     while step < t.steps:
@@ -439,6 +463,23 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         losses["loss"].backward()
         opt.step()
         step += 1
+        if step == step0 + 2:  # the rate is measured once the loader's workers have started
+            t_rate, step_rate = time.monotonic(), step
+        if t.time_budget_s and step == max(fit_at, step0 + 5):
+            now = time.monotonic()
+            rate_fit = (step - step_rate) / max(1e-6, now - t_rate)
+            fitted = fit_steps(step, rate_fit, t.time_budget_s - (now - t_start), t.steps)
+            if world > 1:  # every process must stop at the same step: rank 0's fit holds
+                n = torch.tensor([fitted], dtype=torch.long, device=device)
+                dist.broadcast(n, 0)
+                fitted = int(n.item())
+            if lead:
+                print(
+                    f"\ntime budget {t.time_budget_s:.0f} s: {rate_fit:.1f} steps/s, "
+                    f"schedule {t.steps} -> {fitted} steps",
+                    file=sys.stderr,
+                )
+            t.steps = fitted
         for k, v in losses.items():
             fv = float(v.detach())
             running[k] = 0.98 * running.get(k, fv) + 0.02 * fv
@@ -467,7 +508,16 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
                 row["best"] = True
             log.record(row)
         if lead and (end or time.monotonic() - t_ckpt > t.ckpt_every_s or step % t.val_every == 0):
-            _save(last, {"model": net.state_dict(), "optim": opt.state_dict(), "step": step, "best": best})
+            _save(
+                last,
+                {
+                    "model": net.state_dict(),
+                    "optim": opt.state_dict(),
+                    "step": step,
+                    "best": best,
+                    "steps_fitted": fitted or ck_fitted,
+                },
+            )
             t_ckpt = time.monotonic()
     if lead:
         (run / "done.json").write_text(json.dumps({"steps": step, "best": best}, indent=1) + "\n")

@@ -303,6 +303,39 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
         PoseEstimator(out)
 
 
+def test_the_schedule_fits_the_time_budget():
+    from oibar_models.kp_engine import fit_steps
+
+    assert fit_steps(100, 40.0, 100.0, 20000, margin=0.9) == 100 + 3600  # what fits
+    assert fit_steps(100, 40.0, 1000.0, 20000) == 20000  # never beyond the config's steps
+    assert fit_steps(100, 40.0, -5.0, 20000) == 100  # out of time: stop where it is
+    assert fit_steps(100, 0.0, 50.0, 20000) == 100
+
+
+def test_a_run_over_its_time_budget_ends_annealed_and_stays_ended(tiny_dataset, kp_sets, tmp_path):
+    """A budget already spent by the fit (step 5) ends the run there, with the learning rate at
+    its floor, and a resume keeps the fitted schedule instead of running on to train.steps."""
+    from oibar_models.kp_engine import KpTrain, lr_at
+    from oibar_models.kp_train import main as train_main
+
+    run = tmp_path / "budget"
+    args = [
+        "--config",
+        str(CONFIG),
+        "--no-progress",
+        *_smoke_overrides(tiny_dataset, kp_sets, run),
+        "train.steps=50",
+        "train.val_every=100",
+        "train.time_budget_s=0.001",
+    ]
+    assert train_main(args) == 0
+    ck = torch.load(run / "last.pt", weights_only=False)
+    assert ck["step"] == 5 and ck["steps_fitted"] == 5
+    assert lr_at(5, KpTrain(steps=5, warmup_steps=1)) == KpTrain().lr_min
+    assert train_main(args) == 0
+    assert torch.load(run / "last.pt", weights_only=False)["step"] == 5
+
+
 def test_ddp_two_processes_on_gloo(tiny_dataset, kp_sets, tmp_path):
     """torchrun --nproc_per_node 2: both processes step together; rank 0 writes the run."""
     run = tmp_path / "ddp"
