@@ -3,11 +3,14 @@ host's navigator (the shipped OibarNet on onnxruntime, the checks, the filter) t
 into the solution, and the host's guidance flies the mission on it. The short version of
 `make demo`; plus the camera lost in flight."""
 
+import csv
+
 import numpy as np
 import pytest
 
 from oibar_hil.rig.checks import evaluate
 from oibar_hil.rig.cli import SCENARIO_DIR
+from oibar_hil.rig.report import write_report
 from oibar_hil.rig.runner import REPO_ROOT, Rig
 from oibar_hil.rig.scenario import load_scenario
 
@@ -59,6 +62,32 @@ def test_short_mission_with_the_cnn_in_the_loop(sim_mcu_path, cnn_nav_factory, t
     ]
     assert len(err) > 80 and np.sqrt(np.mean(np.square(err))) < 0.005, err
     assert abs(err[-1]) < 0.010, err[-1]
+
+    # the per-cycle record: signed errors by axis that add up to the norms the metrics use, and
+    # the frame's own pose (answer and measurement) beside the filter's, in the report's CSV
+    solved = [x for x in r.nav_log if x["valid"]]
+    assert np.allclose(
+        [np.hypot(x["err_x_m"], x["err_y_m"]) for x in solved], [x["lateral_err_m"] for x in solved]
+    )
+    assert np.allclose(
+        [x["err_range_m"] for x in solved], [x["range_est_m"] - x["range_true_m"] for x in solved]
+    )
+    framed = [x for x in r.nav_log if "meas_err_x_m" in x]
+    assert len(framed) > 300
+    for p in ("meas_", "ans_"):
+        lat_mm = np.abs([[x[f"{p}err_x_m"], x[f"{p}err_y_m"]] for x in framed]) * 1e3
+        att = np.abs([[x[f"{p}err_att_x_deg"], x[f"{p}err_att_y_deg"]] for x in framed])
+        assert 0.0 < np.median(lat_mm) < 50.0 and 0.0 < np.median(att) < 3.0, (
+            p,
+            np.median(lat_mm),
+            np.median(att),
+        )
+    write_report(r, tmp_path)
+    with open(tmp_path / "nav_cycles.csv") as fh:
+        table = list(csv.DictReader(fh))
+    assert len(table) == len(r.nav_log)
+    assert {"t_s", "err_x_m", "meas_err_att_y_deg", "ans_err_range_m"} <= set(table[0])
+    assert sum(1 for row in table if row["meas_err_x_m"] != "") == len(framed)
 
 
 def test_camera_lost_in_flight_holds_then_aborts_and_backs_off(sim_mcu_path, cnn_nav_factory):

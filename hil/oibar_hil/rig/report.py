@@ -7,6 +7,7 @@ pressures), then the full timeline of states, commands, MCU events and notes.
 
 from __future__ import annotations
 
+import csv
 import html
 import json
 from pathlib import Path
@@ -188,6 +189,19 @@ def _plot_navigation(result: Any, path: Path) -> None:
     plt.close(fig)
 
 
+def write_nav_cycles(log: list[dict], path: Path) -> None:
+    """One row per guidance cycle: the navigator's solution, the frame's pose (answer and the
+    filter's measurement) and their signed errors against the truth; a cell is empty where a cycle
+    had no such value (no frame, no solution)."""
+    cols: list[str] = []
+    for r in log:
+        cols += [k for k in r if k not in cols]
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=cols, restval="")
+        w.writeheader()
+        w.writerows(log)
+
+
 def summary_dict(result: Any) -> dict[str, Any]:
     return {
         "scenario": result.scenario.name,
@@ -216,6 +230,8 @@ def write_report(result: Any, out_dir: Path) -> Path:
     for name, fn in plots:
         fn(result, out_dir / name)
     (out_dir / "summary.json").write_text(json.dumps(summary_dict(result), indent=2, default=str))
+    if getattr(result, "nav_log", None):
+        write_nav_cycles(result.nav_log, out_dir / "nav_cycles.csv")
     e = html.escape
     sc = result.scenario
     verdict = "PASS" if result.passed else "FAIL"

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from oibar import pb
+from oibar.geometry.docking import docking_from_camera_pose
 from oibar.link.session import LinkSession, SessionLink
 from oibar.nav.daemon import DaemonParams, NavDaemon
 from oibar.nav.guidance import Guidance, MechRequest
@@ -50,6 +51,26 @@ NEAR_RANGE_M = 5.0  # the closed-loop navigation metrics' "below 5 m" (probe tip
 
 def default_mcu_path() -> Path:
     return Path(os.environ.get("OIBAR_SIM_MCU", DEFAULT_MCU))
+
+
+def signed_errors(prefix: str, r_D_m: Any, att_rad: Any, truth: Any) -> dict[str, float]:
+    """Estimate - truth of the probe tip (m) and the attitude (deg, rotation vectors), in D."""
+    dr = np.asarray(r_D_m, dtype=float) - truth.r_D_m
+    da = np.degrees(np.asarray(att_rad, dtype=float) - truth.att_rad)
+    return {
+        f"{prefix}err_x_m": float(dr[0]),
+        f"{prefix}err_y_m": float(dr[1]),
+        f"{prefix}err_range_m": float(dr[2]),
+        f"{prefix}err_att_x_deg": float(da[0]),
+        f"{prefix}err_att_y_deg": float(da[1]),
+        f"{prefix}err_att_z_deg": float(da[2]),
+    }
+
+
+def pose_errors(prefix: str, T_cam_target_m: Any, R_cam_target: Any, truth: Any) -> dict[str, float]:
+    """One frame's pose (camera frame) as guidance would read it, against the truth."""
+    d = docking_from_camera_pose(T_cam_target_m, R_cam_target)
+    return signed_errors(prefix, d.r_D_m, d.att_rad, truth)
 
 
 @dataclass
@@ -357,13 +378,20 @@ class Rig:
         timings = dict(getattr(self.nav, "last_timings_ms", {}))
         if frame is not None:
             timings.update(step.timings_ms, nav_ms=cycle_ms)
-        self._record_nav(step.solution, timings)
+        self._record_nav(step.solution, timings, getattr(step, "estimate", None))
         return out
 
-    def _record_nav(self, sol: Any, timings: dict) -> None:
-        """The estimate beside the truth, per guidance cycle (report plots, metrics)."""
+    def _record_nav(self, sol: Any, timings: dict, estimate: Any = None) -> None:
+        """The estimate beside the truth, per guidance cycle (report plots, metrics, and the
+        report's nav_cycles.csv). The signed errors (estimate - truth, in D; attitude as the
+        difference of the rotation vectors, which is the error to first order) are there so a
+        lean can be told apart from noise: by axis, by range, by the side the chaser is turned."""
         w = self.world
         est_lat = sol.r_D_m[:2] if sol.valid else np.full(2, np.nan)
+        row = signed_errors("", sol.r_D_m, sol.att_rad, w.s) if sol.valid else {}
+        if estimate is not None and estimate.finite:
+            row.update(pose_errors("ans_", estimate.T_cam_target_m, estimate.R_cam_target, w.s))
+            row.update(pose_errors("meas_", *estimate.measurement(), w.s))
         self.nav_log.append(
             {
                 "t_s": self.t_s,
@@ -377,6 +405,7 @@ class Rig:
                 "misalign_true_deg": w.misalignment_deg,
                 "misalign_est_deg": sol.misalignment_deg if sol.valid else float("nan"),
                 "confidence": sol.confidence,
+                **row,
                 **timings,
             }
         )
