@@ -86,7 +86,9 @@ def test_short_mission_with_the_cnn_in_the_loop(sim_mcu_path, cnn_nav_factory, t
     with open(tmp_path / "nav_cycles.csv") as fh:
         table = list(csv.DictReader(fh))
     assert len(table) == len(r.nav_log)
-    assert {"t_s", "err_x_m", "meas_err_att_y_deg", "ans_err_range_m"} <= set(table[0])
+    assert {"t_s", "true_y_m", "true_vx_mps", "err_x_m", "meas_err_att_y_deg", "ans_err_range_m"} <= set(
+        table[0]
+    )
     assert sum(1 for row in table if row["meas_err_x_m"] != "") == len(framed)
 
 
