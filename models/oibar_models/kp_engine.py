@@ -416,8 +416,8 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         opt.load_state_dict(ck["optim"])
         step, best = ck["step"], ck.get("best", best)
         ck_fitted = ck.get("steps_fitted")
-        if t.time_budget_s and ck.get("steps_fitted"):  # a schedule fitted to the budget stays fitted
-            t.steps = min(t.steps, int(ck["steps_fitted"]))
+        if t.time_budget_s and ck_fitted:  # a schedule fitted to the budget stays fitted
+            t.steps = min(t.steps, int(ck_fitted))
         if lead:
             print(f"resuming {run.name} at step {step}/{t.steps}", file=sys.stderr)
     model = torch.nn.parallel.DistributedDataParallel(net) if world > 1 else net
@@ -438,9 +438,9 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         torch.backends.cudnn.benchmark = True  # fixed crop size: let cuDNN pick its kernels once
     log = Logger(run / "log.jsonl", lead, progress)
     t_ckpt = time.monotonic()
-    t0, step0 = time.monotonic(), step
-    t_start = time.monotonic()  # the budget counts from here: set-up and data loading are before it
-    fit_at = step + max(t.warmup_steps - step, 0) if t.time_budget_s else -1
+    t0, step0 = time.monotonic(), step  # the budget counts from t0: set-up and data loading are before it
+    # the schedule is fitted once the warm-up is over (its learning rate does not depend on steps)
+    fit_at = max(t.warmup_steps, step0 + 5) if t.time_budget_s else -1
     fitted: int | None = None
     t_rate, step_rate = t0, step
     running: dict[str, float] = {}
@@ -465,10 +465,10 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         step += 1
         if step == step0 + 2:  # the rate is measured once the loader's workers have started
             t_rate, step_rate = time.monotonic(), step
-        if t.time_budget_s and step == max(fit_at, step0 + 5):
+        if step == fit_at:
             now = time.monotonic()
             rate_fit = (step - step_rate) / max(1e-6, now - t_rate)
-            fitted = fit_steps(step, rate_fit, t.time_budget_s - (now - t_start), t.steps)
+            fitted = fit_steps(step, rate_fit, t.time_budget_s - (now - t0), t.steps)
             if world > 1:  # every process must stop at the same step: rank 0's fit holds
                 n = torch.tensor([fitted], dtype=torch.long, device=device)
                 dist.broadcast(n, 0)

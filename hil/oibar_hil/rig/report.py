@@ -193,9 +193,7 @@ def write_nav_cycles(log: list[dict], path: Path) -> None:
     """One row per guidance cycle: the navigator's solution, the frame's pose (answer and the
     filter's measurement) and their signed errors against the truth; a cell is empty where a cycle
     had no such value (no frame, no solution)."""
-    cols: list[str] = []
-    for r in log:
-        cols += [k for k in r if k not in cols]
+    cols = list(dict.fromkeys(k for r in log for k in r))  # every key, in first-seen order
     with open(path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=cols, restval="")
         w.writeheader()

@@ -378,7 +378,7 @@ class Rig:
         timings = dict(getattr(self.nav, "last_timings_ms", {}))
         if frame is not None:
             timings.update(step.timings_ms, nav_ms=cycle_ms)
-        self._record_nav(step.solution, timings, getattr(step, "estimate", None))
+        self._record_nav(step.solution, timings, step.estimate)
         return out
 
     def _record_nav(self, sol: Any, timings: dict, estimate: Any = None) -> None:
