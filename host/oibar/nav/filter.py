@@ -26,6 +26,15 @@ odometry pins it to a few mm/s. It has its own gate; after ``vel_reset_after`` c
 gated ones the velocity is re-seated on the odometry (the vehicle's velocity sensor is the
 better judge of a real change, e.g. the contact). It never starts the filter nor keeps it valid:
 position, and so validity, comes from the camera. Without odometry nothing here changes.
+
+The odometry's own constant error is not in its reported sigma (a GNC states its white noise;
+its bias per approach is a spec-sheet number). Fused as white, a 2 mm/s lateral bias walks the
+tip estimate off the camera by the bias times the position's memory: 1-2.5 cm at 1-5 m in the rig
+(docs/model_card.md, "where the closed loop's lateral error comes from"). So the position block
+carries the odometry's lateral bias as two more states (``odo_bias_sigma_lateral_mps``, its prior):
+the odometry measures v + b, the camera's positions tell v over the longer run. Not along the
+docking axis: there the camera's range bias drifts by 7-16 mm/s near contact, and the closing
+speed that DOCK is checked against must stay the odometry's.
 """
 
 from __future__ import annotations
@@ -100,6 +109,10 @@ class FilterParams:
     vel_sigma_floor_mps: float = 0.001
     vel_gate_chi2: float = CHI2_3DOF_P001  # on the velocity innovation alone
     vel_reset_after: int = 5  # consecutive gated velocities: 0.5 s at 10 Hz
+    # Prior 1-sigma of the odometry's constant, unreported error per lateral D axis (x, y), which
+    # the filter estimates (0: off, the odometry fused as white). The rig vehicle's assumption
+    # (VehicleParams.odometry_bias_mps); a real vehicle's GNC states its own.
+    odo_bias_sigma_lateral_mps: float = 0.002
 
     def __post_init__(self) -> None:
         for name in (
@@ -123,6 +136,11 @@ class FilterParams:
         if not (np.isfinite(self.att_sigma_per_m_deg) and self.att_sigma_per_m_deg >= 0):
             raise ValueError(
                 f"FilterParams.att_sigma_per_m_deg must be finite and >= 0, got {self.att_sigma_per_m_deg!r}"
+            )
+        if not (np.isfinite(self.odo_bias_sigma_lateral_mps) and self.odo_bias_sigma_lateral_mps >= 0):
+            raise ValueError(
+                "FilterParams.odo_bias_sigma_lateral_mps must be finite and >= 0, "
+                f"got {self.odo_bias_sigma_lateral_mps!r}"
             )
         if not (np.isfinite(self.pos_rw_psd_m2_s) and self.pos_rw_psd_m2_s >= 0):
             raise ValueError(
@@ -177,72 +195,116 @@ class NavState:
     misalignment_deg: float  # boresight vs -z_D, roll excluded
     T_cam_target_m: np.ndarray  # the same state as the camera would see it (NavUpdate)
     q_cam_target: np.ndarray  # (w, x, y, z)
+    odo_bias_mps: np.ndarray  # (3,) the odometry's estimated constant error in D (zeros when off)
 
 
 @dataclass
 class _CvBlock:
-    """Constant-velocity Kalman filter on a 3-vector: x = (p, v), P (6, 6)."""
+    """Constant-velocity Kalman filter on a 3-vector: x = (p, v), P (6, 6); or, with a bias
+    state, x = (p, v, b), P (9, 9), where b is a constant error of the rate measurement (the rate
+    sensor reads v + b)."""
 
     x: np.ndarray = field(default_factory=lambda: np.zeros(6))
     P: np.ndarray = field(default_factory=lambda: np.eye(6))
 
+    @property
+    def has_bias(self) -> bool:
+        return bool(self.x.shape[0] == 9)
+
+    @property
+    def bias(self) -> np.ndarray:
+        return self.x[6:9] if self.has_bias else np.zeros(3)
+
     @staticmethod
-    def transition(dt_s: float, psd: float) -> tuple[np.ndarray, np.ndarray]:
-        F = np.eye(6)
-        F[:3, 3:] = dt_s * np.eye(3)
-        # Discrete white-noise acceleration (continuous PSD q integrated over dt).
-        Q = psd * np.block(
+    def transition(dt_s: float, psd: float, n: int = 6) -> tuple[np.ndarray, np.ndarray]:
+        F = np.eye(n)
+        F[:3, 3:6] = dt_s * np.eye(3)
+        # Discrete white-noise acceleration (continuous PSD q integrated over dt); the bias is constant.
+        Q = np.zeros((n, n))
+        Q[:6, :6] = psd * np.block(
             [[dt_s**3 / 3 * np.eye(3), dt_s**2 / 2 * np.eye(3)], [dt_s**2 / 2 * np.eye(3), dt_s * np.eye(3)]]
         )
         return F, Q
 
     def predicted(self, dt_s: float, psd: float) -> _CvBlock:
-        F, Q = self.transition(dt_s, psd)
+        F, Q = self.transition(dt_s, psd, self.x.shape[0])
         return _CvBlock(F @ self.x, F @ self.P @ F.T + Q)
 
-    def innovation(self, z: np.ndarray, Rm: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        y = z - self.x[:3]
-        S = self.P[:3, :3] + Rm
+    def _H(self, what: str) -> np.ndarray:
+        """Measurement matrix: 'p' the position; 'rate' the rate sensor (v, plus b when carried)."""
+        n = self.x.shape[0]
+        H = np.zeros((3, n))
+        if what == "p":
+            H[:, :3] = np.eye(3)
+        else:
+            H[:, 3:6] = np.eye(3)
+            if self.has_bias:
+                H[:, 6:9] = np.eye(3)
+        return H
+
+    def _innovation(
+        self, H: np.ndarray, z: np.ndarray, Rm: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, float]:
+        y = z - H @ self.x
+        S = H @ self.P @ H.T + Rm
         return y, S, float(y @ np.linalg.solve(S, y))
 
-    def fuse(self, y: np.ndarray, S: np.ndarray, Rm: np.ndarray) -> None:
-        K = np.linalg.solve(S, self.P[:3, :]).T  # P H^T S^-1 with H = [I 0]
+    def _fuse(self, H: np.ndarray, y: np.ndarray, S: np.ndarray, Rm: np.ndarray) -> None:
+        K = np.linalg.solve(S, H @ self.P).T  # P H^T S^-1 (S and P symmetric)
         self.x = self.x + K @ y
-        I_KH = np.eye(6)
-        I_KH[:, :3] -= K
+        I_KH = np.eye(self.x.shape[0]) - K @ H
         # Joseph form: stays symmetric positive definite however the gains round.
         self.P = I_KH @ self.P @ I_KH.T + K @ Rm @ K.T
         self.P = 0.5 * (self.P + self.P.T)
 
+    def innovation(self, z: np.ndarray, Rm: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        return self._innovation(self._H("p"), z, Rm)
+
+    def fuse(self, y: np.ndarray, S: np.ndarray, Rm: np.ndarray) -> None:
+        self._fuse(self._H("p"), y, S, Rm)
+
     def rate_innovation(self, z: np.ndarray, Rm: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        y = z - self.x[3:]
-        S = self.P[3:, 3:] + Rm
-        return y, S, float(y @ np.linalg.solve(S, y))
+        return self._innovation(self._H("rate"), z, Rm)
 
     def fuse_rate(self, y: np.ndarray, S: np.ndarray, Rm: np.ndarray) -> None:
-        K = np.linalg.solve(S, self.P[3:, :]).T  # P H^T S^-1 with H = [0 I]
-        self.x = self.x + K @ y
-        I_KH = np.eye(6)
-        I_KH[:, 3:] -= K
-        self.P = I_KH @ self.P @ I_KH.T + K @ Rm @ K.T
-        self.P = 0.5 * (self.P + self.P.T)
+        self._fuse(self._H("rate"), y, S, Rm)
 
     def reseat_rate(self, z: np.ndarray, Rm: np.ndarray) -> None:
-        """The rate becomes z with covariance Rm; its correlation with p is dropped."""
-        self.x = np.concatenate([self.x[:3], z])
-        P = np.zeros((6, 6))
+        """The rate becomes z (less the bias, when carried) with covariance Rm (plus the bias's);
+        its correlation with p is dropped. The bias is a property of the sensor and is kept."""
+        P = np.zeros_like(self.P)
         P[:3, :3] = self.P[:3, :3]
-        P[3:, 3:] = Rm
+        if self.has_bias:
+            Pbb = self.P[6:9, 6:9]
+            self.x = np.concatenate([self.x[:3], z - self.x[6:9], self.x[6:9]])
+            P[3:6, 3:6] = Rm + Pbb  # v = z - b
+            P[3:6, 6:9] = -Pbb
+            P[6:9, 3:6] = -Pbb
+            P[6:9, 6:9] = Pbb
+        else:
+            self.x = np.concatenate([self.x[:3], z])
+            P[3:6, 3:6] = Rm
         self.P = P
 
     @staticmethod
-    def started(z: np.ndarray, Rm: np.ndarray, rate_sigma: float, rate: np.ndarray | None = None) -> _CvBlock:
+    def started(
+        z: np.ndarray,
+        Rm: np.ndarray,
+        rate_sigma: float,
+        rate: np.ndarray | None = None,
+        bias: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> _CvBlock:
         """At the measurement; rate zero, or ``rate`` (kept from before a jump) with the same
-        initial uncertainty."""
-        P = np.zeros((6, 6))
+        initial uncertainty; ``bias`` = (value (3,), covariance (3, 3)) adds the bias states."""
+        n = 6 if bias is None else 9
+        P = np.zeros((n, n))
         P[:3, :3] = Rm
-        P[3:, 3:] = rate_sigma**2 * np.eye(3)
-        return _CvBlock(np.concatenate([z, np.zeros(3) if rate is None else rate]), P)
+        P[3:6, 3:6] = rate_sigma**2 * np.eye(3)
+        x = np.concatenate([z, np.zeros(3) if rate is None else rate])
+        if bias is not None:
+            x = np.concatenate([x, bias[0]])
+            P[6:9, 6:9] = bias[1]
+        return _CvBlock(x, P)
 
 
 class NavFilter:
@@ -423,8 +485,16 @@ class NavFilter:
         v = w = None
         if keep_rates:
             pos, att, _, _ = self._blocks()
-            v, w = pos.x[3:], att.x[3:]
-        self._pos = _CvBlock.started(meas.r_D_m, R_pos, p.init_vel_sigma_mps, v)
+            v, w = pos.x[3:6], att.x[3:6]
+        bias = None
+        if p.odo_bias_sigma_lateral_mps > 0:
+            if self._pos is not None and self._pos.has_bias:
+                # The odometry's error is the sensor's, not the camera's: a restart keeps what is known of it.
+                bias = (self._pos.x[6:9].copy(), self._pos.P[6:9, 6:9].copy())
+            else:
+                s2 = p.odo_bias_sigma_lateral_mps**2
+                bias = (np.zeros(3), np.diag([s2, s2, 0.0]))
+        self._pos = _CvBlock.started(meas.r_D_m, R_pos, p.init_vel_sigma_mps, v, bias)
         self._att = _CvBlock.started(meas.att_rad, R_att, np.radians(p.init_rate_sigma_deg_s), w)
         self._t_s = t_s
         self._t_accepted_s = t_s
@@ -460,12 +530,13 @@ class NavFilter:
                 0.0,
                 T,
                 matrix_to_quat(R),
+                zero.copy(),
             )
         pos0, att0, blocks_t_s, accepted_t_s = self._blocks()
         dt = t_s - blocks_t_s
         pos = pos0.predicted(dt, self.params.accel_psd_m2_s3)
         att = att0.predicted(dt, self.params.ang_accel_psd_rad2_s3)
-        r, v, a, w = pos.x[:3], pos.x[3:], att.x[:3], att.x[3:]
+        r, v, a, w = pos.x[:3], pos.x[3:6], att.x[:3], att.x[3:6]
         R_D_cam = R_D_CAM_ALIGNED @ rotvec_to_matrix(a) @ self.geometry.R_s_cam
         ds = DockingState(r_D_m=r, att_rad=a, R_D_cam=R_D_cam)
         T, R = camera_pose_from_docking(r, a, self.geometry)
@@ -478,7 +549,7 @@ class NavFilter:
             att_rad=a,
             w_rad_s=w,
             pos_sigma_m=np.sqrt(np.diag(pos.P)[:3]),
-            vel_sigma_mps=np.sqrt(np.diag(pos.P)[3:]),
+            vel_sigma_mps=np.sqrt(np.diag(pos.P)[3:6]),
             att_sigma_deg=np.degrees(np.sqrt(np.diag(att.P)[:3])),
             since_update_s=since,
             range_m=ds.range_m,
@@ -488,4 +559,5 @@ class NavFilter:
             misalignment_deg=ds.misalignment_deg,
             T_cam_target_m=T,
             q_cam_target=matrix_to_quat(R),
+            odo_bias_mps=pos.bias.copy(),
         )
