@@ -107,6 +107,11 @@ class World:
     # -- ground truth, as navigation would report it ------------------------------------
 
     @property
+    def odometry_bias_mps(self) -> np.ndarray:
+        """The odometry's constant error this approach (truth; the vehicle does not report it)."""
+        return self._odo_bias_mps.copy() if self.p.odometry else np.zeros(3)
+
+    @property
     def range_m(self) -> float:
         """Probe tip to drogue entrance along the docking axis (negative once inside)."""
         return float(self.s.r_D_m[2])
