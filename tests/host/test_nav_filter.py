@@ -333,13 +333,9 @@ def test_an_inconsistent_velocity_is_gated_then_a_persistent_one_reseats_the_vel
     # a real change the odometry keeps reporting: after vel_reset_after in a row the velocity follows
     new_v = V_D_MPS + np.array([0.0, 0.0, 0.08])
     n = f.params.vel_reset_after
-    bias_before = f.state(t).odo_bias_mps  # the gated velocities change nothing
     results = [f.update_velocity(t + k * DT_S, new_v, 0.005) for k in range(1, n)]
     assert all(r.reason == "gated" for r in results[: n - 2]) and results[-1].reason == "reset"
-    st = f.state(t + (n - 1) * DT_S)
-    # the odometry reads v + its bias: the velocity follows it, the bias (the sensor's) is kept
-    np.testing.assert_allclose(st.v_D_mps + st.odo_bias_mps, new_v, atol=1e-9)
-    np.testing.assert_allclose(st.odo_bias_mps, bias_before, atol=1e-12)
+    np.testing.assert_allclose(f.state(t + (n - 1) * DT_S).v_D_mps, new_v, atol=1e-9)
     assert f.update_velocity(t + n * DT_S, new_v, 0.005).reason == "fused"
 
 
@@ -417,8 +413,8 @@ def test_a_position_random_walk_lets_a_far_range_bias_fade():
                 lateral_err.append(f.state(t).r_D_m[0] - r[0] - 0.01 * r[2])  # beyond the bias of now
         return float(np.mean(lateral_err))
 
-    # The odometry's bias estimate also follows such a drift (the odometry reads 0, the camera's
-    # lateral track moves): off here, so that the walk alone is measured.
+    # The odometry's considered bias also shortens the memory: off here, so that the walk alone
+    # is measured.
     no_bias = dict(odo_bias_sigma_lateral_mps=0.0)
     stale = fly(FilterParams(pos_rw_psd_m2_s=0.0, **no_bias))  # no walk: the filter before 2026-11-25
     fresh = fly(FilterParams(**no_bias))  # the default walk, 1e-5 (chosen on the closed loop)
@@ -453,31 +449,21 @@ def fly_biased_odometry(params, bias_D_mps=(0.003, -0.002, 0.0), seed=11):
     return f, np.array(lateral_err)
 
 
-def test_the_odometrys_unreported_lateral_bias_is_estimated_and_leaves_the_tip():
+def test_the_odometrys_unreported_lateral_bias_is_allowed_for_and_the_tip_stays_on_the_camera():
     """The rig's finding (docs/model_card.md, 2026-11-27): fused as white, a constant odometry
-    error of a few mm/s walks the tip estimate centimetres off the camera. With the bias states
-    the filter learns the error and the tip stays on the camera."""
+    error of a few mm/s walks the tip estimate centimetres off the camera. With the bias carried
+    as consider states the camera keeps its weight and the tip stays nearer the truth."""
     off, err_off = fly_biased_odometry(FilterParams(odo_bias_sigma_lateral_mps=0.0))
-    on, err_on = fly_biased_odometry(FilterParams())
+    on, err_on = fly_biased_odometry(FilterParams(odo_bias_sigma_lateral_mps=0.002))
     mean_off, mean_on = np.abs(err_off.mean(axis=0)), np.abs(err_on.mean(axis=0))
     assert np.all(mean_off > 0.008), mean_off  # about 1 cm per axis: bias x the position's memory
-    assert np.all(mean_on < 0.4 * mean_off), (mean_on, mean_off)
-    b = on.state(T_END_S).odo_bias_mps
-    np.testing.assert_allclose(b[:2], [0.003, -0.002], atol=0.001)
-    assert b[2] == 0.0, "never along the docking axis: the closing speed stays the odometry's"
-    np.testing.assert_array_equal(off.state(T_END_S).odo_bias_mps, np.zeros(3))
-    # the closing speed is the same with or without the lateral bias states
+    assert np.all(mean_on < 0.7 * mean_off), (mean_on, mean_off)  # 0.59 / 0.45 of it here
+    # considered, never estimated: the bias states stay zero, their covariance stays the prior
+    pos = on._pos
+    assert pos is not None and pos.x.shape == (9,) and np.all(pos.x[6:] == 0.0)
+    np.testing.assert_allclose(np.diag(pos.P)[6:], [0.002**2, 0.002**2, 0.0], rtol=1e-9)
+    assert off._pos is not None and off._pos.x.shape == (6,)
+    # nothing along the docking axis: the closing speed is the same with or without them
     assert abs(on.state(T_END_S).closing_speed_mps - off.state(T_END_S).closing_speed_mps) < 0.001
-
-
-def test_the_bias_estimate_survives_a_restart_and_reset_forgets_it():
-    f, _ = fly_biased_odometry(FilterParams())
-    b = f.state(T_END_S).odo_bias_mps.copy()
-    T, R = camera_pose_from_docking(np.array([0.0, 0.0, 2.0]), np.zeros(3))
-    assert f.update(52.0, T, R).reason == "reinitialised"  # after a coast beyond max_coast_s
-    np.testing.assert_allclose(f.state(52.0).odo_bias_mps, b, atol=1e-12)
-    f.reset()
-    f.update(53.0, T, R)
-    np.testing.assert_array_equal(f.state(53.0).odo_bias_mps, np.zeros(3))
     with pytest.raises(ValueError, match="odo_bias_sigma_lateral_mps"):
         FilterParams(odo_bias_sigma_lateral_mps=-0.001)

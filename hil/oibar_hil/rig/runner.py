@@ -392,15 +392,7 @@ class Rig:
         if estimate is not None and estimate.finite:
             row.update(pose_errors("ans_", estimate.T_cam_target_m, estimate.R_cam_target, w.s))
             row.update(pose_errors("meas_", *estimate.measurement(), w.s))
-        flt = getattr(getattr(self.nav, "navigator", None), "filter", None)  # the CNN's Navigator
-        if flt is not None and sol.valid:
-            b_est, b_true = flt.state(self.t_s).odo_bias_mps, w.odometry_bias_mps
-            row.update(
-                odo_bias_x_mps=float(b_est[0]),
-                odo_bias_y_mps=float(b_est[1]),
-                true_odo_bias_x_mps=float(b_true[0]),
-                true_odo_bias_y_mps=float(b_true[1]),
-            )
+        b_true = w.odometry_bias_mps  # unreported: the filter only allows for it
         self.nav_log.append(
             {
                 "t_s": self.t_s,
@@ -411,6 +403,8 @@ class Rig:
                 "true_y_m": float(w.s.r_D_m[1]),
                 "true_vx_mps": float(w.s.v_D_mps[0]),
                 "true_vy_mps": float(w.s.v_D_mps[1]),
+                "true_odo_bias_x_mps": float(b_true[0]),
+                "true_odo_bias_y_mps": float(b_true[1]),
                 "range_est_m": sol.range_m if sol.valid else float("nan"),
                 "lateral_err_m": float(np.linalg.norm(est_lat - w.s.r_D_m[:2])),
                 "closing_true_mps": w.closing_speed_mps,

@@ -31,10 +31,14 @@ The odometry's own constant error is not in its reported sigma (a GNC states its
 its bias per approach is a spec-sheet number). Fused as white, a 2 mm/s lateral bias walks the
 tip estimate off the camera by the bias times the position's memory: 1-2.5 cm at 1-5 m in the rig
 (docs/model_card.md, "where the closed loop's lateral error comes from"). So the position block
-carries the odometry's lateral bias as two more states (``odo_bias_sigma_lateral_mps``, its prior):
-the odometry measures v + b, the camera's positions tell v over the longer run. Not along the
-docking axis: there the camera's range bias drifts by 7-16 mm/s near contact, and the closing
-speed that DOCK is checked against must stay the odometry's.
+carries the odometry's lateral bias as three more states that are *considered*, never estimated
+(a Schmidt-Kalman filter; ``odo_bias_sigma_lateral_mps``, their 1-sigma): the odometry reads
+v + b with b zero-mean, and the covariance the odometry builds up in the position carries b's
+share, so the camera keeps its weight. Estimating b was tried first and failed in the closed
+loop: far out the camera's lateral error drifts with range (va007's look: -45 cm at 9 m to +5
+cm at 5 m), which reads as an odometry bias and is then kept (docs/navigation.md). Not along the
+docking axis (its sigma is zero): the closing speed that DOCK is checked against stays the
+odometry's.
 """
 
 from __future__ import annotations
@@ -109,8 +113,8 @@ class FilterParams:
     vel_sigma_floor_mps: float = 0.001
     vel_gate_chi2: float = CHI2_3DOF_P001  # on the velocity innovation alone
     vel_reset_after: int = 5  # consecutive gated velocities: 0.5 s at 10 Hz
-    # Prior 1-sigma of the odometry's constant, unreported error per lateral D axis (x, y), which
-    # the filter estimates (0: off, the odometry fused as white). The rig vehicle's assumption
+    # 1-sigma of the odometry's constant, unreported error per lateral D axis (x, y), carried as
+    # consider states (0: off, the odometry fused as white). The rig vehicle's assumption
     # (VehicleParams.odometry_bias_mps); a real vehicle's GNC states its own.
     odo_bias_sigma_lateral_mps: float = 0.002
 
@@ -195,14 +199,14 @@ class NavState:
     misalignment_deg: float  # boresight vs -z_D, roll excluded
     T_cam_target_m: np.ndarray  # the same state as the camera would see it (NavUpdate)
     q_cam_target: np.ndarray  # (w, x, y, z)
-    odo_bias_mps: np.ndarray  # (3,) the odometry's estimated constant error in D (zeros when off)
 
 
 @dataclass
 class _CvBlock:
-    """Constant-velocity Kalman filter on a 3-vector: x = (p, v), P (6, 6); or, with a bias
-    state, x = (p, v, b), P (9, 9), where b is a constant error of the rate measurement (the rate
-    sensor reads v + b)."""
+    """Constant-velocity Kalman filter on a 3-vector: x = (p, v), P (6, 6); or, with bias states,
+    x = (p, v, b), P (9, 9), where b is a constant, zero-mean error of the rate sensor (it reads
+    v + b). b is a consider state: no measurement updates it (its gain is zero), but its
+    covariance and its correlation with p and v are carried, so every gain allows for it."""
 
     x: np.ndarray = field(default_factory=lambda: np.zeros(6))
     P: np.ndarray = field(default_factory=lambda: np.eye(6))
@@ -210,10 +214,6 @@ class _CvBlock:
     @property
     def has_bias(self) -> bool:
         return bool(self.x.shape[0] == 9)
-
-    @property
-    def bias(self) -> np.ndarray:
-        return self.x[6:9] if self.has_bias else np.zeros(3)
 
     @staticmethod
     def transition(dt_s: float, psd: float, n: int = 6) -> tuple[np.ndarray, np.ndarray]:
@@ -251,6 +251,8 @@ class _CvBlock:
 
     def _fuse(self, H: np.ndarray, y: np.ndarray, S: np.ndarray, Rm: np.ndarray) -> None:
         K = np.linalg.solve(S, H @ self.P).T  # P H^T S^-1 (S and P symmetric)
+        if self.has_bias:
+            K[6:9, :] = 0.0  # consider states: never updated; Joseph's form keeps P right for any gain
         self.x = self.x + K @ y
         I_KH = np.eye(self.x.shape[0]) - K @ H
         # Joseph form: stays symmetric positive definite however the gains round.
@@ -270,20 +272,17 @@ class _CvBlock:
         self._fuse(self._H("rate"), y, S, Rm)
 
     def reseat_rate(self, z: np.ndarray, Rm: np.ndarray) -> None:
-        """The rate becomes z (less the bias, when carried) with covariance Rm (plus the bias's);
-        its correlation with p is dropped. The bias is a property of the sensor and is kept."""
+        """The rate becomes z with covariance Rm (plus the bias's: v = z - b); its correlation
+        with p is dropped."""
         P = np.zeros_like(self.P)
         P[:3, :3] = self.P[:3, :3]
+        P[3:6, 3:6] = Rm
+        self.x = np.concatenate([self.x[:3], z, self.x[6:]])
         if self.has_bias:
             Pbb = self.P[6:9, 6:9]
-            self.x = np.concatenate([self.x[:3], z - self.x[6:9], self.x[6:9]])
-            P[3:6, 3:6] = Rm + Pbb  # v = z - b
-            P[3:6, 6:9] = -Pbb
-            P[6:9, 3:6] = -Pbb
+            P[3:6, 3:6] += Pbb
+            P[3:6, 6:9] = P[6:9, 3:6] = -Pbb
             P[6:9, 6:9] = Pbb
-        else:
-            self.x = np.concatenate([self.x[:3], z])
-            P[3:6, 3:6] = Rm
         self.P = P
 
     @staticmethod
@@ -292,18 +291,18 @@ class _CvBlock:
         Rm: np.ndarray,
         rate_sigma: float,
         rate: np.ndarray | None = None,
-        bias: tuple[np.ndarray, np.ndarray] | None = None,
+        bias_cov: np.ndarray | None = None,
     ) -> _CvBlock:
         """At the measurement; rate zero, or ``rate`` (kept from before a jump) with the same
-        initial uncertainty; ``bias`` = (value (3,), covariance (3, 3)) adds the bias states."""
-        n = 6 if bias is None else 9
+        initial uncertainty; ``bias_cov`` (3, 3) adds the (zero-mean) bias states."""
+        n = 6 if bias_cov is None else 9
         P = np.zeros((n, n))
         P[:3, :3] = Rm
         P[3:6, 3:6] = rate_sigma**2 * np.eye(3)
         x = np.concatenate([z, np.zeros(3) if rate is None else rate])
-        if bias is not None:
-            x = np.concatenate([x, bias[0]])
-            P[6:9, 6:9] = bias[1]
+        if bias_cov is not None:
+            x = np.concatenate([x, np.zeros(3)])
+            P[6:9, 6:9] = bias_cov
         return _CvBlock(x, P)
 
 
@@ -486,15 +485,9 @@ class NavFilter:
         if keep_rates:
             pos, att, _, _ = self._blocks()
             v, w = pos.x[3:6], att.x[3:6]
-        bias = None
-        if p.odo_bias_sigma_lateral_mps > 0:
-            if self._pos is not None and self._pos.has_bias:
-                # The odometry's error is the sensor's, not the camera's: a restart keeps what is known of it.
-                bias = (self._pos.x[6:9].copy(), self._pos.P[6:9, 6:9].copy())
-            else:
-                s2 = p.odo_bias_sigma_lateral_mps**2
-                bias = (np.zeros(3), np.diag([s2, s2, 0.0]))
-        self._pos = _CvBlock.started(meas.r_D_m, R_pos, p.init_vel_sigma_mps, v, bias)
+        s2 = p.odo_bias_sigma_lateral_mps**2
+        bias_cov = np.diag([s2, s2, 0.0]) if s2 > 0 else None
+        self._pos = _CvBlock.started(meas.r_D_m, R_pos, p.init_vel_sigma_mps, v, bias_cov)
         self._att = _CvBlock.started(meas.att_rad, R_att, np.radians(p.init_rate_sigma_deg_s), w)
         self._t_s = t_s
         self._t_accepted_s = t_s
@@ -530,7 +523,6 @@ class NavFilter:
                 0.0,
                 T,
                 matrix_to_quat(R),
-                zero.copy(),
             )
         pos0, att0, blocks_t_s, accepted_t_s = self._blocks()
         dt = t_s - blocks_t_s
@@ -559,5 +551,4 @@ class NavFilter:
             misalignment_deg=ds.misalignment_deg,
             T_cam_target_m=T,
             q_cam_target=matrix_to_quat(R),
-            odo_bias_mps=pos.bias.copy(),
         )
