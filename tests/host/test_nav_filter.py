@@ -467,3 +467,21 @@ def test_the_odometrys_unreported_lateral_bias_is_allowed_for_and_the_tip_stays_
     assert abs(on.state(T_END_S).closing_speed_mps - off.state(T_END_S).closing_speed_mps) < 0.001
     with pytest.raises(ValueError, match="odo_bias_sigma_lateral_mps"):
         FilterParams(odo_bias_sigma_lateral_mps=-0.001)
+
+
+def test_a_reseat_with_the_bias_considered_keeps_its_share_of_the_velocitys_uncertainty():
+    f, rng = NavFilter(FilterParams(odo_bias_sigma_lateral_mps=0.002)), np.random.default_rng(4)
+    for k in range(100):
+        t = k * DT_S
+        f.update(t, *noisy_measurement(t, rng))
+        f.update_velocity(t, V_D_MPS + rng.normal(0, 0.005, 3), 0.005)
+    new_v = V_D_MPS + np.array([0.0, 0.0, 0.08])
+    results = [f.update_velocity(10.0 + k * DT_S, new_v, 0.005) for k in range(f.params.vel_reset_after)]
+    assert results[-1].reason == "reset"
+    st = f.state(10.0 + (f.params.vel_reset_after - 1) * DT_S)
+    np.testing.assert_allclose(st.v_D_mps, new_v, atol=1e-9)
+    # v = z - b: the lateral axes carry the odometry's sigma and the bias's, the docking axis only the first
+    np.testing.assert_allclose(st.vel_sigma_mps, [np.hypot(0.005, 0.002)] * 2 + [0.005], rtol=1e-6)
+    pos = f._pos
+    assert pos is not None and np.all(pos.x[6:] == 0.0)
+    assert np.linalg.eigvalsh(pos.P).min() >= -1e-15  # still a covariance
