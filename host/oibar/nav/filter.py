@@ -203,6 +203,15 @@ class NavState:
     q_cam_target: np.ndarray  # (w, x, y, z)
 
 
+# Measurement matrices of a _CvBlock by its size (6: p, v; 9: p, v, b), built once, not per
+# frame: the camera sees p; the rate sensor reads v, plus b where the bias is carried.
+_H_POS = {n: np.hstack([np.eye(3), np.zeros((3, n - 3))]) for n in (6, 9)}
+_H_RATE = {
+    6: np.hstack([np.zeros((3, 3)), np.eye(3)]),
+    9: np.hstack([np.zeros((3, 3)), np.eye(3), np.eye(3)]),
+}
+
+
 @dataclass
 class _CvBlock:
     """Constant-velocity Kalman filter on a 3-vector: x = (p, v), P (6, 6); or, with bias states,
@@ -232,18 +241,6 @@ class _CvBlock:
         F, Q = self.transition(dt_s, psd, self.x.shape[0])
         return _CvBlock(F @ self.x, F @ self.P @ F.T + Q)
 
-    def _H(self, what: str) -> np.ndarray:
-        """Measurement matrix: 'p' the position; 'rate' the rate sensor (v, plus b when carried)."""
-        n = self.x.shape[0]
-        H = np.zeros((3, n))
-        if what == "p":
-            H[:, :3] = np.eye(3)
-        else:
-            H[:, 3:6] = np.eye(3)
-            if self.has_bias:
-                H[:, 6:9] = np.eye(3)
-        return H
-
     def _innovation(
         self, H: np.ndarray, z: np.ndarray, Rm: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, float]:
@@ -262,16 +259,16 @@ class _CvBlock:
         self.P = 0.5 * (self.P + self.P.T)
 
     def innovation(self, z: np.ndarray, Rm: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        return self._innovation(self._H("p"), z, Rm)
+        return self._innovation(_H_POS[self.x.shape[0]], z, Rm)
 
     def fuse(self, y: np.ndarray, S: np.ndarray, Rm: np.ndarray) -> None:
-        self._fuse(self._H("p"), y, S, Rm)
+        self._fuse(_H_POS[self.x.shape[0]], y, S, Rm)
 
     def rate_innovation(self, z: np.ndarray, Rm: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        return self._innovation(self._H("rate"), z, Rm)
+        return self._innovation(_H_RATE[self.x.shape[0]], z, Rm)
 
     def fuse_rate(self, y: np.ndarray, S: np.ndarray, Rm: np.ndarray) -> None:
-        self._fuse(self._H("rate"), y, S, Rm)
+        self._fuse(_H_RATE[self.x.shape[0]], y, S, Rm)
 
     def reseat_rate(self, z: np.ndarray, Rm: np.ndarray) -> None:
         """The rate becomes z with covariance Rm (plus the bias's: v = z - b); its correlation
