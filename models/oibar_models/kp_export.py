@@ -5,6 +5,7 @@ validation figures. Parity against PyTorch is checked before the file is written
 
 python -m oibar_models.kp_export --config models/configs/keypoints/oibarnet_kp.yaml [--checkpoint best|last]
     [--fusion FUSION.json] [--mirror-reading] [--turned-reading-deg DEG] [--filter-measurement prior_free|fused]
+    [--corner-refine-side-px PX]
 
 The flight reading options (how the refining pass reads its window, what the filter is fed) are
 chosen on the closed loop after training; `--retag` sets them on an existing export, the network
@@ -59,6 +60,7 @@ def metadata_for(
     mirror_reading: bool = False,
     filter_measurement: str = "prior_free",
     turned_reading_deg: float = 0.0,
+    corner_refine_side_px: float = 0.0,
 ) -> dict:
     K = _CAM.K.tolist()
     n = cfg.model.out_px
@@ -93,6 +95,9 @@ def metadata_for(
         "filter_measurement": filter_measurement,
         # the refining pass also reads its window turned by +- this many degrees (read_crop)
         "turned_reading_deg": float(turned_reading_deg),
+        # the refining pass moves the rim's corners onto the frame's own, sub-pixel, when the
+        # fixture spans at least this many frame pixels (0: off; KeypointPoseEstimator._refined_corners)
+        "corner_refine_side_px": float(corner_refine_side_px),
     }
 
 
@@ -142,6 +147,7 @@ def export_onnx(
     mirror_reading: bool = False,
     filter_measurement: str = "prior_free",
     turned_reading_deg: float = 0.0,
+    corner_refine_side_px: float = 0.0,
 ) -> Path:
     import onnx
 
@@ -156,7 +162,15 @@ def export_onnx(
     wrapper, dummy = export_graph(net, head, cfg.model.out_px, cfg.export.opset, tmp)
     m = onnx.load(str(tmp))
     for k, v in metadata_for(
-        cfg, ck, first_pass, train_range_m, fusion, mirror_reading, filter_measurement, turned_reading_deg
+        cfg,
+        ck,
+        first_pass,
+        train_range_m,
+        fusion,
+        mirror_reading,
+        filter_measurement,
+        turned_reading_deg,
+        corner_refine_side_px,
     ).items():
         p = m.metadata_props.add()
         p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
@@ -180,14 +194,15 @@ def export_onnx(
 
 def retag(src: Path, out: Path, options: dict) -> Path:
     """A copy of the export `src` at `out` (may be `src`) with the flight reading `options`
-    (metadata keys without the prefix: mirror_reading, turned_reading_deg, filter_measurement)
+    (metadata keys without the prefix: mirror_reading, turned_reading_deg, filter_measurement,
+    corner_refine_side_px)
     set; the graph untouched. Checked by opening it as the flight runtime does when its first
     pass lies beside it. ValueError for an option that is not a reading option."""
     import onnx
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
 
-    allowed = {"mirror_reading", "turned_reading_deg", "filter_measurement"}
+    allowed = {"mirror_reading", "turned_reading_deg", "filter_measurement", "corner_refine_side_px"}
     if set(options) - allowed:
         raise ValueError(
             f"not a reading option: {sorted(set(options) - allowed)} (allowed: {sorted(allowed)})"
@@ -260,6 +275,14 @@ def main(argv: list[str] | None = None) -> int:
         help="what the navigation filter is fed: the keypoints' PnP alone (default), or the fused "
         "pose (chosen on the closed loop)",
     )
+    ap.add_argument(
+        "--corner-refine-side-px",
+        type=float,
+        default=None,
+        help="the refining pass moves the rim's four corners onto the frame's own, to a fraction "
+        "of a pixel, when the fixture spans at least this many frame pixels (0: off; chosen on "
+        "validation)",
+    )
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
     if a.retag is not None:
@@ -269,13 +292,14 @@ def main(argv: list[str] | None = None) -> int:
                 ("mirror_reading", a.mirror_reading),
                 ("turned_reading_deg", a.turned_reading_deg),
                 ("filter_measurement", a.filter_measurement),
+                ("corner_refine_side_px", a.corner_refine_side_px),
             )
             if v is not None
         }
         if a.config or a.fusion or a.overrides or not options:
             print(
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
-                "--filter-measurement) and --out only",
+                "--filter-measurement, --corner-refine-side-px) and --out only",
                 file=sys.stderr,
             )
             return 2
@@ -341,6 +365,7 @@ def main(argv: list[str] | None = None) -> int:
         bool(a.mirror_reading),
         a.filter_measurement or "prior_free",
         a.turned_reading_deg or 0.0,
+        a.corner_refine_side_px or 0.0,
     )
     print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0

@@ -1215,3 +1215,62 @@ def test_a_turned_reading_the_network_never_saw_is_refused(bad):
     with pytest.raises(ModelFileError, match="turned_reading_deg"):
         KeypointPoseEstimator(model, warmup_runs=0, turned_reading_deg=bad)
     assert KeypointPoseEstimator(model, warmup_runs=0, turned_reading_deg=8).turned_reading_deg == 8.0
+
+
+def _dark_rectangle(corners_px: np.ndarray, shape=(480, 744), dark=30.0, bright=110.0, ss=8) -> np.ndarray:
+    """A grey frame with a dark axis-aligned rectangle whose corners lie at sub-pixel positions
+    (corner convention), anti-aliased by area: each pixel is the mean of ss x ss samples."""
+    lo, hi = corners_px.min(0), corners_px.max(0)
+    h, w = shape
+    ys = (np.arange(h * ss) + 0.5) / ss
+    xs = (np.arange(w * ss) + 0.5) / ss
+    inside = ((ys >= lo[1]) & (ys < hi[1]))[:, None] & ((xs >= lo[0]) & (xs < hi[0]))[None, :]
+    img = np.where(inside, dark, bright).reshape(h, ss, w, ss).mean(axis=(1, 3))
+    return img.astype(np.uint8)
+
+
+def test_a_rim_corner_is_moved_onto_the_frames_own_corner_to_a_fraction_of_a_pixel():
+    """The keypoint network reads close corners 2-5x coarser than the frame has them; the
+    sub-pixel search puts a corner it found within a pixel or two onto the image's own corner."""
+    from oibar.nav.keypoints import refine_corners_px
+
+    truth = np.array([[236.3, 207.7], [508.6, 207.7], [508.6, 403.2], [236.3, 403.2]])
+    gray = _dark_rectangle(truth)
+    rng = np.random.default_rng(4)
+    start = truth + rng.uniform(-1.5, 1.5, truth.shape)
+    uv = np.vstack([start, [[372.0, 300.0]]])  # a fifth keypoint that is not a corner
+    out, moved = refine_corners_px(gray, uv, np.arange(4), half_win_px=5, max_move_px=2.5)
+    assert moved.all()
+    # within 0.3 px (the search's own bias, which depends on where in its pixel an edge lies, is
+    # up to ~0.2 px), from a start up to 1.5 px off
+    assert np.abs(out[:4] - truth).max() < 0.3
+    assert np.linalg.norm(out[:4] - truth, axis=1).mean() < 0.2
+    assert np.abs(start - truth).max() > 0.8
+    np.testing.assert_array_equal(out[4], uv[4])  # untouched
+
+
+def test_a_corner_search_keeps_the_network_where_it_cannot_trust_itself():
+    """Flat windows (a corner in shadow), windows off the frame, missing keypoints and a search
+    that runs further than allowed (it found another corner) leave the keypoint as read."""
+    from oibar.nav.keypoints import refine_corners_px
+
+    truth = np.array([[236.3, 207.7], [508.6, 207.7]])
+    gray = _dark_rectangle(np.array([[236.3, 207.7], [508.6, 403.2]]))
+    uv = np.array(
+        [
+            [120.0, 100.0],  # in the flat background
+            [2.0, 3.0],  # its window would leave the frame
+            [np.nan, np.nan],  # not seen
+            truth[0] + [2.0, -2.0],  # 2.8 px off: further than max_move_px allows
+            truth[1] + [0.6, 0.4],  # a good one
+        ]
+    )
+    out, moved = refine_corners_px(gray, uv, np.arange(5), half_win_px=5, max_move_px=2.0)
+    assert moved.tolist() == [False, False, False, False, True]
+    np.testing.assert_array_equal(out[:4], uv[:4])
+    assert np.linalg.norm(out[4] - truth[1]) < 0.3
+    # off: half window 0, or no corners named
+    for args in ((5, np.arange(0)), (0, np.arange(5))):
+        o, m = refine_corners_px(gray, uv, args[1], half_win_px=args[0], max_move_px=2.0)
+        assert not m.any()
+        np.testing.assert_array_equal(o, uv)

@@ -811,3 +811,21 @@ def test_retag_sets_the_reading_options_of_an_export_and_leaves_the_network_alon
     assert read_metadata(model)["turned_reading_deg"] == 8.0 and not list(tmp_path.glob("*.tmp.onnx"))
     assert export_main(["--retag", str(tmp_path / "oibarnet_lite.onnx"), "--turned-reading-deg", "8"]) == 2
     assert export_main(["--retag", str(model)]) == 2  # nothing to set
+
+
+def test_retag_sets_the_corner_refinement_and_refuses_a_size_that_is_not_one(tmp_path):
+    """`--corner-refine-side-px` is a reading option like the others: set on an existing export,
+    read back by the flight runtime; a negative size never reaches the file."""
+    import shutil
+
+    from oibar.nav.pose import KeypointPoseEstimator, read_metadata
+    from oibar_models.kp_export import main as export_main
+
+    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
+        shutil.copy(REPO / "models" / name, tmp_path / name)
+    model = tmp_path / "oibarnet.onnx"
+    assert export_main(["--retag", str(model), "--corner-refine-side-px", "120"]) == 0
+    assert read_metadata(model)["corner_refine_side_px"] == 120.0
+    assert KeypointPoseEstimator(model, warmup_runs=0).corner_refine_side_px == 120.0
+    assert export_main(["--retag", str(model), "--corner-refine-side-px", "-5"]) == 2
+    assert read_metadata(model)["corner_refine_side_px"] == 120.0 and not list(tmp_path.glob("*.tmp.onnx"))

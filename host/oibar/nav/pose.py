@@ -40,6 +40,7 @@ from oibar.nav.keypoints import (
     mirror_crop_px,
     mirror_permutation,
     mirror_symmetric_attitude,
+    refine_corners_px,
     window_around,
 )
 
@@ -372,6 +373,14 @@ DISAGREE_ATT_DEG = 20.0
 # keypoints' typical error on validation scenes.
 REPROJ_SCALE_CROP_PX = 3.0
 FALLBACK_FACTOR = 0.3  # confidence of the direct model's answer when PnP has none
+# The refining pass's sub-pixel rim corners (``oibar.corner_refine_side_px``): the four keypoints
+# refined, cornerSubPix's half window per pixel of the fixture's extent (the rim band is 6 % of
+# it: 5 px at 0.5 m, where the fixture spans ~270 px), its bounds, and how far a corner may move
+# per pixel of half window before the search is taken to have found another corner.
+RIM_CORNER_NAMES = ("rim_top_left", "rim_top_right", "rim_bottom_right", "rim_bottom_left")
+CORNER_HALF_WIN_PER_EXTENT = 0.02
+CORNER_HALF_WIN_PX = (2, 6)
+CORNER_MAX_MOVE_PER_HALF_WIN = 0.4
 # Windows tried in turn until the keypoints give a consistent pose: (shift x, shift y) in window
 # sides and a size factor, around the direct model's window. The network was trained with the
 # fixture up to ~0.25 side off centre and +-25 % in size, so half-side steps leave no gap. Only
@@ -626,6 +635,7 @@ class KeypointPoseEstimator(PoseEstimator):
         mirror: bool | None = None,
         turned_reading_deg: float | None = None,
         cold_crop_budget: int | None = COLD_CROP_BUDGET,
+        corner_refine_side_px: float | None = None,
     ):
         self.path = Path(path)
         self.zoom_search = bool(zoom_search)
@@ -702,6 +712,26 @@ class KeypointPoseEstimator(PoseEstimator):
                 f"[0, {MAX_TURNED_READING_DEG:g}] (0: read once), got {turned!r}"
             )
         self.turned_reading_deg = float(turned)
+        # the refining pass's sub-pixel rim corners: as the export says
+        # (``oibar.corner_refine_side_px``, chosen per network on validation), unless told
+        side = (
+            self.meta.get("corner_refine_side_px", 0.0)
+            if corner_refine_side_px is None
+            else corner_refine_side_px
+        )
+        if isinstance(side, bool) or not isinstance(side, int | float) or not 0.0 <= float(side) < np.inf:
+            raise ModelFileError(
+                f"{self.path}: oibar.corner_refine_side_px must be a size in frame pixels >= 0 "
+                f"(0: off), got {side!r}"
+            )
+        self.corner_refine_side_px = float(side)
+        names = list(self.meta.get("keypoint_names") or [])
+        self.corner_idx = np.array([names.index(n) for n in RIM_CORNER_NAMES if n in names], int)
+        if self.corner_refine_side_px > 0 and len(self.corner_idx) != len(RIM_CORNER_NAMES):
+            raise ModelFileError(
+                f"{self.path}: the corner refinement needs the rim's corners among its keypoints "
+                f"(oibar.keypoint_names {list(RIM_CORNER_NAMES)}); this model names {names}"
+            )
         self.filter_measurement = self.meta.get("filter_measurement", "prior_free")
         if self.filter_measurement not in FILTER_MEASUREMENTS:
             raise ModelFileError(
@@ -1084,6 +1114,8 @@ class KeypointPoseEstimator(PoseEstimator):
     ) -> tuple[PnpResult, CropWindow] | tuple[None, None]:
         reading = self.read_crop(image, win, refining)
         uv = reading.uv_px
+        if refining and self.corner_refine_side_px > 0:
+            uv = self._refined_corners(image, win, uv)
         # the attitude prior: the head's reading of this crop when the fusion says so (0.6.0),
         # else the direct model's
         R_prior = R_direct
@@ -1106,6 +1138,21 @@ class KeypointPoseEstimator(PoseEstimator):
             MIN_INLIERS,
         )
         return (r, win) if r.ok else (None, None)
+
+    def _refined_corners(self, image: np.ndarray, win: CropWindow, uv: np.ndarray) -> np.ndarray:
+        """The rim's corners moved onto the frame's own corners (keypoints.refine_corners_px)
+        when the fixture spans at least `corner_refine_side_px` frame pixels (its window's side
+        over the crop margin), the search window scaled with it so that it stays inside the
+        rim band's outer corner (the band is 6 % of the rim's width)."""
+        import cv2
+
+        extent_px = win.side_px / self.margin
+        if extent_px < self.corner_refine_side_px:
+            return uv
+        half = int(np.clip(round(CORNER_HALF_WIN_PER_EXTENT * extent_px), *CORNER_HALF_WIN_PX))
+        gray = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
+        out, _ = refine_corners_px(gray, uv, self.corner_idx, half, CORNER_MAX_MOVE_PER_HALF_WIN * half)
+        return out
 
     def _fusion_table(self, f: dict[str, Any], key: str, build: Any) -> Any:
         """`build(f[key])`, made once per table and held (holding the table keeps its identity
@@ -1136,6 +1183,8 @@ class KeypointPoseEstimator(PoseEstimator):
 
     uses_prior = True
     turned_reading_deg = 0.0  # read_crop's turned readings (set from the export in __init__)
+    corner_refine_side_px = 0.0  # _refined_corners' size gate, 0: off (idem)
+    corner_idx = np.zeros(0, int)
     cold_crop_budget: int | None = COLD_CROP_BUDGET  # (set in __init__)
     _cold: ColdSearch | None = None  # a cold search that goes on in the next frames (solve)
 
