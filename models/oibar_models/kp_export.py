@@ -95,8 +95,8 @@ def metadata_for(
         "filter_measurement": filter_measurement,
         # the refining pass also reads its window turned by +- this many degrees (read_crop)
         "turned_reading_deg": float(turned_reading_deg),
-        # the refining pass moves the rim's corners onto the frame's own, sub-pixel, when the
-        # fixture spans at least this many frame pixels (0: off; KeypointPoseEstimator._refined_corners)
+        # the refining pass moves the fixture's corners onto the frame's own, sub-pixel, when the
+        # fixture spans at least this many frame pixels (0: off; KeypointPoseEstimator.refined_corners)
         "corner_refine_side_px": float(corner_refine_side_px),
     }
 
@@ -279,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
         "--corner-refine-side-px",
         type=float,
         default=None,
-        help="the refining pass moves the rim's four corners onto the frame's own, to a fraction "
+        help="the refining pass moves the fixture's sharp corners (rim, connector) onto the frame's own, to a fraction "
         "of a pixel, when the fixture spans at least this many frame pixels (0: off; chosen on "
         "validation)",
     )

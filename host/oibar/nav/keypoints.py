@@ -422,7 +422,7 @@ def mirror_crop_px(kp_crop_px: np.ndarray, twin: np.ndarray, out_px: int) -> np.
 
 
 # A corner whose window is flatter than this (grey-level standard deviation, DN) has nothing for
-# the sub-pixel search to lock on: a rim corner in deep shadow, or one off the frame.
+# the sub-pixel search to lock on: a corner in deep shadow, or one off the frame.
 CORNER_MIN_CONTRAST_DN = 8.0
 
 
@@ -432,7 +432,7 @@ def refine_corners_px(
     """Sharp corners (keypoints `idx` of `uv_px`, frame pixels, corner convention) moved onto the
     grey image's own corner to a fraction of a pixel (OpenCV's cornerSubPix: the point where the
     window's gradients are orthogonal to the lines from it). Why: the keypoint network reads a
-    crop scaled down to 128 px, so close in it sees the rim's corners 2-5x coarser than the frame
+    crop scaled down to 128 px, so close in it sees the fixture's corners 2-5x coarser than the frame
     has them and reads the fixture's perspective timidly (a turn at 0.5 m at 0.8 of the truth).
     A corner is kept where it was when its window lies partly off the frame, is flat
     (CORNER_MIN_CONTRAST_DN), or when the search moves it more than `max_move_px` (it found
