@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import warnings
 from pathlib import Path
@@ -195,14 +196,24 @@ def export_onnx(
 def retag(src: Path, out: Path, options: dict) -> Path:
     """A copy of the export `src` at `out` (may be `src`) with the flight reading `options`
     (metadata keys without the prefix: mirror_reading, turned_reading_deg, filter_measurement,
-    corner_refine_side_px)
-    set; the graph untouched. Checked by opening it as the flight runtime does when its first
-    pass lies beside it. ValueError for an option that is not a reading option."""
+    corner_refine_side_px) set, and the new model version when the reading changes what flies;
+    the graph untouched. Checked by opening it as the flight runtime does when its first pass
+    lies beside it. ValueError for an option that is not a reading option or a version that is
+    not MAJOR.MINOR.PATCH."""
     import onnx
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
 
-    allowed = {"mirror_reading", "turned_reading_deg", "filter_measurement", "corner_refine_side_px"}
+    allowed = {
+        "mirror_reading",
+        "turned_reading_deg",
+        "filter_measurement",
+        "corner_refine_side_px",
+        "model_version",
+    }
+    version = options.get("model_version")
+    if version is not None and not re.fullmatch(r"\d+\.\d+\.\d+", str(version)):
+        raise ValueError(f"model_version must be MAJOR.MINOR.PATCH, got {version!r}")
     if set(options) - allowed:
         raise ValueError(
             f"not a reading option: {sorted(set(options) - allowed)} (allowed: {sorted(allowed)})"
@@ -283,6 +294,11 @@ def main(argv: list[str] | None = None) -> int:
         "of a pixel, when the fixture spans at least this many frame pixels (0: off; chosen on "
         "validation)",
     )
+    ap.add_argument(
+        "--model-version",
+        default=None,
+        help="with --retag: the version the retagged file says it is (MAJOR.MINOR.PATCH)",
+    )
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
     if a.retag is not None:
@@ -293,13 +309,14 @@ def main(argv: list[str] | None = None) -> int:
                 ("turned_reading_deg", a.turned_reading_deg),
                 ("filter_measurement", a.filter_measurement),
                 ("corner_refine_side_px", a.corner_refine_side_px),
+                ("model_version", a.model_version),
             )
             if v is not None
         }
-        if a.config or a.fusion or a.overrides or not options:
+        if a.config or a.fusion or a.overrides or not set(options) - {"model_version"}:
             print(
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
-                "--filter-measurement, --corner-refine-side-px) and --out only",
+                "--filter-measurement, --corner-refine-side-px), --model-version and --out only",
                 file=sys.stderr,
             )
             return 2
@@ -314,6 +331,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not a.config:
         print("error: --config is required (or --retag an existing export)", file=sys.stderr)
+        return 2
+    if a.model_version is not None:
+        print("error: --model-version goes with --retag (an export takes its config's)", file=sys.stderr)
         return 2
     try:
         cfg = load_kp_config(a.config, parse_override(a.overrides))

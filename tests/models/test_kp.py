@@ -829,3 +829,13 @@ def test_retag_sets_the_corner_refinement_and_refuses_a_size_that_is_not_one(tmp
     assert KeypointPoseEstimator(model, warmup_runs=0).corner_refine_side_px == 120.0
     assert export_main(["--retag", str(model), "--corner-refine-side-px", "-5"]) == 2
     assert read_metadata(model)["corner_refine_side_px"] == 120.0 and not list(tmp_path.glob("*.tmp.onnx"))
+    # a reading that changes what flies is a new model version; a version alone is no reading
+    before = read_metadata(model)["model_version"]
+    assert export_main(["--retag", str(model), "--corner-refine-side-px", "80", "--model-version", "v2"]) == 2
+    assert export_main(["--retag", str(model), "--model-version", "9.9.9"]) == 2
+    assert read_metadata(model)["model_version"] == before
+    assert (
+        export_main(["--retag", str(model), "--corner-refine-side-px", "80", "--model-version", "9.9.9"]) == 0
+    )
+    meta = read_metadata(model)
+    assert meta["model_version"] == "9.9.9" and meta["corner_refine_side_px"] == 80.0
