@@ -290,9 +290,9 @@ def main(argv: list[str] | None = None) -> int:
         "--corner-refine-side-px",
         type=float,
         default=None,
-        help="the refining pass moves the fixture's sharp corners (rim, connector) onto the frame's own, to a fraction "
-        "of a pixel, when the fixture spans at least this many frame pixels (0: off; chosen on "
-        "validation)",
+        help="the refining pass moves the fixture's sharp corners (rim, connector) onto the "
+        "frame's own, to a fraction of a pixel, when the fixture spans at least this many frame "
+        "pixels (0: off; chosen on validation)",
     )
     ap.add_argument(
         "--model-version",

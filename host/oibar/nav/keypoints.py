@@ -432,9 +432,9 @@ def refine_corners_px(
     """Sharp corners (keypoints `idx` of `uv_px`, frame pixels, corner convention) moved onto the
     grey image's own corner to a fraction of a pixel (OpenCV's cornerSubPix: the point where the
     window's gradients are orthogonal to the lines from it). Why: the keypoint network reads a
-    crop scaled down to 128 px, so close in it sees the fixture's corners 2-5x coarser than the frame
-    has them and reads the fixture's perspective timidly (a turn at 0.5 m at 0.8 of the truth).
-    A corner is kept where it was when its window lies partly off the frame, is flat
+    crop scaled down to 128 px, so close in it sees the fixture's corners 2-5x coarser than the
+    frame has them and reads the fixture's perspective timidly (a turn at 0.5 m at 0.8 of the
+    truth). A corner is kept where it was when its window lies partly off the frame, is flat
     (CORNER_MIN_CONTRAST_DN), or when the search moves it more than `max_move_px` (it found
     another corner). Returns (the keypoints with the moved corners, which of `idx` moved)."""
     import cv2

@@ -741,8 +741,9 @@ class KeypointPoseEstimator(PoseEstimator):
         self.corner_idx = np.array([names.index(n) for n in CORNER_NAMES if n in names], int)
         if self.corner_refine_side_px > 0 and len(self.corner_idx) != len(CORNER_NAMES):
             raise ModelFileError(
-                f"{self.path}: the corner refinement needs the rim's and the connector's corners among its keypoints "
-                f"(oibar.keypoint_names {list(CORNER_NAMES)}); this model names {names}"
+                f"{self.path}: the corner refinement needs the rim's and the connector's corners "
+                f"among its keypoints (oibar.keypoint_names {list(CORNER_NAMES)}); this model "
+                f"names {names}"
             )
         self.filter_measurement = self.meta.get("filter_measurement", "prior_free")
         if self.filter_measurement not in FILTER_MEASUREMENTS:
