@@ -75,9 +75,7 @@ def collect(est, seqs, stride: int, track: bool = True) -> list[dict]:
             uv_true = project(est.K_frame, est.points_m, R_true, T)
             win = window_around(uv_true, est.out_px, est.margin)
             reading = est.read_crop(img, win, refining=True)  # as the refining pass reads it
-            uv = reading.uv_px
-            if est.corner_refine_side_px > 0:  # and as it moves the fixture's corners
-                uv = est.refined_corners(img, win, uv)
+            uv = est.refined_corners(img, win, reading.uv_px)  # and moves the fixture's corners
             err = np.linalg.norm(uv - uv_true, axis=1) * win.scale
             direct = est.first.estimate(img)
             rows.append(

@@ -1127,7 +1127,7 @@ class KeypointPoseEstimator(PoseEstimator):
     ) -> tuple[PnpResult, CropWindow] | tuple[None, None]:
         reading = self.read_crop(image, win, refining)
         uv = reading.uv_px
-        if refining and self.corner_refine_side_px > 0:
+        if refining:
             uv = self.refined_corners(image, win, uv)
         # the attitude prior: the head's reading of this crop when the fusion says so (0.6.0),
         # else the direct model's
@@ -1157,11 +1157,11 @@ class KeypointPoseEstimator(PoseEstimator):
         frame's own (keypoints.refine_corners_px) when the fixture spans at least
         `corner_refine_side_px` frame pixels (its window's side over the crop margin); the search
         window scales with it so that it stays inside the rim band and the connector (6 % and
-        8 % of the fixture's width)."""
+        8 % of the fixture's width). Off (the keypoints as read) when the export says 0."""
         import cv2
 
         extent_px = win.side_px / self.margin
-        if extent_px < self.corner_refine_side_px:
+        if self.corner_refine_side_px <= 0 or extent_px < self.corner_refine_side_px:
             return uv
         half = int(np.clip(round(CORNER_HALF_WIN_PER_EXTENT * extent_px), *CORNER_HALF_WIN_PX))
         gray = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
