@@ -724,6 +724,66 @@ def test_the_scan_finds_a_far_fixture_the_first_pass_misplaced_and_misjudged():
     assert len(est.crops) == 11 + 1 + 1 + 1  # the search, the scan's window, its redraw, refinement
 
 
+def test_a_scan_window_that_sees_too_few_keypoints_is_read_again_smaller(monkeypatch):
+    """Validation scene va012's look from 10.5 m with stage 15's network: the fixture's scan
+    window ranks first but is too large for the network to see enough keypoints (3 of 14), so it
+    gives no fit at all, not even a weak one to read again, and the scan ends empty (the rig's
+    mission aborted). The scan's windows that give nothing are read again at SCAN_SHRINK_FACTOR
+    of their side around their centre; the most fixture-like solves (weak here), and the window
+    its pose draws solves strongly. Without SCAN_SHRINK the frame has no answer."""
+    import oibar.nav.pose as pose
+    from oibar.nav.pose import SCAN_SHRINK, SCAN_SHRINK_FACTOR, SCAN_SIDE_PX
+
+    R = FAR_R
+    own_10m = window_around(project(K, DEEP, R, FAR_T), 128, 1.25).side_px
+    T = FAR_T * own_10m / (SCAN_SIDE_PX / 2.6)  # further out: the scan's window 2.6x the fixture's own
+    own = window_around(project(K, DEEP, R, T), 128, 1.25).side_px
+    assert 2.5 < SCAN_SIDE_PX / own and SCAN_SIDE_PX * SCAN_SHRINK_FACTOR / own < 2.5
+    image = np.zeros((480, 744, 3), np.uint8)
+    T_direct = (T + np.array([-2.0, 1.0, 0.0])) / 20.0
+
+    est = _scanning_estimator(R, T, scan=True)
+    r, _ = est.solve(image, R, T_direct)
+    assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
+    shrunk = [b for b in est.batches if b == len(SCAN_SHRINK)]
+    assert len(shrunk) == 1  # the first-ranked window, read again smaller, found it
+    assert len(est.crops) == 11 + 1 + 1 + 1 + 1  # search, scan window, its shrunk one, redraw, refine
+
+    monkeypatch.setattr(pose, "SCAN_SHRINK", ())
+    monkeypatch.setattr(pose.KeypointPoseEstimator, "_shrunk_scan_pass", lambda *a: (None, None))
+    est = _scanning_estimator(R, T, scan=True)
+    r, _ = est.solve(image, R, T_direct)
+    assert r is None
+
+
+def test_a_shrunk_scan_read_that_overruns_the_budget_goes_on_next_frame():
+    """The shrunk read (SCAN_SHRINK and its solve) is counted against the frame's crop budget;
+    a frame without room for it leaves the search carried, and a later frame reads the window
+    again and shrinks it."""
+    from oibar.nav.pose import SCAN_SHRINK, SCAN_SHRINK_FACTOR, SCAN_SIDE_PX
+
+    R = FAR_R
+    own_10m = window_around(project(K, DEEP, R, FAR_T), 128, 1.25).side_px
+    T = FAR_T * own_10m / (SCAN_SIDE_PX / 2.6)
+    assert SCAN_SIDE_PX * SCAN_SHRINK_FACTOR / window_around(project(K, DEEP, R, T), 128, 1.25).side_px < 2.5
+    image = np.zeros((480, 744, 3), np.uint8)
+    T_direct = (T + np.array([-2.0, 1.0, 0.0])) / 20.0
+    # 57 crops a frame: the scan's last batch leaves 9, the first-ranked window takes 1, and its
+    # shrunk read (9 + 1) does not fit
+    est = _scanning_estimator(R, T, scan=True, cold_crop_budget=57)
+    per_frame = []
+    for _ in range(12):
+        n_crops, n_batches = len(est.crops), len(est.batches)
+        r, _ = est.solve(image, R, T_direct)
+        per_frame.append((len(est.crops) - n_crops, est.batches[n_batches:]))
+        if r is not None:
+            break
+        assert est._cold is not None  # carried, never dropped half-way
+    assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
+    assert per_frame[-2][0] == 1 and len(SCAN_SHRINK) not in per_frame[-2][1]  # read, then out of crops
+    assert per_frame[-1] == (4, [len(SCAN_SHRINK)])  # read again, shrunk, redrawn, refined
+
+
 def test_the_latest_strong_fit_places_the_first_crop_when_there_is_no_prediction():
     """While the filter waits for a run of strong fits (the direct model disagrees), the
     estimator's own latest strong fit places the first crop: one crop, not the whole search
