@@ -88,6 +88,9 @@ class KpExport:
     model_version: str = "0.4.0"
     onnx_path: str = "models/oibarnet.onnx"
     opset: int = 17
+    # the refining pass's corner gate (frame px, 0: off; oibar.corner_refine_side_px), chosen per
+    # network on validation; `kp_export --corner-refine-side-px` overrides it
+    corner_refine_side_px: float = 0.0
 
 
 @dataclass

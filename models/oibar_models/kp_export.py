@@ -385,7 +385,7 @@ def main(argv: list[str] | None = None) -> int:
         bool(a.mirror_reading),
         a.filter_measurement or "prior_free",
         a.turned_reading_deg or 0.0,
-        a.corner_refine_side_px or 0.0,
+        cfg.export.corner_refine_side_px if a.corner_refine_side_px is None else a.corner_refine_side_px,
     )
     print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0

@@ -248,6 +248,19 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     assert isinstance(est, KeypointPoseEstimator)
     assert est.R_att_ref is not None and "att_crop_deg" in est.output_names
     assert est.meta["mirror_reading"] is False and est.mirror is None  # read once unless the export says
+    assert est.corner_refine_side_px == 0.0  # the corner step off unless the config or the CLI says
+    gated = out.parent / "kp_gated.onnx"
+    smoke = _smoke_overrides(tiny_dataset, kp_sets, run)
+    assert export_main(["--config", str(CONFIG), "--out", str(gated), *smoke, "export.corner_refine_side_px=150"]) == 0
+    assert PoseEstimator(gated, warmup_runs=0).corner_refine_side_px == 150.0
+    assert (
+        export_main(
+            ["--config", str(CONFIG), "--out", str(gated), "--corner-refine-side-px", "0", *smoke]
+            + ["export.corner_refine_side_px=150"]
+        )
+        == 0
+    )
+    assert PoseEstimator(gated, warmup_runs=0).corner_refine_side_px == 0.0  # the CLI wins, 0 included
     assert all("val_att_head_deg_mean" in r for r in rows)
     reading = est.read_crop(
         np.zeros((480, 744, 3), np.uint8), window_around(np.array([[300.0, 200]]), 64, 1.25)
