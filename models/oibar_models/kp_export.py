@@ -159,6 +159,7 @@ def export_onnx(
         with_fresh_attitude_head(net, state)
     net.load_state_dict(state)
     out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_suffix(".tmp.onnx")
     wrapper, dummy = export_graph(net, head, cfg.model.out_px, cfg.export.opset, tmp)
     m = onnx.load(str(tmp))

@@ -261,6 +261,8 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
         == 0
     )
     assert PoseEstimator(gated, warmup_runs=0).corner_refine_side_px == 0.0  # the CLI wins, 0 included
+    fresh = tmp_path / "not" / "yet" / "kp.onnx"  # a folder that does not exist yet is made
+    assert export_main(["--config", str(CONFIG), "--out", str(fresh), *smoke]) == 0 and fresh.is_file()
     assert all("val_att_head_deg_mean" in r for r in rows)
     reading = est.read_crop(
         np.zeros((480, 744, 3), np.uint8), window_around(np.array([[300.0, 200]]), 64, 1.25)
