@@ -738,7 +738,7 @@ def test_a_scan_window_that_sees_too_few_keypoints_is_read_again_smaller(monkeyp
     own_10m = window_around(project(K, DEEP, R, FAR_T), 128, 1.25).side_px
     T = FAR_T * own_10m / (SCAN_SIDE_PX / 2.6)  # further out: the scan's window 2.6x the fixture's own
     own = window_around(project(K, DEEP, R, T), 128, 1.25).side_px
-    assert 2.5 < SCAN_SIDE_PX / own and SCAN_SIDE_PX * SCAN_SHRINK_FACTOR / own < 2.5
+    assert SCAN_SIDE_PX / own > 2.5 and SCAN_SIDE_PX * SCAN_SHRINK_FACTOR / own < 2.5
     image = np.zeros((480, 744, 3), np.uint8)
     T_direct = (T + np.array([-2.0, 1.0, 0.0])) / 20.0
 

@@ -251,7 +251,12 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     assert est.corner_refine_side_px == 0.0  # the corner step off unless the config or the CLI says
     gated = out.parent / "kp_gated.onnx"
     smoke = _smoke_overrides(tiny_dataset, kp_sets, run)
-    assert export_main(["--config", str(CONFIG), "--out", str(gated), *smoke, "export.corner_refine_side_px=150"]) == 0
+    assert (
+        export_main(
+            ["--config", str(CONFIG), "--out", str(gated), *smoke, "export.corner_refine_side_px=150"]
+        )
+        == 0
+    )
     assert PoseEstimator(gated, warmup_runs=0).corner_refine_side_px == 150.0
     assert (
         export_main(

@@ -1130,7 +1130,11 @@ class KeypointPoseEstimator(PoseEstimator):
         fixture-like solved."""
         side = swin.side_px * SCAN_SHRINK_FACTOR
         wins = [
-            CropWindow((swin.center_px[0] + dx * swin.side_px, swin.center_px[1] + dy * swin.side_px), side, self.out_px)
+            CropWindow(
+                (swin.center_px[0] + dx * swin.side_px, swin.center_px[1] + dy * swin.side_px),
+                side,
+                self.out_px,
+            )
             for dx, dy in SCAN_SHRINK
         ]
         best = wins[int(np.argmax(self._fixture_likeness(image, wins)))]
