@@ -105,6 +105,15 @@ def test_window_around_grows_with_margin_and_keeps_a_minimum():
     assert window_around(pts[:1], 160, 1.25).side_px == 24.0
 
 
+def test_a_stepped_window_moves_in_its_own_sides_and_scales_about_its_new_centre():
+    w = CropWindow((100.0, 50.0), 40.0, 128)
+    s = w.stepped(-0.5, 0.25, 0.6)
+    assert s.center_px == (80.0, 60.0) and s.side_px == pytest.approx(24.0) and s.out_px == 128
+    assert w.stepped(0, 0, 1.0) == w
+    # the new window's centre lands on the crop point the step names in the old one
+    assert np.allclose(w.to_crop(np.array([s.center_px])), [[64.0 - 0.5 * 128, 64.0 + 0.25 * 128]])
+
+
 def test_translation_given_rotation_is_exact():
     from oibar.nav.keypoints import translation_given_rotation
 

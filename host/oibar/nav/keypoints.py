@@ -43,6 +43,13 @@ class CropWindow:
         t = self.out_px / 2.0 - rot @ c
         return np.hstack([rot, t[:, None]])
 
+    def stepped(self, dx: float, dy: float, k: float) -> CropWindow:
+        """The window `dx`, `dy` of this one's sides off its centre (along the frame's axes), `k`
+        times its side: one step of the estimator's searches (SEARCH_STEPS, the zoom, the scan's
+        shrunk read)."""
+        c = (self.center_px[0] + dx * self.side_px, self.center_px[1] + dy * self.side_px)
+        return CropWindow(c, self.side_px * k, self.out_px, self.angle_rad)
+
     def to_crop(self, uv_px: np.ndarray) -> np.ndarray:
         A = self.matrix()
         out: np.ndarray = np.asarray(uv_px, float) @ A[:, :2].T + A[:, 2]

@@ -952,8 +952,7 @@ class KeypointPoseEstimator(PoseEstimator):
             if np.all(np.isfinite(uv0)):
                 base = window_around(uv0, self.out_px, self.margin)
                 for dx, dy, k in SEARCH_STEPS:
-                    c = (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px)
-                    win = CropWindow(c, base.side_px * k, self.out_px)
+                    win = base.stepped(dx, dy, k)
                     crops += 1
                     if consider(
                         *self._one_pass(image, win, R_direct, f, float(np.linalg.norm(T_direct)) / k)
@@ -1011,14 +1010,7 @@ class KeypointPoseEstimator(PoseEstimator):
     def _zoom_candidates(self, base: CropWindow, wide: bool) -> list[tuple[CropWindow, float]]:
         """The windows (with their size factors) one zoom level reads around `base`."""
         return [
-            (
-                CropWindow(
-                    (base.center_px[0] + dx * base.side_px, base.center_px[1] + dy * base.side_px),
-                    base.side_px * k,
-                    self.out_px,
-                ),
-                k,
-            )
+            (base.stepped(dx, dy, k), k)
             for dx, dy, k in zoom_steps(wide)
             if base.side_px * k >= ZOOM_MIN_SIDE_PX  # smaller than a fixture within the envelope
         ]
@@ -1128,17 +1120,9 @@ class KeypointPoseEstimator(PoseEstimator):
     ) -> tuple[PnpResult, CropWindow] | tuple[None, None]:
         """SCAN_SHRINK's windows inside scan window `swin`, read in one batch; the most
         fixture-like solved."""
-        side = swin.side_px * SCAN_SHRINK_FACTOR
-        wins = [
-            CropWindow(
-                (swin.center_px[0] + dx * swin.side_px, swin.center_px[1] + dy * swin.side_px),
-                side,
-                self.out_px,
-            )
-            for dx, dy in SCAN_SHRINK
-        ]
+        wins = [swin.stepped(dx, dy, SCAN_SHRINK_FACTOR) for dx, dy in SCAN_SHRINK]
         best = wins[int(np.argmax(self._fixture_likeness(image, wins)))]
-        return self._one_pass(image, best, R_direct, f, self._range_for_side_m(side))
+        return self._one_pass(image, best, R_direct, f, self._range_for_side_m(best.side_px))
 
     def _range_for_side_m(self, side_px: float) -> float:
         """The range at which the fixture, seen head-on, fills a window of side_px (its
