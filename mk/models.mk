@@ -39,8 +39,9 @@ dataset-envelope: setup ## render the envelope-mode test sequence (seq01_envelop
 # keypoint network's own attitude head wins on validation). Six training stages; the export
 # chooses the prior's weights on the validation scenes (kp_fusion), then writes them into the file.
 KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints/oibarnet_kp_stage2.yaml models/configs/keypoints/oibarnet_kp_stage3.yaml models/configs/keypoints/oibarnet_kp_stage4.yaml models/configs/keypoints/oibarnet_kp_stage5.yaml models/configs/keypoints/oibarnet_kp_stage6.yaml
-# The shipped 0.13.0 is stage 13 (stage 6's 0.8.1, recovered, then stages 12 and 13: docs/model_card.md).
-KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage13.yaml
+# The shipped 0.15.3 is stage 15 (stage 6's 0.8.1, recovered, then stages 12, 13 and 15, the last on
+# a lent GPU: docs/model_card.md); its config carries the corner gate and the version.
+KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage15.yaml
 KP_EVAL_ARGS ?= --sets val test
 # 0.7.0: both priors scored (the direct model's and the crop's attitude head) on the 22
 # validation scenes, every 24th frame in tracking mode (docs/data/kp_fusion_grid_070.json); the

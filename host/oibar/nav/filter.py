@@ -115,10 +115,10 @@ class FilterParams:
     vel_reset_after: int = 5  # consecutive gated velocities: 0.5 s at 10 Hz
     # 1-sigma of the odometry's constant, unreported error per lateral D axis (x, y), carried as
     # consider states (0: off, the odometry fused as white). 0.002 is the rig vehicle's assumption
-    # (VehicleParams.odometry_bias_mps); a real vehicle's GNC states its own. Off: flown at 0.002 it
-    # gained on 9 of 10 looks and lost 2.3 cm on va007's, where the camera itself leans, so the
-    # standing rule (no worse worst run) failed (docs/navigation.md).
-    odo_bias_sigma_lateral_mps: float = 0.0
+    # (VehicleParams.odometry_bias_mps); a real vehicle's GNC states its own. With 0.13.0 it lost
+    # 2.3 cm on va007's look, where that camera leans, and stayed off; on with OibarNet 0.15.3
+    # (its rule, docs/model_card.md): 64 paired runs, 55 better, the worst run 5.80 -> 4.78 cm.
+    odo_bias_sigma_lateral_mps: float = 0.002
 
     def __post_init__(self) -> None:
         for name in (
