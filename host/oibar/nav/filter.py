@@ -38,7 +38,8 @@ share, so the camera keeps its weight. Estimating b was tried first and failed i
 loop: far out the camera's lateral error drifts with range (va007's look: -45 cm at 9 m to +5
 cm at 5 m), which reads as an odometry bias and is then kept (docs/navigation.md). Not along the
 docking axis (its sigma is zero): the closing speed that DOCK is checked against stays the
-odometry's. Off by default: flown, it trades the mean for the worst look (FilterParams).
+odometry's. On by default since OibarNet 0.15.3 (0.002 m/s, FilterParams); with 0.13.0's network
+it traded the mean for the worst look and was off.
 """
 
 from __future__ import annotations
