@@ -91,6 +91,11 @@ class KpExport:
     # the refining pass's corner gate (frame px, 0: off; oibar.corner_refine_side_px), chosen per
     # network on validation; `kp_export --corner-refine-side-px` overrides it
     corner_refine_side_px: float = 0.0
+    # the refining pass's turned readings (deg, 0: off; oibar.turned_reading_deg) and whether the
+    # attitude head is read on each (oibar.turned_reading_head), chosen per network on validation
+    # and the closed loop; `kp_export --turned-reading-deg / --turned-reading-head` override them
+    turned_reading_deg: float = 0.0
+    turned_reading_head: bool = False
 
 
 @dataclass

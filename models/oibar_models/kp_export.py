@@ -4,8 +4,8 @@ PnP thresholds, the camera, the first-pass model to use beside it, the training 
 validation figures. Parity against PyTorch is checked before the file is written.
 
 python -m oibar_models.kp_export --config models/configs/keypoints/oibarnet_kp.yaml [--checkpoint best|last]
-    [--fusion FUSION.json] [--mirror-reading] [--turned-reading-deg DEG] [--filter-measurement prior_free|fused]
-    [--corner-refine-side-px PX]
+    [--fusion FUSION.json] [--mirror-reading] [--turned-reading-deg DEG] [--turned-reading-head]
+    [--filter-measurement prior_free|fused] [--corner-refine-side-px PX]
 
 The flight reading options (how the refining pass reads its window, what the filter is fed) are
 chosen on the closed loop after training; `--retag` sets them on an existing export, the network
@@ -62,6 +62,7 @@ def metadata_for(
     filter_measurement: str = "prior_free",
     turned_reading_deg: float = 0.0,
     corner_refine_side_px: float = 0.0,
+    turned_reading_head: bool = False,
 ) -> dict:
     K = _CAM.K.tolist()
     n = cfg.model.out_px
@@ -96,6 +97,9 @@ def metadata_for(
         "filter_measurement": filter_measurement,
         # the refining pass also reads its window turned by +- this many degrees (read_crop)
         "turned_reading_deg": float(turned_reading_deg),
+        # and the attitude head's answer is the mean of those readings' (written only when on, so
+        # an export from before the option rebuilds to the byte)
+        **({"turned_reading_head": True} if turned_reading_head else {}),
         # the refining pass moves the fixture's corners onto the frame's own, sub-pixel, when the
         # fixture spans at least this many frame pixels (0: off; KeypointPoseEstimator.refined_corners)
         "corner_refine_side_px": float(corner_refine_side_px),
@@ -149,6 +153,7 @@ def export_onnx(
     filter_measurement: str = "prior_free",
     turned_reading_deg: float = 0.0,
     corner_refine_side_px: float = 0.0,
+    turned_reading_head: bool = False,
 ) -> Path:
     import onnx
 
@@ -173,6 +178,7 @@ def export_onnx(
         filter_measurement,
         turned_reading_deg,
         corner_refine_side_px,
+        turned_reading_head,
     ).items():
         p = m.metadata_props.add()
         p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
@@ -196,8 +202,8 @@ def export_onnx(
 
 def retag(src: Path, out: Path, options: dict) -> Path:
     """A copy of the export `src` at `out` (may be `src`) with the flight reading `options`
-    (metadata keys without the prefix: mirror_reading, turned_reading_deg, filter_measurement,
-    corner_refine_side_px) set, and the new model version when the reading changes what flies;
+    (metadata keys without the prefix: mirror_reading, turned_reading_deg, turned_reading_head,
+    filter_measurement, corner_refine_side_px) set, and the new model version when the reading changes what flies;
     the graph untouched. Checked by opening it as the flight runtime does when its first pass
     lies beside it. ValueError for an option that is not a reading option or a version that is
     not MAJOR.MINOR.PATCH."""
@@ -208,6 +214,7 @@ def retag(src: Path, out: Path, options: dict) -> Path:
     allowed = {
         "mirror_reading",
         "turned_reading_deg",
+        "turned_reading_head",
         "filter_measurement",
         "corner_refine_side_px",
         "model_version",
@@ -281,6 +288,13 @@ def main(argv: list[str] | None = None) -> int:
         "the keypoints (0: read once; chosen on validation and the closed loop)",
     )
     ap.add_argument(
+        "--turned-reading-head",
+        action="store_true",
+        default=None,
+        help="with the turned reading: the attitude head's answer is the mean of the turned "
+        "windows' and the untouched one's (chosen on validation and the closed loop)",
+    )
+    ap.add_argument(
         "--filter-measurement",
         choices=FILTER_MEASUREMENTS,
         default=None,
@@ -308,6 +322,7 @@ def main(argv: list[str] | None = None) -> int:
             for k, v in (
                 ("mirror_reading", a.mirror_reading),
                 ("turned_reading_deg", a.turned_reading_deg),
+                ("turned_reading_head", a.turned_reading_head),
                 ("filter_measurement", a.filter_measurement),
                 ("corner_refine_side_px", a.corner_refine_side_px),
                 ("model_version", a.model_version),
@@ -317,7 +332,8 @@ def main(argv: list[str] | None = None) -> int:
         if a.config or a.fusion or a.overrides or not set(options) - {"model_version"}:
             print(
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
-                "--filter-measurement, --corner-refine-side-px), --model-version and --out only",
+                "--turned-reading-head, --filter-measurement, --corner-refine-side-px), "
+                "--model-version and --out only",
                 file=sys.stderr,
             )
             return 2
@@ -385,8 +401,9 @@ def main(argv: list[str] | None = None) -> int:
         fusion,
         bool(a.mirror_reading),
         a.filter_measurement or "prior_free",
-        a.turned_reading_deg or 0.0,
+        cfg.export.turned_reading_deg if a.turned_reading_deg is None else a.turned_reading_deg,
         cfg.export.corner_refine_side_px if a.corner_refine_side_px is None else a.corner_refine_side_px,
+        cfg.export.turned_reading_head if a.turned_reading_head is None else a.turned_reading_head,
     )
     print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0

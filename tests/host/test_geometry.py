@@ -98,6 +98,20 @@ def test_angle_between_quaternions():
     assert angle_between_quats_deg(qa, -qa) == pytest.approx(0.0, abs=1e-6)
 
 
+def test_mean_quaternion_is_blind_to_sign_and_centred():
+    from oibar.geometry.rotations import mean_quat
+
+    # +-8 deg about z around a 20 deg turn about x: the mean is the turn, whatever each one's sign
+    base = rot_x(np.radians(20.0))
+    qs = [matrix_to_quat(rot_z(np.radians(a)) @ base) for a in (-8.0, 0.0, 8.0)]
+    m = mean_quat(np.stack([qs[0], -qs[1], qs[2]]))
+    assert angle_between_quats_deg(m, matrix_to_quat(base)) == pytest.approx(0.0, abs=1e-6)
+    assert m[0] >= 0
+    # two attitudes 10 deg apart about y: the mean is half way
+    m2 = mean_quat(np.stack([matrix_to_quat(rot_y(0.0)), matrix_to_quat(rot_y(np.radians(10.0)))]))
+    assert angle_between_quats_deg(m2, matrix_to_quat(rot_y(np.radians(5.0)))) == pytest.approx(0.0, abs=1e-6)
+
+
 # ----------------------------------------------------------------------------- transforms
 def test_rigid_transform_round_trips():
     rng = np.random.default_rng(2)

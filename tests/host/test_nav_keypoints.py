@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oibar.geometry.rotations import rotation_angle_deg, rotvec_to_matrix
+from oibar.geometry.rotations import matrix_to_rotvec, rotation_angle_deg, rotvec_to_matrix
 from oibar.nav.keypoints import CropWindow, cut, project, solve_pnp, window_around
 
 K = np.array([[583.3333, 0, 372.0], [0, 583.3333, 240.0], [0, 0, 1]])
@@ -144,7 +144,6 @@ def test_prior_fit_jacobian_matches_central_differences(prior_deg):
     """The closed-form Jacobian refine_with_prior steps with is the derivative of its residuals
     (checked the way it used to be computed: central differences of the residual function),
     across a small, a zero, a tiny and a large prior disagreement and per-point weights."""
-    from oibar.geometry.rotations import matrix_to_rotvec
     from oibar.nav.keypoints import _prior_fit_jacobian
 
     R, T = _pose(np.radians([4.0, -7.0, 20.0]), (0.3, -0.2, 1.7))
@@ -1302,6 +1301,46 @@ def test_a_turned_reading_keeps_a_keypoint_only_where_most_readings_see_it(monke
     assert np.all(np.isnan(r.uv_px[0]))
     assert np.allclose(r.uv_px[1:], truth[1:], atol=1e-3)
     assert r.present[0] == pytest.approx(1 / 3) and r.present[1] == pytest.approx(2 / 3)
+
+
+def test_a_turned_reading_can_read_the_attitude_head_on_every_window(monkeypatch):
+    """oibar.turned_reading_head: the head's answer is the mean of the three readings' (each
+    already in the camera's axes); without it, the untouched window's alone. 0.15.3 at 8 deg on
+    validation: attitude 0.539 -> 0.531 deg."""
+    from dataclasses import replace as dc_replace
+
+    R, T = _pose(np.radians([0.4, -0.3, 0.1]), (0.05, -0.03, 4.0))
+    truth = project(K, POINTS, R, T)
+    win = window_around(truth, 128, 1.25)
+    image = np.zeros((480, 744, 3), np.uint8)
+    # the fake head reads 1, 2 and 3 mrad about x in the untouched, +8 and -8 deg windows
+    tilt = {0.0: 0.001, 8.0: 0.002, -8.0: 0.003}
+    for on, want_rad in ((False, 0.001), (True, 0.002)):
+        est = _windowed_estimator(monkeypatch, truth, 8.0)
+        est.turned_reading_head = on
+        plain = est._reading
+
+        def with_head(w, out, plain=plain):
+            a = round(float(np.degrees(w.angle_rad - win.angle_rad)), 6)
+            return dc_replace(plain(w, out), R_cam_target_head=rotvec_to_matrix([tilt[a], 0.0, 0.0]))
+
+        est._reading = with_head
+        r = est.read_crop(image, win, refining=True)
+        assert r.R_cam_target_head is not None
+        assert np.allclose(matrix_to_rotvec(r.R_cam_target_head), [want_rad, 0.0, 0.0], atol=1e-9)
+        assert np.allclose(r.uv_px, truth, atol=1e-3)  # the keypoints as before
+
+
+def test_a_turned_reading_head_flag_that_is_not_a_flag_is_refused(tmp_path):
+    """A damaged export (oibar.turned_reading_head not true or false) is refused when it opens."""
+    from pathlib import Path
+
+    from oibar.nav.pose import KeypointPoseEstimator, ModelFileError
+
+    model = Path(__file__).resolve().parents[2] / "models" / "oibarnet.onnx"
+    with pytest.raises(ModelFileError, match="turned_reading_head"):
+        KeypointPoseEstimator(model, warmup_runs=0, turned_reading_head="yes")  # type: ignore[arg-type]
+    assert KeypointPoseEstimator(model, warmup_runs=0, turned_reading_head=True).turned_reading_head is True
 
 
 @pytest.mark.parametrize("bad", [20.0, -1.0, "8", True])

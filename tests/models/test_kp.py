@@ -859,3 +859,46 @@ def test_retag_sets_the_corner_refinement_and_refuses_a_size_that_is_not_one(tmp
     )
     meta = read_metadata(model)
     assert meta["model_version"] == "9.9.9" and meta["corner_refine_side_px"] == 80.0
+
+
+def test_retag_sets_the_turned_head_and_an_export_without_it_says_nothing(tmp_path):
+    """`--turned-reading-head` sets oibar.turned_reading_head on an export and the runtime reads
+    it back; an export that never set it carries no such key (so exports from before the option
+    rebuild to the byte) and the runtime reads it as off."""
+    import shutil
+
+    from oibar.nav.pose import KeypointPoseEstimator, read_metadata
+    from oibar_models.kp_export import main as export_main
+
+    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
+        shutil.copy(REPO / "models" / name, tmp_path / name)
+    model = tmp_path / "oibarnet.onnx"
+    from oibar_models.kp_export import metadata_for
+
+    cfg = load_kp_config(REPO / "models/configs/keypoints/oibarnet_kp_stage15.yaml", {})
+    ck = {"model": {}, "step": 1}
+    assert "turned_reading_head" not in metadata_for(cfg, ck, "lite.onnx", (0.25, 12.0), turned_reading_deg=8)
+    assert (
+        metadata_for(cfg, ck, "lite.onnx", (0.25, 12.0), turned_reading_head=True)["turned_reading_head"]
+        is True
+    )
+    assert export_main(["--retag", str(model), "--turned-reading-deg", "8", "--model-version", "9.9.8"]) == 0
+    assert "turned_reading_head" not in read_metadata(model)
+    assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_head is False
+    assert (
+        export_main(
+            [
+                "--retag",
+                str(model),
+                "--turned-reading-deg",
+                "8",
+                "--turned-reading-head",
+                "--model-version",
+                "9.9.9",
+            ]
+        )
+        == 0
+    )
+    assert read_metadata(model)["turned_reading_head"] is True
+    est = KeypointPoseEstimator(model, warmup_runs=0)
+    assert est.turned_reading_head is True and est.turned_reading_deg == 8.0

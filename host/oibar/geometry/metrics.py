@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from ._types import ArrayLike, FloatArray
+from .rotations import mean_quat
 
 POS_REQ_PCT = 5.0
 """Position requirement: range-normalised error, percent."""
@@ -70,14 +71,7 @@ def score(summary: dict[str, Any]) -> float:
 
 
 def mean_pose(T_m: ArrayLike, q: ArrayLike) -> tuple[FloatArray, FloatArray]:
-    """The trivial baseline's prediction: the mean position (m), and the mean attitude as the
-    principal eigenvector of sum(q q^T) (sign-invariant average of quaternions)."""
-    Ta = np.asarray(T_m, float)
-    qa = np.asarray(q, float)
-    M = qa.T @ qa
-    _, v = np.linalg.eigh(M)
-    q_mean = v[:, -1]
-    if q_mean[0] < 0:
-        q_mean = -q_mean
-    mean_T: FloatArray = Ta.mean(0)
-    return mean_T, q_mean / np.linalg.norm(q_mean)
+    """The trivial baseline's prediction: the mean position (m), and the mean attitude
+    (rotations.mean_quat: sign-invariant average of quaternions)."""
+    mean_T: FloatArray = np.asarray(T_m, float).mean(0)
+    return mean_T, mean_quat(q)

@@ -144,3 +144,12 @@ def angle_between_quats_deg(q_a: ArrayLike, q_b: ArrayLike) -> float:
     """Angle of the rotation taking attitude ``q_b`` to ``q_a`` (one pair), degrees (0..180),
     computed through the matrices (``angle(R_a R_b^T)``)."""
     return rotation_angle_deg(quat_to_matrix(np.asarray(q_a)) @ quat_to_matrix(np.asarray(q_b)).T)
+
+
+def mean_quat(q: ArrayLike) -> FloatArray:
+    """The mean attitude of unit quaternions ``(N, 4)`` (w, x, y, z): the principal eigenvector of
+    sum(q q^T), blind to each one's sign (q and -q are one attitude), returned with ``w >= 0``."""
+    qa = np.asarray(q, dtype=float)
+    _, v = np.linalg.eigh(qa.T @ qa)
+    out: FloatArray = v[:, -1] / np.linalg.norm(v[:, -1])
+    return -out if out[0] < 0 else out

@@ -26,7 +26,7 @@ import numpy as np
 from PIL import Image
 
 from oibar.geometry.camera import project_target_points as project
-from oibar.geometry.rotations import matrix_to_quat, rotation_angle_deg
+from oibar.geometry.rotations import matrix_to_quat, mean_quat, quat_to_matrix, rotation_angle_deg
 from oibar.nav.fit_history import FitHistory
 from oibar.nav.keypoints import (
     MIRROR_ATT,
@@ -657,6 +657,7 @@ class KeypointPoseEstimator(PoseEstimator):
         scan_search: bool = True,
         mirror: bool | None = None,
         turned_reading_deg: float | None = None,
+        turned_reading_head: bool | None = None,
         cold_crop_budget: int | None = COLD_CROP_BUDGET,
         corner_refine_side_px: float | None = None,
     ):
@@ -735,6 +736,18 @@ class KeypointPoseEstimator(PoseEstimator):
                 f"[0, {MAX_TURNED_READING_DEG:g}] (0: read once), got {turned!r}"
             )
         self.turned_reading_deg = float(turned)
+        # and whether the attitude head's answer is the mean of all of them
+        # (``oibar.turned_reading_head``) or the untouched window's alone
+        head = (
+            self.meta.get("turned_reading_head", False)
+            if turned_reading_head is None
+            else turned_reading_head
+        )
+        if not isinstance(head, bool):
+            raise ModelFileError(
+                f"{self.path}: oibar.turned_reading_head must be true or false, got {head!r}"
+            )
+        self.turned_reading_head = head
         # the refining pass's sub-pixel corners: as the export says
         # (``oibar.corner_refine_side_px``, chosen per network on validation), unless told
         side = (
@@ -812,7 +825,10 @@ class KeypointPoseEstimator(PoseEstimator):
           about its boresight: the network was trained on crops turned up to 15 deg). Each
           reading's keypoints go back to the frame through its own window; a keypoint counts
           where most readings see it. 0.8.1 at 8 deg: validation attitude 0.84 -> 0.81 deg, the
-          filter's measurement 0.86 -> 0.82 (docs/model_card.md, 2026-11-25).
+          filter's measurement 0.86 -> 0.82 (docs/model_card.md, 2026-11-25). With
+          ``oibar.turned_reading_head`` the attitude head's answer is the mean of the readings'
+          (each mapped to the camera through its own window), else the untouched window's:
+          0.15.3 at 8 deg on validation, 0.539 -> 0.531 deg (docs/model_card.md, 2026-11-27).
 
         Only for a window already known to hold the fixture: averaged with its mirror, a crop of
         anything makes a symmetric pattern that PnP fits well."""
@@ -841,8 +857,19 @@ class KeypointPoseEstimator(PoseEstimator):
             mean_uv,
             np.mean([r.spread_crop_px for r in readings], axis=0),
             np.mean([r.present for r in readings], axis=0),
-            readings[0].R_cam_target_head,  # the head reads its own window's allocentric attitude
+            self._head_of(readings),
         )
+
+    def _head_of(self, readings: list[CropReading]) -> np.ndarray | None:
+        """The attitude head's answer for read_crop's readings: the untouched window's (the
+        first), or with `turned_reading_head` the mean of every reading that has one."""
+        if not self.turned_reading_head:
+            return readings[0].R_cam_target_head
+        heads = [r.R_cam_target_head for r in readings if r.R_cam_target_head is not None]
+        if len(heads) < 2:
+            return heads[0] if heads else None
+        R: np.ndarray = quat_to_matrix(mean_quat(np.stack([matrix_to_quat(h) for h in heads])))
+        return R
 
     def _reading(self, win: CropWindow, out: dict[str, np.ndarray]) -> CropReading:
         """The network's outputs for one window (one row, or two: the crop and its mirror image,
@@ -1216,6 +1243,7 @@ class KeypointPoseEstimator(PoseEstimator):
 
     uses_prior = True
     turned_reading_deg = 0.0  # read_crop's turned readings (set from the export in __init__)
+    turned_reading_head = False  # and the head read on each of them (idem)
     corner_refine_side_px = 0.0  # refined_corners' size gate, 0: off (idem)
     corner_idx = np.zeros(0, int)
     cold_crop_budget: int | None = COLD_CROP_BUDGET  # (set in __init__)
