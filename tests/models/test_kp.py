@@ -762,6 +762,39 @@ def test_two_exports_of_one_network_get_their_own_labels_in_the_evaluation():
     assert len(set(model_labels(same_folder, [v, v]))) == 2
 
 
+def test_the_evaluation_reports_the_filter_measurements_signed_attitude_bias():
+    """kp_evaluate.per_bin: the mean signed attitude error of what the filter is fed, per range
+    bin and camera axis. A constant tilt of the measurement shows as itself, while zero-mean
+    noise of the same size does not; frames without an answer are left out."""
+    from oibar.geometry.rotations import matrix_to_quat, quat_to_matrix, rotvec_to_matrix
+    from oibar_models.kp_evaluate import per_bin
+
+    rng = np.random.default_rng(0)
+    n = 400
+    T = np.column_stack([np.zeros(n), np.zeros(n), np.linspace(0.5, 11.5, n)])
+    q = np.array([matrix_to_quat(rotvec_to_matrix(v)) for v in rng.normal(0.0, 0.05, (n, 3))])
+    tilt_deg = np.where(T[:, 2:3] < 5.0, [0.1, -0.07, 0.0], 0.0)  # a bias under 5 m only
+    noise_deg = rng.choice([-0.2, 0.2], (n, 3))  # +-0.2 deg, mean 0 over each pair of frames
+    noise_deg[1::2] = -noise_deg[::2]
+    q_meas = np.array(
+        [
+            matrix_to_quat(rotvec_to_matrix(np.radians(b + e)) @ quat_to_matrix(qi))
+            for b, e, qi in zip(tilt_deg, noise_deg, q, strict=True)
+        ]
+    )
+    q_meas[5] = np.nan  # no answer on one frame
+
+    class Seq:
+        T_cam_target = T
+        q_cam_target = q
+
+    r = {"idx": np.arange(n), "T_hat": T.copy(), "q_hat": q.copy(), "q_meas": q_meas}
+    bins = {b["bin"]: b for b in per_bin(Seq, r)}
+    np.testing.assert_allclose(bins["1-2 m"]["meas_att_bias_deg"], [0.1, -0.07, 0.0], atol=0.02)
+    np.testing.assert_allclose(bins["8-12 m"]["meas_att_bias_deg"], [0.0, 0.0, 0.0], atol=0.02)
+    assert np.all(np.isfinite(bins["0-1 m"]["meas_att_bias_deg"]))
+
+
 @pytest.mark.parametrize("setting", [None, "prior_free", "fused"])
 def test_the_export_says_what_the_navigation_filter_is_fed(tmp_path, monkeypatch, setting):
     """`oibar.filter_measurement` (kp_export --filter-measurement, chosen per network on the closed
