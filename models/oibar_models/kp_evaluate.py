@@ -170,7 +170,7 @@ def signed_attitude_error_deg(q_hat: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def per_bin(seq, r) -> list[dict]:
     T, q = seq.T_cam_target[r["idx"]], seq.q_cam_target[r["idx"]]
-    bias = signed_attitude_error_deg(r["q_meas"], q) if "q_meas" in r else np.full((len(q), 3), np.nan)
+    bias = signed_attitude_error_deg(r["q_meas"], q)
     rng = np.linalg.norm(T, axis=1)
     ok = np.all(np.isfinite(r["T_hat"]), axis=1)
     dt = np.full(len(T), np.nan)

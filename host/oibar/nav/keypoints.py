@@ -235,11 +235,9 @@ def _prior_fit_jacobian(
         # d(u, v)/dp, (N, 2, 3): (K's rows 0-1 - (u, v) K's row 2) / w
         dproj_dp = (K[None, :2, :] - proj[:, :, None] * K[None, None, 2, :]) / w[:, None, None]
     dproj_dp = dproj_dp / sig[:, :, None]
-    # dp/d d_rot = -[q]x (exp(d) q = q + d x q), dp/d d_T = I
-    qx = np.zeros((len(q), 3, 3))
-    qx[:, 0, 1], qx[:, 0, 2], qx[:, 1, 2] = -q[:, 2], q[:, 1], -q[:, 0]
-    qx[:, 1, 0], qx[:, 2, 0], qx[:, 2, 1] = q[:, 2], -q[:, 1], q[:, 0]
-    J_img = np.concatenate([-(dproj_dp @ qx), dproj_dp], axis=2).reshape(-1, 6)
+    # dp/d d_rot = -[q]x (exp(d) q = q + d x q), so each row a of d(u, v)/dp gives -a [q]x = q x a;
+    # dp/d d_T = I
+    J_img = np.concatenate([np.cross(q[:, None, :], dproj_dp), dproj_dp], axis=2).reshape(-1, 6)
     phi = matrix_to_rotvec(R @ R_prior.T)
     J_att = np.zeros((3, 6))
     J_att[:, :3] = _so3_log_jacobian_inv(phi) / sigma_prior_rad
