@@ -93,9 +93,12 @@ class KpExport:
     corner_refine_side_px: float = 0.0
     # the refining pass's turned readings (deg, 0: off; oibar.turned_reading_deg) and whether the
     # attitude head is read on each (oibar.turned_reading_head), chosen per network on validation
-    # and the closed loop; `kp_export --turned-reading-deg / --turned-reading-head` override them
+    # and the closed loop; `kp_export --turned-reading-deg / --turned-reading-head` override them;
+    # and whose keypoints the filter's prior-free fit uses (oibar.turned_reading_measurement: mean or
+    # untouched; `--turned-reading-measurement`)
     turned_reading_deg: float = 0.0
     turned_reading_head: bool = False
+    turned_reading_measurement: str = "mean"
 
 
 @dataclass

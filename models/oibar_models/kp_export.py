@@ -5,6 +5,7 @@ validation figures. Parity against PyTorch is checked before the file is written
 
 python -m oibar_models.kp_export --config models/configs/keypoints/oibarnet_kp.yaml [--checkpoint best|last]
     [--fusion FUSION.json] [--mirror-reading] [--turned-reading-deg DEG] [--turned-reading-head]
+    [--turned-reading-measurement mean|untouched]
     [--filter-measurement prior_free|fused] [--corner-refine-side-px PX]
 
 The flight reading options (how the refining pass reads its window, what the filter is fed) are
@@ -28,7 +29,7 @@ import torch
 
 from oibar.geometry.camera import PinholeCamera
 from oibar.geometry.docking import R_cam_target_aligned
-from oibar.nav.pose import FILTER_MEASUREMENTS
+from oibar.nav.pose import FILTER_MEASUREMENTS, TURNED_READING_MEASUREMENTS
 
 from . import __version__
 from .config import ConfigError, parse_override
@@ -63,7 +64,13 @@ def metadata_for(
     turned_reading_deg: float = 0.0,
     corner_refine_side_px: float = 0.0,
     turned_reading_head: bool = False,
+    turned_reading_measurement: str = "mean",
 ) -> dict:
+    if turned_reading_measurement not in TURNED_READING_MEASUREMENTS:
+        raise ValueError(
+            f"turned_reading_measurement must be one of {TURNED_READING_MEASUREMENTS}, "
+            f"got {turned_reading_measurement!r}"
+        )
     K = _CAM.K.tolist()
     n = cfg.model.out_px
     return {
@@ -100,6 +107,13 @@ def metadata_for(
         # and the attitude head's answer is the mean of those readings' (written only when on, so
         # an export from before the option rebuilds to the byte)
         **({"turned_reading_head": True} if turned_reading_head else {}),
+        # and whose keypoints the filter's prior-free fit uses (oibar.nav.pose.TURNED_READING_MEASUREMENTS;
+        # written only when not the default "mean", for the same reason)
+        **(
+            {"turned_reading_measurement": turned_reading_measurement}
+            if turned_reading_measurement != "mean"
+            else {}
+        ),
         # the refining pass moves the fixture's corners onto the frame's own, sub-pixel, when the
         # fixture spans at least this many frame pixels (0: off; KeypointPoseEstimator.refined_corners)
         "corner_refine_side_px": float(corner_refine_side_px),
@@ -154,6 +168,7 @@ def export_onnx(
     turned_reading_deg: float = 0.0,
     corner_refine_side_px: float = 0.0,
     turned_reading_head: bool = False,
+    turned_reading_measurement: str = "mean",
 ) -> Path:
     import onnx
 
@@ -179,6 +194,7 @@ def export_onnx(
         turned_reading_deg,
         corner_refine_side_px,
         turned_reading_head,
+        turned_reading_measurement,
     ).items():
         p = m.metadata_props.add()
         p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
@@ -203,10 +219,10 @@ def export_onnx(
 def retag(src: Path, out: Path, options: dict) -> Path:
     """A copy of the export `src` at `out` (may be `src`) with the flight reading `options`
     (metadata keys without the prefix: mirror_reading, turned_reading_deg, turned_reading_head,
-    filter_measurement, corner_refine_side_px) set, and the new model version when the reading changes what flies;
-    the graph untouched. Checked by opening it as the flight runtime does when its first pass
-    lies beside it. ValueError for an option that is not a reading option or a version that is
-    not MAJOR.MINOR.PATCH."""
+    turned_reading_measurement, filter_measurement, corner_refine_side_px) set, and the new model
+    version when the reading changes what flies; the graph untouched. Checked by opening it as the
+    flight runtime does when its first pass lies beside it. ValueError for an option that is not a
+    reading option or a version that is not MAJOR.MINOR.PATCH."""
     import onnx
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
@@ -215,6 +231,7 @@ def retag(src: Path, out: Path, options: dict) -> Path:
         "mirror_reading",
         "turned_reading_deg",
         "turned_reading_head",
+        "turned_reading_measurement",
         "filter_measurement",
         "corner_refine_side_px",
         "model_version",
@@ -295,6 +312,13 @@ def main(argv: list[str] | None = None) -> int:
         "windows' and the untouched one's (chosen on validation and the closed loop)",
     )
     ap.add_argument(
+        "--turned-reading-measurement",
+        choices=TURNED_READING_MEASUREMENTS,
+        default=None,
+        help="with the turned reading: the filter's prior-free fit from the averaged keypoints "
+        "(mean, the default) or the untouched window's alone (chosen on the closed loop)",
+    )
+    ap.add_argument(
         "--filter-measurement",
         choices=FILTER_MEASUREMENTS,
         default=None,
@@ -323,6 +347,7 @@ def main(argv: list[str] | None = None) -> int:
                 ("mirror_reading", a.mirror_reading),
                 ("turned_reading_deg", a.turned_reading_deg),
                 ("turned_reading_head", a.turned_reading_head),
+                ("turned_reading_measurement", a.turned_reading_measurement),
                 ("filter_measurement", a.filter_measurement),
                 ("corner_refine_side_px", a.corner_refine_side_px),
                 ("model_version", a.model_version),
@@ -332,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.config or a.fusion or a.overrides or not set(options) - {"model_version"}:
             print(
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
-                "--turned-reading-head, --filter-measurement, --corner-refine-side-px), "
+                "--turned-reading-head, --turned-reading-measurement, --filter-measurement, --corner-refine-side-px), "
                 "--model-version and --out only",
                 file=sys.stderr,
             )
@@ -404,6 +429,9 @@ def main(argv: list[str] | None = None) -> int:
         cfg.export.turned_reading_deg if a.turned_reading_deg is None else a.turned_reading_deg,
         cfg.export.corner_refine_side_px if a.corner_refine_side_px is None else a.corner_refine_side_px,
         cfg.export.turned_reading_head if a.turned_reading_head is None else a.turned_reading_head,
+        cfg.export.turned_reading_measurement
+        if a.turned_reading_measurement is None
+        else a.turned_reading_measurement,
     )
     print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0

@@ -1331,6 +1331,53 @@ def test_a_turned_reading_can_read_the_attitude_head_on_every_window(monkeypatch
         assert np.allclose(r.uv_px, truth, atol=1e-3)  # the keypoints as before
 
 
+def test_a_turned_reading_can_feed_the_filter_the_untouched_windows_fit(monkeypatch):
+    """oibar.turned_reading_measurement: with "untouched" the refining pass's prior-free fit (what
+    the filter is fed) is solved from the untouched window's keypoints, while the answer is fitted
+    to the averaged ones; with "mean" (0.15.6) both use the average. 0.15.6's average shifted the
+    measurement's signed attitude bias by 0.07-0.10 deg on validation and lost the loop on one turn.
+    Here the turned windows read every keypoint 1.5 crop px to the right: the mean moves, the
+    untouched window does not."""
+    from oibar.nav.keypoints import solve_pnp
+
+    R, T = _pose(np.radians([0.4, -0.3, 0.1]), (0.05, -0.03, 4.0))
+    truth = project(K, POINTS, R, T)
+    win = window_around(truth, 128, 1.25)
+    image = np.zeros((480, 744, 3), np.uint8)
+    fusion = {"sigma_crop_px": 0.5, "sigma_prior_deg": 1.0}
+    got = {}
+    for mode in ("mean", "untouched"):
+        est = _windowed_estimator(monkeypatch, truth, 8.0)
+        est.reproj_crop_px, est.margin, est.turned_reading_measurement = 4.0, 1.25, mode
+        exact = est.run
+
+        def biased(x, exact=exact):
+            out = exact(x)
+            out["kp_crop_px"][1:, :, 0] += 1.5  # the turned readings (rows 1 and 2 of the batch)
+            return out
+
+        est.run = biased
+        r, w = est._one_pass(image, win, R, fusion, 4.0, refining=True)
+        assert r is not None and w is win and r.no_prior is not None
+        got[mode] = r
+        # the answer is the fit to the averaged keypoints either way
+        mean_uv = est.read_crop(image, win, refining=True).uv_px
+        assert np.linalg.norm(mean_uv - truth, axis=1).min() > 0.5
+    R_u, T_u = got["untouched"].no_prior.pose()
+    assert rotation_angle_deg(R_u.T @ R) < 1e-4 and np.allclose(T_u, T, atol=1e-6)
+    R_m, T_m = got["mean"].no_prior.pose()
+    want = solve_pnp(mean_uv, POINTS, K, 4.0 / win.scale, min_points=5)
+    assert np.allclose(T_m, want.T_cam_target_m, atol=1e-9)
+    assert np.linalg.norm(T_m - T) > 1e-3
+    assert np.allclose(got["mean"].T_cam_target_m, got["untouched"].T_cam_target_m, atol=1e-9)
+
+    # a window read once (the search's, not the refining pass's) keeps its own fit's twin
+    est = _windowed_estimator(monkeypatch, truth, 8.0)
+    est.reproj_crop_px, est.margin, est.turned_reading_measurement = 4.0, 1.25, "untouched"
+    r, _ = est._one_pass(image, win, R, fusion, 4.0, refining=False)
+    assert r is not None and r.no_prior is not None and est.batches == [1]
+
+
 def test_a_turned_reading_head_flag_that_is_not_a_flag_is_refused(tmp_path):
     """A damaged export (oibar.turned_reading_head not true or false) is refused when it opens."""
     from pathlib import Path
@@ -1340,6 +1387,9 @@ def test_a_turned_reading_head_flag_that_is_not_a_flag_is_refused(tmp_path):
     model = Path(__file__).resolve().parents[2] / "models" / "oibarnet.onnx"
     with pytest.raises(ModelFileError, match="turned_reading_head"):
         KeypointPoseEstimator(model, warmup_runs=0, turned_reading_head="yes")  # type: ignore[arg-type]
+    with pytest.raises(ModelFileError, match="turned_reading_measurement"):
+        KeypointPoseEstimator(model, warmup_runs=0, turned_reading_measurement="median")
+    assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_measurement == "mean"
     assert KeypointPoseEstimator(model, warmup_runs=0, turned_reading_head=True).turned_reading_head is True
 
 

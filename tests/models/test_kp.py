@@ -935,3 +935,32 @@ def test_retag_sets_the_turned_head_and_an_export_without_it_says_nothing(tmp_pa
     assert read_metadata(model)["turned_reading_head"] is True
     est = KeypointPoseEstimator(model, warmup_runs=0)
     assert est.turned_reading_head is True and est.turned_reading_deg == 8.0
+
+
+def test_retag_sets_whose_keypoints_feed_the_filter_and_the_default_says_nothing(tmp_path):
+    """`--turned-reading-measurement untouched` sets oibar.turned_reading_measurement and the
+    runtime reads it back; "mean", the default, is not written (exports from before the option
+    rebuild to the byte); any other value is refused by the export and by the CLI."""
+    import shutil
+
+    from oibar.nav.pose import KeypointPoseEstimator, read_metadata
+    from oibar_models.kp_export import main as export_main
+    from oibar_models.kp_export import metadata_for
+
+    cfg = load_kp_config(REPO / "models/configs/keypoints/oibarnet_kp_stage15.yaml", {})
+    ck = {"model": {}, "step": 1}
+    assert "turned_reading_measurement" not in metadata_for(cfg, ck, "lite.onnx", (0.25, 12.0))
+    meta = metadata_for(cfg, ck, "lite.onnx", (0.25, 12.0), turned_reading_measurement="untouched")
+    assert meta["turned_reading_measurement"] == "untouched"
+    with pytest.raises(ValueError, match="turned_reading_measurement"):
+        metadata_for(cfg, ck, "lite.onnx", (0.25, 12.0), turned_reading_measurement="median")
+    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
+        shutil.copy(REPO / "models" / name, tmp_path / name)
+    model = tmp_path / "oibarnet.onnx"
+    assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_measurement == "mean"
+    argv = ["--retag", str(model), "--turned-reading-deg", "8", "--turned-reading-measurement"]
+    assert export_main([*argv, "untouched", "--model-version", "9.9.7"]) == 0
+    assert read_metadata(model)["turned_reading_measurement"] == "untouched"
+    assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_measurement == "untouched"
+    with pytest.raises(SystemExit):
+        export_main([*argv, "median"])

@@ -41,6 +41,7 @@ from oibar.nav.keypoints import (
     mirror_permutation,
     mirror_symmetric_attitude,
     refine_corners_px,
+    solve_pnp,
     window_around,
 )
 
@@ -587,6 +588,13 @@ FILTER_MEASUREMENTS = ("prior_free", "fused")
 # The largest turn of the refining pass's extra readings: the network was trained on crops
 # turned up to 15 deg (kp_data.CropAugment.angle_deg); beyond, it reads crops it never saw.
 MAX_TURNED_READING_DEG = 15.0
+# Whose keypoints the filter's prior-free fit is solved from when the refining pass reads turned
+# windows (``oibar.turned_reading_measurement``): "mean", the averaged ones the answer is fitted to
+# (0.15.6), or "untouched", the untouched window's alone. At range that fit's tilt rests on
+# hundredths of a pixel, and the average shifts every keypoint's bias by a few: 0.15.6 moved the
+# measurement's signed attitude bias by 0.07-0.10 deg on validation and lost the loop on one turn
+# (docs/model_card.md, 2026-11-27), while its answer gained.
+TURNED_READING_MEASUREMENTS = ("mean", "untouched")
 
 
 def measurement_without_prior(
@@ -616,6 +624,8 @@ class CropReading:
     spread_crop_px: np.ndarray
     present: np.ndarray
     R_cam_target_head: np.ndarray | None = None
+    # the untouched window's own keypoints when uv_px averages several readings (turned), else None
+    untouched_uv_px: np.ndarray | None = None
 
 
 @dataclass
@@ -658,6 +668,7 @@ class KeypointPoseEstimator(PoseEstimator):
         mirror: bool | None = None,
         turned_reading_deg: float | None = None,
         turned_reading_head: bool | None = None,
+        turned_reading_measurement: str | None = None,
         cold_crop_budget: int | None = COLD_CROP_BUDGET,
         corner_refine_side_px: float | None = None,
     ):
@@ -748,6 +759,18 @@ class KeypointPoseEstimator(PoseEstimator):
                 f"{self.path}: oibar.turned_reading_head must be true or false, got {head!r}"
             )
         self.turned_reading_head = head
+        # and whose keypoints the filter's prior-free fit uses (``oibar.turned_reading_measurement``)
+        meas = (
+            self.meta.get("turned_reading_measurement", "mean")
+            if turned_reading_measurement is None
+            else turned_reading_measurement
+        )
+        if meas not in TURNED_READING_MEASUREMENTS:
+            raise ModelFileError(
+                f"{self.path}: oibar.turned_reading_measurement must be one of "
+                f"{TURNED_READING_MEASUREMENTS}, got {meas!r}"
+            )
+        self.turned_reading_measurement = meas
         # the refining pass's sub-pixel corners: as the export says
         # (``oibar.corner_refine_side_px``, chosen per network on validation), unless told
         side = (
@@ -829,6 +852,8 @@ class KeypointPoseEstimator(PoseEstimator):
           ``oibar.turned_reading_head`` the attitude head's answer is the mean of the readings'
           (each mapped to the camera through its own window), else the untouched window's:
           0.15.3 at 8 deg on validation, 0.539 -> 0.531 deg (docs/model_card.md, 2026-11-27).
+          The untouched window's own keypoints ride along (`untouched_uv_px`) for the filter's
+          prior-free fit (``oibar.turned_reading_measurement``).
 
         Only for a window already known to hold the fixture: averaged with its mirror, a crop of
         anything makes a symmetric pattern that PnP fits well."""
@@ -858,6 +883,7 @@ class KeypointPoseEstimator(PoseEstimator):
             np.mean([r.spread_crop_px for r in readings], axis=0),
             np.mean([r.present for r in readings], axis=0),
             self._head_of(readings),
+            readings[0].uv_px,
         )
 
     def _head_of(self, readings: list[CropReading]) -> np.ndarray | None:
@@ -1196,7 +1222,18 @@ class KeypointPoseEstimator(PoseEstimator):
             s_rad,
             MIN_INLIERS,
         )
-        return (r, win) if r.ok else (None, None)
+        if not r.ok:
+            return None, None
+        untouched = reading.untouched_uv_px
+        if self.turned_reading_measurement == "untouched" and untouched is not None and s_rad is not None:
+            # a fit with the prior: its prior-free twin (the filter's measurement) from the untouched
+            # window's keypoints (TURNED_READING_MEASUREMENTS)
+            uv_u = self.refined_corners(image, win, untouched) if refining else untouched
+            alone = solve_pnp(
+                uv_u, self.points_m, self._K(), self.reproj_crop_px / win.scale, min_points=MIN_INLIERS
+            )
+            r.no_prior = alone if alone.ok else None
+        return r, win
 
     def refined_corners(self, image: np.ndarray, win: CropWindow, uv: np.ndarray) -> np.ndarray:
         """The fixture's sharp corners (CORNER_NAMES: the rim's, the connector's) moved onto the
@@ -1244,6 +1281,7 @@ class KeypointPoseEstimator(PoseEstimator):
     uses_prior = True
     turned_reading_deg = 0.0  # read_crop's turned readings (set from the export in __init__)
     turned_reading_head = False  # and the head read on each of them (idem)
+    turned_reading_measurement = "mean"  # and whose keypoints the filter's fit uses (idem)
     corner_refine_side_px = 0.0  # refined_corners' size gate, 0: off (idem)
     corner_idx = np.zeros(0, int)
     cold_crop_budget: int | None = COLD_CROP_BUDGET  # (set in __init__)
