@@ -892,12 +892,10 @@ class KeypointPoseEstimator(PoseEstimator):
         on its own)."""
         if not wins:
             return []
-        out = {k: v.astype(float) for k, v in self._run_windows(image, wins).items()}
+        out = {
+            k: v.astype(float) for k, v in self.run(to_input(np.stack([cut(image, w) for w in wins]))).items()
+        }
         return [self._reading(w, {k: v[i : i + 1] for k, v in out.items()}) for i, w in enumerate(wins)]
-
-    def _run_windows(self, image: np.ndarray, wins: list[CropWindow]) -> dict[str, np.ndarray]:
-        """The network's raw outputs for `wins` cut from `image`, one row each, in one run."""
-        return self.run(to_input(np.stack([cut(image, w) for w in wins])))
 
     def _head_of(self, readings: list[CropReading]) -> np.ndarray | None:
         """The attitude head's answer for read_crop's readings: the untouched window's (the
@@ -1089,7 +1087,7 @@ class KeypointPoseEstimator(PoseEstimator):
     def _fixture_likeness(self, image: np.ndarray, wins: list[CropWindow]) -> np.ndarray:
         """How much each window looks like the fixture, read in one batch: mean presence x
         exp(-mean heat-map spread / 4 px, CROP_REF_PX terms)."""
-        out = self._run_windows(image, wins)
+        out = self.run(np.concatenate([to_input(cut(image, w)) for w in wins]))
         present = out["kp_present"].astype(float).mean(axis=1)
         spread = (
             out["kp_spread_px"].astype(float).mean(axis=1) if "kp_spread_px" in out else np.zeros(len(wins))
