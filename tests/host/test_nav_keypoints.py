@@ -313,10 +313,7 @@ def _bare_estimator(
             "kp_spread_px": np.full((len(x), len(DEEP)), 8.0),
         }
 
-    def read_crops(image, wins):  # the search's batch: each window as read_crop reads it
-        return [est.read_crop(image, w) for w in wins]
-
-    est.read_crop, est.read_crops, est.run, est.sees = read_crop, read_crops, run, sees
+    est.read_crop, est.run, est.sees = read_crop, run, sees
     return est
 
 
@@ -338,76 +335,6 @@ def test_the_predicted_pose_places_the_first_crop():
     est = _bare_estimator(R, T)  # a wrong prediction costs one crop
     r, _ = est.solve(image, R, T, prior=(R, T + (1.6, 0.0, 0.0)))
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3 and len(est.crops) == 3
-
-
-def test_the_search_reads_its_windows_after_the_first_in_one_batch_and_tries_them_in_order():
-    """When the direct model's own window gives no strong fit, SEARCH_STEPS' other ten windows are
-    read in one network run (a frame that tries them all was the navigator's slowest tracked
-    cycle), then fitted in their order, the first strong one kept, as when each was read alone.
-    A first window that holds the fixture reads nothing more."""
-    from oibar.nav.pose import SEARCH_STEPS
-
-    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
-    image = np.zeros((480, 744, 3), np.uint8)
-    # the direct model right, 0.4 m off sideways (the step half a window left finds it), 1.6 m off
-    for off_x_m, want_step in ((0.0, 0), (0.4, 1), (1.6, None)):
-        est = _bare_estimator(R, T)
-        est.refine_passes = 1
-        calls: list[int] = []
-        one, batch = est.read_crop, est.read_crops
-        est.read_crop = lambda image, win, refining=False, one=one, calls=calls: (
-            calls.append(1) or one(image, win)
-        )
-        est.read_crops = lambda image, wins, batch=batch, calls=calls: (
-            calls.append(len(wins)) or batch(image, wins)
-        )
-        fits = []
-        real = type(est)._one_pass
-
-        def spy(*a, real=real, est=est, fits=fits, **k):
-            out = real(est, *a, **k)
-            fits.append(out[0] is not None)
-            return out
-
-        est._one_pass = spy
-        r, win = est.solve(image, R, T + (off_x_m, 0.0, 0.0))
-        if want_step == 0:
-            assert calls == [1] and r is not None
-            continue
-        # one read alone, then one batch of the other ten (each batched window read through
-        # read_crop's own reading, here the fake's)
-        assert calls[:2] == [1, len(SEARCH_STEPS) - 1]
-        if want_step is None:
-            assert r is None and len(fits) == len(SEARCH_STEPS) and not any(fits)
-        else:
-            assert SEARCH_STEPS[want_step][:2] == (-0.5, 0)
-            assert r is not None and fits.index(True) == want_step == len(fits) - 1
-            assert np.linalg.norm(r.T_cam_target_m - T) < 1e-3
-
-
-def test_a_batch_of_windows_reads_as_each_window_alone():
-    """read_crops: the network reads every crop of a batch on its own, so the search's batched
-    windows give the readings read_crop gives them one by one, to the bit."""
-    from pathlib import Path
-
-    from oibar.nav.keypoints import CropWindow
-    from oibar.nav.pose import KeypointPoseEstimator
-
-    model = Path(__file__).resolve().parents[2] / "models" / "oibarnet.onnx"
-    est = KeypointPoseEstimator(model, warmup_runs=0)
-    image = np.random.default_rng(5).integers(0, 255, (480, 744, 3), dtype=np.uint8)
-    wins = [CropWindow((300.0 + 40 * i, 200.0 + 10 * i), 90.0 + 20 * i, est.out_px) for i in range(4)]
-    batched = est.read_crops(image, wins)
-    assert len(batched) == len(wins) and est.read_crops(image, []) == []
-    for w, b in zip(wins, batched, strict=True):
-        alone = est.read_crop(image, w)
-        assert np.array_equal(alone.uv_px, b.uv_px, equal_nan=True)
-        assert np.array_equal(alone.present, b.present) and np.array_equal(
-            alone.spread_crop_px, b.spread_crop_px
-        )
-        assert (alone.R_cam_target_head is None) == (b.R_cam_target_head is None)
-        if alone.R_cam_target_head is not None:
-            assert np.array_equal(alone.R_cam_target_head, b.R_cam_target_head)
 
 
 def test_an_unusable_prediction_is_ignored_and_a_malformed_one_refused():

@@ -886,17 +886,6 @@ class KeypointPoseEstimator(PoseEstimator):
             readings[0].uv_px,
         )
 
-    def read_crops(self, image: np.ndarray, wins: list[CropWindow]) -> list[CropReading]:
-        """Windows read once each (read_crop without `refining`), all in one network run: each
-        reading is the one read_crop gives to the bit (the network reads every crop of a batch
-        on its own)."""
-        if not wins:
-            return []
-        out = {
-            k: v.astype(float) for k, v in self.run(to_input(np.stack([cut(image, w) for w in wins]))).items()
-        }
-        return [self._reading(w, {k: v[i : i + 1] for k, v in out.items()}) for i, w in enumerate(wins)]
-
     def _head_of(self, readings: list[CropReading]) -> np.ndarray | None:
         """The attitude head's answer for read_crop's readings: the untouched window's (the
         first), or with `turned_reading_head` the mean of every reading that has one."""
@@ -1015,18 +1004,13 @@ class KeypointPoseEstimator(PoseEstimator):
             uv0 = project(K, self.points_m, R_direct, T_direct)
             if np.all(np.isfinite(uv0)):
                 base = window_around(uv0, self.out_px, self.margin)
-                steps = [(base.stepped(dx, dy, k), k) for dx, dy, k in SEARCH_STEPS]
-                range_m = float(np.linalg.norm(T_direct))
-                (win, k), crops = steps[0], crops + 1
-                if not consider(*self._one_pass(image, win, R_direct, f, range_m / k)):
-                    # the direct model's own window failed: the rest are read in one batch, one
-                    # network run instead of ten (the same readings to the bit); a frame that tries
-                    # them all is the navigator's slowest tracked cycle
-                    later = self.read_crops(image, [w for w, _ in steps[1:]])
-                    crops += len(later)
-                    for (win, k), reading in zip(steps[1:], later, strict=True):
-                        if consider(*self._one_pass(image, win, R_direct, f, range_m / k, reading=reading)):
-                            break
+                for dx, dy, k in SEARCH_STEPS:
+                    win = base.stepped(dx, dy, k)
+                    crops += 1
+                    if consider(
+                        *self._one_pass(image, win, R_direct, f, float(np.linalg.norm(T_direct)) / k)
+                    ):
+                        break
             # the zoom and the scan only on a cold start or a lost track: with a prediction their
             # cost would come out of the 100 ms frame budget on every weak far frame of a healthy track
             if best is None and prior is None:
@@ -1212,11 +1196,8 @@ class KeypointPoseEstimator(PoseEstimator):
         f: dict[str, Any] | None,
         range_m: float,
         refining: bool = False,
-        reading: CropReading | None = None,
     ) -> tuple[PnpResult, CropWindow] | tuple[None, None]:
-        """Read `win` (or take `reading`, its reading from a batch: read_crops) and fit the pose."""
-        if reading is None:
-            reading = self.read_crop(image, win, refining)
+        reading = self.read_crop(image, win, refining)
         uv = reading.uv_px
         if refining:
             uv = self.refined_corners(image, win, uv)
