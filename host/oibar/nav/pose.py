@@ -1224,13 +1224,16 @@ class KeypointPoseEstimator(PoseEstimator):
         )
         if not r.ok:
             return None, None
-        untouched = reading.untouched_uv_px
+        untouched = reading.untouched_uv_px  # set only by a refining pass's turned reading
         if self.turned_reading_measurement == "untouched" and untouched is not None and s_rad is not None:
             # a fit with the prior: its prior-free twin (the filter's measurement) from the untouched
-            # window's keypoints (TURNED_READING_MEASUREMENTS)
-            uv_u = self.refined_corners(image, win, untouched) if refining else untouched
+            # window's keypoints, with the same corner step (TURNED_READING_MEASUREMENTS)
             alone = solve_pnp(
-                uv_u, self.points_m, self._K(), self.reproj_crop_px / win.scale, min_points=MIN_INLIERS
+                self.refined_corners(image, win, untouched),
+                self.points_m,
+                self._K(),
+                self.reproj_crop_px / win.scale,
+                min_points=MIN_INLIERS,
             )
             r.no_prior = alone if alone.ok else None
         return r, win
