@@ -5,7 +5,7 @@ validation figures. Parity against PyTorch is checked before the file is written
 
 python -m oibar_models.kp_export --config models/configs/keypoints/oibarnet_kp.yaml [--checkpoint best|last]
     [--fusion FUSION.json] [--mirror-reading] [--turned-reading-deg DEG] [--turned-reading-head]
-    [--turned-reading-measurement mean|untouched]
+    [--turned-reading-measurement mean|untouched] [--placed-pass-refines]
     [--filter-measurement prior_free|fused] [--corner-refine-side-px PX]
 
 The flight reading options (how the refining pass reads its window, what the filter is fed) are
@@ -65,6 +65,7 @@ def metadata_for(
     corner_refine_side_px: float = 0.0,
     turned_reading_head: bool = False,
     turned_reading_measurement: str = "mean",
+    placed_pass_refines: bool = False,
 ) -> dict:
     if turned_reading_measurement not in TURNED_READING_MEASUREMENTS:
         raise ValueError(
@@ -114,6 +115,9 @@ def metadata_for(
             if turned_reading_measurement != "mean"
             else {}
         ),
+        # a crop placed by a prediction is read as the refining pass, and a strong fit there ends
+        # the frame (oibar.nav.pose, the note on placed_pass_refines; written only when on)
+        **({"placed_pass_refines": True} if placed_pass_refines else {}),
         # the refining pass moves the fixture's corners onto the frame's own, sub-pixel, when the
         # fixture spans at least this many frame pixels (0: off; KeypointPoseEstimator.refined_corners)
         "corner_refine_side_px": float(corner_refine_side_px),
@@ -169,6 +173,7 @@ def export_onnx(
     corner_refine_side_px: float = 0.0,
     turned_reading_head: bool = False,
     turned_reading_measurement: str = "mean",
+    placed_pass_refines: bool = False,
 ) -> Path:
     import onnx
 
@@ -195,6 +200,7 @@ def export_onnx(
         corner_refine_side_px,
         turned_reading_head,
         turned_reading_measurement,
+        placed_pass_refines,
     ).items():
         p = m.metadata_props.add()
         p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
@@ -219,7 +225,7 @@ def export_onnx(
 def retag(src: Path, out: Path, options: dict) -> Path:
     """A copy of the export `src` at `out` (may be `src`) with the flight reading `options`
     (metadata keys without the prefix: mirror_reading, turned_reading_deg, turned_reading_head,
-    turned_reading_measurement, filter_measurement, corner_refine_side_px) set, and the new model
+    turned_reading_measurement, placed_pass_refines, filter_measurement, corner_refine_side_px) set, and the new model
     version when the reading changes what flies; the graph untouched. Checked by opening it as the
     flight runtime does when its first pass lies beside it. ValueError for an option that is not a
     reading option or a version that is not MAJOR.MINOR.PATCH."""
@@ -232,6 +238,7 @@ def retag(src: Path, out: Path, options: dict) -> Path:
         "turned_reading_deg",
         "turned_reading_head",
         "turned_reading_measurement",
+        "placed_pass_refines",
         "filter_measurement",
         "corner_refine_side_px",
         "model_version",
@@ -319,6 +326,13 @@ def main(argv: list[str] | None = None) -> int:
         "(mean, the default) or the untouched window's alone (chosen on the closed loop)",
     )
     ap.add_argument(
+        "--placed-pass-refines",
+        action="store_true",
+        default=None,
+        help="read the crop placed by the filter's prediction as the refining pass (turned "
+        "readings, the corner step) and stop at a strong fit there: one network run a tracked frame",
+    )
+    ap.add_argument(
         "--filter-measurement",
         choices=FILTER_MEASUREMENTS,
         default=None,
@@ -348,6 +362,7 @@ def main(argv: list[str] | None = None) -> int:
                 ("turned_reading_deg", a.turned_reading_deg),
                 ("turned_reading_head", a.turned_reading_head),
                 ("turned_reading_measurement", a.turned_reading_measurement),
+                ("placed_pass_refines", a.placed_pass_refines),
                 ("filter_measurement", a.filter_measurement),
                 ("corner_refine_side_px", a.corner_refine_side_px),
                 ("model_version", a.model_version),
@@ -357,7 +372,8 @@ def main(argv: list[str] | None = None) -> int:
         if a.config or a.fusion or a.overrides or not set(options) - {"model_version"}:
             print(
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
-                "--turned-reading-head, --turned-reading-measurement, --filter-measurement, --corner-refine-side-px), "
+                "--turned-reading-head, --turned-reading-measurement, --placed-pass-refines, "
+                "--filter-measurement, --corner-refine-side-px), "
                 "--model-version and --out only",
                 file=sys.stderr,
             )
@@ -432,6 +448,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg.export.turned_reading_measurement
         if a.turned_reading_measurement is None
         else a.turned_reading_measurement,
+        cfg.export.placed_pass_refines if a.placed_pass_refines is None else a.placed_pass_refines,
     )
     print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0

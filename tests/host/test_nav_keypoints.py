@@ -337,6 +337,56 @@ def test_the_predicted_pose_places_the_first_crop():
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3 and len(est.crops) == 3
 
 
+def test_a_placed_crop_can_be_read_as_the_refining_pass_and_end_the_frame():
+    """oibar.placed_pass_refines: the crop placed by the prediction is read as the refining pass
+    (turned readings, the corner step) and a strong fit there is final: one crop a tracked frame
+    instead of two. A prediction that misses still falls back on the search, whose strong fit is
+    then refined as before."""
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
+    image = np.zeros((480, 744, 3), np.uint8)
+    T_direct = T + (0.4, 0.0, 0.0)
+    # off (the default): the prediction's window read plainly, then one refinement
+    est = _bare_estimator(R, T)
+    r, _ = est.solve(image, R, T_direct, prior=(R, T + (0.05, 0.02, 0.1)))
+    assert r is not None and est.mirrored == [False, True]
+    # on: the prediction's window alone, read as the refining pass
+    est = _bare_estimator(R, T)
+    est.placed_pass_refines = True
+    r, win = est.solve(image, R, T_direct, prior=(R, T + (0.05, 0.02, 0.1)))
+    assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
+    assert est.mirrored == [True] and win is est.crops[0]
+    # the estimator's own latest fit (a hint) places the crop the same way
+    est = _bare_estimator(R, T)
+    est.placed_pass_refines = True
+    r, _ = est.solve(image, R, T_direct, hint=(R, T + (0.05, 0.02, 0.1)))
+    assert r is not None and est.mirrored == [True]
+    # a prediction that misses: the search's plain reads find it, and its fit is refined
+    est = _bare_estimator(R, T)
+    est.placed_pass_refines = True
+    r, win = est.solve(image, R, T_direct, prior=(R, T + (1.6, 0.0, 0.0)))
+    assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
+    assert est.mirrored[0] is True and est.mirrored[-1] is True and not any(est.mirrored[1:-1])
+    assert len(est.crops) >= 3 and win is est.crops[-1]
+
+
+def test_a_placed_refining_read_is_refused_with_the_mirror_reading_or_when_not_a_flag():
+    """A predicted window may not hold the fixture, and a crop of anything averaged with its mirror
+    makes a symmetric pattern that PnP fits well: the two options are refused together, and a
+    value that is not true or false is a damaged export."""
+    from pathlib import Path
+
+    from oibar.nav.pose import KeypointPoseEstimator, ModelFileError
+
+    model = Path(__file__).resolve().parents[2] / "models" / "oibarnet.onnx"
+    assert KeypointPoseEstimator(model, warmup_runs=0).placed_pass_refines is False
+    assert KeypointPoseEstimator(model, warmup_runs=0, placed_pass_refines=True).placed_pass_refines is True
+    with pytest.raises(ModelFileError, match="placed_pass_refines must be true or false"):
+        KeypointPoseEstimator(model, warmup_runs=0, placed_pass_refines="yes")  # type: ignore[arg-type]
+    with pytest.raises(ModelFileError, match="cannot go with oibar.mirror_reading"):
+        KeypointPoseEstimator(model, warmup_runs=0, mirror=True, placed_pass_refines=True)
+    assert KeypointPoseEstimator(model, warmup_runs=0, mirror=True).mirror is not None
+
+
 def test_an_unusable_prediction_is_ignored_and_a_malformed_one_refused():
     from oibar.nav.pose import _checked_prior
 

@@ -964,3 +964,26 @@ def test_retag_sets_whose_keypoints_feed_the_filter_and_the_default_says_nothing
     assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_measurement == "untouched"
     with pytest.raises(SystemExit):
         export_main([*argv, "median"])
+
+
+def test_retag_sets_the_placed_refining_read_and_an_export_without_it_says_nothing(tmp_path):
+    """`--placed-pass-refines` sets oibar.placed_pass_refines and the runtime reads it back; off,
+    the default, is not written (exports from before the option rebuild to the byte)."""
+    import shutil
+
+    from oibar.nav.pose import KeypointPoseEstimator, read_metadata
+    from oibar_models.kp_export import main as export_main
+    from oibar_models.kp_export import metadata_for
+
+    cfg = load_kp_config(REPO / "models/configs/keypoints/oibarnet_kp_stage15.yaml", {})
+    ck = {"model": {}, "step": 1}
+    assert "placed_pass_refines" not in metadata_for(cfg, ck, "lite.onnx", (0.25, 12.0))
+    meta = metadata_for(cfg, ck, "lite.onnx", (0.25, 12.0), placed_pass_refines=True)
+    assert meta["placed_pass_refines"] is True
+    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
+        shutil.copy(REPO / "models" / name, tmp_path / name)
+    model = tmp_path / "oibarnet.onnx"
+    assert KeypointPoseEstimator(model, warmup_runs=0).placed_pass_refines is False
+    assert export_main(["--retag", str(model), "--placed-pass-refines", "--model-version", "9.9.8"]) == 0
+    assert read_metadata(model)["placed_pass_refines"] is True
+    assert KeypointPoseEstimator(model, warmup_runs=0).placed_pass_refines is True

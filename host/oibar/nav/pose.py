@@ -595,6 +595,13 @@ MAX_TURNED_READING_DEG = 15.0
 # measurement's signed attitude bias by 0.07-0.10 deg on validation and lost the loop on one turn
 # (docs/model_card.md, 2026-11-27), while its answer gained.
 TURNED_READING_MEASUREMENTS = ("mean", "untouched")
+# ``oibar.placed_pass_refines``: when tracking, the crop placed by the filter's prediction (or the
+# estimator's own latest strong fit) is read as the refining pass is (turned readings, the corner
+# step) and a strong fit there ends the frame, instead of a plain read followed by a second crop cut
+# around its fit. One network run a tracked frame instead of two: the turned reading's batch of
+# three costs about what two single crops do (7.4 against 2 x 3.6 ms offline), and the daemon's
+# second run was where 0.15.7 lost its frame -> command p99 (docs/model_card.md, 2026-11-27).
+# The window is then centred on the prediction rather than on this frame's first fit.
 
 
 def measurement_without_prior(
@@ -671,6 +678,7 @@ class KeypointPoseEstimator(PoseEstimator):
         turned_reading_measurement: str | None = None,
         cold_crop_budget: int | None = COLD_CROP_BUDGET,
         corner_refine_side_px: float | None = None,
+        placed_pass_refines: bool | None = None,
     ):
         self.path = Path(path)
         self.zoom_search = bool(zoom_search)
@@ -771,6 +779,24 @@ class KeypointPoseEstimator(PoseEstimator):
                 f"{TURNED_READING_MEASUREMENTS}, got {meas!r}"
             )
         self.turned_reading_measurement = meas
+        # a crop placed by a prediction read as the refining pass, and no second pass after a
+        # strong fit there (``oibar.placed_pass_refines``; the note after TURNED_READING_MEASUREMENTS)
+        placed = (
+            self.meta.get("placed_pass_refines", False)
+            if placed_pass_refines is None
+            else placed_pass_refines
+        )
+        if not isinstance(placed, bool):
+            raise ModelFileError(
+                f"{self.path}: oibar.placed_pass_refines must be true or false, got {placed!r}"
+            )
+        if placed and self.mirror is not None:
+            raise ModelFileError(
+                f"{self.path}: oibar.placed_pass_refines cannot go with oibar.mirror_reading: a "
+                "predicted window may not hold the fixture, and a crop of anything averaged with its "
+                "mirror makes a symmetric pattern that PnP fits well"
+            )
+        self.placed_pass_refines = placed
         # the refining pass's sub-pixel corners: as the export says
         # (``oibar.corner_refine_side_px``, chosen per network on validation), unless told
         side = (
@@ -948,7 +974,8 @@ class KeypointPoseEstimator(PoseEstimator):
         """Crop around the current pose, keypoints, pose (keypoints.map_pose: PnP, and with the
         export's ``oibar.fusion`` an attitude prior: the direct model's or the crop's own
         attitude head); then `refine_passes - 1` more times from the newest pose. The first
-        window is the predicted pose's (`prior`, from the navigation filter) when there is one.
+        window is the predicted pose's (`prior`, from the navigation filter) when there is one;
+        with `placed_pass_refines` it is read as a refining pass and a strong fit there is final.
         When that gives no strong fit (STRONG_FIT_RMS_CROP_PX), the windows of SEARCH_STEPS
         around the direct model's pose are tried in turn (the direct model can be 1 m off
         sideways at 10 m on an unseen scene), then ZOOM_STEPS inside it, level after level
@@ -984,18 +1011,23 @@ class KeypointPoseEstimator(PoseEstimator):
         self._cold = None
         crops = 0  # read for this frame, counted against the cold search's budget
         placed = prior if prior is not None else hint
+        refined = False  # the strong fit came from a refining read (placed_pass_refines)
         if placed is not None:
             uv_p = project(K, self.points_m, placed[0], placed[1])
             if np.all(np.isfinite(uv_p)):
                 crops += 1
-                consider(
-                    *self._one_pass(
-                        image,
-                        window_around(uv_p, self.out_px, self.margin),
-                        R_direct,
-                        f,
-                        float(np.linalg.norm(placed[1])),
+                refined = (
+                    consider(
+                        *self._one_pass(
+                            image,
+                            window_around(uv_p, self.out_px, self.margin),
+                            R_direct,
+                            f,
+                            float(np.linalg.norm(placed[1])),
+                            refining=self.placed_pass_refines,
+                        )
                     )
+                    and self.placed_pass_refines
                 )
         base: CropWindow | None = None
         # SEARCH_STEPS are never cut short (they run with a prediction too); a carried search skips
@@ -1024,7 +1056,7 @@ class KeypointPoseEstimator(PoseEstimator):
                 self._cold = cold  # out of crops: the next frames go on (estimate flags `searching`)
         if best is None:
             return weak if weak is not None else (None, None)
-        for _ in range(self.refine_passes - 1):
+        for _ in range(0 if refined else self.refine_passes - 1):
             R_best, T_best = best[0].pose()
             uv = project(K, self.points_m, R_best, T_best)
             r, rwin = self._one_pass(
@@ -1285,6 +1317,7 @@ class KeypointPoseEstimator(PoseEstimator):
     turned_reading_deg = 0.0  # read_crop's turned readings (set from the export in __init__)
     turned_reading_head = False  # and the head read on each of them (idem)
     turned_reading_measurement = "mean"  # and whose keypoints the filter's fit uses (idem)
+    placed_pass_refines = False  # a predicted crop read as the refining pass (idem)
     corner_refine_side_px = 0.0  # refined_corners' size gate, 0: off (idem)
     corner_idx = np.zeros(0, int)
     cold_crop_budget: int | None = COLD_CROP_BUDGET  # (set in __init__)
