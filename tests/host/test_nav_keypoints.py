@@ -339,27 +339,43 @@ def test_the_predicted_pose_places_the_first_crop():
 
 def test_a_placed_crop_can_be_read_as_the_refining_pass_and_end_the_frame():
     """oibar.placed_pass_refines: the crop placed by the prediction is read as the refining pass
-    (turned readings, the corner step) and a strong fit there is final: one crop a tracked frame
-    instead of two. A prediction that misses still falls back on the search, whose strong fit is
-    then refined as before."""
+    (turned readings, the corner step) and a strong fit there is final when the window around that
+    fit is where the placed one was (WELL_PLACED_CROP_PX): one crop a tracked frame instead of
+    two. A window that held the fixture but sat off it is read again around the fit (0.15.8 kept
+    such reads and lost 1 deg beyond 8 m on validation); a prediction that misses still falls back
+    on the search, whose strong fit is then refined as before."""
+    from oibar.nav.pose import WELL_PLACED_CROP_PX
+
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
     image = np.zeros((480, 744, 3), np.uint8)
     T_direct = T + (0.4, 0.0, 0.0)
+    close, off = T + (0.005, 0.002, 0.01), T + (0.1, 0.0, 0.0)
     # off (the default): the prediction's window read plainly, then one refinement
     est = _bare_estimator(R, T)
-    r, _ = est.solve(image, R, T_direct, prior=(R, T + (0.05, 0.02, 0.1)))
+    r, _ = est.solve(image, R, T_direct, prior=(R, close))
     assert r is not None and est.mirrored == [False, True]
     # on: the prediction's window alone, read as the refining pass
     est = _bare_estimator(R, T)
     est.placed_pass_refines = True
-    r, win = est.solve(image, R, T_direct, prior=(R, T + (0.05, 0.02, 0.1)))
+    r, win = est.solve(image, R, T_direct, prior=(R, close))
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     assert est.mirrored == [True] and win is est.crops[0]
     # the estimator's own latest fit (a hint) places the crop the same way
     est = _bare_estimator(R, T)
     est.placed_pass_refines = True
-    r, _ = est.solve(image, R, T_direct, hint=(R, T + (0.05, 0.02, 0.1)))
+    r, _ = est.solve(image, R, T_direct, hint=(R, close))
     assert r is not None and est.mirrored == [True]
+    # a window that holds the fixture but sits off it: its strong fit is read again around itself
+    est = _bare_estimator(R, T)
+    est.placed_pass_refines = True
+    r, win = est.solve(image, R, T_direct, prior=(R, off))
+    placed = est.crops[0]
+    assert est.sees(placed) and not est._well_placed(r, placed)
+    on_truth = window_around(project(K, DEEP, R, T), placed.out_px, 1.25)
+    assert np.hypot(*np.subtract(on_truth.center_px, placed.center_px)) * placed.scale > WELL_PLACED_CROP_PX
+    assert r is not None and est.mirrored == [True, True] and win is est.crops[1]
+    assert est._well_placed(r, win)
+    assert not est._well_placed(r, CropWindow(win.center_px, win.side_px * 1.3, win.out_px))  # too large
     # a prediction that misses: the search's plain reads find it, and its fit is refined
     est = _bare_estimator(R, T)
     est.placed_pass_refines = True

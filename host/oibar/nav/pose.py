@@ -597,11 +597,18 @@ MAX_TURNED_READING_DEG = 15.0
 TURNED_READING_MEASUREMENTS = ("mean", "untouched")
 # ``oibar.placed_pass_refines``: when tracking, the crop placed by the filter's prediction (or the
 # estimator's own latest strong fit) is read as the refining pass is (turned readings, the corner
-# step) and a strong fit there ends the frame, instead of a plain read followed by a second crop cut
-# around its fit. One network run a tracked frame instead of two: the turned reading's batch of
-# three costs about what two single crops do (7.4 against 2 x 3.6 ms offline), and the daemon's
-# second run was where 0.15.7 lost its frame -> command p99 (docs/model_card.md, 2026-11-27).
-# The window is then centred on the prediction rather than on this frame's first fit.
+# step), and a strong fit there ends the frame when its window was well placed (below), instead of
+# a plain read followed by a second crop cut around its fit. One network run a tracked frame
+# instead of two: the turned reading's batch of three costs about what two single crops do (7.4
+# against 2 x 3.6 ms offline), and the daemon's second run was where 0.15.7 lost its frame ->
+# command p99 (docs/model_card.md, 2026-11-27).
+# Well placed: the window the refining pass would cut around the fit is centred within
+# WELL_PLACED_CROP_PX of the placed one (crop px) and its side within WELL_PLACED_SIDE_FRAC. On
+# validation a window up to 4 frame px off (13 crop px at 10 m) read as well as one on the truth,
+# and one 10-20 px off lost 1 deg beyond 8 m (candidate 0.15.8, docs/model_card.md, 2026-11-28);
+# elsewhere the usual refining pass follows.
+WELL_PLACED_CROP_PX = 8.0
+WELL_PLACED_SIDE_FRAC = 0.10
 
 
 def measurement_without_prior(
@@ -975,7 +982,8 @@ class KeypointPoseEstimator(PoseEstimator):
         export's ``oibar.fusion`` an attitude prior: the direct model's or the crop's own
         attitude head); then `refine_passes - 1` more times from the newest pose. The first
         window is the predicted pose's (`prior`, from the navigation filter) when there is one;
-        with `placed_pass_refines` it is read as a refining pass and a strong fit there is final.
+        with `placed_pass_refines` it is read as a refining pass, and a strong fit there is final
+        when its window was well placed (`_well_placed`).
         When that gives no strong fit (STRONG_FIT_RMS_CROP_PX), the windows of SEARCH_STEPS
         around the direct model's pose are tried in turn (the direct model can be 1 m off
         sideways at 10 m on an unseen scene), then ZOOM_STEPS inside it, level after level
@@ -1016,19 +1024,15 @@ class KeypointPoseEstimator(PoseEstimator):
             uv_p = project(K, self.points_m, placed[0], placed[1])
             if np.all(np.isfinite(uv_p)):
                 crops += 1
-                refined = (
-                    consider(
-                        *self._one_pass(
-                            image,
-                            window_around(uv_p, self.out_px, self.margin),
-                            R_direct,
-                            f,
-                            float(np.linalg.norm(placed[1])),
-                            refining=self.placed_pass_refines,
-                        )
-                    )
-                    and self.placed_pass_refines
+                r, pwin = self._one_pass(
+                    image,
+                    window_around(uv_p, self.out_px, self.margin),
+                    R_direct,
+                    f,
+                    float(np.linalg.norm(placed[1])),
+                    refining=self.placed_pass_refines,
                 )
+                refined = consider(r, pwin) and self.placed_pass_refines and self._well_placed(r, pwin)
         base: CropWindow | None = None
         # SEARCH_STEPS are never cut short (they run with a prediction too); a carried search skips
         # them: they found nothing on its first frame, and the fixture has barely moved since
@@ -1071,6 +1075,18 @@ class KeypointPoseEstimator(PoseEstimator):
                 break
             best = (r, rwin)
         return best
+
+    def _well_placed(self, r: PnpResult | None, win: CropWindow | None) -> bool:
+        """Whether `win` is where the refining pass would have cut it around the fit `r`
+        (WELL_PLACED_CROP_PX, WELL_PLACED_SIDE_FRAC): then its refining read is final."""
+        if r is None or win is None:
+            return False
+        around = window_around(project(self._K(), self.points_m, *r.pose()), self.out_px, self.margin)
+        off_crop_px = float(np.hypot(*np.subtract(around.center_px, win.center_px))) * win.scale
+        return (
+            off_crop_px <= WELL_PLACED_CROP_PX
+            and abs(around.side_px / win.side_px - 1.0) <= WELL_PLACED_SIDE_FRAC
+        )
 
     def _weak_rank(self, r: PnpResult, win: CropWindow) -> tuple[bool, float]:
         """Which weak fit to return when no strong one is found: one inside the range envelope
