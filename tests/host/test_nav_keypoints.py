@@ -168,6 +168,41 @@ def test_prior_fit_jacobian_matches_central_differences(prior_deg):
     assert np.allclose(J, J_num, rtol=1e-5, atol=1e-4 * np.abs(J_num).max())
 
 
+@pytest.mark.parametrize("range_m", [0.8, 3.0, 10.0])
+def test_the_reprojection_refinement_finds_opencvs_minimum(range_m):
+    """solve_pnp's refinement (refine_reprojection, Levenberg-Marquardt on the closed-form
+    Jacobian) lands where OpenCV's solvePnPRefineLM does from RANSAC's start, near and far (where
+    the tilt is nearly flat in the cost), and never above that start's cost."""
+    import cv2
+
+    from oibar.nav.keypoints import refine_reprojection
+
+    R, T = _pose(np.radians([2.0, -1.0, 5.0]), (0.04 * range_m, -0.03 * range_m, range_m))
+    rng = np.random.default_rng(7)
+    uv = project(K, POINTS, R, T) + rng.normal(0.0, 0.4, (len(POINTS), 2))
+    uv[3] += 9.0  # an outlier RANSAC leaves out
+    Kc = K.copy()
+    Kc[:2, 2] -= 0.5  # OpenCV counts from pixel centres
+    ok, rv, tv, inl = cv2.solvePnPRansac(
+        POINTS, uv - 0.5, Kc, np.zeros(4), reprojectionError=4.0, flags=cv2.SOLVEPNP_SQPNP
+    )
+    inl = inl.ravel()
+    assert ok and 3 not in inl
+    R0, T0 = cv2.Rodrigues(rv)[0], tv.ravel()
+    rv, tv = cv2.solvePnPRefineLM(POINTS[inl], uv[inl] - 0.5, Kc, np.zeros(4), rv, tv)
+    R_cv, T_cv = cv2.Rodrigues(rv)[0], tv.ravel()
+    R1, T1 = refine_reprojection(uv[inl], POINTS[inl], K, R0, T0)
+    assert rotation_angle_deg(R1.T @ R_cv) < 1e-3 and np.linalg.norm(T1 - T_cv) < 1e-6 * range_m
+
+    def cost(Rx, Tx):
+        return float(np.sum((project(K, POINTS[inl], Rx, Tx) - uv[inl]) ** 2))
+
+    assert cost(R1, T1) <= cost(R_cv, T_cv) + 1e-9 and cost(R1, T1) <= cost(R0, T0)
+    # from a start off the minimum it still goes downhill
+    R2, T2 = refine_reprojection(uv[inl], POINTS[inl], K, rotvec_to_matrix(np.radians([1.0, 0, 0])) @ R0, T0)
+    assert cost(R2, T2) < cost(rotvec_to_matrix(np.radians([1.0, 0, 0])) @ R0, T0)
+
+
 def test_far_keypoints_with_an_attitude_prior_give_no_mirrored_pose():
     """At 10 m the near-planar fixture's keypoints barely constrain its tilt: with 0.15 px noise PnP
     alone may return a pose tilted tens of degrees. With the direct model's attitude (1 deg off)
