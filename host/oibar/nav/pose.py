@@ -764,16 +764,7 @@ class KeypointPoseEstimator(PoseEstimator):
         self.turned_reading_deg = float(turned)
         # and whether the attitude head's answer is the mean of all of them
         # (``oibar.turned_reading_head``) or the untouched window's alone
-        head = (
-            self.meta.get("turned_reading_head", False)
-            if turned_reading_head is None
-            else turned_reading_head
-        )
-        if not isinstance(head, bool):
-            raise ModelFileError(
-                f"{self.path}: oibar.turned_reading_head must be true or false, got {head!r}"
-            )
-        self.turned_reading_head = head
+        self.turned_reading_head = self._export_flag("turned_reading_head", turned_reading_head)
         # and whose keypoints the filter's prior-free fit uses (``oibar.turned_reading_measurement``)
         meas = (
             self.meta.get("turned_reading_measurement", "mean")
@@ -786,17 +777,9 @@ class KeypointPoseEstimator(PoseEstimator):
                 f"{TURNED_READING_MEASUREMENTS}, got {meas!r}"
             )
         self.turned_reading_measurement = meas
-        # a crop placed by a prediction read as the refining pass, and no second pass after a
-        # strong fit there (``oibar.placed_pass_refines``; the note after TURNED_READING_MEASUREMENTS)
-        placed = (
-            self.meta.get("placed_pass_refines", False)
-            if placed_pass_refines is None
-            else placed_pass_refines
-        )
-        if not isinstance(placed, bool):
-            raise ModelFileError(
-                f"{self.path}: oibar.placed_pass_refines must be true or false, got {placed!r}"
-            )
+        # a crop placed by a prediction read as the refining pass, final when well placed
+        # (``oibar.placed_pass_refines``; the note after TURNED_READING_MEASUREMENTS)
+        placed = self._export_flag("placed_pass_refines", placed_pass_refines)
         if placed and self.mirror is not None:
             raise ModelFileError(
                 f"{self.path}: oibar.placed_pass_refines cannot go with oibar.mirror_reading: a "
@@ -850,6 +833,14 @@ class KeypointPoseEstimator(PoseEstimator):
                 f"frame {w}x{h}: the keypoint model works in the camera's own pixels, "
                 f"{self.frame_wh[0]}x{self.frame_wh[1]}"
             )
+
+    def _export_flag(self, key: str, given: bool | None) -> bool:
+        """An on/off reading option: `given`, else as the export says (off without the key); a
+        value that is not true or false is a damaged export."""
+        flag = self.meta.get(key, False) if given is None else given
+        if not isinstance(flag, bool):
+            raise ModelFileError(f"{self.path}: oibar.{key} must be true or false, got {flag!r}")
+        return flag
 
     def _attitude_head(self) -> np.ndarray | None:
         """R_ref of the attitude head (model >= 0.6.0), None for a model without one."""
