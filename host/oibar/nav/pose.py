@@ -1010,7 +1010,7 @@ class KeypointPoseEstimator(PoseEstimator):
         self._cold = None
         crops = 0  # read for this frame, counted against the cold search's budget
         placed = prior if prior is not None else hint
-        refined = False  # the strong fit came from a refining read (placed_pass_refines)
+        refined = False  # the placed read was a refining one, strong and well placed: final
         if placed is not None:
             uv_p = project(K, self.points_m, placed[0], placed[1])
             if np.all(np.isfinite(uv_p)):
