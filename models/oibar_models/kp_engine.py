@@ -19,6 +19,7 @@ import math
 import os
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -33,7 +34,7 @@ from oibar.nav.keypoints import solve_pnp
 
 from . import metrics
 from .config import ConfigError, RunPaths, _build, read_yaml
-from .kp_data import CropAugment, CropDataset, open_scenes, spread_frames
+from .kp_data import CropAugment, CropDataset, frame_weights, open_scenes, spread_frames
 from .kpnet import FIXTURE_KEYPOINTS, KeypointNet, soft_argmax, view_limits_deg
 from .scenes import check_disjoint, load_set
 
@@ -46,6 +47,11 @@ class KpData:
     train_root: str = "data/train"
     val_root: str = "data/val"
     val_frames: int = 600  # validation subset, spread over every scene
+    # how often training draws a frame (kp_data.frame_weights): `far_weight` from `far_from_m` on,
+    # times 1 + `offaxis_weight_per_deg` x the fixture's bearing off the boresight; 1 / 0: uniform
+    far_from_m: float = 8.0
+    far_weight: float = 1.0
+    offaxis_weight_per_deg: float = 0.0
 
 
 @dataclass
@@ -121,6 +127,11 @@ def load_kp_config(path: str | Path, overrides: dict | None = None) -> KpConfig:
     cfg = _build(KpConfig, data, str(path))
     sets = {n: load_set(cfg.path(getattr(cfg.data, f"{n}_spec"))) for n in ("train", "val", "test")}
     check_disjoint(sets)
+    if not cfg.data.far_weight > 0 or not cfg.data.offaxis_weight_per_deg >= 0:
+        raise ConfigError(
+            f"{path}: data.far_weight must be > 0 and data.offaxis_weight_per_deg >= 0 (got "
+            f"{cfg.data.far_weight} and {cfg.data.offaxis_weight_per_deg})"
+        )
     return cfg
 
 
@@ -358,6 +369,35 @@ def _save(path: Path, obj: dict) -> None:
     os.replace(tmp, path)
 
 
+class WeightedDraws(torch.utils.data.Sampler[int]):
+    """Endless draws with replacement, each index with probability proportional to its weight, a
+    chunk at a time: torch's WeightedRandomSampler draws all of num_samples up front (the 10^9 the
+    uniform sampler is given would take minutes and 8 GB before the first step)."""
+
+    def __init__(self, weights: np.ndarray, generator: torch.Generator, chunk: int = 4096):
+        self.weights = torch.as_tensor(np.asarray(weights, float), dtype=torch.double)
+        self.generator, self.chunk = generator, chunk
+
+    def __len__(self) -> int:
+        return 10**9
+
+    def __iter__(self) -> Iterator[int]:
+        while True:
+            yield from torch.multinomial(
+                self.weights, self.chunk, replacement=True, generator=self.generator
+            ).tolist()
+
+
+def train_sampler(d: KpData, ds: CropDataset, gen: torch.Generator) -> torch.utils.data.Sampler:
+    """Uniform draws with replacement, or weighted by range and bearing (KpData.far_weight,
+    offaxis_weight_per_deg; kp_data.frame_weights) when the config asks."""
+    if d.far_weight == 1.0 and d.offaxis_weight_per_deg == 0.0:
+        return torch.utils.data.RandomSampler(ds, replacement=True, num_samples=10**9, generator=gen)
+    return WeightedDraws(
+        frame_weights(ds.scenes, ds.items, d.far_from_m, d.far_weight, d.offaxis_weight_per_deg), gen
+    )
+
+
 def train(cfg: KpConfig, progress: bool = True) -> dict:
     import torch.distributed as dist
 
@@ -436,7 +476,7 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
             print(f"resuming {run.name} at step {step}/{t.steps}", file=sys.stderr)
     model = torch.nn.parallel.DistributedDataParallel(net) if world > 1 else net
     gen = torch.Generator().manual_seed(t.seed * 1000 + rank * 7 + step)
-    sampler = torch.utils.data.RandomSampler(train_ds, replacement=True, num_samples=10**9, generator=gen)
+    sampler = train_sampler(cfg.data, train_ds, gen)
     loader = iter(
         torch.utils.data.DataLoader(
             train_ds,

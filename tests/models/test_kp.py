@@ -987,3 +987,41 @@ def test_retag_sets_the_placed_refining_read_and_an_export_without_it_says_nothi
     assert export_main(["--retag", str(model), "--placed-pass-refines", "--model-version", "9.9.8"]) == 0
     assert read_metadata(model)["placed_pass_refines"] is True
     assert KeypointPoseEstimator(model, warmup_runs=0).placed_pass_refines is True
+
+
+def test_training_can_draw_far_and_off_axis_frames_more_often():
+    """data.far_weight / data.offaxis_weight_per_deg (kp_data.frame_weights): a far-range stage
+    draws frames from far_from_m on far_weight times as often, and more the further the fixture
+    sits off the boresight; the defaults draw uniformly; a weight that is not one is refused."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from oibar_models.kp_data import frame_weights
+    from oibar_models.kp_engine import KpData, WeightedDraws, train_sampler
+
+    T = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 9.0], [0.0, 9.0 * np.tan(np.radians(10.0)), 9.0]])
+    scenes = [SimpleNamespace(T_cam_target=T)]
+    items = [(0, 0), (0, 1), (0, 2)]
+    w = frame_weights(scenes, items, 8.0, 3.0, 0.0)
+    assert np.allclose(w, [1.0, 3.0, 3.0])
+    w = frame_weights(scenes, items, 8.0, 3.0, 0.1)
+    assert np.allclose(w, [1.0, 3.0, 3.0 * 2.0], rtol=1e-9)  # 10 deg off the boresight: twice
+    with pytest.raises(ValueError, match="far_weight"):
+        frame_weights(scenes, items, 8.0, 0.0, 0.0)
+
+    ds = SimpleNamespace(scenes=scenes, items=items)
+    gen = torch.Generator().manual_seed(0)
+    assert isinstance(train_sampler(KpData(), ds, gen), torch.utils.data.RandomSampler)
+    sampler = train_sampler(KpData(far_weight=3.0, offaxis_weight_per_deg=0.1), ds, gen)
+    # drawn a chunk at a time: torch's WeightedRandomSampler draws all 10^9 up front (minutes, 8 GB)
+    assert isinstance(sampler, WeightedDraws) and sampler.chunk <= 10**5
+    it = iter(sampler)
+    drawn = np.bincount([next(it) for _ in range(9000)], minlength=3) / 9000
+    assert np.allclose(drawn, np.array([1.0, 3.0, 6.0]) / 10.0, atol=0.02)
+
+
+@pytest.mark.parametrize("edit", [{"far_weight": 0.0}, {"offaxis_weight_per_deg": -0.1}])
+def test_a_config_with_a_sampling_weight_that_cannot_be_is_refused(edit):
+    with pytest.raises(ConfigError, match="far_weight"):
+        load_kp_config(CONFIG, {"data": edit})
