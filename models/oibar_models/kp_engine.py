@@ -105,8 +105,8 @@ class KpExport:
     turned_reading_deg: float = 0.0
     turned_reading_head: bool = False
     turned_reading_measurement: str = "mean"
-    # a crop placed by a prediction read as the refining pass, no second pass after a strong fit
-    # there (oibar.placed_pass_refines; `kp_export --placed-pass-refines`)
+    # a crop placed by a prediction read as the refining pass, final when its strong fit says the
+    # window was well placed (oibar.placed_pass_refines; `kp_export --placed-pass-refines`)
     placed_pass_refines: bool = False
 
 

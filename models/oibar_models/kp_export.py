@@ -116,7 +116,8 @@ def metadata_for(
             else {}
         ),
         # a crop placed by a prediction is read as the refining pass, and a strong fit there ends
-        # the frame (oibar.nav.pose, the note on placed_pass_refines; written only when on)
+        # the frame when the window was well placed (oibar.nav.pose, the note on
+        # placed_pass_refines; written only when on)
         **({"placed_pass_refines": True} if placed_pass_refines else {}),
         # the refining pass moves the fixture's corners onto the frame's own, sub-pixel, when the
         # fixture spans at least this many frame pixels (0: off; KeypointPoseEstimator.refined_corners)
@@ -330,7 +331,8 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         default=None,
         help="read the crop placed by the filter's prediction as the refining pass (turned "
-        "readings, the corner step) and stop at a strong fit there: one network run a tracked frame",
+        "readings, the corner step) and stop at a strong fit there when the window was well "
+        "placed: one network run a tracked frame",
     )
     ap.add_argument(
         "--filter-measurement",
