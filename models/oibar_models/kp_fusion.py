@@ -136,8 +136,10 @@ def error_model(rows: list[dict], clip_crop_px: float) -> dict:
     for b, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=False)):
         e = err[(rng >= lo) & (rng < hi)]
         n = np.sum(np.isfinite(e), axis=0)
-        with np.errstate(invalid="ignore"):
-            rms = np.sqrt(np.nanmean(e**2, axis=0)) if len(e) else np.full(err.shape[1], np.nan)
+        # the sum over the finite answers, not nanmean: a keypoint never answered in a bin is
+        # expected (it is replaced by its overall RMS below) and should not warn
+        sq = np.where(np.isfinite(e), e, 0.0) ** 2
+        rms = np.sqrt(sq.sum(axis=0) / np.maximum(n, 1))
         table[:, b] = np.where(n >= 5, rms, overall)
     table = np.maximum(np.nan_to_num(table, nan=float(np.nanmax(overall))), MIN_RMS_CROP_PX)
     return {"range_edges_m": list(ERROR_RANGE_EDGES_M), "rms_crop_px": np.round(table, 4).tolist()}
