@@ -664,9 +664,9 @@ class KeypointPoseEstimator(PoseEstimator):
     """Keypoints + PnP (issue 15): the direct model (the first pass, a file beside this one named
     by ``oibar.first_pass``) places a crop at full resolution around the fixture; the keypoint
     network finds the fixture's known points in it; PnP (OpenCV's RANSAC, then our own
-    Levenberg-Marquardt) turns them into the pose. A second crop around that pose refines it. The direct answer stays
-    as the cross-check (gross disagreement lowers confidence) and the fallback (when PnP finds
-    no consistent pose, with low confidence and a flag saying so)."""
+    Levenberg-Marquardt) turns them into the pose. A second crop around that pose refines it. The
+    direct answer stays as the cross-check (gross disagreement lowers confidence) and the fallback
+    (when PnP finds no consistent pose, with low confidence and a flag saying so)."""
 
     def __init__(
         self,
