@@ -82,6 +82,9 @@ def renderer(ctx: Context) -> Result:
     return Result(rows, notes)
 
 
+# what the per-extra-frame row says when the longer run took no longer (its rate is then NaN)
+UNRESOLVED = "not resolved: the longer run took no longer than the shorter"
+
 DATASET_COLUMNS = [
     ("what", "measured"),
     ("frames", "frames per run"),
@@ -137,6 +140,9 @@ def dataset(ctx: Context) -> Result:
         "runs": repeats,
         "fps": marginal,
     }
+    if marginal != marginal:
+        # --quick's single 8- and 32-frame runs differ by less than a busy VM's jitter at times
+        row["gap"] = UNRESOLVED
     set_frames = None
     if not ctx.quick and marginal == marginal:
         ctx.progress("dataset: planning the 12 sequences for their frame count")
