@@ -128,6 +128,63 @@ def off_axis(
     )
 
 
+def sun_fill(
+    prefix: str,
+    first: int,
+    seed0: int,
+    rng: np.random.Generator,
+    keep_clear: list[tuple],
+    have: list[tuple],
+    spacing_deg: float = 12.0,
+    near_deg: float = 4.0,
+) -> list[dict]:
+    """Training runs that fill the Sun elevations the split allows, on every port and background:
+    each stretch of SUN_RANGE_DEG at least SUN_MARGIN_DEG + 0.5 from every scene of `keep_clear`
+    (test and validation) gets runs at both of its ends and every `spacing_deg` or less between;
+    a Sun within `near_deg` of a training run of the same cell (`have`) is already covered. Each
+    run's kind is drawn as in `scenes`. Why (model 0.18.0): validation's two worst far-range looks
+    are port 4 lit from behind the camera, 18-32 deg of Sun from the nearest training run, and the
+    drogue's throat is read 0.2-0.4 px off there; the test scenes' nearest training Suns are 16-18
+    deg away. The ends put every validation and test scene 15.5 deg from a training Sun alike."""
+    margin = SUN_MARGIN_DEG + 0.5
+    out = []
+    for port in range(1, 7):
+        for bg in ("iss", "perlin"):
+            stretches = [SUN_RANGE_DEG]
+            for _, _, sun in sorted(k for k in keep_clear if k[0] == port and k[1] == bg):
+                stretches = [
+                    part
+                    for lo, hi in stretches
+                    for part in ((lo, min(hi, sun - margin)), (max(lo, sun + margin), hi))
+                    if part[1] >= part[0]
+                ]
+            taken = [s for p, b, s in have if p == port and b == bg]
+            for lo, hi in stretches:
+                n = int(np.ceil((hi - lo) / spacing_deg))
+                for sun in np.unique(np.round(np.linspace(lo, hi, n + 1), 1)):
+                    if any(abs(sun - s) < near_deg for s in taken):
+                        continue
+                    i = first + len(out)
+                    s = {
+                        "name": f"{prefix}{i:03d}",
+                        "port": port,
+                        "approach": PORT_APPROACH[port],
+                        "sun_elevation_deg": float(sun),
+                        "background": bg,
+                        "seed": seed0 + len(out),
+                        "frame_stride": STRIDE,
+                    }
+                    kind = rng.choice(["nominal", "envelope", "noise", "blur"], p=[0.4, 0.25, 0.2, 0.15])
+                    if kind == "envelope":
+                        s["envelope"] = True
+                    elif kind == "noise":
+                        s["noise_sigma_dn"] = float(np.round(rng.uniform(2.0, 6.0), 1))
+                    elif kind == "blur":
+                        s["blur_sigma_px"] = float(np.round(rng.uniform(0.5, 1.2), 2))
+                    out.append(s)
+    return out
+
+
 def main() -> None:
     rng = np.random.default_rng(20261123)
     train = scenes("tr", 20000, 4, rng, TEST_KEYS)
@@ -168,9 +225,20 @@ def main() -> None:
         ("offaxis_m", (0.2, 0.4), 2),
     )
     train_turned = train + turned_wide
+    # Sun-filled training set (model 0.18.0): train_turned.json's scenes plus runs at every Sun the
+    # split allows (sun_fill), appended so every earlier set stays as it was.
+    train_sunfill = train_turned + sun_fill(
+        "tr",
+        len(train_turned),
+        20000 + len(train_turned),
+        rng,
+        clear,
+        [(s["port"], s["background"], s["sun_elevation_deg"]) for s in train_turned],
+    )
     sets = {
         "train": {"set": "train", "scenes": train},
         "train_turned": {"set": "train", "scenes": train_turned},
+        "train_sunfill": {"set": "train", "scenes": train_sunfill},
         "val": {"set": "val", "scenes": val},
         "test": {"set": "test", "scenes": TEST},
     }
