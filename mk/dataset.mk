@@ -12,6 +12,7 @@ dataset: setup ## render the 12 synthetic sequences into data/synthetic (resumab
 # paper's test sequences 1 and 8 (`make dataset DATASET_ARGS="--seqs 1,8"` renders those).
 # SHARD=i/N renders every N-th scene from the i-th, for batch schedulers.
 # TRAIN_SPEC=models/scenes/train_turned.json adds the 24 turned runs of the 2026-11-27 study.
+# TRAIN_SPEC=models/scenes/train_sunfill.json adds to those 80 runs at every Sun the split allows (stage 18).
 SHARD ?=
 TRAIN_SPEC ?= models/scenes/train.json
 .PHONY: dataset-train dataset-val
