@@ -53,6 +53,22 @@ def _scene(name: str, port: int, bg: str, seed: int, rng: np.random.Generator, a
     }
 
 
+def _kind(rng: np.random.Generator) -> str:
+    """A run's kind: nominal, an envelope run, sensor noise or blur."""
+    return str(rng.choice(["nominal", "envelope", "noise", "blur"], p=[0.4, 0.25, 0.2, 0.15]))
+
+
+def _kind_fields(kind: str, rng: np.random.Generator) -> dict:
+    """The fields a run of this kind adds (its noise or blur drawn here, after its Sun)."""
+    if kind == "envelope":
+        return {"envelope": True}
+    if kind == "noise":
+        return {"noise_sigma_dn": float(np.round(rng.uniform(2.0, 6.0), 1))}
+    if kind == "blur":
+        return {"blur_sigma_px": float(np.round(rng.uniform(0.5, 1.2), 2))}
+    return {}
+
+
 def scenes(
     prefix: str, seed0: int, per_cell: int, rng: np.random.Generator, avoid: list[tuple]
 ) -> list[dict]:
@@ -61,15 +77,9 @@ def scenes(
     for port in range(1, 7):
         for bg in ("iss", "perlin"):
             for _ in range(per_cell):
-                kind = rng.choice(["nominal", "envelope", "noise", "blur"], p=[0.4, 0.25, 0.2, 0.15])
+                kind = _kind(rng)
                 s = _scene(f"{prefix}{i:03d}", port, bg, seed0 + i, rng, avoid)
-                if kind == "envelope":
-                    s["envelope"] = True
-                elif kind == "noise":
-                    s["noise_sigma_dn"] = float(np.round(rng.uniform(2.0, 6.0), 1))
-                elif kind == "blur":
-                    s["blur_sigma_px"] = float(np.round(rng.uniform(0.5, 1.2), 2))
-                out.append(s)
+                out.append(s | _kind_fields(kind, rng))
                 i += 1
     return out
 
@@ -174,14 +184,7 @@ def sun_fill(
                         "seed": seed0 + len(out),
                         "frame_stride": STRIDE,
                     }
-                    kind = rng.choice(["nominal", "envelope", "noise", "blur"], p=[0.4, 0.25, 0.2, 0.15])
-                    if kind == "envelope":
-                        s["envelope"] = True
-                    elif kind == "noise":
-                        s["noise_sigma_dn"] = float(np.round(rng.uniform(2.0, 6.0), 1))
-                    elif kind == "blur":
-                        s["blur_sigma_px"] = float(np.round(rng.uniform(0.5, 1.2), 2))
-                    out.append(s)
+                    out.append(s | _kind_fields(_kind(rng), rng))
     return out
 
 
