@@ -39,14 +39,22 @@ def _sun(rng: np.random.Generator, port: int, bg: str, avoid: list[tuple]) -> fl
             return sun
 
 
-def _scene(name: str, port: int, bg: str, seed: int, rng: np.random.Generator, avoid: list[tuple]) -> dict:
-    """A scene's common fields; its Sun is drawn here (before any field the caller adds, so the
-    draws keep their order and the committed sets stay as they were)."""
+def _scene(
+    name: str,
+    port: int,
+    bg: str,
+    seed: int,
+    rng: np.random.Generator,
+    avoid: list[tuple],
+    sun_deg: float | None = None,
+) -> dict:
+    """A scene's common fields; its Sun is `sun_deg` or drawn here (before any field the caller
+    adds, so the draws keep their order and the committed sets stay as they were)."""
     return {
         "name": name,
         "port": port,
         "approach": PORT_APPROACH[port],
-        "sun_elevation_deg": _sun(rng, port, bg, avoid),
+        "sun_elevation_deg": _sun(rng, port, bg, avoid) if sun_deg is None else sun_deg,
         "background": bg,
         "seed": seed,
         "frame_stride": STRIDE,
@@ -174,16 +182,8 @@ def sun_fill(
                 for sun in np.unique(np.round(np.linspace(lo, hi, n + 1), 1)):
                     if any(abs(sun - s) < near_deg for s in taken):
                         continue
-                    i = first + len(out)
-                    s = {
-                        "name": f"{prefix}{i:03d}",
-                        "port": port,
-                        "approach": PORT_APPROACH[port],
-                        "sun_elevation_deg": float(sun),
-                        "background": bg,
-                        "seed": seed0 + len(out),
-                        "frame_stride": STRIDE,
-                    }
+                    name = f"{prefix}{first + len(out):03d}"
+                    s = _scene(name, port, bg, seed0 + len(out), rng, [], sun_deg=float(sun))
                     out.append(s | _kind_fields(_kind(rng), rng))
     return out
 
