@@ -288,6 +288,8 @@ def main(argv: list[str] | None = None) -> int:
             for seq in seqs:
                 r = run_sequence(est, seq, a.stride, not a.no_progress, track)
                 s = summarise(seq, r)
+                # per scene and range bin too: a lean or a loss is often one look's, not the set's
+                s["_bins"] = per_bin(seq, r)
                 results.setdefault(set_name, {}).setdefault(label, {})[seq.name] = s
                 if set_name == "test":
                     rows.append((seq.name, label, s))

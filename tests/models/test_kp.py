@@ -217,8 +217,9 @@ def _smoke_overrides(tiny_dataset, kp_sets, run_dir) -> list[str]:
     ]
 
 
-def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_path):
+def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_path, monkeypatch):
     from oibar.nav.pose import KeypointPoseEstimator, ModelFileError, PoseEstimator
+    from oibar_models import kp_evaluate
     from oibar_models.kp_export import main as export_main
     from oibar_models.kp_train import main as train_main
 
@@ -318,6 +319,16 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
 
     with pytest.raises(FrameError):
         est.estimate(noise[:, :700])
+    # the evaluation through the flight estimator: the set, and each scene per range bin
+    monkeypatch.setitem(kp_evaluate.SETS, "val", (str(kp_sets / "val.json"), str(tiny_dataset)))
+    ev = tmp_path / "eval"
+    argv = ["--models", str(out), "--sets", "val", "--stride", "8", "--modes", "track", "--no-progress"]
+    assert kp_evaluate.main([*argv, "--out", str(ev)]) == 0
+    (res,) = json.loads((ev / "eval.json").read_text())["val"].values()
+    scene = res["seq03"]
+    assert scene["frames"] == 6 and sum(b["frames"] for b in scene["_bins"]) == 6
+    assert sum(b["frames"] for b in res["_bins"]) == res["_all"]["frames"] == 6
+    assert all(len(b["meas_att_bias_deg"]) == 3 for b in scene["_bins"])
     (out.parent / "oibarnet_lite.onnx").unlink()
     with pytest.raises(ModelFileError, match="first-pass model oibarnet_lite.onnx is missing"):
         PoseEstimator(out)
