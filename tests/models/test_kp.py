@@ -367,6 +367,68 @@ def test_a_run_over_its_time_budget_ends_annealed_and_stays_ended(tiny_dataset, 
     assert torch.load(run / "last.pt", weights_only=False)["step"] == 5
 
 
+def test_the_weight_average_follows_each_step_with_its_ramped_decay():
+    from oibar_models.kp_engine import WeightAverage
+
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.BatchNorm1d(2))
+    ema = WeightAverage(net, 0.9)
+    start = {k: v.clone() for k, v in net.state_dict().items()}
+    expect = {k: v.clone() for k, v in start.items()}
+    for n in range(3):
+        with torch.no_grad():
+            for p in net.parameters():
+                p.add_(torch.randn_like(p))
+        net.train()(torch.randn(5, 3))  # moves the batch-norm statistics and its counter
+        d = min(0.9, (1 + n) / (10 + n))
+        for k, v in net.state_dict().items():
+            expect[k] = expect[k] * d + v * (1 - d) if v.dtype.is_floating_point else v.clone()
+        ema.update(net)
+    assert ema.updates == 3
+    for k, v in net.state_dict().items():
+        torch.testing.assert_close(ema.state[k], expect[k])
+        if v.dtype.is_floating_point:
+            assert not torch.equal(ema.state[k], v)  # an average, not the latest weights
+    assert int(ema.state["1.num_batches_tracked"]) == 3
+    with pytest.raises(ConfigError, match="ema_decay"):
+        WeightAverage(net, 1.0)
+
+
+@pytest.mark.parametrize("decay", [1.0, -0.1])
+def test_a_config_with_a_weight_average_that_cannot_be_is_refused(decay):
+    with pytest.raises(ConfigError, match="ema_decay"):
+        load_kp_config(CONFIG, {"train": {"ema_decay": decay}})
+
+
+def test_a_run_with_the_weight_average_keeps_and_resumes_the_average(tiny_dataset, kp_sets, tmp_path, capsys):
+    """best.pt holds the average (what was scored), not the latest step; last.pt carries the
+    average so a resume goes on averaging; a run without it cannot be resumed with it."""
+    from oibar_models.kp_train import main as train_main
+
+    run = tmp_path / "ema"
+    base = ["--config", str(CONFIG), "--no-progress", *_smoke_overrides(tiny_dataset, kp_sets, run)]
+    args = base + ["train.ema_decay=0.5", "train.val_every=4"]
+    assert train_main(args) == 0
+    last = torch.load(run / "last.pt", weights_only=False)
+    best = torch.load(run / "best.pt", weights_only=False)
+    assert best["step"] == 4 and last["ema"]["updates"] == 4
+    moved = 0
+    for k, v in best["model"].items():
+        torch.testing.assert_close(v, last["ema"]["state"][k])
+        moved += int(v.dtype.is_floating_point and not torch.equal(v, last["model"][k]))
+    assert moved > 0
+    assert train_main(args + ["train.steps=6"]) == 0
+    assert torch.load(run / "last.pt", weights_only=False)["ema"]["updates"] == 6
+
+    plain = tmp_path / "plain"
+    plain_args = ["--config", str(CONFIG), "--no-progress", *_smoke_overrides(tiny_dataset, kp_sets, plain)]
+    assert train_main(plain_args) == 0
+    assert "ema" not in torch.load(plain / "last.pt", weights_only=False)
+    capsys.readouterr()
+    assert train_main(plain_args + ["train.ema_decay=0.5", "train.steps=6"]) == 2
+    assert "without an average" in capsys.readouterr().err
+
+
 def test_ddp_two_processes_on_gloo(tiny_dataset, kp_sets, tmp_path):
     """torchrun --nproc_per_node 2: both processes step together; rank 0 writes the run."""
     run = tmp_path / "ddp"
