@@ -88,9 +88,9 @@ class KpTrain:
     # learning rate still anneals to lr_min instead of being cut off mid-cosine.
     time_budget_s: float = 0.0
     # Exponential moving average of the weights (0 = off). The decay ramps in as (1 + n) / (10 + n),
-    # so at step n it averages about the last min(n / 9, 1 / (1 - decay)) steps. When on, validation, best.pt and the exported network are the average, not the
-    # latest step: small batches on the CPU leave the latest weights a step of noise away from
-    # where the run is heading, and that noise can lean every scene the same way.
+    # so at step n it averages about the last min(n / 9, 1 / (1 - decay)) steps. When on,
+    # validation, best.pt and the exported network are the average, not the latest step: small
+    # batches leave the latest weights a step of noise away from where the run is heading.
     ema_decay: float = 0.0
 
 
