@@ -14,6 +14,7 @@ its own samples, gradients are averaged, rank 0 validates and writes the files.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -250,10 +251,10 @@ class WeightAverage:
     batch-norm statistics) averaged, integer buffers copied. The decay ramps in over the first
     steps ((1 + n) / (10 + n)), so the average does not remember the start for long."""
 
-    def __init__(self, net: torch.nn.Module, decay: float, updates: int = 0):
+    def __init__(self, net: torch.nn.Module, decay: float):
         if not 0.0 < decay < 1.0:
             raise ConfigError(f"train.ema_decay: {decay} is not between 0 and 1 (0 turns it off)")
-        self.decay, self.updates = decay, updates
+        self.decay, self.updates = decay, 0
         self.state = {k: v.detach().clone() for k, v in net.state_dict().items()}
 
     def rate(self) -> float:
@@ -443,8 +444,6 @@ def train_sampler(d: KpData, ds: CropDataset, gen: torch.Generator) -> torch.uti
 
 def averaged_net(net: KeypointNet, ema: WeightAverage) -> KeypointNet:
     """A copy of `net` holding the average's weights (the training net is left as it is)."""
-    import copy
-
     out = copy.deepcopy(net)
     out.load_state_dict(ema.state)
     return out

@@ -373,8 +373,7 @@ def test_the_weight_average_follows_each_step_with_its_ramped_decay():
     torch.manual_seed(0)
     net = torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.BatchNorm1d(2))
     ema = WeightAverage(net, 0.9)
-    start = {k: v.clone() for k, v in net.state_dict().items()}
-    expect = {k: v.clone() for k, v in start.items()}
+    expect = {k: v.clone() for k, v in net.state_dict().items()}
     for n in range(3):
         with torch.no_grad():
             for p in net.parameters():
