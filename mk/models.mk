@@ -54,6 +54,9 @@ KP_FUSION_ARGS ?= --priors direct,head --stride 24
 # direct 2 : 5 scored 0.0339), committed so that the export is reproducible without the 22-min
 # grid. Empty (`make export-kp KP_FUSION_JSON=`) runs the grid again and exports with its choice.
 KP_FUSION_JSON ?= docs/data/kp_fusion_grid_081.json
+# The attitude head's tilt gain per range (`python -m oibar_models.kp_head_gain`, measured on the
+# validation scenes); empty: the head's reading is the prior as it is.
+KP_HEAD_GAIN_JSON ?=
 
 train-kp: setup ## train the keypoint model, all six stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
 	@for c in $(KP_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.kp_train --config $$c $(TRAIN_ARGS) || exit 1; done
@@ -62,9 +65,9 @@ export-kp: setup ## export the keypoint model to models/oibarnet.onnx: best chec
 ifeq ($(strip $(KP_FUSION_JSON)),)
 	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG)
 	@$(PY) -m oibar_models.kp_fusion --model models/oibarnet.onnx --out runs/oibarnet_kp_fusion.json $(KP_FUSION_ARGS)
-	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --fusion runs/oibarnet_kp_fusion.json
+	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --fusion runs/oibarnet_kp_fusion.json $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
 else
-	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --fusion $(KP_FUSION_JSON)
+	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --fusion $(KP_FUSION_JSON) $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
 endif
 
 eval-kp: setup ## the flight estimator on validation and test scenes: tables, range bins, latency (runs/eval_kp)

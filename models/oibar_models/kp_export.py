@@ -223,10 +223,20 @@ def export_onnx(
     return out_path
 
 
+def load_head_gain(path: Path) -> dict:
+    """The head-gain table of a `kp_head_gain` JSON, checked as the flight code checks it."""
+    from oibar.nav.keypoints import HeadGainModel
+
+    table = json.loads(Path(path).read_text())["head_gain"]
+    HeadGainModel(table)
+    return {"range_edges_m": table["range_edges_m"], "tilt_gain": table["tilt_gain"]}
+
+
 def retag(src: Path, out: Path, options: dict) -> Path:
     """A copy of the export `src` at `out` (may be `src`) with the flight reading `options`
     (metadata keys without the prefix: mirror_reading, turned_reading_deg, turned_reading_head,
-    turned_reading_measurement, placed_pass_refines, filter_measurement, corner_refine_side_px) set, and the new model
+    turned_reading_measurement, placed_pass_refines, filter_measurement, corner_refine_side_px;
+    head_gain goes into the fusion's tables) set, and the new model
     version when the reading changes what flies; the graph untouched. Checked by opening it as the
     flight runtime does when its first pass lies beside it. ValueError for an option that is not a
     reading option or a version that is not MAJOR.MINOR.PATCH."""
@@ -243,6 +253,7 @@ def retag(src: Path, out: Path, options: dict) -> Path:
         "filter_measurement",
         "corner_refine_side_px",
         "model_version",
+        "head_gain",
     }
     version = options.get("model_version")
     if version is not None and not re.fullmatch(r"\d+\.\d+\.\d+", str(version)):
@@ -257,7 +268,14 @@ def retag(src: Path, out: Path, options: dict) -> Path:
     m = onnx.load(str(src))
     props = {p.key: p.value for p in m.metadata_props}
     for k, v in options.items():
-        props[METADATA_PREFIX + k] = json.dumps(v)
+        if k == "head_gain":  # a table of the fusion's, not a key of its own
+            fusion = json.loads(props.get(METADATA_PREFIX + "fusion", "null")) or {}
+            if fusion.get("attitude_prior") != "head":
+                raise ValueError(f"{src}: a head gain needs a fusion whose prior is the attitude head")
+            fusion["head_gain"] = v
+            props[METADATA_PREFIX + "fusion"] = json.dumps(fusion)
+        else:
+            props[METADATA_PREFIX + k] = json.dumps(v)
     del m.metadata_props[:]
     for k, v in props.items():
         p = m.metadata_props.add()
@@ -298,6 +316,13 @@ def main(argv: list[str] | None = None) -> int:
         type=Path,
         default=None,
         help="the JSON of `python -m oibar_models.kp_fusion` (weights chosen on validation scenes)",
+    )
+    ap.add_argument(
+        "--head-gain",
+        type=Path,
+        default=None,
+        help="the JSON of `python -m oibar_models.kp_head_gain`: the attitude head's tilt is divided "
+        "by its gain per range before it is the fit's prior (measured on validation scenes)",
     )
     ap.add_argument(
         "--mirror-reading",
@@ -356,6 +381,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
+    head_gain = None
+    if a.head_gain is not None:
+        try:
+            head_gain = load_head_gain(a.head_gain)
+        except (OSError, ValueError, KeyError) as exc:
+            print(f"error: {a.head_gain}: {exc}", file=sys.stderr)
+            return 2
     if a.retag is not None:
         options = {
             k: v
@@ -368,6 +400,7 @@ def main(argv: list[str] | None = None) -> int:
                 ("filter_measurement", a.filter_measurement),
                 ("corner_refine_side_px", a.corner_refine_side_px),
                 ("model_version", a.model_version),
+                ("head_gain", head_gain),
             )
             if v is not None
         }
@@ -375,7 +408,7 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
                 "--turned-reading-head, --turned-reading-measurement, --placed-pass-refines, "
-                "--filter-measurement, --corner-refine-side-px), "
+                "--filter-measurement, --corner-refine-side-px, --head-gain), "
                 "--model-version and --out only",
                 file=sys.stderr,
             )
@@ -435,6 +468,14 @@ def main(argv: list[str] | None = None) -> int:
                 fusion["attitude_prior"] = best["attitude_prior"]
             if best.get("prior_error_model"):
                 fusion["prior_error_model"] = best["prior_error_model"]
+    if head_gain is not None:
+        if not fusion or fusion.get("attitude_prior") != "head":
+            print(
+                "error: --head-gain needs a fusion whose prior is the attitude head (--fusion)",
+                file=sys.stderr,
+            )
+            return 2
+        fusion["head_gain"] = head_gain
     export_onnx(
         cfg,
         ck,

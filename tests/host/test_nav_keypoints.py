@@ -518,6 +518,68 @@ def test_the_attitude_head_is_the_fits_prior_when_the_fusion_says_so(monkeypatch
     assert all(np.allclose(s, want) for s in seen)
 
 
+def test_tilt_scaled_gives_a_shrunk_tilt_back_its_size_and_keeps_the_roll():
+    """docking.tilt_scaled: the attitude error about x and y times the factor, about z as it was;
+    a factor of 1 is the same attitude, and scaling by 1/g undoes scaling by g."""
+    from oibar.geometry.docking import camera_pose_from_docking, docking_from_camera_pose, tilt_scaled
+
+    att = np.radians([2.0, -1.5, 0.7])
+    R = camera_pose_from_docking(np.zeros(3), att)[1]
+    np.testing.assert_allclose(tilt_scaled(R, 1.0), R, atol=1e-12)
+    got = docking_from_camera_pose(np.zeros(3), tilt_scaled(R, 1.25)).att_rad
+    np.testing.assert_allclose(got, att * np.array([1.25, 1.25, 1.0]), atol=1e-12)
+    np.testing.assert_allclose(tilt_scaled(tilt_scaled(R, 0.8), 1 / 0.8), R, atol=1e-12)
+
+
+def test_the_head_gain_model_reads_its_range_bin_and_refuses_a_bad_table():
+    """fusion.head_gain: one tilt gain per range bin, looked up by range (the end bins beyond the
+    edges); a table of the wrong length, with falling edges or a gain outside 0.5-2 is refused."""
+    from oibar.nav.keypoints import HeadGainModel
+
+    m = HeadGainModel({"range_edges_m": [0.0, 1.0, 3.0, 100.0], "tilt_gain": [0.8, 0.9, 1.0]})
+    assert [m.gain(r) for r in (0.5, 1.0, 2.9, 50.0, 500.0, -1.0)] == [0.8, 0.9, 0.9, 1.0, 1.0, 0.8]
+    with pytest.raises(ValueError, match="must have 3 entries"):
+        HeadGainModel({"range_edges_m": [0.0, 1.0, 3.0, 100.0], "tilt_gain": [0.8, 0.9]})
+    with pytest.raises(ValueError, match="rising"):
+        HeadGainModel({"range_edges_m": [0.0, 3.0, 1.0], "tilt_gain": [0.8, 0.9]})
+    with pytest.raises(ValueError, match="within 0.5-2.0"):
+        HeadGainModel({"range_edges_m": [0.0, 1.0, 3.0], "tilt_gain": [0.8, 0.2]})
+    with pytest.raises(ValueError, match="within"):
+        HeadGainModel({"range_edges_m": [0.0, 1.0], "tilt_gain": [float("nan")]})
+
+
+def test_the_head_gain_gives_the_heads_tilt_back_before_it_is_the_prior(monkeypatch):
+    """With fusion.head_gain the fit's prior is the head's reading with its tilt divided by the
+    gain of the fixture's range bin (here 0.8 at 6 m: a 2 deg tilt read as 1.6 is given back 2);
+    without it, the reading as it is."""
+    import oibar.nav.pose as pose
+    from oibar.geometry.docking import camera_pose_from_docking, docking_from_camera_pose, tilt_scaled
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 6.0))
+    att_true = docking_from_camera_pose(T, R).att_rad
+    R_head = camera_pose_from_docking(np.zeros(3), att_true * np.array([0.8, 0.8, 1.0]))[1]  # shrunk
+    gain = {"range_edges_m": [0.0, 3.0, 100.0], "tilt_gain": [0.5, 0.8]}
+    seen = []
+    real = pose.map_pose
+
+    def spy(uv, P, K_, reproj, R_prior, *a):
+        seen.append(R_prior)
+        return real(uv, P, K_, reproj, R_prior, *a)
+
+    monkeypatch.setattr(pose, "map_pose", spy)
+    for table, want in ((gain, tilt_scaled(R_head, 1 / 0.8)), (None, R_head)):
+        fusion = {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0, "attitude_prior": "head"}
+        if table:
+            fusion["head_gain"] = table
+        seen.clear()
+        r, _ = _bare_estimator(R, T, R_head=R_head, fusion=fusion).solve(
+            np.zeros((480, 744, 3), np.uint8), R, T
+        )
+        assert r is not None and len(seen) == 2
+        assert all(np.allclose(s, want, atol=1e-12) for s in seen)
+    assert rotation_angle_deg(tilt_scaled(R_head, 1 / 0.8).T @ R) < 1e-6  # the truth again
+
+
 def test_the_prior_error_model_weighs_the_prior_by_range(monkeypatch):
     """fusion.prior_error_model: the prior's sigma at a range is sigma_prior_deg times that bin's
     RMS over the overall RMS; a bad table is refused."""

@@ -639,6 +639,16 @@ def test_the_error_model_is_each_keypoints_rms_per_range_bin():
             "prior_error_model is malformed",
         ),
         (lambda meta: meta.update(filter_measurement="both"), "filter_measurement must be one of"),
+        (
+            lambda meta: meta["fusion"].update(head_gain={"range_edges_m": [0, 1], "tilt_gain": [3.0]}),
+            "head_gain is malformed",
+        ),
+        (
+            lambda meta: meta["fusion"].update(
+                attitude_prior="direct", head_gain={"range_edges_m": [0, 1], "tilt_gain": [0.9]}
+            ),
+            "head gain but its prior is not the attitude head",
+        ),
     ],
 )
 def test_a_model_whose_attitude_prior_cannot_work_is_refused_when_it_opens(tmp_path, edit, match):
@@ -936,6 +946,92 @@ def test_retag_sets_the_reading_options_of_an_export_and_leaves_the_network_alon
     assert read_metadata(model)["turned_reading_deg"] == 8.0 and not list(tmp_path.glob("*.tmp.onnx"))
     assert export_main(["--retag", str(tmp_path / "oibarnet_lite.onnx"), "--turned-reading-deg", "8"]) == 2
     assert export_main(["--retag", str(model)]) == 2  # nothing to set
+
+
+def test_the_head_gain_is_the_slope_of_the_heads_tilt_on_the_truths_per_range_bin():
+    """kp_head_gain.gain_table: per range bin the pooled slope of the head's tilt on the true one,
+    each axis's own offset taken out (a lean is not a gain), with its standard error; a bin with
+    too few frames or a gain the flight code would refuse is an error, not a table."""
+    from oibar.nav.keypoints import HeadGainModel
+    from oibar_models.kp_head_gain import MIN_FRAMES_PER_BIN, HeadGainError, gain_table
+
+    rng = np.random.default_rng(0)
+    edges = (0.0, 1.0, 5.0, 100.0)
+    want = {0.5: 0.85, 3.0: 0.95, 8.0: 1.0}
+    r, t, h = [], [], []
+    for r_m, g in want.items():
+        true = rng.normal(0, np.radians(2.0), (400, 2))
+        r += [r_m] * 400
+        t.append(true)
+        h.append(g * true + np.radians([0.2, -0.1]) + rng.normal(0, np.radians(0.2), (400, 2)))
+    rows = {"range_m": np.array(r), "true_rad": np.vstack(t), "head_rad": np.vstack(h)}
+    out = gain_table(rows, edges)
+    assert out["head_gain"]["range_edges_m"] == list(edges)
+    for b, g in zip(out["bins"], want.values(), strict=True):
+        assert b["frames"] == 400 and abs(b["tilt_gain"] - g) < 3 * b["tilt_gain_se"] < 0.03
+        np.testing.assert_allclose(b["intercept_deg"], [0.2, -0.1], atol=0.05)
+    assert HeadGainModel(out["head_gain"]).gain(0.5) == pytest.approx(0.85, abs=0.02)
+    few = {k: v[400 - MIN_FRAMES_PER_BIN + 1 :] for k, v in rows.items()}  # the first bin short
+    with pytest.raises(HeadGainError, match="0-1 m: 49 frames"):
+        gain_table(few, edges)
+    wild = dict(rows, head_rad=rows["head_rad"] * np.where(rows["range_m"] > 5, 3.0, 1.0)[:, None])
+    with pytest.raises(HeadGainError, match="5-100 m: gain 3.0"):
+        gain_table(wild, edges)
+
+
+def test_kp_head_gain_says_what_is_missing(tmp_path, capsys):
+    """No validation renders, or a model without an attitude head: a clear error, exit 2, no file."""
+    from oibar_models.kp_head_gain import main
+
+    out = tmp_path / "gain.json"
+    args = ["--val-root", str(tmp_path / "none"), "--out", str(out), "--no-progress"]
+    assert main(["--model", str(REPO / "models/oibarnet.onnx"), *args]) == 2
+    assert "make dataset-val" in capsys.readouterr().err
+    assert main(["--model", str(REPO / "models/oibarnet_lite.onnx"), *args]) == 2
+    assert "no attitude head" in capsys.readouterr().err
+    assert main(["--model", str(tmp_path / "missing.onnx"), *args]) == 2
+    assert not out.exists()
+
+
+def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head(tmp_path):
+    """`kp_export --retag --head-gain FILE` writes kp_head_gain's table into the export's fusion
+    (every other fusion table as it was) and the runtime divides by it; a file whose table the
+    runtime would refuse, or an export whose prior is not the head, is refused and nothing written."""
+    import shutil
+
+    from oibar.nav.pose import KeypointPoseEstimator, read_metadata
+    from oibar_models.kp_export import main as export_main
+
+    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
+        shutil.copy(REPO / "models" / name, tmp_path / name)
+    model = tmp_path / "oibarnet.onnx"
+    fusion_before = read_metadata(model)["fusion"]
+    table = {"range_edges_m": [0.0, 1.0, 100.0], "tilt_gain": [0.85, 0.95]}
+    (tmp_path / "gain.json").write_text(json.dumps({"head_gain": table, "bins": []}))
+    (tmp_path / "bad.json").write_text(json.dumps({"head_gain": dict(table, tilt_gain=[0.85, 9.0])}))
+
+    assert export_main(["--retag", str(model), "--head-gain", str(tmp_path / "bad.json")]) == 2
+    assert read_metadata(model)["fusion"] == fusion_before
+    args = ["--retag", str(model), "--head-gain", str(tmp_path / "gain.json"), "--model-version", "9.9.9"]
+    assert export_main(args) == 0
+    fusion = read_metadata(model)["fusion"]
+    assert (
+        fusion["head_gain"] == table
+        and {k: v for k, v in fusion.items() if k != "head_gain"} == fusion_before
+    )
+    est = KeypointPoseEstimator(model, warmup_runs=0)
+    assert est._head_gain(est.meta["fusion"]).gain(0.5) == 0.85
+
+    # an export whose fusion leans on the direct model's attitude: a head gain means nothing there
+    import onnx
+
+    m = onnx.load(str(model))
+    for p in m.metadata_props:
+        if p.key == "oibar.fusion":
+            p.value = json.dumps(dict(fusion_before, attitude_prior="direct"))
+    onnx.save(m, str(model))
+    assert export_main(["--retag", str(model), "--head-gain", str(tmp_path / "gain.json")]) == 2
+    assert "head_gain" not in read_metadata(model)["fusion"]
 
 
 def test_retag_sets_the_corner_refinement_and_refuses_a_size_that_is_not_one(tmp_path):

@@ -158,3 +158,12 @@ def R_cam_target_aligned(geom: DockingGeometry = GEOMETRY) -> FloatArray:
     """The attitude the camera sees when the vehicles are aligned (no attitude error): the
     reference the keypoint model's attitude head is measured from."""
     return camera_pose_from_docking(np.zeros(3), np.zeros(3), geom)[1]
+
+
+def tilt_scaled(R_cam_target: ArrayLike, factor: float, geom: DockingGeometry = GEOMETRY) -> FloatArray:
+    """`R_cam_target` turned about "aligned" so that its tilt (the attitude error about the
+    camera's x and y) is `factor` times as large; the roll about the boresight is kept. How an
+    attitude reading shrunk toward "aligned" is given back its size (oibar.nav.keypoints.HeadGainModel)."""
+    att = docking_from_camera_pose(np.zeros(3), R_cam_target, geom).att_rad
+    att[:2] *= float(factor)
+    return camera_pose_from_docking(np.zeros(3), att, geom)[1]

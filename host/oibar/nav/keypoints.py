@@ -471,6 +471,36 @@ class PriorErrorModel:
         return float(self.rms_deg[range_bin(self.edges_m, range_m)] / self.ref_deg)
 
 
+HEAD_GAIN_LIMITS = (0.5, 2.0)  # a tilt gain outside these is a measurement gone wrong, not a reading
+
+
+class HeadGainModel:
+    """How much of a tilt the attitude head reads, by camera range: per range bin, the slope of
+    the head's tilt (guidance's attitude error about x and y) on the truth's, measured on the
+    validation scenes (oibar_models.kp_head_gain) and shipped in the export's
+    ``oibar.fusion.head_gain``. A head trained mostly on aligned approaches reads a 3 deg tilt as
+    2.5 close in; as the fit's prior it pulls every answer toward "aligned" by that much, which no
+    weight can undo. ``gain(range)`` is what the head's tilt is divided by before it is used."""
+
+    def __init__(self, table: dict[str, Any]):
+        self.edges_m = np.asarray(table["range_edges_m"], float)
+        self.tilt_gain = np.asarray(table["tilt_gain"], float)
+        if self.edges_m.ndim != 1 or len(self.edges_m) < 2 or np.any(np.diff(self.edges_m) <= 0):
+            raise ValueError("head gain: range_edges_m must be two or more rising edges")
+        if self.tilt_gain.shape != (len(self.edges_m) - 1,):
+            raise ValueError(
+                f"head gain: tilt_gain must have {len(self.edges_m) - 1} entries, got {self.tilt_gain.shape}"
+            )
+        lo, hi = HEAD_GAIN_LIMITS
+        if not np.all(np.isfinite(self.tilt_gain)) or np.any((self.tilt_gain < lo) | (self.tilt_gain > hi)):
+            raise ValueError(
+                f"head gain: every tilt_gain must be within {lo}-{hi}, got {self.tilt_gain.tolist()}"
+            )
+
+    def gain(self, range_m: float) -> float:
+        return float(self.tilt_gain[range_bin(self.edges_m, range_m)])
+
+
 def range_bin(edges_m: np.ndarray, range_m: float) -> int:
     """The bin of `range_m` among `edges_m` (N + 1 rising edges -> 0..N-1; outside: the end bins)."""
     return int(np.clip(np.searchsorted(edges_m, range_m, side="right") - 1, 0, len(edges_m) - 2))

@@ -26,11 +26,13 @@ import numpy as np
 from PIL import Image
 
 from oibar.geometry.camera import project_target_points as project
+from oibar.geometry.docking import tilt_scaled
 from oibar.geometry.rotations import matrix_to_quat, mean_quat, quat_to_matrix, rotation_angle_deg
 from oibar.nav.fit_history import FitHistory
 from oibar.nav.keypoints import (
     MIRROR_ATT,
     CropWindow,
+    HeadGainModel,
     KeypointErrorModel,
     PnpResult,
     PriorErrorModel,
@@ -732,6 +734,8 @@ class KeypointPoseEstimator(PoseEstimator):
             self._error_model(self.meta["fusion"])  # a malformed table fails here, not in flight
         if (self.meta.get("fusion") or {}).get("prior_error_model"):
             self._prior_error_model(self.meta["fusion"])
+        if (self.meta.get("fusion") or {}).get("head_gain"):
+            self._head_gain(self.meta["fusion"])
         self.R_att_ref = self._attitude_head()
         # read_crop's twins, when the refining pass reads each crop with its mirror: as the
         # export says (``oibar.mirror_reading``, chosen per network on the closed loop), unless told
@@ -821,6 +825,12 @@ class KeypointPoseEstimator(PoseEstimator):
             )
         if (self.meta.get("fusion") or {}).get("attitude_prior") == "head" and self.R_att_ref is None:
             raise ModelFileError(f"{self.path}: its fusion asks for the attitude head, which it lacks")
+        if (self.meta.get("fusion") or {}).get("head_gain") and self.meta["fusion"].get(
+            "attitude_prior"
+        ) != "head":
+            raise ModelFileError(
+                f"{self.path}: its fusion has a head gain but its prior is not the attitude head"
+            )
         zero = np.zeros((1, 3, self.out_px, self.out_px), np.float32)
         for _ in range(warmup_runs):
             self.run(zero)
@@ -1245,6 +1255,8 @@ class KeypointPoseEstimator(PoseEstimator):
         R_prior = R_direct
         if f and f.get("attitude_prior") == "head" and reading.R_cam_target_head is not None:
             R_prior = reading.R_cam_target_head
+            if f.get("head_gain"):  # the head's tilt given back the size it shrank by (0.15.10)
+                R_prior = tilt_scaled(R_prior, 1.0 / self._head_gain(f).gain(range_m))
         s_px: float | np.ndarray | None = float(f["sigma_crop_px"]) / win.scale if f else None
         if s_px is not None and f and f.get("kp_error_model"):
             s_px = s_px * self._error_model(f).scale(range_m)
@@ -1318,6 +1330,11 @@ class KeypointPoseEstimator(PoseEstimator):
     def _prior_error_model(self, f: dict[str, Any]) -> PriorErrorModel:
         """The fusion's PriorErrorModel."""
         model: PriorErrorModel = self._fusion_table(f, "prior_error_model", PriorErrorModel)
+        return model
+
+    def _head_gain(self, f: dict[str, Any]) -> HeadGainModel:
+        """The fusion's HeadGainModel."""
+        model: HeadGainModel = self._fusion_table(f, "head_gain", HeadGainModel)
         return model
 
     uses_prior = True
