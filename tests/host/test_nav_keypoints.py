@@ -491,19 +491,10 @@ def test_the_attitude_in_a_crop_maps_back_to_the_camera():
     )
 
 
-@pytest.mark.parametrize("source", ["head", "direct", None])
-def test_the_attitude_head_is_the_fits_prior_when_the_fusion_says_so(monkeypatch, source):
-    """fusion.attitude_prior = "head": each crop's own attitude reading is the prior of that
-    crop's fit; "direct" or absent: the direct model's attitude, as before 0.6.0."""
+def _priors_seen(monkeypatch):
+    """A list that collects the attitude prior of every fit (pose.map_pose) from now on."""
     import oibar.nav.pose as pose
 
-    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 6.0))
-    R_head = R @ rotvec_to_matrix(np.radians([1.0, 0.0, 0.0]))
-    R_direct = R @ rotvec_to_matrix(np.radians([0.0, -4.0, 0.0]))
-    fusion = {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0}
-    if source:
-        fusion["attitude_prior"] = source
-    est = _bare_estimator(R, T, R_head=R_head, fusion=fusion)
     seen = []
     real = pose.map_pose
 
@@ -512,6 +503,22 @@ def test_the_attitude_head_is_the_fits_prior_when_the_fusion_says_so(monkeypatch
         return real(uv, P, K_, reproj, R_prior, *a)
 
     monkeypatch.setattr(pose, "map_pose", spy)
+    return seen
+
+
+@pytest.mark.parametrize("source", ["head", "direct", None])
+def test_the_attitude_head_is_the_fits_prior_when_the_fusion_says_so(monkeypatch, source):
+    """fusion.attitude_prior = "head": each crop's own attitude reading is the prior of that
+    crop's fit; "direct" or absent: the direct model's attitude, as before 0.6.0."""
+
+    R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 6.0))
+    R_head = R @ rotvec_to_matrix(np.radians([1.0, 0.0, 0.0]))
+    R_direct = R @ rotvec_to_matrix(np.radians([0.0, -4.0, 0.0]))
+    fusion = {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0}
+    if source:
+        fusion["attitude_prior"] = source
+    est = _bare_estimator(R, T, R_head=R_head, fusion=fusion)
+    seen = _priors_seen(monkeypatch)
     r, _ = est.solve(np.zeros((480, 744, 3), np.uint8), R_direct, T)
     assert r is not None and len(seen) == 2
     want = R_head if source == "head" else R_direct
@@ -552,21 +559,13 @@ def test_the_head_gain_gives_the_heads_tilt_back_before_it_is_the_prior(monkeypa
     """With fusion.head_gain the fit's prior is the head's reading with its tilt divided by the
     gain of the fixture's range bin (here 0.8 at 6 m: a 2 deg tilt read as 1.6 is given back 2);
     without it, the reading as it is."""
-    import oibar.nav.pose as pose
     from oibar.geometry.docking import camera_pose_from_docking, docking_from_camera_pose, tilt_scaled
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 6.0))
     att_true = docking_from_camera_pose(T, R).att_rad
     R_head = camera_pose_from_docking(np.zeros(3), att_true * np.array([0.8, 0.8, 1.0]))[1]  # shrunk
     gain = {"range_edges_m": [0.0, 3.0, 100.0], "tilt_gain": [0.5, 0.8]}
-    seen = []
-    real = pose.map_pose
-
-    def spy(uv, P, K_, reproj, R_prior, *a):
-        seen.append(R_prior)
-        return real(uv, P, K_, reproj, R_prior, *a)
-
-    monkeypatch.setattr(pose, "map_pose", spy)
+    seen = _priors_seen(monkeypatch)
     for table, want in ((gain, tilt_scaled(R_head, 1 / 0.8)), (None, R_head)):
         fusion = {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0, "attitude_prior": "head"}
         if table:
