@@ -999,13 +999,25 @@ def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head
     runtime would refuse, or an export whose prior is not the head, is refused and nothing written."""
     import shutil
 
+    import onnx
+
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
     from oibar_models.kp_export import main as export_main
 
     for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
         shutil.copy(REPO / "models" / name, tmp_path / name)
     model = tmp_path / "oibarnet.onnx"
-    fusion_before = read_metadata(model)["fusion"]
+
+    def set_fusion(fusion):
+        m = onnx.load(str(model))
+        for p in m.metadata_props:
+            if p.key == "oibar.fusion":
+                p.value = json.dumps(fusion)
+        onnx.save(m, str(model))
+
+    # the shipped file's fusion without any head gain of its own
+    fusion_before = {k: v for k, v in read_metadata(model)["fusion"].items() if k != "head_gain"}
+    set_fusion(fusion_before)
     table = {"range_edges_m": [0.0, 1.0, 100.0], "tilt_gain": [0.85, 0.95]}
     (tmp_path / "gain.json").write_text(json.dumps({"head_gain": table, "bins": []}))
     (tmp_path / "bad.json").write_text(json.dumps({"head_gain": dict(table, tilt_gain=[0.85, 9.0])}))
@@ -1023,13 +1035,7 @@ def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head
     assert est._head_gain(est.meta["fusion"]).gain(0.5) == 0.85
 
     # an export whose fusion leans on the direct model's attitude: a head gain means nothing there
-    import onnx
-
-    m = onnx.load(str(model))
-    for p in m.metadata_props:
-        if p.key == "oibar.fusion":
-            p.value = json.dumps(dict(fusion_before, attitude_prior="direct"))
-    onnx.save(m, str(model))
+    set_fusion(dict(fusion_before, attitude_prior="direct"))
     assert export_main(["--retag", str(model), "--head-gain", str(tmp_path / "gain.json")]) == 2
     assert "head_gain" not in read_metadata(model)["fusion"]
 
