@@ -73,18 +73,15 @@ def collect(est, seqs, stride: int, progress: bool = True) -> dict[str, np.ndarr
 
 
 def bin_slope(true_rad: np.ndarray, head_rad: np.ndarray) -> tuple[float, float, np.ndarray]:
-    """(slope, its standard error, intercept per axis) of head on truth, both axes pooled, each
-    axis centred on its own mean."""
+    """(slope, its standard error, intercept per axis) of head on truth: the probe's statistic
+    (both axes pooled, each centred on its own mean) over the bin as one group."""
+    from oibar_hil.rig.probe import slope_fit
+
     x, y = np.asarray(true_rad, float), np.asarray(head_rad, float)
-    xm, ym = x.mean(0), y.mean(0)
-    xc, yc = (x - xm).ravel(), (y - ym).ravel()
-    sxx = float(xc @ xc)
-    if sxx <= 0:
+    b, se = slope_fit(x, y, np.zeros(len(x)))
+    if not np.isfinite(b):
         raise HeadGainError("the truth's tilt does not vary in this bin")
-    b = float(xc @ yc) / sxx
-    dof = max(len(xc) - 3, 1)  # two means and the slope
-    se = float(np.sqrt(float(np.sum((yc - b * xc) ** 2)) / dof / sxx))
-    return b, se, ym - b * xm
+    return b, se, y.mean(0) - b * x.mean(0)
 
 
 def gain_table(rows: dict[str, np.ndarray], edges_m=ERROR_RANGE_EDGES_M) -> dict:
