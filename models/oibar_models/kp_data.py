@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from oibar.geometry.docking import R_cam_target_aligned
+from oibar.geometry.docking import R_cam_target_aligned, docking_from_camera_pose
 from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
 from oibar.nav.keypoints import (
     MIRROR_ATT,
@@ -196,22 +196,37 @@ class CropDataset(torch.utils.data.Dataset):
         }
 
 
+def off_nominal_deg(T_cam_target_m: np.ndarray, R_cam_target: np.ndarray) -> float:
+    """How far a frame is from the nominal aligned approach, in guidance's terms (deg): the hypot
+    of the attitude error's tilt (about x and y, roll excluded) and the angle of the probe tip
+    off the docking axis seen from the drogue's entrance (its range floored at 0.1 m)."""
+    d = docking_from_camera_pose(T_cam_target_m, R_cam_target)
+    tilt_deg = float(np.degrees(np.hypot(d.att_rad[0], d.att_rad[1])))
+    lateral_deg = float(np.degrees(np.arctan2(d.lateral_m, max(d.range_m, 0.1))))
+    return float(np.hypot(tilt_deg, lateral_deg))
+
+
 def frame_weights(
     scenes: list[Sequence],
     items: list[tuple[int, int]],
     far_from_m: float,
     far_weight: float,
     offaxis_weight_per_deg: float,
+    offnominal_from_deg: float = 1.0,
+    offnominal_weight: float = 1.0,
 ) -> np.ndarray:
     """How often training draws each of `items` ((scene, frame) pairs), relative: `far_weight` for
     a frame whose camera range is at least `far_from_m`, else 1, times 1 + `offaxis_weight_per_deg`
-    x the fixture's bearing off the boresight (deg). Why: beyond 8 m the validation attitude error
-    is twice the nearer bins' and follows that bearing (a parallax read short; docs/model_card.md,
-    2026-11-28), so a far-range stage spends more of its crops there."""
-    if far_weight <= 0 or offaxis_weight_per_deg < 0:
+    x the fixture's bearing off the boresight (deg), times `offnominal_weight` for a frame at least
+    `offnominal_from_deg` off the nominal approach (off_nominal_deg). Why: beyond 8 m the
+    validation attitude error is twice the nearer bins' and follows that bearing (a parallax read
+    short; docs/model_card.md, 2026-11-28), so a far-range stage spends more of its crops there;
+    and a set diluted with aligned approaches teaches a network to read tilts and offsets short
+    (candidate 0.18.1's probe), so a stage can give those frames back their share."""
+    if far_weight <= 0 or offaxis_weight_per_deg < 0 or offnominal_weight <= 0:
         raise ValueError(
-            f"frame weights need far_weight > 0 and offaxis_weight_per_deg >= 0, got {far_weight} "
-            f"and {offaxis_weight_per_deg}"
+            f"frame weights need far_weight > 0, offaxis_weight_per_deg >= 0 and "
+            f"offnominal_weight > 0, got {far_weight}, {offaxis_weight_per_deg} and {offnominal_weight}"
         )
     w = np.empty(len(items))
     for i, (s, k) in enumerate(items):
@@ -220,6 +235,10 @@ def frame_weights(
         w[i] = (far_weight if float(np.linalg.norm(T)) >= far_from_m else 1.0) * (
             1.0 + offaxis_weight_per_deg * bearing_deg
         )
+        if offnominal_weight != 1.0:
+            R = quat_to_matrix_np(scenes[s].q_cam_target[k])
+            if off_nominal_deg(T, R) >= offnominal_from_deg:
+                w[i] *= offnominal_weight
     return w
 
 

@@ -53,6 +53,10 @@ class KpData:
     far_from_m: float = 8.0
     far_weight: float = 1.0
     offaxis_weight_per_deg: float = 0.0
+    # times `offnominal_weight` for a frame `offnominal_from_deg` or more off the aligned approach
+    # (kp_data.off_nominal_deg: tilt and the tip's angle off the axis); 1: no change
+    offnominal_from_deg: float = 1.0
+    offnominal_weight: float = 1.0
 
 
 @dataclass
@@ -133,10 +137,12 @@ def load_kp_config(path: str | Path, overrides: dict | None = None) -> KpConfig:
     cfg = _build(KpConfig, data, str(path))
     sets = {n: load_set(cfg.path(getattr(cfg.data, f"{n}_spec"))) for n in ("train", "val", "test")}
     check_disjoint(sets)
-    if not cfg.data.far_weight > 0 or not cfg.data.offaxis_weight_per_deg >= 0:
+    d = cfg.data
+    if not d.far_weight > 0 or not d.offaxis_weight_per_deg >= 0 or not d.offnominal_weight > 0:
         raise ConfigError(
-            f"{path}: data.far_weight must be > 0 and data.offaxis_weight_per_deg >= 0 (got "
-            f"{cfg.data.far_weight} and {cfg.data.offaxis_weight_per_deg})"
+            f"{path}: data.far_weight and data.offnominal_weight must be > 0 and "
+            f"data.offaxis_weight_per_deg >= 0 (got {d.far_weight}, {d.offnominal_weight} and "
+            f"{d.offaxis_weight_per_deg})"
         )
     if not 0.0 <= cfg.train.ema_decay < 1.0:
         raise ConfigError(
@@ -433,13 +439,21 @@ class WeightedDraws(torch.utils.data.Sampler[int]):
 
 
 def train_sampler(d: KpData, ds: CropDataset, gen: torch.Generator) -> torch.utils.data.Sampler:
-    """Uniform draws with replacement, or weighted by range and bearing (KpData.far_weight,
-    offaxis_weight_per_deg; kp_data.frame_weights) when the config asks."""
-    if d.far_weight == 1.0 and d.offaxis_weight_per_deg == 0.0:
+    """Uniform draws with replacement, or weighted by range, bearing and how far off the aligned
+    approach a frame is (KpData.far_weight, offaxis_weight_per_deg, offnominal_weight;
+    kp_data.frame_weights) when the config asks."""
+    if d.far_weight == 1.0 and d.offaxis_weight_per_deg == 0.0 and d.offnominal_weight == 1.0:
         return torch.utils.data.RandomSampler(ds, replacement=True, num_samples=10**9, generator=gen)
-    return WeightedDraws(
-        frame_weights(ds.scenes, ds.items, d.far_from_m, d.far_weight, d.offaxis_weight_per_deg), gen
+    w = frame_weights(
+        ds.scenes,
+        ds.items,
+        d.far_from_m,
+        d.far_weight,
+        d.offaxis_weight_per_deg,
+        d.offnominal_from_deg,
+        d.offnominal_weight,
     )
+    return WeightedDraws(w, gen)
 
 
 def averaged_net(net: KeypointNet, ema: WeightAverage) -> KeypointNet:

@@ -1195,7 +1195,60 @@ def test_training_can_draw_far_and_off_axis_frames_more_often():
     assert np.allclose(drawn, np.array([1.0, 3.0, 6.0]) / 10.0, atol=0.02)
 
 
-@pytest.mark.parametrize("edit", [{"far_weight": 0.0}, {"offaxis_weight_per_deg": -0.1}])
+def test_training_can_give_frames_off_the_aligned_approach_their_share_back():
+    """data.offnominal_weight (kp_data.frame_weights, off_nominal_deg): a frame tilted or offset
+    from the docking axis by offnominal_from_deg or more is drawn offnominal_weight times as often;
+    an aligned frame is not; the sampler draws them so."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from oibar.geometry.docking import camera_pose_from_docking
+    from oibar.geometry.rotations import matrix_to_quat
+    from oibar_models.kp_data import frame_weights, off_nominal_deg
+    from oibar_models.kp_engine import KpData, WeightedDraws, train_sampler
+
+    looks = [  # (probe tip in D, m; attitude error, rad)
+        ([0.0, 0.0, 3.0], [0.0, 0.0, 0.0]),  # aligned
+        ([0.0, 0.0, 3.0], [0.0, 0.0, np.radians(5.0)]),  # rolled only: still on the approach
+        ([0.0, 0.0, 3.0], [np.radians(0.6), np.radians(0.8), 0.0]),  # tilted 1 deg
+        ([3.0 * np.tan(np.radians(2.0)), 0.0, 3.0], [0.0, 0.0, 0.0]),  # 2 deg off the axis
+        ([0.0, 0.01, 0.0], [0.0, 0.0, 0.0]),  # at the entrance: 1 cm over the 0.1 m floor
+    ]
+    poses = [camera_pose_from_docking(r, a) for r, a in looks]
+    off = [off_nominal_deg(T, R) for T, R in poses]
+    assert off[0] == pytest.approx(0.0, abs=1e-9) and off[1] == pytest.approx(0.0, abs=1e-9)
+    assert off[2] == pytest.approx(1.0, abs=1e-6)
+    assert off[3] == pytest.approx(2.0, abs=1e-6)
+    assert off[4] == pytest.approx(np.degrees(np.arctan(0.1)), abs=1e-6)
+    scenes = [
+        SimpleNamespace(
+            T_cam_target=np.array([T for T, _ in poses]),
+            q_cam_target=np.array([matrix_to_quat(R) for _, R in poses]),
+        )
+    ]
+    items = [(0, k) for k in range(len(looks))]
+    assert np.allclose(frame_weights(scenes, items, 8.0, 1.0, 0.0), 1.0)
+    w = frame_weights(scenes, items, 8.0, 1.0, 0.0, offnominal_from_deg=0.99, offnominal_weight=2.0)
+    assert np.allclose(w, [1.0, 1.0, 2.0, 2.0, 2.0])
+    w = frame_weights(scenes, items, 8.0, 1.0, 0.0, offnominal_from_deg=1.5, offnominal_weight=2.0)
+    assert np.allclose(w, [1.0, 1.0, 1.0, 2.0, 2.0])
+    with pytest.raises(ValueError, match="offnominal_weight"):
+        frame_weights(scenes, items, 8.0, 1.0, 0.0, offnominal_weight=0.0)
+
+    ds = SimpleNamespace(scenes=scenes, items=items)
+    sampler = train_sampler(
+        KpData(offnominal_from_deg=1.5, offnominal_weight=3.0), ds, torch.Generator().manual_seed(0)
+    )
+    assert isinstance(sampler, WeightedDraws)
+    it = iter(sampler)
+    drawn = np.bincount([next(it) for _ in range(11000)], minlength=5) / 11000
+    assert np.allclose(drawn, np.array([1.0, 1.0, 1.0, 3.0, 3.0]) / 9.0, atol=0.02)
+
+
+@pytest.mark.parametrize(
+    "edit", [{"far_weight": 0.0}, {"offaxis_weight_per_deg": -0.1}, {"offnominal_weight": 0.0}]
+)
 def test_a_config_with_a_sampling_weight_that_cannot_be_is_refused(edit):
     with pytest.raises(ConfigError, match="far_weight"):
         load_kp_config(CONFIG, {"data": edit})
