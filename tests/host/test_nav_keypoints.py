@@ -555,6 +555,24 @@ def test_the_head_gain_model_reads_its_range_bin_and_refuses_a_bad_table():
         HeadGainModel({"range_edges_m": [0.0, 1.0], "tilt_gain": [float("nan")]})
 
 
+@pytest.mark.parametrize("edges", [[0.0, 3.0, 1.0], [0.0, 1.0, 1.0], [0.0, float("nan"), 3.0]])
+@pytest.mark.parametrize("kind", ["KeypointErrorModel", "PriorErrorModel", "HeadGainModel"])
+def test_every_range_table_refuses_edges_that_do_not_rise(kind, edges):
+    """The export's per-range tables (keypoint and prior error models, head gain) share one check
+    of their bins' edges: a falling, repeated or non-finite edge would bin a range silently into
+    the wrong row, so the table is refused."""
+    import oibar.nav.keypoints as kp
+
+    rows = {
+        "KeypointErrorModel": {"rms_crop_px": [[0.5, 0.3]]},
+        "PriorErrorModel": {"rms_deg": [1.0, 2.0]},
+        "HeadGainModel": {"tilt_gain": [0.9, 1.0]},
+    }[kind]
+    getattr(kp, kind)({"range_edges_m": [0.0, 1.0, 3.0], **rows})  # the same table, rising: read
+    with pytest.raises(ValueError, match="rising edges"):
+        getattr(kp, kind)({"range_edges_m": edges, **rows})
+
+
 def test_the_head_gain_gives_the_heads_tilt_back_before_it_is_the_prior(monkeypatch):
     """With fusion.head_gain the fit's prior is the head's reading with its tilt divided by the
     gain of the fixture's range bin (here 0.8 at 6 m: a 2 deg tilt read as 1.6 is given back 2);

@@ -424,6 +424,22 @@ def map_pose(
     return best[1]
 
 
+def range_edges(table: dict[str, Any], what: str) -> np.ndarray:
+    """A range-bin table's ``range_edges_m``, checked: two or more finite, rising edges (m). Every
+    per-range table of the export (error models, head gain) is binned by it with range_bin."""
+    edges_m = np.asarray(table["range_edges_m"], float)
+    if (
+        edges_m.ndim != 1
+        or len(edges_m) < 2
+        or not np.all(np.isfinite(edges_m))
+        or np.any(np.diff(edges_m) <= 0)
+    ):
+        raise ValueError(
+            f"{what}: range_edges_m must be two or more finite rising edges, got {edges_m.tolist()}"
+        )
+    return edges_m
+
+
 class KeypointErrorModel:
     """How well each keypoint is found, by camera range: RMS error (crop pixels) per keypoint and
     range bin, measured on the validation scenes (oibar_models.kp_fusion) and shipped in the
@@ -432,7 +448,7 @@ class KeypointErrorModel:
     pose by degrees. Relative weights only: ``scale(range)`` is the RMS over the overall RMS."""
 
     def __init__(self, table: dict[str, Any]):
-        self.edges_m = np.asarray(table["range_edges_m"], float)
+        self.edges_m = range_edges(table, "error model")
         self.rms_crop_px = np.asarray(table["rms_crop_px"], float)  # (K, bins)
         if self.rms_crop_px.ndim != 2 or self.rms_crop_px.shape[1] != len(self.edges_m) - 1:
             raise ValueError(
@@ -457,7 +473,7 @@ class PriorErrorModel:
     meaning as the typical weight."""
 
     def __init__(self, table: dict[str, Any]):
-        self.edges_m = np.asarray(table["range_edges_m"], float)
+        self.edges_m = range_edges(table, "prior error model")
         self.rms_deg = np.asarray(table["rms_deg"], float)
         if self.rms_deg.ndim != 1 or len(self.rms_deg) != len(self.edges_m) - 1:
             raise ValueError(
@@ -483,10 +499,8 @@ class HeadGainModel:
     weight can undo. ``gain(range)`` is what the head's tilt is divided by before it is used."""
 
     def __init__(self, table: dict[str, Any]):
-        self.edges_m = np.asarray(table["range_edges_m"], float)
+        self.edges_m = range_edges(table, "head gain")
         self.tilt_gain = np.asarray(table["tilt_gain"], float)
-        if self.edges_m.ndim != 1 or len(self.edges_m) < 2 or np.any(np.diff(self.edges_m) <= 0):
-            raise ValueError("head gain: range_edges_m must be two or more rising edges")
         if self.tilt_gain.shape != (len(self.edges_m) - 1,):
             raise ValueError(
                 f"head gain: tilt_gain must have {len(self.edges_m) - 1} entries, got {self.tilt_gain.shape}"
