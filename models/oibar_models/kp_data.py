@@ -198,12 +198,11 @@ class CropDataset(torch.utils.data.Dataset):
 
 def off_nominal_deg(T_cam_target_m: np.ndarray, R_cam_target: np.ndarray) -> float:
     """How far a frame is from the nominal aligned approach, in guidance's terms (deg): the hypot
-    of the attitude error's tilt (about x and y, roll excluded) and the angle of the probe tip
+    of guidance's misalignment (the boresight's tilt, roll excluded) and the angle of the probe tip
     off the docking axis seen from the drogue's entrance (its range floored at 0.1 m)."""
     d = docking_from_camera_pose(T_cam_target_m, R_cam_target)
-    tilt_deg = float(np.degrees(np.hypot(d.att_rad[0], d.att_rad[1])))
     lateral_deg = float(np.degrees(np.arctan2(d.lateral_m, max(d.range_m, 0.1))))
-    return float(np.hypot(tilt_deg, lateral_deg))
+    return float(np.hypot(d.misalignment_deg, lateral_deg))
 
 
 def frame_weights(
