@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -688,9 +689,16 @@ class KeypointPoseEstimator(PoseEstimator):
         cold_crop_budget: int | None = COLD_CROP_BUDGET,
         corner_refine_side_px: float | None = None,
         placed_pass_refines: bool | None = None,
+        overlap_first_pass: bool = True,
     ):
         self.path = Path(path)
         self.zoom_search = bool(zoom_search)
+        # When a prediction (or the latest strong fit) places the first crop, the direct model
+        # runs on a second thread while that crop is read: each network leaves most of the second
+        # core idle at batch 1 (no spinning workers), and the crop does not need the direct answer
+        # to be cut. The same computations, so the same pose; only sooner.
+        self.overlap_first_pass = bool(overlap_first_pass)
+        self._first_pass_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="oibar-first-pass")
         self.scan_search = bool(scan_search)
         # None: no budget (a tool that judges frames one by one, with no cycle to keep)
         if cold_crop_budget is not None and cold_crop_budget < MIN_COLD_CROP_BUDGET:
@@ -978,6 +986,7 @@ class KeypointPoseEstimator(PoseEstimator):
         fusion: dict[str, Any] | None = None,
         prior: tuple[np.ndarray, np.ndarray] | None = None,
         hint: tuple[np.ndarray, np.ndarray] | None = None,
+        placed_reading: tuple[CropWindow, CropReading] | None = None,
     ) -> tuple[PnpResult, CropWindow] | tuple[None, None]:
         """Crop around the current pose, keypoints, pose (keypoints.map_pose: PnP, and with the
         export's ``oibar.fusion`` an attitude prior: the direct model's or the crop's own
@@ -996,6 +1005,8 @@ class KeypointPoseEstimator(PoseEstimator):
         `cold_crop_budget` and leave where they stopped for the next call to go on from, without
         SEARCH_STEPS (`_cold`; estimate drops it when it is too old): a caller that solves
         unrelated frames calls forget() between them, or builds the estimator without a budget.
+        `placed_reading`: the placed window's reading made already (estimate reads it while the
+        direct model runs); used only if it is the window this call places.
         Returns (PnpResult, its window): the first strong fit, else the best weak one
         (`_weak_rank`), else (None, None)."""
         K = self._K()
@@ -1022,16 +1033,19 @@ class KeypointPoseEstimator(PoseEstimator):
         placed = prior if prior is not None else hint
         refined = False  # the placed read was a refining one, strong and well placed: final
         if placed is not None:
-            uv_p = project(K, self.points_m, placed[0], placed[1])
-            if np.all(np.isfinite(uv_p)):
+            win_p = self._placed_window(placed)
+            if win_p is not None:
                 crops += 1
                 r, pwin = self._one_pass(
                     image,
-                    window_around(uv_p, self.out_px, self.margin),
+                    win_p,
                     R_direct,
                     f,
                     float(np.linalg.norm(placed[1])),
                     refining=self.placed_pass_refines,
+                    reading=placed_reading[1]
+                    if placed_reading is not None and placed_reading[0] == win_p
+                    else None,
                 )
                 refined = consider(r, pwin) and self.placed_pass_refines and self._well_placed(r, pwin)
         base: CropWindow | None = None
@@ -1076,6 +1090,14 @@ class KeypointPoseEstimator(PoseEstimator):
                 break
             best = (r, rwin)
         return best
+
+    def _placed_window(self, placed: tuple[np.ndarray, np.ndarray] | None) -> CropWindow | None:
+        """The window a predicted pose (or a hint) places: around its projected keypoints; None
+        where it projects nowhere (behind the camera)."""
+        if placed is None:
+            return None
+        uv_p = project(self._K(), self.points_m, placed[0], placed[1])
+        return window_around(uv_p, self.out_px, self.margin) if np.all(np.isfinite(uv_p)) else None
 
     def _well_placed(self, r: PnpResult | None, win: CropWindow | None) -> bool:
         """Whether `win` is where the refining pass would have cut it around the fit `r`
@@ -1245,8 +1267,12 @@ class KeypointPoseEstimator(PoseEstimator):
         f: dict[str, Any] | None,
         range_m: float,
         refining: bool = False,
+        reading: CropReading | None = None,
     ) -> tuple[PnpResult, CropWindow] | tuple[None, None]:
-        reading = self.read_crop(image, win, refining)
+        """One window to a fit; `reading`: this window's read_crop(image, win, refining), if
+        made already."""
+        if reading is None:
+            reading = self.read_crop(image, win, refining)
         uv = reading.uv_px
         if refining:
             uv = self.refined_corners(image, win, uv)
@@ -1345,6 +1371,8 @@ class KeypointPoseEstimator(PoseEstimator):
     corner_refine_side_px = 0.0  # refined_corners' size gate, 0: off (idem)
     corner_idx = np.zeros(0, int)
     cold_crop_budget: int | None = COLD_CROP_BUDGET  # (set in __init__)
+    overlap_first_pass = False  # the direct model on its own thread while the placed crop is read (idem)
+    _first_pass_thread: ThreadPoolExecutor | None = None
     _cold: ColdSearch | None = None  # a cold search that goes on in the next frames (solve)
 
     def forget(self) -> None:
@@ -1383,17 +1411,32 @@ class KeypointPoseEstimator(PoseEstimator):
                 0.0,
                 ("blank_frame",),
             )
-        direct = self.first.estimate(image_rgb_uint8, t_s)
-        if not direct.finite or direct.confidence <= 0.0:
-            direct.latency_ms = (time.perf_counter() - t0) * 1e3
-            direct.flags = tuple(direct.flags) + ("no_first_pass",)
-            return direct
         # without a prediction, the estimator's own latest strong fit places the first crop: the
         # filter waits for a run of them (fit_history) when the direct model disagrees, and each
         # cold frame would otherwise pay for the whole search again
         hint = self.fit_history.latest() if prior is None else None
+        pool = self._first_pass_thread if self.overlap_first_pass else None
+        win_p = self._placed_window(prior if prior is not None else hint) if pool is not None else None
+        placed_reading: tuple[CropWindow, CropReading] | None = None
+        if pool is not None and win_p is not None:
+            job = pool.submit(self.first.estimate, image_rgb_uint8, t_s)
+            try:
+                placed_reading = (win_p, self.read_crop(image_rgb_uint8, win_p, self.placed_pass_refines))
+            finally:
+                direct = job.result()  # never leave it running into the next frame
+        else:
+            direct = self.first.estimate(image_rgb_uint8, t_s)
+        if not direct.finite or direct.confidence <= 0.0:
+            direct.latency_ms = (time.perf_counter() - t0) * 1e3
+            direct.flags = tuple(direct.flags) + ("no_first_pass",)
+            return direct
         r, win = self.solve(
-            image_rgb_uint8, direct.R_cam_target, direct.T_cam_target_m, prior=prior, hint=hint
+            image_rgb_uint8,
+            direct.R_cam_target,
+            direct.T_cam_target_m,
+            prior=prior,
+            hint=hint,
+            placed_reading=placed_reading,
         )
         # the cold search ran out of this frame's crops and goes on in the next frames: the answer
         # (no strong fit, so its confidence is already low) is provisional
