@@ -81,3 +81,19 @@ RECOVER_FROM ?= models/oibarnet.onnx
 recover-kp: setup ## the shipped keypoint model's ONNX back into a trainable checkpoint (runs/recovered/oibarnet_kp.pt; calibrated on data/train)
 	@$(PY) -m oibar_models.kp_recover $(RECOVER_FROM) --out runs/recovered/oibarnet_kp.pt \
 	  $(if $(wildcard $(ROOT)/data/train/*/poses.csv),--calibrate data/train,)
+
+# The ship rule for a keypoint candidate against the shipped model (oibar_models.judge, issue 15;
+# docs/model_card.md, "How a candidate ships"): a part that fails stops the rest; verdicts in
+# build/judge/part<N>.json.
+#   make judge-kp JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx        parts 1-3 (~15 min on 2 cores)
+#   make judge-kp-loop JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx   part 4, the closed loop (~85 min)
+# The candidate's first pass (oibar.first_pass) must lie beside it, as for any keypoint model.
+JUDGE_CANDIDATE ?=
+.PHONY: judge-kp judge-kp-loop
+judge-kp: firmware-host gen ## the ship rule's parts 1-3 (validation, probe, demo) for JUDGE_CANDIDATE against the shipped model
+	@test -n "$(JUDGE_CANDIDATE)" || { echo "error: give JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx" >&2; exit 2; }
+	@$(PY) -m oibar_models.judge --out $(BUILD)/judge run --candidate $(JUDGE_CANDIDATE)
+
+judge-kp-loop: firmware-host gen ## the ship rule's part 4: the shipped model's closed-loop runs flown with JUDGE_CANDIDATE, paired
+	@test -n "$(JUDGE_CANDIDATE)" || { echo "error: give JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx" >&2; exit 2; }
+	@$(PY) -m oibar_models.judge --out $(BUILD)/judge loop --candidate $(JUDGE_CANDIDATE) --jobs $(JOBS)

@@ -1,0 +1,447 @@
+"""The ship rule for a keypoint candidate against the shipped model (issue 15).
+
+Every candidate since 0.18.1 was judged by the same four parts, written before its figures
+(docs/model_card.md, "Candidate 0.18.1" and after); a part that fails stops the rest:
+
+1. validation (kp_evaluate, every 2nd frame, tracking, both files in one run): attitude better by
+   at least 0.01 deg, position no worse by more than 0.01 %, neither compliance lower by more than
+   0.05 %, and the candidate's graph is the shipped one's (same operators in order, same
+   initializer shapes);
+2. the probe on the validation scenes: no slope further from 1 than the shipped model's beyond two
+   standard errors of the difference, and none of the shipped model's within 0.1 of 1 leaves that
+   band (a per-frame gain that reads the 3 m view shorter lost in the closed loop: 0.20.0);
+3. the demo with the candidate: lateral p95 below 5 m <= 5 cm, capture within 1 cm of the axis,
+   navigator p99 <= 50 ms;
+4. the closed loop paired run by run against the shipped model's runs (held-out, then default):
+   every run docks; per set the mean paired lateral p95 difference no worse than
+   max(1 SE, 0.10 cm); the worst run no worse by more than 0.5 cm; capture no worse by more than
+   0.5 mm.
+
+    python -m oibar_models.judge run --candidate runs/<name>/oibarnet.onnx      # parts 1-3 (~15 min)
+    python -m oibar_models.judge loop --candidate runs/<name>/oibarnet.onnx     # part 4 (~85 min)
+    python -m oibar_models.judge validation EVAL_JSON --candidate C.onnx        # one part, from
+    python -m oibar_models.judge probe PROBE_JSON                               #   files made
+    python -m oibar_models.judge demo DEMO_JSON                                 #   already
+    python -m oibar_models.judge pair held_out=LOOKS_JSON default=LOOKS_JSON
+
+Each prints its clauses and writes its verdict (JSON) under --out; exit 0 when it holds, 1 when
+it fails, 2 on bad input (a missing or malformed file, a base that does not match).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[2]
+SHIPPED = REPO / "models/oibarnet.onnx"
+# The shipped model's own probe and closed-loop runs, the bases of parts 2 and 4. When a model
+# ships, its probe and its loop arm become the new bases (and these two names change with it).
+BASE_PROBE = REPO / "docs/data/probe_val_0153.json"
+BASE_LOOP = REPO / "docs/data/loop_candidate_0153.json"
+LOOP_SETS = ("held_out", "default")  # flown in this order (the held-out looks first)
+
+
+class JudgeInputError(ValueError):
+    """A file the rule reads is missing, malformed, or does not match its base."""
+
+
+@dataclass(frozen=True)
+class Rule:
+    """The thresholds (see the module's docstring)."""
+
+    att_gain_deg: float = 0.01
+    pos_slack_pct: float = 0.01
+    compliance_slack_pct: float = 0.05
+    slope_se: float = 2.0
+    slope_band: float = 0.1
+    demo_lateral_cm: float = 5.0
+    demo_capture_cm: float = 1.0
+    demo_nav_p99_ms: float = 50.0
+    loop_min_slack_cm: float = 0.10
+    loop_worst_slack_cm: float = 0.5
+    loop_capture_slack_mm: float = 0.5
+
+
+@dataclass
+class Verdict:
+    """One part's answer: whether it holds and each clause (name, holds, what was measured)."""
+
+    part: str
+    holds: bool = True
+    clauses: list[dict[str, Any]] = field(default_factory=list)
+    figures: dict[str, Any] = field(default_factory=dict)
+
+    def check(self, name: str, ok: bool, detail: str) -> None:
+        self.clauses.append({"clause": name, "holds": bool(ok), "detail": detail})
+        self.holds = self.holds and bool(ok)
+
+    def text(self) -> str:
+        lines = [f"part {self.part}: {'holds' if self.holds else 'FAILS'}"]
+        lines += [f"  [{'ok' if c['holds'] else 'FAIL'}] {c['clause']}: {c['detail']}" for c in self.clauses]
+        return "\n".join(lines)
+
+
+def _load(path: Path, what: str) -> Any:
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise JudgeInputError(f"{path}: no such file ({what})") from None
+    except (OSError, ValueError) as exc:
+        raise JudgeInputError(f"{path}: not readable JSON ({what}): {exc}") from None
+
+
+def _graph_signature(path: Path) -> tuple[list[str], list[tuple[int, ...]]]:
+    import onnx
+
+    try:
+        g = onnx.load(str(path)).graph
+    except Exception as exc:  # noqa: BLE001 - a damaged file: one clear error
+        raise JudgeInputError(f"{path}: not a readable ONNX file: {exc}") from None
+    return [n.op_type for n in g.node], [tuple(i.dims) for i in g.initializer]
+
+
+def _eval_arm(models: dict[str, Any], version: str) -> dict[str, Any]:
+    hits = [v for name, v in models.items() if name.split()[1:2] == [version] and name.endswith(" tracking")]
+    if len(hits) != 1:
+        raise JudgeInputError(
+            f"the evaluation has {len(hits)} tracking arms of version {version} (arms: {sorted(models)})"
+        )
+    arm: dict[str, Any] = hits[0]
+    return arm
+
+
+def _version(path: Path) -> str:
+    from oibar.nav.pose import read_metadata
+
+    return str(read_metadata(path).get("model_version", "?"))
+
+
+def judge_validation(
+    eval_json: dict[str, Any],
+    base_version: str,
+    cand_version: str,
+    base_graph: tuple[list[str], list[tuple[int, ...]]],
+    cand_graph: tuple[list[str], list[tuple[int, ...]]],
+    rule: Rule = Rule(),
+) -> Verdict:
+    """Part 1 from kp_evaluate's eval.json (both models on the validation set, tracking)."""
+    if "val" not in eval_json:
+        raise JudgeInputError("the evaluation has no validation set ('val')")
+    if base_version == cand_version:
+        raise JudgeInputError(
+            f"the candidate has the shipped model's version ({base_version}): give it its own"
+        )
+    b = _eval_arm(eval_json["val"], base_version)["_all"]
+    c = _eval_arm(eval_json["val"], cand_version)["_all"]
+    v = Verdict("1 (validation)")
+    v.figures = {"base": b, "candidate": c}
+    d_att = c["dq_mean_deg"] - b["dq_mean_deg"]
+    v.check(
+        "attitude better",
+        d_att <= -rule.att_gain_deg,
+        f"{b['dq_mean_deg']:.4f} -> {c['dq_mean_deg']:.4f} deg ({d_att:+.4f}; needs <= {-rule.att_gain_deg:+.2f})",
+    )
+    d_pos = c["dt_mean_pct"] - b["dt_mean_pct"]
+    v.check(
+        "position held",
+        d_pos <= rule.pos_slack_pct,
+        f"{b['dt_mean_pct']:.4f} -> {c['dt_mean_pct']:.4f} % ({d_pos:+.4f}; needs <= {rule.pos_slack_pct:+.2f})",
+    )
+    for k in ("compliance_pos_pct", "compliance_att_pct"):
+        d = c[k] - b[k]
+        v.check(
+            k.replace("_pct", "") + " held",
+            d >= -rule.compliance_slack_pct,
+            f"{b[k]:.2f} -> {c[k]:.2f} % ({d:+.2f}; needs >= {-rule.compliance_slack_pct:+.2f})",
+        )
+    v.check(
+        "same graph",
+        base_graph == cand_graph,
+        f"{len(base_graph[0])} / {len(cand_graph[0])} nodes, {len(base_graph[1])} / {len(cand_graph[1])} "
+        f"initializers, {'the same' if base_graph == cand_graph else 'different'} operators and shapes",
+    )
+    return v
+
+
+def judge_probe(base: dict[str, Any], cand: dict[str, Any], rule: Rule = Rule()) -> Verdict:
+    """Part 2 from two `oibar_hil.rig.probe --json` files on the same scenes."""
+    rows_b, rows_c = base.get("rows"), cand.get("rows")
+    if not rows_b or not rows_c or len(rows_b) != len(rows_c):
+        raise JudgeInputError("the probes must both have rows, as many of them")
+    if base.get("scenes") != cand.get("scenes"):
+        raise JudgeInputError(
+            f"the probes ran on other scenes: {base.get('scenes')!r} / {cand.get('scenes')!r}"
+        )
+    v = Verdict("2 (probe)")
+    for rb, rc in zip(rows_b, rows_c, strict=True):
+        if rb["range_m"] != rc["range_m"]:
+            raise JudgeInputError(f"the probes' rows differ in range: {rb['range_m']} / {rc['range_m']}")
+        for k in sorted(x for x in rb if x.endswith("_slope")):
+            sb, sc = float(rb[k]), float(rc[k])
+            se = math.hypot(float(rb[k + "_se"]), float(rc[k + "_se"]))
+            worse_se = (
+                (abs(sc - 1.0) - abs(sb - 1.0)) / se if se > 0 else math.inf * (abs(sc - 1) > abs(sb - 1))
+            )
+            left_band = abs(sb - 1.0) <= rule.slope_band < abs(sc - 1.0)
+            v.check(
+                f"{rb['range_m']:g} m {k}",
+                worse_se <= rule.slope_se and not left_band,
+                f"{sb:.3f} -> {sc:.3f} ({worse_se:+.1f} SE further from 1"
+                + (f"; left the {rule.slope_band:g} band" if left_band else "")
+                + ")",
+            )
+    return v
+
+
+def judge_demo(demo: list[dict[str, Any]], rule: Rule = Rule()) -> Verdict:
+    """Part 3 from `python -m oibar_hil.rig --json F demo`."""
+    if not isinstance(demo, list) or len(demo) != 1 or "metrics" not in demo[0]:
+        raise JudgeInputError("the demo's JSON must hold one mission with its metrics")
+    r = demo[0]
+    m, cap = r["metrics"], r.get("capture") or {}
+    lat_cm = float(m.get("nav_lateral_err_m_p95_below_5m", math.nan)) * 100
+    cap_cm = float(cap.get("lateral_m", math.nan)) * 100
+    p99 = float(m.get("nav_ms_p99", math.nan))
+    v = Verdict("3 (demo)")
+    v.figures = {"lateral_p95_below_5m_cm": lat_cm, "capture_lateral_cm": cap_cm, "nav_ms_p99": p99}
+    v.check("mission passes", bool(r.get("passed")), f"{r.get('outcome')}")
+    v.check(
+        "lateral p95 below 5 m",
+        lat_cm <= rule.demo_lateral_cm,
+        f"{lat_cm:.2f} cm (<= {rule.demo_lateral_cm:g})",
+    )
+    v.check(
+        "capture off the axis",
+        cap_cm <= rule.demo_capture_cm,
+        f"{cap_cm * 10:.2f} mm (<= {rule.demo_capture_cm * 10:g})",
+    )
+    v.check("navigator p99", p99 <= rule.demo_nav_p99_ms, f"{p99:.1f} ms (<= {rule.demo_nav_p99_ms:g})")
+    return v
+
+
+def _mean_se(xs: list[float]) -> tuple[float, float]:
+    n = len(xs)
+    mu = sum(xs) / n
+    se = math.sqrt(sum((x - mu) ** 2 for x in xs) / (n - 1) / n) if n > 1 else math.nan
+    return mu, se
+
+
+def judge_loop(base: dict[str, Any], cand: dict[str, dict[str, Any]], rule: Rule = Rule()) -> Verdict:
+    """Part 4: each set's `oibar_hil.rig.looks --json` runs paired with the base's arm of the same
+    set (its ``runs``: look, start_m, seed, turn, outcome_new, lat_p95_new_cm, capture_new_mm)."""
+    v = Verdict("4 (closed loop)")
+    if not cand:
+        raise JudgeInputError("no loop set given (held_out=FILE and/or default=FILE)")
+    for label, looks in cand.items():
+        if label not in base:
+            raise JudgeInputError(
+                f"the base has no {label!r} set (has {sorted(k for k in base if k in LOOP_SETS)})"
+            )
+
+        def key(look: str, start: float, seed: int, turn: Any) -> tuple[Any, ...]:
+            return (look, float(start), int(seed), tuple(float(t) for t in turn))
+
+        ref = {key(r["look"], r["start_m"], r["seed"], r["turn"]): r for r in base[label]["runs"]}
+        diffs, caps_b, caps_c, worst_b, worst_c, docked = [], [], [], [], [], 0
+        seen = set()
+        for r in looks.get("runs", []):
+            k = r["key"]
+            kk = key(k["look"], k["start_range_m"], k["seed"], k["turn_deg"])
+            if kk not in ref:
+                raise JudgeInputError(f"{label}: run {kk} is not among the base's runs")
+            seen.add(kk)
+            b = ref[kk]
+            lat_c = float(r["lateral_p95_below_5m_m"]) * 100
+            diffs.append(lat_c - float(b["lat_p95_new_cm"]))
+            worst_b.append(float(b["lat_p95_new_cm"]))
+            worst_c.append(lat_c)
+            caps_b.append(float(b["capture_new_mm"]))
+            caps_c.append(float(r["capture_lateral_m"]) * 1000)
+            docked += r.get("outcome") == "completed"
+        missing = len(ref) - len(seen)
+        v.check(f"{label}: every base run flown", missing == 0, f"{len(seen)} of {len(ref)}")
+        if not diffs:
+            continue
+        v.check(f"{label}: every run docks", docked == len(diffs), f"{docked} of {len(diffs)}")
+        mu, se = _mean_se(diffs)
+        allowed = max(se, rule.loop_min_slack_cm) if math.isfinite(se) else rule.loop_min_slack_cm
+        v.check(
+            f"{label}: paired lateral p95 below 5 m",
+            mu <= allowed,
+            f"{mu:+.2f} +- {se:.2f} cm ({sum(d < 0 for d in diffs)} better; needs <= {allowed:+.2f})",
+        )
+        v.check(
+            f"{label}: worst run",
+            max(worst_c) - max(worst_b) <= rule.loop_worst_slack_cm,
+            f"{max(worst_b):.2f} -> {max(worst_c):.2f} cm (<= +{rule.loop_worst_slack_cm:g})",
+        )
+        cb, cc = sum(caps_b) / len(caps_b), sum(caps_c) / len(caps_c)
+        v.check(
+            f"{label}: capture",
+            cc - cb <= rule.loop_capture_slack_mm,
+            f"{cb:.2f} -> {cc:.2f} mm (<= +{rule.loop_capture_slack_mm:g})",
+        )
+        v.figures[label] = {"n": len(diffs), "paired_diff_cm": mu, "paired_se_cm": se}
+    return v
+
+
+# --- running the parts -----------------------------------------------------------------------
+
+
+def _run(cmd: list[str], log: Path) -> None:
+    """A step of the rule (a CLI of this project) with its output in `log`; stops on failure."""
+    print(f"$ {' '.join(cmd)}  (log: {log})", flush=True)
+    with log.open("w") as f:
+        rc = subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
+    if rc != 0:
+        raise JudgeInputError(f"{cmd[2]} failed (exit {rc}); see {log}")
+
+
+def _report(v: Verdict, out: Path) -> bool:
+    out.mkdir(parents=True, exist_ok=True)
+    name = v.part.split()[0]
+    (out / f"part{name}.json").write_text(json.dumps(asdict(v), indent=1, default=float) + "\n")
+    print(v.text(), flush=True)
+    return v.holds
+
+
+def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) -> bool:
+    """Parts 1-3 in order, each from the project's own tools, stopping at the first that fails."""
+    py = sys.executable
+    for p in (cand, base, BASE_PROBE):
+        if not Path(p).is_file():
+            raise JudgeInputError(f"{p}: no such file")
+    out.mkdir(parents=True, exist_ok=True)
+    _run(
+        [py, "-m", "oibar_models.kp_evaluate", "--models", str(cand), str(base), "--sets", "val",
+         "--stride", "2", "--modes", "track", "--no-progress", "--out", str(out / "val")],
+        out / "eval.log",
+    )  # fmt: skip
+    v1 = judge_validation(
+        _load(out / "val/eval.json", "kp_evaluate's output"),
+        _version(base),
+        _version(cand),
+        _graph_signature(base),
+        _graph_signature(cand),
+        rule,
+    )
+    if not _report(v1, out):
+        return False
+    _run(
+        [py, "-m", "oibar_hil.rig.probe", "--model", str(cand), "--scenes", "val", "--json",
+         str(out / "probe.json"), "--md", str(out / "probe.md"), "--plot", str(out / "probe.png")],
+        out / "probe.log",
+    )  # fmt: skip
+    v2 = judge_probe(
+        _load(BASE_PROBE, "the shipped model's probe"), _load(out / "probe.json", "the probe"), rule
+    )
+    if not _report(v2, out):
+        return False
+    # the rig exits 1 when a check of the mission fails: part 3 says so from its JSON
+    cmd = [
+        py,
+        "-m",
+        "oibar_hil.rig",
+        "--no-progress",
+        "--model",
+        str(cand),
+        "--json",
+        str(out / "demo.json"),
+        "demo",
+    ]
+    print(f"$ {' '.join(cmd)}  (log: {out / 'demo.log'})", flush=True)
+    with (out / "demo.log").open("w") as f:
+        subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
+    return _report(judge_demo(_load(out / "demo.json", "the demo's metrics"), rule), out)
+
+
+def fly_loop(cand: Path, out: Path, jobs: int, rule: Rule = Rule()) -> bool:
+    """Part 4: the base's runs flown with the candidate (held-out first), then paired."""
+    base = _load(BASE_LOOP, "the shipped model's closed-loop runs")
+    flown: dict[str, Any] = {}
+    for label in LOOP_SETS:
+        runs = base[label]["runs"]
+        starts = sorted({float(r["start_m"]) for r in runs})
+        seeds = sorted({int(r["seed"]) for r in runs})
+        turns = sorted({tuple(r["turn"]) for r in runs})
+        path = out / f"loop_{label}.json"
+        _run(
+            [sys.executable, "-m", "oibar_hil.rig.looks", "--model", str(cand),
+             "--looks", label.replace("_", "-"), "--starts", ",".join(f"{s:g}" for s in starts),
+             "--seeds", ",".join(map(str, seeds)),
+             "--turns=" + ",".join(f"{a:g}:{b:g}" for a, b in turns),
+             "--jobs", str(jobs), "--no-progress", "--json", str(path)],
+            out / f"loop_{label}.log",
+        )  # fmt: skip
+        flown[label] = _load(path, "the looks' runs")
+        v = judge_loop(base, flown, rule)
+        if not _report(v, out):
+            return False
+    return True
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m oibar_models.judge", description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=REPO / "build/judge", help="where the verdicts go")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("run", help="parts 1-3 for a candidate (evaluation, probe, demo)")
+    p.add_argument("--candidate", type=Path, required=True)
+    p = sub.add_parser("loop", help="part 4: fly the base's closed-loop runs with the candidate, then pair")
+    p.add_argument("--candidate", type=Path, required=True)
+    p.add_argument("--jobs", type=int, default=2)
+    p = sub.add_parser("validation", help="part 1 from kp_evaluate's eval.json")
+    p.add_argument("eval_json", type=Path)
+    p.add_argument("--candidate", type=Path, required=True)
+    p = sub.add_parser("probe", help="part 2 from the candidate's probe JSON")
+    p.add_argument("probe_json", type=Path)
+    p = sub.add_parser("demo", help="part 3 from the demo's JSON (python -m oibar_hil.rig --json F demo)")
+    p.add_argument("demo_json", type=Path)
+    p = sub.add_parser("pair", help="part 4 from looks JSONs already flown: held_out=FILE default=FILE")
+    p.add_argument("sets", nargs="+")
+    a = ap.parse_args(argv)
+    try:
+        if a.cmd == "run":
+            ok = run_parts(a.candidate, a.out)
+        elif a.cmd == "loop":
+            ok = fly_loop(a.candidate, a.out, a.jobs)
+        elif a.cmd == "validation":
+            ok = _report(
+                judge_validation(
+                    _load(a.eval_json, "kp_evaluate's output"),
+                    _version(SHIPPED),
+                    _version(a.candidate),
+                    _graph_signature(SHIPPED),
+                    _graph_signature(a.candidate),
+                ),
+                a.out,
+            )
+        elif a.cmd == "probe":
+            ok = _report(
+                judge_probe(_load(BASE_PROBE, "the shipped model's probe"), _load(a.probe_json, "the probe")),
+                a.out,
+            )
+        elif a.cmd == "demo":
+            ok = _report(judge_demo(_load(a.demo_json, "the demo's metrics")), a.out)
+        else:
+            sets = {}
+            for s in a.sets:
+                label, _, path = s.partition("=")
+                if label not in LOOP_SETS or not path:
+                    raise JudgeInputError(f"{s!r}: give SET=FILE with SET one of {LOOP_SETS}")
+                sets[label] = _load(Path(path), "the looks' runs")
+            ok = _report(judge_loop(_load(BASE_LOOP, "the shipped model's closed-loop runs"), sets), a.out)
+    except JudgeInputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

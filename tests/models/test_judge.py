@@ -1,0 +1,165 @@
+"""The ship rule (oibar_models.judge) on the committed figures of earlier candidates, and each
+clause on figures made to fail it."""
+
+import copy
+import json
+from pathlib import Path
+
+import pytest
+
+from oibar_models.judge import (
+    BASE_LOOP,
+    BASE_PROBE,
+    JudgeInputError,
+    judge_demo,
+    judge_loop,
+    judge_probe,
+    judge_validation,
+    main,
+)
+
+DATA = Path(__file__).resolve().parents[2] / "docs/data"
+GRAPH = (["Conv", "Relu"], [(8, 3, 3, 3), (8,)])
+
+
+def _json(name):
+    return json.loads((DATA / name).read_text())
+
+
+def _failing(v):
+    return [c["clause"] for c in v.clauses if not c["holds"]]
+
+
+def test_candidate_0200_passes_validation_and_fails_the_probe_as_its_card_records():
+    v1 = judge_validation(_json("eval_val_candidate_0200.json"), "0.15.3", "0.20.0", GRAPH, GRAPH)
+    assert v1.holds, v1.text()
+    assert v1.figures["candidate"]["dq_mean_deg"] == pytest.approx(0.5062, abs=1e-4)
+    v2 = judge_probe(json.loads(BASE_PROBE.read_text()), _json("probe_val_0200.json"))
+    assert not v2.holds
+    assert "3 m meas_view_slope" in _failing(v2)  # 0.935 -> 0.915, 2.3 SE
+
+
+def test_candidate_0200s_loop_study_fails_on_the_default_runs_as_its_card_records():
+    study = _json("loop_study_0200.json")
+    flown = {
+        label: {
+            "runs": [
+                {
+                    "key": {
+                        "look": r["look"],
+                        "start_range_m": r["start_m"],
+                        "seed": r["seed"],
+                        "turn_deg": r["turn"],
+                    },
+                    "outcome": r["outcome_new"],
+                    "lateral_p95_below_5m_m": r["lat_p95_new_cm"] / 100,
+                    "capture_lateral_m": r["capture_new_mm"] / 1000,
+                }
+                for r in study[label]["runs"]
+            ]
+        }
+        for label in ("held_out", "default")
+    }
+    v = judge_loop(json.loads(BASE_LOOP.read_text()), flown)
+    assert not v.holds
+    assert "default: paired lateral p95 below 5 m" in _failing(v)  # +0.74 +- 0.21 cm
+    assert v.figures["default"]["paired_diff_cm"] == pytest.approx(0.74, abs=0.01)
+    assert "held_out: every run docks" not in _failing(v)
+    # a run of the base not flown, and a run that does not dock, each fail their clause
+    short = copy.deepcopy(flown)
+    short["held_out"]["runs"].pop()
+    short["held_out"]["runs"][0]["outcome"] = "aborted"
+    failing = _failing(judge_loop(json.loads(BASE_LOOP.read_text()), {"held_out": short["held_out"]}))
+    assert "held_out: every base run flown" in failing and "held_out: every run docks" in failing
+
+
+def _eval(att=0.55, pos=0.30, cpos=99.9, catt=99.8):
+    arm = {
+        "_all": {
+            "dq_mean_deg": att,
+            "dt_mean_pct": pos,
+            "compliance_pos_pct": cpos,
+            "compliance_att_pct": catt,
+        }
+    }
+    base = {
+        "_all": {
+            "dq_mean_deg": 0.56,
+            "dt_mean_pct": 0.30,
+            "compliance_pos_pct": 99.9,
+            "compliance_att_pct": 99.8,
+        }
+    }
+    return {"val": {"oibarnet 0.9.9 tracking": arm, "oibarnet 0.15.3 tracking": base}}
+
+
+@pytest.mark.parametrize(
+    "change, clause",
+    [
+        ({"att": 0.555}, "attitude better"),  # better, but by less than 0.01 deg
+        ({"pos": 0.315}, "position held"),
+        ({"cpos": 99.8}, "compliance_pos held"),
+        ({"catt": 99.7}, "compliance_att held"),
+    ],
+)
+def test_each_validation_clause_fails_on_its_own(change, clause):
+    assert judge_validation(_eval(), "0.15.3", "0.9.9", GRAPH, GRAPH).holds
+    v = judge_validation(_eval(**change), "0.15.3", "0.9.9", GRAPH, GRAPH)
+    assert _failing(v) == [clause]
+    other = (GRAPH[0], [(8, 3, 5, 5), (8,)])
+    assert _failing(judge_validation(_eval(), "0.15.3", "0.9.9", GRAPH, other)) == ["same graph"]
+
+
+def test_a_validation_without_both_arms_or_with_one_version_is_refused():
+    with pytest.raises(JudgeInputError, match="version 0.9.8"):
+        judge_validation(_eval(), "0.15.3", "0.9.8", GRAPH, GRAPH)
+    with pytest.raises(JudgeInputError, match="its own"):
+        judge_validation(_eval(), "0.15.3", "0.15.3", GRAPH, GRAPH)
+    with pytest.raises(JudgeInputError, match="validation"):
+        judge_validation({"test": {}}, "0.15.3", "0.9.9", GRAPH, GRAPH)
+
+
+def _probe(slope, se):
+    return {"scenes": "v", "rows": [{"range_m": 3.0, "view_slope": slope, "view_slope_se": se}]}
+
+
+def test_a_probe_slope_fails_beyond_two_se_or_leaving_the_band():
+    assert judge_probe(_probe(0.95, 0.005), _probe(0.94, 0.005)).holds  # 1.4 SE
+    assert not judge_probe(_probe(0.95, 0.005), _probe(0.93, 0.005)).holds  # 2.8 SE
+    assert judge_probe(_probe(0.95, 0.005), _probe(1.03, 0.005)).holds  # as far from 1, other side
+    # within the SE, but out of the 0.1 band the base was in
+    assert not judge_probe(_probe(0.91, 0.05), _probe(0.89, 0.05)).holds
+    assert judge_probe(_probe(0.85, 0.05), _probe(0.84, 0.05)).holds  # the base was out already
+    with pytest.raises(JudgeInputError, match="other scenes"):
+        judge_probe(_probe(0.9, 0.01), {**_probe(0.9, 0.01), "scenes": "seq01"})
+
+
+def _demo(lat_m=0.03, cap_m=0.002, p99=45.0, passed=True):
+    return [
+        {
+            "outcome": "completed",
+            "passed": passed,
+            "metrics": {"nav_lateral_err_m_p95_below_5m": lat_m, "nav_ms_p99": p99},
+            "capture": {"lateral_m": cap_m},
+        }
+    ]
+
+
+def test_each_demo_clause_fails_on_its_own():
+    assert judge_demo(_demo()).holds
+    assert _failing(judge_demo(_demo(lat_m=0.051))) == ["lateral p95 below 5 m"]
+    assert _failing(judge_demo(_demo(cap_m=0.011))) == ["capture off the axis"]
+    assert _failing(judge_demo(_demo(p99=50.5))) == ["navigator p99"]
+    assert _failing(judge_demo(_demo(passed=False))) == ["mission passes"]
+    with pytest.raises(JudgeInputError):
+        judge_demo({"metrics": {}})
+
+
+def test_the_command_line_writes_the_verdict_and_says_so_in_its_exit_code(tmp_path, capsys):
+    assert main(["--out", str(tmp_path), "probe", str(DATA / "probe_val_0200.json")]) == 1
+    verdict = json.loads((tmp_path / "part2.json").read_text())
+    assert verdict["holds"] is False and "FAILS" in capsys.readouterr().out
+    assert main(["--out", str(tmp_path), "probe", str(DATA / "probe_val_0153.json")]) == 0
+    assert main(["--out", str(tmp_path), "probe", str(tmp_path / "missing.json")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    assert main(["--out", str(tmp_path), "pair", "sideways=x.json"]) == 2
