@@ -163,3 +163,39 @@ def test_the_command_line_writes_the_verdict_and_says_so_in_its_exit_code(tmp_pa
     assert main(["--out", str(tmp_path), "probe", str(tmp_path / "missing.json")]) == 2
     assert "no such file" in capsys.readouterr().err
     assert main(["--out", str(tmp_path), "pair", "sideways=x.json"]) == 2
+
+
+def test_the_loop_flies_the_bases_runs_held_out_first_and_pairs_them(tmp_path, monkeypatch):
+    """Part 4's command: each set's looks, starts, seeds and turns are the base's own, the held-out
+    set first; flown exactly as the base flew them, it holds."""
+    import oibar_models.judge as judge
+
+    base = json.loads(BASE_LOOP.read_text())
+    cmds = []
+
+    def fake_run(cmd, log):
+        cmds.append(cmd)
+        label = "held_out" if cmd[cmd.index("--looks") + 1] == "held-out" else "default"
+        runs = [
+            {
+                "key": {
+                    "look": r["look"],
+                    "start_range_m": r["start_m"],
+                    "seed": r["seed"],
+                    "turn_deg": r["turn"],
+                },
+                "outcome": r["outcome_new"],
+                "lateral_p95_below_5m_m": r["lat_p95_new_cm"] / 100,
+                "capture_lateral_m": r["capture_new_mm"] / 1000,
+            }
+            for r in base[label]["runs"]
+        ]
+        Path(cmd[cmd.index("--json") + 1]).write_text(json.dumps({"runs": runs}))
+
+    monkeypatch.setattr(judge, "_run", fake_run)
+    assert judge.fly_loop(Path("cand.onnx"), tmp_path, jobs=2)
+    assert [c[c.index("--looks") + 1] for c in cmds] == ["held-out", "default"]
+    held, default = cmds
+    assert held[held.index("--seeds") + 1] == "1" and default[default.index("--seeds") + 1] == "1,2"
+    assert "--turns=-2:1.5,2:-1.5" in held and held[held.index("--starts") + 1] == "10"
+    assert json.loads((tmp_path / "part4.json").read_text())["holds"] is True
