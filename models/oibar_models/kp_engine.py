@@ -504,6 +504,12 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         val_ds.items = spread_frames(val_scenes, cfg.data.val_frames)
 
     net = KeypointNet(len(kp), cfg.model.width, pretrained=cfg.model.pretrained).to(device)
+    # On a CPU the convolutions run channels-last (oneDNN's fast path): a step of 64 crops on the
+    # 2-core VM took 2.38 s laid out as NCHW and 1.43 s so, the same fp32 arithmetic (weights
+    # loaded later are copied into this layout). Left as it is on a GPU.
+    channels_last = device.type == "cpu"
+    if channels_last:
+        net = net.to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(net.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     step, best = 0, {"score": float("inf")}
     ck_fitted: int | None = None
@@ -574,7 +580,8 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
         b = next(loader)
         for g in opt.param_groups:
             g["lr"] = lr_at(step, t)
-        heat, present, att = model(b["image"].to(device, non_blocking=True))
+        x = b["image"].to(device, non_blocking=True)
+        heat, present, att = model(x.contiguous(memory_format=torch.channels_last) if channels_last else x)
         losses = kp_loss(
             heat,
             present,
