@@ -69,3 +69,33 @@ def test_the_overlapped_first_pass_gives_the_same_poses_from_the_same_crops(appr
     # prediction yet), on the estimator's own thread after
     assert seq[2] == {threading.current_thread().name}
     assert any(name.startswith("oibar-first-pass") for name in ovl[2])
+
+
+def _estimate_in_child(est, image, prior, out):
+    e = est.estimate(image, 1.0, prior=prior)
+    out.put(e.T_cam_target_m.tolist())
+
+
+def test_an_estimator_used_before_a_fork_still_answers_in_the_child(approach):
+    """A process forked after the estimator has run its direct model on its thread inherits the
+    executor but not the thread: the child makes its own instead of waiting forever."""
+    import multiprocessing as mp
+
+    est = KeypointPoseEstimator(MODEL)
+    e0 = est.estimate(approach[0], 0.1)
+    e1 = est.estimate(approach[1], 0.2, prior=(e0.R_cam_target, e0.T_cam_target_m))  # the thread runs
+    assert e1.finite
+    est.forget()
+    ctx = mp.get_context("fork")
+    out = ctx.Queue()
+    child = ctx.Process(
+        target=_estimate_in_child, args=(est, approach[2], (e1.R_cam_target, e1.T_cam_target_m), out)
+    )
+    child.start()
+    child.join(timeout=60)
+    if child.is_alive():
+        child.kill()
+        child.join()
+        pytest.fail("the forked child never answered: it waited on its parent's first-pass thread")
+    assert child.exitcode == 0
+    assert np.all(np.isfinite(out.get(timeout=5)))

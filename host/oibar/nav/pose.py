@@ -17,6 +17,7 @@ construction. ``OnnxPoseEstimator`` is the older name, kept for oibar_models.
 from __future__ import annotations
 
 import json
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -698,7 +699,6 @@ class KeypointPoseEstimator(PoseEstimator):
         # core idle at batch 1 (no spinning workers), and the crop does not need the direct answer
         # to be cut. The same computations, so the same pose; only sooner.
         self.overlap_first_pass = bool(overlap_first_pass)
-        self._first_pass_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="oibar-first-pass")
         self.scan_search = bool(scan_search)
         # None: no budget (a tool that judges frames one by one, with no cycle to keep)
         if cold_crop_budget is not None and cold_crop_budget < MIN_COLD_CROP_BUDGET:
@@ -1091,6 +1091,14 @@ class KeypointPoseEstimator(PoseEstimator):
             best = (r, rwin)
         return best
 
+    def _first_pass_pool(self) -> ThreadPoolExecutor:
+        """The direct model's thread, made on first use in this process: a process forked from
+        one that used it inherits the executor but not its thread, and would wait forever."""
+        if self._first_pass_thread is None or self._first_pass_thread[0] != os.getpid():
+            pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="oibar-first-pass")
+            self._first_pass_thread = (os.getpid(), pool)
+        return self._first_pass_thread[1]
+
     def _placed_window(self, placed: tuple[np.ndarray, np.ndarray] | None) -> CropWindow | None:
         """The window a predicted pose (or a hint) places: around its projected keypoints; None
         where it projects nowhere (behind the camera)."""
@@ -1372,7 +1380,7 @@ class KeypointPoseEstimator(PoseEstimator):
     corner_idx = np.zeros(0, int)
     cold_crop_budget: int | None = COLD_CROP_BUDGET  # (set in __init__)
     overlap_first_pass = False  # the direct model on its own thread while the placed crop is read (idem)
-    _first_pass_thread: ThreadPoolExecutor | None = None
+    _first_pass_thread: tuple[int, ThreadPoolExecutor] | None = None  # (its process id, the thread)
     _cold: ColdSearch | None = None  # a cold search that goes on in the next frames (solve)
 
     def forget(self) -> None:
@@ -1415,7 +1423,7 @@ class KeypointPoseEstimator(PoseEstimator):
         # filter waits for a run of them (fit_history) when the direct model disagrees, and each
         # cold frame would otherwise pay for the whole search again
         hint = self.fit_history.latest() if prior is None else None
-        pool = self._first_pass_thread if self.overlap_first_pass else None
+        pool = self._first_pass_pool() if self.overlap_first_pass else None
         win_p = self._placed_window(prior if prior is not None else hint) if pool is not None else None
         placed_reading: tuple[CropWindow, CropReading] | None = None
         if pool is not None and win_p is not None:
