@@ -186,9 +186,8 @@ def judge_probe(base: dict[str, Any], cand: dict[str, Any], rule: Rule = Rule())
         for k in sorted(x for x in rb if x.endswith("_slope")):
             sb, sc = float(rb[k]), float(rc[k])
             se = math.hypot(float(rb[k + "_se"]), float(rc[k + "_se"]))
-            worse_se = (
-                (abs(sc - 1.0) - abs(sb - 1.0)) / se if se > 0 else math.inf * (abs(sc - 1) > abs(sb - 1))
-            )
+            further = abs(sc - 1.0) - abs(sb - 1.0)
+            worse_se = further / se if se > 0 else (math.inf if further > 0 else 0.0)
             left_band = abs(sb - 1.0) <= rule.slope_band < abs(sc - 1.0)
             v.check(
                 f"{rb['range_m']:g} m {k}",

@@ -130,6 +130,8 @@ def test_a_probe_slope_fails_beyond_two_se_or_leaving_the_band():
     # within the SE, but out of the 0.1 band the base was in
     assert not judge_probe(_probe(0.91, 0.05), _probe(0.89, 0.05)).holds
     assert judge_probe(_probe(0.85, 0.05), _probe(0.84, 0.05)).holds  # the base was out already
+    assert judge_probe(_probe(0.95, 0.0), _probe(0.95, 0.0)).holds  # no spread at all: not worse
+    assert not judge_probe(_probe(0.95, 0.0), _probe(0.94, 0.0)).holds
     with pytest.raises(JudgeInputError, match="other scenes"):
         judge_probe(_probe(0.9, 0.01), {**_probe(0.9, 0.01), "scenes": "seq01"})
 
