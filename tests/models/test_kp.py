@@ -715,7 +715,7 @@ def test_a_weak_fit_comes_back_flagged_with_low_confidence(monkeypatch):
     win = CropWindow((372.0, 240.0), 64.0, 128)
 
     def answer(rms_crop_px):
-        def solve(image, R, T, fusion=None, prior=None, hint=None):
+        def solve(image, R, T, fusion=None, prior=None, hint=None, placed_reading=None):
             r = PnpResult(
                 True, direct.R_cam_target, direct.T_cam_target_m, np.arange(14), rms_crop_px / win.scale
             )
@@ -736,7 +736,7 @@ def _fits_answering(est, monkeypatch, frame, rms_crop_px=0.5):
     win = CropWindow((372.0, 240.0), 64.0, 128)
     queue: list = []
 
-    def solve(image, R, T, fusion=None, prior=None, hint=None):
+    def solve(image, R, T, fusion=None, prior=None, hint=None, placed_reading=None):
         R_fit, T_fit = queue.pop(0)
         return PnpResult(True, R_fit, T_fit, np.arange(14), rms_crop_px / win.scale), win
 
@@ -905,7 +905,7 @@ def test_the_export_says_what_the_navigation_filter_is_fed(tmp_path, monkeypatch
     T_alone = T * 1.02  # PnP alone: 2 % off the fused pose, well inside MEAS_MAX_POS_DEV_FRACTION
     win = CropWindow((372.0, 240.0), 64.0, 128)
 
-    def solve(image, R_, T_, fusion=None, prior=None, hint=None):
+    def solve(image, R_, T_, fusion=None, prior=None, hint=None, placed_reading=None):
         alone = PnpResult(True, R, T_alone, np.arange(14), 0.1)
         return PnpResult(True, R, T, np.arange(14), 0.5 / win.scale, no_prior=alone), win
 
