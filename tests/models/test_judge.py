@@ -39,27 +39,27 @@ def test_candidate_0200_passes_validation_and_fails_the_probe_as_its_card_record
     assert "3 m meas_view_slope" in _failing(v2)  # 0.935 -> 0.915, 2.3 SE
 
 
+def _as_flown(paired_runs):
+    """A paired file's runs (its 'new' arm) as `oibar_hil.rig.looks --json` writes them."""
+    return [
+        {
+            "key": {
+                "look": r["look"],
+                "start_range_m": r["start_m"],
+                "seed": r["seed"],
+                "turn_deg": r["turn"],
+            },
+            "outcome": r["outcome_new"],
+            "lateral_p95_below_5m_m": r["lat_p95_new_cm"] / 100,
+            "capture_lateral_m": r["capture_new_mm"] / 1000,
+        }
+        for r in paired_runs
+    ]
+
+
 def test_candidate_0200s_loop_study_fails_on_the_default_runs_as_its_card_records():
     study = _json("loop_study_0200.json")
-    flown = {
-        label: {
-            "runs": [
-                {
-                    "key": {
-                        "look": r["look"],
-                        "start_range_m": r["start_m"],
-                        "seed": r["seed"],
-                        "turn_deg": r["turn"],
-                    },
-                    "outcome": r["outcome_new"],
-                    "lateral_p95_below_5m_m": r["lat_p95_new_cm"] / 100,
-                    "capture_lateral_m": r["capture_new_mm"] / 1000,
-                }
-                for r in study[label]["runs"]
-            ]
-        }
-        for label in ("held_out", "default")
-    }
+    flown = {label: {"runs": _as_flown(study[label]["runs"])} for label in ("held_out", "default")}
     v = judge_loop(json.loads(BASE_LOOP.read_text()), flown)
     assert not v.holds
     assert "default: paired lateral p95 below 5 m" in _failing(v)  # +0.74 +- 0.21 cm
@@ -178,21 +178,7 @@ def test_the_loop_flies_the_bases_runs_held_out_first_and_pairs_them(tmp_path, m
     def fake_run(cmd, log):
         cmds.append(cmd)
         label = "held_out" if cmd[cmd.index("--looks") + 1] == "held-out" else "default"
-        runs = [
-            {
-                "key": {
-                    "look": r["look"],
-                    "start_range_m": r["start_m"],
-                    "seed": r["seed"],
-                    "turn_deg": r["turn"],
-                },
-                "outcome": r["outcome_new"],
-                "lateral_p95_below_5m_m": r["lat_p95_new_cm"] / 100,
-                "capture_lateral_m": r["capture_new_mm"] / 1000,
-            }
-            for r in base[label]["runs"]
-        ]
-        Path(cmd[cmd.index("--json") + 1]).write_text(json.dumps({"runs": runs}))
+        Path(cmd[cmd.index("--json") + 1]).write_text(json.dumps({"runs": _as_flown(base[label]["runs"])}))
 
     monkeypatch.setattr(judge, "_run", fake_run)
     assert judge.fly_loop(Path("cand.onnx"), tmp_path, jobs=2)
