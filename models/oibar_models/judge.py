@@ -118,9 +118,12 @@ def _eval_arm(models: dict[str, Any], version: str) -> dict[str, Any]:
 
 
 def _version(path: Path) -> str:
-    from oibar.nav.pose import read_metadata
+    from oibar.nav.pose import ModelFileError, read_metadata
 
-    return str(read_metadata(path).get("model_version", "?"))
+    try:
+        return str(read_metadata(path).get("model_version", "?"))
+    except ModelFileError as exc:
+        raise JudgeInputError(str(exc)) from None
 
 
 def judge_validation(
@@ -318,6 +321,8 @@ def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) 
         if not Path(p).is_file():
             raise JudgeInputError(f"{p}: no such file")
     out.mkdir(parents=True, exist_ok=True)
+    for old in out.glob("part[1-4].json"):  # an earlier candidate's verdicts would read as this one's
+        old.unlink()
     _run(
         [py, "-m", "oibar_models.kp_evaluate", "--models", str(cand), str(base), "--sets", "val",
          "--stride", "2", "--modes", "track", "--no-progress", "--out", str(out / "val")],

@@ -187,3 +187,22 @@ def test_the_loop_flies_the_bases_runs_held_out_first_and_pairs_them(tmp_path, m
     assert held[held.index("--seeds") + 1] == "1" and default[default.index("--seeds") + 1] == "1,2"
     assert "--turns=-2:1.5,2:-1.5" in held and held[held.index("--starts") + 1] == "10"
     assert json.loads((tmp_path / "part4.json").read_text())["holds"] is True
+
+
+def test_a_candidate_that_is_no_model_file_is_refused_with_its_reason(tmp_path, capsys):
+    bad = tmp_path / "oibarnet.onnx"
+    bad.write_bytes(b"not onnx")
+    assert (
+        main(
+            [
+                "--out",
+                str(tmp_path),
+                "validation",
+                str(DATA / "eval_val_candidate_0200.json"),
+                "--candidate",
+                str(bad),
+            ]
+        )
+        == 2
+    )
+    assert str(bad) in capsys.readouterr().err
