@@ -1005,8 +1005,8 @@ class KeypointPoseEstimator(PoseEstimator):
         `cold_crop_budget` and leave where they stopped for the next call to go on from, without
         SEARCH_STEPS (`_cold`; estimate drops it when it is too old): a caller that solves
         unrelated frames calls forget() between them, or builds the estimator without a budget.
-        `placed_reading`: the placed window's reading made already (estimate reads it while the
-        direct model runs); used only if it is the window this call places.
+        `placed_reading`: (the window `placed` places, its reading), made already (estimate
+        reads it while the direct model runs), so neither is computed again here.
         Returns (PnpResult, its window): the first strong fit, else the best weak one
         (`_weak_rank`), else (None, None)."""
         K = self._K()
@@ -1033,7 +1033,8 @@ class KeypointPoseEstimator(PoseEstimator):
         placed = prior if prior is not None else hint
         refined = False  # the placed read was a refining one, strong and well placed: final
         if placed is not None:
-            win_p = self._placed_window(placed)
+            # the window estimate read already (while the direct model ran) is this very one
+            win_p = placed_reading[0] if placed_reading is not None else self._placed_window(placed)
             if win_p is not None:
                 crops += 1
                 r, pwin = self._one_pass(
@@ -1043,9 +1044,7 @@ class KeypointPoseEstimator(PoseEstimator):
                     f,
                     float(np.linalg.norm(placed[1])),
                     refining=self.placed_pass_refines,
-                    reading=placed_reading[1]
-                    if placed_reading is not None and placed_reading[0] == win_p
-                    else None,
+                    reading=placed_reading[1] if placed_reading is not None else None,
                 )
                 refined = consider(r, pwin) and self.placed_pass_refines and self._well_placed(r, pwin)
         base: CropWindow | None = None
