@@ -228,16 +228,11 @@ def judge_demo(demo: list[dict[str, Any]], rule: Rule = Rule()) -> Verdict:
     return v
 
 
-def _mean_se(xs: list[float]) -> tuple[float, float]:
-    n = len(xs)
-    mu = sum(xs) / n
-    se = math.sqrt(sum((x - mu) ** 2 for x in xs) / (n - 1) / n) if n > 1 else math.nan
-    return mu, se
-
-
 def judge_loop(base: dict[str, Any], cand: dict[str, dict[str, Any]], rule: Rule = Rule()) -> Verdict:
     """Part 4: each set's `oibar_hil.rig.looks --json` runs paired with the base's arm of the same
     set (its ``runs``: look, start_m, seed, turn, outcome_new, lat_p95_new_cm, capture_new_mm)."""
+    from oibar_hil.rig.looks import mean_se  # the looks' own paired statistics
+
     v = Verdict("4 (closed loop)")
     if not cand:
         raise JudgeInputError("no loop set given (held_out=FILE and/or default=FILE)")
@@ -272,7 +267,7 @@ def judge_loop(base: dict[str, Any], cand: dict[str, dict[str, Any]], rule: Rule
         if not diffs:
             continue
         v.check(f"{label}: every run docks", docked == len(diffs), f"{docked} of {len(diffs)}")
-        mu, se = _mean_se(diffs)
+        mu, se = mean_se(diffs)
         allowed = max(se, rule.loop_min_slack_cm) if math.isfinite(se) else rule.loop_min_slack_cm
         v.check(
             f"{label}: paired lateral p95 below 5 m",
