@@ -248,11 +248,17 @@ def main() -> None:
     train_nearaxis = train_sunfill + off_axis(
         "tr", len(train_sunfill), 20000 + len(train_sunfill), 24, rng, clear, offaxis_m=(0.06, 0.15)
     )
+    # The near-axis runs without the Sun-filled ones (model 0.22.0): train_turned.json's scenes plus
+    # the same 24 near-axis runs (same names, seeds and Suns), drawn from nothing new. Why: stage
+    # 21 repeated 0.15.3's recipe on train_nearaxis.json and read the probe's 3 m view shorter, as
+    # every network trained on the Sun-filled runs has; this set takes only those runs out.
+    train_turned_nearaxis = train_turned + train_nearaxis[len(train_sunfill) :]
     sets = {
         "train": {"set": "train", "scenes": train},
         "train_turned": {"set": "train", "scenes": train_turned},
         "train_sunfill": {"set": "train", "scenes": train_sunfill},
         "train_nearaxis": {"set": "train", "scenes": train_nearaxis},
+        "train_turned_nearaxis": {"set": "train", "scenes": train_turned_nearaxis},
         "val": {"set": "val", "scenes": val},
         "test": {"set": "test", "scenes": TEST},
     }

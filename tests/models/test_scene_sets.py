@@ -67,3 +67,18 @@ def test_the_sun_filled_set_holds_the_turned_set_first(make_scenes):
     turned = json.loads((SCENES / "train_turned.json").read_text())["scenes"]
     filled = json.loads((SCENES / "train_sunfill.json").read_text())["scenes"]
     assert filled[: len(turned)] == turned and len(filled) > len(turned)
+
+
+def test_the_turned_near_axis_set_is_the_near_axis_set_without_the_sun_fill():
+    """Stage 22 asks whether the Sun-filled runs are what shortened the 3 m view: its set must be
+    train_turned.json's scenes plus the very near-axis runs stage 21 saw (same names, seeds and
+    Suns), and none of the Sun-filled runs."""
+    turned, filled, near, ours = (
+        json.loads((SCENES / f"{n}.json").read_text())["scenes"]
+        for n in ("train_turned", "train_sunfill", "train_nearaxis", "train_turned_nearaxis")
+    )
+    added = near[len(filled) :]
+    assert len(added) == 24 and all(0.06 <= s["offaxis_m"] <= 0.15 for s in added)
+    assert ours == turned + added
+    names = {s["name"] for s in ours}
+    assert not names & {s["name"] for s in filled[len(turned) :]}
