@@ -12,16 +12,11 @@ if str(_HIL) not in sys.path:
 
 
 @pytest.fixture(scope="session")
-def recording(tmp_path_factory):
+def recording(tmp_path_factory, headless_gl):
     """One synthetic recording (200 rendered frames, 100 Hz mocap with 0.2 mm / 0.5 deg noise)
     shared by the end-to-end tests; rendering is most of the suite's time."""
     from oibar_hil.calib_synth import SynthConfig, write_recording
-    from oibar_hil.render import create_context
 
-    try:
-        create_context().release()
-    except RuntimeError as exc:
-        pytest.skip(f"no headless OpenGL (EGL) here: {exc}")
     out = tmp_path_factory.mktemp("calib_rec")
     t0 = time.monotonic()
     write_recording(out, SynthConfig())

@@ -9,7 +9,7 @@ import pytest
 
 from oibar.geometry.docking import docking_from_camera_pose
 from oibar.nav.pose import KeypointPoseEstimator, ModelFileError
-from oibar_hil.rig.camera import RigCamera, RigCameraError, scene_spec
+from oibar_hil.rig.camera import RigCamera, scene_spec
 from oibar_hil.rig.probe import slope_fit
 
 REPO = Path(__file__).resolve().parents[2]
@@ -18,11 +18,8 @@ TURNS_DEG = [(3.0, 0.0), (-3.0, 0.0), (0.0, 3.0), (0.0, -3.0), (1.5, 0.0), (0.0,
 
 
 @pytest.fixture(scope="module")
-def frames():
-    try:
-        cam = RigCamera(scene=scene_spec(f"{REPO / 'models/scenes/val.json'}:va000"))
-    except RigCameraError as exc:
-        pytest.skip(f"no headless OpenGL (EGL) here: {exc}")
+def frames(headless_gl):
+    cam = RigCamera(scene=scene_spec(f"{REPO / 'models/scenes/val.json'}:va000"))
     with cam:
         out = []
         for range_m in (1.0, 0.5):

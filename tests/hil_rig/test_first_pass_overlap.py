@@ -9,19 +9,16 @@ import numpy as np
 import pytest
 
 from oibar.nav.pose import KeypointPoseEstimator
-from oibar_hil.rig.camera import RigCamera, RigCameraError, scene_spec
+from oibar_hil.rig.camera import RigCamera, scene_spec
 
 REPO = Path(__file__).resolve().parents[2]
 MODEL = REPO / "models" / "oibarnet.onnx"
 
 
 @pytest.fixture(scope="module")
-def approach():
+def approach(headless_gl):
     """Eight frames of a slow approach from 6 m to 2 m, drifting sideways and turning a little."""
-    try:
-        cam = RigCamera(scene=scene_spec(f"{REPO / 'models/scenes/val.json'}:va003"))
-    except RigCameraError as exc:
-        pytest.skip(f"no headless OpenGL (EGL) here: {exc}")
+    cam = RigCamera(scene=scene_spec(f"{REPO / 'models/scenes/val.json'}:va003"))
     with cam:
         return [
             cam.render(

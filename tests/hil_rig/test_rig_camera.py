@@ -34,16 +34,9 @@ SEQ07 = PAPER_SEQUENCES[7]  # perlin background, port 4 (-R-bar): another port, 
 FACE = {ID_PLATE, ID_PIN_GUIDE, ID_COUPLING, ID_CONNECTOR}  # the fixture's face around the drogue
 
 
-def _camera(**kw) -> RigCamera:
-    try:
-        return RigCamera(**kw)
-    except RigCameraError as exc:
-        pytest.skip(f"no headless OpenGL (EGL) here: {exc}")
-
-
 @pytest.fixture(scope="module")
-def cam():
-    c = _camera(scene="seq01")
+def cam(headless_gl):
+    c = RigCamera(scene="seq01")
     yield c
     c.close()
 
@@ -164,7 +157,7 @@ def test_same_frame_as_the_dataset(cam, plans, dataset_renderer, tmp_path, name,
     have been bit-identical.)"""
     plan = plans[name]
     k = int(round(where * (plan.n_frames - 1)))
-    c = cam if name == "seq01" else _camera(scene=name)
+    c = cam if name == "seq01" else RigCamera(scene=name)
     try:
         st = docking_from_camera_pose(plan.T_cam_target[k], quat_to_matrix(plan.q_cam_target[k]))
         got = c.render(st.r_D_m, st.att_rad, t_s=float(plan.t_s[k]))
@@ -268,8 +261,8 @@ def test_renders_from_another_thread(cam):
     np.testing.assert_array_equal(out["img"], here)
 
 
-def test_frames_are_numbered_and_closed_camera_refuses():
-    c = _camera(scene="seq07", sensor_effects=False)
+def test_frames_are_numbered_and_closed_camera_refuses(headless_gl):
+    c = RigCamera(scene="seq07", sensor_effects=False)
     with c:
         f0 = c.render(np.array([0.0, 0.0, 3.0]), np.zeros(3), t_s=0.0)
         f1 = c.render(np.array([0.0, 0.0, 3.0]), np.zeros(3), t_s=0.1)

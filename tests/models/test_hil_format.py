@@ -11,15 +11,9 @@ from oibar_models.data import frame_cache, input_intrinsics, load_sequence
 
 
 @pytest.mark.slow
-def test_reads_frames_written_by_oibar_hil(tmp_path):
+def test_reads_frames_written_by_oibar_hil(tmp_path, headless_gl):
     from oibar_hil import dataset as hds
 
-    try:
-        from oibar_hil.render import Renderer
-
-        Renderer().release()
-    except Exception as exc:  # no EGL / GL driver here
-        pytest.skip(f"no headless OpenGL: {exc}")
     spec = hds.PAPER_SEQUENCES[2]  # perlin: the cheapest scene to render
     hds.generate_dataset(tmp_path, [spec], frames_limit=3, workers=1, progress=False)
     seq = load_sequence(tmp_path / spec.name, verify_hashes=True)
