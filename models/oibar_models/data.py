@@ -235,7 +235,7 @@ def warp_homography(img: np.ndarray, H_old_to_new: np.ndarray, border: str = "re
     Uncovered pixels are filled by reflecting the image across its edges (``border="black"``:
     zeros). Black bands were a shortcut: they told the network how far the image had been
     shifted, it learned the band instead of the fixture and then ignored real lateral offsets in
-    the closed loop (docs/model_card.md, "lateral response")."""
+    the closed loop (docs/model_history.md, "lateral response")."""
     if border == "black":
         Hinv = np.linalg.inv(H_old_to_new)
         Hinv = Hinv / Hinv[2, 2]

@@ -1,7 +1,7 @@
 """The ship rule for a keypoint candidate against the shipped model (issue 15).
 
 Every candidate since 0.18.1 was judged by the same four parts, written before its figures
-(docs/model_card.md, "Candidate 0.18.1" and after); a part that fails stops the rest:
+(docs/model_history.md, "Candidate 0.18.1" and after); a part that fails stops the rest:
 
 1. validation (kp_evaluate, every 2nd frame, tracking, both files in one run): attitude better by
    at least 0.01 deg, position no worse by more than 0.01 %, neither compliance lower by more than

@@ -219,7 +219,7 @@ def frame_weights(
     x the fixture's bearing off the boresight (deg), times `offnominal_weight` for a frame at least
     `offnominal_from_deg` off the nominal approach (off_nominal_deg). Why: beyond 8 m the
     validation attitude error is twice the nearer bins' and follows that bearing (a parallax read
-    short; docs/model_card.md, 2026-11-28), so a far-range stage spends more of its crops there;
+    short; docs/model_history.md, 2026-11-28), so a far-range stage spends more of its crops there;
     and a set diluted with aligned approaches teaches a network to read tilts and offsets short
     (candidate 0.18.1's probe), so a stage can give those frames back their share."""
     if far_weight <= 0 or offaxis_weight_per_deg < 0 or offnominal_weight <= 0:

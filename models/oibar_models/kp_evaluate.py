@@ -158,7 +158,7 @@ def signed_attitude_error_deg(q_hat: np.ndarray, q: np.ndarray) -> np.ndarray:
     """(N, 3): the rotation vector of R_hat R^T in degrees, camera axes, NaN where q_hat is.
     Its mean over frames is a bias the mean error angle hides: a filter averages noise away and
     keeps a bias (candidate 0.15.6's turned reading moved the prior-free fit's by 0.07-0.1 deg on
-    validation and lost the closed loop on one turn, docs/model_card.md)."""
+    validation and lost the closed loop on one turn, docs/model_history.md)."""
     out = np.full((len(q), 3), np.nan)
     ok = np.all(np.isfinite(q_hat), axis=1)
     if ok.any():

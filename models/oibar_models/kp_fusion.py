@@ -8,7 +8,7 @@ The winner goes into the export's metadata (`kp_export --fusion FILE`).
 The grid scores frames one by one, which is what `estimate()` returns; it cannot see an error the
 prior repeats on every frame (the head's tilt shrunk toward "aligned"). That is why the
 navigator's filter is fed the same keypoints' prior-free fit (oibar.nav.pose.PoseEstimate.
-measurement), chosen on the closed loop of validation looks (docs/model_card.md, 2026-11-24).
+measurement), chosen on the closed loop of validation looks (docs/model_history.md, 2026-11-24).
 
 The error model (oibar.nav.keypoints.KeypointErrorModel) is measured here too: each keypoint's
 RMS error per range bin, in crops cut around the true pose of the validation frames (errors past

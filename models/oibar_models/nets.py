@@ -158,7 +158,7 @@ class BasicBlock(nn.Module):
 def oibar_lite(width: float = 1.0, in_ch: int = 3) -> tuple[nn.Module, int]:
     """Two cheap stride-2 convolutions, then four residual stages (output stride 32). At 248x160
     and width 1 it has 1.6 M parameters and runs at 60-150 inferences/s on 2 shared CPU cores
-    with onnxruntime (measured, docs/model_card.md)."""
+    with onnxruntime (measured, docs/model_history.md)."""
     ch = [max(8, int(round(c * width / 8)) * 8) for c in (16, 32, 48, 96, 192)]
     layers: list[nn.Module] = [conv_bn(in_ch, ch[0], 3, 2), conv_bn(ch[0], ch[1], 3, 2)]
     cin = ch[1]
@@ -221,7 +221,7 @@ class OibarNet(nn.Module):
         # Optional soft-argmax branch (our addition, model.keypoints > 0): K heat maps on the
         # stride-16 features, each reduced to its expected image position (u, v). Global average
         # pooling keeps *what* is seen but blurs *where*; a GAP network trained on our data
-        # learned range well but barely followed lateral shifts (docs/model_card.md). The 2K
+        # learned range well but barely followed lateral shifts (docs/model_history.md). The 2K
         # coordinates join the pooled features in front of the same two heads.
         self.keypoints = int(keypoints)
         if self.keypoints:

@@ -16,7 +16,7 @@ from oibar_hil.rig.scenario import load_scenario
 
 MODEL = REPO_ROOT / "models" / "oibarnet.onnx"
 # The shipped model measures 0.48 / 0.61 (lateral slope at 1 m / attitude slope at 1 m,
-# docs/model_card.md); the model trained with black augmentation borders measured about 0.
+# docs/model_history.md); the model trained with black augmentation borders measured about 0.
 LATERAL_SLOPE_MIN_1M = 0.3
 ATTITUDE_SLOPE_MIN = 0.3
 

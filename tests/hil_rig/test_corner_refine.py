@@ -1,6 +1,6 @@
 """The refining pass's sub-pixel corners (oibar.corner_refine_side_px) on rendered frames: close
 in, the keypoint network reads the fixture's perspective timidly (a turn at ~0.8 of the truth on
-every network from 0.12.0 to 0.16.0, docs/model_card.md); the frame's own corners read it."""
+every network from 0.12.0 to 0.16.0, docs/model_history.md); the frame's own corners read it."""
 
 from pathlib import Path
 

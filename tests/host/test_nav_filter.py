@@ -450,7 +450,7 @@ def fly_biased_odometry(params, bias_D_mps=(0.003, -0.002, 0.0), seed=11):
 
 
 def test_the_odometrys_unreported_lateral_bias_is_allowed_for_and_the_tip_stays_on_the_camera():
-    """The rig's finding (docs/model_card.md, 2026-11-27): fused as white, a constant odometry
+    """The rig's finding (docs/model_history.md, 2026-11-27): fused as white, a constant odometry
     error of a few mm/s walks the tip estimate centimetres off the camera. With the bias carried
     as consider states the camera keeps its weight and the tip stays nearer the truth."""
     off, err_off = fly_biased_odometry(FilterParams(odo_bias_sigma_lateral_mps=0.0))

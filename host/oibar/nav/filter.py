@@ -30,7 +30,7 @@ position, and so validity, comes from the camera. Without odometry nothing here 
 The odometry's own constant error is not in its reported sigma (a GNC states its white noise;
 its bias per approach is a spec-sheet number). Fused as white, a 2 mm/s lateral bias walks the
 tip estimate off the camera by the bias times the position's memory: 1-2.5 cm at 1-5 m in the rig
-(docs/model_card.md, "where the closed loop's lateral error comes from"). The position block can
+(docs/model_history.md, "where the closed loop's lateral error comes from"). The position block can
 carry the odometry's lateral bias as three more states that are *considered*, never estimated
 (a Schmidt-Kalman filter; ``odo_bias_sigma_lateral_mps``, their 1-sigma): the odometry reads
 v + b with b zero-mean, and the covariance the odometry builds up in the position carries b's
@@ -118,7 +118,7 @@ class FilterParams:
     # consider states (0: off, the odometry fused as white). 0.002 is the rig vehicle's assumption
     # (VehicleParams.odometry_bias_mps); a real vehicle's GNC states its own. With 0.13.0 it lost
     # 2.3 cm on va007's look, where that camera leans, and stayed off; on with OibarNet 0.15.3
-    # (its rule, docs/model_card.md): 64 paired runs, 55 better, the worst run 5.80 -> 4.78 cm.
+    # (its rule, docs/model_history.md): 64 paired runs, 55 better, the worst run 5.80 -> 4.78 cm.
     odo_bias_sigma_lateral_mps: float = 0.002
 
     def __post_init__(self) -> None:

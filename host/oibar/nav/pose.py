@@ -145,7 +145,7 @@ class PoseEstimate:
     # What a filter should fuse, when it differs from the pose above: the same keypoints solved
     # without the attitude prior. The prior (the crop's attitude head) makes each frame's pose
     # better on its own but pulls the tilt toward "aligned" on every frame alike, an error a
-    # filter cannot average away; PnP alone is noisier and unbiased (docs/model_card.md).
+    # filter cannot average away; PnP alone is noisier and unbiased (docs/model_history.md).
     T_meas_cam_target_m: np.ndarray | None = None
     R_meas_cam_target: np.ndarray | None = None
 
@@ -597,7 +597,7 @@ MAX_TURNED_READING_DEG = 15.0
 # (0.15.6), or "untouched", the untouched window's alone. At range that fit's tilt rests on
 # hundredths of a pixel, and the average shifts every keypoint's bias by a few: 0.15.6 moved the
 # measurement's signed attitude bias by 0.07-0.10 deg on validation and lost the loop on one turn
-# (docs/model_card.md, 2026-11-27), while its answer gained.
+# (docs/model_history.md, 2026-11-27), while its answer gained.
 TURNED_READING_MEASUREMENTS = ("mean", "untouched")
 # ``oibar.placed_pass_refines``: when tracking, the crop placed by the filter's prediction (or the
 # estimator's own latest strong fit) is read as the refining pass is (turned readings, the corner
@@ -605,11 +605,11 @@ TURNED_READING_MEASUREMENTS = ("mean", "untouched")
 # a plain read followed by a second crop cut around its fit. One network run a tracked frame
 # instead of two: the turned reading's batch of three costs about what two single crops do (7.4
 # against 2 x 3.6 ms offline), and the daemon's second run was where 0.15.7 lost its frame ->
-# command p99 (docs/model_card.md, 2026-11-27).
+# command p99 (docs/model_history.md, 2026-11-27).
 # Well placed: the window the refining pass would cut around the fit is centred within
 # WELL_PLACED_CROP_PX of the placed one (crop px) and its side within WELL_PLACED_SIDE_FRAC. On
 # validation a window up to 4 frame px off (13 crop px at 10 m) read as well as one on the truth,
-# and one 10-20 px off lost 1 deg beyond 8 m (candidate 0.15.8, docs/model_card.md, 2026-11-28);
+# and one 10-20 px off lost 1 deg beyond 8 m (candidate 0.15.8, docs/model_history.md, 2026-11-28);
 # elsewhere the usual refining pass follows.
 WELL_PLACED_CROP_PX = 8.0
 WELL_PLACED_SIDE_FRAC = 0.10
@@ -885,15 +885,15 @@ class KeypointPoseEstimator(PoseEstimator):
           `self.mirror`): the mirror's reading mapped back (u -> S - u, each keypoint from its
           twin, the head's rotation vector turned over), so the network's own left-right leaning
           cancels. 0.8.1 reads a -0.24 deg tilt about y on every validation frame at 2-5 m and
-          +0.12 deg in the mirror; averaged, -0.06 deg (docs/model_card.md, 2026-11-24).
+          +0.12 deg in the mirror; averaged, -0.06 deg (docs/model_history.md, 2026-11-24).
         - the window turned by +-``oibar.turned_reading_deg`` about its centre (a camera rolled
           about its boresight: the network was trained on crops turned up to 15 deg). Each
           reading's keypoints go back to the frame through its own window; a keypoint counts
           where most readings see it. 0.8.1 at 8 deg: validation attitude 0.84 -> 0.81 deg, the
-          filter's measurement 0.86 -> 0.82 (docs/model_card.md, 2026-11-25). With
+          filter's measurement 0.86 -> 0.82 (docs/model_history.md, 2026-11-25). With
           ``oibar.turned_reading_head`` the attitude head's answer is the mean of the readings'
           (each mapped to the camera through its own window), else the untouched window's:
-          0.15.3 at 8 deg on validation, 0.539 -> 0.531 deg (docs/model_card.md, 2026-11-27).
+          0.15.3 at 8 deg on validation, 0.539 -> 0.531 deg (docs/model_history.md, 2026-11-27).
           The untouched window's own keypoints ride along (`untouched_uv_px`) for the filter's
           prior-free fit (``oibar.turned_reading_measurement``).
 
