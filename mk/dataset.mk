@@ -14,6 +14,7 @@ dataset: setup ## render the 12 synthetic sequences into data/synthetic (resumab
 # TRAIN_SPEC=models/scenes/train_turned.json adds the 24 turned runs of the 2026-11-27 study.
 # TRAIN_SPEC=models/scenes/train_sunfill.json adds to those 80 runs at every Sun the split allows (stage 18).
 # TRAIN_SPEC=models/scenes/train_nearaxis.json adds to those 24 runs that wander only 0.06-0.15 m off the axis (stages 20, 21).
+# TRAIN_SPEC=models/scenes/train_sunwander.json: train_turned.json, the near-axis runs and the Sun-filled looks, half off the axis (stage 23).
 SHARD ?=
 TRAIN_SPEC ?= models/scenes/train.json
 .PHONY: dataset-train dataset-val

@@ -82,3 +82,34 @@ def test_the_turned_near_axis_set_is_the_near_axis_set_without_the_sun_fill():
     assert ours == turned + added
     names = {s["name"] for s in ours}
     assert not names & {s["name"] for s in filled[len(turned) :]}
+
+
+def test_the_wandering_sun_fill_keeps_each_look_and_changes_only_the_view():
+    """Stage 23 asks whether the Sun-filled runs shortened the 3 m view by their aligned approach:
+    its set must be stage 22's plus the same 80 looks (port, background, Sun, kind), each under a
+    new name and seed, every other one off the axis and every other one of those turned, so the
+    aligned share is stage 15's again (88 of 224 against 48 of 120), and nothing else."""
+    filled, turned, ours22, ours = (
+        json.loads((SCENES / f"{n}.json").read_text())["scenes"]
+        for n in ("train_sunfill", "train_turned", "train_turned_nearaxis", "train_sunwander")
+    )
+    looks = filled[len(turned) :]
+    added = ours[len(ours22) :]
+    assert ours[: len(ours22)] == ours22 and len(added) == len(looks) == 80
+    view = {"name", "seed", "offaxis_m", "turned_deg"}
+    for j, (a, look) in enumerate(zip(added, looks, strict=True)):
+        assert {k: v for k, v in a.items() if k not in view} == {
+            k: v for k, v in look.items() if k not in view
+        }
+        assert ("offaxis_m" in a) == bool(j % 2) and 0.2 <= a.get("offaxis_m", 0.2) <= 0.9
+        assert ("turned_deg" in a) == (j % 4 == 3) and 1.5 <= a.get("turned_deg", 1.5) <= 6.0
+    def aligned(scenes):
+        return sum(1 for s in scenes if not s.get("offaxis_m") and not s.get("turned_deg"))
+
+    assert (aligned(turned), len(turned)) == (48, 120) and (aligned(ours), len(ours)) == (88, 224)
+    names = [s["name"] for s in ours]
+    assert len(set(names)) == len(names)
+    seeds = [s["seed"] for s in ours]
+    assert len(set(seeds)) == len(seeds)
+    near = json.loads((SCENES / "train_nearaxis.json").read_text())["scenes"]
+    assert not {s["name"] for s in added} & {s["name"] for s in near}
