@@ -403,6 +403,46 @@ static void test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN(void)
     TEST_ASSERT_EQUAL(oibar_v1_STATE_UNMATING, oibar_app_state());
 }
 
+/* Found by the property test (seed 2574239216): a valve failed open while the
+ * plane was still extending (HARD_DOCKING, 34.7 mm, inside the coupling travel)
+ * and CMD_SEPARATE, unguarded there, drove the plane back out through the
+ * venting zone. Every way into UNMATING now needs [valves_closed]. */
+static void test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN_every_way_in(void)
+{
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKING));
+    for (unsigned ms = 0; ms < 6000u && fake_plant_plane_mm() < 32.0f; ms += 5u) {
+        fake_hal_advance_ms(5);
+    }
+    TEST_ASSERT_TRUE(fake_plant_plane_mm() >= 32.0f);
+    fake_plant_set_valve_mode(0, FAKE_VALVE_STUCK_OPEN);
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u); /* sensed open, not yet a fault */
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKING, oibar_app_state());
+    const float at_mm = fake_plant_plane_mm();
+    TEST_ASSERT_TRUE(at_mm > 30.0f && at_mm < FAKE_PLANT_TRAVEL_MM - 1.0f);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_PRECONDITION_FAILED, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKING, oibar_app_state());
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+    fake_hal_advance_ms(1);
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+    TEST_ASSERT_TRUE(fake_plant_plane_mm() >= at_mm); /* never moved back */
+    /* The valve monitor then calls it a fault; FAULT re-seats the plane. */
+    TEST_ASSERT_TRUE(bench_wait_state(oibar_v1_STATE_FAULT, 2000));
+    TEST_ASSERT_TRUE(oibar_fault_flags() & OIBAR_FAULT_BIT(oibar_v1_FAULT_VALVE_MISMATCH));
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+    fake_plant_set_valve_mode(0, FAKE_VALVE_OK);
+
+    /* Soft docked (plane home) with a valve reading open: refused the same way. */
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_SOFT_DOCKED));
+    fake_plant_set_valve_mode(1, FAKE_VALVE_STUCK_OPEN);
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_PRECONDITION_FAILED, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_SOFT_DOCKED, oibar_app_state());
+    fake_plant_set_valve_mode(1, FAKE_VALVE_OK);
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_UNMATING, oibar_app_state());
+}
+
 static void test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN(void)
 {
     /* Unmating: the plane is on its way out when a valve fails open. The valve monitor
@@ -678,6 +718,7 @@ int main(void)
     RUN_TEST(test_SAFETY_RULE_WATCHDOG_NEEDS_BOTH_LOOPS);
     RUN_TEST(test_SAFETY_RULE_CONTACT_FORCE_LIMIT);
     RUN_TEST(test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN);
+    RUN_TEST(test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN_every_way_in);
     RUN_TEST(test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN);
     RUN_TEST(test_SAFETY_RULE_NO_MOTION_AFTER_RESET);
     RUN_TEST(test_abort_holds_the_plane_until_the_valves_read_closed);

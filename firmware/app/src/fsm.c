@@ -50,12 +50,12 @@ static const oibar_fsm_row_t k_table[] = {
     { S(RECEPTION),       E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_LATCH_TIMEOUT) },
 
     { S(SOFT_DOCKED),     C(HARD_DOCK),          G(SOFT_DOCK_HELD),    S(HARD_DOCKING),   A(NONE) },
-    { S(SOFT_DOCKED),     C(SEPARATE),           G(NONE),              S(UNMATING),       A(NONE) },
+    { S(SOFT_DOCKED),     C(SEPARATE),           G(VALVES_CLOSED),     S(UNMATING),       A(NONE) },
 
     { S(HARD_DOCKING),    E(PLANE_EXTENDED),     G(CONNECTOR_MATED),   S(HARD_DOCKED),    A(NONE) },
     { S(HARD_DOCKING),    E(CONNECTOR_MATED),    G(PLANE_EXTENDED),    S(HARD_DOCKED),    A(NONE) },
     { S(HARD_DOCKING),    E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_PLANE_TIMEOUT) },
-    { S(HARD_DOCKING),    C(SEPARATE),           G(NONE),              S(UNMATING),       A(NONE) },
+    { S(HARD_DOCKING),    C(SEPARATE),           G(VALVES_CLOSED),     S(UNMATING),       A(NONE) },
 
     { S(HARD_DOCKED),     C(ARM_TRANSFER),       G(TRANSFER_READY),    S(TRANSFER_ARMED), A(ARM) },
     { S(HARD_DOCKED),     C(SEPARATE),           G(VALVES_CLOSED),     S(UNMATING),       A(NONE) },
@@ -277,7 +277,9 @@ static oibar_v1_NackReason guard(oibar_guard_t g)
     case GUARD_VALVES_CLOSED:
         /* SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN: the valve monitor needs its
          * debounce time to call a stuck valve a fault; until then a valve that
-         * still reads open must keep the fluid couplings mated, or fuel vents. */
+         * still reads open must keep the fluid couplings mated, or fuel vents.
+         * Every CMD_SEPARATE row carries it: HARD_DOCKING's did not, and the
+         * property test retracted a plane at 34.7 mm with a valve open. */
         return pre(!oibar_valves_any_sensed_open() && !oibar_valves_mismatch());
     case GUARD_COUNT:
     default:
