@@ -443,6 +443,26 @@ static void test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN_every_way_in(void)
     TEST_ASSERT_EQUAL(oibar_v1_STATE_UNMATING, oibar_app_state());
 }
 
+/* The other direction: CMD_HARD_DOCK would carry the couplings into their venting travel with a
+ * valve that reads open (before the valve monitor calls it a fault), so it is refused. */
+static void test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN_no_mating_with_valve_open(void)
+{
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_SOFT_DOCKED));
+    fake_plant_set_valve_mode(0, FAKE_VALVE_STUCK_OPEN);
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u); /* sensed open, not yet a fault */
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_SOFT_DOCKED, oibar_app_state());
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_PRECONDITION_FAILED, oibar_app_command(oibar_v1_CMD_HARD_DOCK, 0));
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_SOFT_DOCKED, oibar_app_state());
+    fake_hal_advance_ms(1);
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_EXTEND));
+    TEST_ASSERT_TRUE(fake_plant_plane_mm() < 0.5f);
+    /* Healthy again (and the monitor's fault, if it came, cleared): mating goes ahead. */
+    fake_plant_set_valve_mode(0, FAKE_VALVE_OK);
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_SOFT_DOCKED));
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_HARD_DOCK, 0));
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKING, oibar_app_state());
+}
+
 static void test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN(void)
 {
     /* Unmating: the plane is on its way out when a valve fails open. The valve monitor
@@ -719,6 +739,7 @@ int main(void)
     RUN_TEST(test_SAFETY_RULE_CONTACT_FORCE_LIMIT);
     RUN_TEST(test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN);
     RUN_TEST(test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN_every_way_in);
+    RUN_TEST(test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN_no_mating_with_valve_open);
     RUN_TEST(test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN);
     RUN_TEST(test_SAFETY_RULE_NO_MOTION_AFTER_RESET);
     RUN_TEST(test_abort_holds_the_plane_until_the_valves_read_closed);

@@ -245,8 +245,11 @@ static oibar_v1_NackReason guard(oibar_guard_t g)
         return pre(s_capture_ok && oibar_input(HAL_DI_CONTACT) &&
                    oibar_input(HAL_DI_LATCH_ENGAGED));
     case GUARD_SOFT_DOCK_HELD:
+        /* The plane must not carry the couplings into their venting travel while a valve
+         * reads open (before the valve monitor has called it a fault). */
         return pre(oibar_input(HAL_DI_CONTACT) && oibar_input(HAL_DI_LATCH_ENGAGED) &&
-                   oibar_plane_is_retracted() && oibar_pressure_all_ok());
+                   oibar_plane_is_retracted() && oibar_pressure_all_ok() &&
+                   !oibar_valves_any_sensed_open() && !oibar_valves_mismatch());
     case GUARD_CONNECTOR_MATED:
         return pre(oibar_input(HAL_DI_CONNECTOR_MATED));
     case GUARD_PLANE_EXTENDED:
