@@ -7,7 +7,12 @@
  *    position sensor at full mate), and
  *    the command history seen by this test;
  *  - the plane is never driven back out of the coupling travel while a valve
- *    reads open (raw switch, allowing only the debounce time).
+ *    reads open (raw switch, allowing only the debounce time);
+ *  - every wait is bounded: a state that waits for hardware (the ones with a
+ *    timeout parameter, UNMATING on the plane's move timeout, TRANSFERRING on
+ *    transfer_max_ms) is never held longer than its bound. Only the safe
+ *    states that wait for the host (IDLE, SOFT_DOCKED, HARD_DOCKED, FAULT)
+ *    may last. Entry times come from the firmware's own STATE_CHANGE events.
  *
  * Each run draws a fresh seed and prints it; OIBAR_PROPERTY_SEED=<n> replays
  * a run, OIBAR_PROPERTY_STEPS=<n> sets its length (default 100000; `make
@@ -30,6 +35,7 @@
 #define DEFAULT_STEPS 100000u
 #define DEBOUNCE_SLACK_MS 12u /* debounce_ms + the pass that acts on it */
 #define COUPLING_MM 30.0f     /* plane_coupling_mm default */
+#define WAIT_SLACK_MS 5u      /* a bound is acted on at the next main-loop pass */
 
 static uint32_t s_rng;
 static uint32_t s_seed;
@@ -39,6 +45,9 @@ static bool s_link_up;
 static uint32_t s_conn_false_ms, s_latch_false_ms, s_press_bad_ms;
 static uint32_t s_open_ms, s_starts, s_faults_seen, s_ms;
 static uint32_t s_state_hist[16];
+static uint32_t s_entered_ms;       /* when the current state was entered (its STATE_CHANGE) */
+static oibar_v1_State s_entered_state;
+static uint32_t s_longest_wait_ms[16];
 
 void setUp(void) {}
 void tearDown(void) {}
@@ -88,11 +97,63 @@ static void check_no_unmate_with_valve_open(void)
     TEST_ASSERT_TRUE_MESSAGE(s_valve_open_raw_ms <= DEBOUNCE_SLACK_MS, msg);
 }
 
+/* The longest the machine may stay in each state, as docs/state_table.md gives it, written here
+ * rather than read from the firmware's own table so that a timeout lost there is caught. The
+ * states left out wait for the host and are safe to stay in. */
+static const oibar_param_id_t k_wait_bound[16] = {
+    [oibar_v1_STATE_BOOT] = PARAM_BOOT_SETTLE_MS,
+    [oibar_v1_STATE_APPROACH_READY] = PARAM_APPROACH_READY_TIMEOUT_MS,
+    [oibar_v1_STATE_RECEPTION] = PARAM_RECEPTION_TIMEOUT_MS,
+    [oibar_v1_STATE_HARD_DOCKING] = PARAM_HARD_DOCKING_TIMEOUT_MS,
+    [oibar_v1_STATE_TRANSFER_ARMED] = PARAM_TRANSFER_ARMED_TIMEOUT_MS,
+    [oibar_v1_STATE_TRANSFERRING] = PARAM_TRANSFER_MAX_MS,      /* the pressure loop's */
+    [oibar_v1_STATE_UNMATING] = PARAM_PLANE_MOVE_TIMEOUT_MS,    /* the plane driver's */
+    [oibar_v1_STATE_LATCH_RELEASE] = PARAM_LATCH_MOVE_TIMEOUT_MS,
+    [oibar_v1_STATE_SEPARATING] = PARAM_SEPARATING_TIMEOUT_MS,
+    [oibar_v1_STATE_LATCH_RESET] = PARAM_LATCH_MOVE_TIMEOUT_MS,
+    [oibar_v1_STATE_ABORTING] = PARAM_ABORT_TIMEOUT_MS,
+};
+
+/* The longest the machine may stay in `st` (0: it waits for the host, unbounded). */
+static uint32_t wait_bound_ms(oibar_v1_State st)
+{
+    if ((unsigned)st >= 16u || k_wait_bound[st] == (oibar_param_id_t)0) {
+        return 0u;
+    }
+    return oibar_param_u32(k_wait_bound[st]);
+}
+
+/* Every wait bounded by a timeout (docs/firmware.md). */
+static void check_bounded_wait(void)
+{
+    oibar_v1_Event ev;
+    while (oibar_app_next_event(&ev)) {
+        if (ev.id == oibar_v1_EVT_STATE_CHANGE) {
+            s_entered_ms = ev.uptime_ms;
+            s_entered_state = ev.to_state;
+        }
+    }
+    const oibar_v1_State st = oibar_app_state();
+    char msg[160];
+    snprintf(msg, sizeof msg, "seed %u ms %u: state %d but the last STATE_CHANGE entered %d",
+             (unsigned)s_seed, (unsigned)s_ms, (int)st, (int)s_entered_state);
+    TEST_ASSERT_EQUAL_INT_MESSAGE(st, s_entered_state, msg);
+    const uint32_t held_ms = hal_time_ms() - s_entered_ms;
+    if ((unsigned)st < 16u && held_ms > s_longest_wait_ms[st]) {
+        s_longest_wait_ms[st] = held_ms;
+    }
+    const uint32_t bound = wait_bound_ms(st);
+    snprintf(msg, sizeof msg, "seed %u ms %u: %s held %u ms, its bound is %u ms", (unsigned)s_seed,
+             (unsigned)s_ms, oibar_fsm_state_name((unsigned)st), (unsigned)held_ms, (unsigned)bound);
+    TEST_ASSERT_TRUE_MESSAGE(bound == 0u || held_ms <= bound + WAIT_SLACK_MS, msg);
+}
+
 static void check_invariant(void)
 {
     char msg[160];
     track_state();
     check_no_unmate_with_valve_open();
+    check_bounded_wait();
     if (!bench_any_valve_driven()) {
         return;
     }
@@ -213,6 +274,27 @@ static void guided(void)
     }
 }
 
+/* The hardware stops answering (a jammed plane, a stalled stepper, a switch stuck at a level,
+ * or nothing at all) and neither host nor test steps in for up to 15 s: whatever the machine
+ * waits for, it must stop waiting within its bound (check_bounded_wait). */
+static void stall(void)
+{
+    switch (below(4)) {
+    case 0:
+        fake_plant_set_plane_jam(true);
+        break;
+    case 1:
+        fake_plant_set_stepper_stall(true);
+        break;
+    case 2:
+        fake_plant_override_di((hal_di_t)below(HAL_DI_COUNT), (int)below(2));
+        break;
+    default:
+        break;
+    }
+    run_ms(1000u + below(14000));
+}
+
 static uint32_t env_u32(const char *name, uint32_t fallback)
 {
     const char *v = getenv(name);
@@ -240,6 +322,10 @@ static void test_no_valve_open_outside_a_legitimate_transfer(void)
     s_valve_open_raw_ms = s_retract_checks = s_plane_not_mated_raw_ms = 0;
     s_open_ms = s_starts = s_faults_seen = s_ms = 0;
     bench_start();
+    s_entered_ms = 0;
+    s_entered_state = oibar_v1_STATE_UNSPECIFIED;
+    memset(s_longest_wait_ms, 0, sizeof s_longest_wait_ms);
+    check_bounded_wait(); /* BOOT's entry */
     s_link_up = true;
     TEST_ASSERT_EQUAL(oibar_v1_STATE_IDLE, oibar_app_state());
 
@@ -248,7 +334,9 @@ static void test_no_valve_open_outside_a_legitimate_transfer(void)
         if (r >= 800 && below(3) != 0) {
             r = 0; /* perturbations at a third of their nominal rate */
         }
-        if (r < 450) {
+        if (r >= 1u && r < 4u) { /* not 0: the perturbations put off above land there */
+            stall();
+        } else if (r < 450) {
             run_ms(1u + below(100));
         } else if (r < 800) {
             guided();
@@ -289,7 +377,9 @@ static void test_no_valve_open_outside_a_legitimate_transfer(void)
              (unsigned)s_open_ms, (unsigned)s_retract_checks, (unsigned)s_ms);
     TEST_MESSAGE(msg);
     for (unsigned i = 1; i < 16; i++) {
-        snprintf(msg, sizeof msg, "steps ending in %s: %u", oibar_fsm_state_name(i), (unsigned)s_state_hist[i]);
+        snprintf(msg, sizeof msg, "steps ending in %s: %u (longest stay %u ms, bound %u ms)",
+                 oibar_fsm_state_name(i), (unsigned)s_state_hist[i], (unsigned)s_longest_wait_ms[i],
+                 (unsigned)wait_bound_ms((oibar_v1_State)i));
         TEST_MESSAGE(msg);
     }
     snprintf(msg, sizeof msg, "coverage: %u starts, %u ms with valves open, %u ms simulated",
