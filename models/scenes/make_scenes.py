@@ -189,9 +189,7 @@ def sun_fill(
     return out
 
 
-def wandering(
-    looks: list[dict], prefix: str, first: int, seed0: int, rng: np.random.Generator
-) -> list[dict]:
+def wandering(looks: list[dict], prefix: str, first: int, seed0: int, rng: np.random.Generator) -> list[dict]:
     """The runs `looks` again (port, background, Sun and kind: their lighting and sensor), each
     under a new name and seed; every other one (odd j) now wanders 0.2-0.9 m off the docking axis
     below 10 m (the off-axis and wide-view runs' span), and every other one of those is also

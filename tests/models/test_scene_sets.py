@@ -103,6 +103,7 @@ def test_the_wandering_sun_fill_keeps_each_look_and_changes_only_the_view():
         }
         assert ("offaxis_m" in a) == bool(j % 2) and 0.2 <= a.get("offaxis_m", 0.2) <= 0.9
         assert ("turned_deg" in a) == (j % 4 == 3) and 1.5 <= a.get("turned_deg", 1.5) <= 6.0
+
     def aligned(scenes):
         return sum(1 for s in scenes if not s.get("offaxis_m") and not s.get("turned_deg"))
 
