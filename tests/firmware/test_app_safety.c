@@ -385,22 +385,34 @@ static void test_SAFETY_RULE_CONTACT_FORCE_LIMIT(void)
     TEST_ASSERT_TRUE(oibar_fault_flags() & OIBAR_FAULT_BIT(oibar_v1_FAULT_CONTACT_OVERLOAD));
 }
 
+/* In `st`, with `valve` stuck open and sensed so (not yet a fault), `cmd` is refused and the
+ * plane stays still; with the valve closed again it is accepted and leads to `next`. */
+static void refused_while_a_valve_reads_open(oibar_v1_State st, unsigned valve,
+                                             oibar_v1_CommandOpcode cmd, oibar_v1_State next)
+{
+    TEST_ASSERT_TRUE(bench_goto(st));
+    fake_plant_set_valve_mode(valve, FAKE_VALVE_STUCK_OPEN);
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u); /* sensed open, not yet a fault */
+    TEST_ASSERT_EQUAL(st, oibar_app_state());
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_PRECONDITION_FAILED, oibar_app_command(cmd, 0));
+    TEST_ASSERT_EQUAL(st, oibar_app_state());
+    fake_hal_advance_ms(1);
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_EXTEND));
+    /* Valve closed again: the command goes ahead. */
+    fake_plant_set_valve_mode(valve, FAKE_VALVE_OK);
+    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u);
+    TEST_ASSERT_EQUAL(st, oibar_app_state());
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(cmd, 0));
+    TEST_ASSERT_EQUAL(next, oibar_app_state());
+}
+
 static void test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN(void)
 {
     /* A target valve stuck open right after a transfer: separating now would pull the
      * couplings apart with fluid in the line, so the command is refused and nothing moves. */
-    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKED));
-    fake_plant_set_valve_mode(1, FAKE_VALVE_STUCK_OPEN);
-    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u); /* sensed open, not yet a fault */
-    TEST_ASSERT_EQUAL(oibar_v1_NACK_PRECONDITION_FAILED, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
-    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_RETRACT));
-    TEST_ASSERT_NOT_EQUAL(oibar_v1_STATE_UNMATING, oibar_app_state());
-    /* Valve closed again: separation goes ahead. */
-    TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKED, oibar_app_state());
-    fake_plant_set_valve_mode(1, FAKE_VALVE_OK);
-    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u);
-    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
-    TEST_ASSERT_EQUAL(oibar_v1_STATE_UNMATING, oibar_app_state());
+    refused_while_a_valve_reads_open(oibar_v1_STATE_HARD_DOCKED, 1, oibar_v1_CMD_SEPARATE,
+                                     oibar_v1_STATE_UNMATING);
 }
 
 /* Found by the property test (seed 2574239216): a valve failed open while the
@@ -432,35 +444,16 @@ static void test_SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN_every_way_in(void)
     fake_plant_set_valve_mode(0, FAKE_VALVE_OK);
 
     /* Soft docked (plane home) with a valve reading open: refused the same way. */
-    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_SOFT_DOCKED));
-    fake_plant_set_valve_mode(1, FAKE_VALVE_STUCK_OPEN);
-    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u);
-    TEST_ASSERT_EQUAL(oibar_v1_NACK_PRECONDITION_FAILED, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
-    TEST_ASSERT_EQUAL(oibar_v1_STATE_SOFT_DOCKED, oibar_app_state());
-    fake_plant_set_valve_mode(1, FAKE_VALVE_OK);
-    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u);
-    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_SEPARATE, 0));
-    TEST_ASSERT_EQUAL(oibar_v1_STATE_UNMATING, oibar_app_state());
+    refused_while_a_valve_reads_open(oibar_v1_STATE_SOFT_DOCKED, 1, oibar_v1_CMD_SEPARATE,
+                                     oibar_v1_STATE_UNMATING);
 }
 
 /* The other direction: CMD_HARD_DOCK would carry the couplings into their venting travel with a
  * valve that reads open (before the valve monitor calls it a fault), so it is refused. */
 static void test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN_no_mating_with_valve_open(void)
 {
-    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_SOFT_DOCKED));
-    fake_plant_set_valve_mode(0, FAKE_VALVE_STUCK_OPEN);
-    fake_hal_advance_ms(FAKE_PLANT_VALVE_STROKE_MS + 20u); /* sensed open, not yet a fault */
-    TEST_ASSERT_EQUAL(oibar_v1_STATE_SOFT_DOCKED, oibar_app_state());
-    TEST_ASSERT_EQUAL(oibar_v1_NACK_PRECONDITION_FAILED, oibar_app_command(oibar_v1_CMD_HARD_DOCK, 0));
-    TEST_ASSERT_EQUAL(oibar_v1_STATE_SOFT_DOCKED, oibar_app_state());
-    fake_hal_advance_ms(1);
-    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_EXTEND));
-    TEST_ASSERT_TRUE(fake_plant_plane_mm() < 0.5f);
-    /* Healthy again (and the monitor's fault, if it came, cleared): mating goes ahead. */
-    fake_plant_set_valve_mode(0, FAKE_VALVE_OK);
-    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_SOFT_DOCKED));
-    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_HARD_DOCK, 0));
-    TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKING, oibar_app_state());
+    refused_while_a_valve_reads_open(oibar_v1_STATE_SOFT_DOCKED, 0, oibar_v1_CMD_HARD_DOCK,
+                                     oibar_v1_STATE_HARD_DOCKING);
 }
 
 static void test_SAFETY_RULE_NO_HALF_MATED_WITH_VALVE_OPEN(void)
