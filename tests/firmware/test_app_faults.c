@@ -157,6 +157,21 @@ static void test_transfer_timeout(void)
     assert_faulted(oibar_v1_FAULT_TRANSFER_TIMEOUT, "transfer timeout");
 }
 
+static void test_fill_stalled_on_a_stuck_target_sensor(void)
+{
+    /* SAFETY_RULE_FILL_MUST_PROGRESS through the whole application: the target tank's
+     * sensor freezes 1 s into a fill, the line keeps rising with the real tank. */
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_TRANSFER_ARMED));
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_START_TRANSFER, 1500));
+    fake_hal_advance_ms(1000);
+    fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(fake_plant_tv_kpa() / 0.9158f + 410.0f + 0.5f));
+    fake_hal_advance_ms(3000);
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_TRANSFERRING, oibar_app_state());
+    fake_hal_advance_ms(1000);
+    assert_faulted(oibar_v1_FAULT_FILL_STALLED, "fill stalled");
+    TEST_ASSERT_TRUE(fake_plant_tv_kpa() < 1500.0f);
+}
+
 static void test_link_loss_in_every_active_state(void)
 {
     for (unsigned st = 1; st <= 15; st++) {
@@ -283,6 +298,7 @@ int main(void)
     RUN_TEST(test_latch_release_stall);
     RUN_TEST(test_probe_stuck_is_latch_timeout);
     RUN_TEST(test_transfer_timeout);
+    RUN_TEST(test_fill_stalled_on_a_stuck_target_sensor);
     RUN_TEST(test_link_loss_in_every_active_state);
     RUN_TEST(test_connector_and_latch_loss_while_transferring);
     RUN_TEST(test_SAFETY_RULE_LATCH_SENSE_PAIR_wire_fault_while_transferring);

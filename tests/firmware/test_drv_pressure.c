@@ -205,6 +205,46 @@ static void test_loop_max_transfer_time(void)
     TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_SV_VALVE) || fake_hal_do(HAL_DO_TV_VALVE));
 }
 
+/* SAFETY_RULE_FILL_MUST_PROGRESS: the target tank's sensor sticks in range mid-fill. The
+ * line goes on rising with the real tank, so it reads ever further above the frozen value;
+ * fill_stall_ms after it leads by OIBAR_FILL_LINE_LEAD_KPA the loop closes the valves with
+ * FAULT_FILL_STALLED, before the tank reaches the target the frozen sensor would never see
+ * (without the rule the fill runs on to the fake's ~1830 kPa equalisation). */
+static void test_SAFETY_RULE_FILL_MUST_PROGRESS_stuck_target_sensor_stops_the_fill(void)
+{
+    fake_plant_enable(true);
+    fake_hal_advance_ms(50);
+    TEST_ASSERT_TRUE(oibar_ploop_start(1500.0f, hal_time_ms()));
+    fake_hal_advance_ms(500);
+    float stuck_kpa = fake_plant_tv_kpa();
+    fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(stuck_kpa / 0.9158f + 410.0f + 0.5f));
+    /* At 200 kPa/s the line leads the frozen reading by 100 kPa after 0.5 s; then 3 s. */
+    fake_hal_advance_ms(3000);
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
+    TEST_ASSERT_TRUE(oibar_ploop_running());
+    fake_hal_advance_ms(1000);
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_FILL_STALLED, oibar_fault_take_pending());
+    TEST_ASSERT_FALSE(oibar_ploop_running());
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_SV_VALVE) || fake_hal_do(HAL_DO_TV_VALVE));
+    TEST_ASSERT_TRUE(fake_plant_tv_kpa() < 1500.0f);
+}
+
+/* The same rule does not trip a fill that rises, however far the line leads (here 1900 kPa
+ * against a tank going from 200 to 1500 kPa in 6.5 s, more than twice fill_stall_ms). */
+static void test_SAFETY_RULE_FILL_MUST_PROGRESS_a_rising_tank_is_no_stall(void)
+{
+    fake_plant_enable(true);
+    fake_plant_override_adc(HAL_ADC_LINE, (int)(1900.0f / 0.9158f + 410.0f));
+    fake_hal_advance_ms(50);
+    TEST_ASSERT_TRUE(oibar_ploop_start(1500.0f, hal_time_ms()));
+    fake_hal_advance_ms(8000);
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
+    oibar_evt_t e;
+    TEST_ASSERT_TRUE(oibar_evtq_get(&e));
+    TEST_ASSERT_EQUAL(SIG_TARGET_REACHED, e.sig);
+    TEST_ASSERT_FLOAT_WITHIN(10.0f, 1500.0f, fake_plant_tv_kpa());
+}
+
 static void test_loop_refused_by_interlock(void)
 {
     oibar_valves_set_permit(NULL);
@@ -225,6 +265,8 @@ int main(void)
     RUN_TEST(test_overpressure_trip);
     RUN_TEST(test_loop_fills_to_target_and_closes);
     RUN_TEST(test_loop_max_transfer_time);
+    RUN_TEST(test_SAFETY_RULE_FILL_MUST_PROGRESS_stuck_target_sensor_stops_the_fill);
+    RUN_TEST(test_SAFETY_RULE_FILL_MUST_PROGRESS_a_rising_tank_is_no_stall);
     RUN_TEST(test_loop_refused_by_interlock);
     return UNITY_END();
 }

@@ -113,3 +113,16 @@ def test_broken_latch_wire_is_detected_in_every_phase(sim_mcu_path):
         r = mx.run_cell("latch_wire_break", phase, str(sim_mcu_path))
         assert r.status == "pass", f"{phase}: {r.reason}"
         assert "FAULT_LATCH_SENSOR" in r.faults_seen and r.fuel_lost_kg == 0.0
+
+
+def test_stuck_target_sensor_is_stopped_by_the_mcu_not_left_to_the_host(sim_mcu_path):
+    # Firmware SAFETY_RULE_FILL_MUST_PROGRESS: the target tank's sensor freezes mid-fill; the
+    # line, rising with the real tank, reads above it, so the MCU closes the valves after
+    # fill_stall_ms (3 s, counted from the reading's last 5 kPa rise, up to ~0.2 s before the
+    # freeze here), before the host's own 5 s fill-stall abort. Before the rule only the host
+    # (or, with a silent host, the over-pressure trip) ended such a fill.
+    r = mx.run_cell("pressure_sensor_stuck", "transferring", str(sim_mcu_path))
+    assert r.status == "pass", r.reason
+    assert "FAULT_FILL_STALLED" in r.faults_seen
+    assert r.detect_s is not None and 2.5 <= r.detect_s <= 3.5
+    assert r.fuel_lost_kg == 0.0

@@ -114,6 +114,11 @@ static const oibar_param_def_t s_defs[OIBAR_PARAM_COUNT] = {
     /* Assumption: the host's confidence (0..1) below which a navigation
      * update is not used for DOCK's capture check; never 0. */
     P_REAL(PARAM_NAV_MIN_CONFIDENCE, "nav_min_confidence", "1", 0.5, 0.2, 1),
+    /* Assumption: with the line OIBAR_FILL_LINE_LEAD_KPA above the target tank, the
+     * tank rises OIBAR_FILL_MIN_RISE_KPA in ~1.2 s (rig: 0.84 L/s into 20 L); 3 s is
+     * 2.5x that, and the MCU acts before the host's own 5 s fill-stall abort.
+     * Safety limit: at most 30 s, so it cannot be tuned into transfer_max_ms. */
+    P_INT(PARAM_FILL_STALL_MS, "fill_stall_ms", "ms", 3000, 500, 30000),
 };
 
 static float s_values[OIBAR_PARAM_COUNT];

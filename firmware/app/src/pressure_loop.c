@@ -3,24 +3,31 @@
 #include "oibar/app_events.h"
 #include "oibar/app_faults.h"
 #include "oibar/app_params.h"
+#include "oibar/app_time.h"
 #include "oibar/drv_pressure.h"
 #include "oibar/drv_valves.h"
 
 static bool s_running;
 static float s_target_kpa;
 static uint32_t s_start_ms;
+static float s_ref_tv_kpa; /* target-tank reading the fill must rise above */
+static uint32_t s_ref_ms;  /* since when it has not */
 
 void oibar_ploop_init(void)
 {
     s_running = false;
     s_target_kpa = 0.0f;
     s_start_ms = 0;
+    s_ref_tv_kpa = 0.0f;
+    s_ref_ms = 0;
 }
 
 bool oibar_ploop_start(float target_kpa, uint32_t now_ms)
 {
     s_target_kpa = target_kpa;
     s_start_ms = now_ms;
+    s_ref_tv_kpa = oibar_pressure_kpa(OIBAR_PSENS_TV);
+    s_ref_ms = now_ms;
     s_running = oibar_valves_open_both();
     return s_running;
 }
@@ -49,6 +56,20 @@ void oibar_ploop_tick(uint32_t now_ms)
     if (now_ms - s_start_ms >= oibar_param_u32(PARAM_TRANSFER_MAX_MS)) {
         oibar_ploop_stop();
         oibar_fault_raise(oibar_v1_FAULT_TRANSFER_TIMEOUT);
+        return;
+    }
+    /* SAFETY_RULE_FILL_MUST_PROGRESS: with the line above the target tank, gas
+     * flows into it; a reading that does not rise is a sensor stuck in range (or
+     * a blocked path), and filling on it would overfill the tank unseen until the
+     * over-pressure trip. Equalised tanks (no lead) are left to transfer_max_ms. */
+    float tv_kpa = oibar_pressure_kpa(OIBAR_PSENS_TV);
+    float lead_kpa = oibar_pressure_kpa(OIBAR_PSENS_LINE) - tv_kpa;
+    if (tv_kpa >= s_ref_tv_kpa + OIBAR_FILL_MIN_RISE_KPA || lead_kpa < OIBAR_FILL_LINE_LEAD_KPA) {
+        s_ref_tv_kpa = tv_kpa;
+        s_ref_ms = now_ms;
+    } else if (oibar_held_for(now_ms, s_ref_ms, oibar_param_u32(PARAM_FILL_STALL_MS))) {
+        oibar_ploop_stop();
+        oibar_fault_raise(oibar_v1_FAULT_FILL_STALLED);
     }
 }
 

@@ -132,6 +132,7 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
             "valve_mismatch_ms": 2000,
             "plane_coupling_mm": 40,
             "nav_min_confidence": 0,
+            "fill_stall_ms": 600000,
             "capture_max_speed_mm_s": 200,
             "capture_max_misalign_deg": 45,
             "plane_mm_per_count": 0.02,
@@ -168,7 +169,7 @@ assert set(FAULT_ARGS) == set(FAULT_TYPES), "a fault type of the rig is missing 
 VALVES_CLOSED_BOUND_S: dict[str, float | None] = {
     "link_loss": 1.5,  # link timeout 1 s + 50 ms stroke
     "bit_errors": None,  # the link copes; the fill completes
-    "pressure_sensor_stuck": 7.0,  # invisible to the MCU: the host's 5 s fill-stall abort
+    "pressure_sensor_stuck": 3.5,  # the MCU's fill-stall check: lead at once, fill_stall_ms 3 s + stroke
     "pressure_sensor_range": 0.2,  # range check (debounce) + stroke
     "valve_stuck_open": None,  # the stuck valve cannot close: coils off within 50 ms instead
     "valve_stuck_closed": 0.4,  # mismatch 200 ms + stroke of the other valve
@@ -235,7 +236,10 @@ def expectation(fault: str, phase: str) -> Expect | str:
             e = Expect("completed", [], why="the reading is no longer used after the fill")
         else:
             e = Expect(
-                "aborted", [], why="in range, the MCU cannot see it; the host sees the fill stall, ABORT"
+                "aborted",
+                ["FAULT_FILL_STALLED"],
+                why="in range, but the line reads above the frozen tank: the MCU stops the fill after "
+                "3 s (before the host's 5 s stall abort); the host clears, separates",
             )
     elif fault == "pressure_sensor_range":
         e = Expect(

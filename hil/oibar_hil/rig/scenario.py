@@ -53,6 +53,7 @@ FIRMWARE_PARAM_IDS = {
             "abort_timeout_ms",
             "plane_coupling_mm",
             "nav_min_confidence",
+            "fill_stall_ms",
         )
     )
 }

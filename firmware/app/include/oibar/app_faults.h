@@ -13,7 +13,10 @@
 #include "oibar.pb.h"
 
 #define OIBAR_FAULT_BIT(code) (1u << ((unsigned)(code) - 1u))
-#define OIBAR_FAULT_CODE_MAX 18u /* 16: FAULT_LATCH_SENSOR on main (issue 16 item 4) */
+/* The highest FaultCode of the contract (proto/oibar.proto), so a new code is
+ * latched, reported and walked by the tests without a second number to keep. */
+#define OIBAR_FAULT_CODE_MAX ((unsigned)_oibar_v1_FaultCode_MAX)
+_Static_assert((unsigned)_oibar_v1_FaultCode_MAX <= 32u, "fault_flags holds one bit per code");
 
 void oibar_faults_init(void);
 /* ISR-safe. */

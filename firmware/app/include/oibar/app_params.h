@@ -49,6 +49,7 @@ typedef enum {
     PARAM_ABORT_TIMEOUT_MS,
     PARAM_PLANE_COUPLING_MM,
     PARAM_NAV_MIN_CONFIDENCE,
+    PARAM_FILL_STALL_MS,
     PARAM_ID_END /* one past the last id */
 } oibar_param_id_t;
 
@@ -61,6 +62,11 @@ typedef enum {
 /* Plane position sensor reading below which the plane cannot be at full mate,
  * whatever its end switch says: 40 mm travel, calibration within +-5 %. */
 #define OIBAR_PLANE_MATED_MIN_MM 37.5f
+/* Fill progress (SAFETY_RULE_FILL_MUST_PROGRESS): while the line reads at least
+ * the lead above the target tank, gas flows into it, so its reading must rise by
+ * the minimum within fill_stall_ms. Both well above the sensors' ~1 kPa count. */
+#define OIBAR_FILL_LINE_LEAD_KPA 100.0f
+#define OIBAR_FILL_MIN_RISE_KPA 5.0f
 
 #define OIBAR_PARAM_COUNT ((unsigned)PARAM_ID_END - 1u)
 
