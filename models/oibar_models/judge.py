@@ -23,6 +23,8 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
     python -m oibar_models.judge probe PROBE_JSON                               #   files made
     python -m oibar_models.judge demo DEMO_JSON                                 #   already
     python -m oibar_models.judge pair held_out=LOOKS_JSON default=LOOKS_JSON
+    python -m oibar_models.judge base --what TEXT --out-file F held_out=LOOKS_JSON default=...
+                                  # when a candidate ships: its loop arm as the next base (F)
 
 Each prints its clauses and writes its verdict (JSON) under --out; exit 0 when it holds, 1 when
 it fails, 2 on bad input (a missing or malformed file, a base that does not match).
@@ -228,6 +230,10 @@ def judge_demo(demo: list[dict[str, Any]], rule: Rule = Rule()) -> Verdict:
     return v
 
 
+def _run_key(look: str, start: float, seed: int, turn: Any) -> tuple[Any, ...]:
+    return (look, float(start), int(seed), tuple(float(t) for t in turn))
+
+
 def judge_loop(base: dict[str, Any], cand: dict[str, dict[str, Any]], rule: Rule = Rule()) -> Verdict:
     """Part 4: each set's `oibar_hil.rig.looks --json` runs paired with the base's arm of the same
     set (its ``runs``: look, start_m, seed, turn, outcome_new, lat_p95_new_cm, capture_new_mm)."""
@@ -242,15 +248,12 @@ def judge_loop(base: dict[str, Any], cand: dict[str, dict[str, Any]], rule: Rule
                 f"the base has no {label!r} set (has {sorted(k for k in base if k in LOOP_SETS)})"
             )
 
-        def key(look: str, start: float, seed: int, turn: Any) -> tuple[Any, ...]:
-            return (look, float(start), int(seed), tuple(float(t) for t in turn))
-
-        ref = {key(r["look"], r["start_m"], r["seed"], r["turn"]): r for r in base[label]["runs"]}
+        ref = {_run_key(r["look"], r["start_m"], r["seed"], r["turn"]): r for r in base[label]["runs"]}
         diffs, caps_b, caps_c, worst_b, worst_c, docked = [], [], [], [], [], 0
         seen = set()
         for r in looks.get("runs", []):
             k = r["key"]
-            kk = key(k["look"], k["start_range_m"], k["seed"], k["turn_deg"])
+            kk = _run_key(k["look"], k["start_range_m"], k["seed"], k["turn_deg"])
             if kk not in ref:
                 raise JudgeInputError(f"{label}: run {kk} is not among the base's runs")
             seen.add(kk)
@@ -287,6 +290,61 @@ def judge_loop(base: dict[str, Any], cand: dict[str, dict[str, Any]], rule: Rule
         )
         v.figures[label] = {"n": len(diffs), "paired_diff_cm": mu, "paired_se_cm": se}
     return v
+
+
+def next_base(base: dict[str, Any], flown: dict[str, dict[str, Any]], what: str) -> dict[str, Any]:
+    """The loop base for the model after a ship: the candidate's flown runs (`looks --json`, every
+    set of the base, every run of it) paired with the base's, in the base's own layout, so that
+    `judge_loop` pairs the next candidate with what this one flew (its ``*_new`` fields)."""
+    from oibar_hil.rig.looks import mean_se
+
+    v = judge_loop(base, flown)
+    if not v.holds:
+        raise JudgeInputError("the flown runs do not pass part 4 against the base: nothing ships")
+    out: dict[str, Any] = {"what": what, "rule": "python -m oibar_models.judge (part 4)"}
+    for label in LOOP_SETS:
+        if label not in flown:
+            raise JudgeInputError(f"no {label!r} set given: the next base needs every set")
+        ref = {_run_key(r["look"], r["start_m"], r["seed"], r["turn"]): r for r in base[label]["runs"]}
+        runs = []
+        for r in flown[label]["runs"]:
+            k = r["key"]
+            b = ref[_run_key(k["look"], k["start_range_m"], k["seed"], k["turn_deg"])]
+            runs.append(
+                {
+                    "look": k["look"],
+                    "start_m": float(k["start_range_m"]),
+                    "seed": int(k["seed"]),
+                    "turn": [float(t) for t in k["turn_deg"]],
+                    "outcome_base": b["outcome_new"],
+                    "outcome_new": r.get("outcome"),
+                    "lat_p95_base_cm": round(float(b["lat_p95_new_cm"]), 4),
+                    "lat_p95_new_cm": round(float(r["lateral_p95_below_5m_m"]) * 100, 4),
+                    "capture_base_mm": round(float(b["capture_new_mm"]), 4),
+                    "capture_new_mm": round(float(r["capture_lateral_m"]) * 1000, 4),
+                }
+            )
+        mu, se = mean_se([r["lat_p95_new_cm"] - r["lat_p95_base_cm"] for r in runs])
+        n = len(runs)
+        out[label] = {
+            "label": label,
+            "n": n,
+            "docked_base": sum(r["outcome_base"] == "completed" for r in runs),
+            "docked_new": sum(r["outcome_new"] == "completed" for r in runs),
+            "lat_p95_base_cm": sum(r["lat_p95_base_cm"] for r in runs) / n,
+            "lat_p95_new_cm": sum(r["lat_p95_new_cm"] for r in runs) / n,
+            "paired_diff_cm": mu,
+            "paired_se_cm": se,
+            "worst_base_cm": max(r["lat_p95_base_cm"] for r in runs),
+            "worst_new_cm": max(r["lat_p95_new_cm"] for r in runs),
+            "capture_base_mm": sum(r["capture_base_mm"] for r in runs) / n,
+            "capture_new_mm": sum(r["capture_new_mm"] for r in runs) / n,
+            "runs": runs,
+        }
+    out["verdict"] = [
+        f"{c['clause']}: {'holds' if c['holds'] else 'FAILS'} ({c['detail']})" for c in v.clauses
+    ]
+    return out
 
 
 # --- running the parts -----------------------------------------------------------------------
@@ -404,6 +462,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("demo_json", type=Path)
     p = sub.add_parser("pair", help="part 4 from looks JSONs already flown: held_out=FILE default=FILE")
     p.add_argument("sets", nargs="+")
+    p = sub.add_parser(
+        "base", help="a shipped candidate's flown loop as the next base: held_out=FILE default=FILE"
+    )
+    p.add_argument("sets", nargs="+")
+    p.add_argument("--what", required=True, help="what was flown, by whom, where (kept in the file)")
+    p.add_argument("--out-file", type=Path, required=True)
     a = ap.parse_args(argv)
     try:
         if a.cmd == "run":
@@ -435,7 +499,13 @@ def main(argv: list[str] | None = None) -> int:
                 if label not in LOOP_SETS or not path:
                     raise JudgeInputError(f"{s!r}: give SET=FILE with SET one of {LOOP_SETS}")
                 sets[label] = _load(Path(path), "the looks' runs")
-            ok = _report(judge_loop(_load(BASE_LOOP, "the shipped model's closed-loop runs"), sets), a.out)
+            base = _load(BASE_LOOP, "the shipped model's closed-loop runs")
+            if a.cmd == "base":
+                a.out_file.write_text(json.dumps(next_base(base, sets, a.what), indent=1) + "\n")
+                print(f"wrote {a.out_file}: the next loop base (point BASE_LOOP at it when the model ships)")
+                ok = True
+            else:
+                ok = _report(judge_loop(base, sets), a.out)
     except JudgeInputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -9,17 +9,21 @@ import pytest
 
 from oibar_models.judge import (
     BASE_LOOP,
-    BASE_PROBE,
     JudgeInputError,
     judge_demo,
     judge_loop,
     judge_probe,
     judge_validation,
     main,
+    next_base,
 )
 
 DATA = Path(__file__).resolve().parents[2] / "docs/data"
 GRAPH = (["Conv", "Relu"], [(8, 3, 3, 3), (8,)])
+# The figures these tests check were measured against 0.15.3's probe and loop (the bases until a
+# model ships after it); BASE_PROBE / BASE_LOOP are whatever the shipped model's are.
+PROBE_0153 = DATA / "probe_val_0153.json"
+LOOP_0153 = DATA / "loop_candidate_0153.json"
 
 
 def _json(name):
@@ -34,7 +38,7 @@ def test_candidate_0200_passes_validation_and_fails_the_probe_as_its_card_record
     v1 = judge_validation(_json("eval_val_candidate_0200.json"), "0.15.3", "0.20.0", GRAPH, GRAPH)
     assert v1.holds, v1.text()
     assert v1.figures["candidate"]["dq_mean_deg"] == pytest.approx(0.5062, abs=1e-4)
-    v2 = judge_probe(json.loads(BASE_PROBE.read_text()), _json("probe_val_0200.json"))
+    v2 = judge_probe(json.loads(PROBE_0153.read_text()), _json("probe_val_0200.json"))
     assert not v2.holds
     assert "3 m meas_view_slope" in _failing(v2)  # 0.935 -> 0.915, 2.3 SE
 
@@ -60,7 +64,7 @@ def _as_flown(paired_runs):
 def test_candidate_0200s_loop_study_fails_on_the_default_runs_as_its_card_records():
     study = _json("loop_study_0200.json")
     flown = {label: {"runs": _as_flown(study[label]["runs"])} for label in ("held_out", "default")}
-    v = judge_loop(json.loads(BASE_LOOP.read_text()), flown)
+    v = judge_loop(json.loads(LOOP_0153.read_text()), flown)
     assert not v.holds
     assert "default: paired lateral p95 below 5 m" in _failing(v)  # +0.74 +- 0.21 cm
     assert v.figures["default"]["paired_diff_cm"] == pytest.approx(0.74, abs=0.01)
@@ -69,7 +73,7 @@ def test_candidate_0200s_loop_study_fails_on_the_default_runs_as_its_card_record
     short = copy.deepcopy(flown)
     short["held_out"]["runs"].pop()
     short["held_out"]["runs"][0]["outcome"] = "aborted"
-    failing = _failing(judge_loop(json.loads(BASE_LOOP.read_text()), {"held_out": short["held_out"]}))
+    failing = _failing(judge_loop(json.loads(LOOP_0153.read_text()), {"held_out": short["held_out"]}))
     assert "held_out: every base run flown" in failing and "held_out: every run docks" in failing
 
 
@@ -157,7 +161,10 @@ def test_each_demo_clause_fails_on_its_own():
         judge_demo({"metrics": {}})
 
 
-def test_the_command_line_writes_the_verdict_and_says_so_in_its_exit_code(tmp_path, capsys):
+def test_the_command_line_writes_the_verdict_and_says_so_in_its_exit_code(tmp_path, capsys, monkeypatch):
+    import oibar_models.judge as judge
+
+    monkeypatch.setattr(judge, "BASE_PROBE", PROBE_0153)
     assert main(["--out", str(tmp_path), "probe", str(DATA / "probe_val_0200.json")]) == 1
     verdict = json.loads((tmp_path / "part2.json").read_text())
     assert verdict["holds"] is False and "FAILS" in capsys.readouterr().out
@@ -206,3 +213,32 @@ def test_a_candidate_that_is_no_model_file_is_refused_with_its_reason(tmp_path, 
         == 2
     )
     assert str(bad) in capsys.readouterr().err
+
+
+def test_a_shipped_candidates_loop_becomes_the_next_base_in_the_bases_layout(tmp_path):
+    base = json.loads(BASE_LOOP.read_text())
+    # The base's own runs flown again, unchanged: part 4 holds (paired difference 0) ...
+    again = {label: {"runs": _as_flown(base[label]["runs"])} for label in ("held_out", "default")}
+    nb = next_base(base, again, "test")
+    for label in ("held_out", "default"):
+        assert nb[label]["n"] == len(base[label]["runs"])
+        assert nb[label]["paired_diff_cm"] == pytest.approx(0.0, abs=1e-9)
+        for new, old in zip(nb[label]["runs"], base[label]["runs"], strict=True):
+            assert new["lat_p95_base_cm"] == pytest.approx(old["lat_p95_new_cm"], abs=1e-4)
+    # ... and the next candidate is paired against what this one flew: the same runs tie.
+    assert judge_loop(nb, again).holds
+    # A loop that fails part 4 never becomes a base, nor does one missing a set.
+    study = _json("loop_study_0200.json")
+    failing = {label: {"runs": _as_flown(study[label]["runs"])} for label in ("held_out", "default")}
+    with pytest.raises(JudgeInputError, match="do not pass"):
+        next_base(json.loads(LOOP_0153.read_text()), failing, "test")
+    with pytest.raises(JudgeInputError, match="every set"):
+        next_base(base, {"held_out": again["held_out"]}, "test")
+    # The CLI writes it.
+    f = tmp_path / "base.json"
+    held, dflt = tmp_path / "h.json", tmp_path / "d.json"
+    held.write_text(json.dumps(again["held_out"]))
+    dflt.write_text(json.dumps(again["default"]))
+    assert main(["--out", str(tmp_path), "base", "--what", "t", "--out-file", str(f),
+                 f"held_out={held}", f"default={dflt}"]) == 0  # fmt: skip
+    assert json.loads(f.read_text())["default"]["n"] == len(base["default"]["runs"])
