@@ -241,6 +241,20 @@ def frame_weights(
     return w
 
 
+def far_only_items(scenes: list[Sequence], first: int, from_m: float) -> list[tuple[int, int]]:
+    """The (scene, frame) pairs training draws from: every frame of scenes[:first], and of
+    scenes[first:] only the frames whose camera range is at least `from_m`. Why (model 0.25.0):
+    the Sun-filled runs gained attitude beyond 5 m in every network trained on them, and read the
+    probe's 3 m view short; their far frames alone ask for the first without the second."""
+    if not from_m > 0:
+        raise ValueError(f"far-only frames need a range > 0 m, got {from_m}")
+    items = [(s, k) for s in range(first) for k in range(len(scenes[s]))]
+    for s in range(first, len(scenes)):
+        r = np.linalg.norm(np.asarray(scenes[s].T_cam_target, float), axis=1)
+        items += [(s, int(k)) for k in np.flatnonzero(r >= from_m)]
+    return items
+
+
 def spread_frames(scenes: list[Sequence], n: int) -> list[tuple[int, int]]:
     """About n frames evenly over all scenes (repeatable validation subsets)."""
     total = sum(len(s) for s in scenes)

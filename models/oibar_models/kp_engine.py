@@ -35,7 +35,7 @@ from oibar.nav.keypoints import solve_pnp
 
 from . import metrics
 from .config import ConfigError, RunPaths, _build, read_yaml
-from .kp_data import CropAugment, CropDataset, frame_weights, open_scenes, spread_frames
+from .kp_data import CropAugment, CropDataset, far_only_items, frame_weights, open_scenes, spread_frames
 from .kpnet import FIXTURE_KEYPOINTS, KeypointNet, soft_argmax, view_limits_deg
 from .scenes import check_disjoint, load_set
 
@@ -57,6 +57,10 @@ class KpData:
     # (kp_data.off_nominal_deg: tilt and the tip's angle off the axis); 1: no change
     offnominal_from_deg: float = 1.0
     offnominal_weight: float = 1.0
+    # more training scenes (a spec file, rendered into train_root) of which only the frames at a
+    # camera range of `far_only_from_m` or more are drawn (kp_data.far_only_items); "": none
+    far_only_spec: str = ""
+    far_only_from_m: float = 5.0
 
 
 @dataclass
@@ -136,8 +140,19 @@ def load_kp_config(path: str | Path, overrides: dict | None = None) -> KpConfig:
     data = read_yaml(path, overrides)
     cfg = _build(KpConfig, data, str(path))
     sets = {n: load_set(cfg.path(getattr(cfg.data, f"{n}_spec"))) for n in ("train", "val", "test")}
-    check_disjoint(sets)
     d = cfg.data
+    if d.far_only_spec:
+        far = load_set(cfg.path(d.far_only_spec))
+        both = sorted({s.name for s in far} & {s.name for s in sets["train"]})
+        if both:
+            raise ConfigError(
+                f"{path}: data.far_only_spec repeats scenes of data.train_spec ({', '.join(both[:10])}): "
+                "a scene is trained on all its frames or on its far ones, not both"
+            )
+        if not d.far_only_from_m > 0:
+            raise ConfigError(f"{path}: data.far_only_from_m must be > 0, got {d.far_only_from_m}")
+        sets["train"] = sets["train"] + far  # far-only scenes are training scenes for the split
+    check_disjoint(sets)
     if not d.far_weight > 0 or not d.offaxis_weight_per_deg >= 0 or not d.offnominal_weight > 0:
         raise ConfigError(
             f"{path}: data.far_weight and data.offnominal_weight must be > 0 and "
@@ -456,6 +471,17 @@ def train_sampler(d: KpData, ds: CropDataset, gen: torch.Generator) -> torch.uti
     return WeightedDraws(w, gen)
 
 
+def training_frames(cfg: KpConfig) -> tuple[list, list[tuple[int, int]] | None]:
+    """The training scenes (data.train_spec's, then data.far_only_spec's) and the (scene, frame)
+    pairs drawn from them: None for every frame, else far_only_items' (the far-only scenes' frames
+    from data.far_only_from_m on)."""
+    d = cfg.data
+    names = [s.name for s in load_set(cfg.path(d.train_spec))]
+    far_names = [s.name for s in load_set(cfg.path(d.far_only_spec))] if d.far_only_spec else []
+    scenes = open_scenes(cfg.path(d.train_root), names + far_names)
+    return scenes, (far_only_items(scenes, len(names), d.far_only_from_m) if far_names else None)
+
+
 def averaged_net(net: KeypointNet, ema: WeightAverage) -> KeypointNet:
     """A copy of `net` holding the average's weights (the training net is left as it is)."""
     out = copy.deepcopy(net)
@@ -479,12 +505,17 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
     if lead:
         run.mkdir(parents=True, exist_ok=True)
         (run / "config.yaml").write_text(yaml.safe_dump(asdict(cfg), sort_keys=False))
-    train_scenes = open_scenes(
-        cfg.path(cfg.data.train_root), [s.name for s in load_set(cfg.path(cfg.data.train_spec))]
-    )
+    train_scenes, train_items = training_frames(cfg)
     kp = keypoints_m()
     train_ds = CropDataset(
-        train_scenes, kp, cfg.model.out_px, cfg.augment, train=True, seed=t.seed, view_limit_deg=view_limits()
+        train_scenes,
+        kp,
+        cfg.model.out_px,
+        cfg.augment,
+        train=True,
+        seed=t.seed,
+        frames=train_items,
+        view_limit_deg=view_limits(),
     )
     val_ds = None
     if lead:

@@ -287,6 +287,9 @@ def main() -> None:
         "train_nearaxis": {"set": "train", "scenes": train_nearaxis},
         "train_turned_nearaxis": {"set": "train", "scenes": train_turned_nearaxis},
         "train_sunwander": {"set": "train", "scenes": train_sunwander},
+        # The same 80 wandering runs alone (model 0.25.0), to be trained on their far frames only
+        # (a config's data.far_only_spec) beside stage 22's set: nothing new is drawn.
+        "train_sunwander_only": {"set": "train", "scenes": train_sunwander[len(train_turned_nearaxis) :]},
         "val": {"set": "val", "scenes": val},
         "test": {"set": "test", "scenes": TEST},
     }

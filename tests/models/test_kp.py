@@ -1252,3 +1252,49 @@ def test_training_can_give_frames_off_the_aligned_approach_their_share_back():
 def test_a_config_with_a_sampling_weight_that_cannot_be_is_refused(edit):
     with pytest.raises(ConfigError, match="far_weight"):
         load_kp_config(CONFIG, {"data": edit})
+
+
+def test_far_only_scenes_train_on_their_far_frames_alone(tiny_dataset, kp_sets, tmp_path):
+    """data.far_only_spec (model 0.25.0): its scenes give training only their frames at a camera
+    range of data.far_only_from_m or more, beside every frame of data.train_spec's; a config that
+    names a scene in both, or one of validation's, is refused; a short run trains on the mix."""
+    from models_helpers import write_sequence
+
+    from oibar_models.kp_engine import training_frames
+    from oibar_models.kp_train import main as train_main
+
+    root = tmp_path / "data"
+    root.mkdir()
+    (root / "seq02").symlink_to(tiny_dataset / "seq02")
+    write_sequence(root / "seq04", 48, seed=4)  # camera ranges 1.5-4.1 m
+    (tmp_path / "far.json").write_text(json.dumps({"scenes": [{"paper": 4}]}))
+    over = {
+        "data": {
+            "train_spec": str(kp_sets / "train.json"),
+            "val_spec": str(kp_sets / "val.json"),
+            "train_root": str(root),
+            "far_only_spec": str(tmp_path / "far.json"),
+            "far_only_from_m": 3.0,
+        }
+    }
+    cfg = load_kp_config(CONFIG, over)
+    scenes, items = training_frames(cfg)
+    assert [len(s) for s in scenes] == [48, 48]
+    assert [k for s, k in items if s == 0] == list(range(48))  # every frame of the train set
+    r = np.linalg.norm(np.asarray(scenes[1].T_cam_target, float), axis=1)
+    far = [k for s, k in items if s == 1]
+    assert far == [int(k) for k in np.flatnonzero(r >= 3.0)] and 0 < len(far) < 48
+    cfg_plain = load_kp_config(CONFIG, {"data": {**over["data"], "far_only_spec": ""}})
+    assert training_frames(cfg_plain)[1] is None and len(training_frames(cfg_plain)[0]) == 1
+
+    with pytest.raises(ConfigError, match="repeats scenes of data.train_spec"):
+        load_kp_config(CONFIG, {"data": {**over["data"], "far_only_spec": str(kp_sets / "train.json")}})
+    with pytest.raises(ConfigError, match="overlap"):
+        load_kp_config(CONFIG, {"data": {**over["data"], "far_only_spec": str(kp_sets / "val.json")}})
+    with pytest.raises(ConfigError, match="far_only_from_m"):
+        load_kp_config(CONFIG, {"data": {**over["data"], "far_only_from_m": 0.0}})
+
+    run = tmp_path / "run"
+    args = ["--config", str(CONFIG), "--no-progress", *_smoke_overrides(tiny_dataset, kp_sets, run)]
+    args += [f"data.train_root={root}", f"data.far_only_spec={tmp_path / 'far.json'}", "data.far_only_from_m=3.0"]
+    assert train_main(args) == 0 and (run / "done.json").is_file()
