@@ -20,7 +20,6 @@ and ``coast_exchange_ms`` (20) in free flight with the mechanism idle.
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -36,21 +35,17 @@ from oibar.nav.daemon import DaemonParams, NavDaemon
 from oibar.nav.guidance import Guidance, MechRequest
 from oibar.nav.vehicle import VehicleInterface
 from oibar_hil.rig.faults import FaultInjector
+from oibar_hil.rig.fw_params import default_mcu_path, param_ids
 from oibar_hil.rig.lockstep import FLAG_HANG_MAIN_LOOP, RESET_CAUSES, SimMcu
 from oibar_hil.rig.mechanism import Mechanism, MechanismParams
 from oibar_hil.rig.navigation import make_nav
-from oibar_hil.rig.scenario import FIRMWARE_PARAM_IDS, Scenario
+from oibar_hil.rig.scenario import Scenario
 from oibar_hil.rig.wire import Wire
 from oibar_hil.rig.world import VehicleParams, World, WorldState
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
-DEFAULT_MCU = REPO_ROOT / "build" / "fw-host" / "port" / "sim" / "oibar_sim_mcu"
 HOST_VERSION = "oibar-rig-0.1"  # Handshake.host_version holds 16 bytes
 NEAR_RANGE_M = 5.0  # the closed-loop navigation metrics' "below 5 m" (probe tip to drogue)
-
-
-def default_mcu_path() -> Path:
-    return Path(os.environ.get("OIBAR_SIM_MCU", DEFAULT_MCU))
 
 
 def signed_errors(prefix: str, r_D_m: Any, att_rad: Any, truth: Any) -> dict[str, float]:
@@ -168,10 +163,10 @@ class Rig:
         self.out_dir = Path(out_dir) if out_dir else None
         self.progress = progress
         self.rng = np.random.default_rng(scenario.seed)
+        fw_ids = param_ids(list(scenario.firmware_params), self.mcu_path) if scenario.firmware_params else {}
         self.controller_factory = controller_factory or (
             lambda: Guidance(
-                scenario.mission,
-                {FIRMWARE_PARAM_IDS[k]: float(v) for k, v in scenario.firmware_params.items()},
+                scenario.mission, {fw_ids[k]: float(v) for k, v in scenario.firmware_params.items()}
             )
         )
         # navigation: "truth" (reference) or "cnn" (rendered camera + the host's Navigator)
@@ -278,11 +273,12 @@ class Rig:
         """Fault injection: the host tries to set each parameter to a loosening value, once now
         (whatever the MCU state) and once more when the MCU is next in a state where parameters
         may change (BOOT, IDLE, FAULT), so that the bounds themselves are exercised."""
+        ids = param_ids(list(values), self.mcu_path)
         for when in ("now", "settable"):
             for name, value in values.items():
                 req = MechRequest(
                     "param_set",
-                    param_id=FIRMWARE_PARAM_IDS[name],
+                    param_id=ids[name],
                     value=float(value),
                     label=f"ATTACK {name}={value:g}",
                 )

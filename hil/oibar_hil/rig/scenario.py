@@ -11,52 +11,7 @@ import yaml
 
 from oibar.nav.guidance import MissionParams as MissionSpec  # the host's mission parameters
 from oibar_hil.rig.faults import FaultSpec
-
-# Firmware parameter ids by name (firmware/app/src/params.c; ids are part of the host contract).
-FIRMWARE_PARAM_IDS = {
-    name: i + 1
-    for i, name in enumerate(
-        (
-            "capture_max_speed_mm_s",
-            "capture_max_misalign_deg",
-            "soft_dock_max_force_n",
-            "hard_dock_max_force_n",
-            "nav_max_age_ms",
-            "debounce_ms",
-            "boot_settle_ms",
-            "approach_timeout_ms",
-            "reception_timeout_ms",
-            "plane_move_timeout_ms",
-            "hard_docking_timeout_ms",
-            "armed_timeout_ms",
-            "separating_timeout_ms",
-            "latch_move_timeout_ms",
-            "latch_rel_budget_steps",
-            "latch_home_budget_steps",
-            "latch_max_speed_steps_s",
-            "latch_accel_steps_s2",
-            "latch_home_speed_steps_s",
-            "valve_mismatch_ms",
-            "press_zero_counts",
-            "press_sv_kpa_per_count",
-            "press_tv_kpa_per_count",
-            "press_line_kpa_per_count",
-            "press_min_counts",
-            "press_max_counts",
-            "press_max_rate_kpa_s",
-            "overpressure_kpa",
-            "target_min_kpa",
-            "target_max_kpa",
-            "transfer_max_ms",
-            "plane_mm_per_count",
-            "force_n_per_count",
-            "abort_timeout_ms",
-            "plane_coupling_mm",
-            "nav_min_confidence",
-            "fill_stall_ms",
-        )
-    )
-}
+from oibar_hil.rig.fw_params import param_ids
 
 EXPECT_KEYS = {
     "outcome",
@@ -114,9 +69,13 @@ class Scenario:
         unknown_expect = set(d.get("expect", {})) - EXPECT_KEYS
         if unknown_expect:
             raise ValueError(f"unknown expect keys {sorted(unknown_expect)}; known: {sorted(EXPECT_KEYS)}")
-        for name in d.get("firmware_params", {}):
-            if name not in FIRMWARE_PARAM_IDS:
-                raise ValueError(f"unknown firmware parameter {name!r}")
+        # Names checked against the firmware's own table (the simulated MCU prints it).
+        named = list(d.get("firmware_params", {}))
+        for f in d.get("faults", []):
+            if f.get("type") == "param_attack":
+                named += list(f.get("values", {}))
+        if named:
+            param_ids(named)
         start = d.get("start", {})
         return cls(
             name=d.get("name") or (path.stem if path else "scenario"),

@@ -3,6 +3,11 @@
  * in lockstep with the HIL rig's plant (docs/hil.md).
  *
  *   oibar_sim_mcu --lockstep-fd N [--watchdog-ms N] [--build-id S]
+ *   oibar_sim_mcu --list-params
+ *
+ * --list-params prints the firmware's parameter table (app_params) as
+ * tab-separated lines, id name unit default min max integer, and exits: the
+ * rig reads parameter names and ids from the firmware, not from a copy.
  *
  * Prints "PTY <slave path>" on stdout, then serves lockstep exchanges on the
  * inherited SOCK_SEQPACKET socket N until the plant sends QUIT or closes it.
@@ -21,6 +26,7 @@
 #include "oibar/app.h"
 #include "oibar/app_faults.h"
 #include "oibar/app_link.h"
+#include "oibar/app_params.h"
 #include "oibar/hal.h"
 #include "oibar/hal_sim.h"
 #include "oibar/link.h"
@@ -245,11 +251,24 @@ static bool parse_args(int argc, char **argv, options_t *opt)
     return have_fd && (argc % 2) == 1 && opt->watchdog_ms > 0u;
 }
 
+static void list_params(void)
+{
+    for (unsigned i = 0u; i < OIBAR_PARAM_COUNT; i++) {
+        const oibar_param_def_t *d = oibar_param_def_at(i);
+        (void)printf("%u\t%s\t%s\t%.9g\t%.9g\t%.9g\t%d\n", (unsigned)d->id, d->name, d->unit,
+                     (double)d->default_value, (double)d->min, (double)d->max, d->integer ? 1 : 0);
+    }
+}
+
 int main(int argc, char **argv)
 {
     options_t opt = { -1, 100u, "sim" };
+    if (argc == 2 && strcmp(argv[1], "--list-params") == 0) {
+        list_params();
+        return 0;
+    }
     if (!parse_args(argc, argv, &opt)) {
-        (void)fprintf(stderr, "usage: %s --lockstep-fd N [--watchdog-ms N] [--build-id S]\n", argv[0]);
+        (void)fprintf(stderr, "usage: %s --lockstep-fd N [--watchdog-ms N] [--build-id S] | --list-params\n", argv[0]);
         return 2;
     }
     char path[128];
