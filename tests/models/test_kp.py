@@ -1296,5 +1296,9 @@ def test_far_only_scenes_train_on_their_far_frames_alone(tiny_dataset, kp_sets, 
 
     run = tmp_path / "run"
     args = ["--config", str(CONFIG), "--no-progress", *_smoke_overrides(tiny_dataset, kp_sets, run)]
-    args += [f"data.train_root={root}", f"data.far_only_spec={tmp_path / 'far.json'}", "data.far_only_from_m=3.0"]
+    args += [
+        f"data.train_root={root}",
+        f"data.far_only_spec={tmp_path / 'far.json'}",
+        "data.far_only_from_m=3.0",
+    ]
     assert train_main(args) == 0 and (run / "done.json").is_file()
