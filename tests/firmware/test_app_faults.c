@@ -160,12 +160,14 @@ static void test_transfer_timeout(void)
 static void test_fill_stalled_on_a_stuck_target_sensor(void)
 {
     /* SAFETY_RULE_FILL_MUST_PROGRESS through the whole application: the target tank's
-     * sensor freezes 1 s into a fill, the line keeps rising with the real tank. */
+     * sensor freezes 1 s into a fill, the line keeps rising with the real tank and the
+     * supply tank drains; the first witness to see it (here the drain, fill_stall_ms after
+     * the reading's last 5 kPa rise, <= 25 ms before the freeze) stops the fill. */
     TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_TRANSFER_ARMED));
     TEST_ASSERT_EQUAL(oibar_v1_NACK_NONE, oibar_app_command(oibar_v1_CMD_START_TRANSFER, 1500));
     fake_hal_advance_ms(1000);
     fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(fake_plant_tv_kpa() / 0.9158f + 410.0f + 0.5f));
-    fake_hal_advance_ms(3000);
+    fake_hal_advance_ms(2900);
     TEST_ASSERT_EQUAL(oibar_v1_STATE_TRANSFERRING, oibar_app_state());
     fake_hal_advance_ms(1000);
     assert_faulted(oibar_v1_FAULT_FILL_STALLED, "fill stalled");

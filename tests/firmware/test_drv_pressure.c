@@ -213,6 +213,8 @@ static void test_loop_max_transfer_time(void)
 static void test_SAFETY_RULE_FILL_MUST_PROGRESS_stuck_target_sensor_stops_the_fill(void)
 {
     fake_plant_enable(true);
+    /* The supply tank's reading held flat, so the line is the only witness here. */
+    fake_plant_override_adc(HAL_ADC_SV_TANK, (int)(2000.0f / 0.9158f + 410.0f + 0.5f));
     fake_hal_advance_ms(50);
     TEST_ASSERT_TRUE(oibar_ploop_start(1500.0f, hal_time_ms()));
     fake_hal_advance_ms(500);
@@ -245,6 +247,67 @@ static void test_SAFETY_RULE_FILL_MUST_PROGRESS_a_rising_tank_is_no_stall(void)
     TEST_ASSERT_FLOAT_WITHIN(10.0f, 1500.0f, fake_plant_tv_kpa());
 }
 
+/* The same rule with the line sensor failed low (here reading 150 kPa, below the target tank):
+ * no lead is seen, but the supply tank drains (20 kPa/s in the fake) while the frozen target
+ * reading stands still, so fill_stall_ms after its last rise the loop closes the valves. Without
+ * the supply witness this double fault filled on to the fake's ~1830 kPa equalisation. */
+static void test_SAFETY_RULE_FILL_MUST_PROGRESS_line_failed_low_the_supply_drain_witnesses(void)
+{
+    fake_plant_enable(true);
+    fake_plant_override_adc(HAL_ADC_LINE, (int)(150.0f / 0.9158f + 410.0f + 0.5f));
+    fake_hal_advance_ms(50);
+    TEST_ASSERT_TRUE(oibar_ploop_start(1500.0f, hal_time_ms()));
+    fake_hal_advance_ms(500);
+    float stuck_kpa = fake_plant_tv_kpa();
+    fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(stuck_kpa / 0.9158f + 410.0f + 0.5f));
+    fake_hal_advance_ms(2900); /* the window started at the last 5 kPa rise, <= 25 ms ago */
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
+    TEST_ASSERT_TRUE(oibar_ploop_running());
+    fake_hal_advance_ms(200);
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_FILL_STALLED, oibar_fault_take_pending());
+    TEST_ASSERT_FALSE(oibar_ploop_running());
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_SV_VALVE) || fake_hal_do(HAL_DO_TV_VALVE));
+    TEST_ASSERT_TRUE(fake_plant_tv_kpa() < 1500.0f);
+}
+
+/* ...and a supply that does not drain (equalised tanks, or a supply reading gone flat) is no
+ * stall by that witness: the window starts again, and transfer_max_ms ends the fill. */
+static void test_SAFETY_RULE_FILL_MUST_PROGRESS_no_drain_no_stall(void)
+{
+    fake_plant_enable(true);
+    fake_plant_override_adc(HAL_ADC_LINE, (int)(150.0f / 0.9158f + 410.0f + 0.5f));
+    fake_plant_override_adc(HAL_ADC_SV_TANK, (int)(2000.0f / 0.9158f + 410.0f + 0.5f));
+    fake_hal_advance_ms(50);
+    TEST_ASSERT_TRUE(oibar_ploop_start(1500.0f, hal_time_ms()));
+    fake_hal_advance_ms(500);
+    fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(fake_plant_tv_kpa() / 0.9158f + 410.0f + 0.5f));
+    fake_hal_advance_ms(9000); /* three windows */
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
+    TEST_ASSERT_TRUE(oibar_ploop_running());
+}
+
+/* A target tank fuller than the line flows back into it as the valves open: its reading falls
+ * while the supply drains into the line, then rises as the line fills past it. Read here as 20 kPa
+ * down over 1 s, then up at 10 kPa/s: the window starts again at the fall, so the rise from the
+ * bottom is progress (counted from the reading before the fall it would take 2.5 s more, and the
+ * supply witness would trip at 3 s). */
+static void test_SAFETY_RULE_FILL_MUST_PROGRESS_backflow_as_the_valves_open_is_no_stall(void)
+{
+    fake_plant_enable(true);
+    fake_plant_override_adc(HAL_ADC_LINE, (int)(150.0f / 0.9158f + 410.0f + 0.5f));
+    fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(1000.0f / 0.9158f + 410.0f + 0.5f));
+    fake_hal_advance_ms(50);
+    TEST_ASSERT_TRUE(oibar_ploop_start(1500.0f, hal_time_ms()));
+    float tv_kpa = 1000.0f;
+    for (unsigned ms = 0; ms < 4500u; ms += 50u) {
+        tv_kpa += (ms < 1000u) ? -1.0f : 0.5f;
+        fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(tv_kpa / 0.9158f + 410.0f + 0.5f));
+        fake_hal_advance_ms(50);
+    }
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
+    TEST_ASSERT_TRUE(oibar_ploop_running());
+}
+
 static void test_loop_refused_by_interlock(void)
 {
     oibar_valves_set_permit(NULL);
@@ -267,6 +330,9 @@ int main(void)
     RUN_TEST(test_loop_max_transfer_time);
     RUN_TEST(test_SAFETY_RULE_FILL_MUST_PROGRESS_stuck_target_sensor_stops_the_fill);
     RUN_TEST(test_SAFETY_RULE_FILL_MUST_PROGRESS_a_rising_tank_is_no_stall);
+    RUN_TEST(test_SAFETY_RULE_FILL_MUST_PROGRESS_line_failed_low_the_supply_drain_witnesses);
+    RUN_TEST(test_SAFETY_RULE_FILL_MUST_PROGRESS_no_drain_no_stall);
+    RUN_TEST(test_SAFETY_RULE_FILL_MUST_PROGRESS_backflow_as_the_valves_open_is_no_stall);
     RUN_TEST(test_loop_refused_by_interlock);
     return UNITY_END();
 }

@@ -115,6 +115,33 @@ def test_broken_latch_wire_is_detected_in_every_phase(sim_mcu_path):
         assert "FAULT_LATCH_SENSOR" in r.faults_seen and r.fuel_lost_kg == 0.0
 
 
+def test_stuck_target_sensor_behind_a_line_sensor_failed_low_is_still_stopped_by_the_mcu(sim_mcu_path):
+    # The double fault the line witness cannot see: the line's sensor stuck from power-up at the
+    # 100 kPa the vented line held (latent: a closed line may read that), and the target tank's
+    # sensor freezes mid-fill above it, so no lead shows. The supply tank drains into the real
+    # target tank all the same, and SAFETY_RULE_FILL_MUST_PROGRESS's second witness (the supply
+    # falling OIBAR_FILL_MIN_DRAIN_KPA over fill_stall_ms with no rise) closes the valves before
+    # the host's 5 s guard. Before it, only the host (or transfer_max_ms) ended the fill.
+    from oibar_hil.rig.checks import evaluate
+    from oibar_hil.rig.faults import FaultSpec
+    from oibar_hil.rig.runner import Rig
+
+    exp = mx.expectation("pressure_sensor_stuck", "transferring")
+    sc = mx.cell_scenario("pressure_sensor_stuck", "transferring", exp)
+    sc.plant["line_initial_kpa"] = 100.0
+    sc.faults.append(FaultSpec("pressure_sensor_stuck", at_s=0.0, args={"sensor": "line", "kpa": 100.0}))
+    result = Rig(sc, mcu_path=sim_mcu_path).run()
+    failed = [f"{c.id} ({c.measured})" for c in evaluate(result) if c.ok is False]
+    assert not failed, failed
+    m = result.metrics
+    assert "FAULT_FILL_STALLED" in m["faults_seen"]
+    tv_stuck_s = [
+        t for t, note in result.notes if note.startswith("inject pressure_sensor_stuck {'sensor': 'tv'")
+    ]
+    assert len(tv_stuck_s) == 1 and 2.5 <= m["first_fault_s"] - tv_stuck_s[0] <= 3.5
+    assert m["fuel_lost_kg"] == 0.0
+
+
 def test_stuck_target_sensor_is_stopped_by_the_mcu_not_left_to_the_host(sim_mcu_path):
     # Firmware SAFETY_RULE_FILL_MUST_PROGRESS: the target tank's sensor freezes mid-fill; the
     # line, rising with the real tank, reads above it, so the MCU closes the valves after

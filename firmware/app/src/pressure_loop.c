@@ -11,7 +11,18 @@ static bool s_running;
 static float s_target_kpa;
 static uint32_t s_start_ms;
 static float s_ref_tv_kpa; /* target-tank reading the fill must rise above */
-static uint32_t s_ref_ms;  /* since when it has not */
+static uint32_t s_ref_ms;  /* since when it has not, with the line leading */
+/* The supply-tank witness's window: the tank readings at its start. */
+static float s_win_tv_kpa;
+static float s_win_sv_kpa;
+static uint32_t s_win_ms;
+
+static void win_restart(uint32_t now_ms)
+{
+    s_win_tv_kpa = oibar_pressure_kpa(OIBAR_PSENS_TV);
+    s_win_sv_kpa = oibar_pressure_kpa(OIBAR_PSENS_SV);
+    s_win_ms = now_ms;
+}
 
 void oibar_ploop_init(void)
 {
@@ -20,6 +31,9 @@ void oibar_ploop_init(void)
     s_start_ms = 0;
     s_ref_tv_kpa = 0.0f;
     s_ref_ms = 0;
+    s_win_tv_kpa = 0.0f;
+    s_win_sv_kpa = 0.0f;
+    s_win_ms = 0;
 }
 
 bool oibar_ploop_start(float target_kpa, uint32_t now_ms)
@@ -28,6 +42,7 @@ bool oibar_ploop_start(float target_kpa, uint32_t now_ms)
     s_start_ms = now_ms;
     s_ref_tv_kpa = oibar_pressure_kpa(OIBAR_PSENS_TV);
     s_ref_ms = now_ms;
+    win_restart(now_ms);
     s_running = oibar_valves_open_both();
     return s_running;
 }
@@ -70,6 +85,25 @@ void oibar_ploop_tick(uint32_t now_ms)
     } else if (oibar_held_for(now_ms, s_ref_ms, oibar_param_u32(PARAM_FILL_STALL_MS))) {
         oibar_ploop_stop();
         oibar_fault_raise(oibar_v1_FAULT_FILL_STALLED);
+        return;
+    }
+    /* The same rule, witnessed by the supply tank: a line sensor failed low (or
+     * stuck below the target tank) hides the lead, but gas leaving the supply
+     * tank must arrive in the target tank. Over each fill_stall_ms window with no
+     * rise, a supply drain of OIBAR_FILL_MIN_DRAIN_KPA is a stall; no drain is
+     * equalised tanks, and the window starts again. A target reading that falls
+     * as much (gas flowing back into an emptier line as the valves open) restarts
+     * it; a few counts of noise do not. */
+    if (tv_kpa >= s_win_tv_kpa + OIBAR_FILL_MIN_RISE_KPA ||
+        tv_kpa <= s_win_tv_kpa - OIBAR_FILL_MIN_RISE_KPA) {
+        win_restart(now_ms);
+    } else if (oibar_held_for(now_ms, s_win_ms, oibar_param_u32(PARAM_FILL_STALL_MS))) {
+        if (s_win_sv_kpa - oibar_pressure_kpa(OIBAR_PSENS_SV) >= OIBAR_FILL_MIN_DRAIN_KPA) {
+            oibar_ploop_stop();
+            oibar_fault_raise(oibar_v1_FAULT_FILL_STALLED);
+            return;
+        }
+        win_restart(now_ms);
     }
 }
 

@@ -121,8 +121,11 @@ class FaultInjector:
         elif kind == "bit_errors":
             wire.ber = float(spec.args.get("ber", 1e-4)) if on else 0.0
         elif kind == "pressure_sensor_stuck":
-            s = mech.sensor_faults[spec.args.get("sensor", "tv")]
-            s.stuck_counts = mech.last_counts(spec.args.get("sensor", "tv")) if on else None
+            # frozen at its last reading, or (kpa: P) stuck at the reading of P kPa
+            name = spec.args.get("sensor", "tv")
+            s = mech.sensor_faults[name]
+            at = mech.counts_of_kpa(float(spec.args["kpa"])) if "kpa" in spec.args else mech.last_counts(name)
+            s.stuck_counts = at if on else None
         elif kind == "pressure_sensor_range":
             s = mech.sensor_faults[spec.args.get("sensor", "tv")]
             level = spec.args.get("level", "high")

@@ -365,6 +365,11 @@ class Mechanism:
     def last_counts(self, name: str) -> int:
         return self._last_counts[name]
 
+    def counts_of_kpa(self, kpa: float) -> int:
+        """The noiseless ADC counts a healthy pressure sensor gives for `kpa`."""
+        c = kpa / self.p.press_kpa_per_count + self.p.press_zero_counts
+        return int(round(min(4095.0, max(0.0, c))))
+
     def di_bits(self) -> int:
         levels = {
             "CONTACT": self.contact,

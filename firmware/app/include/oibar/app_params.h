@@ -67,6 +67,11 @@ typedef enum {
  * the minimum within fill_stall_ms. Both well above the sensors' ~1 kPa count. */
 #define OIBAR_FILL_LINE_LEAD_KPA 100.0f
 #define OIBAR_FILL_MIN_RISE_KPA 5.0f
+/* The second witness of the same rule: the supply tank falling this much over
+ * fill_stall_ms means gas left it, so the target tank's reading must have risen
+ * (whatever the line sensor reads). Above the sensors' noise (~1 kPa a count,
+ * a few counts peak to peak), well below a real fill's drain over 3 s. */
+#define OIBAR_FILL_MIN_DRAIN_KPA 15.0f
 
 #define OIBAR_PARAM_COUNT ((unsigned)PARAM_ID_END - 1u)
 

@@ -3,8 +3,9 @@
  * tank until it reads the target pressure, close at target and post
  * SIG_TARGET_REACHED. A fill running longer than transfer_max_ms closes the
  * valves and raises FAULT_TRANSFER_TIMEOUT; one whose target-tank reading stands
- * still while the line reads above it (fill_stall_ms) raises FAULT_FILL_STALLED
- * (SAFETY_RULE_FILL_MUST_PROGRESS). (Over-pressure is tripped by the
+ * still for fill_stall_ms while the line reads above it, or while the supply
+ * tank drains, raises FAULT_FILL_STALLED (SAFETY_RULE_FILL_MUST_PROGRESS).
+ * (Over-pressure is tripped by the
  * sensor driver, whatever the loop is doing.)
  */
 #ifndef OIBAR_PRESSURE_LOOP_H
