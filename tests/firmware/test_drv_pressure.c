@@ -205,6 +205,27 @@ static void test_loop_max_transfer_time(void)
     TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_SV_VALVE) || fake_hal_do(HAL_DO_TV_VALVE));
 }
 
+/* ADC counts of a healthy sensor reading `kpa` (default calibration). */
+static int counts_of(float kpa) { return (int)(kpa / 0.9158f + 410.0f + 0.5f); }
+
+/* A fill towards 1500 kPa started, then the target tank's reading frozen 0.5 s into it. */
+static void fill_then_freeze_target(void)
+{
+    fake_hal_advance_ms(50);
+    TEST_ASSERT_TRUE(oibar_ploop_start(1500.0f, hal_time_ms()));
+    fake_hal_advance_ms(500);
+    fake_plant_override_adc(HAL_ADC_TV_TANK, counts_of(fake_plant_tv_kpa()));
+}
+
+/* FAULT_FILL_STALLED raised now, valves closed, the real tank short of the target. */
+static void assert_stalled_short_of_target(void)
+{
+    TEST_ASSERT_EQUAL(oibar_v1_FAULT_FILL_STALLED, oibar_fault_take_pending());
+    TEST_ASSERT_FALSE(oibar_ploop_running());
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_SV_VALVE) || fake_hal_do(HAL_DO_TV_VALVE));
+    TEST_ASSERT_TRUE(fake_plant_tv_kpa() < 1500.0f);
+}
+
 /* SAFETY_RULE_FILL_MUST_PROGRESS: the target tank's sensor sticks in range mid-fill. The
  * line goes on rising with the real tank, so it reads ever further above the frozen value;
  * fill_stall_ms after it leads by OIBAR_FILL_LINE_LEAD_KPA the loop closes the valves with
@@ -214,21 +235,14 @@ static void test_SAFETY_RULE_FILL_MUST_PROGRESS_stuck_target_sensor_stops_the_fi
 {
     fake_plant_enable(true);
     /* The supply tank's reading held flat, so the line is the only witness here. */
-    fake_plant_override_adc(HAL_ADC_SV_TANK, (int)(2000.0f / 0.9158f + 410.0f + 0.5f));
-    fake_hal_advance_ms(50);
-    TEST_ASSERT_TRUE(oibar_ploop_start(1500.0f, hal_time_ms()));
-    fake_hal_advance_ms(500);
-    float stuck_kpa = fake_plant_tv_kpa();
-    fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(stuck_kpa / 0.9158f + 410.0f + 0.5f));
+    fake_plant_override_adc(HAL_ADC_SV_TANK, counts_of(2000.0f));
+    fill_then_freeze_target();
     /* At 200 kPa/s the line leads the frozen reading by 100 kPa after 0.5 s; then 3 s. */
     fake_hal_advance_ms(3000);
     TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
     TEST_ASSERT_TRUE(oibar_ploop_running());
     fake_hal_advance_ms(1000);
-    TEST_ASSERT_EQUAL(oibar_v1_FAULT_FILL_STALLED, oibar_fault_take_pending());
-    TEST_ASSERT_FALSE(oibar_ploop_running());
-    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_SV_VALVE) || fake_hal_do(HAL_DO_TV_VALVE));
-    TEST_ASSERT_TRUE(fake_plant_tv_kpa() < 1500.0f);
+    assert_stalled_short_of_target();
 }
 
 /* The same rule does not trip a fill that rises, however far the line leads (here 1900 kPa
@@ -254,20 +268,13 @@ static void test_SAFETY_RULE_FILL_MUST_PROGRESS_a_rising_tank_is_no_stall(void)
 static void test_SAFETY_RULE_FILL_MUST_PROGRESS_line_failed_low_the_supply_drain_witnesses(void)
 {
     fake_plant_enable(true);
-    fake_plant_override_adc(HAL_ADC_LINE, (int)(150.0f / 0.9158f + 410.0f + 0.5f));
-    fake_hal_advance_ms(50);
-    TEST_ASSERT_TRUE(oibar_ploop_start(1500.0f, hal_time_ms()));
-    fake_hal_advance_ms(500);
-    float stuck_kpa = fake_plant_tv_kpa();
-    fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(stuck_kpa / 0.9158f + 410.0f + 0.5f));
+    fake_plant_override_adc(HAL_ADC_LINE, counts_of(150.0f));
+    fill_then_freeze_target();
     fake_hal_advance_ms(2900); /* the window started at the last 5 kPa rise, <= 25 ms ago */
     TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
     TEST_ASSERT_TRUE(oibar_ploop_running());
     fake_hal_advance_ms(200);
-    TEST_ASSERT_EQUAL(oibar_v1_FAULT_FILL_STALLED, oibar_fault_take_pending());
-    TEST_ASSERT_FALSE(oibar_ploop_running());
-    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_SV_VALVE) || fake_hal_do(HAL_DO_TV_VALVE));
-    TEST_ASSERT_TRUE(fake_plant_tv_kpa() < 1500.0f);
+    assert_stalled_short_of_target();
 }
 
 /* ...and a supply that does not drain (equalised tanks, or a supply reading gone flat) is no
@@ -275,12 +282,9 @@ static void test_SAFETY_RULE_FILL_MUST_PROGRESS_line_failed_low_the_supply_drain
 static void test_SAFETY_RULE_FILL_MUST_PROGRESS_no_drain_no_stall(void)
 {
     fake_plant_enable(true);
-    fake_plant_override_adc(HAL_ADC_LINE, (int)(150.0f / 0.9158f + 410.0f + 0.5f));
-    fake_plant_override_adc(HAL_ADC_SV_TANK, (int)(2000.0f / 0.9158f + 410.0f + 0.5f));
-    fake_hal_advance_ms(50);
-    TEST_ASSERT_TRUE(oibar_ploop_start(1500.0f, hal_time_ms()));
-    fake_hal_advance_ms(500);
-    fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(fake_plant_tv_kpa() / 0.9158f + 410.0f + 0.5f));
+    fake_plant_override_adc(HAL_ADC_LINE, counts_of(150.0f));
+    fake_plant_override_adc(HAL_ADC_SV_TANK, counts_of(2000.0f));
+    fill_then_freeze_target();
     fake_hal_advance_ms(9000); /* three windows */
     TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
     TEST_ASSERT_TRUE(oibar_ploop_running());
@@ -294,14 +298,14 @@ static void test_SAFETY_RULE_FILL_MUST_PROGRESS_no_drain_no_stall(void)
 static void test_SAFETY_RULE_FILL_MUST_PROGRESS_backflow_as_the_valves_open_is_no_stall(void)
 {
     fake_plant_enable(true);
-    fake_plant_override_adc(HAL_ADC_LINE, (int)(150.0f / 0.9158f + 410.0f + 0.5f));
-    fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(1000.0f / 0.9158f + 410.0f + 0.5f));
+    fake_plant_override_adc(HAL_ADC_LINE, counts_of(150.0f));
+    fake_plant_override_adc(HAL_ADC_TV_TANK, counts_of(1000.0f));
     fake_hal_advance_ms(50);
     TEST_ASSERT_TRUE(oibar_ploop_start(1500.0f, hal_time_ms()));
     float tv_kpa = 1000.0f;
     for (unsigned ms = 0; ms < 4500u; ms += 50u) {
         tv_kpa += (ms < 1000u) ? -1.0f : 0.5f;
-        fake_plant_override_adc(HAL_ADC_TV_TANK, (int)(tv_kpa / 0.9158f + 410.0f + 0.5f));
+        fake_plant_override_adc(HAL_ADC_TV_TANK, counts_of(tv_kpa));
         fake_hal_advance_ms(50);
     }
     TEST_ASSERT_EQUAL(oibar_v1_FAULT_NONE, oibar_fault_take_pending());
