@@ -357,17 +357,16 @@ class Mechanism:
             return fault.forced_counts
         if fault.stuck_counts is not None:
             return fault.stuck_counts
-        c = kpa / p.press_kpa_per_count + p.press_zero_counts + self.rng.normal(0.0, p.adc_noise_counts)
-        c = int(round(min(4095.0, max(0.0, c))))
+        c = self.counts_of_kpa(kpa, noise_counts=self.rng.normal(0.0, p.adc_noise_counts))
         self._last_counts[name] = c
         return c
 
     def last_counts(self, name: str) -> int:
         return self._last_counts[name]
 
-    def counts_of_kpa(self, kpa: float) -> int:
-        """The noiseless ADC counts a healthy pressure sensor gives for `kpa`."""
-        c = kpa / self.p.press_kpa_per_count + self.p.press_zero_counts
+    def counts_of_kpa(self, kpa: float, noise_counts: float = 0.0) -> int:
+        """The ADC counts a healthy pressure sensor gives for `kpa` (plus `noise_counts`)."""
+        c = kpa / self.p.press_kpa_per_count + self.p.press_zero_counts + noise_counts
         return int(round(min(4095.0, max(0.0, c))))
 
     def di_bits(self) -> int:
