@@ -109,6 +109,22 @@ def _graph_signature(path: Path) -> tuple[list[str], list[tuple[int, ...]]]:
     return [n.op_type for n in g.node], [tuple(i.dims) for i in g.initializer]
 
 
+def _far_graph_signature(path: Path) -> tuple[list[str], list[tuple[int, ...]]] | None:
+    """The graph signature of the candidate's far network (``oibar.far_network``, a file beside
+    it), None when it reads every window with one network."""
+    from oibar.nav.pose import ModelFileError, read_metadata
+
+    try:
+        far = read_metadata(path).get("far_network")
+    except ModelFileError as exc:
+        raise JudgeInputError(str(exc)) from None
+    if far is None:
+        return None
+    if not isinstance(far, dict) or "file" not in far:
+        raise JudgeInputError(f"{path}: oibar.far_network is malformed: {far!r}")
+    return _graph_signature(Path(path).parent / str(far["file"]))
+
+
 def _eval_arm(models: dict[str, Any], version: str) -> dict[str, Any]:
     hits = [v for name, v in models.items() if name.split()[1:2] == [version] and name.endswith(" tracking")]
     if len(hits) != 1:
@@ -135,8 +151,11 @@ def judge_validation(
     base_graph: tuple[list[str], list[tuple[int, ...]]],
     cand_graph: tuple[list[str], list[tuple[int, ...]]],
     rule: Rule = Rule(),
+    cand_far_graph: tuple[list[str], list[tuple[int, ...]]] | None = None,
 ) -> Verdict:
-    """Part 1 from kp_evaluate's eval.json (both models on the validation set, tracking)."""
+    """Part 1 from kp_evaluate's eval.json (both models on the validation set, tracking). A
+    candidate with a far network (`cand_far_graph`) holds "same graph" only when that one is the
+    shipped graph too (one network reads each window, so the cost per crop stays the shipped one's)."""
     if "val" not in eval_json:
         raise JudgeInputError("the evaluation has no validation set ('val')")
     if base_version == cand_version:
@@ -172,6 +191,14 @@ def judge_validation(
         f"{len(base_graph[0])} / {len(cand_graph[0])} nodes, {len(base_graph[1])} / {len(cand_graph[1])} "
         f"initializers, {'the same' if base_graph == cand_graph else 'different'} operators and shapes",
     )
+    if cand_far_graph is not None:
+        same = base_graph == cand_far_graph
+        v.check(
+            "same graph (far network)",
+            same,
+            f"{len(base_graph[0])} / {len(cand_far_graph[0])} nodes, {len(base_graph[1])} / "
+            f"{len(cand_far_graph[1])} initializers, {'the same' if same else 'different'} operators and shapes",
+        )
     return v
 
 
@@ -388,6 +415,7 @@ def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) 
         _graph_signature(base),
         _graph_signature(cand),
         rule,
+        _far_graph_signature(cand),
     )
     if not _report(v1, out):
         return False
@@ -482,6 +510,7 @@ def main(argv: list[str] | None = None) -> int:
                     _version(a.candidate),
                     _graph_signature(SHIPPED),
                     _graph_signature(a.candidate),
+                    cand_far_graph=_far_graph_signature(a.candidate),
                 ),
                 a.out,
             )

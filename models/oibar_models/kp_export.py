@@ -235,11 +235,12 @@ def load_head_gain(path: Path) -> dict:
 def retag(src: Path, out: Path, options: dict) -> Path:
     """A copy of the export `src` at `out` (may be `src`) with the flight reading `options`
     (metadata keys without the prefix: mirror_reading, turned_reading_deg, turned_reading_head,
-    turned_reading_measurement, placed_pass_refines, filter_measurement, corner_refine_side_px;
-    head_gain goes into the fusion's tables) set, and the new model
-    version when the reading changes what flies; the graph untouched. Checked by opening it as the
-    flight runtime does when its first pass lies beside it. ValueError for an option that is not a
-    reading option or a version that is not MAJOR.MINOR.PATCH."""
+    turned_reading_measurement, placed_pass_refines, filter_measurement, corner_refine_side_px,
+    far_network {"file", "from_m"}, its file beside `out`; head_gain goes into the fusion's tables)
+    set, and the new model version when the reading changes what flies; the graph untouched.
+    Checked by opening it as the flight runtime does when its first pass lies beside it.
+    ValueError for an option that is not a reading option or a version that is not
+    MAJOR.MINOR.PATCH."""
     import onnx
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
@@ -254,6 +255,7 @@ def retag(src: Path, out: Path, options: dict) -> Path:
         "corner_refine_side_px",
         "model_version",
         "head_gain",
+        "far_network",
     }
     version = options.get("model_version")
     if version is not None and not re.fullmatch(r"\d+\.\d+\.\d+", str(version)):
@@ -265,6 +267,13 @@ def retag(src: Path, out: Path, options: dict) -> Path:
     meta = read_metadata(src)  # ModelFileError for a missing or foreign file
     if meta.get("kind") != "keypoints":
         raise ValueError(f"{src}: not a keypoint model export (oibar.kind = {meta.get('kind')!r})")
+    far = options.get("far_network")
+    if far is not None:
+        name = str(far.get("file", ""))
+        if Path(name).name != name or not (Path(out).parent / name).is_file():
+            raise ValueError(
+                f"the far network {name!r} must be a file name lying beside {out} (copy it there first)"
+            )
     m = onnx.load(str(src))
     props = {p.key: p.value for p in m.metadata_props}
     for k, v in options.items():
@@ -375,6 +384,18 @@ def main(argv: list[str] | None = None) -> int:
         "pixels (0: off; chosen on validation)",
     )
     ap.add_argument(
+        "--far-network",
+        default=None,
+        help="with --retag: a second keypoint network of the same graph, a file beside the output, "
+        "that reads every crop window from --far-from-m on (docs/model_history.md, Candidate 0.26.0)",
+    )
+    ap.add_argument(
+        "--far-from-m",
+        type=float,
+        default=None,
+        help="with --far-network: the head-on range of a window from which the far network reads it",
+    )
+    ap.add_argument(
         "--model-version",
         default=None,
         help="with --retag: the version the retagged file says it is (MAJOR.MINOR.PATCH)",
@@ -401,14 +422,22 @@ def main(argv: list[str] | None = None) -> int:
                 ("corner_refine_side_px", a.corner_refine_side_px),
                 ("model_version", a.model_version),
                 ("head_gain", head_gain),
+                (
+                    "far_network",
+                    {"file": a.far_network, "from_m": a.far_from_m} if a.far_network is not None else None,
+                ),
             )
             if v is not None
         }
+        if (a.far_network is None) != (a.far_from_m is None):
+            print("error: --far-network and --far-from-m go together", file=sys.stderr)
+            return 2
         if a.config or a.fusion or a.overrides or not set(options) - {"model_version"}:
             print(
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
                 "--turned-reading-head, --turned-reading-measurement, --placed-pass-refines, "
-                "--filter-measurement, --corner-refine-side-px, --head-gain), "
+                "--filter-measurement, --corner-refine-side-px, --head-gain, --far-network with "
+                "--far-from-m), "
                 "--model-version and --out only",
                 file=sys.stderr,
             )
@@ -427,6 +456,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if a.model_version is not None:
         print("error: --model-version goes with --retag (an export takes its config's)", file=sys.stderr)
+        return 2
+    if a.far_network is not None or a.far_from_m is not None:
+        print("error: --far-network and --far-from-m go with --retag (pair two exports)", file=sys.stderr)
         return 2
     try:
         cfg = load_kp_config(a.config, parse_override(a.overrides))

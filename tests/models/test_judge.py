@@ -114,6 +114,15 @@ def test_each_validation_clause_fails_on_its_own(change, clause):
     assert _failing(judge_validation(_eval(), "0.15.3", "0.9.9", GRAPH, other)) == ["same graph"]
 
 
+def test_a_pairs_far_network_must_have_the_shipped_graph_too():
+    """A candidate with a far network (oibar.far_network) reads each window with one of two
+    networks: both must be the shipped graph for the cost per crop to stay the shipped one's."""
+    assert judge_validation(_eval(), "0.15.3", "0.9.9", GRAPH, GRAPH, cand_far_graph=GRAPH).holds
+    other = (GRAPH[0] + ["Relu"], GRAPH[1])
+    v = judge_validation(_eval(), "0.15.3", "0.9.9", GRAPH, GRAPH, cand_far_graph=other)
+    assert _failing(v) == ["same graph (far network)"]
+
+
 def test_a_validation_without_both_arms_or_with_one_version_is_refused():
     with pytest.raises(JudgeInputError, match="version 0.9.8"):
         judge_validation(_eval(), "0.15.3", "0.9.8", GRAPH, GRAPH)

@@ -38,6 +38,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from oibar.nav.pose import read_metadata
 from oibar.progress import Progress
 from oibar_hil.dataset import DatasetError, load_spec_file
 from oibar_hil.rig.runner import REPO_ROOT
@@ -82,14 +83,18 @@ class LoopResult:
 
 def model_tag(path: str) -> str:
     """A model's folder name under --out: its file stem and the start of its content hash (two
-    exports called oibarnet.onnx never share a cache)."""
+    exports called oibarnet.onnx never share a cache); the hash covers the far network beside it
+    too, when the file names one (``oibar.far_network``), since that network flies with it."""
     if path == TRUTH:
         return TRUTH
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"model {path}: no such file")
-    h = hashlib.sha256(p.read_bytes()).hexdigest()[:10]
-    return f"{p.stem}-{h}"
+    digest = hashlib.sha256(p.read_bytes())
+    far = read_metadata(p).get("far_network")
+    if isinstance(far, dict) and (p.parent / str(far.get("file", ""))).is_file():
+        digest.update((p.parent / str(far["file"])).read_bytes())
+    return f"{p.stem}-{digest.hexdigest()[:10]}"
 
 
 def code_tag(root: Path = REPO_ROOT) -> str:

@@ -729,6 +729,7 @@ class KeypointPoseEstimator(PoseEstimator):
         self.out_px = int(self.meta["crop"]["out_px"])
         self.margin = float(self.meta["crop"]["margin"])
         self.points_m = np.asarray(self.meta["keypoints_3d_m"], float)
+        self._open_far_network(threads, allow_spinning)
         self.reproj_crop_px = float(self.meta["pnp"]["reproj_crop_px"])
         self.min_present = float(self.meta["pnp"]["min_present"])
         cam = self.meta["camera"]
@@ -842,6 +843,78 @@ class KeypointPoseEstimator(PoseEstimator):
         zero = np.zeros((1, 3, self.out_px, self.out_px), np.float32)
         for _ in range(warmup_runs):
             self.run(zero)
+            if self.far_session is not None:
+                self.far_session.run(None, {self.input_name: zero})
+
+    def _open_far_network(self, threads: int, allow_spinning: bool) -> None:
+        """``oibar.far_network`` ({"file", "from_m"}): a second keypoint network, a file beside
+        this one, that reads every crop window whose head-on range is `from_m` or more (the
+        section "Candidate 0.26.0" of docs/model_history.md: one network of this size reads near
+        or far well, not both). It must be the same kind of network as this one: the same
+        outputs, keypoints, crop and attitude head, since every table of this file's (fusion,
+        error models, corner step) reads its answers too."""
+        spec = self.meta.get("far_network")
+        if spec is None:
+            return
+        try:
+            name, from_m = str(spec["file"]), spec["from_m"]
+        except (KeyError, TypeError) as exc:
+            raise ModelFileError(
+                f"{self.path}: oibar.far_network must be {{'file': NAME, 'from_m': RANGE}}, got {spec!r}"
+            ) from exc
+        if (
+            isinstance(from_m, bool)
+            or not isinstance(from_m, int | float)
+            or not 0.0 < float(from_m) < np.inf
+        ):
+            raise ModelFileError(
+                f"{self.path}: oibar.far_network.from_m must be a range in m > 0, got {from_m!r}"
+            )
+        far = self.path.parent / name
+        if Path(name).name != name or not far.is_file():
+            raise ModelFileError(
+                f"{self.path}: its far network {name!r} is missing (a file name; it must lie beside it)"
+            )
+        meta = read_metadata(far)
+        for key in ("kind", "keypoints_3d_m", "keypoint_names", "crop", "attitude_head", "input_size_wh"):
+            if meta.get(key) != self.meta.get(key):
+                raise ModelFileError(
+                    f"{far}: not the same kind of network as {self.path.name} (oibar.{key} differs), "
+                    "so this file's tables cannot read it"
+                )
+        session = _session(far, threads, allow_spinning)
+        inputs = session.get_inputs()
+        outputs = [o.name for o in session.get_outputs()]
+        if outputs != self.output_names or [i.name for i in inputs] != [self.input_name]:
+            raise ModelFileError(
+                f"{far}: inputs/outputs {[i.name for i in inputs]} / {outputs} differ from "
+                f"{self.path.name}'s {[self.input_name]} / {self.output_names}"
+            )
+        self.far_session, self.far_from_m = session, float(from_m)
+
+    def _reads_far(self, win: CropWindow) -> bool:
+        """Whether the far network reads this window (its head-on range from `far_from_m` on)."""
+        return self.far_session is not None and self._range_for_side_m(win.side_px) >= self.far_from_m
+
+    def run_windows(self, x: np.ndarray, wins: list[CropWindow]) -> dict[str, np.ndarray]:
+        """Crops (N, 3, S, S) of the windows `wins` (one per row) -> every output by name, each
+        row read by the network for its window's range (`_reads_far`); one network, one batch,
+        without a far network."""
+        far = np.array([self._reads_far(w) for w in wins], bool)
+        if not far.any():
+            return self.run(x)
+        far_out = dict(
+            zip(self.output_names, self.far_session.run(None, {self.input_name: x[far]}), strict=True)
+        )
+        if far.all():
+            return far_out
+        near_out = self.run(x[~far])
+        out = {}
+        for k, v in near_out.items():
+            both = np.empty((len(wins),) + v.shape[1:], v.dtype)
+            both[~far], both[far] = v, far_out[k]
+            out[k] = both
+        return out
 
     def check_frame(self, image: Any) -> None:
         self.first.check_frame(image)
@@ -906,7 +979,8 @@ class KeypointPoseEstimator(PoseEstimator):
         mirror = refining and self.mirror is not None
         crops = [cut(image, w) for w in wins]
         batch = [c for crop in crops for c in ((crop, crop[:, ::-1]) if mirror else (crop,))]
-        out = {k: v.astype(float) for k, v in self.run(to_input(np.stack(batch))).items()}
+        rows = [w for w in wins for _ in range(2 if mirror else 1)]
+        out = {k: v.astype(float) for k, v in self.run_windows(to_input(np.stack(batch)), rows).items()}
         per = 2 if mirror else 1
         readings = [
             self._reading(w, {k: v[i * per : (i + 1) * per] for k, v in out.items()})
@@ -1149,7 +1223,7 @@ class KeypointPoseEstimator(PoseEstimator):
     def _fixture_likeness(self, image: np.ndarray, wins: list[CropWindow]) -> np.ndarray:
         """How much each window looks like the fixture, read in one batch: mean presence x
         exp(-mean heat-map spread / 4 px, CROP_REF_PX terms)."""
-        out = self.run(np.concatenate([to_input(cut(image, w)) for w in wins]))
+        out = self.run_windows(np.concatenate([to_input(cut(image, w)) for w in wins]), wins)
         present = out["kp_present"].astype(float).mean(axis=1)
         spread = (
             out["kp_spread_px"].astype(float).mean(axis=1) if "kp_spread_px" in out else np.zeros(len(wins))
@@ -1377,6 +1451,8 @@ class KeypointPoseEstimator(PoseEstimator):
     placed_pass_refines = False  # a predicted crop read as the refining pass (idem)
     corner_refine_side_px = 0.0  # refined_corners' size gate, 0: off (idem)
     corner_idx = np.zeros(0, int)
+    far_session: Any = None  # the far network's session (``oibar.far_network``), None: one network
+    far_from_m = np.inf  # the head-on range from which it reads a window
     cold_crop_budget: int | None = COLD_CROP_BUDGET  # (set in __init__)
     overlap_first_pass = False  # the direct model on its own thread while the placed crop is read (idem)
     _first_pass_thread: tuple[int, ThreadPoolExecutor] | None = None  # (its process id, the thread)
