@@ -57,6 +57,13 @@ KP_FUSION_JSON ?= docs/data/kp_fusion_grid_081.json
 # The attitude head's tilt gain per range (`python -m oibar_models.kp_head_gain`, measured on the
 # validation scenes); empty: the head's reading is the prior as it is.
 KP_HEAD_GAIN_JSON ?=
+# A far network (docs/navigation.md, step 4; docs/model_history.md "Candidate 0.26.0"): a second
+# config whose network, exported beside the main one as models/oibarnet_far.onnx with the same
+# fusion tables, reads every crop window from KP_FAR_FROM_M on; the main file is then retagged with
+# it and KP_MODEL_VERSION. Empty: one network reads every window.
+KP_FAR_CONFIG ?=
+KP_FAR_FROM_M ?= 5.0
+KP_MODEL_VERSION ?=
 
 train-kp: setup ## train the keypoint model, all six stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
 	@for c in $(KP_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.kp_train --config $$c $(TRAIN_ARGS) || exit 1; done
@@ -68,6 +75,10 @@ ifeq ($(strip $(KP_FUSION_JSON)),)
 	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --fusion runs/oibarnet_kp_fusion.json $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
 else
 	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --fusion $(KP_FUSION_JSON) $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
+endif
+ifneq ($(strip $(KP_FAR_CONFIG)),)
+	@$(PY) -m oibar_models.kp_export --config $(KP_FAR_CONFIG) --out models/oibarnet_far.onnx --fusion $(if $(strip $(KP_FUSION_JSON)),$(KP_FUSION_JSON),runs/oibarnet_kp_fusion.json) $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
+	@$(PY) -m oibar_models.kp_export --retag models/oibarnet.onnx --far-network oibarnet_far.onnx --far-from-m $(KP_FAR_FROM_M) $(if $(strip $(KP_MODEL_VERSION)),--model-version $(KP_MODEL_VERSION),)
 endif
 
 eval-kp: setup ## the flight estimator on validation and test scenes: tables, range bins, latency (runs/eval_kp)
