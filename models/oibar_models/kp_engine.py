@@ -58,7 +58,8 @@ class KpData:
     offnominal_from_deg: float = 1.0
     offnominal_weight: float = 1.0
     # more training scenes (a spec file, rendered into train_root) of which only the frames at a
-    # camera range of `far_only_from_m` or more are drawn (kp_data.far_only_items); "": none
+    # camera range of `far_only_from_m` or more are drawn (kp_data.far_only_items); "": none.
+    # With train_spec "" they are the whole training set (a network that reads far windows only)
     far_only_spec: str = ""
     far_only_from_m: float = 5.0
 
@@ -139,8 +140,14 @@ def load_kp_config(path: str | Path, overrides: dict | None = None) -> KpConfig:
     """Read a keypoint experiment config; refuse it when its scene sets overlap."""
     data = read_yaml(path, overrides)
     cfg = _build(KpConfig, data, str(path))
-    sets = {n: load_set(cfg.path(getattr(cfg.data, f"{n}_spec"))) for n in ("train", "val", "test")}
     d = cfg.data
+    if not d.train_spec and not d.far_only_spec:
+        raise ConfigError(
+            f"{path}: data.train_spec is empty and there is no data.far_only_spec: nothing to train on"
+        )
+    # an empty train_spec: a far-only network (model 0.27.0's far network), every scene far-only
+    sets = {"train": load_set(cfg.path(d.train_spec)) if d.train_spec else []}
+    sets |= {n: load_set(cfg.path(getattr(d, f"{n}_spec"))) for n in ("val", "test")}
     if d.far_only_spec:
         far = load_set(cfg.path(d.far_only_spec))
         both = sorted({s.name for s in far} & {s.name for s in sets["train"]})
@@ -476,7 +483,7 @@ def training_frames(cfg: KpConfig) -> tuple[list, list[tuple[int, int]] | None]:
     pairs drawn from them: None for every frame, else far_only_items' (the far-only scenes' frames
     from data.far_only_from_m on)."""
     d = cfg.data
-    names = [s.name for s in load_set(cfg.path(d.train_spec))]
+    names = [s.name for s in load_set(cfg.path(d.train_spec))] if d.train_spec else []
     far_names = [s.name for s in load_set(cfg.path(d.far_only_spec))] if d.far_only_spec else []
     scenes = open_scenes(cfg.path(d.train_root), names + far_names)
     return scenes, (far_only_items(scenes, len(names), d.far_only_from_m) if far_names else None)

@@ -1294,6 +1294,17 @@ def test_far_only_scenes_train_on_their_far_frames_alone(tiny_dataset, kp_sets, 
     with pytest.raises(ConfigError, match="far_only_from_m"):
         load_kp_config(CONFIG, {"data": {**over["data"], "far_only_from_m": 0.0}})
 
+    # no all-frames set (model 0.27.0's far network): the far-only scenes are the whole training set
+    alone = load_kp_config(CONFIG, {"data": {**over["data"], "train_spec": ""}})
+    scenes, items = training_frames(alone)
+    assert len(scenes) == 1 and items == [(0, k) for k in far]
+    with pytest.raises(ConfigError, match="nothing to train on"):
+        load_kp_config(CONFIG, {"data": {**over["data"], "train_spec": "", "far_only_spec": ""}})
+    with pytest.raises(ConfigError, match="overlap"):
+        load_kp_config(
+            CONFIG, {"data": {**over["data"], "train_spec": "", "far_only_spec": str(kp_sets / "val.json")}}
+        )
+
     run = tmp_path / "run"
     args = ["--config", str(CONFIG), "--no-progress", *_smoke_overrides(tiny_dataset, kp_sets, run)]
     args += [
