@@ -97,7 +97,8 @@ recover-kp: setup ## the shipped keypoint model's ONNX back into a trainable che
 # docs/model_card.md, "How a candidate ships"): a part that fails stops the rest; verdicts in
 # build/judge/part<N>.json.
 #   make judge-kp JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx        parts 1-3 (~15 min on 2 cores)
-#   make judge-kp-loop JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx   part 4, the closed loop (~85 min)
+#   make judge-kp-loop JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx   part 4, the closed loop (~85 min;
+#       as long again the first time after a flight-code change: the shipped model flies beside it)
 # The candidate's first pass (oibar.first_pass) must lie beside it, as for any keypoint model.
 JUDGE_CANDIDATE ?=
 .PHONY: judge-kp judge-kp-loop

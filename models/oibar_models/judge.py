@@ -15,14 +15,19 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
 4. the closed loop paired run by run against the shipped model's runs (held-out, then default):
    every run docks; per set the mean paired lateral p95 difference no worse than
    max(1 SE, 0.10 cm); the worst run no worse by more than 0.5 cm; capture no worse by more than
-   0.5 mm.
+   0.5 mm. The committed base (BASE_LOOP) says which runs; the shipped model flies them again
+   beside the candidate, under the same flight code (the looks' cache keeps them until that code
+   changes), and the candidate is paired with those: a run is deterministic for a model *and* the
+   code, and the code moves (0.15.3's held-out runs flown on 2026-11-29 differ from its committed
+   ones by up to 1.1 cm a run; docs/model_history.md, "Candidate 0.28.0").
 
     python -m oibar_models.judge run --candidate runs/<name>/oibarnet.onnx      # parts 1-3 (~15 min)
     python -m oibar_models.judge loop --candidate runs/<name>/oibarnet.onnx     # part 4 (~85 min)
     python -m oibar_models.judge validation EVAL_JSON --candidate C.onnx        # one part, from
     python -m oibar_models.judge probe PROBE_JSON                               #   files made
     python -m oibar_models.judge demo DEMO_JSON                                 #   already
-    python -m oibar_models.judge pair held_out=LOOKS_JSON default=LOOKS_JSON
+    python -m oibar_models.judge pair held_out=LOOKS_JSON default=LOOKS_JSON \
+           [--shipped held_out=LOOKS_JSON ...]   # paired with the shipped model's runs flown beside
     python -m oibar_models.judge base --what TEXT --out-file F held_out=LOOKS_JSON default=...
                                   # when a candidate ships: its loop arm as the next base (F)
 
@@ -319,6 +324,41 @@ def judge_loop(base: dict[str, Any], cand: dict[str, dict[str, Any]], rule: Rule
     return v
 
 
+def base_of_flown(base: dict[str, Any], shipped: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The base for part 4 from the shipped model's own runs flown under today's flight code
+    (`looks --json` per set): the committed base's layout, each run's ``*_new`` fields what the
+    shipped model flew now. Every run of the committed base's sets given must be there."""
+    out: dict[str, Any] = {}
+    for label, looks in shipped.items():
+        if label not in base:
+            raise JudgeInputError(
+                f"the base has no {label!r} set (has {sorted(k for k in base if k in LOOP_SETS)})"
+            )
+        want = {_run_key(r["look"], r["start_m"], r["seed"], r["turn"]) for r in base[label]["runs"]}
+        runs = []
+        for r in looks.get("runs", []):
+            k = r["key"]
+            kk = _run_key(k["look"], k["start_range_m"], k["seed"], k["turn_deg"])
+            if kk in want:
+                runs.append(
+                    {
+                        "look": k["look"],
+                        "start_m": float(k["start_range_m"]),
+                        "seed": int(k["seed"]),
+                        "turn": [float(t) for t in k["turn_deg"]],
+                        "outcome_new": r.get("outcome"),
+                        "lat_p95_new_cm": float(r["lateral_p95_below_5m_m"]) * 100,
+                        "capture_new_mm": float(r["capture_lateral_m"]) * 1000,
+                    }
+                )
+        if len(runs) != len(want):
+            raise JudgeInputError(
+                f"{label}: the shipped model flew {len(runs)} of the base's {len(want)} runs"
+            )
+        out[label] = {"runs": runs}
+    return out
+
+
 def next_base(base: dict[str, Any], flown: dict[str, dict[str, Any]], what: str) -> dict[str, Any]:
     """The loop base for the model after a ship: the candidate's flown runs (`looks --json`, every
     set of the base, every run of it) paired with the base's, in the base's own layout, so that
@@ -447,29 +487,51 @@ def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) 
     return _report(judge_demo(_load(out / "demo.json", "the demo's metrics"), rule), out)
 
 
-def fly_loop(cand: Path, out: Path, jobs: int, rule: Rule = Rule()) -> bool:
-    """Part 4: the base's runs flown with the candidate (held-out first), then paired."""
-    base = _load(BASE_LOOP, "the shipped model's closed-loop runs")
+def fly_loop(cand: Path, out: Path, jobs: int, rule: Rule = Rule(), shipped: Path = SHIPPED) -> bool:
+    """Part 4: the base's runs flown with the shipped model and the candidate (held-out first),
+    both under this flight code, then paired. How far the shipped model's runs moved from the
+    committed base is reported beside the verdict (figures ``shipped_moved_cm``), not judged."""
+    committed = _load(BASE_LOOP, "the shipped model's closed-loop runs")
     flown: dict[str, Any] = {}
+    shipped_now: dict[str, Any] = {}
     for label in LOOP_SETS:
-        runs = base[label]["runs"]
+        runs = committed[label]["runs"]
         starts = sorted({float(r["start_m"]) for r in runs})
         seeds = sorted({int(r["seed"]) for r in runs})
         turns = sorted({tuple(r["turn"]) for r in runs})
-        path = out / f"loop_{label}.json"
-        _run(
-            [sys.executable, "-m", "oibar_hil.rig.looks", "--model", str(cand),
-             "--looks", label.replace("_", "-"), "--starts", ",".join(f"{s:g}" for s in starts),
-             "--seeds", ",".join(map(str, seeds)),
-             "--turns=" + ",".join(f"{a:g}:{b:g}" for a, b in turns),
-             "--jobs", str(jobs), "--no-progress", "--json", str(path)],
-            out / f"loop_{label}.log",
-        )  # fmt: skip
-        flown[label] = _load(path, "the looks' runs")
-        v = judge_loop(base, flown, rule)
+        for model, path in (
+            (shipped, out / f"loop_{label}_shipped.json"),
+            (cand, out / f"loop_{label}.json"),
+        ):
+            _run(
+                [sys.executable, "-m", "oibar_hil.rig.looks", "--model", str(model),
+                 "--looks", label.replace("_", "-"), "--starts", ",".join(f"{s:g}" for s in starts),
+                 "--seeds", ",".join(map(str, seeds)),
+                 "--turns=" + ",".join(f"{a:g}:{b:g}" for a, b in turns),
+                 "--jobs", str(jobs), "--no-progress", "--json", str(path)],
+                path.with_suffix(".log"),
+            )  # fmt: skip
+        shipped_now[label] = _load(out / f"loop_{label}_shipped.json", "the shipped model's looks runs")
+        flown[label] = _load(out / f"loop_{label}.json", "the looks' runs")
+        v = judge_loop(base_of_flown(committed, shipped_now), flown, rule)
+        moved = judge_loop(committed, shipped_now, rule).figures
+        for k, f in moved.items():
+            v.figures.setdefault(k, {})["shipped_moved_cm"] = f["paired_diff_cm"]
+            v.figures[k]["shipped_moved_se_cm"] = f["paired_se_cm"]
         if not _report(v, out):
             return False
     return True
+
+
+def _sets(given: list[str]) -> dict[str, Any]:
+    """SET=FILE arguments -> {set: the looks JSON}."""
+    sets = {}
+    for s in given:
+        label, _, path = s.partition("=")
+        if label not in LOOP_SETS or not path:
+            raise JudgeInputError(f"{s!r}: give SET=FILE with SET one of {LOOP_SETS}")
+        sets[label] = _load(Path(path), "the looks' runs")
+    return sets
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -490,6 +552,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("demo_json", type=Path)
     p = sub.add_parser("pair", help="part 4 from looks JSONs already flown: held_out=FILE default=FILE")
     p.add_argument("sets", nargs="+")
+    p.add_argument(
+        "--shipped",
+        nargs="+",
+        default=None,
+        metavar="SET=FILE",
+        help="the shipped model's runs flown under the same code (else the committed base's)",
+    )
     p = sub.add_parser(
         "base", help="a shipped candidate's flown loop as the next base: held_out=FILE default=FILE"
     )
@@ -522,13 +591,10 @@ def main(argv: list[str] | None = None) -> int:
         elif a.cmd == "demo":
             ok = _report(judge_demo(_load(a.demo_json, "the demo's metrics")), a.out)
         else:
-            sets = {}
-            for s in a.sets:
-                label, _, path = s.partition("=")
-                if label not in LOOP_SETS or not path:
-                    raise JudgeInputError(f"{s!r}: give SET=FILE with SET one of {LOOP_SETS}")
-                sets[label] = _load(Path(path), "the looks' runs")
+            sets = _sets(a.sets)
             base = _load(BASE_LOOP, "the shipped model's closed-loop runs")
+            if a.cmd == "pair" and a.shipped:
+                base = base_of_flown(base, _sets(a.shipped))
             if a.cmd == "base":
                 a.out_file.write_text(json.dumps(next_base(base, sets, a.what), indent=1) + "\n")
                 print(f"wrote {a.out_file}: the next loop base (point BASE_LOOP at it when the model ships)")

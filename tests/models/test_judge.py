@@ -183,9 +183,15 @@ def test_the_command_line_writes_the_verdict_and_says_so_in_its_exit_code(tmp_pa
     assert main(["--out", str(tmp_path), "pair", "sideways=x.json"]) == 2
 
 
+def _moved(runs, cm):
+    """The base's runs with every lateral p95 `cm` larger: the same model under other flight code."""
+    return [dict(r, lat_p95_new_cm=r["lat_p95_new_cm"] + cm) for r in runs]
+
+
 def test_the_loop_flies_the_bases_runs_held_out_first_and_pairs_them(tmp_path, monkeypatch):
     """Part 4's command: each set's looks, starts, seeds and turns are the base's own, the held-out
-    set first; flown exactly as the base flew them, it holds."""
+    set first, flown by the shipped model and then the candidate; a candidate that flies exactly
+    as the shipped model does today holds."""
     import oibar_models.judge as judge
 
     base = json.loads(BASE_LOOP.read_text())
@@ -197,12 +203,60 @@ def test_the_loop_flies_the_bases_runs_held_out_first_and_pairs_them(tmp_path, m
         Path(cmd[cmd.index("--json") + 1]).write_text(json.dumps({"runs": _as_flown(base[label]["runs"])}))
 
     monkeypatch.setattr(judge, "_run", fake_run)
-    assert judge.fly_loop(Path("cand.onnx"), tmp_path, jobs=2)
-    assert [c[c.index("--looks") + 1] for c in cmds] == ["held-out", "default"]
-    held, default = cmds
+    assert judge.fly_loop(Path("cand.onnx"), tmp_path, jobs=2, shipped=Path("shipped.onnx"))
+    assert [(c[c.index("--looks") + 1], c[c.index("--model") + 1]) for c in cmds] == [
+        ("held-out", "shipped.onnx"),
+        ("held-out", "cand.onnx"),
+        ("default", "shipped.onnx"),
+        ("default", "cand.onnx"),
+    ]
+    held, default = cmds[1], cmds[3]
     assert held[held.index("--seeds") + 1] == "1" and default[default.index("--seeds") + 1] == "1,2"
     assert "--turns=-2:1.5,2:-1.5" in held and held[held.index("--starts") + 1] == "10"
     assert json.loads((tmp_path / "part4.json").read_text())["holds"] is True
+
+
+def test_the_loop_pairs_the_candidate_with_the_shipped_runs_flown_under_the_same_code(tmp_path, monkeypatch):
+    """The flight code moves the runs of one model (2026-11-29: 0.15.3's held-out runs differ from
+    its committed ones by up to 1.1 cm): a candidate is paired with the shipped model flown today,
+    not with the committed figures, and how far those moved is reported beside the verdict."""
+    import oibar_models.judge as judge
+
+    base = json.loads(BASE_LOOP.read_text())
+
+    def fly(shipped_cm, cand_cm):
+        def fake_run(cmd, log):
+            label = "held_out" if cmd[cmd.index("--looks") + 1] == "held-out" else "default"
+            cm = shipped_cm if cmd[cmd.index("--model") + 1] == "shipped.onnx" else cand_cm
+            runs = _as_flown(_moved(base[label]["runs"], cm))
+            Path(cmd[cmd.index("--json") + 1]).write_text(json.dumps({"runs": runs}))
+
+        monkeypatch.setattr(judge, "_run", fake_run)
+        ok = judge.fly_loop(Path("cand.onnx"), tmp_path, jobs=2, shipped=Path("shipped.onnx"))
+        return ok, json.loads((tmp_path / "part4.json").read_text())
+
+    # today's code moves every run 0.8 cm; the candidate flies as the shipped model: it holds
+    ok, v = fly(0.8, 0.8)
+    assert ok and v["figures"]["held_out"]["shipped_moved_cm"] == pytest.approx(0.8)
+    assert v["figures"]["held_out"]["paired_diff_cm"] == pytest.approx(0.0, abs=1e-9)
+    # the same candidate against the committed figures would have failed
+    flown = {"held_out": {"runs": _as_flown(_moved(base["held_out"]["runs"], 0.8))}}
+    assert not judge_loop(base, flown).holds
+    # and a candidate 0.8 cm worse than the shipped model today fails, the code unmoved or not
+    assert not fly(0.0, 0.8)[0] and not fly(0.8, 1.6)[0]
+
+
+def test_pair_takes_the_shipped_runs_flown_beside_the_candidate(tmp_path):
+    base = json.loads(BASE_LOOP.read_text())
+    shipped, cand = tmp_path / "shipped.json", tmp_path / "cand.json"
+    shipped.write_text(json.dumps({"runs": _as_flown(_moved(base["held_out"]["runs"], 0.8))}))
+    cand.write_text(json.dumps({"runs": _as_flown(_moved(base["held_out"]["runs"], 0.8))}))
+    out = ["--out", str(tmp_path)]
+    assert main(out + ["pair", f"held_out={cand}"]) == 1  # against the committed figures
+    assert main(out + ["pair", f"held_out={cand}", "--shipped", f"held_out={shipped}"]) == 0
+    short = tmp_path / "short.json"
+    short.write_text(json.dumps({"runs": _as_flown(base["held_out"]["runs"][:5])}))
+    assert main(out + ["pair", f"held_out={cand}", "--shipped", f"held_out={short}"]) == 2
 
 
 def test_a_candidate_that_is_no_model_file_is_refused_with_its_reason(tmp_path, capsys):
