@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from oibar.nav.pose import read_metadata
+from oibar.nav.pose import ModelFileError, read_metadata
 from oibar.progress import Progress
 from oibar_hil.dataset import DatasetError, load_spec_file
 from oibar_hil.rig.runner import REPO_ROOT
@@ -91,7 +91,10 @@ def model_tag(path: str) -> str:
     if not p.is_file():
         raise FileNotFoundError(f"model {path}: no such file")
     digest = hashlib.sha256(p.read_bytes())
-    far = read_metadata(p).get("far_network")
+    try:
+        far = read_metadata(p).get("far_network")
+    except ModelFileError:  # not a model: its run reports that; the tag is its bytes'
+        far = None
     if isinstance(far, dict) and (p.parent / str(far.get("file", ""))).is_file():
         digest.update((p.parent / str(far["file"])).read_bytes())
     return f"{p.stem}-{digest.hexdigest()[:10]}"
