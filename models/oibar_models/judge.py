@@ -19,7 +19,7 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
    beside the candidate, under the same flight code (the looks' cache keeps them until that code
    changes), and the candidate is paired with those: a run is deterministic for a model *and* the
    code, and the code moves (0.15.3's held-out runs flown on 2026-11-29 differ from its committed
-   ones by up to 1.1 cm a run; docs/model_history.md, "Candidate 0.28.0").
+   ones by up to 1.3 cm a run, +0.20 +- 0.13 cm on the mean; docs/model_history.md, "Candidate 0.28.0").
 
     python -m oibar_models.judge run --candidate runs/<name>/oibarnet.onnx      # parts 1-3 (~15 min)
     python -m oibar_models.judge loop --candidate runs/<name>/oibarnet.onnx     # part 4 (~85 min)
