@@ -324,6 +324,16 @@ def judge_loop(base: dict[str, Any], cand: dict[str, dict[str, Any]], rule: Rule
     return v
 
 
+def _base_key(k: dict[str, Any]) -> dict[str, Any]:
+    """A looks run's key in the base's layout (look, start_m, seed, turn)."""
+    return {
+        "look": k["look"],
+        "start_m": float(k["start_range_m"]),
+        "seed": int(k["seed"]),
+        "turn": [float(t) for t in k["turn_deg"]],
+    }
+
+
 def base_of_flown(base: dict[str, Any], shipped: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """The base for part 4 from the shipped model's own runs flown under today's flight code
     (`looks --json` per set): the committed base's layout, each run's ``*_new`` fields what the
@@ -342,10 +352,7 @@ def base_of_flown(base: dict[str, Any], shipped: dict[str, dict[str, Any]]) -> d
             if kk in want:
                 runs.append(
                     {
-                        "look": k["look"],
-                        "start_m": float(k["start_range_m"]),
-                        "seed": int(k["seed"]),
-                        "turn": [float(t) for t in k["turn_deg"]],
+                        **_base_key(k),
                         "outcome_new": r.get("outcome"),
                         "lat_p95_new_cm": float(r["lateral_p95_below_5m_m"]) * 100,
                         "capture_new_mm": float(r["capture_lateral_m"]) * 1000,
@@ -379,10 +386,7 @@ def next_base(base: dict[str, Any], flown: dict[str, dict[str, Any]], what: str)
             b = ref[_run_key(k["look"], k["start_range_m"], k["seed"], k["turn_deg"])]
             runs.append(
                 {
-                    "look": k["look"],
-                    "start_m": float(k["start_range_m"]),
-                    "seed": int(k["seed"]),
-                    "turn": [float(t) for t in k["turn_deg"]],
+                    **_base_key(k),
                     "outcome_base": b["outcome_new"],
                     "outcome_new": r.get("outcome"),
                     "lat_p95_base_cm": round(float(b["lat_p95_new_cm"]), 4),
