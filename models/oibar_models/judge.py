@@ -28,8 +28,9 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
     python -m oibar_models.judge demo DEMO_JSON                                 #   already
     python -m oibar_models.judge pair held_out=LOOKS_JSON default=LOOKS_JSON \
            [--shipped held_out=LOOKS_JSON ...]   # paired with the shipped model's runs flown beside
-    python -m oibar_models.judge base --what TEXT --out-file F held_out=LOOKS_JSON default=...
-                                  # when a candidate ships: its loop arm as the next base (F)
+    python -m oibar_models.judge base --what TEXT --out-file F held_out=LOOKS_JSON default=... \
+           [--shipped held_out=LOOKS_JSON ...]   # when a candidate ships: its loop arm as the
+                                                 # next base (F), paired as `pair` pairs it
 
 Each prints its clauses and writes its verdict (JSON) under --out; exit 0 when it holds, 1 when
 it fails, 2 on bad input (a missing or malformed file, a base that does not match).
@@ -554,21 +555,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("probe_json", type=Path)
     p = sub.add_parser("demo", help="part 3 from the demo's JSON (python -m oibar_hil.rig --json F demo)")
     p.add_argument("demo_json", type=Path)
-    p = sub.add_parser("pair", help="part 4 from looks JSONs already flown: held_out=FILE default=FILE")
-    p.add_argument("sets", nargs="+")
-    p.add_argument(
-        "--shipped",
-        nargs="+",
-        default=None,
-        metavar="SET=FILE",
-        help="the shipped model's runs flown under the same code (else the committed base's)",
-    )
-    p = sub.add_parser(
+    pair = sub.add_parser("pair", help="part 4 from looks JSONs already flown: held_out=FILE default=FILE")
+    nb = sub.add_parser(
         "base", help="a shipped candidate's flown loop as the next base: held_out=FILE default=FILE"
     )
-    p.add_argument("sets", nargs="+")
-    p.add_argument("--what", required=True, help="what was flown, by whom, where (kept in the file)")
-    p.add_argument("--out-file", type=Path, required=True)
+    nb.add_argument("--what", required=True, help="what was flown, by whom, where (kept in the file)")
+    nb.add_argument("--out-file", type=Path, required=True)
+    for p in (pair, nb):
+        p.add_argument("sets", nargs="+")
+        p.add_argument(
+            "--shipped",
+            nargs="+",
+            default=None,
+            metavar="SET=FILE",
+            help="the shipped model's runs flown under the same code (else the committed base's)",
+        )
     a = ap.parse_args(argv)
     try:
         if a.cmd == "run":
@@ -597,7 +598,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             sets = _sets(a.sets)
             base = _load(BASE_LOOP, "the shipped model's closed-loop runs")
-            if a.cmd == "pair" and a.shipped:
+            if a.shipped:
                 base = base_of_flown(base, _sets(a.shipped))
             if a.cmd == "base":
                 a.out_file.write_text(json.dumps(next_base(base, sets, a.what), indent=1) + "\n")

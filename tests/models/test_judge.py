@@ -305,3 +305,27 @@ def test_a_shipped_candidates_loop_becomes_the_next_base_in_the_bases_layout(tmp
     assert main(["--out", str(tmp_path), "base", "--what", "t", "--out-file", str(f),
                  f"held_out={held}", f"default={dflt}"]) == 0  # fmt: skip
     assert json.loads(f.read_text())["default"]["n"] == len(base["default"]["runs"])
+
+
+def test_the_next_base_pairs_with_the_shipped_runs_flown_beside_the_candidate(tmp_path, capsys):
+    """A ship whose part 4 was paired with the shipped model flown under today's code writes its
+    next base from the same pairing: the ``*_base`` fields are today's shipped runs."""
+    base = json.loads(BASE_LOOP.read_text())
+    files = {}
+    for label in ("held_out", "default"):
+        for who in ("shipped", "cand"):
+            files[label, who] = tmp_path / f"{label}_{who}.json"
+            files[label, who].write_text(json.dumps({"runs": _as_flown(_moved(base[label]["runs"], 0.8))}))
+    f = tmp_path / "next.json"
+    cli = ["--out", str(tmp_path), "base", "--what", "t", "--out-file", str(f)]
+    cand = [f"held_out={files['held_out', 'cand']}", f"default={files['default', 'cand']}"]
+    # against the committed figures the moved runs do not pass: nothing is written
+    assert main(cli + cand) == 2 and not f.exists()
+    assert "do not pass" in capsys.readouterr().err
+    shipped = [f"held_out={files['held_out', 'shipped']}", f"default={files['default', 'shipped']}"]
+    assert main(cli + cand + ["--shipped", *shipped]) == 0
+    nb = json.loads(f.read_text())
+    for label in ("held_out", "default"):
+        assert nb[label]["paired_diff_cm"] == pytest.approx(0.0, abs=1e-9)
+        for new, old in zip(nb[label]["runs"], base[label]["runs"], strict=True):
+            assert new["lat_p95_base_cm"] == pytest.approx(old["lat_p95_new_cm"] + 0.8, abs=1e-4)
