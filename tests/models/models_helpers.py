@@ -25,6 +25,53 @@ CAMERA = {
 }
 
 
+SHIPPED_KP = Path(__file__).resolve().parents[2] / "models" / "oibarnet.onnx"
+
+
+def shipped_companions() -> list[str]:
+    """The files the shipped keypoint model opens beside it: its first pass and, when its export
+    names one, its far network (``oibar.far_network``; 0.29.0 has one)."""
+    from oibar.nav.pose import read_metadata
+
+    meta = read_metadata(SHIPPED_KP)
+    far = meta.get("far_network") or {}
+    return [meta["first_pass"]] + ([far["file"]] if far else [])
+
+
+def link_shipped_companions(dst: Path) -> None:
+    """Symlink the shipped model's companion files into `dst`, for a copy of it written there."""
+    for name in shipped_companions():
+        (dst / name).symlink_to(SHIPPED_KP.parent / name)
+
+
+def copy_shipped(dst: Path) -> Path:
+    """Copy the shipped keypoint model and every file it opens beside it into `dst` (tests that
+    retag it must not touch the repository's); returns the copy of the main file."""
+    import shutil
+
+    for name in [SHIPPED_KP.name, *shipped_companions()]:
+        shutil.copy(SHIPPED_KP.parent / name, dst / name)
+    return dst / SHIPPED_KP.name
+
+
+def one_network_copy(dst: Path) -> Path:
+    """The shipped main file copied into `dst` with its far network unnamed (the main network
+    alone reads every window), its first pass copied beside it; returns the copy."""
+    import shutil
+
+    import onnx
+
+    m = onnx.load(str(SHIPPED_KP))
+    for p in list(m.metadata_props):
+        if p.key == "oibar.far_network":
+            m.metadata_props.remove(p)
+    out = dst / SHIPPED_KP.name
+    onnx.save(m, str(out))
+    first = shipped_companions()[0]
+    shutil.copy(SHIPPED_KP.parent / first, dst / first)
+    return out
+
+
 def draw_frame(T, q, rng) -> Image.Image:
     from oibar_hil.overlay import project_fixture
 

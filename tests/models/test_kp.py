@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from models_helpers import copy_shipped, link_shipped_companions
 
 from oibar.nav.keypoints import window_around
 from oibar_models.config import ConfigError
@@ -660,6 +661,9 @@ def test_a_model_whose_attitude_prior_cannot_work_is_refused_when_it_opens(tmp_p
     meta = {
         p.key[len("oibar.") :]: json.loads(p.value) for p in m.metadata_props if p.key.startswith("oibar.")
     }
+    # the main file's own tables are what is checked: a far network beside it would be refused
+    # first, for no longer matching the edited file (tests/models/test_kp_far_network.py)
+    meta.pop("far_network", None)
     edit(meta)
     del m.metadata_props[:]
     for k, v in meta.items():
@@ -667,7 +671,7 @@ def test_a_model_whose_attitude_prior_cannot_work_is_refused_when_it_opens(tmp_p
         p.key, p.value = "oibar." + k, json.dumps(v)
     out = tmp_path / "oibarnet.onnx"
     onnx.save(m, str(out))
-    (tmp_path / "oibarnet_lite.onnx").symlink_to(REPO / "models/oibarnet_lite.onnx")
+    link_shipped_companions(tmp_path)
     with pytest.raises(ModelFileError, match=match):
         PoseEstimator(out, warmup_runs=0)
 
@@ -696,7 +700,7 @@ def test_a_malformed_error_model_is_refused_when_the_model_opens(tmp_path, table
             p.value = json.dumps(fusion)
     out = tmp_path / "oibarnet.onnx"
     onnx.save(m, str(out))
-    (tmp_path / "oibarnet_lite.onnx").symlink_to(REPO / "models/oibarnet_lite.onnx")
+    link_shipped_companions(tmp_path)
     with pytest.raises(ModelFileError, match=match) as exc:
         PoseEstimator(out, warmup_runs=0)
     assert str(out) in str(exc.value)
@@ -897,7 +901,7 @@ def test_the_export_says_what_the_navigation_filter_is_fed(tmp_path, monkeypatch
         p.key, p.value = "oibar.filter_measurement", json.dumps(setting)
     out = tmp_path / "oibarnet.onnx"
     onnx.save(m, str(out))
-    (tmp_path / "oibarnet_lite.onnx").symlink_to(REPO / "models/oibarnet_lite.onnx")
+    link_shipped_companions(tmp_path)
     est = PoseEstimator(out, warmup_runs=0)
     frame = np.random.default_rng(0).integers(0, 255, (480, 744, 3), dtype=np.uint8)
     direct = est.first.estimate(frame)
@@ -920,15 +924,13 @@ def test_retag_sets_the_reading_options_of_an_export_and_leaves_the_network_alon
     """The flight reading options are chosen on the closed loop after training; `kp_export
     --retag` sets them on an existing export (the shipped model's checkpoint is not kept here). The
     graph stays byte for byte; a value the runtime would refuse never reaches the file."""
-    import shutil
 
     import onnx
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
     from oibar_models.kp_export import main as export_main
 
-    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
-        shutil.copy(REPO / "models" / name, tmp_path / name)
+    copy_shipped(tmp_path)
     model = tmp_path / "oibarnet.onnx"
     before = onnx.load(str(model)).graph.SerializeToString()
     meta_before = read_metadata(model)
@@ -997,15 +999,13 @@ def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head
     """`kp_export --retag --head-gain FILE` writes kp_head_gain's table into the export's fusion
     (every other fusion table as it was) and the runtime divides by it; a file whose table the
     runtime would refuse, or an export whose prior is not the head, is refused and nothing written."""
-    import shutil
 
     import onnx
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
     from oibar_models.kp_export import main as export_main
 
-    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
-        shutil.copy(REPO / "models" / name, tmp_path / name)
+    copy_shipped(tmp_path)
     model = tmp_path / "oibarnet.onnx"
 
     def set_fusion(fusion):
@@ -1043,13 +1043,11 @@ def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head
 def test_retag_sets_the_corner_refinement_and_refuses_a_size_that_is_not_one(tmp_path):
     """`--corner-refine-side-px` is a reading option like the others: set on an existing export,
     read back by the flight runtime; a negative size never reaches the file."""
-    import shutil
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
     from oibar_models.kp_export import main as export_main
 
-    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
-        shutil.copy(REPO / "models" / name, tmp_path / name)
+    copy_shipped(tmp_path)
     model = tmp_path / "oibarnet.onnx"
     assert export_main(["--retag", str(model), "--corner-refine-side-px", "120"]) == 0
     assert read_metadata(model)["corner_refine_side_px"] == 120.0
@@ -1072,13 +1070,11 @@ def test_retag_sets_the_turned_head_and_an_export_without_it_says_nothing(tmp_pa
     """`--turned-reading-head` sets oibar.turned_reading_head on an export and the runtime reads
     it back; an export that never set it carries no such key (so exports from before the option
     rebuild to the byte) and the runtime reads it as off."""
-    import shutil
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
     from oibar_models.kp_export import main as export_main
 
-    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
-        shutil.copy(REPO / "models" / name, tmp_path / name)
+    copy_shipped(tmp_path)
     model = tmp_path / "oibarnet.onnx"
     from oibar_models.kp_export import metadata_for
 
@@ -1115,7 +1111,6 @@ def test_retag_sets_whose_keypoints_feed_the_filter_and_the_default_says_nothing
     """`--turned-reading-measurement untouched` sets oibar.turned_reading_measurement and the
     runtime reads it back; "mean", the default, is not written (exports from before the option
     rebuild to the byte); any other value is refused by the export and by the CLI."""
-    import shutil
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
     from oibar_models.kp_export import main as export_main
@@ -1128,8 +1123,7 @@ def test_retag_sets_whose_keypoints_feed_the_filter_and_the_default_says_nothing
     assert meta["turned_reading_measurement"] == "untouched"
     with pytest.raises(ValueError, match="turned_reading_measurement"):
         metadata_for(cfg, ck, "lite.onnx", (0.25, 12.0), turned_reading_measurement="median")
-    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
-        shutil.copy(REPO / "models" / name, tmp_path / name)
+    copy_shipped(tmp_path)
     model = tmp_path / "oibarnet.onnx"
     assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_measurement == "mean"
     argv = ["--retag", str(model), "--turned-reading-deg", "8", "--turned-reading-measurement"]
@@ -1143,7 +1137,6 @@ def test_retag_sets_whose_keypoints_feed_the_filter_and_the_default_says_nothing
 def test_retag_sets_the_placed_refining_read_and_an_export_without_it_says_nothing(tmp_path):
     """`--placed-pass-refines` sets oibar.placed_pass_refines and the runtime reads it back; off,
     the default, is not written (exports from before the option rebuild to the byte)."""
-    import shutil
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
     from oibar_models.kp_export import main as export_main
@@ -1154,8 +1147,7 @@ def test_retag_sets_the_placed_refining_read_and_an_export_without_it_says_nothi
     assert "placed_pass_refines" not in metadata_for(cfg, ck, "lite.onnx", (0.25, 12.0))
     meta = metadata_for(cfg, ck, "lite.onnx", (0.25, 12.0), placed_pass_refines=True)
     assert meta["placed_pass_refines"] is True
-    for name in ("oibarnet.onnx", "oibarnet_lite.onnx"):
-        shutil.copy(REPO / "models" / name, tmp_path / name)
+    copy_shipped(tmp_path)
     model = tmp_path / "oibarnet.onnx"
     assert KeypointPoseEstimator(model, warmup_runs=0).placed_pass_refines is False
     assert export_main(["--retag", str(model), "--placed-pass-refines", "--model-version", "9.9.8"]) == 0
