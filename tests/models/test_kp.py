@@ -661,9 +661,6 @@ def test_a_model_whose_attitude_prior_cannot_work_is_refused_when_it_opens(tmp_p
     meta = {
         p.key[len("oibar.") :]: json.loads(p.value) for p in m.metadata_props if p.key.startswith("oibar.")
     }
-    # the main file's own tables are what is checked: a far network beside it would be refused
-    # first, for no longer matching the edited file (tests/models/test_kp_far_network.py)
-    meta.pop("far_network", None)
     edit(meta)
     del m.metadata_props[:]
     for k, v in meta.items():

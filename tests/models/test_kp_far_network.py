@@ -139,6 +139,19 @@ def test_a_far_network_the_main_tables_cannot_read_is_refused_at_load(pair, spec
         KeypointPoseEstimator(bad, warmup_runs=0)
 
 
+def test_a_main_file_at_fault_is_named_for_its_own_fault_not_for_its_far_network(pair):
+    """A paired file whose own table is malformed is refused for that table, naming itself: its
+    far network, now unlike it, is not the file to blame (the far network opens last)."""
+    from oibar.nav.pose import KeypointPoseEstimator, ModelFileError, read_metadata
+
+    d = pair[0]
+    head = dict(read_metadata(d / "pair.onnx")["attitude_head"], R_ref="not a rotation")
+    bad = _retag_meta(d / "pair.onnx", d / "bad_head.onnx", attitude_head=head)
+    with pytest.raises(ModelFileError, match="attitude_head") as exc:
+        KeypointPoseEstimator(bad, warmup_runs=0)
+    assert str(exc.value).startswith(str(bad)) and "not the same kind" not in str(exc.value)
+
+
 def test_retag_pairs_only_with_a_file_beside_it_and_both_options(pair, tmp_path):
     from oibar.nav.pose import read_metadata
     from oibar_models.kp_export import main as export_main

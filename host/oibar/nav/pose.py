@@ -729,7 +729,6 @@ class KeypointPoseEstimator(PoseEstimator):
         self.out_px = int(self.meta["crop"]["out_px"])
         self.margin = float(self.meta["crop"]["margin"])
         self.points_m = np.asarray(self.meta["keypoints_3d_m"], float)
-        self._open_far_network(threads, allow_spinning)
         self.reproj_crop_px = float(self.meta["pnp"]["reproj_crop_px"])
         self.min_present = float(self.meta["pnp"]["min_present"])
         cam = self.meta["camera"]
@@ -840,6 +839,9 @@ class KeypointPoseEstimator(PoseEstimator):
             raise ModelFileError(
                 f"{self.path}: its fusion has a head gain but its prior is not the attitude head"
             )
+        # last: a fault of this file's own is reported as this file's, not as a far network that
+        # no longer matches it
+        self._open_far_network(threads, allow_spinning)
         zero = np.zeros((1, 3, self.out_px, self.out_px), np.float32)
         for _ in range(warmup_runs):
             self.run(zero)
@@ -900,6 +902,8 @@ class KeypointPoseEstimator(PoseEstimator):
         """Crops (N, 3, S, S) of the windows `wins` (one per row) -> every output by name, each
         row read by the network for its window's range (`_reads_far`); one network, one batch,
         without a far network."""
+        if self.far_session is None:
+            return self.run(x)
         far = np.array([self._reads_far(w) for w in wins], bool)
         if not far.any():
             return self.run(x)
