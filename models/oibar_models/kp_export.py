@@ -4,9 +4,13 @@ PnP thresholds, the camera, the first-pass model to use beside it, the training 
 validation figures. Parity against PyTorch is checked before the file is written.
 
 python -m oibar_models.kp_export --config models/configs/keypoints/oibarnet_kp.yaml [--checkpoint best|last]
-    [--fusion FUSION.json] [--mirror-reading] [--turned-reading-deg DEG] [--turned-reading-head]
+    [--ensemble OTHER.yaml[:best|last|PATH] ...] [--fusion FUSION.json] [--mirror-reading]
+    [--turned-reading-deg DEG] [--turned-reading-head]
     [--turned-reading-measurement mean|untouched] [--placed-pass-refines]
     [--filter-measurement prior_free|fused] [--corner-refine-side-px PX]
+
+`--ensemble` writes one graph that reads each crop with every listed network too and mixes their
+heat maps (kpnet.EnsembleWrapper); the file's tables are the first config's.
 
 The flight reading options (how the refining pass reads its window, what the filter is fed) are
 chosen on the closed loop after training; `--retag` sets them on an existing export, the network
@@ -35,7 +39,7 @@ from . import __version__
 from .config import ConfigError, parse_override
 from .kp_engine import KpConfig, keypoints_m, load_kp_config, with_fresh_attitude_head
 from .kp_fusion import FUSION_REF_CROP_PX
-from .kpnet import FIXTURE_KEYPOINTS, ExportWrapper, KeypointNet
+from .kpnet import FIXTURE_KEYPOINTS, EnsembleWrapper, ExportWrapper, KeypointNet
 
 METADATA_PREFIX = "oibar."
 OUTPUT_NAMES = ["kp_crop_px", "kp_spread_px", "kp_present"]
@@ -66,6 +70,7 @@ def metadata_for(
     turned_reading_head: bool = False,
     turned_reading_measurement: str = "mean",
     placed_pass_refines: bool = False,
+    ensemble: list[dict] | None = None,
 ) -> dict:
     if turned_reading_measurement not in TURNED_READING_MEASUREMENTS:
         raise ValueError(
@@ -122,6 +127,8 @@ def metadata_for(
         # the refining pass moves the fixture's corners onto the frame's own, sub-pixel, when the
         # fixture spans at least this many frame pixels (0: off; KeypointPoseEstimator.refined_corners)
         "corner_refine_side_px": float(corner_refine_side_px),
+        # the networks one graph mixes (kpnet.EnsembleWrapper; written only for an ensemble)
+        **({"ensemble": ensemble} if ensemble else {}),
     }
 
 
@@ -139,11 +146,15 @@ def attitude_head_meta() -> dict:
 
 
 def export_graph(
-    net: KeypointNet, attitude: bool, out_px: int, opset: int, path: Path
-) -> tuple[ExportWrapper, torch.Tensor]:
+    net: KeypointNet | list[KeypointNet], attitude: bool, out_px: int, opset: int, path: Path
+) -> tuple[torch.nn.Module, torch.Tensor]:
     """Write `net`'s ONNX graph as the flight file holds it (no metadata yet; kp_recover rebuilds
-    its reference graph the same way). Returns the wrapper and the input it was traced on."""
-    wrapper = ExportWrapper(net.eval(), attitude=attitude).eval()
+    its reference graph the same way); a list of networks is written as their ensemble.
+    Returns the wrapper and the input it was traced on."""
+    if isinstance(net, list):
+        wrapper = EnsembleWrapper([n.eval() for n in net], attitude=attitude).eval()
+    else:
+        wrapper = ExportWrapper(net.eval(), attitude=attitude).eval()
     names = OUTPUT_NAMES + ([ATT_OUTPUT] if attitude else [])
     dummy = torch.rand(2, 3, out_px, out_px)
     with warnings.catch_warnings():
@@ -175,19 +186,30 @@ def export_onnx(
     turned_reading_head: bool = False,
     turned_reading_measurement: str = "mean",
     placed_pass_refines: bool = False,
+    members: list[tuple[KpConfig, dict]] | None = None,
 ) -> Path:
+    """`members`: further (config, checkpoint) pairs read with this one as one graph
+    (kpnet.EnsembleWrapper); they must read the same crop and have the attitude head if it has."""
     import onnx
 
-    net = KeypointNet(len(FIXTURE_KEYPOINTS), cfg.model.width, pretrained=False)
-    state = dict(ck["model"])
-    head = has_attitude_head(state)
-    if not head:  # a checkpoint from before the head (<= 0.5.0): exported without it
-        with_fresh_attitude_head(net, state)
-    net.load_state_dict(state)
+    net, head = network_from(cfg, ck)
+    nets, ensemble = net, None
+    if members:
+        nets = [net]
+        for mcfg, mck in members:
+            mnet, mhead = network_from(mcfg, mck)
+            if mhead != head or mcfg.model.out_px != cfg.model.out_px:
+                raise ValueError(
+                    f"{mcfg.name}: reads a {mcfg.model.out_px} px crop {'with' if mhead else 'without'} "
+                    f"the attitude head; {cfg.name} reads {cfg.model.out_px} px "
+                    f"{'with' if head else 'without'} it: they cannot be one graph"
+                )
+            nets.append(mnet)
+        ensemble = [{"name": c.name, "steps_trained": k.get("step")} for c, k in [(cfg, ck), *members]]
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_suffix(".tmp.onnx")
-    wrapper, dummy = export_graph(net, head, cfg.model.out_px, cfg.export.opset, tmp)
+    wrapper, dummy = export_graph(nets, head, cfg.model.out_px, cfg.export.opset, tmp)
     m = onnx.load(str(tmp))
     for k, v in metadata_for(
         cfg,
@@ -202,6 +224,7 @@ def export_onnx(
         turned_reading_head,
         turned_reading_measurement,
         placed_pass_refines,
+        ensemble,
     ).items():
         p = m.metadata_props.add()
         p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
@@ -221,6 +244,22 @@ def export_onnx(
         raise RuntimeError(f"ONNX and PyTorch disagree by {err:.3g} (crop px or probability)")
     tmp.replace(out_path)
     return out_path
+
+
+def network_from(cfg: KpConfig, ck: dict) -> tuple[KeypointNet, bool]:
+    """The network a checkpoint holds, and whether it has the attitude head."""
+    net = KeypointNet(len(FIXTURE_KEYPOINTS), cfg.model.width, pretrained=False)
+    state = dict(ck["model"])
+    head = has_attitude_head(state)
+    if not head:  # a checkpoint from before the head (<= 0.5.0): exported without it
+        with_fresh_attitude_head(net, state)
+    net.load_state_dict(state)
+    return net, head
+
+
+def checkpoint_path(cfg: KpConfig, which: str) -> Path:
+    """best | last (in the config's run folder) | a path."""
+    return cfg.run_path / f"{which}.pt" if which in ("best", "last") else Path(which)
 
 
 def load_head_gain(path: Path) -> dict:
@@ -314,6 +353,14 @@ def main(argv: list[str] | None = None) -> int:
         help="an existing export: set the reading options given here on it, the network untouched",
     )
     ap.add_argument("--checkpoint", default="best", help="best | last | a path")
+    ap.add_argument(
+        "--ensemble",
+        action="append",
+        default=[],
+        metavar="CONFIG[:best|last|PATH]",
+        help="another trained network (its config, then its checkpoint, best by default) read "
+        "with this one as one graph: their heat maps mixed half and half (repeat for more)",
+    )
     ap.add_argument("--out", default=None, help="ONNX path (default: the config's export.onnx_path)")
     ap.add_argument(
         "--first-pass",
@@ -432,7 +479,7 @@ def main(argv: list[str] | None = None) -> int:
         if (a.far_network is None) != (a.far_from_m is None):
             print("error: --far-network and --far-from-m go together", file=sys.stderr)
             return 2
-        if a.config or a.fusion or a.overrides or not set(options) - {"model_version"}:
+        if a.config or a.fusion or a.overrides or a.ensemble or not set(options) - {"model_version"}:
             print(
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
                 "--turned-reading-head, --turned-reading-measurement, --placed-pass-refines, "
@@ -465,7 +512,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    ck_path = cfg.run_path / f"{a.checkpoint}.pt" if a.checkpoint in ("best", "last") else Path(a.checkpoint)
+    ck_path = checkpoint_path(cfg, a.checkpoint)
     if not ck_path.is_file():
         print(
             f"error: checkpoint not found: {ck_path} (train first: python -m oibar_models.kp_train)",
@@ -473,6 +520,19 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     ck = torch.load(ck_path, map_location="cpu", weights_only=False)
+    members = []
+    for spec in a.ensemble:
+        mconfig, _, which = spec.partition(":")
+        try:
+            mcfg = load_kp_config(mconfig)
+        except ConfigError as exc:
+            print(f"error: --ensemble {spec}: {exc}", file=sys.stderr)
+            return 2
+        mck_path = checkpoint_path(mcfg, which or "best")
+        if not mck_path.is_file():
+            print(f"error: --ensemble {spec}: checkpoint not found: {mck_path}", file=sys.stderr)
+            return 2
+        members.append((mcfg, torch.load(mck_path, map_location="cpu", weights_only=False)))
     out = Path(a.out) if a.out else cfg.path(cfg.export.onnx_path)
     # The training scenes span camera ranges 0.3-10.6 m; the runtime flags answers well outside.
     fusion = None
@@ -508,24 +568,32 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
         fusion["head_gain"] = head_gain
-    export_onnx(
-        cfg,
-        ck,
-        out,
-        a.first_pass,
-        (0.25, 12.0),
-        fusion,
-        bool(a.mirror_reading),
-        a.filter_measurement or "prior_free",
-        cfg.export.turned_reading_deg if a.turned_reading_deg is None else a.turned_reading_deg,
-        cfg.export.corner_refine_side_px if a.corner_refine_side_px is None else a.corner_refine_side_px,
-        cfg.export.turned_reading_head if a.turned_reading_head is None else a.turned_reading_head,
-        cfg.export.turned_reading_measurement
-        if a.turned_reading_measurement is None
-        else a.turned_reading_measurement,
-        cfg.export.placed_pass_refines if a.placed_pass_refines is None else a.placed_pass_refines,
+    try:
+        export_onnx(
+            cfg,
+            ck,
+            out,
+            a.first_pass,
+            (0.25, 12.0),
+            fusion,
+            bool(a.mirror_reading),
+            a.filter_measurement or "prior_free",
+            cfg.export.turned_reading_deg if a.turned_reading_deg is None else a.turned_reading_deg,
+            cfg.export.corner_refine_side_px if a.corner_refine_side_px is None else a.corner_refine_side_px,
+            cfg.export.turned_reading_head if a.turned_reading_head is None else a.turned_reading_head,
+            cfg.export.turned_reading_measurement
+            if a.turned_reading_measurement is None
+            else a.turned_reading_measurement,
+            cfg.export.placed_pass_refines if a.placed_pass_refines is None else a.placed_pass_refines,
+            members,
+        )
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    with_members = "".join(f" + {c.name} (step {k.get('step')})" for c, k in members)
+    print(
+        f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')}){with_members}"
     )
-    print(f"exported {out} ({out.stat().st_size / 2**20:.1f} MiB) from {ck_path} (step {ck.get('step')})")
     return 0
 
 

@@ -127,3 +127,29 @@ class ExportWrapper(nn.Module):
         if not self.attitude:
             return kp, spread, torch.sigmoid(present)
         return kp, spread, torch.sigmoid(present), att_deg
+
+
+class EnsembleWrapper(nn.Module):
+    """Several networks read one crop as one graph with ExportWrapper's outputs (model 0.31.0's
+    far network). Their heat-map distributions are mixed with equal weights: a keypoint's position
+    is the mean of the members' (the mixture's mean), its spread the mixture's RMS spread (each
+    member's spread and its distance from the mean), so a keypoint the members disagree on weighs
+    less in the fit; presence and the attitude head's rotation vector are the members' means (the
+    members read within a degree of each other, where a mean of rotation vectors is the mean
+    rotation to well under their error)."""
+
+    def __init__(self, nets: list[KeypointNet], attitude: bool = True):
+        super().__init__()
+        if len(nets) < 2:
+            raise ValueError(f"an ensemble needs two networks or more, got {len(nets)}")
+        self.members = nn.ModuleList(ExportWrapper(n, attitude) for n in nets)
+        self.attitude = attitude
+
+    def forward(self, image: torch.Tensor):
+        outs = [m(image) for m in self.members]
+        kp = torch.stack([o[0] for o in outs]).mean(0)
+        second = torch.stack([o[1] ** 2 + ((o[0] - kp) ** 2).sum(-1) for o in outs]).mean(0)
+        means = [kp, torch.sqrt(second), torch.stack([o[2] for o in outs]).mean(0)]
+        if self.attitude:
+            means.append(torch.stack([o[3] for o in outs]).mean(0))
+        return tuple(means)
