@@ -64,6 +64,10 @@ KP_HEAD_GAIN_JSON ?=
 # fusion tables, reads every crop window from KP_FAR_FROM_M on; the main file is then retagged with
 # it and KP_MODEL_VERSION. Empty: one network reads every window.
 KP_FAR_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage25_cpu.yaml
+KP_FAR_CHECKPOINT ?= best
+# Further networks read with the far one as one graph (kp_export --ensemble CONFIG:CHECKPOINT ...,
+# docs/model_history.md "Candidate 0.31.0"); empty: the far network alone.
+KP_FAR_ENSEMBLE ?=
 KP_FAR_FROM_M ?= 8.0
 KP_MODEL_VERSION ?= 0.29.0
 
@@ -79,7 +83,7 @@ else
 	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --fusion $(KP_FUSION_JSON) $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
 endif
 ifneq ($(strip $(KP_FAR_CONFIG)),)
-	@$(PY) -m oibar_models.kp_export --config $(KP_FAR_CONFIG) --out models/oibarnet_far.onnx --fusion $(if $(strip $(KP_FUSION_JSON)),$(KP_FUSION_JSON),runs/oibarnet_kp_fusion.json) $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
+	@$(PY) -m oibar_models.kp_export --config $(KP_FAR_CONFIG) --checkpoint $(KP_FAR_CHECKPOINT) $(foreach m,$(KP_FAR_ENSEMBLE),--ensemble $(m)) --out models/oibarnet_far.onnx --fusion $(if $(strip $(KP_FUSION_JSON)),$(KP_FUSION_JSON),runs/oibarnet_kp_fusion.json) $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
 	@$(PY) -m oibar_models.kp_export --retag models/oibarnet.onnx --far-network oibarnet_far.onnx --far-from-m $(KP_FAR_FROM_M) $(if $(strip $(KP_MODEL_VERSION)),--model-version $(KP_MODEL_VERSION),)
 endif
 
