@@ -58,6 +58,12 @@ def _read(path: Path):
     meta = {k: json.loads(v) for k, v in meta.items()}
     if meta.get("kind") != "keypoints":
         raise RecoverError(f"{path}: not a keypoint model export (oibar.kind = {meta.get('kind')!r})")
+    if meta.get("ensemble"):
+        names = ", ".join(str(e.get("name")) for e in meta["ensemble"])
+        raise RecoverError(
+            f"{path}: one graph of {len(meta['ensemble'])} networks ({names}; kp_export --ensemble): "
+            "a checkpoint holds one, so recover or train each member from its own"
+        )
     return m, meta
 
 

@@ -155,6 +155,14 @@ def test_a_member_that_cannot_join_is_refused_and_nothing_is_written(
     assert not list(tmp_path.glob("*.onnx"))
 
 
+def test_an_ensemble_is_not_recovered_into_one_checkpoint(checkpoints, tmp_path, capsys):
+    from oibar_models.kp_recover import main as recover_main
+
+    assert _export(tmp_path / "ab.onnx", checkpoints["a"], f"{CONFIG}:{checkpoints['b']}") == 0
+    assert recover_main([str(tmp_path / "ab.onnx"), "--out", str(tmp_path / "ab.pt")]) == 2
+    assert "one graph of 2 networks" in capsys.readouterr().err and not (tmp_path / "ab.pt").exists()
+
+
 def test_retag_takes_no_ensemble(tmp_path, capsys):
     from oibar_models.kp_export import main as export_main
 
