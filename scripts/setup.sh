@@ -53,8 +53,24 @@ PIP_NEED_MB=${PIP_NEED_MB:-8000}   # measured peak of the staged install (7.35 G
 
 pip_q() { "$VENV/bin/pip" install -q --disable-pip-version-check --no-cache-dir "$@"; }
 
+# Dies, installing nothing, unless PIP_NEED_MB are free on the disk that holds .venv and pip's
+# scratch space.
+need_disk_for_packages() {
+  local free_mb
+  mkdir -p "$CACHE"
+  free_mb=$(df --output=avail -B1M "$CACHE" | tail -1 | tr -d ' ')
+  if [ "$free_mb" -lt "$PIP_NEED_MB" ]; then
+    die "the Python packages need about $((PIP_NEED_MB / 1000)) GB free on the disk of $ROOT while they install
+  (7.1 GB stay; PyTorch's wheels carry the CUDA libraries), but only $((free_mb / 1000)).$(( (free_mb % 1000) / 100 )) GB are free.
+  Free some space and run this again; nothing was installed."
+  fi
+}
+
 pip_install_staged() {
   local plan="$CACHE/pip-plan.json" tmp="$CACHE/pip-tmp"
+  # A venv without torch gets the big wheels: check the disk before pip fetches anything (the
+  # resolve alone fails on a full disk, with an error that says nothing of space).
+  "$VENV/bin/python" -c "import torch" >/dev/null 2>&1 || need_disk_for_packages
   rm -rf "$tmp" && mkdir -p "$tmp"
   say "resolving the pinned Python packages (requirements/*.txt)"
   TMPDIR="$tmp" pip_q --dry-run --report "$plan" "$@" \
@@ -70,13 +86,7 @@ for name, ver in sorted(heavy, key=lambda nv: (nv[0] == "torch", nv[0])):
     print(f"{name}=={ver}")
 PY
 )
-  local free_mb
-  free_mb=$(df --output=avail -B1M "$CACHE" | tail -1 | tr -d ' ')
-  if [ ${#big[@]} -gt 0 ] && [ "$free_mb" -lt "$PIP_NEED_MB" ]; then
-    die "the Python packages need about $((PIP_NEED_MB / 1000)) GB free on the disk of $ROOT while they install
-  (7.1 GB stay; PyTorch's wheels carry the CUDA libraries), but only $((free_mb / 1000)).$(( (free_mb % 1000) / 100 )) GB are free.
-  Free some space and run this again; nothing was installed."
-  fi
+  if [ ${#big[@]} -gt 0 ]; then need_disk_for_packages; fi
   local i=0 n=$(( ${#big[@]} + 1 ))
   for line in "${big[@]}"; do
     i=$((i + 1))
