@@ -39,10 +39,10 @@ dataset-envelope: setup ## render the envelope-mode test sequence (seq01_envelop
 # keypoint network's own attitude head wins on validation). Six training stages; the export
 # chooses the prior's weights on the validation scenes (kp_fusion), then writes them into the file.
 KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints/oibarnet_kp_stage2.yaml models/configs/keypoints/oibarnet_kp_stage3.yaml models/configs/keypoints/oibarnet_kp_stage4.yaml models/configs/keypoints/oibarnet_kp_stage5.yaml models/configs/keypoints/oibarnet_kp_stage6.yaml
-# The shipped 0.29.0 is two networks (docs/model_card.md). Under 8 m, 0.15.3's: stage 15 (stage 6's
+# The shipped 0.32.0 is two networks (docs/model_card.md). Under 8 m, 0.15.3's: stage 15 (stage 6's
 # 0.8.1, recovered, then stages 12, 13 and 15, the last on a lent GPU); its config carries the
-# corner gate. From 8 m, stage 25's (KP_FAR_CONFIG below: 0.13.0 recovered, then stages 22 and 25
-# on the 2 CPU cores).
+# corner gate. From 8 m, stage 28's last step (KP_FAR_CONFIG below: 0.13.0 recovered, then stages
+# 22, 25, 27 and 28 on the 2 CPU cores).
 KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage15.yaml
 KP_EVAL_ARGS ?= --sets val test
 # 0.7.0: both priors scored (the direct model's and the crop's attitude head) on the 22
@@ -63,13 +63,13 @@ KP_HEAD_GAIN_JSON ?=
 # config whose network, exported beside the main one as models/oibarnet_far.onnx with the same
 # fusion tables, reads every crop window from KP_FAR_FROM_M on; the main file is then retagged with
 # it and KP_MODEL_VERSION. Empty: one network reads every window.
-KP_FAR_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage25_cpu.yaml
-KP_FAR_CHECKPOINT ?= best
+KP_FAR_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage28_cpu.yaml
+KP_FAR_CHECKPOINT ?= last
 # Further networks read with the far one as one graph (kp_export --ensemble CONFIG:CHECKPOINT ...,
 # docs/model_history.md "Candidate 0.31.0"); empty: the far network alone.
 KP_FAR_ENSEMBLE ?=
 KP_FAR_FROM_M ?= 8.0
-KP_MODEL_VERSION ?= 0.29.0
+KP_MODEL_VERSION ?= 0.32.0
 
 train-kp: setup ## train the keypoint model, all six stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
 	@for c in $(KP_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.kp_train --config $$c $(TRAIN_ARGS) || exit 1; done
