@@ -271,11 +271,38 @@ def load_head_gain(path: Path) -> dict:
     return {"range_edges_m": table["range_edges_m"], "tilt_gain": table["tilt_gain"]}
 
 
+def load_fusion(path: Path, out_px: int) -> dict | None:
+    """The fusion a `kp_fusion` JSON chose ("best"), for a model whose crop is `out_px`: its
+    weights and the tables it was scored with. None when the choice was PnP alone. ValueError
+    when the JSON weighs keypoints in another crop's pixels."""
+    doc = json.loads(Path(path).read_text())
+    best = doc["best"]
+    fusion_px = int(doc.get("out_px", FUSION_REF_CROP_PX))
+    if fusion_px != int(out_px):
+        raise ValueError(
+            f"{path} weighs keypoints in pixels of a {fusion_px} px crop; this model reads "
+            f"{out_px} px: run `python -m oibar_models.kp_fusion` on it and export with that"
+        )
+    if best.get("sigma_prior_deg") is None:
+        return None
+    fusion = {
+        "sigma_crop_px": best["sigma_crop_px"],
+        "sigma_prior_deg": best["sigma_prior_deg"],
+        "chosen_on": "validation scenes",
+        "val": {k: best[k] for k in ("dt_mean_pct", "dq_mean_deg")},
+    }
+    for k in ("kp_error_model", "attitude_prior", "prior_error_model", "head_gain"):
+        if best.get(k):
+            fusion[k] = best[k]
+    return fusion
+
+
 def retag(src: Path, out: Path, options: dict) -> Path:
     """A copy of the export `src` at `out` (may be `src`) with the flight reading `options`
     (metadata keys without the prefix: mirror_reading, turned_reading_deg, turned_reading_head,
     turned_reading_measurement, placed_pass_refines, filter_measurement, corner_refine_side_px,
-    far_network {"file", "from_m"}, its file beside `out`; head_gain goes into the fusion's tables)
+    far_network {"file", "from_m"}, its file beside `out`; fusion replaces the export's fusion
+    whole (load_fusion's dict); head_gain goes into the fusion's tables, the new one's if both)
     set, and the new model version when the reading changes what flies; the graph untouched.
     Checked by opening it as the flight runtime does when its first pass lies beside it.
     ValueError for an option that is not a reading option or a version that is not
@@ -295,6 +322,7 @@ def retag(src: Path, out: Path, options: dict) -> Path:
         "model_version",
         "head_gain",
         "far_network",
+        "fusion",
     }
     version = options.get("model_version")
     if version is not None and not re.fullmatch(r"\d+\.\d+\.\d+", str(version)):
@@ -315,7 +343,13 @@ def retag(src: Path, out: Path, options: dict) -> Path:
             )
     m = onnx.load(str(src))
     props = {p.key: p.value for p in m.metadata_props}
+    if "fusion" in options:  # first, so that a head gain given with it goes into the new one
+        if not isinstance(options["fusion"], dict):
+            raise ValueError(f"fusion must be a table of weights, got {options['fusion']!r}")
+        props[METADATA_PREFIX + "fusion"] = json.dumps(options["fusion"])
     for k, v in options.items():
+        if k == "fusion":
+            continue
         if k == "head_gain":  # a table of the fusion's, not a key of its own
             fusion = json.loads(props.get(METADATA_PREFIX + "fusion", "null")) or {}
             if fusion.get("attitude_prior") != "head":
@@ -457,6 +491,18 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {a.head_gain}: {exc}", file=sys.stderr)
             return 2
     if a.retag is not None:
+        fusion = None
+        if a.fusion is not None:
+            from oibar.nav.pose import ModelFileError, read_metadata
+
+            try:
+                fusion = load_fusion(a.fusion, int(read_metadata(a.retag)["crop"]["out_px"]))
+            except (ModelFileError, OSError, ValueError, KeyError, TypeError) as exc:
+                print(f"error: --fusion {a.fusion}: {exc}", file=sys.stderr)
+                return 2
+            if fusion is None:
+                print(f"error: --fusion {a.fusion} chose PnP alone: no weights to set", file=sys.stderr)
+                return 2
         options = {
             k: v
             for k, v in (
@@ -468,6 +514,7 @@ def main(argv: list[str] | None = None) -> int:
                 ("filter_measurement", a.filter_measurement),
                 ("corner_refine_side_px", a.corner_refine_side_px),
                 ("model_version", a.model_version),
+                ("fusion", fusion),
                 ("head_gain", head_gain),
                 (
                     "far_network",
@@ -479,12 +526,12 @@ def main(argv: list[str] | None = None) -> int:
         if (a.far_network is None) != (a.far_from_m is None):
             print("error: --far-network and --far-from-m go together", file=sys.stderr)
             return 2
-        if a.config or a.fusion or a.overrides or a.ensemble or not set(options) - {"model_version"}:
+        if a.config or a.overrides or a.ensemble or not set(options) - {"model_version"}:
             print(
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
                 "--turned-reading-head, --turned-reading-measurement, --placed-pass-refines, "
-                "--filter-measurement, --corner-refine-side-px, --head-gain, --far-network with "
-                "--far-from-m), "
+                "--filter-measurement, --corner-refine-side-px, --fusion, --head-gain, --far-network "
+                "with --far-from-m), "
                 "--model-version and --out only",
                 file=sys.stderr,
             )
@@ -537,29 +584,11 @@ def main(argv: list[str] | None = None) -> int:
     # The training scenes span camera ranges 0.3-10.6 m; the runtime flags answers well outside.
     fusion = None
     if a.fusion:
-        doc = json.loads(a.fusion.read_text())
-        best = doc["best"]
-        fusion_px = int(doc.get("out_px", FUSION_REF_CROP_PX))
-        if fusion_px != cfg.model.out_px:
-            print(
-                f"error: {a.fusion} weighs keypoints in pixels of a {fusion_px} px crop; this model reads "
-                f"{cfg.model.out_px} px: run `python -m oibar_models.kp_fusion` on it and export with that",
-                file=sys.stderr,
-            )
+        try:
+            fusion = load_fusion(a.fusion, cfg.model.out_px)
+        except (OSError, ValueError, KeyError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
             return 2
-        if best.get("sigma_prior_deg") is not None:
-            fusion = {
-                "sigma_crop_px": best["sigma_crop_px"],
-                "sigma_prior_deg": best["sigma_prior_deg"],
-                "chosen_on": "validation scenes",
-                "val": {k: best[k] for k in ("dt_mean_pct", "dq_mean_deg")},
-            }
-            if best.get("kp_error_model"):
-                fusion["kp_error_model"] = best["kp_error_model"]
-            if best.get("attitude_prior"):
-                fusion["attitude_prior"] = best["attitude_prior"]
-            if best.get("prior_error_model"):
-                fusion["prior_error_model"] = best["prior_error_model"]
     if head_gain is not None:
         if not fusion or fusion.get("attitude_prior") != "head":
             print(

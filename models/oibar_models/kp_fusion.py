@@ -14,7 +14,8 @@ The error model (oibar.nav.keypoints.KeypointErrorModel) is measured here too: e
 RMS error per range bin, in crops cut around the true pose of the validation frames (errors past
 the PnP inlier threshold clipped to it: RANSAC drops those anyway).
 
-python -m oibar_models.kp_fusion --model models/oibarnet.onnx [--stride 16] [--out runs/oibarnet_kp/fusion.json]
+python -m oibar_models.kp_fusion --model models/oibarnet.onnx [--stride 16] [--priors head] [--head-gain FILE]
+    [--pairs 2:3] [--out runs/oibarnet_kp/fusion.json]
 """
 
 from __future__ import annotations
@@ -146,7 +147,10 @@ def error_model(rows: list[dict], clip_crop_px: float) -> dict:
 
 
 def fusion_grid(
-    err_model: dict | None, prior_models: dict[str, dict | None], crop_scale: float = 1.0
+    err_model: dict | None,
+    prior_models: dict[str, dict | None],
+    crop_scale: float = 1.0,
+    pairs: list[tuple[float, float]] | None = None,
 ) -> list[tuple]:
     """(attitude prior, keypoint sigma, prior sigma, keypoint error model, prior error model) to
     score, for the priors named in `prior_models` (its value None: that source has no error
@@ -154,7 +158,15 @@ def fusion_grid(
     keypoint error model); each prior with its prior error model and the keypoint error model,
     which won in 0.5.0; the head also without its prior error model; PnP alone. `crop_scale`:
     the model's crop over FUSION_REF_CROP_PX (a 192 px crop reads the fixture over 1.5x the
-    pixels, so its keypoint sigmas are 1.5x)."""
+    pixels, so its keypoint sigmas are 1.5x). `pairs` ((keypoint sigma at a 128 px crop, prior
+    sigma deg), ...): only those, each prior with both error models, and PnP alone."""
+    if pairs is not None:
+        grid = [
+            (source, p * crop_scale, d, err_model, pem)
+            for source, pem in prior_models.items()
+            for p, d in pairs
+        ]
+        return [*grid, (None, None, None, None, None)]
     sig = [(p * crop_scale, d) for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None]
     models = [None] if err_model is None else [None, err_model]
     grid = [("direct", p, d, m, None) for m in models for p, d in sig] if "direct" in prior_models else []
@@ -169,18 +181,29 @@ def fusion_grid(
 
 
 def score_grid(
-    est, rows: list[dict], progress: bool, err_model: dict | None = None, prior_models: dict | None = None
+    est,
+    rows: list[dict],
+    progress: bool,
+    err_model: dict | None = None,
+    prior_models: dict | None = None,
+    head_gain: dict | None = None,
+    pairs: list[tuple[float, float]] | None = None,
 ) -> list[dict]:
+    """Each fusion of the grid scored on `rows`; `head_gain` (HeadGainModel's table): the head's
+    tilt divided by it wherever the head is the prior, as the flight code does with the export's."""
     out = []
     grid = fusion_grid(
         err_model,
         {"direct": None} if prior_models is None else prior_models,
         est.out_px / FUSION_REF_CROP_PX,
+        pairs,
     )
     for source, s_px, s_deg, em, pem in grid:
         fusion = {"sigma_crop_px": s_px, "sigma_prior_deg": s_deg} if s_deg is not None else {}
         if source == "head":
             fusion["attitude_prior"] = "head"
+            if head_gain is not None:
+                fusion["head_gain"] = head_gain
         if em is not None:
             fusion["kp_error_model"] = em
         if pem is not None:
@@ -208,6 +231,7 @@ def score_grid(
             sigma_prior_deg=s_deg,
             error_model=em is not None,
             prior_em=pem is not None,
+            head_gain=source == "head" and head_gain is not None,
             score=metrics.score(s),
         )
         out.append(s)
@@ -238,8 +262,39 @@ def main(argv: list[str] | None = None) -> int:
         default="direct,head",
         help="attitude priors to score, comma-separated (direct, head; default both)",
     )
+    ap.add_argument(
+        "--head-gain",
+        type=Path,
+        default=None,
+        help="the JSON of `python -m oibar_models.kp_head_gain`: the head's tilt divided by it "
+        "wherever the head is the prior (and carried into the choice)",
+    )
+    ap.add_argument(
+        "--pairs",
+        default=None,
+        help="score only these weights, KP_PX:PRIOR_DEG[,...] (keypoint sigma at a 128 px crop, "
+        "prior sigma), each prior with both error models, and PnP alone; default: the whole grid",
+    )
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
+    pairs = None
+    if a.pairs is not None:
+        try:
+            pairs = [tuple(float(x) for x in p.split(":")) for p in a.pairs.split(",") if p.strip()]
+            if not pairs or any(len(p) != 2 or min(p) <= 0 for p in pairs):
+                raise ValueError
+        except ValueError:
+            print(f"error: --pairs: KP_PX:PRIOR_DEG[,...], each > 0, got {a.pairs!r}", file=sys.stderr)
+            return 2
+    head_gain = None
+    if a.head_gain is not None:
+        from .kp_export import load_head_gain
+
+        try:
+            head_gain = load_head_gain(a.head_gain)
+        except (OSError, ValueError, KeyError) as exc:
+            print(f"error: --head-gain {a.head_gain}: {exc}", file=sys.stderr)
+            return 2
     sources = [p.strip() for p in a.priors.split(",") if p.strip()]
     if not sources or any(p not in ("direct", "head") for p in sources):
         print(f"error: --priors: direct and/or head, got {a.priors!r}", file=sys.stderr)
@@ -257,8 +312,18 @@ def main(argv: list[str] | None = None) -> int:
     rows = collect(est, seqs, a.stride, track=not a.single)
     em = error_model(rows, float(est.reproj_crop_px))
     pems = {source: prior_error_model(rows, source) for source in ("direct", "head")}
-    grid = score_grid(est, rows, not a.no_progress, em, {k: v for k, v in pems.items() if k in sources})
+    grid = score_grid(
+        est,
+        rows,
+        not a.no_progress,
+        em,
+        {k: v for k, v in pems.items() if k in sources},
+        head_gain,
+        pairs,
+    )
     best = min(grid, key=lambda g: g["score"])
+    if best.get("head_gain"):
+        best["head_gain"] = head_gain
     if best.get("error_model"):
         best["kp_error_model"] = em
     if best.get("prior_em"):
@@ -274,6 +339,7 @@ def main(argv: list[str] | None = None) -> int:
                 "frames": len(rows),
                 "stride": a.stride,
                 "mode": "single" if a.single else "track",
+                "head_gain": head_gain,
                 "best": best,
                 "grid": grid,
                 "kp_error_model": em,

@@ -573,6 +573,42 @@ def test_the_fusion_grid_scores_the_priors_asked_for():
     assert at128 == set(SIGMA_CROP_PX) and at192 == {1.5 * p for p in SIGMA_CROP_PX}
 
 
+def test_the_fusion_grid_can_score_only_the_pairs_asked_for_with_the_head_gain():
+    """kp_fusion `--pairs`: only those weights (keypoint sigma scaled to the crop), each prior
+    with both error models, and PnP alone; `--head-gain`: every fusion whose prior is the head is
+    scored with the gain, none other, and the row says so."""
+    from oibar_models.kp_fusion import fusion_grid, score_grid
+
+    em, pem = {"kp": 1}, {"rms_deg": [1.0]}
+    grid = fusion_grid(em, {"head": pem, "direct": None}, crop_scale=1.5, pairs=[(2.0, 3.0), (1.0, 1.0)])
+    assert grid == [
+        ("head", 3.0, 3.0, em, pem),
+        ("head", 1.5, 1.0, em, pem),
+        ("direct", 3.0, 3.0, em, None),
+        ("direct", 1.5, 1.0, em, None),
+        (None, None, None, None, None),
+    ]
+
+    gain = {"range_edges_m": [0.0, 100.0], "tilt_gain": [0.9]}
+    seen = []
+
+    class Direct:
+        R_cam_target, T_cam_target_m = np.eye(3), np.array([0.0, 0.0, 5.0])
+
+    class Est:
+        out_px = 128
+
+        def solve(self, img, R, T, fusion=None, prior=None):
+            seen.append(fusion)
+            return None, None
+
+    rows = [{"img": None, "direct": Direct(), "T": np.array([0.0, 0.0, 5.0]), "q": np.array([1.0, 0, 0, 0])}]
+    out = score_grid(Est(), rows, False, em, {"head": pem, "direct": None}, gain, [(2.0, 3.0)])
+    assert [f.get("head_gain") for f in seen] == [gain, None, None]
+    assert [f.get("attitude_prior") for f in seen] == ["head", None, None]
+    assert [r["head_gain"] for r in out] == [True, False, False]
+
+
 def test_the_error_model_is_each_keypoints_rms_per_range_bin():
     """kp_fusion.error_model: RMS per keypoint and range bin, errors clipped at the inlier
     threshold (RANSAC drops worse ones), a bin with under 5 answers takes the keypoint's overall
@@ -1035,6 +1071,59 @@ def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head
     set_fusion(dict(fusion_before, attitude_prior="direct"))
     assert export_main(["--retag", str(model), "--head-gain", str(tmp_path / "gain.json")]) == 2
     assert "head_gain" not in read_metadata(model)["fusion"]
+
+
+def test_retag_replaces_the_fusion_with_a_kp_fusion_choice_and_refuses_one_it_cannot_carry(tmp_path, capsys):
+    """`kp_export --retag --fusion FILE` puts kp_fusion's choice ("best": weights, both error
+    models, a head gain scored with it) in place of the export's whole fusion, the network
+    untouched, and the runtime reads it; a choice in another crop's pixels or PnP alone is
+    refused and nothing written."""
+    from oibar.nav.pose import KeypointPoseEstimator, read_metadata
+    from oibar_models.kp_export import main as export_main
+
+    copy_shipped(tmp_path)
+    model = tmp_path / "oibarnet.onnx"
+    before = read_metadata(model)
+    n_kp = len(before["keypoint_names"])
+    edges = [0.0, 1.0, 100.0]
+    best = {
+        "sigma_crop_px": 2.0,
+        "sigma_prior_deg": 3.0,
+        "attitude_prior": "head",
+        "dt_mean_pct": 0.3,
+        "dq_mean_deg": 0.48,
+        "kp_error_model": {"range_edges_m": edges, "rms_crop_px": [[0.3, 0.4]] * n_kp},
+        "prior_error_model": {"range_edges_m": edges, "rms_deg": [0.8, 0.9]},
+        "head_gain": {"range_edges_m": edges, "tilt_gain": [0.87, 0.98]},
+    }
+    out_px = int(before["crop"]["out_px"])
+    (tmp_path / "f.json").write_text(json.dumps({"out_px": out_px, "best": best}))
+    (tmp_path / "px.json").write_text(json.dumps({"out_px": out_px + 64, "best": best}))
+    (tmp_path / "pnp.json").write_text(json.dumps({"out_px": out_px, "best": {"sigma_prior_deg": None}}))
+
+    for bad in ("px.json", "pnp.json", "missing.json"):
+        assert export_main(["--retag", str(model), "--fusion", str(tmp_path / bad)]) == 2
+        assert read_metadata(model)["fusion"] == before["fusion"]
+    assert "px crop" in capsys.readouterr().err
+    assert (
+        export_main(["--retag", str(model), "--fusion", str(tmp_path / "f.json"), "--model-version", "9.9.9"])
+        == 0
+    )
+    after = read_metadata(model)
+    fusion = after["fusion"]
+    assert fusion["sigma_crop_px"] == 2.0 and fusion["sigma_prior_deg"] == 3.0
+    assert fusion["val"] == {"dt_mean_pct": 0.3, "dq_mean_deg": 0.48}
+    for k in ("kp_error_model", "prior_error_model", "head_gain", "attitude_prior"):
+        assert fusion[k] == best[k]
+    assert after["model_version"] == "9.9.9"
+    assert {k: v for k, v in after.items() if k not in ("fusion", "model_version")} == {
+        k: v for k, v in before.items() if k not in ("fusion", "model_version")
+    }
+    est = KeypointPoseEstimator(model, warmup_runs=0)
+    assert est._head_gain(est.meta["fusion"]).gain(5.0) == 0.98
+    assert est._prior_error_model(est.meta["fusion"]).scale(0.5) == pytest.approx(
+        0.8 / np.sqrt((0.64 + 0.81) / 2)
+    )
 
 
 def test_retag_sets_the_corner_refinement_and_refuses_a_size_that_is_not_one(tmp_path):
