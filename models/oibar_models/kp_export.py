@@ -271,6 +271,17 @@ def load_head_gain(path: Path) -> dict:
     return {"range_edges_m": table["range_edges_m"], "tilt_gain": table["tilt_gain"]}
 
 
+def head_gain_arg(path: Path | None) -> tuple[dict | None, str | None]:
+    """A `--head-gain FILE` option: (its table, None), (None, None) without one, or (None, the
+    error to print) when the file cannot be read or its table would be refused."""
+    if path is None:
+        return None, None
+    try:
+        return load_head_gain(path), None
+    except (OSError, ValueError, KeyError) as exc:
+        return None, f"error: --head-gain {path}: {exc}"
+
+
 def load_fusion(path: Path, out_px: int) -> dict | None:
     """The fusion a `kp_fusion` JSON chose ("best"), for a model whose crop is `out_px`: its
     weights and the tables it was scored with. None when the choice was PnP alone. ValueError
@@ -483,13 +494,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
-    head_gain = None
-    if a.head_gain is not None:
-        try:
-            head_gain = load_head_gain(a.head_gain)
-        except (OSError, ValueError, KeyError) as exc:
-            print(f"error: {a.head_gain}: {exc}", file=sys.stderr)
-            return 2
+    head_gain, err = head_gain_arg(a.head_gain)
+    if err:
+        print(err, file=sys.stderr)
+        return 2
     if a.retag is not None:
         fusion = None
         if a.fusion is not None:

@@ -286,15 +286,12 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:
             print(f"error: --pairs: KP_PX:PRIOR_DEG[,...], each > 0, got {a.pairs!r}", file=sys.stderr)
             return 2
-    head_gain = None
-    if a.head_gain is not None:
-        from .kp_export import load_head_gain
+    from .kp_export import head_gain_arg
 
-        try:
-            head_gain = load_head_gain(a.head_gain)
-        except (OSError, ValueError, KeyError) as exc:
-            print(f"error: --head-gain {a.head_gain}: {exc}", file=sys.stderr)
-            return 2
+    head_gain, err = head_gain_arg(a.head_gain)
+    if err:
+        print(err, file=sys.stderr)
+        return 2
     sources = [p.strip() for p in a.priors.split(",") if p.strip()]
     if not sources or any(p not in ("direct", "head") for p in sources):
         print(f"error: --priors: direct and/or head, got {a.priors!r}", file=sys.stderr)

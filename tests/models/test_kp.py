@@ -609,6 +609,18 @@ def test_the_fusion_grid_can_score_only_the_pairs_asked_for_with_the_head_gain()
     assert [r["head_gain"] for r in out] == [True, False, False]
 
 
+def test_kp_fusion_refuses_bad_pairs_and_an_unreadable_head_gain_before_reading_anything(tmp_path, capsys):
+    """kp_fusion's `--pairs` and `--head-gain` are checked first, with what is wrong said."""
+    from oibar_models.kp_fusion import main as fusion_main
+
+    out = tmp_path / "fusion.json"
+    for bad in ("2", "2:0", "a:b", ","):
+        assert fusion_main(["--pairs", bad, "--out", str(out)]) == 2
+        assert "--pairs" in capsys.readouterr().err
+    assert fusion_main(["--head-gain", str(tmp_path / "missing.json"), "--out", str(out)]) == 2
+    assert "--head-gain" in capsys.readouterr().err and not out.exists()
+
+
 def test_the_error_model_is_each_keypoints_rms_per_range_bin():
     """kp_fusion.error_model: RMS per keypoint and range bin, errors clipped at the inlier
     threshold (RANSAC drops worse ones), a bin with under 5 answers takes the keypoint's overall
