@@ -159,11 +159,13 @@ def fusion_grid(
     which won in 0.5.0; the head also without its prior error model; PnP alone. `crop_scale`:
     the model's crop over FUSION_REF_CROP_PX (a 192 px crop reads the fixture over 1.5x the
     pixels, so its keypoint sigmas are 1.5x). `pairs` ((keypoint sigma at a 128 px crop, prior
-    sigma deg), ...): only those, each prior with both error models, and PnP alone."""
+    sigma deg), ...): only those, each prior with both error models, and PnP alone (the head
+    only where the model has one, as in the whole grid)."""
     if pairs is not None:
         grid = [
             (source, p * crop_scale, d, err_model, pem)
             for source, pem in prior_models.items()
+            if source != "head" or pem is not None
             for p, d in pairs
         ]
         return [*grid, (None, None, None, None, None)]

@@ -588,6 +588,11 @@ def test_the_fusion_grid_can_score_only_the_pairs_asked_for_with_the_head_gain()
         ("direct", 1.5, 1.0, em, None),
         (None, None, None, None, None),
     ]
+    # a model without the head: its prior is not scored, as in the whole grid
+    assert {g[0] for g in fusion_grid(em, {"head": None, "direct": pem}, pairs=[(2.0, 3.0)])} == {
+        "direct",
+        None,
+    }
 
     gain = {"range_edges_m": [0.0, 100.0], "tilt_gain": [0.9]}
     seen = []
