@@ -104,7 +104,8 @@ recover-kp: setup ## the shipped keypoint model's ONNX back into a trainable che
 # build/judge/part<N>.json.
 #   make judge-kp JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx        parts 1-3 (~15 min on 2 cores)
 #   make judge-kp-loop JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx   part 4, the closed loop (~85 min;
-#       as long again the first time after a flight-code change: the shipped model flies beside it)
+#       as long again after a flight-code change: the shipped model flies beside it; under the code
+#       the base records, the base is its arm after a spot check)
 # The candidate's first pass (oibar.first_pass) must lie beside it, as for any keypoint model.
 JUDGE_CANDIDATE ?=
 .PHONY: judge-kp judge-kp-loop

@@ -472,7 +472,14 @@ def next_base(
     v = judge_loop(base, flown, refly=refly)
     if not v.holds:
         raise JudgeInputError("the flown runs do not pass part 4 against the base: nothing ships")
-    out: dict[str, Any] = {"what": what, "rule": "python -m oibar_models.judge (part 4)"}
+    from oibar_hil.rig.looks import code_tag
+
+    # the flight code the runs were flown under (the judge flies `base` right after them)
+    out: dict[str, Any] = {
+        "what": what,
+        "rule": "python -m oibar_models.judge (part 4)",
+        "code_tag": code_tag(),
+    }
     for label in LOOP_SETS:
         if label not in flown:
             raise JudgeInputError(f"no {label!r} set given: the next base needs every set")
@@ -592,57 +599,113 @@ def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) 
     return _report(judge_demo(_load(out / "demo.json", "the demo's metrics"), rule), out)
 
 
+def _fly(models: list[Path], looks: str, plan: dict[str, Any], jobs: int, path: Path) -> dict[str, Any]:
+    """`oibar_hil.rig.looks` for `models` on `looks` with the plan's starts, seeds and turns ->
+    its JSON (written to `path`, the log beside it)."""
+    _run(
+        [sys.executable, "-m", "oibar_hil.rig.looks", *(a for m in models for a in ("--model", str(m))),
+         "--looks", looks, "--starts", ",".join(f"{s:g}" for s in plan["starts"]),
+         "--seeds", ",".join(map(str, plan["seeds"])),
+         "--turns=" + ",".join(f"{a:g}:{b:g}" for a, b in plan["turns"]),
+         "--jobs", str(jobs), "--no-progress", "--json", str(path)],
+        path.with_suffix(".log"),
+    )  # fmt: skip
+    out: dict[str, Any] = _load(path, "the looks' runs")
+    return out
+
+
+def _set_plan(base: dict[str, Any], label: str) -> dict[str, Any]:
+    runs = base[label]["runs"]
+    return {
+        "starts": sorted({float(r["start_m"]) for r in runs}),
+        "seeds": sorted({int(r["seed"]) for r in runs}),
+        "turns": sorted({tuple(r["turn"]) for r in runs}),
+    }
+
+
+def spot_check(base: dict[str, Any], label: str, flown: dict[str, Any], tol: float = 1e-4) -> str:
+    """'' when every run of `flown` (the shipped model's, `looks --json`) is its base run to `tol`
+    cm (lateral p95) and `tol` mm (capture; a base keeps 4 decimals of each) with the same
+    outcome, else what differs."""
+    ref = {_run_key(r["look"], r["start_m"], r["seed"], r["turn"]): r for r in base[label]["runs"]}
+    bad, n = [], 0
+    for r in flown.get("runs", []):
+        k = r["key"]
+        b = ref.get(_run_key(k["look"], k["start_range_m"], k["seed"], k["turn_deg"]))
+        if b is None:
+            bad.append(f"{k['look']} seed {k['seed']}: not a base run")
+            continue
+        n += 1
+        d_cm = float(r["lateral_p95_below_5m_m"]) * 100 - float(b["lat_p95_new_cm"])
+        d_mm = float(r["capture_lateral_m"]) * 1000 - float(b["capture_new_mm"])
+        if not (abs(d_cm) <= tol and abs(d_mm) <= tol and r.get("outcome") == b["outcome_new"]):
+            bad.append(f"{k['look']} seed {k['seed']} turn {k['turn_deg']}: {d_cm:+.2g} cm, {d_mm:+.2g} mm")
+    if n == 0:
+        bad.append("no run flown")
+    return "; ".join(bad)
+
+
 def fly_loop(cand: Path, out: Path, jobs: int, rule: Rule = Rule(), shipped: Path = SHIPPED) -> bool:
     """Part 4: the base's runs flown with the shipped model and the candidate (held-out first),
     both under this flight code, then paired. How far the shipped model's runs moved from the
-    committed base is reported beside the verdict (figures ``shipped_moved_cm``), not judged."""
+    committed base is reported beside the verdict (figures ``shipped_moved_cm``), not judged.
+    A base that records the flight code it was flown under (``code_tag``), when that is today's
+    code, is the shipped model's arm as it stands: a run is deterministic for a model and the
+    code, so only the look of each set's worst base run is flown again, as a spot check that
+    this machine flies them the same; a run that differs flies the whole arm, as without a tag."""
+    from oibar_hil.rig.looks import code_tag
+
     committed = _load(BASE_LOOP, "the shipped model's closed-loop runs")
+    same_code = committed.get("code_tag") == code_tag()
     flown: dict[str, Any] = {}
     shipped_now: dict[str, Any] = {}
     refly: dict[str, Any] = {}
+    arms: dict[str, str] = {}
     for label in LOOP_SETS:
-        runs = committed[label]["runs"]
-        starts = sorted({float(r["start_m"]) for r in runs})
-        seeds = sorted({int(r["seed"]) for r in runs})
-        turns = sorted({tuple(r["turn"]) for r in runs})
-        for model, path in (
-            (shipped, out / f"loop_{label}_shipped.json"),
-            (cand, out / f"loop_{label}.json"),
-        ):
-            _run(
-                [sys.executable, "-m", "oibar_hil.rig.looks", "--model", str(model),
-                 "--looks", label.replace("_", "-"), "--starts", ",".join(f"{s:g}" for s in starts),
-                 "--seeds", ",".join(map(str, seeds)),
-                 "--turns=" + ",".join(f"{a:g}:{b:g}" for a, b in turns),
-                 "--jobs", str(jobs), "--no-progress", "--json", str(path)],
-                path.with_suffix(".log"),
-            )  # fmt: skip
-        shipped_now[label] = _load(out / f"loop_{label}_shipped.json", "the shipped model's looks runs")
-        flown[label] = _load(out / f"loop_{label}.json", "the looks' runs")
+        plan = _set_plan(committed, label)
+        looks = label.replace("_", "-")
+        arm, differs = "flown", ""
+        if same_code:
+            worst = max(committed[label]["runs"], key=lambda r: float(r["lat_p95_new_cm"]))["look"]
+            spot = _fly([shipped], worst, plan, jobs, out / f"spot_{label}_shipped.json")
+            differs = spot_check(committed, label, spot)
+            arm = f"the base's (code {committed['code_tag']}; {worst} flown again: " + (
+                f"differs: {differs}; the whole arm flown)" if differs else "the same)"
+            )
+            print(f"{label}: the shipped model's arm is {arm}", flush=True)
+        if same_code and not differs:
+            shipped_now[label] = {"runs": [_as_looks_run(r) for r in committed[label]["runs"]]}
+        else:
+            shipped_now[label] = _fly([shipped], looks, plan, jobs, out / f"loop_{label}_shipped.json")
+        flown[label] = _fly([cand], looks, plan, jobs, out / f"loop_{label}.json")
         base_now = base_of_flown(committed, shipped_now)
         v = judge_loop(base_now, flown, rule, refly)
         look = v.figures.get(label, {}).get("refly_look")
         if look and _failing(v) == [f"{label}: worst run"]:
             # the worst run alone fails: its look on fresh seeds, both models in one study
             plan = refly_plan(base_now, label, look, rule)
-            path = out / f"refly_{label}.json"
-            _run(
-                [sys.executable, "-m", "oibar_hil.rig.looks", "--model", str(shipped), "--model", str(cand),
-                 "--looks", look, "--starts", ",".join(f"{s:g}" for s in plan["starts"]),
-                 "--seeds", ",".join(map(str, plan["seeds"])),
-                 "--turns=" + ",".join(f"{a:g}:{b:g}" for a, b in plan["turns"]),
-                 "--jobs", str(jobs), "--no-progress", "--json", str(path)],
-                path.with_suffix(".log"),
-            )  # fmt: skip
-            refly[label] = _load(path, "the worst run's re-flight")
+            refly[label] = _fly([shipped, cand], look, plan, jobs, out / f"refly_{label}.json")
             v = judge_loop(base_now, flown, rule, refly)
         moved = judge_loop(committed, shipped_now, rule).figures
         for k, f in moved.items():
             v.figures.setdefault(k, {})["shipped_moved_cm"] = f["paired_diff_cm"]
             v.figures[k]["shipped_moved_se_cm"] = f["paired_se_cm"]
+        arms[label] = arm
+        for k, a in arms.items():
+            v.figures.setdefault(k, {})["shipped_arm"] = a
         if not _report(v, out):
             return False
     return True
+
+
+def _as_looks_run(r: dict[str, Any]) -> dict[str, Any]:
+    """A base run (its ``*_new`` arm) in `looks --json`'s layout."""
+    return {
+        "key": {"look": r["look"], "start_range_m": r["start_m"], "seed": r["seed"], "turn_deg": r["turn"]},
+        "outcome": r["outcome_new"],
+        "lateral_p95_below_5m_m": float(r["lat_p95_new_cm"]) / 100,
+        "capture_lateral_m": float(r["capture_new_mm"]) / 1000,
+    }
 
 
 def _sets(given: list[str]) -> dict[str, Any]:

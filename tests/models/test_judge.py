@@ -184,6 +184,13 @@ def test_the_command_line_writes_the_verdict_and_says_so_in_its_exit_code(tmp_pa
     assert main(["--out", str(tmp_path), "pair", "sideways=x.json"]) == 2
 
 
+def _other_code(monkeypatch, tag="0123456789"):
+    """Today's flight code as `tag` (the committed base records the code it was flown under)."""
+    import oibar_hil.rig.looks as looks
+
+    monkeypatch.setattr(looks, "code_tag", lambda *a, **k: tag)
+
+
 def _moved(runs, cm):
     """The base's runs with every lateral p95 `cm` larger: the same model under other flight code."""
     return [dict(r, lat_p95_new_cm=r["lat_p95_new_cm"] + cm) for r in runs]
@@ -194,6 +201,8 @@ def test_the_loop_flies_the_bases_runs_held_out_first_and_pairs_them(tmp_path, m
     set first, flown by the shipped model and then the candidate; a candidate that flies exactly
     as the shipped model does today holds."""
     import oibar_models.judge as judge
+
+    _other_code(monkeypatch)
 
     base = json.loads(BASE_LOOP.read_text())
     cmds = []
@@ -222,6 +231,8 @@ def test_the_loop_pairs_the_candidate_with_the_shipped_runs_flown_under_the_same
     its committed ones by up to 1.3 cm): a candidate is paired with the shipped model flown today,
     not with the committed figures, and how far those moved is reported beside the verdict."""
     import oibar_models.judge as judge
+
+    _other_code(monkeypatch)
 
     base = json.loads(BASE_LOOP.read_text())
 
@@ -404,6 +415,8 @@ def test_the_loop_flies_the_worst_runs_look_again_when_only_that_clause_fails(tm
     when the re-flight ties; when the candidate loses there too, it stops at the held-out set."""
     import oibar_models.judge as judge
 
+    _other_code(monkeypatch)
+
     base = json.loads(BASE_LOOP.read_text())
     held = base["held_out"]["runs"]
     bad = max(range(len(held)), key=lambda i: held[i]["lat_p95_new_cm"])
@@ -476,3 +489,64 @@ def test_pair_reads_the_reflight(tmp_path):
     assert (
         json.loads((tmp_path / "part4.json").read_text())["figures"]["held_out"]["refly"]["look"] == "va001"
     )
+
+
+def test_a_base_flown_under_todays_code_is_the_shipped_arm_after_a_spot_check(tmp_path, monkeypatch):
+    """The base records its flight code (0.32.0's: e18f7fcda7). Under that code the shipped model
+    flies only each set's worst base run's look again; when those runs are the base's, the base is
+    the arm (half of part 4's time saved); when one differs (another machine, say), the whole arm
+    is flown as before; under other code, the whole arm without a spot check."""
+    import oibar_models.judge as judge
+
+    base = json.loads(BASE_LOOP.read_text())
+    assert base["code_tag"]
+
+    def fly(spot_cm):
+        cmds = []
+
+        def fake_run(cmd, log):
+            cmds.append(cmd)
+            looks = cmd[cmd.index("--looks") + 1]
+            if looks in ("held-out", "default"):
+                runs = _as_flown(base[looks.replace("-", "_")]["runs"])
+            else:  # a spot check: one look of the set, moved `spot_cm`
+                label = "held_out" if any(r["look"] == looks for r in base["held_out"]["runs"]) else "default"
+                runs = _as_flown(_moved([r for r in base[label]["runs"] if r["look"] == looks], spot_cm))
+            Path(cmd[cmd.index("--json") + 1]).write_text(json.dumps({"runs": runs}))
+
+        monkeypatch.setattr(judge, "_run", fake_run)
+        ok = judge.fly_loop(Path("cand.onnx"), tmp_path, jobs=2, shipped=Path("shipped.onnx"))
+        flown = [(c[c.index("--looks") + 1], c[c.index("--model") + 1]) for c in cmds]
+        return ok, flown, json.loads((tmp_path / "part4.json").read_text())
+
+    worst = {
+        k: max(base[k]["runs"], key=lambda r: r["lat_p95_new_cm"])["look"] for k in ("held_out", "default")
+    }
+    _other_code(monkeypatch, base["code_tag"])
+    ok, flown, v = fly(0.0)
+    assert ok and flown == [
+        (worst["held_out"], "shipped.onnx"),
+        ("held-out", "cand.onnx"),
+        (worst["default"], "shipped.onnx"),
+        ("default", "cand.onnx"),
+    ]
+    assert "the same" in v["figures"]["default"]["shipped_arm"]
+    ok, flown, v = fly(0.01)  # this machine flies the shipped model 0.01 cm off: the whole arm
+    assert ok and flown == [
+        (worst["held_out"], "shipped.onnx"),
+        ("held-out", "shipped.onnx"),
+        ("held-out", "cand.onnx"),
+        (worst["default"], "shipped.onnx"),
+        ("default", "shipped.onnx"),
+        ("default", "cand.onnx"),
+    ]
+    assert "differs" in v["figures"]["held_out"]["shipped_arm"]
+    _other_code(monkeypatch)
+    assert fly(0.0)[1] == [(k, m) for k in ("held-out", "default") for m in ("shipped.onnx", "cand.onnx")]
+
+
+def test_the_next_base_records_the_flight_code(monkeypatch):
+    base = json.loads(BASE_LOOP.read_text())
+    again = {label: {"runs": _as_flown(base[label]["runs"])} for label in ("held_out", "default")}
+    _other_code(monkeypatch, "abcdef0123")
+    assert next_base(base, again, "test")["code_tag"] == "abcdef0123"
