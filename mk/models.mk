@@ -39,7 +39,7 @@ dataset-envelope: setup ## render the envelope-mode test sequence (seq01_envelop
 # keypoint network's own attitude head wins on validation). Six training stages; the export
 # chooses the prior's weights on the validation scenes (kp_fusion), then writes them into the file.
 KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints/oibarnet_kp_stage2.yaml models/configs/keypoints/oibarnet_kp_stage3.yaml models/configs/keypoints/oibarnet_kp_stage4.yaml models/configs/keypoints/oibarnet_kp_stage5.yaml models/configs/keypoints/oibarnet_kp_stage6.yaml
-# The shipped 0.32.0 is two networks (docs/model_card.md). Under 8 m, 0.15.3's: stage 15 (stage 6's
+# The shipped 0.34.0 is two networks (docs/model_card.md), 0.32.0's, read with tables measured on them. Under 8 m, 0.15.3's: stage 15 (stage 6's
 # 0.8.1, recovered, then stages 12, 13 and 15, the last on a lent GPU); its config carries the
 # corner gate. From 8 m, stage 28's last step (KP_FAR_CONFIG below: 0.13.0 recovered, then stages
 # 22, 25, 27 and 28 on the 2 CPU cores).
@@ -69,7 +69,11 @@ KP_FAR_CHECKPOINT ?= last
 # docs/model_history.md "Candidate 0.31.0"); empty: the far network alone.
 KP_FAR_ENSEMBLE ?=
 KP_FAR_FROM_M ?= 8.0
-KP_MODEL_VERSION ?= 0.32.0
+KP_MODEL_VERSION ?= 0.34.0
+# The fusion tables the main file is retagged with last (kp_export --retag --fusion: a kp_fusion
+# choice, head gain included), measured on the two networks above (0.34.0, docs/model_history.md
+# "Candidate 0.33.0"); empty: the tables KP_FUSION_JSON gave the export.
+KP_RETAG_FUSION_JSON ?= docs/data/kp_fusion_0330.json
 
 train-kp: setup ## train the keypoint model, all six stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
 	@for c in $(KP_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.kp_train --config $$c $(TRAIN_ARGS) || exit 1; done
@@ -84,7 +88,7 @@ else
 endif
 ifneq ($(strip $(KP_FAR_CONFIG)),)
 	@$(PY) -m oibar_models.kp_export --config $(KP_FAR_CONFIG) --checkpoint $(KP_FAR_CHECKPOINT) $(foreach m,$(KP_FAR_ENSEMBLE),--ensemble $(m)) --out models/oibarnet_far.onnx --fusion $(if $(strip $(KP_FUSION_JSON)),$(KP_FUSION_JSON),runs/oibarnet_kp_fusion.json) $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
-	@$(PY) -m oibar_models.kp_export --retag models/oibarnet.onnx --far-network oibarnet_far.onnx --far-from-m $(KP_FAR_FROM_M) $(if $(strip $(KP_MODEL_VERSION)),--model-version $(KP_MODEL_VERSION),)
+	@$(PY) -m oibar_models.kp_export --retag models/oibarnet.onnx --far-network oibarnet_far.onnx --far-from-m $(KP_FAR_FROM_M) $(if $(strip $(KP_MODEL_VERSION)),--model-version $(KP_MODEL_VERSION),) $(if $(strip $(KP_RETAG_FUSION_JSON)),--fusion $(KP_RETAG_FUSION_JSON),)
 endif
 
 eval-kp: setup ## the flight estimator on validation and test scenes: tables, range bins, latency (runs/eval_kp)

@@ -466,10 +466,13 @@ def test_the_loop_flies_the_worst_runs_look_again_when_only_that_clause_fails(tm
     assert [c["clause"] for c in v["clauses"] if not c["holds"]] == ["held_out: worst run"]
 
 
-def test_pair_reads_the_reflight(tmp_path):
-    """`judge pair --refly`: 0.33.0's held-out runs fail on the worst run alone; va001's committed
-    fresh pairs, given the rule's seeds, decide it (they hold; moved 1 cm worse they fail); the
-    study on its own seeds (5-10) is not the rule's re-flight and is refused."""
+def test_pair_reads_the_reflight(tmp_path, monkeypatch):
+    """`judge pair --refly`: 0.33.0's held-out runs fail on the worst run alone against 0.32.0's
+    base; va001's committed fresh pairs, given the rule's seeds, decide it (they hold; moved 1 cm
+    worse they fail); the study on its own seeds (5-10) is not the rule's re-flight and is refused."""
+    import oibar_models.judge as judge
+
+    monkeypatch.setattr(judge, "BASE_LOOP", LOOP_0320)
     cand = DATA / "loop_held_out_0330.json"
     out = ["--out", str(tmp_path)]
     assert main(out + ["pair", f"held_out={cand}"]) == 1
