@@ -282,19 +282,24 @@ def _loop_bound_cm(se: float, rule: Rule) -> float:
     return max(se, rule.loop_min_slack_cm) if math.isfinite(se) else rule.loop_min_slack_cm
 
 
+def _set_plan(base: dict[str, Any], label: str) -> dict[str, Any]:
+    """A base set's starts, seeds and turns (what `looks` crosses to fly that set)."""
+    runs = base[label]["runs"]
+    return {
+        "starts": sorted({float(r["start_m"]) for r in runs}),
+        "seeds": sorted({int(r["seed"]) for r in runs}),
+        "turns": sorted({tuple(float(t) for t in r["turn"]) for r in runs}),
+    }
+
+
 def refly_plan(base: dict[str, Any], label: str, look: str, rule: Rule = Rule()) -> dict[str, Any]:
     """What the worst run's re-flight flies for one set: `look`, the set's starts and turns, the
     rule's fresh seeds. Refused when a fresh seed is one of the base's (it would not be fresh)."""
-    runs = base[label]["runs"]
-    used = sorted({int(r["seed"]) for r in runs} & set(rule.loop_refly_seeds))
+    plan = _set_plan(base, label)
+    used = sorted(set(plan["seeds"]) & set(rule.loop_refly_seeds))
     if used:
         raise JudgeInputError(f"{label}: the re-flight's seeds {used} are the base's own, not fresh")
-    return {
-        "look": look,
-        "starts": sorted({float(r["start_m"]) for r in runs}),
-        "seeds": list(rule.loop_refly_seeds),
-        "turns": sorted({tuple(float(t) for t in r["turn"]) for r in runs}),
-    }
+    return {**plan, "look": look, "seeds": list(rule.loop_refly_seeds)}
 
 
 def judge_refly(
@@ -467,13 +472,11 @@ def next_base(
     `judge_loop` pairs the next candidate with what this one flew (its ``*_new`` fields). A worst
     run's re-flight (`refly`) is part 4's evidence and is read as part 4 reads it; the base keeps
     the set's own runs only."""
-    from oibar_hil.rig.looks import mean_se
+    from oibar_hil.rig.looks import code_tag, mean_se
 
     v = judge_loop(base, flown, refly=refly)
     if not v.holds:
         raise JudgeInputError("the flown runs do not pass part 4 against the base: nothing ships")
-    from oibar_hil.rig.looks import code_tag
-
     # the flight code the runs were flown under (the judge flies `base` right after them)
     out: dict[str, Any] = {
         "what": what,
@@ -612,15 +615,6 @@ def _fly(models: list[Path], looks: str, plan: dict[str, Any], jobs: int, path: 
     )  # fmt: skip
     out: dict[str, Any] = _load(path, "the looks' runs")
     return out
-
-
-def _set_plan(base: dict[str, Any], label: str) -> dict[str, Any]:
-    runs = base[label]["runs"]
-    return {
-        "starts": sorted({float(r["start_m"]) for r in runs}),
-        "seeds": sorted({int(r["seed"]) for r in runs}),
-        "turns": sorted({tuple(r["turn"]) for r in runs}),
-    }
 
 
 def spot_check(base: dict[str, Any], label: str, flown: dict[str, Any], tol: float = 1e-4) -> str:

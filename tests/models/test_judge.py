@@ -11,6 +11,7 @@ from oibar_models.judge import (
     BASE_LOOP,
     JudgeInputError,
     Rule,
+    _failing,
     judge_demo,
     judge_loop,
     judge_probe,
@@ -29,10 +30,6 @@ LOOP_0153 = DATA / "loop_candidate_0153.json"
 
 def _json(name):
     return json.loads((DATA / name).read_text())
-
-
-def _failing(v):
-    return [c["clause"] for c in v.clauses if not c["holds"]]
 
 
 def test_candidate_0200_passes_validation_and_fails_the_probe_as_its_card_records():
