@@ -330,6 +330,9 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     assert scene["frames"] == 6 and sum(b["frames"] for b in scene["_bins"]) == 6
     assert sum(b["frames"] for b in res["_bins"]) == res["_all"]["frames"] == 6
     assert all(len(b["meas_att_bias_deg"]) == 3 for b in scene["_bins"])
+    assert (ev / "val_range_bins.png").stat().st_size > 0 and (
+        ev / "val_range_bins_by_tilt.png"
+    ).stat().st_size > 0
     (out.parent / "oibarnet_lite.onnx").unlink()
     with pytest.raises(ModelFileError, match="first-pass model oibarnet_lite.onnx is missing"):
         PoseEstimator(out)
@@ -929,6 +932,58 @@ def test_the_evaluation_reports_the_filter_measurements_signed_attitude_bias():
     np.testing.assert_allclose(bins["1-2 m"]["meas_att_bias_deg"], [0.1, -0.07, 0.0], atol=0.02)
     np.testing.assert_allclose(bins["8-12 m"]["meas_att_bias_deg"], [0.0, 0.0, 0.0], atol=0.02)
     assert np.all(np.isfinite(bins["0-1 m"]["meas_att_bias_deg"]))
+
+
+def test_the_evaluation_splits_each_range_bins_attitude_error_by_the_truths_tilt():
+    """kp_evaluate.per_bin: frames whose true tilt is under ALIGNED_TILT_DEG (the paper's aligned
+    approaches) and the others get their own mean attitude error, so a reading that trades one for
+    the other (the head's gain close in) shows where the bin's mean hides it. Roll about the
+    boresight is not tilt; frames without an answer are left out."""
+    from oibar.geometry.docking import GEOMETRY, camera_pose_from_docking
+    from oibar.geometry.rotations import matrix_to_quat, quat_to_matrix, rotvec_to_matrix
+    from oibar_models.kp_evaluate import ALIGNED_TILT_DEG, per_bin, true_tilt_deg
+
+    n = 200
+    T = np.column_stack([np.zeros(n), np.zeros(n), np.linspace(0.3, 1.9, n)])
+    tilted = np.arange(n) % 4 == 0  # one frame in four tilted 3 deg about x, the rest rolled 5 deg
+    att = np.zeros((n, 3))
+    att[tilted, 0] = np.radians(3.0)
+    att[~tilted, 2] = np.radians(5.0)
+    R = np.array([camera_pose_from_docking(np.zeros(3), a, GEOMETRY)[1] for a in att])
+    q = np.array([matrix_to_quat(Ri) for Ri in R])
+    np.testing.assert_allclose(true_tilt_deg(q), np.where(tilted, 3.0, 0.0), atol=1e-6)
+    assert ALIGNED_TILT_DEG < 3.0
+    err_deg = np.where(tilted, 0.6, 0.2)  # each frame's answer off by this, about the boresight
+    q_hat = np.array(
+        [
+            matrix_to_quat(rotvec_to_matrix([0.0, 0.0, np.radians(e)]) @ quat_to_matrix(qi))
+            for e, qi in zip(err_deg, q, strict=True)
+        ]
+    )
+    T_hat = T.copy()
+    T_hat[1] = np.nan  # no answer on an aligned frame
+    q_hat[1] = np.nan
+
+    class Seq:
+        T_cam_target = T
+        q_cam_target = q
+
+    bins = {
+        b["bin"]: b
+        for b in per_bin(Seq, {"idx": np.arange(n), "T_hat": T_hat, "q_hat": q_hat, "q_meas": q_hat})
+    }
+    for name in ("0-1 m", "1-2 m"):
+        b = bins[name]
+        in_bin = (T[:, 2] >= float(name[0])) & (T[:, 2] < float(name[0]) + 1)
+        assert b["aligned_frames"] == int((in_bin & ~tilted).sum())
+        assert b["dq_mean_deg_aligned"] == pytest.approx(0.2, abs=1e-6)
+        assert b["dq_mean_deg_tilted"] == pytest.approx(0.6, abs=1e-6)
+        assert b["dq_mean_deg"] == pytest.approx(
+            np.average(
+                [0.2, 0.6], weights=[(in_bin & ~tilted).sum() - (name == "0-1 m"), (in_bin & tilted).sum()]
+            ),
+            abs=1e-6,
+        )
 
 
 @pytest.mark.parametrize("setting", [None, "prior_free", "fused"])
