@@ -41,8 +41,8 @@ dataset-envelope: setup ## render the envelope-mode test sequence (seq01_envelop
 KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints/oibarnet_kp_stage2.yaml models/configs/keypoints/oibarnet_kp_stage3.yaml models/configs/keypoints/oibarnet_kp_stage4.yaml models/configs/keypoints/oibarnet_kp_stage5.yaml models/configs/keypoints/oibarnet_kp_stage6.yaml
 # The shipped 0.34.0 is two networks (docs/model_card.md), 0.32.0's, read with tables measured on
 # them. Under 8 m, 0.15.3's: stage 15 (stage 6's 0.8.1, recovered, then stages 12, 13 and 15, the
-# last on a lent GPU); its config carries the corner gate. From 8 m, stage 28's last step (KP_FAR_CONFIG below: 0.13.0 recovered, then stages
-# 22, 25, 27 and 28 on the 2 CPU cores).
+# last on a lent GPU); its config carries the corner gate. From 8 m, stage 28's last step
+# (KP_FAR_CONFIG below: 0.13.0 recovered, then stages 22, 25, 27 and 28 on the 2 CPU cores).
 KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage15.yaml
 KP_EVAL_ARGS ?= --sets val test
 # 0.7.0: both priors scored (the direct model's and the crop's attitude head) on the 22

@@ -219,9 +219,7 @@ def per_bin(seq, r) -> list[dict]:
                 "dq_mean_deg_aligned": _mean_or_nan(dq[m & aligned]),
                 "dq_mean_deg_tilted": _mean_or_nan(dq[m & ~aligned]),
                 # the filter's measurement: mean signed attitude error about the camera's x, y, z
-                "meas_att_bias_deg": [
-                    float(np.nanmean(b)) if np.isfinite(b).any() else float("nan") for b in bias[m].T
-                ],
+                "meas_att_bias_deg": [_mean_or_nan(b) for b in bias[m].T],
             }
         )
     return rows
