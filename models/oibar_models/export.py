@@ -56,7 +56,7 @@ def metadata_for(net: OibarNet, ck: dict, model_version: str) -> dict:
         "pretrained_weights": "none: trained from scratch",
     }
     if "range_m" in ck["labels"]:
-        # camera distances seen in training: the runtime flags answers far outside (pose.py)
+        # camera distances seen in training: the runtime flags answers far outside (oibar.nav.pose)
         lo, hi = ck["labels"]["range_m"]
         meta["train_range_m"] = [round(0.8 * lo, 3), round(1.2 * hi, 3)]
     if cam:

@@ -321,8 +321,8 @@ def main(argv: list[str] | None = None) -> int:
             if isinstance(est, KeypointPoseEstimator):
                 # frames judged one by one (and tracking frames 1.6 s apart) have no cycle to keep:
                 # each gets the whole cold search, none is carried to the next frame
-                # (pose.COLD_CROP_BUDGET; the closed loop, `make looks`, flies the budget)
-                est.cold_crop_budget = None
+                # (oibar.nav.pose.search.COLD_CROP_BUDGET; the closed loop, `make looks`, flies the budget)
+                est.search.cold_crop_budget = None
             for mode in a.modes:
                 if mode == "single":
                     ests.append((label, est, False))

@@ -33,7 +33,7 @@ import torch
 
 from oibar.geometry.camera import PinholeCamera
 from oibar.geometry.docking import R_cam_target_aligned
-from oibar.nav.pose import FILTER_MEASUREMENTS, TURNED_READING_MEASUREMENTS
+from oibar.nav.pose.fusion import FILTER_MEASUREMENTS, TURNED_READING_MEASUREMENTS
 
 from . import __version__
 from .config import ConfigError, parse_override
@@ -104,7 +104,7 @@ def metadata_for(
         "camera": {**CAMERA, "K_frame": K},
         **({"attitude_head": attitude_head_meta()} if has_attitude_head(ck["model"]) else {}),
         **({"fusion": fusion} if fusion else {}),
-        # the refining pass reads each crop with its mirror image (KeypointPoseEstimator.read_crop)
+        # the refining pass reads each crop with its mirror image (KeypointReader.read_crop)
         "mirror_reading": bool(mirror_reading),
         # what the navigation filter is fed (oibar.nav.pose.FILTER_MEASUREMENTS)
         "filter_measurement": filter_measurement,
@@ -125,7 +125,7 @@ def metadata_for(
         # placed_pass_refines; written only when on)
         **({"placed_pass_refines": True} if placed_pass_refines else {}),
         # the refining pass moves the fixture's corners onto the frame's own, sub-pixel, when the
-        # fixture spans at least this many frame pixels (0: off; KeypointPoseEstimator.refined_corners)
+        # fixture spans at least this many frame pixels (0: off; KeypointReader.refined_corners)
         "corner_refine_side_px": float(corner_refine_side_px),
         # the networks one graph mixes (kpnet.EnsembleWrapper; written only for an ensemble)
         **({"ensemble": ensemble} if ensemble else {}),

@@ -30,7 +30,7 @@ from PIL import Image
 
 from oibar.geometry.rotations import matrix_to_quat as quat_from_matrix_np
 from oibar.geometry.rotations import quat_to_matrix as quat_to_matrix_np
-from oibar.nav.pose import CROP_REF_PX
+from oibar.nav.pose.reader import CROP_REF_PX
 
 from . import metrics
 from .config import REPO_ROOT
@@ -73,10 +73,10 @@ def collect(est, seqs, stride: int, track: bool = True) -> list[dict]:
                 continue
             T, q = seq.T_cam_target[k], seq.q_cam_target[k]
             R_true = quat_to_matrix_np(q)
-            uv_true = project(est.K_frame, est.points_m, R_true, T)
-            win = window_around(uv_true, est.out_px, est.margin)
-            reading = est.read_crop(img, win, refining=True)  # as the refining pass reads it
-            uv = est.refined_corners(img, win, reading.uv_px)  # and moves the fixture's corners
+            uv_true = project(est.reader.K_frame, est.reader.points_m, R_true, T)
+            win = window_around(uv_true, est.reader.out_px, est.reader.margin)
+            reading = est.reader.read_crop(img, win, refining=True)  # as the refining pass reads it
+            uv = est.reader.refined_corners(img, win, reading.uv_px)  # and moves the fixture's corners
             err = np.linalg.norm(uv - uv_true, axis=1) * win.scale
             direct = est.first.estimate(img)
             rows.append(
@@ -197,7 +197,7 @@ def score_grid(
     grid = fusion_grid(
         err_model,
         {"direct": None} if prior_models is None else prior_models,
-        est.out_px / FUSION_REF_CROP_PX,
+        est.reader.out_px / FUSION_REF_CROP_PX,
         pairs,
     )
     for source, s_px, s_deg, em, pem in grid:
@@ -213,7 +213,7 @@ def score_grid(
         T_hat, q_hat = [], []
         for row in rows:
             d = row["direct"]
-            r, _ = est.solve(
+            r, _ = est.search.solve(
                 row["img"], d.R_cam_target, d.T_cam_target_m, fusion=fusion, prior=row.get("prior")
             )
             R_, T_ = (
@@ -303,13 +303,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {a.model} is not a keypoint model", file=sys.stderr)
         return 2
     # the grid solves unrelated frames one by one, with no cycle to keep: the whole cold search on
-    # each, none carried from one frame to the next (pose.COLD_CROP_BUDGET)
-    est.cold_crop_budget = None
+    # each, none carried from one frame to the next (search.COLD_CROP_BUDGET)
+    est.search.cold_crop_budget = None
     seqs = [
         load_sequence(REPO_ROOT / "data/val" / s.name) for s in load_set(REPO_ROOT / "models/scenes/val.json")
     ]
     rows = collect(est, seqs, a.stride, track=not a.single)
-    em = error_model(rows, float(est.reproj_crop_px))
+    em = error_model(rows, float(est.reader.reproj_crop_px))
     pems = {source: prior_error_model(rows, source) for source in ("direct", "head")}
     grid = score_grid(
         est,
@@ -334,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
         json.dumps(
             {
                 "chosen_on": "validation scenes (models/scenes/val.json)",
-                "out_px": est.out_px,  # the crop the sigmas are in (kp_export checks it)
+                "out_px": est.reader.out_px,  # the crop the sigmas are in (kp_export checks it)
                 "frames": len(rows),
                 "stride": a.stride,
                 "mode": "single" if a.single else "track",

@@ -56,8 +56,12 @@ def collect(est, seqs, stride: int, progress: bool = True) -> dict[str, np.ndarr
                     bar.update(1)
                 img = np.asarray(Image.open(seq.dir / seq.files[k]).convert("RGB"))
                 T, R_true = seq.T_cam_target[k], quat_to_matrix(seq.q_cam_target[k])
-                win = window_around(project(est.K_frame, est.points_m, R_true, T), est.out_px, est.margin)
-                R_head = est.read_crop(img, win, refining=True).R_cam_target_head
+                win = window_around(
+                    project(est.reader.K_frame, est.reader.points_m, R_true, T),
+                    est.reader.out_px,
+                    est.reader.margin,
+                )
+                R_head = est.reader.read_crop(img, win, refining=True).R_cam_target_head
                 if R_head is None or not np.all(np.isfinite(R_head)):
                     continue
                 rng.append(float(np.linalg.norm(T)))
@@ -165,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ModelFileError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if not isinstance(est, KeypointPoseEstimator) or est.R_att_ref is None:
+    if not isinstance(est, KeypointPoseEstimator) or est.reader.R_att_ref is None:
         print(f"error: {a.model} has no attitude head to measure", file=sys.stderr)
         return 2
     try:

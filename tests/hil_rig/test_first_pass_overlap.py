@@ -34,7 +34,7 @@ def _track(est, frames):
     it); -> the poses (T, R flattened) and the keypoint network's crops read per frame, and the
     threads the direct model ran on."""
     crops, threads = [], set()
-    run, first = est.run, est.first.estimate
+    run, first = est.reader.run, est.first.estimate
 
     def counted(x):
         crops[-1] += len(x)
@@ -44,7 +44,7 @@ def _track(est, frames):
         threads.add(threading.current_thread().name)
         return first(*a, **k)
 
-    est.run, est.first.estimate = counted, traced
+    est.reader.run, est.first.estimate = counted, traced
     poses, prior = [], None
     for k, image in enumerate(frames):
         crops.append(0)

@@ -286,6 +286,45 @@ def test_error_model_scales_by_range_and_refuses_bad_tables():
         KeypointErrorModel({"range_edges_m": [0.0, 1.0, 2.0], "rms_crop_px": [[0.5, 0.0]]})
 
 
+def _shell(
+    points=POINTS,
+    out_px=128,
+    fusion=None,
+    zoom=False,
+    scan=False,
+    cold_crop_budget=None,
+    meta=None,
+):
+    """A KeypointPoseEstimator without networks: a KeypointReader whose sessions the test
+    replaces (`est.reader.run`, `est.reader.read_crop`), and the real Fusion and WindowSearch
+    over it. No crop budget unless given: the whole cold search on one frame."""
+    from pathlib import Path
+
+    from oibar.nav.pose.fusion import Fusion
+    from oibar.nav.pose.keypoint import KeypointPoseEstimator
+    from oibar.nav.pose.reader import KeypointReader
+    from oibar.nav.pose.search import WindowSearch
+
+    reader = object.__new__(KeypointReader)
+    reader.path, reader.meta = Path("test.onnx"), dict(meta or {})
+    reader.points_m, reader.K_frame, reader.out_px, reader.margin = points, K, out_px, 1.25
+    reader.reproj_crop_px, reader.min_present = 4.0, 0.5
+    reader.R_att_ref, reader.mirror = None, None
+    reader.turned_reading_deg, reader.turned_reading_head = 0.0, False
+    reader.corner_refine_side_px, reader.corner_idx = 0.0, np.zeros(0, int)
+    est = object.__new__(KeypointPoseEstimator)
+    est.path, est.meta, est.K_frame, est.range_limits_m = reader.path, reader.meta, K, (0.2, 20.0)
+    est.overlap_first_pass, est._first_pass_thread = False, None
+    est.reader = reader
+    f = fusion or {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0}
+    est.fusion = Fusion(reader.path, {"fusion": f}, points, K, 4.0, has_head=True)
+    est.search = WindowSearch(
+        reader, est.fusion, est.range_limits_m, 2, zoom, scan, None, placed_pass_refines=False
+    )
+    est.search.cold_crop_budget = cold_crop_budget  # any budget, even one a real search refuses
+    return est
+
+
 def _bare_estimator(
     R_true,
     T_true,
@@ -304,18 +343,9 @@ def _bare_estimator(
     and `R_head` as its attitude head's reading. Its batch run (the zoom search) says "present"
     for the crops that would give keypoints. No crop budget unless given: the whole cold search
     on one frame."""
-    from oibar.nav.pose import CropReading, KeypointPoseEstimator
+    from oibar.nav.pose.reader import CropReading
 
-    est = object.__new__(KeypointPoseEstimator)
-    est.zoom_search, est.scan_search = zoom, scan
-    est.cold_crop_budget = cold_crop_budget
-    est.K_frame, est.points_m, est.out_px, est.margin = K, DEEP, out_px, 1.25
-    est.range_limits_m = (0.2, 20.0)
-    est.reproj_crop_px, est.refine_passes, est.meta = (
-        4.0,
-        2,
-        {"fusion": fusion or {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0}},
-    )
+    est = _shell(DEEP, out_px, fusion, zoom, scan, cold_crop_budget)
     truth = project(K, DEEP, R_true, T_true)
     centre = truth.mean(0)
     own_side = window_around(truth, out_px, 1.25).side_px
@@ -348,7 +378,7 @@ def _bare_estimator(
             "kp_spread_px": np.full((len(x), len(DEEP)), 8.0),
         }
 
-    est.read_crop, est.run, est.sees = read_crop, run, sees
+    est.reader.read_crop, est.reader.run, est.sees = read_crop, run, sees
     return est
 
 
@@ -359,16 +389,16 @@ def test_the_predicted_pose_places_the_first_crop():
     image = np.zeros((480, 744, 3), np.uint8)
     T_direct = T + (1.6, 0.0, 0.0)
     est = _bare_estimator(R, T)
-    r, _ = est.solve(image, R, T_direct)
+    r, _ = est.search.solve(image, R, T_direct)
     assert (
         r is None and len(est.crops) == 11
     )  # the whole search, in vain (no zoom: the window's size is right)
     est = _bare_estimator(R, T)
-    r, _ = est.solve(image, R, T_direct, prior=(R, T + (0.05, 0.02, 0.1)))
+    r, _ = est.search.solve(image, R, T_direct, prior=(R, T + (0.05, 0.02, 0.1)))
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     assert len(est.crops) == 2  # the prediction's window, one refinement
     est = _bare_estimator(R, T)  # a wrong prediction costs one crop
-    r, _ = est.solve(image, R, T, prior=(R, T + (1.6, 0.0, 0.0)))
+    r, _ = est.search.solve(image, R, T, prior=(R, T + (1.6, 0.0, 0.0)))
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3 and len(est.crops) == 3
 
 
@@ -379,7 +409,7 @@ def test_a_placed_crop_can_be_read_as_the_refining_pass_and_end_the_frame():
     two. A window that held the fixture but sat off it is read again around the fit (0.15.8 kept
     such reads and lost 1 deg beyond 8 m on validation); a prediction that misses still falls back
     on the search, whose strong fit is then refined as before."""
-    from oibar.nav.pose import WELL_PLACED_CROP_PX
+    from oibar.nav.pose.search import WELL_PLACED_CROP_PX
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
     image = np.zeros((480, 744, 3), np.uint8)
@@ -387,34 +417,36 @@ def test_a_placed_crop_can_be_read_as_the_refining_pass_and_end_the_frame():
     close, off = T + (0.005, 0.002, 0.01), T + (0.1, 0.0, 0.0)
     # off (the default): the prediction's window read plainly, then one refinement
     est = _bare_estimator(R, T)
-    r, _ = est.solve(image, R, T_direct, prior=(R, close))
+    r, _ = est.search.solve(image, R, T_direct, prior=(R, close))
     assert r is not None and est.mirrored == [False, True]
     # on: the prediction's window alone, read as the refining pass
     est = _bare_estimator(R, T)
-    est.placed_pass_refines = True
-    r, win = est.solve(image, R, T_direct, prior=(R, close))
+    est.search.placed_pass_refines = True
+    r, win = est.search.solve(image, R, T_direct, prior=(R, close))
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     assert est.mirrored == [True] and win is est.crops[0]
     # the estimator's own latest fit (a hint) places the crop the same way
     est = _bare_estimator(R, T)
-    est.placed_pass_refines = True
-    r, _ = est.solve(image, R, T_direct, hint=(R, close))
+    est.search.placed_pass_refines = True
+    r, _ = est.search.solve(image, R, T_direct, hint=(R, close))
     assert r is not None and est.mirrored == [True]
     # a window that holds the fixture but sits off it: its strong fit is read again around itself
     est = _bare_estimator(R, T)
-    est.placed_pass_refines = True
-    r, win = est.solve(image, R, T_direct, prior=(R, off))
+    est.search.placed_pass_refines = True
+    r, win = est.search.solve(image, R, T_direct, prior=(R, off))
     placed = est.crops[0]
-    assert est.sees(placed) and not est._well_placed(r, placed)
+    assert est.sees(placed) and not est.search._well_placed(r, placed)
     on_truth = window_around(project(K, DEEP, R, T), placed.out_px, 1.25)
     assert np.hypot(*np.subtract(on_truth.center_px, placed.center_px)) * placed.scale > WELL_PLACED_CROP_PX
     assert r is not None and est.mirrored == [True, True] and win is est.crops[1]
-    assert est._well_placed(r, win)
-    assert not est._well_placed(r, CropWindow(win.center_px, win.side_px * 1.3, win.out_px))  # too large
+    assert est.search._well_placed(r, win)
+    assert not est.search._well_placed(
+        r, CropWindow(win.center_px, win.side_px * 1.3, win.out_px)
+    )  # too large
     # a prediction that misses: the search's plain reads find it, and its fit is refined
     est = _bare_estimator(R, T)
-    est.placed_pass_refines = True
-    r, win = est.solve(image, R, T_direct, prior=(R, T + (1.6, 0.0, 0.0)))
+    est.search.placed_pass_refines = True
+    r, win = est.search.solve(image, R, T_direct, prior=(R, T + (1.6, 0.0, 0.0)))
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     assert est.mirrored[0] is True and est.mirrored[-1] is True and not any(est.mirrored[1:-1])
     assert len(est.crops) >= 3 and win is est.crops[-1]
@@ -429,17 +461,20 @@ def test_a_placed_refining_read_is_refused_with_the_mirror_reading_or_when_not_a
     from oibar.nav.pose import KeypointPoseEstimator, ModelFileError
 
     model = Path(__file__).resolve().parents[2] / "models" / "oibarnet.onnx"
-    assert KeypointPoseEstimator(model, warmup_runs=0).placed_pass_refines is False
-    assert KeypointPoseEstimator(model, warmup_runs=0, placed_pass_refines=True).placed_pass_refines is True
+    assert KeypointPoseEstimator(model, warmup_runs=0).search.placed_pass_refines is False
+    assert (
+        KeypointPoseEstimator(model, warmup_runs=0, placed_pass_refines=True).search.placed_pass_refines
+        is True
+    )
     with pytest.raises(ModelFileError, match="placed_pass_refines must be true or false"):
         KeypointPoseEstimator(model, warmup_runs=0, placed_pass_refines="yes")  # type: ignore[arg-type]
     with pytest.raises(ModelFileError, match="cannot go with oibar.mirror_reading"):
         KeypointPoseEstimator(model, warmup_runs=0, mirror=True, placed_pass_refines=True)
-    assert KeypointPoseEstimator(model, warmup_runs=0, mirror=True).mirror is not None
+    assert KeypointPoseEstimator(model, warmup_runs=0, mirror=True).reader.mirror is not None
 
 
 def test_an_unusable_prediction_is_ignored_and_a_malformed_one_refused():
-    from oibar.nav.pose import _checked_prior
+    from oibar.nav.pose.keypoint import _checked_prior
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
     assert _checked_prior(None) is None
@@ -492,17 +527,17 @@ def test_the_attitude_in_a_crop_maps_back_to_the_camera():
 
 
 def _priors_seen(monkeypatch):
-    """A list that collects the attitude prior of every fit (pose.map_pose) from now on."""
-    import oibar.nav.pose as pose
+    """A list that collects the attitude prior of every fit (fusion.map_pose) from now on."""
+    import oibar.nav.pose.fusion as fusion_mod
 
     seen = []
-    real = pose.map_pose
+    real = fusion_mod.map_pose
 
     def spy(uv, P, K_, reproj, R_prior, *a):
         seen.append(R_prior)
         return real(uv, P, K_, reproj, R_prior, *a)
 
-    monkeypatch.setattr(pose, "map_pose", spy)
+    monkeypatch.setattr(fusion_mod, "map_pose", spy)
     return seen
 
 
@@ -519,7 +554,7 @@ def test_the_attitude_head_is_the_fits_prior_when_the_fusion_says_so(monkeypatch
         fusion["attitude_prior"] = source
     est = _bare_estimator(R, T, R_head=R_head, fusion=fusion)
     seen = _priors_seen(monkeypatch)
-    r, _ = est.solve(np.zeros((480, 744, 3), np.uint8), R_direct, T)
+    r, _ = est.search.solve(np.zeros((480, 744, 3), np.uint8), R_direct, T)
     assert r is not None and len(seen) == 2
     want = R_head if source == "head" else R_direct
     assert all(np.allclose(s, want) for s in seen)
@@ -589,7 +624,7 @@ def test_the_head_gain_gives_the_heads_tilt_back_before_it_is_the_prior(monkeypa
         if table:
             fusion["head_gain"] = table
         seen.clear()
-        r, _ = _bare_estimator(R, T, R_head=R_head, fusion=fusion).solve(
+        r, _ = _bare_estimator(R, T, R_head=R_head, fusion=fusion).search.solve(
             np.zeros((480, 744, 3), np.uint8), R, T
         )
         assert r is not None and len(seen) == 2
@@ -600,7 +635,7 @@ def test_the_head_gain_gives_the_heads_tilt_back_before_it_is_the_prior(monkeypa
 def test_the_prior_error_model_weighs_the_prior_by_range(monkeypatch):
     """fusion.prior_error_model: the prior's sigma at a range is sigma_prior_deg times that bin's
     RMS over the overall RMS; a bad table is refused."""
-    import oibar.nav.pose as pose
+    import oibar.nav.pose.fusion as fusion_mod
     from oibar.nav.keypoints import PriorErrorModel
 
     table = {"range_edges_m": [0.0, 3.0, 8.0, 100.0], "rms_deg": [2.0, 0.5, 2.0]}
@@ -617,14 +652,14 @@ def test_the_prior_error_model_weighs_the_prior_by_range(monkeypatch):
     fusion = {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0, "prior_error_model": table}
     est = _bare_estimator(R, T, fusion=fusion)
     seen = []
-    real = pose.map_pose
+    real = fusion_mod.map_pose
 
     def spy(uv, P, K_, reproj, R_prior, s_px, s_rad, *a):
         seen.append(s_rad)
         return real(uv, P, K_, reproj, R_prior, s_px, s_rad, *a)
 
-    monkeypatch.setattr(pose, "map_pose", spy)
-    r, _ = est.solve(np.zeros((480, 744, 3), np.uint8), R, T)
+    monkeypatch.setattr(fusion_mod, "map_pose", spy)
+    r, _ = est.search.solve(np.zeros((480, 744, 3), np.uint8), R, T)
     assert r is not None and seen
     assert all(s == pytest.approx(np.radians(2.0) * 0.5 / ref) for s in seen)
 
@@ -634,7 +669,7 @@ def test_a_fit_with_a_prior_carries_its_prior_free_twin_for_the_filter():
     off by 2 deg pulls the fused pose, not the twin, which is what the estimator hands a filter
     (measurement_without_prior) unless it lies grossly off the fused pose (a mirrored far fit)."""
     from oibar.nav.keypoints import PnpResult, map_pose
-    from oibar.nav.pose import MEAS_MAX_ATT_DEV_DEG, measurement_without_prior
+    from oibar.nav.pose.fusion import MEAS_MAX_ATT_DEV_DEG, measurement_without_prior
 
     R, T = _pose(np.radians([1.0, -0.5, 0.3]), (0.2, -0.1, 4.0))
     uv = project(K, DEEP, R, T) + np.random.default_rng(3).normal(0, 0.05, (len(DEEP), 2))
@@ -666,17 +701,17 @@ def test_a_weak_fit_does_not_stop_the_search():
     """A fit whose keypoints miss by more than STRONG_FIT_RMS_CROP_PX (what a 'fixture' drawn on
     the station's structure gives) does not end the search; the strong fit found later wins.
     With nothing strong anywhere, the best weak fit comes back (estimate flags it weak_fit)."""
-    from oibar.nav.pose import STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
+    from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 6.0))
     image = np.zeros((480, 744, 3), np.uint8)
     est = _bare_estimator(R, T, noise_px=3.0)  # every window that sees it gives a weak fit
-    r, win = est.solve(image, R, T)
+    r, win = est.search.solve(image, R, T)
     assert r is not None and fit_rms_crop_px(r, win) > STRONG_FIT_RMS_CROP_PX
     assert len(est.crops) == 11  # the whole search ran: nothing strong stopped it
     # a strong fit behind a weak first window: the first window sees the fixture badly
     est = _bare_estimator(R, T)
-    good_read = est.read_crop
+    good_read = est.reader.read_crop
 
     def first_one_weak(image, win, mirror=False):
         reading = good_read(image, win, mirror)
@@ -686,8 +721,8 @@ def test_a_weak_fit_does_not_stop_the_search():
             )
         return reading
 
-    est.read_crop = first_one_weak
-    r, win = est.solve(image, R, T)
+    est.reader.read_crop = first_one_weak
+    r, win = est.search.solve(image, R, T)
     assert r is not None and fit_rms_crop_px(r, win) <= STRONG_FIT_RMS_CROP_PX
     assert np.linalg.norm(r.T_cam_target_m - T) < 1e-3 and len(est.crops) > 2  # searched on
 
@@ -697,14 +732,14 @@ def test_a_bigger_crop_is_held_to_the_same_fraction_of_its_crop():
     keypoints are as good relative to the fixture (twice the error in its own crop pixels) must
     get the same verdict: a strong fit in the first window, not a search run to the end and a
     weak answer."""
-    from oibar.nav.pose import STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
+    from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 6.0))
     image = np.zeros((480, 744, 3), np.uint8)
     rms = {}
     for out_px in (128, 256):
         est = _bare_estimator(R, T, noise_px=0.6 * out_px / 128, out_px=out_px)
-        r, win = est.solve(image, R, T)
+        r, win = est.search.solve(image, R, T)
         assert r is not None and win.out_px == out_px
         rms[out_px] = fit_rms_crop_px(r, win)
         # strong at once: the first window and the refining pass, no search
@@ -721,16 +756,16 @@ def test_the_zoom_search_finds_a_far_fixture_the_first_pass_took_for_a_near_one(
     keypoint network (trained on windows within ~1.3x of the fixture's) finds nothing there.
     The zoom search reads smaller windows inside it in one batch and solves the most
     fixture-like; without it the frame has no answer."""
-    from oibar.nav.pose import WIDE_STEPS, ZOOM_STEPS, ZOOM_TRY
+    from oibar.nav.pose.search import WIDE_STEPS, ZOOM_STEPS, ZOOM_TRY
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 9.0))
     image = np.zeros((480, 744, 3), np.uint8)
     T_direct = T / 5.0
     est = _bare_estimator(R, T, max_side_ratio=1.4)
-    r, _ = est.solve(image, R, T_direct)
+    r, _ = est.search.solve(image, R, T_direct)
     assert r is None and len(est.crops) == 11 and not est.batches
     est = _bare_estimator(R, T, max_side_ratio=1.4, zoom=True)
-    seen = est.run
+    seen = est.reader.run
 
     def run(x):  # presence says which crops hold the fixture
         out = seen(x)
@@ -739,11 +774,11 @@ def test_the_zoom_search_finds_a_far_fixture_the_first_pass_took_for_a_near_one(
         out["kp_spread_px"][ok] = 1.0
         return out
 
-    real_zoom = type(est)._zoom_windows
+    real_zoom = type(est.search)._zoom_windows
 
     def zoom_windows(image, base, wide=False):
         from oibar.nav.keypoints import CropWindow
-        from oibar.nav.pose import zoom_steps
+        from oibar.nav.pose.search import zoom_steps
 
         est.zoom_windows_last = [
             CropWindow(
@@ -753,13 +788,13 @@ def test_the_zoom_search_finds_a_far_fixture_the_first_pass_took_for_a_near_one(
             )
             for dx, dy, k in zoom_steps(wide)
         ]
-        return real_zoom(est, image, base, wide)
+        return real_zoom(est.search, image, base, wide)
 
-    est.run, est._zoom_windows = run, zoom_windows
-    r, _ = est.solve(image, R, T_direct, prior=(R, T + (2.0, 0.0, 0.0)))
+    est.reader.run, est.search._zoom_windows = run, zoom_windows
+    r, _ = est.search.solve(image, R, T_direct, prior=(R, T + (2.0, 0.0, 0.0)))
     assert not est.batches  # with a prediction (a track), never: its cost would hit every weak frame
     est.crops.clear()
-    r, _ = est.solve(image, R, T_direct)
+    r, _ = est.search.solve(image, R, T_direct)
     assert est.batches == [len(ZOOM_STEPS) + len(WIDE_STEPS)]
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     assert len(est.crops) <= 11 + ZOOM_TRY + 1  # the search, at most ZOOM_TRY zoomed, one refinement
@@ -769,14 +804,14 @@ def _zooming_estimator(R, T, background_spread_px=8.0):
     """A bare estimator whose zoom batch says which windows hold the fixture: presence 1 and a
     spread that grows with the window (a tighter window looks more fixture-like), the rest
     `background_spread_px`."""
-    import oibar.nav.pose as pose
+    import oibar.nav.pose.search as search_mod
     from oibar.nav.keypoints import CropWindow
 
     est = _bare_estimator(R, T, max_side_ratio=1.4, zoom=True)
     truth = project(K, DEEP, R, T)
     centre, own_side = truth.mean(0), window_around(truth, 128, 1.25).side_px
-    seen, windows = est.run, []
-    real_zoom = type(est)._zoom_windows
+    seen, windows = est.reader.run, []
+    real_zoom = type(est.search)._zoom_windows
 
     def zoom_windows(image, base, wide=False):
         windows[:] = [
@@ -785,10 +820,10 @@ def _zooming_estimator(R, T, background_spread_px=8.0):
                 base.side_px * k,
                 base.out_px,
             )
-            for dx, dy, k in pose.zoom_steps(wide)
-            if base.side_px * k >= pose.ZOOM_MIN_SIDE_PX  # as the real one drops them
+            for dx, dy, k in search_mod.zoom_steps(wide)
+            if base.side_px * k >= search_mod.ZOOM_MIN_SIDE_PX  # as the real one drops them
         ]
-        return real_zoom(est, image, base, wide)
+        return real_zoom(est.search, image, base, wide)
 
     def run(x):
         out = seen(x)
@@ -799,7 +834,7 @@ def _zooming_estimator(R, T, background_spread_px=8.0):
                 out["kp_spread_px"][i] = w.side_px / own_side
         return out
 
-    est.run, est._zoom_windows = run, zoom_windows
+    est.reader.run, est.search._zoom_windows = run, zoom_windows
     return est
 
 
@@ -808,22 +843,22 @@ def test_the_zoom_goes_down_level_by_level_to_a_fixture_twenty_times_farther(mon
     the fixture's: one level of zoom (at best 4x smaller) still sees nothing the keypoint
     network can read. The search zooms again into the most fixture-like window of each level
     until it finds it."""
-    import oibar.nav.pose as pose
+    import oibar.nav.pose.search as search_mod
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
     image = np.zeros((480, 744, 3), np.uint8)
     T_direct = T / 20.0
 
     est = _zooming_estimator(R, T)
-    r, _ = est.solve(image, R, T_direct)
+    r, _ = est.search.solve(image, R, T_direct)
     assert len(est.batches) >= 2, est.batches
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
-    assert min(w.side_px for w in est.crops) >= pose.ZOOM_MIN_SIDE_PX
-    monkeypatch.setattr(pose, "ZOOM_LEVELS", 1)
+    assert min(w.side_px for w in est.crops) >= search_mod.ZOOM_MIN_SIDE_PX
+    monkeypatch.setattr(search_mod, "ZOOM_LEVELS", 1)
     est = _zooming_estimator(R, T)
-    r, _ = est.solve(image, R, T_direct)
+    r, _ = est.search.solve(image, R, T_direct)
     # and no double windows around a first pass that has the scale wrong (WIDE_MAX_SIDE_PX)
-    assert est.batches == [len(pose.ZOOM_STEPS)] and r is None
+    assert est.batches == [len(search_mod.ZOOM_STEPS)] and r is None
 
 
 def test_the_first_zoom_level_looks_around_a_first_pass_that_missed_sideways(monkeypatch):
@@ -832,7 +867,7 @@ def test_the_first_zoom_level_looks_around_a_first_pass_that_missed_sideways(mon
     SEARCH_STEPS and the zoom inside the first pass's window cannot reach it; the first zoom
     level's WIDE_STEPS (double windows out to two sides away) can, and the next level zooms
     into the one that holds it."""
-    import oibar.nav.pose as pose
+    import oibar.nav.pose.search as search_mod
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.0, 0.15, 10.0))
     image = np.zeros((480, 744, 3), np.uint8)
@@ -840,11 +875,11 @@ def test_the_first_zoom_level_looks_around_a_first_pass_that_missed_sideways(mon
     T_direct = T + np.array([0.0, -1.65 * side * T[2] / K[1, 1], 0.0])  # 1.65 windows up
 
     est = _zooming_estimator(R, T, background_spread_px=30.0)
-    r, _ = est.solve(image, R, T_direct)
+    r, _ = est.search.solve(image, R, T_direct)
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
-    monkeypatch.setattr(pose, "WIDE_STEPS", ())
+    monkeypatch.setattr(search_mod, "WIDE_STEPS", ())
     est = _zooming_estimator(R, T, background_spread_px=30.0)
-    r, _ = est.solve(image, R, T_direct)
+    r, _ = est.search.solve(image, R, T_direct)
     assert r is None
 
 
@@ -852,21 +887,21 @@ def test_no_zoom_window_is_smaller_than_a_fixture_in_the_envelope():
     """A first pass that puts a far fixture a little nearer draws a small window already; the
     zoom must not cut it into windows smaller than ZOOM_MIN_SIDE_PX, where the keypoint network
     reads noise (a fit at 40 m)."""
-    import oibar.nav.pose as pose
+    import oibar.nav.pose.search as search_mod
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
     est = _bare_estimator(R, T, zoom=True)
     base = window_around(project(K, DEEP, R, T * 0.6), 128, 1.25)
-    assert base.side_px * 0.25 < pose.ZOOM_MIN_SIDE_PX <= base.side_px * 0.5
-    wins = est._zoom_windows(np.zeros((480, 744, 3), np.uint8), base)
-    assert wins and all(w.side_px >= pose.ZOOM_MIN_SIDE_PX for w, _ in wins)
-    assert est.batches == [sum(1 for *_, k in pose.ZOOM_STEPS if k == 0.5)]
+    assert base.side_px * 0.25 < search_mod.ZOOM_MIN_SIDE_PX <= base.side_px * 0.5
+    wins = est.search._zoom_windows(np.zeros((480, 744, 3), np.uint8), base)
+    assert wins and all(w.side_px >= search_mod.ZOOM_MIN_SIDE_PX for w, _ in wins)
+    assert est.batches == [sum(1 for *_, k in search_mod.ZOOM_STEPS if k == 0.5)]
 
 
 def test_the_scan_windows_cover_the_frame_within_a_quarter_side():
     """Some scan window holds every frame point within a quarter of its side of its centre (per
     axis), as the keypoint network was trained; the outer windows sit flush with the edges."""
-    from oibar.nav.pose import SCAN_SIDE_PX, SCAN_STRIDE, scan_windows
+    from oibar.nav.pose.search import SCAN_SIDE_PX, SCAN_STRIDE, scan_windows
 
     wins = scan_windows((744, 480), SCAN_SIDE_PX, SCAN_STRIDE, 128)
     c = np.array([w.center_px for w in wins])
@@ -887,7 +922,7 @@ def _scanning_estimator(R, T, scan, cold_crop_budget=None):
     a window holding the fixture exactly when it is within 1.4x of the fixture's own window and
     roughly (2 crop px of noise: a weak fit) when it is up to 2.5x; the scan's batch scores the
     windows that hold the fixture's centre by how tight they are."""
-    from oibar.nav.pose import CropReading
+    from oibar.nav.pose.reader import CropReading
 
     est = _bare_estimator(R, T, zoom=False, scan=scan, cold_crop_budget=cold_crop_budget)
     truth = project(K, DEEP, R, T)
@@ -910,7 +945,7 @@ def _scanning_estimator(R, T, scan, cold_crop_budget=None):
         est.batches.append(len(wins))
         return np.array([1.0 / (1.0 + w.side_px / own_side) if holds(w) else 0.0 for w in wins])
 
-    est.read_crop, est._fixture_likeness = read_crop, likeness
+    est.reader.read_crop, est.reader.fixture_likeness = read_crop, likeness
     return est
 
 
@@ -920,7 +955,8 @@ def test_the_scan_finds_a_far_fixture_the_first_pass_misplaced_and_misjudged():
     scan reads the whole frame in 64 px windows (1.8x this fixture's), solves the most
     fixture-like: a weak fit, then again in the window that fit draws: a strong one. Without the
     scan the frame has no answer; with a prediction (a track) the scan never runs."""
-    from oibar.nav.pose import SCAN_BATCH, SCAN_SIDE_PX, STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
+    from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
+    from oibar.nav.pose.search import SCAN_BATCH, SCAN_SIDE_PX
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
     image = np.zeros((480, 744, 3), np.uint8)
@@ -928,13 +964,13 @@ def test_the_scan_finds_a_far_fixture_the_first_pass_misplaced_and_misjudged():
     assert 1.4 < SCAN_SIDE_PX / window_around(project(K, DEEP, R, T), 128, 1.25).side_px < 2.5
 
     est = _scanning_estimator(R, T, scan=False)
-    r, _ = est.solve(image, R, T_direct)
+    r, _ = est.search.solve(image, R, T_direct)
     assert r is None and not est.batches
     est = _scanning_estimator(R, T, scan=True)
-    r, win = est.solve(image, R, T_direct, prior=(R, T + (3.0, 0.0, 0.0)))
+    r, win = est.search.solve(image, R, T_direct, prior=(R, T + (3.0, 0.0, 0.0)))
     assert r is None and not est.batches  # a track's weak frame never pays for the scan
     est = _scanning_estimator(R, T, scan=True)
-    r, win = est.solve(image, R, T_direct)
+    r, win = est.search.solve(image, R, T_direct)
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     assert fit_rms_crop_px(r, win) <= STRONG_FIT_RMS_CROP_PX
     n = 23 * 14
@@ -951,8 +987,8 @@ def test_a_scan_window_that_sees_too_few_keypoints_is_read_again_smaller(monkeyp
     mission aborted). The scan's windows that give nothing are read again at SCAN_SHRINK_FACTOR
     of their side around their centre; the most fixture-like solves (weak here), and the window
     its pose draws solves strongly. Without SCAN_SHRINK the frame has no answer."""
-    import oibar.nav.pose as pose
-    from oibar.nav.pose import SCAN_SHRINK, SCAN_SHRINK_FACTOR, SCAN_SIDE_PX
+    import oibar.nav.pose.search as search_mod
+    from oibar.nav.pose.search import SCAN_SHRINK, SCAN_SHRINK_FACTOR, SCAN_SIDE_PX
 
     R = FAR_R
     own_10m = window_around(project(K, DEEP, R, FAR_T), 128, 1.25).side_px
@@ -963,16 +999,16 @@ def test_a_scan_window_that_sees_too_few_keypoints_is_read_again_smaller(monkeyp
     T_direct = (T + np.array([-2.0, 1.0, 0.0])) / 20.0
 
     est = _scanning_estimator(R, T, scan=True)
-    r, _ = est.solve(image, R, T_direct)
+    r, _ = est.search.solve(image, R, T_direct)
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     shrunk = [b for b in est.batches if b == len(SCAN_SHRINK)]
     assert len(shrunk) == 1  # the first-ranked window, read again smaller, found it
     assert len(est.crops) == 11 + 1 + 1 + 1 + 1  # search, scan window, its shrunk one, redraw, refine
 
-    monkeypatch.setattr(pose, "SCAN_SHRINK", ())
-    monkeypatch.setattr(pose.KeypointPoseEstimator, "_shrunk_scan_pass", lambda *a: (None, None))
+    monkeypatch.setattr(search_mod, "SCAN_SHRINK", ())
+    monkeypatch.setattr(search_mod.WindowSearch, "_shrunk_scan_pass", lambda *a: (None, None))
     est = _scanning_estimator(R, T, scan=True)
-    r, _ = est.solve(image, R, T_direct)
+    r, _ = est.search.solve(image, R, T_direct)
     assert r is None
 
 
@@ -980,7 +1016,7 @@ def test_a_shrunk_scan_read_that_overruns_the_budget_goes_on_next_frame():
     """The shrunk read (SCAN_SHRINK and its solve) is counted against the frame's crop budget;
     a frame without room for it leaves the search carried, and a later frame reads the window
     again and shrinks it."""
-    from oibar.nav.pose import SCAN_SHRINK, SCAN_SHRINK_FACTOR, SCAN_SIDE_PX
+    from oibar.nav.pose.search import SCAN_SHRINK, SCAN_SHRINK_FACTOR, SCAN_SIDE_PX
 
     R = FAR_R
     own_10m = window_around(project(K, DEEP, R, FAR_T), 128, 1.25).side_px
@@ -994,11 +1030,11 @@ def test_a_shrunk_scan_read_that_overruns_the_budget_goes_on_next_frame():
     per_frame = []
     for _ in range(12):
         n_crops, n_batches = len(est.crops), len(est.batches)
-        r, _ = est.solve(image, R, T_direct)
+        r, _ = est.search.solve(image, R, T_direct)
         per_frame.append((len(est.crops) - n_crops, est.batches[n_batches:]))
         if r is not None:
             break
-        assert est._cold is not None  # carried, never dropped half-way
+        assert est.search.cold is not None  # carried, never dropped half-way
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     assert per_frame[-2][0] == 1 and len(SCAN_SHRINK) not in per_frame[-2][1]  # read, then out of crops
     assert per_frame[-1] == (4, [len(SCAN_SHRINK)])  # read again, shrunk, redrawn, refined
@@ -1015,14 +1051,16 @@ def test_the_latest_strong_fit_places_the_first_crop_when_there_is_no_prediction
     image = np.zeros((480, 744, 3), np.uint8)
     T_direct = T / 20.0
     est = _scanning_estimator(R, T, scan=True)
-    r, _ = est.solve(image, R, T_direct, hint=(R, T + (0.05, 0.0, 0.1)))
+    r, _ = est.search.solve(image, R, T_direct, hint=(R, T + (0.05, 0.0, 0.1)))
     assert r is not None and np.linalg.norm(r.T_cam_target_m - T) < 1e-3
     assert len(est.crops) == 2 and not est.batches  # the hint's window, one refinement
     est = _scanning_estimator(R, T, scan=True)
-    r, _ = est.solve(image, R, T_direct, hint=(R, T + (3.0, 0.0, 0.0)))
+    r, _ = est.search.solve(image, R, T_direct, hint=(R, T + (3.0, 0.0, 0.0)))
     assert r is not None and len(est.crops) == 1 + 11 + 3 and est.batches  # wrong hint: the search
     est = _scanning_estimator(R, T, scan=True)
-    r, _ = est.solve(image, R, T_direct, prior=(R, T + (0.05, 0.0, 0.1)), hint=(R, T + (3.0, 0.0, 0.0)))
+    r, _ = est.search.solve(
+        image, R, T_direct, prior=(R, T + (0.05, 0.0, 0.1)), hint=(R, T + (3.0, 0.0, 0.0))
+    )
     assert r is not None and len(est.crops) == 2
 
     h = FitHistory()
@@ -1058,7 +1096,7 @@ def _with_first_pass(est, R_direct, T_direct):
         return PoseEstimate(T_direct.copy(), q, R_direct.copy(), t_s, 0.0, 1.0, rng_m, 0.0, ())
 
     est.first = SimpleNamespace(check_frame=lambda image: None, estimate=first_pass)
-    est.fit_history, est.filter_measurement, est.frame_wh = FitHistory(), "prior_free", (744, 480)
+    est.fit_history, est.fusion.filter_measurement, est.frame_wh = FitHistory(), "prior_free", (744, 480)
     est.defect_scale = 0.02
     return est, np.random.default_rng(0).integers(0, 255, (480, 744, 3), dtype=np.uint8)
 
@@ -1067,7 +1105,7 @@ def _reads(est):
     """The windows est reads, in order, from now on: ("crop", centre, side) for one window through
     the keypoint network, ("batch", ((centre, side), ...)) for a batch of fixture-likeness."""
     log = []
-    read_crop, likeness = est.read_crop, est._fixture_likeness
+    read_crop, likeness = est.reader.read_crop, est.reader.fixture_likeness
 
     def logged_read(image, win, refining=False):
         log.append(("crop", win.center_px, win.side_px))
@@ -1077,7 +1115,7 @@ def _reads(est):
         log.append(("batch", tuple((w.center_px, w.side_px) for w in wins)))
         return likeness(image, wins)
 
-    est.read_crop, est._fixture_likeness = logged_read, logged_likeness
+    est.reader.read_crop, est.reader.fixture_likeness = logged_read, logged_likeness
     return log
 
 
@@ -1090,7 +1128,8 @@ def test_a_cold_frame_reads_no_more_crops_than_its_budget():
     the shipped model on 2 cores: past the MCU's 1 s link timeout). With it the frame stops at
     the budget, with no strong fit: the direct model's answer, low confidence, flagged
     `searching`."""
-    from oibar.nav.pose import COLD_CROP_BUDGET, FALLBACK_FACTOR
+    from oibar.nav.pose.keypoint import FALLBACK_FACTOR
+    from oibar.nav.pose.search import COLD_CROP_BUDGET
 
     est, frame = _with_first_pass(_scanning_estimator(FAR_R, FAR_T, scan=True), FAR_R, FAR_T_DIRECT)
     log = _reads(est)
@@ -1114,7 +1153,8 @@ def test_the_carried_search_finds_what_the_whole_search_finds_frame_by_frame():
     the scan goes on where the last frame stopped, ranks every window it scored over the frames
     and solves the same window as the whole search on one frame, to the same answer. The frames
     before give provisional answers (`searching`, low confidence)."""
-    from oibar.nav.pose import COLD_CROP_BUDGET, FALLBACK_FACTOR, SCAN_SIDE_PX
+    from oibar.nav.pose.keypoint import FALLBACK_FACTOR
+    from oibar.nav.pose.search import COLD_CROP_BUDGET, SCAN_SIDE_PX
 
     est, frame = _with_first_pass(_scanning_estimator(FAR_R, FAR_T, scan=True), FAR_R, FAR_T_DIRECT)
     log = _reads(est)
@@ -1147,22 +1187,22 @@ def test_the_carried_search_finds_what_the_whole_search_finds_frame_by_frame():
 def test_the_carried_zoom_goes_down_its_levels_frame_by_frame():
     """The zoom carried over frames (a 10 m fixture taken for a 0.5 m one): each level's batch
     and its solves as the frames' budgets allow, to the fixture the whole search finds."""
-    from oibar.nav.pose import COLD_CROP_BUDGET
+    from oibar.nav.pose.search import COLD_CROP_BUDGET
 
     image = np.zeros((480, 744, 3), np.uint8)
     est = _zooming_estimator(FAR_R, FAR_T)
-    whole, _ = est.solve(image, FAR_R, FAR_T / 20.0)
+    whole, _ = est.search.solve(image, FAR_R, FAR_T / 20.0)
     assert whole is not None and len(est.batches) >= 2
     assert len(est.crops) + sum(est.batches) > COLD_CROP_BUDGET
 
     est = _zooming_estimator(FAR_R, FAR_T)
-    est.cold_crop_budget = COLD_CROP_BUDGET
+    est.search.cold_crop_budget = COLD_CROP_BUDGET
     frames = 0
     while frames < 10:
         frames += 1
         est.crops.clear(), est.batches.clear()
-        r, _ = est.solve(image, FAR_R, FAR_T / 20.0)
-        if est._cold is None:
+        r, _ = est.search.solve(image, FAR_R, FAR_T / 20.0)
+        if est.search.cold is None:
             break
         assert len(est.crops) + sum(est.batches) <= COLD_CROP_BUDGET
     assert frames >= 2 and len(est.crops) + sum(est.batches) <= COLD_CROP_BUDGET + 1
@@ -1174,7 +1214,7 @@ def test_a_carried_search_ends_on_a_prediction_an_age_a_new_sequence_or_forget()
     it, and so do COLD_CARRY_MAX_AGE_S of frame time since its first frame, a frame whose time
     does not advance, and forget(). A frame that goes on reads no SEARCH_STEPS (its first read
     is the scan's batch); one that starts afresh reads them first."""
-    from oibar.nav.pose import COLD_CARRY_MAX_AGE_S, COLD_CROP_BUDGET, SEARCH_STEPS
+    from oibar.nav.pose.search import COLD_CARRY_MAX_AGE_S, COLD_CROP_BUDGET, SEARCH_STEPS
 
     def carrying():
         est, frame = _with_first_pass(
@@ -1221,11 +1261,11 @@ def test_a_cold_frame_within_its_budget_reads_what_it_reads_without_one(scene):
             T_direct = FAR_T_DIRECT
         else:
             est = _zooming_estimator(FAR_R, FAR_T)
-            est.cold_crop_budget = budget
+            est.search.cold_crop_budget = budget
             T_direct = FAR_T / (5.0 if scene == "zoom" else 20.0)
         log = _reads(est)
-        r, win = est.solve(np.zeros((480, 744, 3), np.uint8), FAR_R, T_direct)
-        return log, r, est._cold
+        r, win = est.search.solve(np.zeros((480, 744, 3), np.uint8), FAR_R, T_direct)
+        return log, r, est.search.cold
 
     log, r, _ = run(None)
     assert r is not None and np.linalg.norm(r.T_cam_target_m - FAR_T) < 1e-3
@@ -1243,7 +1283,8 @@ def test_a_budget_below_the_zooms_first_batch_is_refused():
     the cold search for good."""
     from pathlib import Path
 
-    from oibar.nav.pose import MIN_COLD_CROP_BUDGET, KeypointPoseEstimator
+    from oibar.nav.pose import KeypointPoseEstimator
+    from oibar.nav.pose.search import MIN_COLD_CROP_BUDGET
 
     model = Path(__file__).resolve().parents[2] / "models/oibarnet.onnx"
     with pytest.raises(ValueError, match="cold_crop_budget"):
@@ -1260,10 +1301,10 @@ def test_a_weak_fit_inside_the_range_envelope_is_preferred_to_a_tighter_one_outs
     win = CropWindow((372.0, 240.0), 64.0, 128)
     near = PnpResult(True, R, T, np.arange(8), 2.0 / win.scale)
     far = PnpResult(True, R, T * 4.0, np.arange(8), 1.5 / win.scale)
-    assert est._weak_rank(near, win) < est._weak_rank(far, win)
+    assert est.search._weak_rank(near, win) < est.search._weak_rank(far, win)
     answers = iter([(far, win), (near, win)] + [(None, None)] * 20)
-    est._one_pass = lambda *a, **k: next(answers)
-    r, _ = est.solve(np.zeros((480, 744, 3), np.uint8), R, T)
+    est.search._one_pass = lambda *a, **k: next(answers)
+    r, _ = est.search.solve(np.zeros((480, 744, 3), np.uint8), R, T)
     assert r is near
 
 
@@ -1285,16 +1326,13 @@ def test_the_fixture_keypoints_pair_up_in_the_mirror():
 def _leaning_estimator(
     truth_crop: np.ndarray, att_deg: np.ndarray, lean_px: float, lean_deg: float, mirror: bool
 ):
-    """A KeypointPoseEstimator (with attitude head) whose network leans right: every keypoint
+    """A KeypointReader (with attitude head) whose network leans right: every keypoint
     `lean_px` crop px right of where it is and the head's y reading `lean_deg` high, in whatever
     image it is shown: the crop, or (a batch of two) the crop and its mirror image."""
     from oibar.nav.keypoints import MIRROR_ATT, mirror_permutation
-    from oibar.nav.pose import KeypointPoseEstimator
 
-    est = object.__new__(KeypointPoseEstimator)
-    est.path, est.points_m, est.out_px, est.min_present, est.K_frame = "test.onnx", POINTS, 128, 0.5, K
-    est.meta = {"attitude_head": {"output": "att_crop_deg"}}
-    est.R_att_ref = np.eye(3)
+    est = _shell(meta={"attitude_head": {"output": "att_crop_deg"}}).reader
+    est.R_att_ref, est.head_output = np.eye(3), "att_crop_deg"
     est.mirror = mirror_permutation(POINTS) if mirror else None
     lean = np.array([lean_px, 0.0])
     est.batches = []
@@ -1356,13 +1394,13 @@ def test_only_the_refining_pass_reads_the_mirror():
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
     image = np.zeros((480, 744, 3), np.uint8)
     est = _bare_estimator(R, T)
-    r, _ = est.solve(image, R, T * np.array([1.0, 1.0, 1.02]))
+    r, _ = est.search.solve(image, R, T * np.array([1.0, 1.0, 1.02]))
     assert r is not None and est.mirrored == [False, True]
     est = _bare_estimator(R, T)  # a prediction that misses, then the direct model's window
-    r, _ = est.solve(image, R, T, prior=(R, T + (1.6, 0.0, 0.0)))
+    r, _ = est.search.solve(image, R, T, prior=(R, T + (1.6, 0.0, 0.0)))
     assert r is not None and est.mirrored == [False, False, True]
     est = _bare_estimator(R, T, noise_px=3.0)  # nothing strong: no refining pass, no mirror
-    r, _ = est.solve(image, R, T)
+    r, _ = est.search.solve(image, R, T)
     assert r is not None and len(est.mirrored) == 11 and not any(est.mirrored)
 
 
@@ -1373,7 +1411,7 @@ def test_a_keypoint_with_a_broad_heat_map_is_not_there(out_px):
     8.5-25 px, a 0.42 m answer for a 10 m fixture at confidence 0.94). Keypoints broader than
     MAX_SPREAD_CROP_PX (scaled with the crop) are dropped like absent ones; with too few left
     there is no fit to be confident about."""
-    from oibar.nav.pose import MAX_SPREAD_CROP_PX, KeypointPoseEstimator
+    from oibar.nav.pose.reader import MAX_SPREAD_CROP_PX
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 4.0))
     truth = project(K, POINTS, R, T)
@@ -1383,9 +1421,7 @@ def test_a_keypoint_with_a_broad_heat_map_is_not_there(out_px):
     spread = np.full(n, 5.7 * scale)
     spread[:8] = (MAX_SPREAD_CROP_PX + 1.0) * scale  # eight broad: five tight ones remain
 
-    est = object.__new__(KeypointPoseEstimator)
-    est.path, est.points_m, est.out_px, est.min_present, est.K_frame = "test.onnx", POINTS, out_px, 0.5, K
-    est.meta, est.R_att_ref, est.mirror = {}, None, None
+    est = _shell(out_px=out_px).reader
 
     def run(x):
         return {
@@ -1403,16 +1439,13 @@ def test_a_keypoint_with_a_broad_heat_map_is_not_there(out_px):
 
 
 def _windowed_estimator(monkeypatch, truth: np.ndarray, turned_deg: float, seen_in=None):
-    """A KeypointPoseEstimator whose network reads every keypoint exactly, in whichever window it
+    """A keypoint estimator whose network reads every keypoint exactly, in whichever window it
     is shown (each cut crop carries its window's index, so the fake network knows the window);
     `seen_in(i)` -> the keypoints present in window i's reading."""
-    import oibar.nav.pose as pose_mod
-    from oibar.nav.pose import KeypointPoseEstimator
+    import oibar.nav.pose.reader as reader_mod
 
-    est = object.__new__(KeypointPoseEstimator)
-    est.path, est.points_m, est.out_px, est.min_present, est.K_frame = "test.onnx", POINTS, 128, 0.5, K
-    est.meta, est.R_att_ref, est.mirror = {}, None, None
-    est.turned_reading_deg = turned_deg
+    est = _shell()
+    est.reader.turned_reading_deg = turned_deg
     est.windows, est.batches = [], []
 
     def cut_spy(image, win):
@@ -1434,8 +1467,8 @@ def _windowed_estimator(monkeypatch, truth: np.ndarray, turned_deg: float, seen_
             "kp_spread_px": np.full((len(x), n), 5.0, np.float32),
         }
 
-    monkeypatch.setattr(pose_mod, "cut", cut_spy)
-    est.run = run
+    monkeypatch.setattr(reader_mod, "cut", cut_spy)
+    est.reader.run = run
     return est
 
 
@@ -1451,9 +1484,9 @@ def test_the_refining_pass_can_also_read_its_window_turned(monkeypatch):
     image = np.zeros((480, 744, 3), np.uint8)
 
     est = _windowed_estimator(monkeypatch, truth, 8.0)
-    once = est.read_crop(image, win)
+    once = est.reader.read_crop(image, win)
     assert est.batches == [1] and np.allclose(once.uv_px, truth, atol=1e-3)
-    r = est.read_crop(image, win, refining=True)
+    r = est.reader.read_crop(image, win, refining=True)
     assert est.batches == [1, 3]
     turned = est.windows[1:]
     assert [np.degrees(w.angle_rad) for w in turned] == pytest.approx([0.0, 8.0, -8.0])
@@ -1462,7 +1495,7 @@ def test_the_refining_pass_can_also_read_its_window_turned(monkeypatch):
     assert np.allclose(r.uv_px, truth, atol=1e-3)
 
     off = _windowed_estimator(monkeypatch, truth, 0.0)
-    off.read_crop(image, win, refining=True)
+    off.reader.read_crop(image, win, refining=True)
     assert off.batches == [1]
 
 
@@ -1477,7 +1510,7 @@ def test_a_turned_reading_keeps_a_keypoint_only_where_most_readings_see_it(monke
         2: list(range(1, len(POINTS))),
     }
     est = _windowed_estimator(monkeypatch, truth, 8.0, seen_in=lambda i: seen[i])
-    r = est.read_crop(np.zeros((480, 744, 3), np.uint8), win, refining=True)
+    r = est.reader.read_crop(np.zeros((480, 744, 3), np.uint8), win, refining=True)
     assert np.all(np.isnan(r.uv_px[0]))
     assert np.allclose(r.uv_px[1:], truth[1:], atol=1e-3)
     assert r.present[0] == pytest.approx(1 / 3) and r.present[1] == pytest.approx(2 / 3)
@@ -1497,15 +1530,15 @@ def test_a_turned_reading_can_read_the_attitude_head_on_every_window(monkeypatch
     tilt = {0.0: 0.001, 8.0: 0.002, -8.0: 0.003}
     for on, want_rad in ((False, 0.001), (True, 0.002)):
         est = _windowed_estimator(monkeypatch, truth, 8.0)
-        est.turned_reading_head = on
-        plain = est._reading
+        est.reader.turned_reading_head = on
+        plain = est.reader._reading
 
         def with_head(w, out, plain=plain):
             a = round(float(np.degrees(w.angle_rad - win.angle_rad)), 6)
             return dc_replace(plain(w, out), R_cam_target_head=rotvec_to_matrix([tilt[a], 0.0, 0.0]))
 
-        est._reading = with_head
-        r = est.read_crop(image, win, refining=True)
+        est.reader._reading = with_head
+        r = est.reader.read_crop(image, win, refining=True)
         assert r.R_cam_target_head is not None
         assert np.allclose(matrix_to_rotvec(r.R_cam_target_head), [want_rad, 0.0, 0.0], atol=1e-9)
         assert np.allclose(r.uv_px, truth, atol=1e-3)  # the keypoints as before
@@ -1528,20 +1561,20 @@ def test_a_turned_reading_can_feed_the_filter_the_untouched_windows_fit(monkeypa
     got = {}
     for mode in ("mean", "untouched"):
         est = _windowed_estimator(monkeypatch, truth, 8.0)
-        est.reproj_crop_px, est.margin, est.turned_reading_measurement = 4.0, 1.25, mode
-        exact = est.run
+        est.reader.reproj_crop_px, est.reader.margin, est.fusion.turned_reading_measurement = 4.0, 1.25, mode
+        exact = est.reader.run
 
         def biased(x, exact=exact):
             out = exact(x)
             out["kp_crop_px"][1:, :, 0] += 1.5  # the turned readings (rows 1 and 2 of the batch)
             return out
 
-        est.run = biased
-        r, w = est._one_pass(image, win, R, fusion, 4.0, refining=True)
+        est.reader.run = biased
+        r, w = est.search._one_pass(image, win, R, fusion, 4.0, refining=True)
         assert r is not None and w is win and r.no_prior is not None
         got[mode] = r
         # the answer is the fit to the averaged keypoints either way
-        mean_uv = est.read_crop(image, win, refining=True).uv_px
+        mean_uv = est.reader.read_crop(image, win, refining=True).uv_px
         assert np.linalg.norm(mean_uv - truth, axis=1).min() > 0.5
     R_u, T_u = got["untouched"].no_prior.pose()
     assert rotation_angle_deg(R_u.T @ R) < 1e-4 and np.allclose(T_u, T, atol=1e-6)
@@ -1553,8 +1586,12 @@ def test_a_turned_reading_can_feed_the_filter_the_untouched_windows_fit(monkeypa
 
     # a window read once (the search's, not the refining pass's) keeps its own fit's twin
     est = _windowed_estimator(monkeypatch, truth, 8.0)
-    est.reproj_crop_px, est.margin, est.turned_reading_measurement = 4.0, 1.25, "untouched"
-    r, _ = est._one_pass(image, win, R, fusion, 4.0, refining=False)
+    est.reader.reproj_crop_px, est.reader.margin, est.fusion.turned_reading_measurement = (
+        4.0,
+        1.25,
+        "untouched",
+    )
+    r, _ = est.search._one_pass(image, win, R, fusion, 4.0, refining=False)
     assert r is not None and r.no_prior is not None and est.batches == [1]
 
 
@@ -1569,8 +1606,11 @@ def test_a_turned_reading_head_flag_that_is_not_a_flag_is_refused(tmp_path):
         KeypointPoseEstimator(model, warmup_runs=0, turned_reading_head="yes")  # type: ignore[arg-type]
     with pytest.raises(ModelFileError, match="turned_reading_measurement"):
         KeypointPoseEstimator(model, warmup_runs=0, turned_reading_measurement="median")
-    assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_measurement == "mean"
-    assert KeypointPoseEstimator(model, warmup_runs=0, turned_reading_head=True).turned_reading_head is True
+    assert KeypointPoseEstimator(model, warmup_runs=0).fusion.turned_reading_measurement == "mean"
+    assert (
+        KeypointPoseEstimator(model, warmup_runs=0, turned_reading_head=True).reader.turned_reading_head
+        is True
+    )
 
 
 @pytest.mark.parametrize("bad", [20.0, -1.0, "8", True])
@@ -1584,7 +1624,7 @@ def test_a_turned_reading_the_network_never_saw_is_refused(bad):
     model = Path(__file__).resolve().parents[2] / "models" / "oibarnet.onnx"
     with pytest.raises(ModelFileError, match="turned_reading_deg"):
         KeypointPoseEstimator(model, warmup_runs=0, turned_reading_deg=bad)
-    assert KeypointPoseEstimator(model, warmup_runs=0, turned_reading_deg=8).turned_reading_deg == 8.0
+    assert KeypointPoseEstimator(model, warmup_runs=0, turned_reading_deg=8).reader.turned_reading_deg == 8.0
 
 
 def _dark_rectangle(corners_px: np.ndarray, shape=(480, 744), dark=30.0, bright=110.0, ss=8) -> np.ndarray:

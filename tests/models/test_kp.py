@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -248,9 +249,11 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     )
     est = PoseEstimator(out, warmup_runs=1)
     assert isinstance(est, KeypointPoseEstimator)
-    assert est.R_att_ref is not None and "att_crop_deg" in est.output_names
-    assert est.meta["mirror_reading"] is False and est.mirror is None  # read once unless the export says
-    assert est.corner_refine_side_px == 0.0  # the corner step off unless the config or the CLI says
+    assert est.reader.R_att_ref is not None and "att_crop_deg" in est.reader.output_names
+    assert (
+        est.meta["mirror_reading"] is False and est.reader.mirror is None
+    )  # read once unless the export says
+    assert est.reader.corner_refine_side_px == 0.0  # the corner step off unless the config or the CLI says
     gated = out.parent / "kp_gated.onnx"
     smoke = _smoke_overrides(tiny_dataset, kp_sets, run)
     assert (
@@ -259,7 +262,7 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
         )
         == 0
     )
-    assert PoseEstimator(gated, warmup_runs=0).corner_refine_side_px == 150.0
+    assert PoseEstimator(gated, warmup_runs=0).reader.corner_refine_side_px == 150.0
     assert (
         export_main(
             ["--config", str(CONFIG), "--out", str(gated), "--corner-refine-side-px", "0", *smoke]
@@ -267,11 +270,11 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
         )
         == 0
     )
-    assert PoseEstimator(gated, warmup_runs=0).corner_refine_side_px == 0.0  # the CLI wins, 0 included
+    assert PoseEstimator(gated, warmup_runs=0).reader.corner_refine_side_px == 0.0  # the CLI wins, 0 included
     fresh = tmp_path / "not" / "yet" / "kp.onnx"  # a folder that does not exist yet is made
     assert export_main(["--config", str(CONFIG), "--out", str(fresh), *smoke]) == 0 and fresh.is_file()
     assert all("val_att_head_deg_mean" in r for r in rows)
-    reading = est.read_crop(
+    reading = est.reader.read_crop(
         np.zeros((480, 744, 3), np.uint8), window_around(np.array([[300.0, 200]]), 64, 1.25)
     )
     assert reading.R_cam_target_head is not None
@@ -279,15 +282,16 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     from oibar_models.kpnet import FIXTURE_KEYPOINTS
 
     assert (
-        est.points_m.shape == (len(FIXTURE_KEYPOINTS), 3) and est.meta["first_pass"] == "oibarnet_lite.onnx"
+        est.reader.points_m.shape == (len(FIXTURE_KEYPOINTS), 3)
+        and est.meta["first_pass"] == "oibarnet_lite.onnx"
     )
 
     mirrored = tmp_path / "models" / "kp_mirror.onnx"
     args = ["--config", str(CONFIG), "--out", str(mirrored), "--mirror-reading"]
     assert export_main([*args, *_smoke_overrides(tiny_dataset, kp_sets, run)]) == 0
     est_m = PoseEstimator(mirrored, warmup_runs=1)
-    assert est_m.meta["mirror_reading"] is True and est_m.mirror is not None
-    assert PoseEstimator(mirrored, warmup_runs=1, mirror=False).mirror is None  # the caller overrules
+    assert est_m.meta["mirror_reading"] is True and est_m.reader.mirror is not None
+    assert PoseEstimator(mirrored, warmup_runs=1, mirror=False).reader.mirror is None  # the caller overrules
 
     # fusion weights chosen for another crop size are refused (their sigmas are in its pixels)
     best = json.loads((REPO / "docs/data/kp_fusion_grid_081.json").read_text())["best"]
@@ -603,15 +607,14 @@ def test_the_fusion_grid_can_score_only_the_pairs_asked_for_with_the_head_gain()
     class Direct:
         R_cam_target, T_cam_target_m = np.eye(3), np.array([0.0, 0.0, 5.0])
 
-    class Est:
-        out_px = 128
-
+    class Search:
         def solve(self, img, R, T, fusion=None, prior=None):
             seen.append(fusion)
             return None, None
 
+    est = SimpleNamespace(reader=SimpleNamespace(out_px=128), search=Search())
     rows = [{"img": None, "direct": Direct(), "T": np.array([0.0, 0.0, 5.0]), "q": np.array([1.0, 0, 0, 0])}]
-    out = score_grid(Est(), rows, False, em, {"head": pem, "direct": None}, gain, [(2.0, 3.0)])
+    out = score_grid(est, rows, False, em, {"head": pem, "direct": None}, gain, [(2.0, 3.0)])
     assert [f.get("head_gain") for f in seen] == [gain, None, None]
     assert [f.get("attitude_prior") for f in seen] == ["head", None, None]
     assert [r["head_gain"] for r in out] == [True, False, False]
@@ -764,7 +767,9 @@ def test_a_weak_fit_comes_back_flagged_with_low_confidence(monkeypatch):
     STRONG_FIT_RMS_CROP_PX), the estimate says so: flag weak_fit, confidence x FALLBACK_FACTOR,
     never the confidence of a good fit."""
     from oibar.nav.keypoints import CropWindow, PnpResult
-    from oibar.nav.pose import FALLBACK_FACTOR, STRONG_FIT_RMS_CROP_PX, PoseEstimator
+    from oibar.nav.pose import PoseEstimator
+    from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX
+    from oibar.nav.pose.keypoint import FALLBACK_FACTOR
 
     est = PoseEstimator(REPO / "models/oibarnet.onnx", warmup_runs=0)
     frame = np.random.default_rng(0).integers(0, 255, (480, 744, 3), dtype=np.uint8)
@@ -778,7 +783,7 @@ def test_a_weak_fit_comes_back_flagged_with_low_confidence(monkeypatch):
             )
             return r, win
 
-        monkeypatch.setattr(est, "solve", solve)
+        monkeypatch.setattr(est.search, "solve", solve)
         return est.estimate(frame)
 
     good, weak = answer(0.5), answer(STRONG_FIT_RMS_CROP_PX + 0.3)
@@ -787,7 +792,7 @@ def test_a_weak_fit_comes_back_flagged_with_low_confidence(monkeypatch):
 
 
 def _fits_answering(est, monkeypatch, frame, rms_crop_px=0.5):
-    """est.solve replaced: each call answers the next (R, T) of a list, with the given RMS."""
+    """est.search.solve replaced: each call answers the next (R, T) of a list, with the given RMS."""
     from oibar.nav.keypoints import CropWindow, PnpResult
 
     win = CropWindow((372.0, 240.0), 64.0, 128)
@@ -797,7 +802,7 @@ def _fits_answering(est, monkeypatch, frame, rms_crop_px=0.5):
         R_fit, T_fit = queue.pop(0)
         return PnpResult(True, R_fit, T_fit, np.arange(14), rms_crop_px / win.scale), win
 
-    monkeypatch.setattr(est, "solve", solve)
+    monkeypatch.setattr(est.search, "solve", solve)
 
     def answer(R_fit, T_fit, t_s):
         queue.append((R_fit, T_fit))
@@ -812,7 +817,9 @@ def test_a_run_of_agreeing_strong_fits_overrules_the_direct_model(monkeypatch):
     `direct_overruled`, confidence of a good fit. Fits that do not agree with one another, frames
     without advancing time, weak fits, and a forgotten history confirm nothing."""
     from oibar.nav.fit_history import CONFIRM_WINDOW_S
-    from oibar.nav.pose import FALLBACK_FACTOR, STRONG_FIT_RMS_CROP_PX, PoseEstimator
+    from oibar.nav.pose import PoseEstimator
+    from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX
+    from oibar.nav.pose.keypoint import FALLBACK_FACTOR
 
     est = PoseEstimator(REPO / "models/oibarnet.onnx", warmup_runs=0)
     frame = np.random.default_rng(0).integers(0, 255, (480, 744, 3), dtype=np.uint8)
@@ -1018,7 +1025,7 @@ def test_the_export_says_what_the_navigation_filter_is_fed(tmp_path, monkeypatch
         alone = PnpResult(True, R, T_alone, np.arange(14), 0.1)
         return PnpResult(True, R, T, np.arange(14), 0.5 / win.scale, no_prior=alone), win
 
-    monkeypatch.setattr(est, "solve", solve)
+    monkeypatch.setattr(est.search, "solve", solve)
     e = est.estimate(frame, 1.0)
     T_fed, _ = e.measurement()
     np.testing.assert_allclose(e.T_cam_target_m, T)
@@ -1047,7 +1054,7 @@ def test_retag_sets_the_reading_options_of_an_export_and_leaves_the_network_alon
     # every other key as it was (an export since 0.13.0 also says turned_reading_deg 0, 0.8.1's did not)
     others = {k: v for k, v in meta_before.items() if k != "turned_reading_deg"}
     assert {k: v for k, v in meta.items() if k != "turned_reading_deg"} == others
-    assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_deg == 8.0
+    assert KeypointPoseEstimator(model, warmup_runs=0).reader.turned_reading_deg == 8.0
 
     assert export_main(["--retag", str(model), "--turned-reading-deg", "40"]) == 2  # refused
     assert read_metadata(model)["turned_reading_deg"] == 8.0 and not list(tmp_path.glob("*.tmp.onnx"))
@@ -1137,7 +1144,7 @@ def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head
         and {k: v for k, v in fusion.items() if k != "head_gain"} == fusion_before
     )
     est = KeypointPoseEstimator(model, warmup_runs=0)
-    assert est._head_gain(est.meta["fusion"]).gain(0.5) == 0.85
+    assert est.fusion.head_gain(est.meta["fusion"]).gain(0.5) == 0.85
 
     # an export whose fusion leans on the direct model's attitude: a head gain means nothing there
     set_fusion(dict(fusion_before, attitude_prior="direct"))
@@ -1192,8 +1199,8 @@ def test_retag_replaces_the_fusion_with_a_kp_fusion_choice_and_refuses_one_it_ca
         k: v for k, v in before.items() if k not in ("fusion", "model_version")
     }
     est = KeypointPoseEstimator(model, warmup_runs=0)
-    assert est._head_gain(est.meta["fusion"]).gain(5.0) == 0.98
-    assert est._prior_error_model(est.meta["fusion"]).scale(0.5) == pytest.approx(
+    assert est.fusion.head_gain(est.meta["fusion"]).gain(5.0) == 0.98
+    assert est.fusion.prior_error_model(est.meta["fusion"]).scale(0.5) == pytest.approx(
         0.8 / np.sqrt((0.64 + 0.81) / 2)
     )
 
@@ -1209,7 +1216,7 @@ def test_retag_sets_the_corner_refinement_and_refuses_a_size_that_is_not_one(tmp
     model = tmp_path / "oibarnet.onnx"
     assert export_main(["--retag", str(model), "--corner-refine-side-px", "120"]) == 0
     assert read_metadata(model)["corner_refine_side_px"] == 120.0
-    assert KeypointPoseEstimator(model, warmup_runs=0).corner_refine_side_px == 120.0
+    assert KeypointPoseEstimator(model, warmup_runs=0).reader.corner_refine_side_px == 120.0
     assert export_main(["--retag", str(model), "--corner-refine-side-px", "-5"]) == 2
     assert read_metadata(model)["corner_refine_side_px"] == 120.0 and not list(tmp_path.glob("*.tmp.onnx"))
     # a reading that changes what flies is a new model version; a version alone is no reading
@@ -1245,7 +1252,7 @@ def test_retag_sets_the_turned_head_and_an_export_without_it_says_nothing(tmp_pa
     )
     assert export_main(["--retag", str(model), "--turned-reading-deg", "8", "--model-version", "9.9.8"]) == 0
     assert "turned_reading_head" not in read_metadata(model)
-    assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_head is False
+    assert KeypointPoseEstimator(model, warmup_runs=0).reader.turned_reading_head is False
     assert (
         export_main(
             [
@@ -1262,7 +1269,7 @@ def test_retag_sets_the_turned_head_and_an_export_without_it_says_nothing(tmp_pa
     )
     assert read_metadata(model)["turned_reading_head"] is True
     est = KeypointPoseEstimator(model, warmup_runs=0)
-    assert est.turned_reading_head is True and est.turned_reading_deg == 8.0
+    assert est.reader.turned_reading_head is True and est.reader.turned_reading_deg == 8.0
 
 
 def test_retag_sets_whose_keypoints_feed_the_filter_and_the_default_says_nothing(tmp_path):
@@ -1283,11 +1290,11 @@ def test_retag_sets_whose_keypoints_feed_the_filter_and_the_default_says_nothing
         metadata_for(cfg, ck, "lite.onnx", (0.25, 12.0), turned_reading_measurement="median")
     copy_shipped(tmp_path)
     model = tmp_path / "oibarnet.onnx"
-    assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_measurement == "mean"
+    assert KeypointPoseEstimator(model, warmup_runs=0).fusion.turned_reading_measurement == "mean"
     argv = ["--retag", str(model), "--turned-reading-deg", "8", "--turned-reading-measurement"]
     assert export_main([*argv, "untouched", "--model-version", "9.9.7"]) == 0
     assert read_metadata(model)["turned_reading_measurement"] == "untouched"
-    assert KeypointPoseEstimator(model, warmup_runs=0).turned_reading_measurement == "untouched"
+    assert KeypointPoseEstimator(model, warmup_runs=0).fusion.turned_reading_measurement == "untouched"
     with pytest.raises(SystemExit):
         export_main([*argv, "median"])
 
@@ -1307,10 +1314,10 @@ def test_retag_sets_the_placed_refining_read_and_an_export_without_it_says_nothi
     assert meta["placed_pass_refines"] is True
     copy_shipped(tmp_path)
     model = tmp_path / "oibarnet.onnx"
-    assert KeypointPoseEstimator(model, warmup_runs=0).placed_pass_refines is False
+    assert KeypointPoseEstimator(model, warmup_runs=0).search.placed_pass_refines is False
     assert export_main(["--retag", str(model), "--placed-pass-refines", "--model-version", "9.9.8"]) == 0
     assert read_metadata(model)["placed_pass_refines"] is True
-    assert KeypointPoseEstimator(model, warmup_runs=0).placed_pass_refines is True
+    assert KeypointPoseEstimator(model, warmup_runs=0).search.placed_pass_refines is True
 
 
 def test_training_can_draw_far_and_off_axis_frames_more_often():

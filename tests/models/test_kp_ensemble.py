@@ -132,7 +132,7 @@ def test_an_ensemble_serves_as_a_far_network(checkpoints, tmp_path):
     args = ["--retag", str(tmp_path / "oibarnet.onnx"), "--out", str(tmp_path / "pair.onnx")]
     assert export_main(args + ["--far-network", far.name, "--far-from-m", "8"]) == 0
     est = KeypointPoseEstimator(tmp_path / "pair.onnx", warmup_runs=1)
-    assert est.far_session is not None and est.far_from_m == 8.0
+    assert est.reader.far_session is not None and est.reader.far_from_m == 8.0
     img = np.random.default_rng(3).integers(0, 40, (480, 744, 3), np.uint8)
     img[220:260, 350:395] = 210
     assert np.isfinite(est.estimate(img).confidence)

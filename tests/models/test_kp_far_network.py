@@ -61,13 +61,17 @@ def test_each_window_is_read_by_the_network_for_its_range(pair):
 
     _, near, far, both = pair
     img = _frame()
-    assert both.far_from_m == 5.0
+    assert both.reader.far_from_m == 5.0
     read_far = read_near = 0
     for side_px in (40.0, 60.0, 72.0, 75.0, 120.0, 300.0):
-        win = CropWindow((372.0, 240.0), side_px, both.out_px)
-        got, n, f = both.read_crop(img, win), near.read_crop(img, win), far.read_crop(img, win)
+        win = CropWindow((372.0, 240.0), side_px, both.reader.out_px)
+        got, n, f = (
+            both.reader.read_crop(img, win),
+            near.reader.read_crop(img, win),
+            far.reader.read_crop(img, win),
+        )
         assert not np.allclose(n.present, f.present)  # the two networks do differ on this crop
-        want = f if both._range_for_side_m(side_px) >= 5.0 else n
+        want = f if both.reader.range_for_side_m(side_px) >= 5.0 else n
         read_far += want is f
         read_near += want is n
         assert np.array_equal(got.present, want.present)
@@ -83,14 +87,14 @@ def test_a_batch_of_near_and_far_windows_is_split_and_put_back_in_order(pair):
     _, near, far, both = pair
     img = _frame()
     wins = [
-        CropWindow((372.0 + 20 * i, 240.0), s, both.out_px)
+        CropWindow((372.0 + 20 * i, 240.0), s, both.reader.out_px)
         for i, s in enumerate((40.0, 300.0, 60.0, 200.0, 45.0))
     ]
-    got = both._fixture_likeness(img, wins)
-    want = [(far if both._reads_far(w) else near)._fixture_likeness(img, [w])[0] for w in wins]
-    assert [both._reads_far(w) for w in wins] == [True, False, True, False, True]
+    got = both.reader.fixture_likeness(img, wins)
+    want = [(far if both.reader.reads_far(w) else near).reader.fixture_likeness(img, [w])[0] for w in wins]
+    assert [both.reader.reads_far(w) for w in wins] == [True, False, True, False, True]
     assert np.allclose(got, want, rtol=1e-4, atol=1e-7)
-    assert not np.allclose(got, near._fixture_likeness(img, wins), rtol=1e-4, atol=1e-7)
+    assert not np.allclose(got, near.reader.fixture_likeness(img, wins), rtol=1e-4, atol=1e-7)
 
 
 def test_the_pair_estimates_a_whole_frame(pair):

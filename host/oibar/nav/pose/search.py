@@ -1,0 +1,484 @@
+"""Where the fixture is: the crop windows tried in turn until the keypoints give a strong fit.
+
+In order: the window a prediction places (the navigation filter's, or the estimator's own latest
+strong fit); SEARCH_STEPS around the direct model's window; then, on a cold start or a lost track
+only, the zoom (smaller windows inside the direct model's, level after level) and the scan of the
+whole frame. The zoom and the scan (the cold search) stop at a per-frame crop budget and go on in
+the next frames (ColdSearch), so that no cycle nears the MCU's link timeout.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from oibar.geometry.camera import project_target_points as project
+from oibar.nav.keypoints import CropWindow, PnpResult, window_around
+from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, Fusion, fit_rms_crop_px
+from oibar.nav.pose.model_file import ModelFileError, export_flag
+from oibar.nav.pose.reader import CropReading, KeypointReader
+
+# Windows tried in turn until the keypoints give a consistent pose: (shift x, shift y) in window
+# sides and a size factor, around the direct model's window. The network was trained with the
+# fixture up to ~0.25 side off centre and +-25 % in size, so half-side steps leave no gap. Only
+# frames where the first window fails pay for the search (~6 % of far validation frames): up to
+# 11 passes, about 0.4 s on 2 busy cores. Measured on the validation scenes (every 16th frame):
+# mean position error 1.82 % with the first window only, 1.26 % without the diagonal steps,
+# 0.95 % with all 11.
+SEARCH_STEPS = (
+    (0, 0, 1.0),
+    (-0.5, 0, 1.0),
+    (0.5, 0, 1.0),
+    (0, -0.5, 1.0),
+    (0, 0.5, 1.0),
+    (-0.5, -0.5, 1.0),
+    (0.5, -0.5, 1.0),
+    (-0.5, 0.5, 1.0),
+    (0.5, 0.5, 1.0),
+    (0, 0, 0.7),
+    (0, 0, 1.4),
+)
+# When neither the prediction's window nor SEARCH_STEPS give a strong fit, smaller windows inside
+# the first pass's one are read in one batch (a half-size 3x3 grid and a quarter-size 5x5 grid,
+# steps in the first pass's window sides) and the ZOOM_TRY most keypoint-like (presence, tight
+# heat maps) are solved: the first pass can take a far fixture for a near one and put a window
+# 5-25x too large around it. Cost: one batch of 34 crops (~0.15-0.25 s on 2 cores), only on
+# frames with nothing better and no predicted pose (a cold start or a lost track).
+ZOOM_STEPS = tuple(
+    (dx, dy, k)
+    for k, offs in ((0.5, (-0.25, 0.0, 0.25)), (0.25, (-0.3, -0.15, 0.0, 0.15, 0.3)))
+    for dy in offs
+    for dx in offs
+)
+ZOOM_TRY = 3
+# The zoom's first level also reads windows twice the first pass's size around it, out to two
+# of its sides away (5x5): on an unseen look (validation scene va003's, the demo's approach from
+# 10 m) the first pass put the fixture 1.65 window sides off, beyond SEARCH_STEPS' reach, and
+# every cold-start frame came out weak until the mission timed out. A fixture-holding double
+# window ranks first by its tight heat maps (0.046 vs <= 0.014 for its neighbours and 0.001 for
+# background), and the next level zooms into it. 25 more crops in that batch, on cold starts only,
+# and only while the double windows stay within WIDE_MAX_SIDE_PX (the frame's height): a first
+# pass that took a far fixture for a near one (va012: windows of 250-900 px around a 35-55 px
+# fixture) has the scale wrong, not the place, and double windows there ranked the station's
+# structure first (va012 tracking 3.4 -> 19 % before this bound).
+WIDE_STEPS = tuple((dx, dy, 2.0) for dy in (-2.0, -1.0, 0.0, 1.0, 2.0) for dx in (-2.0, -1.0, 0.0, 1.0, 2.0))
+WIDE_MAX_SIDE_PX = 480.0
+# When the zoom's windows still give no strong fit, the most fixture-like of them is zoomed into
+# the same way, never into windows smaller than ZOOM_MIN_SIDE_PX: the first pass can put a 10 m
+# fixture at 0.4 m, a window 10-25x too large (validation scene va012, whose keypoints are read to
+# 0.3-0.7 crop px in the right window), which one level (4x) misses.
+ZOOM_LEVELS = 3
+ZOOM_MIN_SIDE_PX = 24.0  # no zoom window smaller (the fixture's window at ~15 m)
+# The last resort of a cold start: when the prediction, SEARCH_STEPS and the zoom give no strong
+# fit, the whole frame is read in windows of SCAN_SIDE_PX, SCAN_STRIDE sides apart (so some
+# window holds the fixture within a quarter side of its centre, as in training), in batches of
+# SCAN_BATCH, and the SCAN_TRY most fixture-like are solved. The zoom follows the first pass,
+# whose scale can be wrong and whose place can be 0.5-2 windows off at once: on validation scene
+# va012's look (shadowed, 9-10.5 m) the first pass read 0.45 m and the zoom never found the
+# 35-40 px fixture (14 of 52 cold frames beyond 4 m weak; the rig's mission from 9 m never locked
+# and aborted). Windows of 64 px (1.6-2.7x a far fixture's, 6-15 m) ranked the fixture's first
+# on every one of the 16 cold frames of the validation scenes where the search failed (its score
+# 0.04-0.21, the best elsewhere <= 0.04 but for its neighbours). Cost: ~320 crops, ~0.7 s on 2
+# cores, on cold frames that found nothing else (nearer fixtures are the first pass's strength).
+SCAN_SIDE_PX = 64.0
+SCAN_STRIDE = 0.5
+SCAN_BATCH = 64
+SCAN_TRY = 3
+# A ranked scan window that gives too few keypoints to solve is read again smaller (SCAN_SHRINK:
+# its centre and a quarter side either way, at SCAN_SHRINK_FACTOR of its side, in one batch; the
+# most fixture-like solved). 64 px holds a fixture at 9-12 m at about half the scale the keypoint
+# network was trained on: on validation scene va012's look from 10.5 m (turned -2 / 1.5 deg, the
+# fixture 28 px wide) stage 15's network ranked the fixture's window first (0.065, the next 0.001)
+# but saw 3 of its 14 keypoints there, so the scan never solved it and the rig's mission aborted;
+# 0.6 of the window found it to 0.29 crop px RMS (0.5: 0.41, 0.75: 0.28). 10 crops, only where
+# the plain scan had nothing from that window.
+SCAN_SHRINK_FACTOR = 0.6
+SCAN_SHRINK = tuple((dx, dy) for dy in (-0.25, 0.0, 0.25) for dx in (-0.25, 0.0, 0.25))
+# Crops one cold frame may read through the keypoint network (the hint's and SEARCH_STEPS' count
+# but are never cut short; past the budget the zoom and the scan stop and go on in the next
+# frames, ColdSearch), so that no cycle nears the MCU's 1 s link timeout: the whole cold search
+# reads up to ~480 crops (1 + 11, three zoom levels of 34-59 + 3, the scan's 322 + 6); a frame
+# that reaches the scan took 1.8-2.0 s (376 crops, 3 noise frames). A crop costs about the same
+# read alone or in a batch: 4.6 ms a single pass (read + PnP), 4.8 ms a crop in a batch of 64
+# (307 ms, p90 340), and the first pass 5.6 ms (medians; 2 vCPU Debian, no GPU, onnxruntime 2
+# threads, the cores shared with training: upper bounds). With 60 crops the same frames took 7
+# cycles each of 290 ms (median; p90 328, at most 336). Fewer would never fit the zoom's first
+# batch (59) beside the hint's crop (MIN_COLD_CROP_BUDGET). A frame that runs only SEARCH_STEPS
+# (12 crops, ~60 ms) is not affected; nor is the refining pass after a strong fit (outside the
+# budget: 1 crop for the shipped model).
+COLD_CROP_BUDGET = 60
+MIN_COLD_CROP_BUDGET = len(ZOOM_STEPS) + len(WIDE_STEPS) + 1  # the largest batch, the hint's crop
+# A carried cold search is dropped this long (frame time) after its first frame. Its scores and
+# windows stay valid while the fixture barely moves in the image: on the validation scenes it
+# moves at most 7 px/s at 6-15 m (median 0.5 px/s), and a scan window holds it within a quarter
+# of its 64 px side of its centre, as the keypoint network was trained. The longest search takes
+# 10 frames at COLD_CROP_BUDGET, 2.7 s at the ~0.3 s a cold cycle takes in the daemon; the scan's
+# scores are then at most 7 frames (1.8 s, 13 px) old when its windows are solved.
+COLD_CARRY_MAX_AGE_S = 3.0
+# ``oibar.placed_pass_refines``: when tracking, the crop placed by the filter's prediction (or the
+# estimator's own latest strong fit) is read as the refining pass is (turned readings, the corner
+# step), and a strong fit there ends the frame when its window was well placed (below), instead of
+# a plain read followed by a second crop cut around its fit: one network run a tracked frame
+# instead of two. Well placed: the window the refining pass would cut around the fit is centred
+# within WELL_PLACED_CROP_PX of the placed one (crop px) and its side within
+# WELL_PLACED_SIDE_FRAC. On validation a window up to 4 frame px off (13 crop px at 10 m) read as
+# well as one on the truth, and one 10-20 px off lost 1 deg beyond 8 m (candidate 0.15.8);
+# elsewhere the usual refining pass follows.
+WELL_PLACED_CROP_PX = 8.0
+WELL_PLACED_SIDE_FRAC = 0.10
+
+Fit = tuple[PnpResult, CropWindow] | tuple[None, None]
+Consider = Callable[[PnpResult | None, CropWindow | None], bool]
+
+
+def zoom_steps(wide: bool) -> tuple[tuple[float, float, float], ...]:
+    """(dx, dy in base window sides, size factor) of one zoom level's batch."""
+    return ZOOM_STEPS + (WIDE_STEPS if wide else ())
+
+
+def scan_windows(frame_wh: tuple[int, int], side_px: float, stride: float, out_px: int) -> list[CropWindow]:
+    """Square windows of side_px covering the frame, centres `stride` sides apart (row-major),
+    the outer ones flush with the frame's edges."""
+    w, h = frame_wh
+    step = side_px * stride
+    windows = []
+    for cy in _spaced(h, side_px, step):
+        for cx in _spaced(w, side_px, step):
+            windows.append(CropWindow((cx, cy), side_px, out_px))
+    return windows
+
+
+def _spaced(length_px: float, side_px: float, step_px: float) -> np.ndarray:
+    """Window centres along one axis: from side/2 to length - side/2, at most step_px apart."""
+    if length_px <= side_px:
+        return np.array([length_px / 2.0])
+    n = int(np.ceil((length_px - side_px) / step_px - 1e-9)) + 1
+    return np.linspace(side_px / 2.0, length_px - side_px / 2.0, n)
+
+
+@dataclass
+class ColdSearch:
+    """Where a cold search (the zoom, then the scan) stopped when its frame's crop budget ran out
+    (COLD_CROP_BUDGET), for the next frames to go on from: the zoom level under way, its base
+    window and, once read, its windows to solve; the scan's scores so far. Which of the ranked
+    windows have been solved (`tried`) holds for either."""
+
+    level: int  # the zoom level under way; ZOOM_LEVELS: the scan
+    base: CropWindow | None = None  # the zoom level's base window
+    k_base: float = 1.0  # its size factor against the first pass's window
+    ranked: list[tuple[CropWindow, float]] | None = None  # the level's windows to solve (None: unread)
+    scan_scores: list[np.ndarray] = field(default_factory=list)  # the scan's, batch by batch
+    tried: int = 0  # ranked windows solved so far
+    # its first frame's time and the latest one's (the estimator stamps them; NaN: never stamped)
+    t_first_s: float = float("nan")
+    t_last_s: float = float("nan")
+
+
+class WindowSearch:
+    """The search for a strong fit in one frame (`solve`), and the cold search it carries from
+    frame to frame (`cold`). Options: `refine_passes` (crops cut around the newest fit, the first
+    included), `zoom_search` and `scan_search` (the cold search's two stages),
+    `cold_crop_budget` (crops a cold frame may read; None: no budget, for tools that judge frames
+    one by one) and `placed_pass_refines` (``oibar.placed_pass_refines``, as the export says
+    unless told)."""
+
+    def __init__(
+        self,
+        reader: KeypointReader,
+        fusion: Fusion,
+        range_limits_m: tuple[float, float],
+        refine_passes: int = 2,
+        zoom_search: bool = True,
+        scan_search: bool = True,
+        cold_crop_budget: int | None = COLD_CROP_BUDGET,
+        placed_pass_refines: bool | None = None,
+    ):
+        if cold_crop_budget is not None and cold_crop_budget < MIN_COLD_CROP_BUDGET:
+            raise ValueError(
+                f"cold_crop_budget must be at least {MIN_COLD_CROP_BUDGET} crops (the zoom's first "
+                f"batch and the hint's crop), or None; got {cold_crop_budget}"
+            )
+        self.reader, self.fusion, self.range_limits_m = reader, fusion, range_limits_m
+        self.refine_passes = max(1, int(refine_passes))
+        self.zoom_search, self.scan_search = bool(zoom_search), bool(scan_search)
+        self.cold_crop_budget = cold_crop_budget
+        placed = export_flag(reader.path, reader.meta, "placed_pass_refines", placed_pass_refines)
+        if placed and reader.mirror is not None:
+            raise ModelFileError(
+                f"{reader.path}: oibar.placed_pass_refines cannot go with oibar.mirror_reading: a "
+                "predicted window may not hold the fixture, and a crop of anything averaged with its "
+                "mirror makes a symmetric pattern that PnP fits well"
+            )
+        self.placed_pass_refines = placed
+        self.cold: ColdSearch | None = None  # a cold search that goes on in the next frames
+
+    def solve(
+        self,
+        image: np.ndarray,
+        R_direct: np.ndarray,
+        T_direct: np.ndarray,
+        fusion: dict[str, Any] | None = None,
+        prior: tuple[np.ndarray, np.ndarray] | None = None,
+        hint: tuple[np.ndarray, np.ndarray] | None = None,
+        placed_reading: tuple[CropWindow, CropReading] | None = None,
+    ) -> Fit:
+        """Crop around the current pose, keypoints, pose (Fusion.fit: PnP, and with the export's
+        ``oibar.fusion``, or `fusion` when given, an attitude prior); then `refine_passes - 1`
+        more times from the newest pose. The first window is the predicted pose's (`prior`, from
+        the navigation filter) when there is one; with `placed_pass_refines` it is read as a
+        refining pass, and a strong fit there is final when its window was well placed
+        (`_well_placed`). When that gives no strong fit (STRONG_FIT_RMS_CROP_PX), the windows of
+        SEARCH_STEPS around the direct model's pose are tried in turn (the direct model can be
+        1 m off sideways at 10 m on an unseen scene), then the cold search (`_cold_search`).
+        Without a prediction, `hint` (the estimator's own latest strong fit, when the filter has
+        not taken it yet) places the first crop instead. The prediction and the hint only place
+        a crop, never the attitude prior, so a wrong one cannot feed itself back. The cold
+        search stops where the frame's crops would pass `cold_crop_budget` and leaves where it
+        stopped (`cold`) for the next call to go on from, without SEARCH_STEPS: a caller that
+        solves unrelated frames calls forget() between them, or builds the search without a
+        budget. `placed_reading`: (the window the prediction places, its reading), made already
+        (the estimator reads it while the direct model runs), so neither is computed again here.
+        Returns (PnpResult, its window): the first strong fit, else the best weak one
+        (`_weak_rank`), else (None, None)."""
+        reader = self.reader
+        f = self.fusion.table if fusion is None else fusion
+        best: tuple[PnpResult, CropWindow] | None = None
+        weak: tuple[PnpResult, CropWindow] | None = None
+
+        def consider(r: PnpResult | None, win: CropWindow | None) -> bool:
+            """Keep a strong fit (True: stop searching); remember the best weak one."""
+            nonlocal best, weak
+            if r is None or win is None:
+                return False
+            if fit_rms_crop_px(r, win) <= STRONG_FIT_RMS_CROP_PX:
+                best = (r, win)
+                return True
+            if weak is None or self._weak_rank(r, win) < self._weak_rank(*weak):
+                weak = (r, win)
+            return False
+
+        # a cold search carried from earlier frames goes on here; a prediction ends it
+        cold = self.cold if prior is None else None
+        self.cold = None
+        crops = 0  # read for this frame, counted against the cold search's budget
+        placed = prior if prior is not None else hint
+        refined = False  # the placed read was a refining one, strong and well placed: final
+        if placed is not None:
+            win_p = placed_reading[0] if placed_reading is not None else reader.window_for(*placed)
+            if win_p is not None:
+                crops += 1
+                r, pwin = self._one_pass(
+                    image,
+                    win_p,
+                    R_direct,
+                    f,
+                    float(np.linalg.norm(placed[1])),
+                    refining=self.placed_pass_refines,
+                    reading=placed_reading[1] if placed_reading is not None else None,
+                )
+                refined = consider(r, pwin) and self.placed_pass_refines and self._well_placed(r, pwin)
+        base: CropWindow | None = None
+        # SEARCH_STEPS are never cut short (they run with a prediction too); a carried search skips
+        # them: they found nothing on its first frame, and the fixture has barely moved since
+        if best is None and cold is None:
+            base = reader.window_for(R_direct, T_direct)
+            if base is not None:
+                for dx, dy, k in SEARCH_STEPS:
+                    win = base.stepped(dx, dy, k)
+                    crops += 1
+                    if consider(
+                        *self._one_pass(image, win, R_direct, f, float(np.linalg.norm(T_direct)) / k)
+                    ):
+                        break
+            # the zoom and the scan only on a cold start or a lost track: with a prediction their
+            # cost would come out of the 100 ms frame budget on every weak far frame of a healthy track
+            if best is None and prior is None:
+                if base is not None and self.zoom_search:
+                    cold = ColdSearch(level=0, base=base)
+                elif self.scan_search:
+                    cold = ColdSearch(level=ZOOM_LEVELS)
+        if best is None and cold is not None:
+            budget = np.inf if self.cold_crop_budget is None else self.cold_crop_budget
+            if not self._cold_search(image, cold, R_direct, T_direct, f, consider, budget - crops):
+                self.cold = cold  # out of crops: the next frames go on (the estimator flags `searching`)
+        if best is None:
+            return weak if weak is not None else (None, None)
+        for _ in range(0 if refined else self.refine_passes - 1):
+            R_best, T_best = best[0].pose()
+            uv = project(reader.K_frame, reader.points_m, R_best, T_best)
+            around = window_around(uv, reader.out_px, reader.margin)
+            r, rwin = self._one_pass(image, around, R_direct, f, float(np.linalg.norm(T_best)), refining=True)
+            if r is None or rwin is None or fit_rms_crop_px(r, rwin) > STRONG_FIT_RMS_CROP_PX:
+                break
+            best = (r, rwin)
+        return best
+
+    def forget(self) -> None:
+        """Drop a carried cold search."""
+        self.cold = None
+
+    def _one_pass(
+        self,
+        image: np.ndarray,
+        win: CropWindow,
+        R_direct: np.ndarray,
+        f: dict[str, Any] | None,
+        range_m: float,
+        refining: bool = False,
+        reading: CropReading | None = None,
+    ) -> Fit:
+        """One window to a fit; `reading`: this window's read_crop(image, win, refining), if
+        made already."""
+        reader = self.reader
+        if reading is None:
+            reading = reader.read_crop(image, win, refining)
+        uv = reading.uv_px
+        if refining:
+            uv = reader.refined_corners(image, win, uv)
+        r = self.fusion.fit(uv, win, R_direct, reading.R_cam_target_head, range_m, f)
+        if not r.ok:
+            return None, None
+        untouched = reading.untouched_uv_px  # set only by a refining pass's turned reading
+        if self.fusion.turned_reading_measurement == "untouched" and untouched is not None and f:
+            # a fit with the prior: its prior-free twin (the filter's measurement) from the untouched
+            # window's keypoints, with the same corner step (TURNED_READING_MEASUREMENTS)
+            r.no_prior = self.fusion.fit_without_prior(reader.refined_corners(image, win, untouched), win)
+        return r, win
+
+    def _well_placed(self, r: PnpResult | None, win: CropWindow | None) -> bool:
+        """Whether `win` is where the refining pass would have cut it around the fit `r`
+        (WELL_PLACED_CROP_PX, WELL_PLACED_SIDE_FRAC): then its refining read is final."""
+        if r is None or win is None:
+            return False
+        reader = self.reader
+        around = window_around(
+            project(reader.K_frame, reader.points_m, *r.pose()), reader.out_px, reader.margin
+        )
+        off_crop_px = float(np.hypot(*np.subtract(around.center_px, win.center_px))) * win.scale
+        return (
+            off_crop_px <= WELL_PLACED_CROP_PX
+            and abs(around.side_px / win.side_px - 1.0) <= WELL_PLACED_SIDE_FRAC
+        )
+
+    def _weak_rank(self, r: PnpResult, win: CropWindow) -> tuple[bool, float]:
+        """Which weak fit to return when no strong one is found: one inside the range envelope
+        before any outside it (a tiny zoom window can fit noise at 40 m with a lower RMS), then
+        the lowest RMS."""
+        range_m = float(np.linalg.norm(r.pose()[1]))
+        inside = self.range_limits_m[0] <= range_m <= self.range_limits_m[1]
+        return (not inside, fit_rms_crop_px(r, win))
+
+    def _zoom_windows(
+        self, image: np.ndarray, base: CropWindow, wide: bool = False
+    ) -> list[tuple[CropWindow, float]]:
+        """ZOOM_STEPS' windows (and WIDE_STEPS' with `wide`) read in one batch; the ZOOM_TRY
+        that look most like the fixture (KeypointReader.fixture_likeness) with their size
+        factors, best first."""
+        wins = self._zoom_candidates(base, wide)
+        if not wins:
+            return []
+        score = self.reader.fixture_likeness(image, [w for w, _ in wins])
+        return [wins[i] for i in np.argsort(-score)[:ZOOM_TRY]]
+
+    def _zoom_candidates(self, base: CropWindow, wide: bool) -> list[tuple[CropWindow, float]]:
+        """The windows (with their size factors) one zoom level reads around `base`."""
+        return [
+            (base.stepped(dx, dy, k), k)
+            for dx, dy, k in zoom_steps(wide)
+            if base.side_px * k >= ZOOM_MIN_SIDE_PX  # smaller than a fixture within the envelope
+        ]
+
+    def _cold_search(
+        self,
+        image: np.ndarray,
+        c: ColdSearch,
+        R_direct: np.ndarray,
+        T_direct: np.ndarray,
+        f: dict[str, Any] | None,
+        consider: Consider,
+        crops_left: float,
+    ) -> bool:
+        """Go on with the cold search `c`: the zoom's levels (`_zoom_windows`), then the scan
+        (SCAN_SIDE_PX windows over the whole frame, read SCAN_BATCH at a time, the SCAN_TRY most
+        fixture-like solved). True when it is over (`consider` kept a strong fit, or nothing is
+        left to try); False when the next read would take more than `crops_left` crops: `c` then
+        says where to go on."""
+        reader = self.reader
+        range_m = float(np.linalg.norm(T_direct))
+        while c.level < ZOOM_LEVELS:  # the zoom
+            assert c.base is not None
+            if c.ranked is None:
+                wide = c.level == 0 and c.base.side_px * 2.0 <= WIDE_MAX_SIDE_PX
+                n = len(self._zoom_candidates(c.base, wide))
+                if n > crops_left:
+                    return False
+                crops_left -= n
+                c.ranked = self._zoom_windows(image, c.base, wide=wide)
+            while c.tried < len(c.ranked):
+                if crops_left < 1:
+                    return False
+                crops_left -= 1
+                zwin, k = c.ranked[c.tried]
+                c.tried += 1
+                if consider(*self._one_pass(image, zwin, R_direct, f, range_m / (c.k_base * k))):
+                    return True
+            if c.ranked and c.level + 1 < ZOOM_LEVELS:  # zoom again, into the most fixture-like
+                c.level, c.base, c.k_base = c.level + 1, c.ranked[0][0], c.k_base * c.ranked[0][1]
+                c.ranked, c.tried = None, 0
+            else:  # on to the scan
+                c.level, c.base, c.ranked, c.tried = ZOOM_LEVELS, None, None, 0
+        if not self.scan_search:
+            return True
+        h, w = image.shape[:2]
+        wins = scan_windows((w, h), SCAN_SIDE_PX, SCAN_STRIDE, reader.out_px)
+        read = sum(len(s) for s in c.scan_scores)
+        while read < len(wins):
+            n = int(min(SCAN_BATCH, len(wins) - read, crops_left))
+            if n < 1:
+                return False
+            c.scan_scores.append(reader.fixture_likeness(image, wins[read : read + n]))
+            read, crops_left = read + n, crops_left - n
+        # ranked over every window scored, on this frame or the last ones: the fixture moves only
+        # a few pixels in between (COLD_CARRY_MAX_AGE_S)
+        ranked = [wins[i] for i in np.argsort(-np.concatenate(c.scan_scores), kind="stable")[:SCAN_TRY]]
+        while c.tried < len(ranked):
+            swin = ranked[c.tried]
+            if crops_left < 1:
+                return False
+            crops_left -= 1
+            r, rwin = self._one_pass(image, swin, R_direct, f, reader.range_for_side_m(swin.side_px))
+            if consider(r, rwin):
+                return True
+            if r is None:  # too few keypoints: a far fixture seen too small (SCAN_SHRINK)
+                if crops_left < len(SCAN_SHRINK) + 1:
+                    return False  # the next frame reads this window again, then shrinks it
+                crops_left -= len(SCAN_SHRINK) + 1
+                r, rwin = self._shrunk_scan_pass(image, swin, R_direct, f)
+                if consider(r, rwin):
+                    return True
+            if r is not None:
+                # a weak fit from a window of a guessed size is close (validation: within 10 % of
+                # the range): read again in the window its own pose draws
+                around = reader.window_for(*r.pose())
+                if around is not None:
+                    if crops_left < 1:
+                        return False  # the next frame reads this window again, then redraws
+                    crops_left -= 1
+                    if consider(
+                        *self._one_pass(image, around, R_direct, f, float(np.linalg.norm(r.pose()[1])))
+                    ):
+                        return True
+            c.tried += 1
+        return True
+
+    def _shrunk_scan_pass(
+        self, image: np.ndarray, swin: CropWindow, R_direct: np.ndarray, f: dict[str, Any] | None
+    ) -> Fit:
+        """SCAN_SHRINK's windows inside scan window `swin`, read in one batch; the most
+        fixture-like solved."""
+        wins = [swin.stepped(dx, dy, SCAN_SHRINK_FACTOR) for dx, dy in SCAN_SHRINK]
+        best = wins[int(np.argmax(self.reader.fixture_likeness(image, wins)))]
+        return self._one_pass(image, best, R_direct, f, self.reader.range_for_side_m(best.side_px))
