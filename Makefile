@@ -18,6 +18,11 @@ NANOPB_DIR ?=
 UNITY_SRC  := $(or $(UNITY_DIR),$(ROOT)/.cache/src/unity)
 NANOPB_SRC := $(or $(NANOPB_DIR),$(ROOT)/.cache/src/nanopb)
 JOBS       ?= $(shell nproc)
+# The Python packages `make setup` installs: a profile of requirements/profiles.conf. flight (the
+# host software alone), demo (the simulated rig, no torch; `make demo` and the rig's targets),
+# train (`make train` and the other model targets) or test (everything, the default). A venv set
+# up for a larger profile serves the smaller ones; `make demo SETUP_PROFILE=test` overrides.
+SETUP_PROFILE ?= test
 
 PROTO      := proto/oibar.proto
 PROTO_OPTS := proto/oibar.options
@@ -32,8 +37,8 @@ TEST_DEPS  :=
 help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-14s %s\n", $$1, $$2}'
 
-setup: ## install what is missing (Debian packages, .venv, Unity and nanopb sources)
-	@UNITY_DIR='$(UNITY_DIR)' NANOPB_DIR='$(NANOPB_DIR)' bash scripts/setup.sh
+setup: ## install what is missing (Debian packages, .venv, Unity and nanopb sources); SETUP_PROFILE=flight|demo|train|test
+	@UNITY_DIR='$(UNITY_DIR)' NANOPB_DIR='$(NANOPB_DIR)' SETUP_PROFILE='$(SETUP_PROFILE)' bash scripts/setup.sh
 
 # --- code generation (at build time, never committed) -------------------------------------
 $(GEN_C)/oibar.pb.c $(GEN_C)/oibar.pb.h &: $(PROTO) $(PROTO_OPTS) | setup
@@ -87,6 +92,8 @@ golden: firmware-host gen ## rewrite the golden link frames on purpose (C writes
 	@git status --short tests/golden
 
 # --- demo ---------------------------------------------------------------------------------
+# No torch: the demo flies the exported ONNX model (SETUP_PROFILE applies to the prerequisites too).
+demo: SETUP_PROFILE = demo
 demo: firmware-host gen ## run the simulated mission end to end (sim MCU + rig), print a summary and the report path
 	@$(PY) scripts/demo.py
 

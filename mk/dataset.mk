@@ -4,6 +4,9 @@ DATASET_ARGS ?=
 
 .PHONY: dataset
 
+# Rendering needs the simulator, not torch (Makefile, SETUP_PROFILE).
+dataset dataset-train dataset-val dataset-envelope: SETUP_PROFILE = demo
+
 dataset: setup ## render the 12 synthetic sequences into data/synthetic (resumable; DATASET_ARGS="--seqs 1,8")
 	@$(PY) -m oibar_hil.dataset --out $(DATASET_DIR) --workers $(JOBS) $(DATASET_ARGS)
 

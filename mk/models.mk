@@ -7,6 +7,9 @@ TEMPORAL_ARGS ?=
 
 .PHONY: train export eval temporal train-kp export-kp eval-kp recover-kp
 
+# PyTorch and the rest of requirements/ml.txt, without the linters (Makefile, SETUP_PROFILE).
+train export eval temporal train-kp export-kp eval-kp recover-kp: SETUP_PROFILE = train
+
 # The shipped model takes two stages: the base network, then the keypoint branch fine-tuned
 # from it (models/configs/oibarnet_lite.yaml says why). A MODEL_CONFIG given on the command
 # line trains that one config only.

@@ -9,6 +9,9 @@ TEST_DEPS += firmware-host
 
 .PHONY: mission-demo hil scenarios sitl
 
+# The rig flies the exported ONNX models: its set-up installs no torch (Makefile, SETUP_PROFILE).
+mission-demo hil scenarios sitl fault-matrix soak looks probe: SETUP_PROFILE = demo
+
 mission-demo: firmware-host gen ## the nominal refuelling mission on the HIL rig (10 m to separation), summary + report
 	@$(RIG_PY) demo
 

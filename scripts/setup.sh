@@ -1,12 +1,16 @@
 #!/usr/bin/env bash
 # One-shot, idempotent set-up of everything OIBAR needs on Debian 12:
 #   1. missing Debian packages (installed when root, otherwise the exact command is printed);
-#   2. the Python virtual environment (.venv) with the pinned requirements;
+#   2. the Python virtual environment (.venv) with the pinned requirements of one set-up profile
+#      (requirements/profiles.conf: flight, demo, train or test);
 #   3. the Unity and nanopb C sources, from Debian source packages, checksummed (.cache/src).
 # When everything is already there it only checks, in well under 10 s.
 #
 # Environment:
 #   PYTHON=/path/to/python3   interpreter for the venv (default /usr/bin/python3)
+#   SETUP_PROFILE=NAME        the Python packages: flight (host only), demo or sim (the simulated
+#                             rig, no torch), train, test (everything, the default); a venv set up
+#                             for a larger profile serves the smaller ones as it is
 #   UNITY_DIR=/path           use these Unity sources instead of fetching them
 #   NANOPB_DIR=/path          use these nanopb runtime sources instead of fetching them
 set -euo pipefail
@@ -16,6 +20,9 @@ cd "$ROOT"
 CACHE="$ROOT/.cache"
 VENV="$ROOT/.venv"
 PYTHON=${PYTHON:-/usr/bin/python3}
+PROFILE=${SETUP_PROFILE:-test}
+[ "$PROFILE" = sim ] && PROFILE=demo
+PROFILES=requirements/profiles.conf
 
 say()  { printf 'setup: %s\n' "$*"; }
 die()  { printf 'setup: error: %s\n' "$*" >&2; exit 1; }
@@ -44,12 +51,35 @@ apt_packages() {
 }
 
 # --- 2. Python virtual environment -------------------------------------------------------
+# The profile's line of requirements/profiles.conf: "<files> | <packages>".
+profile_spec() {
+  sed -e 's/#.*//' "$PROFILES" | awk -F: -v p="$1" '$1 == p { sub(/^[^:]*:/, ""); print; exit }'
+}
+profile_files() { local s; s=$(profile_spec "$1"); echo ${s%%|*}; }
+profile_pkgs()  { local s; s=$(profile_spec "$1"); echo ${s#*|}; }
+all_profiles()  { sed -e 's/#.*//' "$PROFILES" | awk -F: 'NF > 1 { print $1 }'; }
+# A profile's stamp: its name, its pins and the definitions of the packages it installs.
+profile_hash() {
+  local f paths=()
+  for f in $(profile_files "$1"); do paths+=("requirements/$f.txt"); done
+  for f in $(profile_pkgs "$1"); do paths+=("$f/pyproject.toml"); done
+  { echo "$1"; cat "${paths[@]}"; } | sha256sum | cut -c1-16
+}
+# True when every word of $1 is among the words of $2.
+words_within() { local w; for w in $1; do [[ " $2 " == *" $w "* ]] || return 1; done; }
+
 # PyTorch's Linux wheels on PyPI come with the CUDA libraries (PyPI has no CPU-only build): of
-# the 7.1 GB the venv takes, 6 GB are torch, triton and nvidia-*. Installed in one pip call, pip
-# keeps every downloaded wheel beside the unpacked files until the end: a measured peak of
-# 11.1 GB. So we resolve first (metadata only), then install the big wheels one at a time, then
-# the rest; never into pip's cache, and with pip's scratch space on the venv's own disk.
-PIP_NEED_MB=${PIP_NEED_MB:-8000}   # measured peak of the staged install (7.35 GB), plus a margin
+# the 7.1 GB the full venv takes, 6 GB are torch, triton and nvidia-*; only the train and test
+# profiles install them. Installed in one pip call, pip keeps every downloaded wheel beside the
+# unpacked files until the end: a measured peak of 11.1 GB. So we resolve first (metadata only),
+# then install the big wheels one at a time, then the rest; never into pip's cache, and with
+# pip's scratch space on the venv's own disk. Without torch (flight, demo) the venv stays under
+# 1 GB.
+if [[ " $(profile_files "$PROFILE" 2>/dev/null) " == *" ml "* ]]; then
+  PIP_NEED_MB=${PIP_NEED_MB:-8000}   # measured peak of the staged install (7.35 GB), plus a margin
+else
+  PIP_NEED_MB=${PIP_NEED_MB:-1500}
+fi
 
 pip_q() { "$VENV/bin/pip" install -q --disable-pip-version-check --no-cache-dir "$@"; }
 
@@ -60,21 +90,25 @@ need_disk_for_packages() {
   mkdir -p "$CACHE"
   free_mb=$(df --output=avail -B1M "$CACHE" | tail -1 | tr -d ' ')
   if [ "$free_mb" -lt "$PIP_NEED_MB" ]; then
-    die "the Python packages need about $((PIP_NEED_MB / 1000)) GB free on the disk of $ROOT while they install
-  (7.1 GB stay; PyTorch's wheels carry the CUDA libraries), but only $((free_mb / 1000)).$(( (free_mb % 1000) / 100 )) GB are free.
+    die "the Python packages of the $PROFILE profile need about $((PIP_NEED_MB / 1000)).$(( (PIP_NEED_MB % 1000) / 100 )) GB free on the disk of $ROOT
+  while they install, but only $((free_mb / 1000)).$(( (free_mb % 1000) / 100 )) GB are free.
   Free some space and run this again; nothing was installed."
   fi
 }
 
 pip_install_staged() {
   local plan="$CACHE/pip-plan.json" tmp="$CACHE/pip-tmp"
-  # A venv without torch gets the big wheels: check the disk before pip fetches anything (the
-  # resolve alone fails on a full disk, with an error that says nothing of space).
-  "$VENV/bin/python" -c "import torch" >/dev/null 2>&1 || need_disk_for_packages
+  # A venv without torch gets the big wheels (train, test): check the disk before pip fetches
+  # anything (the resolve alone fails on a full disk, with an error that says nothing of space).
+  if [ "$PIP_NEED_MB" -gt 1500 ]; then
+    "$VENV/bin/python" -c "import torch" >/dev/null 2>&1 || need_disk_for_packages
+  else
+    need_disk_for_packages
+  fi
   rm -rf "$tmp" && mkdir -p "$tmp"
-  say "resolving the pinned Python packages (requirements/*.txt)"
+  say "resolving the pinned Python packages of the $PROFILE profile ($(profile_files "$PROFILE"))"
   TMPDIR="$tmp" pip_q --dry-run --report "$plan" "$@" \
-    || die "pip could not resolve requirements/*.txt (see the messages above)"
+    || die "pip could not resolve the requirement files (see the messages above)"
   local big=() line
   while read -r line; do big+=("$line"); done < <("$VENV/bin/python" - "$plan" <<'PY'
 import json, sys
@@ -93,38 +127,50 @@ PY
     say "installing Python packages $i/$n: $line"
     TMPDIR="$tmp" pip_q --no-deps "$line" || die "pip could not install $line (see the messages above)"
   done
-  say "installing Python packages $n/$n: the rest of requirements/*.txt"
+  say "installing Python packages $n/$n: the rest of the $PROFILE profile"
   TMPDIR="$tmp" pip_q "$@" || die "pip install failed (see the messages above)"
   rm -rf "$tmp" "$plan"
 }
 
 venv() {
-  local reqs stamp want have=""
-  reqs=$(ls requirements/*.txt)
-  # Rebuild when any pin or any of our package definitions change.
-  want=$(cat $reqs $(ls host/pyproject.toml hil/pyproject.toml models/pyproject.toml 2>/dev/null) \
-         | sha256sum | cut -c1-16)
+  local stamp want reqs=() pkgs=() f q
+  [ -n "$(profile_spec "$PROFILE")" ] \
+    || die "unknown SETUP_PROFILE '$PROFILE' (one of: $(all_profiles | tr '\n' ' ')sim)"
+  for f in $(profile_files "$PROFILE"); do
+    [ -f "requirements/$f.txt" ] || die "$PROFILES names requirements/$f.txt, which does not exist"
+    reqs+=(-r "requirements/$f.txt")
+  done
+  # Reinstall when a pin or a package definition of this profile changed. The stamp holds one
+  # line per profile the venv serves: "<profile> <hash>".
   stamp="$VENV/.oibar-stamp"
-  [ -f "$stamp" ] && have=$(cat "$stamp")
-  if [ -x "$VENV/bin/python" ] && [ "$have" = "$want" ]; then return 0; fi
+  want="$PROFILE $(profile_hash "$PROFILE")"
+  if [ -x "$VENV/bin/python" ] && [ -f "$stamp" ] && grep -qxF "$want" "$stamp"; then return 0; fi
   [ -x "$PYTHON" ] || die "no Python at $PYTHON (set PYTHON=/path/to/python3)"
   if [ ! -x "$VENV/bin/python" ]; then
     say "creating the virtual environment in .venv"
     "$PYTHON" -m venv "$VENV" || die "could not create .venv (is python3-venv installed?)"
   fi
-  local args=()
-  for r in $reqs; do args+=(-r "$r"); done
-  pip_install_staged "${args[@]}"
+  pip_install_staged "${reqs[@]}"
   # Our own packages, editable, without touching the pins.
-  local pkgs=()
-  for d in host hil models; do
-    [ -f "$d/pyproject.toml" ] && pkgs+=(-e "$d")
+  for f in $(profile_pkgs "$PROFILE"); do
+    [ -f "$f/pyproject.toml" ] && pkgs+=(-e "$f")
   done
   if [ ${#pkgs[@]} -gt 0 ]; then
     pip_q --no-deps --no-build-isolation "${pkgs[@]}" \
       || die "installing the project's packages into .venv failed"
   fi
-  echo "$want" > "$stamp"
+  # The venv now serves this profile, every profile it contains, and those it served before
+  # whose pins did not change.
+  local line
+  for q in $(all_profiles); do
+    line="$q $(profile_hash "$q")"
+    if { words_within "$(profile_files "$q")" "$(profile_files "$PROFILE")" \
+         && words_within "$(profile_pkgs "$q")" "$(profile_pkgs "$PROFILE")"; } \
+       || { [ -f "$stamp" ] && grep -qxF "$line" "$stamp"; }; then
+      echo "$line"
+    fi
+  done > "$stamp.new"
+  mv "$stamp.new" "$stamp"
 }
 
 # --- 3. third-party C sources from Debian source packages --------------------------------

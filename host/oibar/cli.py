@@ -17,8 +17,6 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, TextIO
 
-from oibar import __version__
-
 if TYPE_CHECKING:
     from oibar.link.client import LinkClient
 
@@ -45,6 +43,20 @@ version, 130 on Ctrl-C.
 """
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: the package, link protocol and default model versions (the model's metadata
+    is read only when asked)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, help: str | None = None) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        from oibar.resources import version_text
+
+        print(version_text())
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     from oibar import pb
 
@@ -53,7 +65,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="oibar",
         description="OIBAR companion-computer tools (docking and refuelling mechanism).",
     )
-    parser.add_argument("--version", action="version", version=f"oibar {__version__}")
+    parser.add_argument(
+        "--version",
+        action=_VersionAction,
+        help="print the package, link protocol and model versions and exit",
+    )
     parser.add_argument(
         "-v",
         "--verbose",

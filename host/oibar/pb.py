@@ -1,8 +1,9 @@
 """The generated protobuf module for ``proto/oibar.proto``, under a stable name.
 
-``oibar/_generated/oibar_pb2.py`` is produced at build time by protoc and is not in git, so
-every other module imports the schema from here: if the file is missing the user gets one
-clear instruction instead of a bare ``ModuleNotFoundError``.
+``oibar/_generated/oibar_pb2.py`` is produced at build time by protoc and is not in git (host/setup.py
+writes it into every wheel and sdist, and into the checkout on an editable install; ``make gen``
+too), so every other module imports the schema from here: if the file is missing the user gets
+one clear instruction instead of a bare ``ModuleNotFoundError``.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ except ModuleNotFoundError as exc:  # only a missing file earns the "make gen" h
         raise
     raise ImportError(
         "the generated protobuf module oibar/_generated/oibar_pb2.py is missing: "
-        "run `make gen` at the repository root"
+        "run `make gen` at the repository root, or reinstall the package (pip install ./host)"
     ) from exc
 
 from oibar._generated.oibar_pb2 import *  # noqa: E402,F401,F403  (re-export the schema)

@@ -2,19 +2,28 @@
 (`pip install ./host`) runs `oibar nav` with the shipped keypoint model: no simulator, no
 training library, no torch, no lab extras.
 
-Creating a fresh virtual environment per test run would be slow; instead a subprocess refuses
-the forbidden packages with a meta-path finder (an ImportError as if they were not installed)
-and runs the flight entry points.
+Most tests refuse the forbidden packages in a subprocess with a meta-path finder (an ImportError
+as if they were not installed) and run the flight entry points from the checkout. The install
+tests at the end (issue 60) build the package from a clean copy of the checkout, install it into
+a fresh virtual environment without torch and run it from an empty folder; and build a wheel from
+the sdist, away from the checkout.
 """
 
 from __future__ import annotations
 
 import ast
+import importlib.metadata
+import importlib.util
+import json
 import os
+import re
+import shutil
 import subprocess
 import sys
+import tarfile
 import textwrap
 import tomllib
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -221,3 +230,302 @@ def test_oibar_calib_needs_only_its_extra():
         blocked,
     )
     assert r.returncode == 0, r.stderr[-3000:]
+
+
+# --- issue 60: `pip install ./host` from a clean copy, in a fresh environment ------------------
+#
+# The build (host/setup.py) compiles proto/oibar.proto into oibar/_generated/ and copies the
+# shipped models into oibar/models/. The fresh venv gets no network: its dependencies are this
+# environment's installed distributions that the host package needs (its requirements,
+# transitively, and the build tools), linked in through a .pth file, so torch and the simulator
+# are not there; pip installs the package itself with --no-deps --no-build-isolation --no-index.
+
+
+def _setup_module():
+    """host/setup.py as a module (its setup() call runs only as __main__)."""
+    spec = importlib.util.spec_from_file_location("oibar_host_setup", ROOT / "host" / "setup.py")
+    assert spec and spec.loader
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _clean_copy(dest: Path) -> Path:
+    """The parts of the checkout the build reads (host/, proto/, the shipped models), without
+    anything a build or `make gen` leaves there: what a fresh clone has."""
+    junk = shutil.ignore_patterns("_generated", "build", "dist", "*.egg-info", "__pycache__", "models")
+    shutil.copytree(ROOT / "host", dest / "host", ignore=junk)
+    shutil.copytree(ROOT / "proto", dest / "proto", ignore=junk)
+    (dest / "models").mkdir()
+    for name in _setup_module().SHIPPED_MODELS:
+        shutil.copyfile(ROOT / "models" / name, dest / "models" / name)
+    return dest
+
+
+def _requirement_closure(reqs: list[str]) -> list[importlib.metadata.Distribution]:
+    from packaging.requirements import Requirement
+
+    seen: dict[str, importlib.metadata.Distribution] = {}
+    todo = list(reqs)
+    while todo:
+        req = Requirement(todo.pop())
+        if req.marker is not None and not req.marker.evaluate({"extra": ""}):
+            continue
+        key = req.name.lower().replace("_", "-")
+        if key in seen:
+            continue
+        seen[key] = importlib.metadata.distribution(req.name)
+        todo += seen[key].requires or []
+    return list(seen.values())
+
+
+def _fresh_venv(where: Path) -> Path:
+    """A venv with the host package's dependencies and the build tools only; its python."""
+    build_tools = ["setuptools", "wheel"]
+    try:
+        importlib.metadata.distribution("grpcio-tools")
+        build_tools.append("grpcio-tools")
+    except importlib.metadata.PackageNotFoundError:
+        pass  # host/setup.py then runs protoc from PATH
+    deps = where / "deps"
+    deps.mkdir(parents=True)
+    for dist in _requirement_closure([*_project("host")["dependencies"], *build_tools]):
+        site = Path(str(dist.locate_file("")))
+        for top in {Path(str(f)).parts[0] for f in dist.files or []}:
+            if top in ("..", "__pycache__") or top.endswith(".pth") or (deps / top).exists():
+                continue
+            (deps / top).symlink_to(site / top)
+    venv = where / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
+    py = venv / "bin" / "python"
+    purelib = subprocess.run(
+        [py, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
+    (Path(purelib) / "oibar_test_deps.pth").write_text(f"{deps}\n")
+    return py
+
+
+def _clean_env() -> dict[str, str]:
+    return {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("PYTHONPATH", "OIBAR_MODEL", "PIP_REQUIRE_VIRTUALENV")
+    }
+
+
+def _fresh_descriptor(tmp: Path):
+    """proto/oibar.proto compiled now, as a FileDescriptorProto (the compiler host/setup.py uses)."""
+    from google.protobuf import descriptor_pb2
+
+    out = tmp / "oibar.desc"
+    rc, used, err = _setup_module().protoc(
+        [f"-I{ROOT / 'proto'}", f"--descriptor_set_out={out}", str(ROOT / "proto" / "oibar.proto")]
+    )
+    assert rc == 0, f"{used}: {err}"
+    (fdp,) = descriptor_pb2.FileDescriptorSet.FromString(out.read_bytes()).file
+    # protoc's Python output leaves out the derived JSON names of the fields
+    messages = list(fdp.message_type)
+    while messages:
+        msg = messages.pop()
+        for field in (*msg.field, *msg.extension):
+            field.ClearField("json_name")
+        messages += msg.nested_type
+    return fdp
+
+
+FRESH_INSTALL_CHECK = """
+import importlib.util, json, sys
+import numpy as np
+import oibar, oibar.pb
+from oibar._generated import oibar_pb2
+from oibar.nav.pose import PoseEstimator
+from oibar.resources import default_model_path
+model = default_model_path()
+est = PoseEstimator(model, threads=1, warmup_runs=0)
+frame = np.random.default_rng(0).integers(0, 255, (480, 744, 3), dtype=np.uint8)
+e = est.estimate(frame, t_s=0.0)
+print(json.dumps({
+    "oibar": oibar.__file__,
+    "model": str(model),
+    "estimator": type(est).__name__,
+    "estimate": type(e).__name__,
+    "confidence": float(e.confidence),
+    "descriptor": oibar_pb2.DESCRIPTOR.serialized_pb.hex(),
+    "torch": importlib.util.find_spec("torch") is not None,
+    "simulator": importlib.util.find_spec("oibar_hil") is not None,
+}))
+"""
+
+
+def test_pip_install_host_from_a_clean_copy_works_from_an_empty_folder(tmp_path):
+    """Issue 60's install: `pip install ./host` from a clean copy into a fresh venv without torch;
+    from an empty folder `oibar --version` names the package, protocol and model versions, and the
+    shipped model (package data, with its side files) reads a 744x480 frame. The installed
+    protobuf module is proto/oibar.proto as it is now."""
+    from google.protobuf import descriptor_pb2
+
+    copy = _clean_copy(tmp_path / "clone")
+    py = _fresh_venv(tmp_path / "env")
+    r = subprocess.run(
+        [sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps", "--no-build-isolation"]
+        + ["--no-index", "--no-cache-dir", "--disable-pip-version-check", "-q", str(copy / "host")],
+        capture_output=True,
+        text=True,
+        env=_clean_env(),
+        timeout=600,
+    )
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
+    shutil.rmtree(copy)  # nothing may come from the source tree any more
+    empty = tmp_path / "empty"
+    empty.mkdir()
+
+    v = subprocess.run(
+        [py.parent / "oibar", "--version"],
+        capture_output=True,
+        text=True,
+        cwd=empty,
+        env=_clean_env(),
+        timeout=120,
+    )
+    assert v.returncode == 0, v.stderr[-3000:]
+    lines = v.stdout.splitlines()
+    version = re.search(r'__version__ = "([^"]+)"', (ROOT / "host" / "oibar" / "__init__.py").read_text())
+    protocol = re.search(r"PROTOCOL_VERSION = (\d+);", (ROOT / "proto" / "oibar.proto").read_text())
+    assert version and protocol
+    assert lines[0] == f"oibar {version[1]}", v.stdout
+    assert lines[1] == f"protocol {protocol[1]}", v.stdout
+    card = re.search(r"OibarNet (\d+\.\d+\.\d+)", (ROOT / "docs" / "model_card.md").read_text())
+    assert card and lines[2].startswith(f"model {card[1]} ("), v.stdout
+    assert "far network" in lines[2] and "first pass" in lines[2] and str(py.parent.parent) in lines[2]
+
+    p = subprocess.run(
+        [py, "-c", FRESH_INSTALL_CHECK],
+        capture_output=True,
+        text=True,
+        cwd=empty,
+        env=_clean_env(),
+        timeout=300,
+    )
+    assert p.returncode == 0, p.stderr[-3000:]
+    out = json.loads(p.stdout.splitlines()[-1])
+    venv = py.parent.parent
+    assert Path(out["oibar"]).is_relative_to(venv), out["oibar"]
+    assert Path(out["model"]).is_relative_to(venv) and Path(out["model"]).parent.name == "models", out[
+        "model"
+    ]
+    assert out["estimator"] == "KeypointPoseEstimator" and out["estimate"] == "PoseEstimate"
+    assert 0.0 <= out["confidence"] <= 1.0
+    assert not out["torch"] and not out["simulator"]
+    installed = descriptor_pb2.FileDescriptorProto.FromString(bytes.fromhex(out["descriptor"]))
+    assert installed == _fresh_descriptor(tmp_path)
+
+
+def test_the_sdist_carries_the_generated_module_and_the_models(tmp_path):
+    """A wheel built from the sdist, away from the checkout (no ../proto, no ../models), carries
+    the protobuf module and stub compiled from proto/ and the shipped models, byte for byte."""
+    from google.protobuf import descriptor_pb2
+
+    copy = _clean_copy(tmp_path / "clone")
+    build = "from setuptools import build_meta as b; import sys; print(getattr(b, sys.argv[1])(sys.argv[2]))"
+    dist = tmp_path / "dist"
+    r = subprocess.run(
+        [sys.executable, "-c", build, "build_sdist", str(dist)],
+        cwd=copy / "host",
+        capture_output=True,
+        text=True,
+        env=_clean_env(),
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    sdist = dist / r.stdout.split()[-1]
+    unpacked = tmp_path / "unpacked"
+    with tarfile.open(sdist) as tar:
+        tar.extractall(unpacked)  # our own sdist; Debian 12's Python 3.11.2 has no filter=
+    (src,) = unpacked.iterdir()
+    w = subprocess.run(
+        [sys.executable, "-c", build, "build_wheel", str(dist)],
+        cwd=src,
+        capture_output=True,
+        text=True,
+        env=_clean_env(),
+        timeout=300,
+    )
+    assert w.returncode == 0, w.stderr[-3000:]
+    with zipfile.ZipFile(dist / w.stdout.split()[-1]) as whl:
+        names = set(whl.namelist())
+        for name in ("__init__.py", "oibar_pb2.py", "oibar_pb2.pyi"):
+            assert f"oibar/_generated/{name}" in names, sorted(names)
+        for name in _setup_module().SHIPPED_MODELS:
+            assert whl.read(f"oibar/models/{name}") == (ROOT / "models" / name).read_bytes(), name
+        pb2 = whl.read("oibar/_generated/oibar_pb2.py").decode()
+    assert pb2 == (src / "oibar" / "_generated" / "oibar_pb2.py").read_text()
+    # the module's serialized descriptor, as protoc wrote it into AddSerializedFile(b'...')
+    call = next(
+        n
+        for n in ast.walk(ast.parse(pb2))
+        if isinstance(n, ast.Call) and getattr(n.func, "attr", "") == "AddSerializedFile"
+    )
+    serialized = ast.literal_eval(call.args[0])
+    assert descriptor_pb2.FileDescriptorProto.FromString(serialized) == _fresh_descriptor(tmp_path)
+
+
+def test_the_shipped_models_are_the_default_and_the_files_its_metadata_names():
+    """host/setup.py ships the default model first and exactly the files its ONNX metadata needs
+    beside it (first pass, far network, theirs in turn); a checkout resolves the default to them."""
+    from oibar.resources import DEFAULT_MODEL, model_metadata
+
+    shipped = _setup_module().SHIPPED_MODELS
+    assert shipped[0] == DEFAULT_MODEL
+    needed, todo = set(), [DEFAULT_MODEL]
+    while todo:
+        name = todo.pop()
+        if name in needed:
+            continue
+        needed.add(name)
+        meta = model_metadata(ROOT / "models" / name)
+        if "first_pass" in meta:
+            todo.append(meta["first_pass"])
+        if isinstance(meta.get("far_network"), dict):
+            todo.append(meta["far_network"]["file"])
+    assert needed == set(shipped)
+    env = {k: v for k, v in os.environ.items() if k != "OIBAR_MODEL"}
+    r = subprocess.run(
+        [sys.executable, "-c", "from oibar.resources import default_model_path as d; print(d())"],
+        capture_output=True,
+        text=True,
+        env=dict(env, PYTHONPATH=str(ROOT / "host")),
+        cwd="/",
+        timeout=60,
+    )
+    assert r.returncode == 0 and Path(r.stdout.strip()) == ROOT / "models" / DEFAULT_MODEL, r.stderr
+
+
+def test_the_build_uses_the_protoc_of_the_pinned_protobuf_runtime():
+    """grpcio-tools is pinned alike as the build requirement and in requirements/base.txt; the
+    protoc it bundles (3.X.Y) is that of the protobuf runtime pinned there (4.X.Y), which the
+    host package's own protobuf range admits."""
+    from packaging.requirements import Requirement
+
+    pins = dict(
+        line.split("#")[0].strip().split("==")
+        for line in (ROOT / "requirements" / "base.txt").read_text().splitlines()
+        if "==" in line.split("#")[0]
+    )
+    build = tomllib.loads((ROOT / "host" / "pyproject.toml").read_text())["build-system"]["requires"]
+    grpc_tools = [Requirement(r) for r in build if Requirement(r).name == "grpcio-tools"]
+    assert [str(r.specifier) for r in grpc_tools] == [f"=={pins['grpcio-tools']}"]
+    (protobuf,) = [Requirement(r) for r in _project("host")["dependencies"] if r.startswith("protobuf")]
+    assert pins["protobuf"] in protobuf.specifier
+    try:
+        importlib.metadata.distribution("grpcio-tools")
+    except importlib.metadata.PackageNotFoundError:
+        pytest.skip("grpcio-tools is not installed here (make setup installs it)")
+    assert importlib.metadata.version("grpcio-tools") == pins["grpcio-tools"]
+    r = subprocess.run(
+        [sys.executable, "-m", "grpc_tools.protoc", "--version"], capture_output=True, text=True
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split()[-1] == "3." + pins["protobuf"].split(".", 1)[1], (r.stdout, pins["protobuf"])

@@ -57,7 +57,7 @@ def _cv2():
         import cv2
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise CameraError(
-            "OpenCV is not installed; install opencv-python-headless (requirements/calib.txt)"
+            "OpenCV is not installed; install opencv-python-headless (requirements/host.txt)"
         ) from exc
     return cv2
 

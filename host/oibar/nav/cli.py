@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -59,15 +58,10 @@ vehicle), with one line saying what is wrong.
 
 
 def default_model_path() -> Path:
-    env = os.environ.get("OIBAR_MODEL")
-    if env:
-        return Path(env)
-    here = Path(__file__).resolve()
-    for parent in here.parents:
-        cand = parent / "models" / "oibarnet.onnx"
-        if cand.is_file():
-            return cand
-    return Path("models/oibarnet.onnx")
+    """$OIBAR_MODEL, else the shipped model of this install (oibar.resources)."""
+    from oibar.resources import default_model_path as shipped
+
+    return shipped()
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -89,7 +83,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=Path,
         default=None,
         metavar="ONNX",
-        help="OibarNet ONNX model (default: $OIBAR_MODEL or models/oibarnet.onnx)",
+        help="OibarNet ONNX model (default: $OIBAR_MODEL, else the shipped oibarnet.onnx)",
     )
     nav.add_argument(
         "--vehicle", default="none", metavar="SPEC", help="where velocity setpoints go (default: none)"
