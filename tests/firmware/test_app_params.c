@@ -113,6 +113,21 @@ static void test_doc_table_matches_code(void)
     TEST_ASSERT_EQUAL_UINT_MESSAGE(OIBAR_PARAM_COUNT, n, "doc and code differ in row count");
 }
 
+/* D10 at boot: the default table passes the cross-parameter rules (the
+ * application faults at init when the table it runs on does not). */
+static void test_defaults_pass_the_cross_parameter_rules(void)
+{
+    oibar_params_init();
+    TEST_ASSERT_TRUE(oibar_params_consistent());
+    /* Every default is also accepted when set again on its own. */
+    for (unsigned i = 0; i < OIBAR_PARAM_COUNT; i++) {
+        const oibar_param_def_t *d = oibar_param_def_at(i);
+        TEST_ASSERT_EQUAL_MESSAGE(oibar_v1_NACK_NONE,
+                                  oibar_param_set((uint32_t)d->id, d->default_value, oibar_v1_STATE_IDLE),
+                                  d->name);
+    }
+}
+
 int main(void)
 {
     UNITY_BEGIN();
@@ -121,5 +136,6 @@ int main(void)
     RUN_TEST(test_get_and_set_over_the_link_api);
     RUN_TEST(test_locked_outside_safe_states);
     RUN_TEST(test_doc_table_matches_code);
+    RUN_TEST(test_defaults_pass_the_cross_parameter_rules);
     return UNITY_END();
 }

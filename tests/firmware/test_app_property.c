@@ -237,6 +237,24 @@ static void clear_knobs(void)
 
 /* The command a cooperative host would send next, so that the random walk
  * keeps reaching the transfer. */
+/* Between transfers the tanks are brought back (the supply refilled, the target
+ * consumed) at 1 kPa/ms, slower than any rate check: the firmware refuses a start
+ * without a supply head (SAFETY_RULE_NO_BACKFLOW), and without this only the
+ * first fills of a walk would open the valves. Never while transferring. */
+static void restore_tanks(void)
+{
+    for (unsigned ms = 0; ms < 2000u && oibar_app_state() != oibar_v1_STATE_TRANSFERRING; ms++) {
+        float sv = fake_plant_sv_kpa(), tv = fake_plant_tv_kpa();
+        if (sv >= 1999.0f && tv <= 201.0f) {
+            break;
+        }
+        sv = (sv < 1999.0f) ? sv + 1.0f : sv;
+        tv = (tv > 201.0f) ? tv - 1.0f : tv;
+        fake_plant_set_tanks_kpa(sv, tv);
+        run_ms(1);
+    }
+}
+
 static void guided(void)
 {
     switch (oibar_app_state()) {
@@ -258,6 +276,9 @@ static void guided(void)
         command(oibar_v1_CMD_HARD_DOCK, 0.0f);
         break;
     case oibar_v1_STATE_HARD_DOCKED:
+        if (fake_plant_sv_kpa() < fake_plant_tv_kpa() + 600.0f) {
+            restore_tanks();
+        }
         command(below(4) == 0 ? oibar_v1_CMD_SEPARATE : oibar_v1_CMD_ARM_TRANSFER, 0.0f);
         break;
     case oibar_v1_STATE_TRANSFER_ARMED:

@@ -7,8 +7,11 @@
 #include "oibar/drv_plane.h"
 #include "unity.h"
 
+/* As the application's pass: the position sensor is read before the plane
+ * driver looks at it (an end counts only with switch and sensor agreeing). */
 static void loop_1ms(void)
 {
+    oibar_inputs_analog_update();
     oibar_plane_tick(hal_time_ms());
 }
 

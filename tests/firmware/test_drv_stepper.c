@@ -62,10 +62,13 @@ static void test_short_move_never_reaches_cruise(void)
 
 static void test_homing_stops_on_switch_and_zeroes(void)
 {
-    /* Already home: completes at once, without a step. */
+    /* Already home: pulls off and re-locates (D7), then completes. */
     TEST_ASSERT_TRUE(oibar_stepper_home());
+    fake_hal_advance_ms(2000);
+    TEST_ASSERT_FALSE(oibar_stepper_busy());
     TEST_ASSERT_TRUE(got(SIG_STEPPER_DONE));
-    TEST_ASSERT_EQUAL_UINT32(0, fake_hal_step_pulses());
+    TEST_ASSERT_EQUAL_UINT32(2u * OIBAR_STEPPER_PULLOFF_STEPS, fake_hal_step_pulses());
+    TEST_ASSERT_EQUAL_INT32(0, fake_plant_latch_steps());
     /* Move away: release the latch (the plant releases at 600 steps). */
     fake_plant_set_probe(true);
     fake_hal_advance_ms(200);

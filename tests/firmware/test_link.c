@@ -859,6 +859,48 @@ static void test_link_loss_after_timeout(void)
     TEST_ASSERT_EQUAL_INT(2, app.link_ups);
 }
 
+/* D4: a re-handshake on a live link is a new session: the application is
+ * told (it drops its navigation record), the link stays up. */
+static void test_rehandshake_on_a_live_link_tells_the_app(void)
+{
+    start(0);
+    connect(1, 10);
+    TEST_ASSERT_EQUAL_INT(1, app.link_ups);
+    send_handshake(7, oibar_v1_PROTOCOL_VERSION);
+    oibar_link_poll(&link, 20);
+    TEST_ASSERT_TRUE(oibar_link_is_connected(&link));
+    TEST_ASSERT_EQUAL_INT(2, app.link_ups);
+    TEST_ASSERT_EQUAL_INT(0, app.link_downs);
+}
+
+/* Suspected item of issue 59: a handshake with seq 0 opened a session with no
+ * replay window for its first request. It is refused, and changes nothing. */
+static void test_handshake_with_seq_0_is_refused(void)
+{
+    start(0);
+    send_handshake(0, oibar_v1_PROTOCOL_VERSION);
+    oibar_link_poll(&link, 10);
+    TEST_ASSERT_FALSE(oibar_link_is_connected(&link));
+    const oibar_v1_Packet *r = nth_body(oibar_v1_Packet_handshake_reply_tag, 0);
+    TEST_ASSERT_NOT_NULL(r);
+    TEST_ASSERT_FALSE(r->body.handshake_reply.accepted);
+    TEST_ASSERT_EQUAL(oibar_v1_NACK_STALE_SEQ, r->body.handshake_reply.reason);
+    TEST_ASSERT_EQUAL_INT(0, app.link_ups);
+    /* On a live session it neither drops it nor resets its window. */
+    connect(5, 20);
+    send_command(6, oibar_v1_CMD_NOOP);
+    oibar_link_poll(&link, 30);
+    seen_n = 0;
+    send_handshake(0, oibar_v1_PROTOCOL_VERSION);
+    oibar_link_poll(&link, 40);
+    TEST_ASSERT_TRUE(oibar_link_is_connected(&link));
+    send_command(6, oibar_v1_CMD_NOOP); /* replayed after it: still stale */
+    oibar_link_poll(&link, 50);
+    const oibar_v1_Packet *a = nth_body(oibar_v1_Packet_ack_tag, 0);
+    TEST_ASSERT_NOT_NULL(a);
+    TEST_ASSERT_NOT_EQUAL(oibar_v1_NACK_NONE, a->body.ack.reason);
+}
+
 static void test_heartbeats_keep_the_link_alive(void)
 {
     start(0);
@@ -1053,6 +1095,8 @@ int main(void)
     RUN_TEST(test_stalled_loop_does_not_burst);
     RUN_TEST(test_telemetry_carries_link_counters);
     RUN_TEST(test_link_loss_after_timeout);
+    RUN_TEST(test_rehandshake_on_a_live_link_tells_the_app);
+    RUN_TEST(test_handshake_with_seq_0_is_refused);
     RUN_TEST(test_heartbeats_keep_the_link_alive);
     RUN_TEST(test_garbage_does_not_keep_the_link_alive);
     RUN_TEST(test_link_loss_forgets_cached_response);

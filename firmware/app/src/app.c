@@ -111,6 +111,11 @@ void oibar_app_init(void)
     if (s_reset_cause == oibar_v1_RESET_WATCHDOG || s_reset_cause == oibar_v1_RESET_LOCKUP) {
         oibar_fault_raise(oibar_v1_FAULT_WATCHDOG_RESET);
     }
+    /* Cross-parameter rules at boot too (D10): a table that breaks one is
+     * a broken contract, held in FAULT. */
+    if (!oibar_params_consistent()) {
+        oibar_fault_raise(oibar_v1_FAULT_ASSERTION);
+    }
     hal_control_tick_attach(oibar_app_tick_1khz);
 }
 
@@ -125,8 +130,19 @@ void oibar_app_tick_1khz(void)
  * cover several ticks (a slow pass); every duration below is therefore
  * measured as elapsed time on `now` (the 1 kHz tick clock), never as a
  * count of these calls (SAFETY_RULE_TIMES_ARE_ELAPSED). */
+/* D4: the navigation record is dropped once older than nav_max_age_ms (and
+ * on link loss and every new session): a 32-bit age alone would read fresh
+ * again 49.7 days later. */
+static void nav_age_tick(uint32_t now)
+{
+    if (s_nav_valid && now - s_nav_rx_ms > oibar_param_u32(PARAM_NAV_MAX_AGE_MS)) {
+        s_nav_valid = false;
+    }
+}
+
 static void per_ms(uint32_t now)
 {
+    nav_age_tick(now);
     oibar_inputs_analog_update();
     oibar_pressure_tick(now);
     oibar_valves_tick(now);
@@ -231,7 +247,8 @@ bool oibar_app_capture_envelope_ok(uint32_t now_ms)
     if (!s_nav_valid || now_ms - s_nav_rx_ms > oibar_param_u32(PARAM_NAV_MAX_AGE_MS)) {
         return false;
     }
-    return s_nav_closing_mm_s <= oibar_param_f(PARAM_CAPTURE_MAX_CLOSING_SPEED_MM_S) &&
+    /* D5: the speed's magnitude; a large negative value is no slower. */
+    return fabsf(s_nav_closing_mm_s) <= oibar_param_f(PARAM_CAPTURE_MAX_CLOSING_SPEED_MM_S) &&
            s_nav_misalign_deg <= oibar_param_f(PARAM_CAPTURE_MAX_MISALIGNMENT_DEG);
 }
 
@@ -275,6 +292,9 @@ void oibar_app_param_set(uint32_t id, float value, oibar_v1_ParamValue *out)
 
 void oibar_app_link_state(bool up)
 {
+    /* D4: navigation from before a loss, or from another session (the link
+     * also reports a re-handshake as up), is not this approach's. */
+    s_nav_valid = false;
     if (up == s_link_alive) {
         return;
     }

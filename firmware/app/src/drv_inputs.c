@@ -16,6 +16,11 @@ static bool s_latch_reported;
 static float s_force_n;
 static float s_plane_mm;
 static bool s_force_valid;
+/* Plane position sensor health (D3): bounded glitch, then a fault. */
+static bool s_plane_valid;
+static uint32_t s_plane_bad_since_ms;
+static uint32_t s_plane_bad_samples;
+static bool s_plane_reported;
 
 /* SAFETY_RULE_LATCH_SENSE_PAIR: engaged only when the NO contact is closed
  * and the NC contact open; any other combination reads "not engaged". */
@@ -45,6 +50,11 @@ void oibar_inputs_init(void)
     s_force_n = 0.0f;
     s_plane_mm = 0.0f;
     s_force_valid = false;
+    s_plane_valid = false;
+    s_plane_bad_since_ms = now;
+    s_plane_bad_samples = 0;
+    s_plane_reported = false;
+    oibar_inputs_analog_update(); /* a first reading before anything relies on it */
 }
 
 static void post_edge(hal_di_t di, bool level)
@@ -129,16 +139,56 @@ bool oibar_input(hal_di_t di)
 
 bool oibar_latch_sensor_plausible(void) { return s_latch_plausible; }
 
+/* D3, hal.h: a failed conversion is a sensor fault, and so is a reading
+ * beyond the potentiometer's travel. As for the pressure sensors
+ * (SAFETY_RULE_ADC_GLITCH_BOUNDED) one bad sample holds the last good value;
+ * a run lasting OIBAR_PLANE_POS_BAD_RUN_MS over at least
+ * OIBAR_PLANE_POS_BAD_RUN_MIN_SAMPLES samples makes the position invalid
+ * (every interlock that reads it refuses) and raises FAULT_PLANE_POSITION,
+ * once per episode. Never a stale number for ever. */
+static void plane_pos_update(void)
+{
+    const uint32_t now = hal_time_ms();
+    uint16_t counts = 0;
+    float mm = 0.0f;
+    bool ok = hal_adc_read(HAL_ADC_PLANE_POS, &counts);
+    if (ok) {
+        mm = (float)counts * oibar_param_f(PARAM_PLANE_MM_PER_COUNT);
+        ok = mm <= OIBAR_PLANE_POS_MAX_MM;
+    }
+    if (ok) {
+        s_plane_mm = mm;
+        s_plane_valid = true;
+        s_plane_bad_samples = 0;
+        s_plane_reported = false;
+        return;
+    }
+    if (s_plane_bad_samples == 0u) {
+        s_plane_bad_since_ms = now;
+    }
+    if (s_plane_bad_samples < UINT32_MAX) {
+        s_plane_bad_samples++;
+    }
+    if (s_plane_bad_samples < OIBAR_PLANE_POS_BAD_RUN_MIN_SAMPLES ||
+        !oibar_held_for(now, s_plane_bad_since_ms, OIBAR_PLANE_POS_BAD_RUN_MS)) {
+        return; /* a glitch so far */
+    }
+    s_plane_valid = false;
+    if (!s_plane_reported) {
+        s_plane_reported = true;
+        oibar_fault_raise(oibar_v1_FAULT_PLANE_POSITION);
+    }
+}
+
 void oibar_inputs_analog_update(void)
 {
     uint16_t counts = 0;
     s_force_valid = hal_adc_read(HAL_ADC_CONTACT_FORCE, &counts);
     s_force_n = s_force_valid ? (float)counts * oibar_param_f(PARAM_FORCE_N_PER_COUNT) : 0.0f;
-    if (hal_adc_read(HAL_ADC_PLANE_POS, &counts)) {
-        s_plane_mm = (float)counts * oibar_param_f(PARAM_PLANE_MM_PER_COUNT);
-    }
+    plane_pos_update();
 }
 
 float oibar_contact_force_n(void) { return s_force_n; }
 float oibar_plane_pos_mm(void) { return s_plane_mm; }
+bool oibar_plane_pos_valid(void) { return s_plane_valid; }
 bool oibar_contact_force_valid(void) { return s_force_valid; }

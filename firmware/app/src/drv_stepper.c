@@ -31,10 +31,12 @@ static volatile int8_t s_dir;
 static volatile uint8_t s_phase;
 static volatile bool s_stop_armed;   /* the switch ends this phase */
 static volatile bool s_budget_is_goal; /* the budget ends it too, successfully (pull-off) */
-static bool s_homing;
-static hal_di_t s_stop_di;
-static bool s_stop_level;
-static bool s_zero_at_stop;
+/* Read by the ISR, written by the main loop between moves: volatile too, so
+ * the compiler keeps no copy of them across a move. */
+static volatile bool s_homing;
+static volatile hal_di_t s_stop_di;
+static volatile bool s_stop_level;
+static volatile bool s_zero_at_stop;
 static volatile uint16_t s_move_id;
 
 void oibar_stepper_init(void)
@@ -185,7 +187,16 @@ static bool seek(const oibar_seek_t *req, bool homing)
     hal_do_write(HAL_DO_LATCH_ENABLE, true);
     s_busy = true;
     if (hal_di_read(s_stop_di) == s_stop_level) {
-        finish_isr(true); /* already there: complete without a step */
+        if (!homing) {
+            finish_isr(true); /* already there: complete without a step */
+            return true;
+        }
+        /* D7: homing that starts on its switch pulls off and re-locates as
+         * GRBL does; completing at once let a welded switch (or a broken
+         * wire, which reads "actuated" on this board) pass for home with the
+         * latch released. A switch that does not clear is a stall. */
+        start_slow_isr(PHASE_PULLOFF, (int8_t)-req->dir, OIBAR_STEPPER_PULLOFF_STEPS, false);
+        hal_step_timer_start(s_slow_us);
         return true;
     }
     hal_step_timer_start(s_up_n > 0u ? s_ramp_us[0] : s_cruise_us);

@@ -80,8 +80,9 @@ static const oibar_fsm_row_t k_table[] = {
 
     { S(ABORTING),        E(VALVES_CLOSED),      G(NONE),              STAY,              A(RETRACT_PLANE) },
     { S(ABORTING),        E(VALVES_STUCK),       G(NONE),              S(FAULT),          A(FAULT_VALVE_MISMATCH) },
-    { S(ABORTING),        E(PLANE_RETRACTED),    G(LATCH_ENGAGED),     S(SOFT_DOCKED),    A(NONE) },
+    { S(ABORTING),        E(PLANE_RETRACTED),    G(SOFT_DOCK_CONFIRMED), S(SOFT_DOCKED),  A(NONE) },
     { S(ABORTING),        E(PLANE_RETRACTED),    G(LATCH_NOT_ENGAGED), S(LATCH_RESET),    A(NONE) },
+    { S(ABORTING),        E(PLANE_RETRACTED),    G(LATCH_ENGAGED),     S(LATCH_RELEASE),  A(NONE) },
     { S(ABORTING),        E(TIMEOUT),            G(NONE),              S(FAULT),          A(FAULT_PLANE_TIMEOUT) },
     { S(ABORTING),        C(ABORT),              G(NONE),              STAY,              A(NONE) },
 
@@ -151,6 +152,7 @@ static const char *const k_guard_names[GUARD_COUNT] = {
     "-", "at_home", "not_at_home", "ready_for_approach", "capture_confirmed",
     "soft_dock_held", "connector_mated", "plane_extended", "latch_engaged",
     "latch_not_engaged", "transfer_ready", "start_ok", "fault_causes_gone", "valves_closed",
+    "soft_dock_confirmed",
 };
 static const char *const k_action_names[ACT_COUNT] = {
     "-", "record_capture", "arm", "start_transfer", "report_transfer_complete",
@@ -201,6 +203,10 @@ static bool s_capture_ok;
 static float s_cmd_target_kpa; /* argument of the command being dispatched */
 static uint16_t s_sig_arg;      /* argument of the signal being dispatched */
 static bool s_valve_wait;       /* ABORTING: plane held until the valves read closed */
+/* D1: RECEPTION entered and DOCK (capture_confirmed) not yet accepted. An
+ * abort or a fault recovery must not land in SOFT_DOCKED past that refusal:
+ * with the latches popped it releases the probe instead. */
+static bool s_dock_unconfirmed;
 static uint32_t s_valve_wait_since_ms;
 
 oibar_v1_State oibar_fsm_state(void) { return s_state; }
@@ -258,6 +264,8 @@ static oibar_v1_NackReason guard(oibar_guard_t g)
         return pre(oibar_input(HAL_DI_LATCH_ENGAGED));
     case GUARD_LATCH_NOT_ENGAGED:
         return pre(!oibar_input(HAL_DI_LATCH_ENGAGED));
+    case GUARD_SOFT_DOCK_CONFIRMED:
+        return pre(oibar_input(HAL_DI_LATCH_ENGAGED) && !s_dock_unconfirmed);
     case GUARD_TRANSFER_READY: {
         /* SAFETY_RULE_PREARM_CHECKS: the reason names the failed check. */
         oibar_v1_NackReason r = oibar_safety_prearm();
@@ -271,12 +279,22 @@ static oibar_v1_NackReason guard(oibar_guard_t g)
             t > oibar_param_f(PARAM_TARGET_MAX_KPA) || t >= oibar_param_f(PARAM_OVERPRESSURE_KPA)) {
             return oibar_v1_NACK_BAD_ARGUMENT;
         }
-        return pre(s_armed && transfer_ready());
+        /* D6: the pre-arm checks again, right before the valves open (the
+         * armed state lasts up to armed_timeout_ms). */
+        oibar_v1_NackReason r = oibar_safety_prearm();
+        if (r != oibar_v1_NACK_NONE) {
+            return r;
+        }
+        /* D2, SAFETY_RULE_NO_BACKFLOW: gas must flow from the supply to the
+         * target tank; with the supply lower the fill runs backwards. */
+        const bool head = oibar_pressure_kpa(OIBAR_PSENS_SV) >=
+                          oibar_pressure_kpa(OIBAR_PSENS_TV) + OIBAR_FLOW_MIN_HEAD_KPA;
+        return pre(s_armed && transfer_ready() && head);
     }
     case GUARD_FAULT_CAUSES_GONE:
         return pre(oibar_pressure_all_ok() && !oibar_pressure_over() && !oibar_valves_mismatch() &&
                    !oibar_valves_any_sensed_open() && oibar_app_host_link_alive() &&
-                   oibar_latch_sensor_plausible());
+                   oibar_latch_sensor_plausible() && oibar_plane_sense_plausible());
     case GUARD_VALVES_CLOSED:
         /* SAFETY_RULE_NO_UNMATE_WITH_VALVE_OPEN: the valve monitor needs its
          * debounce time to call a stuck valve a fault; until then a valve that
@@ -471,7 +489,9 @@ static void entry_aborting(uint32_t now_ms)
 static void entry_fault(uint32_t now_ms)
 {
     oibar_stepper_disable();
-    const bool half_mated = !oibar_plane_is_extended() &&
+    /* D3/D9: never moved on a stale or implausible position (a failed
+     * sensor, both end switches): it stops where it is. */
+    const bool half_mated = oibar_plane_sense_plausible() && !oibar_plane_is_extended() &&
                             oibar_plane_pos_mm() >= oibar_param_f(PARAM_PLANE_COUPLING_MM);
     if (oibar_valves_any_sensed_open() && half_mated) {
         oibar_plane_extend(now_ms);
@@ -526,6 +546,13 @@ static void enter(oibar_v1_State next, uint32_t now_ms)
     }
     s_timer_armed = false;
     s_valve_wait = false;
+    if (next == oibar_v1_STATE_RECEPTION) {
+        s_dock_unconfirmed = true;
+    } else if (next == oibar_v1_STATE_SOFT_DOCKED || next == oibar_v1_STATE_IDLE ||
+               next == oibar_v1_STATE_APPROACH_READY || next == oibar_v1_STATE_LATCH_RELEASE ||
+               next == oibar_v1_STATE_LATCH_RESET) {
+        s_dock_unconfirmed = false; /* docked by DOCK, or the probe let go */
+    }
     const state_desc_t *d = &k_states[next];
     if (d->timeout_param != (oibar_param_id_t)0) {
         s_deadline_ms = now_ms + oibar_param_u32(d->timeout_param);
@@ -547,6 +574,7 @@ void oibar_fsm_init(uint32_t now_ms)
     s_sig_arg = 0;
     s_valve_wait = false;
     s_valve_wait_since_ms = 0;
+    s_dock_unconfirmed = false;
     enter(oibar_v1_STATE_BOOT, now_ms);
 }
 

@@ -109,8 +109,10 @@ static const oibar_param_def_t s_defs[OIBAR_PARAM_COUNT] = {
     /* Assumption: plane travel (mm from retracted) from which the fluid couplings' poppets
      * are pushed open; below it they are apart and self-sealed, at full travel sealed. */
     /* Safety limit: at most 35 mm, so the re-seat and the abort's valve wait
-     * cannot be tuned away (smaller is the cautious side). */
-    P_REAL(PARAM_PLANE_COUPLING_MM, "plane_coupling_mm", "mm", 30, 0, 35),
+     * cannot be tuned away (smaller is the cautious side), and at least
+     * OIBAR_PLANE_COUPLING_MIN_MM: at 0 FAULT's re-seat drove a retracted
+     * plane through the whole coupling travel with a valve reading open. */
+    P_REAL(PARAM_PLANE_COUPLING_MM, "plane_coupling_mm", "mm", 30, OIBAR_PLANE_COUPLING_MIN_MM, 35),
     /* Assumption: the host's confidence (0..1) below which a navigation
      * update is not used for DOCK's capture check; never 0. */
     P_REAL(PARAM_NAV_MIN_CONFIDENCE, "nav_min_confidence", "1", 0.5, 0.2, 1),
@@ -122,6 +124,43 @@ static const oibar_param_def_t s_defs[OIBAR_PARAM_COUNT] = {
 };
 
 static float s_values[OIBAR_PARAM_COUNT];
+
+#define V(v, id) ((v)[(unsigned)(id) - 1u])
+
+/* Cross-parameter rules (D10): values each in bounds can still combine into a
+ * protection that never works or one that trips on every healthy run. Checked
+ * on a candidate table, so a set that would break one is refused whole. */
+static bool cross_ok(const float *v)
+{
+    /* A healthy valve stroke plus the debounce of its position switch must
+     * fit in the mismatch window (debounce 100 ms with a 50 ms window made
+     * every healthy stroke a stuck valve). */
+    if (V(v, PARAM_VALVE_MISMATCH_MS) < V(v, PARAM_DEBOUNCE_MS) + OIBAR_VALVE_STROKE_MAX_MS) {
+        return false;
+    }
+    /* The plane's own timeout must cover a full travel, and an abort (which
+     * may first wait valve_mismatch_ms for the valves, then move the plane
+     * its whole travel) must outlast both: the plane's fault names the cause. */
+    if (V(v, PARAM_PLANE_MOVE_TIMEOUT_MS) < OIBAR_PLANE_FULL_TRAVEL_MS ||
+        V(v, PARAM_ABORT_TIMEOUT_MS) < V(v, PARAM_VALVE_MISMATCH_MS) + V(v, PARAM_PLANE_MOVE_TIMEOUT_MS) ||
+        V(v, PARAM_HARD_DOCKING_TIMEOUT_MS) < V(v, PARAM_PLANE_MOVE_TIMEOUT_MS)) {
+        return false;
+    }
+    /* The latch state timeout covers the homing budget at home speed, so a
+     * stall is reported as a stall, not as a timeout. */
+    if (V(v, PARAM_LATCH_MOVE_TIMEOUT_MS) * V(v, PARAM_LATCH_HOME_SPEED_STEPS_S) <
+        1000.0f * V(v, PARAM_LATCH_HOME_BUDGET_STEPS)) {
+        return false;
+    }
+    /* The target range is not empty and stays below the trip. */
+    if (V(v, PARAM_TARGET_MIN_KPA) > V(v, PARAM_TARGET_MAX_KPA) ||
+        V(v, PARAM_TARGET_MAX_KPA) >= V(v, PARAM_OVERPRESSURE_KPA)) {
+        return false;
+    }
+    return true;
+}
+
+bool oibar_params_consistent(void) { return cross_ok(s_values); }
 
 void oibar_params_init(void)
 {
@@ -179,6 +218,14 @@ oibar_v1_NackReason oibar_param_set(uint32_t id, float value, oibar_v1_State sta
     }
     if (def->integer && floorf(value) != value) {
         return oibar_v1_NACK_PARAM_OUT_OF_BOUNDS;
+    }
+    float candidate[OIBAR_PARAM_COUNT];
+    for (unsigned i = 0; i < OIBAR_PARAM_COUNT; i++) {
+        candidate[i] = s_values[i];
+    }
+    candidate[id - 1u] = value;
+    if (!cross_ok(candidate)) {
+        return oibar_v1_NACK_PARAM_OUT_OF_BOUNDS; /* in its own bounds, not with the others */
     }
     s_values[id - 1u] = value;
     return oibar_v1_NACK_NONE;

@@ -16,6 +16,7 @@ static uint32_t s_ref_ms;  /* since when it has not, with the line leading */
 static float s_win_tv_kpa;
 static float s_win_sv_kpa;
 static uint32_t s_win_ms;
+static float s_tv_peak_kpa; /* highest target-tank reading of this transfer */
 
 static void win_restart(uint32_t now_ms)
 {
@@ -34,6 +35,7 @@ void oibar_ploop_init(void)
     s_win_tv_kpa = 0.0f;
     s_win_sv_kpa = 0.0f;
     s_win_ms = 0;
+    s_tv_peak_kpa = 0.0f;
 }
 
 bool oibar_ploop_start(float target_kpa, uint32_t now_ms)
@@ -42,7 +44,14 @@ bool oibar_ploop_start(float target_kpa, uint32_t now_ms)
     s_start_ms = now_ms;
     s_ref_tv_kpa = oibar_pressure_kpa(OIBAR_PSENS_TV);
     s_ref_ms = now_ms;
+    s_tv_peak_kpa = s_ref_tv_kpa;
     win_restart(now_ms);
+    /* SAFETY_RULE_NO_BACKFLOW: never opened towards the supply (the state
+     * machine's START guard checks it too). */
+    if (oibar_pressure_kpa(OIBAR_PSENS_SV) < s_ref_tv_kpa + OIBAR_FLOW_MIN_HEAD_KPA) {
+        s_running = false;
+        return false;
+    }
     s_running = oibar_valves_open_both();
     return s_running;
 }
@@ -71,6 +80,21 @@ void oibar_ploop_tick(uint32_t now_ms)
     if (now_ms - s_start_ms >= oibar_param_u32(PARAM_TRANSFER_MAX_MS)) {
         oibar_ploop_stop();
         oibar_fault_raise(oibar_v1_FAULT_TRANSFER_TIMEOUT);
+        return;
+    }
+    /* SAFETY_RULE_NO_BACKFLOW (D2): a supply reading below the target tank,
+     * or a target tank falling OIBAR_BACKFLOW_DROP_KPA below its highest
+     * reading of this transfer, is gas flowing backwards: close and fault
+     * (FAULT_FILL_STALLED: the fill does not progress, it regresses). The
+     * progress windows below would only restart on such a fall. */
+    const float tv_now = oibar_pressure_kpa(OIBAR_PSENS_TV);
+    if (tv_now > s_tv_peak_kpa) {
+        s_tv_peak_kpa = tv_now;
+    }
+    if (oibar_pressure_kpa(OIBAR_PSENS_SV) < tv_now - OIBAR_FLOW_MIN_HEAD_KPA ||
+        tv_now < s_tv_peak_kpa - OIBAR_BACKFLOW_DROP_KPA) {
+        oibar_ploop_stop();
+        oibar_fault_raise(oibar_v1_FAULT_FILL_STALLED);
         return;
     }
     /* SAFETY_RULE_FILL_MUST_PROGRESS: with the line above the target tank, gas

@@ -58,7 +58,8 @@ uint32_t oibar_safety_valve_blockers(void)
     }
     /* The end switch alone is one stuck contact away from "mated": the
      * position sensor must agree (found by the property test). */
-    if (!oibar_plane_is_extended() || oibar_plane_pos_mm() < OIBAR_PLANE_MATED_MIN_MM) {
+    if (!oibar_plane_is_extended() || !oibar_plane_pos_valid() ||
+        oibar_plane_pos_mm() < OIBAR_PLANE_MATED_MIN_MM) {
         b |= OIBAR_SAFETY_BIT(SAFETY_RULE_VALVES_NEED_PLANE_MATED);
     }
     if (!oibar_pressure_all_ok() || oibar_pressure_over()) {
@@ -141,6 +142,10 @@ oibar_v1_NackReason oibar_safety_prearm(void)
             return oibar_v1_NACK_PREARM_SENSOR;
         }
     }
+    /* D3: the position sensor is one of the sensors the transfer relies on. */
+    if (!oibar_plane_pos_valid()) {
+        return oibar_v1_NACK_PREARM_SENSOR;
+    }
     const float tol = OIBAR_PREARM_TOLERANCE_KPA;
     const float sv = oibar_pressure_kpa(OIBAR_PSENS_SV);
     const float tv = oibar_pressure_kpa(OIBAR_PSENS_TV);
@@ -152,6 +157,9 @@ oibar_v1_NackReason oibar_safety_prearm(void)
     /* The plane's end switch says mated; its position sensor must agree. */
     if (oibar_input(HAL_DI_PLANE_EXTENDED) && !(oibar_plane_pos_mm() >= OIBAR_PLANE_MATED_MIN_MM)) {
         return oibar_v1_NACK_PREARM_IMPLAUSIBLE;
+    }
+    if (!oibar_plane_sense_plausible()) {
+        return oibar_v1_NACK_PREARM_IMPLAUSIBLE; /* both end switches (D9) */
     }
     return oibar_v1_NACK_NONE;
 }

@@ -268,12 +268,22 @@ static void handle_handshake(oibar_link_t *link, const oibar_v1_Packet *req, uin
     copy_str(reply->build_id, sizeof(reply->build_id), link->cfg.build_id);
     reply->reset_cause = link->cfg.reset_cause;
     reply->uptime_ms = now_ms;
+    if (req->seq == 0u) {
+        /* seq 0 means "no seq": a session started on it would have no replay
+         * window for its first request (any seq accepted), so it is refused
+         * and nothing of the current session changes. */
+        reply->accepted = false;
+        reply->reason = oibar_v1_NACK_STALE_SEQ;
+        ++link->rx_stale;
+        send_response(link, &resp, req);
+        return;
+    }
 
     /* A new session: restart the peer's numbering and the replay window
      * from this packet. */
-    link->peer_seq_valid = (req->seq != 0u);
+    link->peer_seq_valid = true;
     link->peer_seq = req->seq;
-    link->req_seq_valid = (req->seq != 0u);
+    link->req_seq_valid = true;
     link->req_seq = req->seq;
     link->nav_seq_valid = false;
     send_response(link, &resp, req); /* replaces the duplicate memory */
@@ -287,8 +297,12 @@ static void handle_handshake(oibar_link_t *link, const oibar_v1_Packet *req, uin
         /* A peer that speaks another version took over the line: do not
          * keep accepting requests on the old session. */
         link_down(link);
+    } else if (ok) {
+        /* A re-handshake on a live link is a new session: the application
+         * drops what it kept from the old one (its navigation record). */
+        app_link_state(link, true);
     } else {
-        /* re-handshake on a live link, or a refusal while unconnected */
+        /* a refusal while unconnected */
     }
 }
 

@@ -246,6 +246,7 @@ void fake_plant_set_force_n(float force_n) { p_force_n = force_n; }
 float fake_plant_plane_mm(void) { return p_plane_mm; }
 int32_t fake_plant_latch_steps(void) { return p_latch_steps; }
 float fake_plant_tv_kpa(void) { return p_tv_kpa; }
+float fake_plant_sv_kpa(void) { return p_sv_kpa; }
 bool fake_plant_valve_open(unsigned valve) { return p_valve_open[valve & 1u]; }
 
 void fake_plant_set_tanks_kpa(float sv_kpa, float tv_kpa)

@@ -84,6 +84,7 @@ void fake_plant_clear_overrides(void);
 float fake_plant_plane_mm(void);
 int32_t fake_plant_latch_steps(void);
 float fake_plant_tv_kpa(void);
+float fake_plant_sv_kpa(void);
 bool fake_plant_valve_open(unsigned valve);
 
 

@@ -56,6 +56,7 @@ typedef enum {
     GUARD_START_OK,
     GUARD_FAULT_CAUSES_GONE,
     GUARD_VALVES_CLOSED,
+    GUARD_SOFT_DOCK_CONFIRMED,
     GUARD_COUNT
 } oibar_guard_t;
 

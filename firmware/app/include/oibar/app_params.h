@@ -73,6 +73,31 @@ typedef enum {
  * a few counts peak to peak), well below a real fill's drain over 3 s. */
 #define OIBAR_FILL_MIN_DRAIN_KPA 15.0f
 
+/* Lower bound of plane_coupling_mm: the couplings' poppets cannot touch
+ * before the alignment pins are well inside their cavities (assumption: not
+ * in the first half of the 40 mm travel). */
+#define OIBAR_PLANE_COUPLING_MIN_MM 20.0f
+/* Cross-parameter rules (oibar_params_consistent). Assumptions: a healthy
+ * valve strokes within 100 ms (valve_mismatch_ms's comment); the plane's
+ * full 40 mm travel takes 4 s at 10 mm/s. */
+#define OIBAR_VALVE_STROKE_MAX_MS 100.0f
+#define OIBAR_PLANE_FULL_TRAVEL_MS 4000.0f
+/* Flow direction (SAFETY_RULE_NO_BACKFLOW): START_TRANSFER needs the supply
+ * tank this far above the target tank (the sensors' calibration tolerance,
+ * so a reading error cannot fake a head); while open, a supply read below the
+ * target by as much, or a target tank falling this far from its highest
+ * reading of the transfer, is gas flowing backwards. The fall bound is above
+ * the dip of a target tank refilling an emptier line as the valves open. */
+#define OIBAR_FLOW_MIN_HEAD_KPA 100.0f
+#define OIBAR_BACKFLOW_DROP_KPA 50.0f
+/* Plane position plausibility (SAFETY_RULE_PLANE_SENSE_PAIR): the retracted
+ * end switch counts only with the position sensor at or below this (40 mm
+ * travel; the switch trips within 0.2 mm of the end), the extended one only
+ * at or above OIBAR_PLANE_MATED_MIN_MM. A reading above
+ * OIBAR_PLANE_POS_MAX_MM is out of range (the potentiometer spans 50 mm). */
+#define OIBAR_PLANE_RETRACTED_MAX_MM 2.5f
+#define OIBAR_PLANE_POS_MAX_MM 44.0f
+
 #define OIBAR_PARAM_COUNT ((unsigned)PARAM_ID_END - 1u)
 
 typedef struct {
@@ -87,6 +112,9 @@ typedef struct {
 
 /* Restore every default. */
 void oibar_params_init(void);
+/* The current table passes the cross-parameter rules (checked on every set,
+ * and at boot by oibar_app_init, which faults when it does not). */
+bool oibar_params_consistent(void);
 
 /* Definition by id, NULL when unknown. */
 const oibar_param_def_t *oibar_param_def(uint32_t id);
@@ -98,7 +126,8 @@ float oibar_param_f(oibar_param_id_t id);
 uint32_t oibar_param_u32(oibar_param_id_t id);
 
 /* Set a value: NACK_UNKNOWN_PARAM, NACK_PARAM_OUT_OF_BOUNDS (also for a
- * fraction on an integer parameter or NaN), NACK_PARAM_LOCKED when `state`
+ * fraction on an integer parameter, NaN, or a value in its own bounds that
+ * breaks a cross-parameter rule), NACK_PARAM_LOCKED when `state`
  * is not a safe state, else NACK_NONE. */
 oibar_v1_NackReason oibar_param_set(uint32_t id, float value, oibar_v1_State state);
 

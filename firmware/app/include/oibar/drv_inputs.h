@@ -22,6 +22,12 @@
  * transit), after debouncing. Compile-time: not a tunable. */
 #define OIBAR_LATCH_PAIR_TRANSIT_MAX_MS 100u
 
+/* Plane position sensor: a run of failed (or out of range) conversions this
+ * long (elapsed) and this many samples is a sensor fault (D3). Compile-time,
+ * the same tolerance as the pressure sensors'. */
+#define OIBAR_PLANE_POS_BAD_RUN_MS 10u
+#define OIBAR_PLANE_POS_BAD_RUN_MIN_SAMPLES 2u
+
 /* Take the raw levels as the debounced ones, without events (power-up). */
 void oibar_inputs_init(void);
 /* 1 kHz tick (ISR context): debounce, post SIG_CONTACT/_LOST,
@@ -37,6 +43,9 @@ bool oibar_latch_sensor_plausible(void);
 void oibar_inputs_analog_update(void);
 float oibar_contact_force_n(void);
 float oibar_plane_pos_mm(void);
+/* False until a first good reading, and after a run of bad ones (then
+ * FAULT_PLANE_POSITION was raised): oibar_plane_pos_mm() is not to be used. */
+bool oibar_plane_pos_valid(void);
 bool oibar_contact_force_valid(void);
 
 #endif

@@ -16,7 +16,9 @@
  * Homing is GRBL's: seek the home switch, pull off it by
  * OIBAR_STEPPER_PULLOFF_STEPS, then re-locate it at the slow speed (no
  * faster than the ramp's first step, so no ramp is needed) and zero there.
- * A switch that does not clear on the pull-off is a stall.
+ * A switch that does not clear on the pull-off is a stall. Homing that
+ * starts on the switch does the same (pull off, re-locate): only a switch
+ * seen to clear and trip again counts as home.
  *
  * Completion posts SIG_STEPPER_DONE (arg = move id); an exhausted budget
  * stops the motor and raises FAULT_LATCH_STALL.

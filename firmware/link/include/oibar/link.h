@@ -106,9 +106,11 @@ typedef struct {
     void (*fill_telemetry)(void *ctx, oibar_v1_Telemetry *out);
 
     /**
-     * The link came up (handshake accepted while unconnected) or went down
-     * (link loss, or a refused handshake while connected). On `up == false`
-     * the application safes the mechanism.
+     * The link came up (handshake accepted while unconnected, or again on a
+     * re-handshake while connected: a new session) or went down (link loss,
+     * or a refused handshake while connected). On `up == false` the
+     * application safes the mechanism; on every `up` it drops what it kept
+     * from an earlier session.
      */
     void (*on_link_state)(void *ctx, bool up);
 

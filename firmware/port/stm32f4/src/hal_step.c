@@ -11,7 +11,7 @@
 
 #define STEP_TICK_HZ 1000000u /* TIM2 counts microseconds */
 
-static hal_isr_fn s_step_fn;
+static hal_isr_fn volatile s_step_fn; /* written by attach, read by the TIM2 ISR */
 
 void port_step_timer_init(const clock_info_t *clk)
 {
