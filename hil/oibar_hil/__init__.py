@@ -11,4 +11,7 @@ the fixture's numbers come from `oibar.geometry`, shared with flight and trainin
 # 0.2.0: the port adapters leave the drogue's room free and the throat's latch bore is dark, so
 # the throat keypoint is visible where it is (datasets written by 0.1.0 are refused on resume:
 # re-render them with --force).
-__version__ = "0.2.0"
+# 0.3.0: the renderer made honest (issue 58): a depth bias of about a texel, so occluders of 1 cm
+# shade; the Earth as an extended, occludable light lit where the Sun lights it; exposure and
+# gamma settings (datasets written by 0.2.0 are refused on resume: re-render them with --force).
+__version__ = "0.3.0"

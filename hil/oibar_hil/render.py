@@ -2,8 +2,10 @@
 GPU is present).
 
 A depth pass renders the Sun's two shadow-map cascades into one atlas (cached while the Sun
-direction is unchanged), one pass draws the meshes with Lambert + Blinn-Phong lighting from the
-Sun, an Earth-albedo fill light and a small ambient term, and one pass draws the background on
+direction is unchanged) and the Earth's shadow maps into another (one per sample direction over
+its disc, cached while the Earth stays put in LVLH); one pass draws the meshes with Lambert +
+Blinn-Phong lighting from the Sun, Earth-shine from the whole sunlit part of the disc (occluded
+like the Sun) and a small ambient term, and one pass draws the background on
 the pixels left uncovered (black space with an analytic Earth, or a Perlin backdrop). The id
 pass (its own flat shader) writes each part's id into the red channel instead of a colour, for
 label checks. Performance notes for llvmpipe are in docs/synthetic.md.
@@ -40,10 +42,15 @@ out vec3 v_pos; out vec3 v_nrm; out vec4 v_col;
 // only adds the normal offset instead of doing 4x4 transforms per pixel. The far cascade is the
 // same light view scaled about the focus (same depth range), so it follows from these.
 out vec3 v_s0; out vec3 v_ds0;
+// The Earth's shadow-map coordinates of the vertex, offset 1 cm along its normal: affine too.
+uniform mat4 u_earth_vp[EARTH_SAMPLES];
+out vec3 v_e[EARTH_SAMPLES];
 void main() {
     v_pos = in_pos; v_nrm = in_nrm; v_col = in_col;
     v_s0 = (u_light_vp_near * vec4(in_pos, 1.0)).xyz * 0.5 + 0.5;
     v_ds0 = mat3(u_light_vp_near) * in_nrm * 0.5;
+    vec3 p_off = in_pos + 0.01 * normalize(in_nrm);
+    for (int k = 0; k < EARTH_SAMPLES; ++k) v_e[k] = (u_earth_vp[k] * vec4(p_off, 1.0)).xyz * 0.5 + 0.5;
     gl_Position = u_vp * vec4(in_pos, 1.0);
 }
 """
@@ -51,12 +58,24 @@ void main() {
 _MESH_FS = """
 #version 330
 uniform vec3 u_sun_dir;          // unit, towards the Sun
-uniform vec3 u_earth_dir;        // unit, towards the Earth's centre
+// The Earth as an extended light: EARTH_SAMPLES directions over its disc (139 deg across from
+// LEO), each with its own shadow map and a weight (the radiance of the Earth seen there, sunlit
+// or not, times its share of the disc's solid angle).
+uniform vec3 u_earth_l[EARTH_SAMPLES];      // unit, towards that patch of the Earth
+uniform float u_earth_w[EARTH_SAMPLES];     // irradiance weight (Sun = 1)
+uniform vec3 u_focus;                       // the centre of those maps
+uniform float u_earth_reach2;               // squared distance from it beyond which no map holds a point
+in vec3 v_e[EARTH_SAMPLES];                 // the point in each map ([0, 1]^3)
+uniform float u_earth_texel_depth;          // one texel of those maps in their depth units
+uniform sampler2DShadow u_earth_shadow;     // atlas: EARTH_TILES x EARTH_TILES maps
 uniform vec3 u_cam_pos;
 uniform float u_sun_intensity;
 uniform float u_ambient;
-uniform float u_albedo;
-uniform float u_shadow_bias;
+uniform float u_exposure;        // the sensor: scene radiance x exposure, clipped, then 1 / gamma
+uniform float u_gamma;
+uniform vec2 u_texel_depth;      // one shadow texel in shadow-depth units: near, far cascade
+uniform float u_bias_texels;     // depth bias in texels at normal incidence
+uniform float u_max_slope;       // the bias grows with tan(incidence) up to this
 uniform float u_atlas_margin;    // half a texel of one cascade: keeps the 2x2 PCF inside it
 uniform float u_far_scale;       // near / far cascade half-extent
 uniform sampler2DShadow u_shadow; // atlas: cascade 0 in the left half, cascade 1 in the right
@@ -73,20 +92,58 @@ void main() {
     vec3 view = normalize(u_cam_pos - v_pos);
     if (dot(n, view) < 0.0) { n = -n; inv_len = -inv_len; }   // thin panels are seen from both sides
     float ndl = max(dot(n, u_sun_dir), 0.0);
-    // Normal-offset lookup (2 mm near, 2 cm far) plus a constant bias against shadow acne;
+    // Normal-offset lookup (2 mm near, 2 cm far: a few texels of each cascade) plus a depth bias
+    // of about a texel, scaled with the slope of the surface to the light: enough against shadow
+    // acne, and small enough that an occluder of 1 cm still shades (a constant bias in depth
+    // units hid every occluder closer than ~12 cm along the light: rim, bosses, connector);
     // one hardware-filtered (2x2 PCF) tap in whichever cascade holds the point.
     vec3 s0 = v_s0 + (0.002 * inv_len) * v_ds0;
     vec3 s1 = v_s0 + (0.02 * inv_len) * v_ds0;
     s1.xy = (s1.xy - 0.5) * u_far_scale + 0.5;
     bool near = inside(s0);
     vec3 s = near ? vec3(s0.xy * vec2(0.5, 1.0), s0.z) : vec3(s1.xy * vec2(0.5, 1.0) + vec2(0.5, 0.0), s1.z);
-    float lit = texture(u_shadow, vec3(s.xy, s.z - u_shadow_bias));
+    float slope = min(sqrt(max(1.0 - ndl * ndl, 0.0)) / max(ndl, 1e-3), u_max_slope);
+    float bias = u_bias_texels * (1.0 + slope) * (near ? u_texel_depth.x : u_texel_depth.y);
+    float lit = texture(u_shadow, vec3(s.xy, s.z - bias));
     lit = (near || inside(s1)) ? lit : 1.0;    // (irrelevant where ndl == 0)
     vec3 h = normalize(u_sun_dir + view);
     float spec = ndl > 0.0 ? pow(max(dot(n, h), 0.0), 48.0) * v_col.a : 0.0;
-    vec3 c = v_col.rgb * (u_ambient + u_albedo * max(dot(n, u_earth_dir), 0.0) + u_sun_intensity * ndl * lit)
+    // Earth-shine: each sample's cosine, occluded through its own shadow map (1 cm normal offset,
+    // about a texel, and a slope-scaled depth bias, as for the Sun) near the fixture; unoccluded
+    // beyond the maps' reach.
+    float earth = 0.0;
+    vec3 dp = v_pos - u_focus;
+    float r2 = dot(dp, dp) / u_earth_reach2;
+    bool mapped = r2 < 1.0;
+    // towards the maps' edge the occlusion fades out, so their reach draws no line
+    float fade = smoothstep(0.5, 1.0, r2);
+    for (int k = 0; k < EARTH_SAMPLES; ++k) {
+        float ndk = max(dot(n, u_earth_l[k]), 0.0);
+        float vis = 1.0;
+        if (mapped && ndk > 0.0) {
+            vec3 e = v_e[k];
+            float slope = min(sqrt(max(1.0 - ndk * ndk, 0.0)) / max(ndk, 1e-3), u_max_slope);
+            vec2 tile = vec2(float(k % EARTH_TILES), float(k / EARTH_TILES));
+            vec2 uv = (tile + clamp(e.xy, 0.5 / EARTH_TILE_PX, 1.0 - 0.5 / EARTH_TILE_PX)) / float(EARTH_TILES);
+            float z = e.z - (1.0 + slope) * u_earth_texel_depth;
+            // four filtered taps 1.5 texels apart: the penumbra of a light 139 deg wide, roughly
+            vec2 o = 1.5 / (EARTH_TILE_PX * float(EARTH_TILES)) * vec2(1.0, -1.0);
+#if EARTH_TAPS == 4
+            vis = e.z < 1.0 ? 0.25 * (texture(u_earth_shadow, vec3(uv + o.xx, z))
+                                    + texture(u_earth_shadow, vec3(uv + o.yy, z))
+                                    + texture(u_earth_shadow, vec3(uv + o.xy, z))
+                                    + texture(u_earth_shadow, vec3(uv + o.yx, z)))
+                            : 1.0;
+#else
+            vis = e.z < 1.0 ? texture(u_earth_shadow, vec3(uv, z)) : 1.0;
+#endif
+            vis = mix(vis, 1.0, fade);
+        }
+        earth += u_earth_w[k] * ndk * vis;
+    }
+    vec3 c = v_col.rgb * (u_ambient + earth + u_sun_intensity * ndl * lit)
            + vec3(spec * lit * u_sun_intensity);
-    f_color = vec4(pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
+    f_color = vec4(pow(clamp(u_exposure * c, 0.0, 1.0), vec3(1.0 / u_gamma)), 1.0);
 }
 """
 
@@ -146,12 +203,18 @@ _PERLIN_FS = (
     """
 #version 330
 uniform sampler2D u_tex;
+uniform float u_exposure;
+uniform float u_gamma;
 in vec3 v_dir;
 out vec4 f_color;
 """
     + _EQUIRECT
     + """
-void main() { f_color = vec4(texture(u_tex, equirect(normalize(v_dir))).rgb, 1.0); }
+// a display-referred backdrop: exposure scales it as the sensor would its radiance
+void main() {
+    vec3 t = texture(u_tex, equirect(normalize(v_dir))).rgb;
+    f_color = vec4(clamp(t * pow(u_exposure, 1.0 / u_gamma), 0.0, 1.0), 1.0);
+}
 """
 )
 
@@ -167,6 +230,8 @@ uniform float u_inv_clen;         // 1 / |c|
 uniform float u_limb;             // angular radius of the Earth seen from the station
 uniform mat3 u_R_ecef_world;
 uniform sampler2D u_tex;
+uniform float u_exposure;
+uniform float u_gamma;
 in vec3 v_dir;
 out vec4 f_color;
 """
@@ -195,7 +260,7 @@ void main() {
             col = vec3(0.2, 0.4, 0.9) * (1.0 - above / 0.03) * (0.15 + 0.5 * sunlit);
         }
     }
-    f_color = vec4(pow(clamp(col, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
+    f_color = vec4(pow(clamp(u_exposure * col, 0.0, 1.0), vec3(1.0 / u_gamma)), 1.0);
 }
 """
 )
@@ -207,11 +272,18 @@ class RenderSettings:
     shadow_near_half_extent_m: float = 0.6  # cascade around the fixture: ~0.6 mm texels
     shadow_far_half_extent_m: float = 20.0  # cascade around the port: ~2 cm texels
     shadow_depth_m: float = 120.0
-    shadow_bias: float = 0.0005
+    shadow_bias_texels: float = 1.0  # depth bias at normal incidence, in texels of each cascade
+    shadow_max_slope: float = 5.0  # the bias grows with tan(incidence) up to this factor (+1)
     msaa_samples: int = 0  # off: ~2.5x faster on llvmpipe, labels unaffected
     sun_intensity: float = 1.0
     ambient: float = 0.03
-    albedo_max: float = 0.30  # Earth-shine fill at full sunlit Earth below
+    earth_albedo: float = 0.30  # the Earth's mean Lambertian albedo (a sunlit Earth's share of the Sun)
+    earth_samples: int = 6  # patches of the Earth's disc, each a shadow-mapped direction
+    earth_shadow_px: int = 512  # side of each of those maps
+    earth_shadow_taps: int = 4  # filtered taps per sample (1 or 4): 4 soften its penumbra
+    earth_shadow_half_extent_m: float = 3.0  # around the fixture: 12 mm texels (Earth-shine is soft)
+    exposure: float = 1.0  # scene radiance (Sun-lit white = 1) to the sensor's full scale, linear
+    gamma: float = 2.2  # the sensor's output encoding
     noise_sigma_dn: float = 0.0  # optional sensor noise (8-bit digital numbers)
     blur_sigma_px: float = 0.0  # optional optical blur (Gaussian)
 
@@ -314,6 +386,58 @@ def light_matrix(sun_dir: np.ndarray, focus: np.ndarray, half_extent_m: float, d
     return P @ V
 
 
+def fibonacci_disc(earth_c_km: np.ndarray, n: int) -> np.ndarray:
+    """`n` unit directions (LVLH) spread evenly in solid angle over the Earth's disc seen from
+    the station (a Fibonacci spiral on the cap of half-angle asin(R / |c|))."""
+    c = np.asarray(earth_c_km, float)
+    e = c / np.linalg.norm(c)
+    cos_a = np.sqrt(max(0.0, 1.0 - (EARTH_RADIUS_KM / np.linalg.norm(c)) ** 2))
+    i = np.arange(n) + 0.5
+    cos_t = 1.0 - i / n * (1.0 - cos_a)
+    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t**2))
+    phi = i * np.pi * (3.0 - np.sqrt(5.0))
+    up = np.array([1.0, 0.0, 0.0]) if abs(e[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(up, e)
+    x /= np.linalg.norm(x)
+    y = np.cross(e, x)
+    d = cos_t[:, None] * e + (sin_t * np.cos(phi))[:, None] * x + (sin_t * np.sin(phi))[:, None] * y
+    out: np.ndarray = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return out
+
+
+EARTH_FINE_SAMPLES = 512  # the disc's radiance is integrated over this many directions
+
+
+class EarthLight:
+    """The Earth as an extended light seen from the station: its disc cut into `n` patches of
+    equal solid angle (each a shadow-mapped direction, the mean of its part of a fine spiral),
+    and each patch's irradiance weight for a Sun direction (Sun = 1): the integral over the
+    patch of a Lambertian Earth's radiance, albedo / pi * max(n_earth . sun, 0). A surface
+    facing a fully sunlit Earth below gets about albedo x sin^2(disc half-angle), 0.26 at 420 km."""
+
+    def __init__(self, earth_c_km: np.ndarray, n: int, albedo: float):
+        c = np.asarray(earth_c_km, float)
+        self.albedo = float(albedo)
+        fine = fibonacci_disc(c, EARTH_FINE_SAMPLES)
+        coarse = fibonacci_disc(c, n)
+        self.patch = np.argmax(fine @ coarse.T, axis=1)
+        dirs = np.stack([fine[self.patch == k].sum(0) for k in range(n)])
+        self.dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        clen = float(np.linalg.norm(c))
+        b = fine @ c
+        t = b - np.sqrt(np.maximum(b * b - (clen * clen - EARTH_RADIUS_KM**2), 0.0))
+        self.n_earth = (
+            t[:, None] * fine - c
+        ) / EARTH_RADIUS_KM  # the Earth's normal where each fine ray meets it
+        cos_a = np.sqrt(max(0.0, 1.0 - (EARTH_RADIUS_KM / clen) ** 2))
+        self.d_omega = 2.0 * np.pi * (1.0 - cos_a) / EARTH_FINE_SAMPLES
+
+    def weights(self, sun: np.ndarray) -> np.ndarray:
+        radiance = self.albedo / np.pi * np.maximum(self.n_earth @ np.asarray(sun, float), 0.0)
+        w: np.ndarray = np.bincount(self.patch, radiance * self.d_omega, minlength=len(self.dirs))
+        return w
+
+
 class Renderer:
     def __init__(self, camera: PinholeCamera | None = None, settings: RenderSettings | None = None, ctx=None):
         import moderngl
@@ -323,7 +447,15 @@ class Renderer:
         self.ctx = ctx or create_context()
         c, s = self.ctx, self.settings
         W, H = self.camera.width_px, self.camera.height_px
-        self.mesh_prog = c.program(vertex_shader=_MESH_VS, fragment_shader=_MESH_FS)
+        self.earth_tiles = int(np.ceil(np.sqrt(s.earth_samples)))
+        defines = (
+            f"#define EARTH_SAMPLES {s.earth_samples}\n#define EARTH_TILES {self.earth_tiles}\n"
+            f"#define EARTH_TILE_PX {float(s.earth_shadow_px)}\n#define EARTH_TAPS {s.earth_shadow_taps}\n"
+        )
+        self.mesh_prog = c.program(
+            vertex_shader=_MESH_VS.replace("#version 330\n", "#version 330\n" + defines, 1),
+            fragment_shader=_MESH_FS.replace("#version 330\n", "#version 330\n" + defines, 1),
+        )
         self.id_prog = c.program(vertex_shader=_ID_VS, fragment_shader=_ID_FS)
         self.depth_prog = c.program(vertex_shader=_DEPTH_VS, fragment_shader=_DEPTH_FS)
         # One background program per kind, so neither pays for the other's instructions
@@ -354,6 +486,18 @@ class Renderer:
         self.shadow_fbo = c.framebuffer(depth_attachment=self.shadow_tex)
         self._shadow_key: tuple[object, ...] | None = None
         self._light_vp = [np.eye(4), np.eye(4)]
+        # The Earth's shadow maps, one tile per sample direction (made when the Earth moves in
+        # LVLH or the scene changes: once per scene for a station in LVLH hold).
+        m = s.earth_shadow_px * self.earth_tiles
+        self.earth_shadow_tex = c.depth_texture((m, m))
+        self.earth_shadow_tex.compare_func = "<="
+        self.earth_shadow_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        self.earth_shadow_tex.repeat_x = self.earth_shadow_tex.repeat_y = False
+        self.earth_shadow_fbo = c.framebuffer(depth_attachment=self.earth_shadow_tex)
+        self._earth_key: tuple[object, ...] | None = None
+        self._earth: EarthLight | None = None
+        self._earth_l = np.zeros((s.earth_samples, 3))
+        self._earth_vp = np.zeros((s.earth_samples, 4, 4))
 
         self._earth_tex: Any = None  # built on first use: ~1 s of noise, not needed for `perlin`
         self.bg_tex: Any = None
@@ -437,6 +581,7 @@ class Renderer:
                 self._earth_tex = self._texture(earth_texture(width=2048, height=1024))
             self.bg_tex = self._earth_tex
         self._shadow_key = None
+        self._earth_key = None
         self.triangles = int(len(idx))
 
     def _update_shadow(self, sun_lvlh: np.ndarray) -> None:
@@ -461,6 +606,27 @@ class Renderer:
         self.ctx.polygon_offset = (0.0, 0.0)
         self._shadow_key = key
 
+    def _update_earth_shadow(self, earth_c_km: np.ndarray) -> None:
+        """The sample directions over the Earth's disc and their shadow maps (cached)."""
+        key = (tuple(np.round(earth_c_km, 6)), tuple(self.focus))
+        if key == self._earth_key:
+            return
+        s = self.settings
+        self._earth = EarthLight(earth_c_km, s.earth_samples, s.earth_albedo)
+        self._earth_l = self._earth.dirs
+        self.ctx.enable(self.ctx.DEPTH_TEST | self.ctx.CULL_FACE)
+        self.ctx.polygon_offset = (1.5, 2.0)
+        m = s.earth_shadow_px
+        self.earth_shadow_fbo.use()
+        self.earth_shadow_fbo.clear(depth=1.0)
+        for k, d in enumerate(self._earth_l):
+            self._earth_vp[k] = light_matrix(d, self.focus, s.earth_shadow_half_extent_m, s.shadow_depth_m)
+            self.earth_shadow_fbo.viewport = ((k % self.earth_tiles) * m, (k // self.earth_tiles) * m, m, m)
+            self.depth_prog["u_light_vp"].write(_m4(self._earth_vp[k]))
+            self.depth_vao.render()
+        self.ctx.polygon_offset = (0.0, 0.0)
+        self._earth_key = key
+
     def _render(
         self,
         R_lvlh_cam: np.ndarray,
@@ -476,13 +642,14 @@ class Renderer:
         cam, s, ctx = self.camera, self.settings, self.ctx
         sun = np.asarray(sun_lvlh, dtype=float)
         sun = sun / np.linalg.norm(sun)
-        if mode == "shaded":
-            self._update_shadow(sun)
         earth_c = (
             np.array([0.0, 0.0, 6371.0 + 420.0])
             if earth_center_lvlh_km is None
             else np.asarray(earth_center_lvlh_km, float)
         )
+        if mode == "shaded":
+            self._update_shadow(sun)
+            self._update_earth_shadow(earth_c)
         R_ecef = np.eye(3) if R_ecef_lvlh is None else R_ecef_lvlh
 
         self.fbo.use()
@@ -497,18 +664,32 @@ class Renderer:
             self.id_vao.render()
         else:
             mp = self.mesh_prog
-            earth_dir = earth_c / np.linalg.norm(earth_c)
             mp["u_vp"].write(vp)
             mp["u_light_vp_near"].write(_m4(self._light_vp[0]))
             mp["u_far_scale"].value = s.shadow_near_half_extent_m / s.shadow_far_half_extent_m
             mp["u_sun_dir"].value = tuple(sun)
-            mp["u_earth_dir"].value = tuple(earth_dir)
+            mp["u_earth_l"].write(self._earth_l.astype("f4").tobytes())
+            w = self._earth.weights(sun) * s.sun_intensity
+            mp["u_earth_w"].write(w.astype("f4").tobytes())
+            mp["u_earth_vp"].write(b"".join(_m4(M) for M in self._earth_vp))
+            mp["u_focus"].value = tuple(self.focus)
+            mp["u_earth_reach2"].value = s.earth_shadow_half_extent_m**2
+            mp["u_earth_texel_depth"].value = s.earth_shadow_half_extent_m / (
+                s.earth_shadow_px * s.shadow_depth_m
+            )
+            self.earth_shadow_tex.use(location=3)
+            mp["u_earth_shadow"].value = 3
             mp["u_cam_pos"].value = tuple(np.asarray(p_lvlh_cam, float))
             mp["u_sun_intensity"].value = s.sun_intensity
             mp["u_ambient"].value = s.ambient
-            # Earth-shine scales with how much of the Earth below is sunlit.
-            mp["u_albedo"].value = s.albedo_max * max(0.0, float(-sun @ earth_dir))
-            mp["u_shadow_bias"].value = s.shadow_bias
+            mp["u_exposure"].value, mp["u_gamma"].value = s.exposure, s.gamma
+            n = s.shadow_map_px
+            mp["u_texel_depth"].value = (
+                s.shadow_near_half_extent_m / (n * s.shadow_depth_m),
+                s.shadow_far_half_extent_m / (n * s.shadow_depth_m),
+            )
+            mp["u_bias_texels"].value = s.shadow_bias_texels
+            mp["u_max_slope"].value = s.shadow_max_slope
             mp["u_atlas_margin"].value = 0.5 / s.shadow_map_px
             self.shadow_tex.use(location=2)
             mp["u_shadow"].value = 2
@@ -520,6 +701,7 @@ class Renderer:
             bp["u_R_world_cam"].write(_m3(R_lvlh_cam))
             bp["u_intr"].value = (cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
             bp["u_size"].value = (float(cam.width_px), float(cam.height_px))
+            bp["u_exposure"].value, bp["u_gamma"].value = s.exposure, s.gamma
             if kind == "iss":
                 clen = float(np.linalg.norm(earth_c))
                 bp["u_sun_dir"].value = tuple(sun)

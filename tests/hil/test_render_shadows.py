@@ -2,6 +2,7 @@
 and a shaded frame does not depend on what was rendered before it (GL state, shadow cache)."""
 
 import numpy as np
+import pytest
 import trimesh
 
 from oibar.geometry.camera import PinholeCamera
@@ -67,3 +68,97 @@ def test_shaded_frame_independent_of_history(gl_renderer):
     gl_renderer.render(R_l_c, p_l_c, sun_b)  # re-renders the shadow maps
     again = gl_renderer.render(R_l_c, p_l_c, sun_a)  # ... and back
     assert np.array_equal(first, again)
+
+
+def test_an_occluder_of_one_centimetre_casts_its_shadow(gl_renderer):
+    """A 1 cm step (the rim is 2 cm, the pin-guide bosses less) shades the plate beside it: the
+    depth bias is about a texel scaled with the slope, not a constant ~12 cm of the shadow depth
+    range that hid every occluder closer than that along the light."""
+    slab = trimesh.creation.box(extents=(2.0, 2.0, 0.1))
+    slab.apply_translation([0.0, 0.0, 0.05])  # front face on z = 0
+    step = trimesh.creation.box(extents=(0.06, 0.06, 0.01))
+    step.apply_translation([0.0, 0.0, -0.005])  # 1 cm proud of the plate, towards the camera
+    parts = [Part(_to_lvlh(slab), (0.8, 0.8, 0.8), 0.0, 2), Part(_to_lvlh(step), (0.8, 0.8, 0.8), 0.0, 3)]
+    gl_renderer.load_scene(parts, "perlin", PORT.p_lvlh_t, perlin_seed=0)
+    R_t_cam = np.eye(3)
+    T_cam = np.array([0.0, 0.0, 0.8])
+    R_l_c, p_l_c = PORT.R_lvlh_t @ R_t_cam, PORT.p_lvlh_t + PORT.R_lvlh_t @ (-R_t_cam @ T_cam)
+    sun_t = np.array([np.cos(np.radians(30.0)), 0.0, -np.sin(np.radians(30.0))])  # 30 deg above the plate
+    img = gl_renderer.render(R_l_c, p_l_c, PORT.R_lvlh_t @ sun_t).astype(float).mean(axis=2)
+
+    def pixel(p_t):
+        u, v = CAM.project(transform_points(np.asarray(p_t, float)[None], np.eye(3), T_cam))[0]
+        return int(v), int(u)
+
+    # the shadow falls away from the Sun (-x), 1 cm / tan 30 deg = 17 mm long behind the step's edge
+    shadow = pixel([-0.03 - 0.008, 0.0, 0.0])
+    lit = pixel([-0.03 - 0.008, 0.08, 0.0])  # the same distance from the step, beside its shadow
+    assert img[shadow] < 0.6 * img[lit], (img[shadow], img[lit])
+    # and no acne: the open plate is evenly lit
+    a, b = img[pixel([0.15, 0.1, 0.0])], img[pixel([0.25, -0.15, 0.0])]
+    assert abs(a - b) <= 2, (a, b)
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """R_lvlh_cam of a camera (OpenCV axes) at `eye` looking at `target`."""
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, np.array([0.0, 1.0, 0.0]))
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def test_earth_shine_comes_from_the_whole_disc_and_a_wall_shades_it(gl_renderer):
+    """The Earth spans ~139 deg from LEO: a plate facing it is lit by the whole disc, and a wall
+    hanging beside a point hides about half of that disc from it, so the plate is darker next to
+    the wall than away from it (a directional fill light without shadow lit both alike). The Sun
+    stands overhead: the plate's Earth-facing side gets no direct Sun, and the Earth below is day."""
+    f = PORT.p_lvlh_t
+    plate = trimesh.creation.box(extents=(2.0, 2.0, 0.02))
+    plate.apply_translation(f)  # its underside (normal +Z, towards the Earth) 1 cm below the focus
+    wall = trimesh.creation.box(extents=(0.02, 2.0, 0.5))
+    wall.apply_translation(f + np.array([0.0, 0.0, 0.26]))  # hangs below the plate at x = 0
+    parts = [Part(plate, (0.8, 0.8, 0.8), 0.0, 2), Part(wall, (0.8, 0.8, 0.8), 0.0, 3)]
+    gl_renderer.load_scene(parts, "perlin", f, perlin_seed=0)
+    eye, target = f + np.array([1.4, 0.0, 1.0]), f + np.array([0.5, 0.0, 0.01])
+    R_l_c = _look_at(eye, target)
+    img = gl_renderer.render(R_l_c, eye, np.array([0.0, 0.0, -1.0])).astype(float).mean(axis=2)
+
+    def pixel(p):
+        u, v = CAM.project(transform_points(np.asarray(p, float)[None], R_l_c.T, -R_l_c.T @ eye))[0]
+        return int(v), int(u)
+
+    near, away = img[pixel(f + [0.04, 0.3, 0.011])], img[pixel(f + [0.9, 0.3, 0.011])]
+    assert near < 0.85 * away, (near, away)
+    assert away > 100  # lit by the day side of the Earth alone: far above the ambient term
+
+
+def test_earth_shine_follows_the_sunlit_part_of_the_disc():
+    """A Lambertian Earth: below a station with the Sun overhead the whole disc is day, and a
+    surface facing it gets the integral of albedo / pi x cos(Sun on the ground) x cos(incidence)
+    over the disc (here by quadrature on a fine polar grid; the six patches within 10 %); with the
+    Sun behind the Earth, night (no Earth-shine)."""
+    from oibar_hil.render import EARTH_RADIUS_KM, EarthLight
+
+    c = np.array([0.0, 0.0, 6371.0 + 420.0])
+    earth = EarthLight(c, 6, albedo=0.3)
+    sin2 = (EARTH_RADIUS_KM / np.linalg.norm(c)) ** 2
+    facing = np.array([0.0, 0.0, 1.0])  # a surface facing nadir sees each patch at this cosine
+    day = float(earth.weights(np.array([0.0, 0.0, -1.0])) @ np.maximum(earth.dirs @ facing, 0.0))
+    night = float(earth.weights(np.array([0.0, 0.0, 1.0])) @ np.maximum(earth.dirs @ facing, 0.0))
+    # the Sun 60 deg from the zenith: the ground the station sees is tilted at most ~20 deg, so
+    # it is lit at about cos 60 deg
+    sun60 = np.array([np.sin(np.radians(60.0)), 0.0, -np.cos(np.radians(60.0))])
+    dusk = float(earth.weights(sun60) @ np.maximum(earth.dirs @ facing, 0.0))
+    # quadrature: rays at angle t from nadir meet the ground where its normal is tilted by
+    # t + (angle at the Earth's centre); the Sun overhead lights it at that tilt's cosine
+    alpha = np.arcsin(np.sqrt(sin2))
+    t = (np.arange(2000) + 0.5) / 2000 * alpha
+    clen = np.linalg.norm(c)
+    ground = np.arcsin(np.clip(clen / EARTH_RADIUS_KM * np.sin(t), -1, 1))  # angle of incidence on the ground
+    tilt = ground - t  # the ground normal's angle from the station's zenith
+    integrand = 0.3 / np.pi * np.cos(tilt) * np.cos(t) * 2 * np.pi * np.sin(t)
+    exact = float(np.sum(integrand) * alpha / 2000)
+    assert exact < 0.3 * sin2  # below a uniformly bright disc's albedo x sin^2
+    assert day == pytest.approx(exact, rel=0.10)
+    assert night == 0.0
+    assert 0.4 * day < dusk < 0.6 * day
