@@ -26,3 +26,12 @@ dataset-train: setup ## render the training scenes (TRAIN_SPEC, default models/s
 
 dataset-val: setup ## render the validation scenes (models/scenes/val.json) into data/val (resumable; SHARD=i/N)
 	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/val --spec models/scenes/val.json --workers $(JOBS) $(if $(SHARD),--shard $(SHARD))
+
+# The validation looks of the second renderer (issue 58): six validation scenes drawn by Mitsuba 3
+# with our materials and lights, and in the lab's look. One process (Mitsuba threads itself);
+# about 2 s (lab, perlin) to 7 s (iss) a frame on 2 cores, 30-40 min for both.
+.PHONY: dataset-looks
+dataset-looks: SETUP_PROFILE = looks
+dataset-looks: setup ## render the Mitsuba validation looks (models/scenes/val_mitsuba.json, val_lab.json) into data/ (resumable)
+	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/val_lab --spec models/scenes/val_lab.json --workers 1
+	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/val_mitsuba --spec models/scenes/val_mitsuba.json --workers 1

@@ -81,6 +81,12 @@ class SequenceSpec:
     turned_deg: float = 0.0
     # A chaser that wanders up to this far off the docking axis below 10 m (trajectory.generate).
     offaxis_m: float = 0.0
+    # Who draws the frames: "raster" (render.Renderer, our training renderer) or "mitsuba" (the
+    # path tracer of render_mitsuba: validation and test looks only, issue 58), and its look:
+    # "matched" (our materials and lights) or "lab" (grey print, a lamp beside the camera, black).
+    renderer: str = "raster"
+    look: str = "matched"
+    mitsuba_spp: int = 64
 
     def validate(self) -> None:
         if self.frame_stride < 1:
@@ -102,6 +108,12 @@ class SequenceSpec:
             )
         if not 0.0 <= self.offaxis_m <= 1.0:
             raise ValueError(f"{self.name}: offaxis_m must be 0-1 m, got {self.offaxis_m}")
+        if self.renderer not in ("raster", "mitsuba"):
+            raise ValueError(f"{self.name}: renderer must be raster or mitsuba, got {self.renderer!r}")
+        if self.look not in ("matched", "lab") or (self.look == "lab" and self.renderer != "mitsuba"):
+            raise ValueError(f"{self.name}: look must be matched, or lab with the mitsuba renderer")
+        if self.mitsuba_spp < 1:
+            raise ValueError(f"{self.name}: mitsuba_spp must be >= 1")
 
 
 def spec_dict(spec: SequenceSpec) -> dict:
@@ -114,6 +126,8 @@ def spec_dict(spec: SequenceSpec) -> dict:
         del d["turned_deg"]
     if d.get("offaxis_m") == 0.0:
         del d["offaxis_m"]
+    if d.get("renderer") == "raster":
+        del d["renderer"], d["look"], d["mitsuba_spp"]
     return d
 
 
@@ -285,20 +299,26 @@ def _renderer_for(spec: SequenceSpec):
     from .render import Renderer
 
     settings = RenderSettings(noise_sigma_dn=spec.noise_sigma_dn, blur_sigma_px=spec.blur_sigma_px)
+    kind = (spec.renderer, spec.look, spec.mitsuba_spp, spec.seed) if spec.renderer == "mitsuba" else "raster"
     r = _WORKER.get("renderer")
-    if r is None or r.settings != settings:
-        if r is not None:
+    if r is None or r.settings != settings or _WORKER.get("kind") != kind:
+        if r is not None and hasattr(r, "release"):
             r.release()
-        r = _WORKER["renderer"] = Renderer(PinholeCamera(), settings)
+        if spec.renderer == "mitsuba":
+            from .render_mitsuba import MitsubaRenderer, MitsubaSettings
+
+            r = MitsubaRenderer(
+                PinholeCamera(), settings, MitsubaSettings(spp=spec.mitsuba_spp), spec.seed, spec.look
+            )
+        else:
+            r = Renderer(PinholeCamera(), settings)
+        _WORKER["renderer"], _WORKER["kind"] = r, kind
         _WORKER["scene"] = None
     key = (spec.background, spec.port, spec.seed)
     if _WORKER.get("scene") != key:
-        r.load_scene(
-            scene_parts(spec.background, spec.port),
-            spec.background,
-            PORTS[spec.port].p_lvlh_t,
-            perlin_seed=spec.seed,
-        )
+        # the lab's mock-up is the fixture alone
+        parts = scene_parts("perlin" if spec.look == "lab" else spec.background, spec.port)
+        r.load_scene(parts, spec.background, PORTS[spec.port].p_lvlh_t, perlin_seed=spec.seed)
         _WORKER["scene"] = key
     return r
 
@@ -309,6 +329,8 @@ def _render_chunk(task: dict) -> int:
     seq_dir = Path(task["seq_dir"])
     for j, k in enumerate(task["frames"]):
         rng = np.random.default_rng([spec.seed, k]) if spec.noise_sigma_dn > 0 else None
+        # a path tracer's samples are seeded per frame, whichever worker draws it
+        extra = {"seed": k} if spec.renderer == "mitsuba" else {}
         img = r.render(
             task["R_lvlh_cam"][j],
             task["p_lvlh_cam"][j],
@@ -316,6 +338,7 @@ def _render_chunk(task: dict) -> int:
             task["R_ecef_lvlh"][j],
             task["earth_center_lvlh_km"],
             rng=rng,
+            **extra,
         )
         _write_atomic(seq_dir / frame_name(k, spec.image_format), encode_image(img, spec))
     return len(task["frames"])

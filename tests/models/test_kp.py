@@ -1470,3 +1470,31 @@ def test_far_only_scenes_train_on_their_far_frames_alone(tiny_dataset, kp_sets, 
         "data.far_only_from_m=3.0",
     ]
     assert train_main(args) == 0 and (run / "done.json").is_file()
+
+
+def test_the_evaluation_counts_silent_failures():
+    """A frame beyond the requirement (5 % of range or 5 deg) that the daemon would act on
+    (confidence at or above its 0.5) is a silent failure; flagged (low confidence) or within
+    bounds it is not; a frame without an answer is neither (compliance counts it as failed)."""
+    from types import SimpleNamespace as NS
+
+    from oibar_models.kp_evaluate import summarise
+
+    T = np.array([[0.0, 0.0, 4.0]] * 5)
+    q = np.array([[1.0, 0.0, 0.0, 0.0]] * 5)
+    T_hat = T.copy()
+    T_hat[1, 2] = 4.4  # 10 % too far, confident: silent
+    T_hat[2, 2] = 4.4  # 10 % too far, flagged
+    T_hat[4] = np.nan  # no answer
+    q_hat = q.copy()
+    q_hat[3] = [np.cos(np.radians(3.0)), np.sin(np.radians(3.0)), 0.0, 0.0]  # 6 deg, confident: silent
+    r = {
+        "idx": np.arange(5),
+        "T_hat": T_hat,
+        "q_hat": q_hat,
+        "confidence": np.array([0.9, 0.8, 0.2, 0.5, 0.0]),
+        "latency_ms": np.ones(5),
+    }
+    s = summarise(NS(T_cam_target=T, q_cam_target=q), r)
+    assert s["silent_failures"] == 2 and s["silent_failure_pct"] == pytest.approx(40.0)
+    assert s["out_of_bounds_pct"] == pytest.approx(60.0)
