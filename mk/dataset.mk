@@ -35,3 +35,15 @@ dataset-looks: SETUP_PROFILE = looks
 dataset-looks: setup ## render the Mitsuba validation looks (models/scenes/val_mitsuba.json, val_lab.json) into data/ (resumable)
 	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/val_lab --spec models/scenes/val_lab.json --workers 1
 	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/val_mitsuba --spec models/scenes/val_mitsuba.json --workers 1
+
+# THE FROZEN TEST SET (issue 58, part 6): six scenes of their own seeds, off-axis, turned and rolled
+# approaches, in our renderer (every 4th frame) and in Mitsuba's two looks (every 48th frame).
+# Never used for a choice; `make eval-test-frozen` reads it once per shipped model.
+.PHONY: dataset-test-frozen dataset-test-frozen-looks
+dataset-test-frozen: SETUP_PROFILE = demo
+dataset-test-frozen: setup ## render the frozen test set, our renderer (models/scenes/test_frozen.json) into data/test_frozen
+	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/test_frozen --spec models/scenes/test_frozen.json --workers $(JOBS)
+dataset-test-frozen-looks: SETUP_PROFILE = looks
+dataset-test-frozen-looks: setup ## render the frozen test set's Mitsuba looks (test_frozen_mitsuba.json, test_frozen_lab.json) into data/
+	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/test_frozen_lab --spec models/scenes/test_frozen_lab.json --workers 1
+	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/test_frozen_mitsuba --spec models/scenes/test_frozen_mitsuba.json --workers 1

@@ -5,10 +5,10 @@ TRAIN_ARGS   ?=
 EVAL_ARGS    ?=
 TEMPORAL_ARGS ?=
 
-.PHONY: train export eval temporal train-kp export-kp eval-kp eval-looks recover-kp
+.PHONY: train export eval temporal train-kp export-kp eval-kp eval-looks eval-test-frozen recover-kp
 
 # PyTorch and the rest of requirements/ml.txt, without the linters (Makefile, SETUP_PROFILE).
-train export eval temporal train-kp export-kp eval-kp eval-looks recover-kp: SETUP_PROFILE = train
+train export eval temporal train-kp export-kp eval-kp eval-looks eval-test-frozen recover-kp: SETUP_PROFILE = train
 
 # The shipped model takes two stages: the base network, then the keypoint branch fine-tuned
 # from it (models/configs/oibarnet_lite.yaml says why). A MODEL_CONFIG given on the command
@@ -101,6 +101,12 @@ eval-kp: setup ## the flight estimator on validation and test scenes: tables, ra
 # Mitsuba with our materials and lights, and the lab's look; every frame, alone and tracking.
 eval-looks: setup ## the flight estimator on the Mitsuba validation looks (runs/eval_looks)
 	@$(PY) -m oibar_models.kp_evaluate --models models/oibarnet.onnx --sets val_mitsuba val_lab --stride 1 --out $(ROOT)/runs/eval_looks $(KP_EVAL_ARGS)
+
+# The frozen test set (`make dataset-test-frozen dataset-test-frozen-looks` first), read once per
+# shipped model after its verdict: kp_evaluate refuses a second read of the same file
+# (models/scenes/test_reads.jsonl) unless KP_EVAL_ARGS='--reread "why"'.
+eval-test-frozen: setup ## the shipped estimator on the frozen test set, all three looks (runs/eval_test_frozen)
+	@$(PY) -m oibar_models.kp_evaluate --models models/oibarnet.onnx --sets test_frozen test_frozen_mitsuba test_frozen_lab --stride 1 --out $(ROOT)/runs/eval_test_frozen $(KP_EVAL_ARGS)
 
 # The shipped keypoint model as a checkpoint (runs/ is not committed, and a fresh machine has
 # none): its ONNX weights with the batch norms unfolded and calibrated on the training crops,

@@ -81,6 +81,8 @@ class SequenceSpec:
     turned_deg: float = 0.0
     # A chaser that wanders up to this far off the docking axis below 10 m (trajectory.generate).
     offaxis_m: float = 0.0
+    # A chaser rolled by this much about its docking axis throughout (trajectory.generate).
+    rolled_deg: float = 0.0
     # Who draws the frames: "raster" (render.Renderer, our training renderer) or "mitsuba" (the
     # path tracer of render_mitsuba: validation and test looks only, issue 58), and its look:
     # "matched" (our materials and lights) or "lab" (grey print, a lamp beside the camera, black).
@@ -108,6 +110,8 @@ class SequenceSpec:
             )
         if not 0.0 <= self.offaxis_m <= 1.0:
             raise ValueError(f"{self.name}: offaxis_m must be 0-1 m, got {self.offaxis_m}")
+        if not -180.0 <= self.rolled_deg <= 180.0:
+            raise ValueError(f"{self.name}: rolled_deg must be -180-180 deg, got {self.rolled_deg}")
         if self.renderer not in ("raster", "mitsuba"):
             raise ValueError(f"{self.name}: renderer must be raster or mitsuba, got {self.renderer!r}")
         if self.look not in ("matched", "lab") or (self.look == "lab" and self.renderer != "mitsuba"):
@@ -126,6 +130,8 @@ def spec_dict(spec: SequenceSpec) -> dict:
         del d["turned_deg"]
     if d.get("offaxis_m") == 0.0:
         del d["offaxis_m"]
+    if d.get("rolled_deg") == 0.0:
+        del d["rolled_deg"]
     if d.get("renderer") == "raster":
         del d["renderer"], d["look"], d["mitsuba_spp"]
     return d
@@ -182,7 +188,12 @@ def plan_sequence(
 ) -> SequencePlan:
     spec.validate()
     traj = generate(
-        spec.seed, envelope=spec.envelope, params=params, turned_deg=spec.turned_deg, offaxis_m=spec.offaxis_m
+        spec.seed,
+        envelope=spec.envelope,
+        params=params,
+        turned_deg=spec.turned_deg,
+        offaxis_m=spec.offaxis_m,
+        rolled_deg=spec.rolled_deg,
     )
     port = PORTS[spec.port]
     cp = camera_poses(traj, port)

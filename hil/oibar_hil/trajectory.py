@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from oibar.geometry.rotations import rotvec_to_matrix
+from oibar.geometry.rotations import matrix_to_rotvec, rotvec_to_matrix
 
 PHASE_ACQUISITION = 1
 PHASE_FORCED_TRANSLATION = 2
@@ -134,6 +134,7 @@ def generate(
     params: TrajectoryParams | None = None,
     turned_deg: float = 0.0,
     offaxis_m: float = 0.0,
+    rolled_deg: float = 0.0,
 ) -> Trajectory:
     """`turned_deg` > 0: the chaser keeps a constant misalignment of that size (about a random
     axis in the berthing plane, from its own generator so the rest of the trajectory is the same
@@ -145,7 +146,11 @@ def generate(
     from the fixture, so it stays in the picture close in), again from its own generator. The
     paper's phases hold it within 1-2 cm of the axis below 10 m, so a network trained on them
     alone has never seen the fixture's depth (the drogue's throat) from the side: it reads a
-    lateral offset as a rotation, which is what a closed loop that is off the axis shows it."""
+    lateral offset as a rotation, which is what a closed loop that is off the axis shows it.
+
+    `rolled_deg`: the chaser is rolled by this much about its own docking axis throughout (the
+    probe is round; the fixture turns in the picture), so a test set measures attitude beyond
+    the near-aligned frames of the paper's sequences."""
     p = params or TrajectoryParams()
     rng = np.random.default_rng(seed)
     dt = p.dt_s
@@ -264,6 +269,10 @@ def generate(
         misalign = [m + turn for m in misalign]
     n = len(pos)
     R = np.stack([rotvec_to_matrix(r) for r in rot])
+    if rolled_deg:
+        R_roll = rotvec_to_matrix(np.array([0.0, 0.0, np.radians(rolled_deg)]))
+        R = R @ R_roll
+        misalign = [matrix_to_rotvec(rotvec_to_matrix(m) @ R_roll) for m in misalign]
     info = {
         "waypoint_a_m": wp_a.tolist(),
         "waypoint_b_m": wp_b.tolist(),
@@ -272,6 +281,7 @@ def generate(
         "envelope_closing_speed_mps": float(env_speed) if envelope else None,
         "turned_deg": float(turned_deg),
         "offaxis_m": float(offaxis_m),
+        "rolled_deg": float(rolled_deg),
     }
     return Trajectory(
         t_s=np.round(np.arange(n) * dt, 6),

@@ -64,7 +64,30 @@ SETS = {
     # drawn by Mitsuba 3, with our materials and lights and in the lab's look (make dataset-looks)
     "val_mitsuba": ("models/scenes/val_mitsuba.json", "data/val_mitsuba"),
     "val_lab": ("models/scenes/val_lab.json", "data/val_lab"),
+    # the one frozen test set (issue 58, part 6), in our renderer and in Mitsuba's two looks: read
+    # once per shipped model (TEST_LEDGER)
+    "test_frozen": ("models/scenes/test_frozen.json", "data/test_frozen"),
+    "test_frozen_mitsuba": ("models/scenes/test_frozen_mitsuba.json", "data/test_frozen_mitsuba"),
+    "test_frozen_lab": ("models/scenes/test_frozen_lab.json", "data/test_frozen_lab"),
 }
+# Every read of a test set (the paper's sequences 1 and 8, the frozen set) by a model file, so
+# that a test set is read once per shipped model: a second read of the same file is refused
+# unless it says why (--reread), and that reason is kept too.
+TEST_LEDGER = "models/scenes/test_reads.jsonl"
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def test_reads(ledger: Path, set_name: str, sha: str) -> list[dict]:
+    """The ledger's earlier reads of `set_name` by the model file with this hash."""
+    if not ledger.is_file():
+        return []
+    rows = [json.loads(line) for line in ledger.read_text().splitlines() if line.strip()]
+    return [r for r in rows if r.get("set") == set_name and r.get("sha256") == sha]
 
 
 def model_label(path: Path, meta: dict) -> str:
@@ -329,7 +352,27 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/eval_kp")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument(
+        "--reread",
+        metavar="REASON",
+        help="read a test set again with a model file that has read it before, and say why (kept in the ledger)",
+    )
+    ap.add_argument("--ledger", type=Path, default=REPO_ROOT / TEST_LEDGER, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    test_sets = [n for n in a.sets if n.startswith("test")]
+    shas = {}
+    for p in a.models if test_sets else []:
+        if not Path(p).is_file():
+            continue  # the estimator below reports a missing file
+        shas[p] = _sha256(p)
+        for n in test_sets:
+            if test_reads(a.ledger, n, shas[p]) and not a.reread:
+                print(
+                    f"error: {p} has read the test set {n!r} before ({a.ledger}); a test set is read once "
+                    "per shipped model. Choose on validation; to read it again anyway, say why: --reread REASON",
+                    file=sys.stderr,
+                )
+                return 2
     a.out.mkdir(parents=True, exist_ok=True)
     results: dict = {}
     rows, bins_by_set = [], {}
@@ -435,6 +478,20 @@ def main(argv: list[str] | None = None) -> int:
                 f"({r['aligned_frames']}) | {', '.join(f'{v:+.3f}' for v in r['meas_att_bias_deg'])} |"
                 for r in b
             )
+    if test_sets:
+        a.ledger.parent.mkdir(parents=True, exist_ok=True)
+        with a.ledger.open("a") as f:
+            for p, sha in shas.items():
+                for n in test_sets:
+                    row = {
+                        "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                        "set": n,
+                        "model": Path(p).name,
+                    }
+                    f.write(
+                        json.dumps({**row, "sha256": sha, **({"reread": a.reread} if a.reread else {})})
+                        + "\n"
+                    )
     (a.out / "eval.md").write_text("\n".join(md) + "\n")
     (a.out / "eval.json").write_text(json.dumps(results, indent=1) + "\n")
     print("\n".join(md))

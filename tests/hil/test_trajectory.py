@@ -144,3 +144,30 @@ def test_an_off_axis_wander_beyond_a_metre_is_refused():
         spec.validate()
     # a spec without the field keeps the identity its datasets were written with
     assert "offaxis_m" not in spec_dict(SequenceSpec("y", 1, "+V-bar", 60.0, "iss", 1))
+
+
+def test_a_rolled_approach_turns_the_chaser_about_its_docking_axis():
+    """rolled_deg: the same path, every attitude turned by that much about the chaser's own
+    docking axis, so the fixture turns in the picture by as much (a test set that measures
+    attitude beyond the paper's near-aligned frames)."""
+    from dataclasses import replace
+
+    from oibar.geometry.rotations import quat_to_matrix
+    from oibar_hil.dataset import PAPER_SEQUENCES, plan_sequence
+
+    plain = generate(7)
+    rolled = generate(7, rolled_deg=30.0)
+    assert np.array_equal(plain.p_t_s, rolled.p_t_s)
+    rel = np.einsum("nji,njk->nik", plain.R_t_s, rolled.R_t_s)  # R_plain^T R_rolled
+    assert np.allclose(rel[:, :2, 2], 0.0, atol=1e-12) and np.allclose(rel[:, 2, 2], 1.0)
+    assert np.allclose(np.degrees(np.arctan2(rel[:, 1, 0], rel[:, 0, 0])), 30.0)
+    spec = PAPER_SEQUENCES[1]
+    a, b = (
+        plan_sequence(spec, frames_limit=50),
+        plan_sequence(replace(spec, rolled_deg=30.0), frames_limit=50),
+    )
+    turned = [
+        rotation_angle_deg(quat_to_matrix(qa).T @ quat_to_matrix(qb))
+        for qa, qb in zip(a.q_cam_target, b.q_cam_target, strict=True)
+    ]
+    assert np.allclose(turned, 30.0, atol=1e-6)

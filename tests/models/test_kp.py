@@ -337,6 +337,16 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     assert (ev / "val_range_bins.png").stat().st_size > 0 and (
         ev / "val_range_bins_by_tilt.png"
     ).stat().st_size > 0
+    # a test set is read once per model file: the ledger refuses a second read unless it says why
+    monkeypatch.setitem(kp_evaluate.SETS, "test_frozen", (str(kp_sets / "val.json"), str(tiny_dataset)))
+    ledger = tmp_path / "reads.jsonl"
+    targv = [*argv[:3], "test_frozen", *argv[4:], "--out", str(ev), "--ledger", str(ledger)]
+    assert kp_evaluate.main(targv) == 0
+    assert kp_evaluate.main(targv) == 2  # read before
+    assert kp_evaluate.main([*targv, "--reread", "the card's table lost"]) == 0
+    rows = [json.loads(line) for line in ledger.read_text().splitlines()]
+    assert [r["set"] for r in rows] == ["test_frozen"] * 2 and rows[1]["reread"] == "the card's table lost"
+    assert rows[0]["sha256"] == rows[1]["sha256"] and "reread" not in rows[0]
     (out.parent / "oibarnet_lite.onnx").unlink()
     with pytest.raises(ModelFileError, match="first-pass model oibarnet_lite.onnx is missing"):
         PoseEstimator(out)
