@@ -134,3 +134,11 @@ judge-kp: firmware-host gen ## the ship rule's parts 1-3 (validation, probe, dem
 judge-kp-loop: firmware-host gen ## the ship rule's part 4: the shipped model's closed-loop runs flown with JUDGE_CANDIDATE, paired
 	@test -n "$(JUDGE_CANDIDATE)" || { echo "error: give JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx" >&2; exit 2; }
 	@$(PY) -m oibar_models.judge --out $(BUILD)/judge loop --candidate $(JUDGE_CANDIDATE) --jobs $(JOBS)
+
+# Golden vectors of the shipped estimator (issue 61): frames, every network call's raw outputs and
+# the poses, in tests/golden/pose. Make them again when the model or the post-processing changes
+# on purpose; tests/models/test_pose_golden.py pins both.
+.PHONY: golden-pose
+golden-pose: SETUP_PROFILE = train
+golden-pose: setup ## rewrite tests/golden/pose from the shipped model (on purpose: commit with the change)
+	@$(PY) -m oibar_models.golden_pose
