@@ -8,8 +8,9 @@
 #
 # Environment:
 #   PYTHON=/path/to/python3   interpreter for the venv (default /usr/bin/python3)
-#   SETUP_PROFILE=NAME        the Python packages: flight (host only), demo or sim (the simulated
-#                             rig, no torch), train, test (everything, the default); a venv set up
+#   SETUP_PROFILE=NAME        the Python packages: firmware (none: no .venv), flight (host only),
+#                             demo or sim (the simulated rig, no torch), train, test (everything,
+#                             the default); a venv set up
 #                             for a larger profile serves the smaller ones as it is
 #   UNITY_DIR=/path           use these Unity sources instead of fetching them
 #   NANOPB_DIR=/path          use these nanopb runtime sources instead of fetching them
@@ -63,7 +64,7 @@ profile_hash() {
   local f paths=()
   for f in $(profile_files "$1"); do paths+=("requirements/$f.txt"); done
   for f in $(profile_pkgs "$1"); do paths+=("$f/pyproject.toml"); done
-  { echo "$1"; cat "${paths[@]}"; } | sha256sum | cut -c1-16
+  { echo "$1"; [ ${#paths[@]} -eq 0 ] || cat "${paths[@]}"; } | sha256sum | cut -c1-16
 }
 # True when every word of $1 is among the words of $2.
 words_within() { local w; for w in $1; do [[ " $2 " == *" $w "* ]] || return 1; done; }
@@ -136,6 +137,8 @@ venv() {
   local stamp want reqs=() pkgs=() f q
   [ -n "$(profile_spec "$PROFILE")" ] \
     || die "unknown SETUP_PROFILE '$PROFILE' (one of: $(all_profiles | tr '\n' ' ')sim)"
+  # A profile without Python packages (firmware) needs no venv: none is made, none is touched.
+  if [ -z "$(profile_files "$PROFILE")" ] && [ -z "$(profile_pkgs "$PROFILE")" ]; then return 0; fi
   for f in $(profile_files "$PROFILE"); do
     [ -f "requirements/$f.txt" ] || die "$PROFILES names requirements/$f.txt, which does not exist"
     reqs+=(-r "requirements/$f.txt")

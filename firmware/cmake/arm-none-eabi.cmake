@@ -8,6 +8,7 @@ find_program(CMAKE_C_COMPILER ${OIBAR_ARM_PREFIX}gcc REQUIRED)
 find_program(CMAKE_OBJCOPY ${OIBAR_ARM_PREFIX}objcopy REQUIRED)
 find_program(CMAKE_SIZE ${OIBAR_ARM_PREFIX}size REQUIRED)
 find_program(CMAKE_NM ${OIBAR_ARM_PREFIX}nm REQUIRED)
+find_program(CMAKE_READELF ${OIBAR_ARM_PREFIX}readelf REQUIRED)
 set(CMAKE_ASM_COMPILER ${CMAKE_C_COMPILER})
 
 # The compiler check would try to link a hosted program; a static library is enough.

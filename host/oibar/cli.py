@@ -58,7 +58,7 @@ class _VersionAction(argparse.Action):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from oibar import pb
+    from oibar import argtypes, pb
 
     known_commands = " ".join(n[4:] for n in pb.CommandOpcode.keys() if n != "CMD_UNSPECIFIED")  # noqa: SIM118
     parser = argparse.ArgumentParser(
@@ -96,10 +96,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="URL",
         help="serial device (/dev/ttyACM0, COM3), socket://HOST:PORT or loop://",
     )
-    link.add_argument("--baudrate", type=int, default=115200, help="serial baud rate (default: 115200)")
+    link.add_argument(
+        "--baudrate", type=argtypes.positive_int(), default=115200, help="serial baud rate (default: 115200)"
+    )
     link.add_argument(
         "--seconds",
-        type=float,
+        type=argtypes.number(0.0, 86400.0),
         default=5.0,
         metavar="S",
         help="how long to show the live status, in seconds (default: 5; 0 skips it)",
@@ -115,7 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     link.add_argument(
         "--target-pressure-kpa",
-        type=float,
+        type=argtypes.positive(10000.0),
         default=None,
         metavar="KPA",
         help="target pressure sent with the commands (used by START_TRANSFER)",

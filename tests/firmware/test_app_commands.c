@@ -19,7 +19,7 @@ typedef struct {
     oibar_v1_State next; /* when accepted; 0 = unchanged */
 } expect_t;
 
-#define N_CMD 12 /* opcodes 0 .. 11 */
+#define N_CMD 13 /* opcodes 0 .. 12 */
 #define OK(s) { oibar_v1_NACK_NONE, oibar_v1_STATE_##s }
 #define STAYS { oibar_v1_NACK_NONE, oibar_v1_STATE_UNSPECIFIED }
 #define INV { oibar_v1_NACK_INVALID_IN_STATE, oibar_v1_STATE_UNSPECIFIED }
@@ -28,24 +28,24 @@ typedef struct {
 #define UNK { oibar_v1_NACK_UNKNOWN_OPCODE, oibar_v1_STATE_UNSPECIFIED }
 
 /* Columns: UNSPECIFIED NOOP APPROACH_ARM DOCK HARD_DOCK ARM_TRANSFER
- *          START_TRANSFER STOP_TRANSFER SEPARATE ABORT CLEAR_FAULT DISARM */
+ *          START_TRANSFER STOP_TRANSFER SEPARATE ABORT CLEAR_FAULT DISARM END_SESSION */
 static const expect_t k_expect[16][N_CMD] = {
-    [oibar_v1_STATE_BOOT] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, STAYS, INV, INV },
-    [oibar_v1_STATE_IDLE] = { UNK, STAYS, OK(APPROACH_READY), INV, INV, INV, INV, INV, INV, STAYS, INV, INV },
-    [oibar_v1_STATE_APPROACH_READY] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV },
+    [oibar_v1_STATE_BOOT] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, STAYS, INV, INV, STAYS },
+    [oibar_v1_STATE_IDLE] = { UNK, STAYS, OK(APPROACH_READY), INV, INV, INV, INV, INV, INV, STAYS, INV, INV, STAYS },
+    [oibar_v1_STATE_APPROACH_READY] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV, OK(IDLE) },
     /* Just after contact the latches have not popped yet. */
-    [oibar_v1_STATE_RECEPTION] = { UNK, STAYS, INV, PRE, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV },
-    [oibar_v1_STATE_SOFT_DOCKED] = { UNK, STAYS, INV, INV, OK(HARD_DOCKING), INV, INV, INV, OK(UNMATING), OK(ABORTING), INV, INV },
-    [oibar_v1_STATE_HARD_DOCKING] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, OK(UNMATING), OK(ABORTING), INV, INV },
-    [oibar_v1_STATE_HARD_DOCKED] = { UNK, STAYS, INV, INV, INV, OK(TRANSFER_ARMED), INV, INV, OK(UNMATING), OK(ABORTING), INV, INV },
-    [oibar_v1_STATE_TRANSFER_ARMED] = { UNK, STAYS, INV, INV, INV, INV, OK(TRANSFERRING), INV, INV, OK(ABORTING), INV, OK(HARD_DOCKED) },
-    [oibar_v1_STATE_TRANSFERRING] = { UNK, STAYS, INV, INV, INV, INV, INV, OK(HARD_DOCKED), INV, OK(ABORTING), INV, INV },
-    [oibar_v1_STATE_UNMATING] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV },
-    [oibar_v1_STATE_LATCH_RELEASE] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV },
-    [oibar_v1_STATE_SEPARATING] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV },
-    [oibar_v1_STATE_LATCH_RESET] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV },
-    [oibar_v1_STATE_ABORTING] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, STAYS, INV, INV },
-    [oibar_v1_STATE_FAULT] = { UNK, STAYS, FLT, FLT, FLT, FLT, FLT, FLT, FLT, STAYS, OK(ABORTING), FLT },
+    [oibar_v1_STATE_RECEPTION] = { UNK, STAYS, INV, PRE, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV, OK(ABORTING) },
+    [oibar_v1_STATE_SOFT_DOCKED] = { UNK, STAYS, INV, INV, OK(HARD_DOCKING), INV, INV, INV, OK(UNMATING), OK(ABORTING), INV, INV, STAYS },
+    [oibar_v1_STATE_HARD_DOCKING] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, OK(UNMATING), OK(ABORTING), INV, INV, OK(ABORTING) },
+    [oibar_v1_STATE_HARD_DOCKED] = { UNK, STAYS, INV, INV, INV, OK(TRANSFER_ARMED), INV, INV, OK(UNMATING), OK(ABORTING), INV, INV, STAYS },
+    [oibar_v1_STATE_TRANSFER_ARMED] = { UNK, STAYS, INV, INV, INV, INV, OK(TRANSFERRING), INV, INV, OK(ABORTING), INV, OK(HARD_DOCKED), OK(HARD_DOCKED) },
+    [oibar_v1_STATE_TRANSFERRING] = { UNK, STAYS, INV, INV, INV, INV, INV, OK(HARD_DOCKED), INV, OK(ABORTING), INV, INV, OK(HARD_DOCKED) },
+    [oibar_v1_STATE_UNMATING] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV, OK(ABORTING) },
+    [oibar_v1_STATE_LATCH_RELEASE] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV, OK(ABORTING) },
+    [oibar_v1_STATE_SEPARATING] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV, OK(ABORTING) },
+    [oibar_v1_STATE_LATCH_RESET] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, OK(ABORTING), INV, INV, OK(ABORTING) },
+    [oibar_v1_STATE_ABORTING] = { UNK, STAYS, INV, INV, INV, INV, INV, INV, INV, STAYS, INV, INV, STAYS },
+    [oibar_v1_STATE_FAULT] = { UNK, STAYS, FLT, FLT, FLT, FLT, FLT, FLT, FLT, STAYS, OK(ABORTING), FLT, STAYS },
 };
 
 static bool last_event_is_rejection(oibar_v1_CommandOpcode op, oibar_v1_NackReason r)
@@ -103,7 +103,7 @@ static void test_unknown_opcodes_rejected_everywhere(void)
 {
     for (unsigned st = 1; st <= 15; st++) {
         TEST_ASSERT_TRUE(bench_goto((oibar_v1_State)st));
-        TEST_ASSERT_EQUAL(oibar_v1_NACK_UNKNOWN_OPCODE, oibar_app_command((oibar_v1_CommandOpcode)12, 0));
+        TEST_ASSERT_EQUAL(oibar_v1_NACK_UNKNOWN_OPCODE, oibar_app_command((oibar_v1_CommandOpcode)200, 0));
         TEST_ASSERT_EQUAL(oibar_v1_NACK_UNKNOWN_OPCODE, oibar_app_command((oibar_v1_CommandOpcode)255, 0));
         TEST_ASSERT_EQUAL(st, oibar_app_state());
     }

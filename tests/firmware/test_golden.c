@@ -143,6 +143,14 @@ static void test_reads_command_abort(void) {
     TEST_ASSERT_EQUAL_FLOAT(0.0f, p.body.command.target_pressure_kpa);
 }
 
+static void test_reads_command_end_session(void) {
+    oibar_v1_Packet p = read_host_frame("command_end_session");
+    TEST_ASSERT_EQUAL_UINT32(43, p.seq);
+    TEST_ASSERT_EQUAL(oibar_v1_Packet_command_tag, p.which_body);
+    TEST_ASSERT_EQUAL(oibar_v1_CMD_END_SESSION, p.body.command.opcode);
+    TEST_ASSERT_EQUAL_FLOAT(0.0f, p.body.command.target_pressure_kpa);
+}
+
 static void test_reads_nav_update(void) {
     oibar_v1_Packet p = read_host_frame("nav_update");
     const oibar_v1_NavUpdate *n = &p.body.nav_update;
@@ -310,6 +318,7 @@ int main(void) {
     RUN_TEST(test_reads_heartbeat_host);
     RUN_TEST(test_reads_command_start_transfer);
     RUN_TEST(test_reads_command_abort);
+    RUN_TEST(test_reads_command_end_session);
     RUN_TEST(test_reads_nav_update);
     RUN_TEST(test_reads_param_get);
     RUN_TEST(test_reads_param_set);

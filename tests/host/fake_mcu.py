@@ -119,6 +119,8 @@ class FakeMcu:
         self.dropped_responses = 0
         self.handshakes_accepted = 0
         self.link_losses = 0
+        self.unplanned_link_losses = 0  # losses without an accepted CMD_END_SESSION (the MCU faults)
+        self.session_ended = False  # CMD_END_SESSION accepted since the last handshake
         self.lost_host_packets = 0
         self.connections = 0
 
@@ -279,6 +281,8 @@ class FakeMcu:
             if self.connected and now - self._last_rx_s > self.link_timeout_s:
                 self.connected = False
                 self.link_losses += 1
+                if not self.session_ended:
+                    self.unplanned_link_losses += 1
                 self._send_event(pb.EVT_LINK_LOST, severity=pb.SEVERITY_WARNING_HI)
             due = [next_telemetry_s, next_heartbeat_s, now + 0.05]
             if self._delayed:
@@ -416,6 +420,7 @@ class FakeMcu:
             return
         hr.accepted = True
         self.connected = True
+        self.session_ended = False  # a new session: its loss faults again
         self.handshakes_accepted += 1
         self._host_seq = packet.seq
         self._last_request_seq = packet.seq
@@ -488,12 +493,19 @@ class FakeMcu:
                     reason = pb.NACK_INVALID_IN_STATE
             elif opcode == pb.CMD_ABORT:
                 new_state = pb.STATE_IDLE
+            elif opcode == pb.CMD_END_SESSION:  # planned end: the firmware holds or safes (state_table.md)
+                if self.state == pb.STATE_APPROACH_READY:
+                    new_state = pb.STATE_IDLE
             elif opcode == pb.CMD_START_TRANSFER and packet.command.target_pressure_kpa <= 0:
                 reason = pb.NACK_BAD_ARGUMENT
         reply.ack.accepted = reason == pb.NACK_NONE
         reply.ack.reason = reason
         if reply.ack.accepted:
             self.executed.append(opcode)
+            if opcode == pb.CMD_END_SESSION:
+                self.session_ended = True
+            elif opcode != pb.CMD_NOOP:
+                self.session_ended = False
             if new_state != self.state:
                 old_state, self.state = self.state, new_state
                 self._send_event(

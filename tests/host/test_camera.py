@@ -92,10 +92,27 @@ def test_folder_errors(tmp_path):
     bad = tmp_path / "bad"
     bad.mkdir()
     (bad / "0.jpg").write_bytes(b"not a jpeg")
-    with FolderSource(bad) as src, pytest.raises(SourceUnreadable, match="cannot decode"):
+    # issue 60: a corrupt frame is skipped and counted, never an error that reopens the folder
+    with FolderSource(bad) as src, pytest.raises(EndOfStream):
         src.read()
+    assert src.corrupt_frames == 1 and "cannot decode" in src.last_corrupt
     with pytest.raises(CameraError):  # read before open
         FolderSource(bad).read()
+
+
+def test_a_corrupt_frame_in_a_folder_is_skipped_and_counted(tmp_path):
+    """Issue 60: one corrupt JPEG in a folder ended the source with an error, which the daemon
+    took for a lost camera and reopened from frame 0, forever."""
+    from PIL import Image
+
+    for k in range(4):
+        Image.fromarray(np.full((8, 10, 3), 40 * k, np.uint8)).save(tmp_path / f"{k}.png")
+    (tmp_path / "2.png").write_bytes(b"\x89PNG truncated")
+    with FolderSource(tmp_path) as src:
+        frames = list(src)
+    assert [int(f.image.mean()) for f in frames] == [0, 40, 120]
+    assert [f.seq for f in frames] == [0, 1, 2]
+    assert src.corrupt_frames == 1 and "2.png" in src.last_corrupt
 
 
 # --- video file ----------------------------------------------------------------------------

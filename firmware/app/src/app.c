@@ -10,6 +10,7 @@
 #include "oibar/app_faults.h"
 #include "oibar/app_fsm.h"
 #include "oibar/app_params.h"
+#include "oibar/app_pstore.h"
 #include "oibar/app_safety.h"
 #include "oibar/drv_inputs.h"
 #include "oibar/drv_plane.h"
@@ -28,6 +29,9 @@ static volatile bool s_tick_alive;       /* set by the tick, cleared by the kick
 static uint32_t s_ticks_seen;
 static uint32_t s_kicks;
 static bool s_link_alive;
+/* CMD_END_SESSION accepted and no session since: the host's silence that
+ * follows is its planned end, not a lost host (no SIG_LINK_DOWN). */
+static bool s_session_ended;
 static oibar_v1_ResetCause s_reset_cause;
 
 /* Latest navigation update (host guidance). */
@@ -74,6 +78,8 @@ void oibar_app_init(void)
      * reset cause. */
     oibar_valves_init();
     oibar_params_init();
+    /* The newer valid stored copy replaces the defaults (app_pstore.h). */
+    const oibar_pstore_load_t stored = oibar_pstore_load();
     oibar_evtq_init();
     oibar_evlog_init();
     oibar_faults_init();
@@ -92,6 +98,7 @@ void oibar_app_init(void)
     s_ticks_seen = 0;
     s_kicks = 0;
     s_link_alive = false;
+    s_session_ended = false;
     s_nav_valid = false;
     s_nav_rx_ms = 0;
     s_nav_closing_mm_s = 0.0f;
@@ -103,6 +110,19 @@ void oibar_app_init(void)
                    oibar_v1_STATE_BOOT, oibar_v1_FAULT_NONE, oibar_v1_NACK_NONE,
                    (uint32_t)s_reset_cause);
     oibar_fsm_init(now);
+    /* No valid stored copy: the defaults run. Never saved (blank flash) is
+     * reported; copies that exist but are all invalid (CRC, version, bounds,
+     * cross rules) are a fault: a calibration was lost. */
+    if (stored != OIBAR_PSTORE_LOADED) {
+        const bool invalid = stored == OIBAR_PSTORE_INVALID;
+        oibar_app_emit(oibar_v1_EVT_PARAMS_DEFAULTED,
+                       invalid ? oibar_v1_SEVERITY_WARNING_HI : oibar_v1_SEVERITY_WARNING_LO,
+                       oibar_v1_STATE_BOOT, oibar_v1_STATE_BOOT, oibar_v1_FAULT_NONE,
+                       oibar_v1_NACK_NONE, invalid ? 1u : 0u);
+        if (invalid) {
+            oibar_fault_raise(oibar_v1_FAULT_PARAMS_INVALID);
+        }
+    }
     /* Restart policy: nothing moves by itself after a reset. Whatever the
      * cause, BOOT's self test ends in FAULT (FAULT_RESET_AWAY_FROM_HOME) when
      * the mechanism is not at home, and FAULT waits for the host's
@@ -192,15 +212,47 @@ void oibar_app_run_once(void)
 
 uint32_t oibar_app_watchdog_kicks(void) { return s_kicks; }
 
+/* CMD_SAVE_PARAMS (SAFETY_RULE_SAVE_ONLY_WHEN_SAFE): not a transition, the
+ * state does not change. The sector erase blocks this main loop for up to
+ * about a second (the port keeps the watchdog fed, hal.h), so only in BOOT or
+ * IDLE, both valves commanded and sensed closed, the plane and the latch
+ * stepper still. */
+static oibar_v1_NackReason save_params(void)
+{
+    const oibar_v1_State st = oibar_fsm_state();
+    if (st != oibar_v1_STATE_BOOT && st != oibar_v1_STATE_IDLE) {
+        return oibar_v1_NACK_INVALID_IN_STATE;
+    }
+    if (oibar_valves_any_cmd_open() || oibar_valves_any_sensed_open() || oibar_stepper_busy() ||
+        oibar_plane_motion() != OIBAR_PLANE_STOPPED) {
+        return oibar_v1_NACK_PRECONDITION_FAILED;
+    }
+    if (!oibar_pstore_save()) {
+        return oibar_v1_NACK_SAVE_FAILED;
+    }
+    oibar_app_emit(oibar_v1_EVT_PARAMS_SAVED, oibar_v1_SEVERITY_ACTIVITY_HI, st, st,
+                   oibar_v1_FAULT_NONE, oibar_v1_NACK_NONE, oibar_pstore_seq());
+    return oibar_v1_NACK_NONE;
+}
+
 oibar_v1_NackReason oibar_app_command(oibar_v1_CommandOpcode op, float target_pressure_kpa)
 {
     uint32_t now = hal_time_ms();
     drain(now); /* a fault raised since the last pass wins over the command */
     oibar_v1_State before = oibar_fsm_state();
-    oibar_v1_NackReason r = oibar_fsm_command(op, target_pressure_kpa, now);
+    oibar_v1_NackReason r = (op == oibar_v1_CMD_SAVE_PARAMS)
+                                ? save_params()
+                                : oibar_fsm_command(op, target_pressure_kpa, now);
     if (r != oibar_v1_NACK_NONE) {
         oibar_app_emit(oibar_v1_EVT_COMMAND_REJECTED, oibar_v1_SEVERITY_WARNING_LO, before, before,
                        oibar_v1_FAULT_NONE, r, (uint32_t)op);
+    } else if (op == oibar_v1_CMD_END_SESSION) {
+        /* Planned end: the state machine has closed the valves and held,
+         * disarmed or aborted (docs/state_table.md); the silence that
+         * follows is not a lost host. */
+        s_session_ended = true;
+    } else if (op != oibar_v1_CMD_NOOP) {
+        s_session_ended = false; /* the host drives the mechanism again */
     }
     return r;
 }
@@ -295,19 +347,26 @@ void oibar_app_link_state(bool up)
     /* D4: navigation from before a loss, or from another session (the link
      * also reports a re-handshake as up), is not this approach's. */
     s_nav_valid = false;
+    if (up) {
+        s_session_ended = false; /* a new session (handshake): its loss faults again */
+    }
     if (up == s_link_alive) {
         return;
     }
     s_link_alive = up;
     if (!up) {
         /* SAFETY_RULE_VALVES_NEED_HOST_LINK_ALIVE: close first, then tell
-         * the state machine (which faults outside the safe states). */
+         * the state machine (which faults outside the safe states), unless
+         * the host ended its session (CMD_END_SESSION): a planned end. */
         oibar_valves_close_all();
-        (void)oibar_evtq_post(SIG_LINK_DOWN, 0u);
+        if (!s_session_ended) {
+            (void)oibar_evtq_post(SIG_LINK_DOWN, 0u);
+        }
     }
 }
 
 bool oibar_app_host_link_alive(void) { return s_link_alive; }
+bool oibar_app_session_ended(void) { return s_session_ended; }
 oibar_v1_State oibar_app_state(void) { return oibar_fsm_state(); }
 oibar_v1_ResetCause oibar_app_reset_cause(void) { return s_reset_cause; }
 

@@ -44,6 +44,7 @@ static const oibar_fsm_row_t k_table[] = {
 
     { S(APPROACH_READY),  E(CONTACT),            G(NONE),              S(RECEPTION),      A(RECORD_CAPTURE) },
     { S(APPROACH_READY),  E(TIMEOUT),            G(NONE),              S(IDLE),           A(NONE) },
+    { S(APPROACH_READY),  C(END_SESSION),        G(NONE),              S(IDLE),           A(NONE) },
 
     { S(RECEPTION),       C(DOCK),               G(CAPTURE_CONFIRMED), S(SOFT_DOCKED),    A(NONE) },
     { S(RECEPTION),       E(CONTACT_LOST),       G(LATCH_NOT_ENGAGED), S(APPROACH_READY), A(NONE) },
@@ -51,6 +52,7 @@ static const oibar_fsm_row_t k_table[] = {
 
     { S(SOFT_DOCKED),     C(HARD_DOCK),          G(SOFT_DOCK_HELD),    S(HARD_DOCKING),   A(NONE) },
     { S(SOFT_DOCKED),     C(SEPARATE),           G(VALVES_CLOSED),     S(UNMATING),       A(NONE) },
+    { S(SOFT_DOCKED),     C(END_SESSION),        G(NONE),              STAY,              A(NONE) },
 
     { S(HARD_DOCKING),    E(PLANE_EXTENDED),     G(CONNECTOR_MATED),   S(HARD_DOCKED),    A(NONE) },
     { S(HARD_DOCKING),    E(CONNECTOR_MATED),    G(PLANE_EXTENDED),    S(HARD_DOCKED),    A(NONE) },
@@ -59,13 +61,16 @@ static const oibar_fsm_row_t k_table[] = {
 
     { S(HARD_DOCKED),     C(ARM_TRANSFER),       G(TRANSFER_READY),    S(TRANSFER_ARMED), A(ARM) },
     { S(HARD_DOCKED),     C(SEPARATE),           G(VALVES_CLOSED),     S(UNMATING),       A(NONE) },
+    { S(HARD_DOCKED),     C(END_SESSION),        G(NONE),              STAY,              A(NONE) },
 
     { S(TRANSFER_ARMED),  C(START_TRANSFER),     G(START_OK),          S(TRANSFERRING),   A(START_TRANSFER) },
     { S(TRANSFER_ARMED),  C(DISARM_TRANSFER),    G(NONE),              S(HARD_DOCKED),    A(NONE) },
     { S(TRANSFER_ARMED),  E(TIMEOUT),            G(NONE),              S(HARD_DOCKED),    A(NONE) },
+    { S(TRANSFER_ARMED),  C(END_SESSION),        G(NONE),              S(HARD_DOCKED),    A(NONE) },
 
     { S(TRANSFERRING),    E(TARGET_REACHED),     G(NONE),              S(HARD_DOCKED),    A(REPORT_TRANSFER_COMPLETE) },
     { S(TRANSFERRING),    C(STOP_TRANSFER),      G(NONE),              S(HARD_DOCKED),    A(NONE) },
+    { S(TRANSFERRING),    C(END_SESSION),        G(NONE),              S(HARD_DOCKED),    A(NONE) },
 
     { S(UNMATING),        E(PLANE_RETRACTED),    G(NONE),              S(LATCH_RELEASE),  A(NONE) },
 
@@ -93,10 +98,12 @@ static const oibar_fsm_row_t k_table[] = {
 
     /* Superstates (QP/C style): a row here applies to every state inside. */
     { SUPER(ACTIVE),      C(ABORT),              G(NONE),              S(ABORTING),       A(NONE) },
+    { SUPER(ACTIVE),      C(END_SESSION),        G(NONE),              S(ABORTING),       A(NONE) },
     { SUPER(DOCKED),      E(LATCH_DISENGAGED),   G(NONE),              S(FAULT),          A(FAULT_LATCH_LOST) },
     { SUPER(MATED),       E(CONNECTOR_LOST),     G(NONE),              S(FAULT),          A(FAULT_CONNECTOR_LOST) },
 
     { ANY,                C(NOOP),               G(NONE),              STAY,              A(NONE) },
+    { ANY,                C(END_SESSION),        G(NONE),              STAY,              A(NONE) },
     { ANY,                E(FAULT),              G(NONE),              S(FAULT),          A(LATCH_FAULT) },
     { ANY,                E(LINK_DOWN),          G(NONE),              S(FAULT),          A(FAULT_HOST_LINK_LOSS) },
 };
@@ -146,7 +153,7 @@ unsigned oibar_fsm_parent(unsigned node)
 static const char *const k_cmd_names[OIBAR_CMD_LAST + 1u] = {
     "CMD_UNSPECIFIED", "CMD_NOOP", "CMD_APPROACH_ARM", "CMD_DOCK", "CMD_HARD_DOCK",
     "CMD_ARM_TRANSFER", "CMD_START_TRANSFER", "CMD_STOP_TRANSFER", "CMD_SEPARATE",
-    "CMD_ABORT", "CMD_CLEAR_FAULT", "CMD_DISARM_TRANSFER",
+    "CMD_ABORT", "CMD_CLEAR_FAULT", "CMD_DISARM_TRANSFER", "CMD_END_SESSION",
 };
 static const char *const k_guard_names[GUARD_COUNT] = {
     "-", "at_home", "not_at_home", "ready_for_approach", "capture_confirmed",

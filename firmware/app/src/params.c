@@ -162,6 +162,37 @@ static bool cross_ok(const float *v)
 
 bool oibar_params_consistent(void) { return cross_ok(s_values); }
 
+static bool value_ok(const oibar_param_def_t *def, float value)
+{
+    if (!(value >= def->min && value <= def->max)) { /* also rejects NaN */
+        return false;
+    }
+    return !def->integer || floorf(value) == value;
+}
+
+void oibar_params_snapshot(float out[OIBAR_PARAM_COUNT])
+{
+    for (unsigned i = 0; i < OIBAR_PARAM_COUNT; i++) {
+        out[i] = s_values[i];
+    }
+}
+
+bool oibar_params_apply(const float in[OIBAR_PARAM_COUNT])
+{
+    for (unsigned i = 0; i < OIBAR_PARAM_COUNT; i++) {
+        if (!value_ok(&s_defs[i], in[i])) {
+            return false;
+        }
+    }
+    if (!cross_ok(in)) {
+        return false;
+    }
+    for (unsigned i = 0; i < OIBAR_PARAM_COUNT; i++) {
+        s_values[i] = in[i];
+    }
+    return true;
+}
+
 void oibar_params_init(void)
 {
     for (unsigned i = 0; i < OIBAR_PARAM_COUNT; i++) {
@@ -213,10 +244,7 @@ oibar_v1_NackReason oibar_param_set(uint32_t id, float value, oibar_v1_State sta
     if (!oibar_params_settable_in(state)) {
         return oibar_v1_NACK_PARAM_LOCKED;
     }
-    if (!(value >= def->min && value <= def->max)) { /* also rejects NaN */
-        return oibar_v1_NACK_PARAM_OUT_OF_BOUNDS;
-    }
-    if (def->integer && floorf(value) != value) {
+    if (!value_ok(def, value)) { /* bounds, NaN, a fraction on an integer */
         return oibar_v1_NACK_PARAM_OUT_OF_BOUNDS;
     }
     float candidate[OIBAR_PARAM_COUNT];

@@ -24,6 +24,7 @@ ADC_SLOTS = 8
 MAX_ADVANCE_MS = 100
 FLAG_HANG_MAIN_LOOP = 0x1
 FLAG_QUIT = 0x2
+FLAG_RESET_PIN = 0x4  # the MCU restarts before the exchange runs (sim_lockstep.h)
 MCU_STEP_TIMER_RUNNING = 0x1
 MCU_MAIN_HUNG = 0x2
 STATUS_NAMES = {0: "OK", 1: "ERR_FRAME", 2: "ERR_MAGIC", 3: "ERR_ADVANCE", 4: "ERR_SIZE"}
@@ -125,7 +126,10 @@ class SimMcu:
         build_id: str = "rig",
         stderr_path: Path | None = None,
         reply_timeout_s: float = 10.0,
+        flash_image: Path | None = None,
     ) -> None:
+        """``flash_image``: keep the MCU's parameter flash (CMD_SAVE_PARAMS) in this file across
+        processes (``--flash-image``); None: blank at start, the defaults, as every run before."""
         exe = Path(exe)
         if not exe.exists():
             raise FileNotFoundError(f"simulated MCU not found at {exe} (run `make firmware-host`)")
@@ -140,6 +144,7 @@ class SimMcu:
                 str(watchdog_ms),
                 "--build-id",
                 build_id,
+                *(["--flash-image", str(flash_image)] if flash_image is not None else []),
             ],
             pass_fds=(child.fileno(),),
             stdout=subprocess.PIPE,

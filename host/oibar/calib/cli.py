@@ -17,6 +17,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from oibar.argtypes import positive_int
+
 EXIT_OK = 0
 EXIT_ERROR = 2
 
@@ -36,7 +38,9 @@ def register(sub) -> None:
     )
     ex.add_argument("video", type=Path)
     ex.add_argument("out", type=Path, help="output folder")
-    ex.add_argument("--every", type=int, default=1, metavar="N", help="keep every N-th frame (default 1)")
+    ex.add_argument(
+        "--every", type=positive_int(), default=1, metavar="N", help="keep every N-th frame (default 1)"
+    )
     ex.set_defaults(handler=cmd_extract)
 
     es = cs.add_parser("estimate", help="estimate T_housing_cam, T_tmarkers_target and the time offset")
@@ -92,7 +96,9 @@ def register(sub) -> None:
     ov.add_argument(
         "--intrinsics", type=Path, default=None, help="intrinsics JSON (default: the OIBAR camera)"
     )
-    ov.add_argument("--every", type=int, default=10, metavar="N", help="every N-th row (default 10)")
+    ov.add_argument(
+        "--every", type=positive_int(), default=10, metavar="N", help="every N-th row (default 10)"
+    )
     ov.add_argument("--out", type=Path, required=True, help="output folder for the PNGs")
     ov.set_defaults(handler=cmd_overlay)
 

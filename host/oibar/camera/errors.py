@@ -31,6 +31,12 @@ class EmptySource(CameraOpenError):
     """The folder holds no image file, or the video file holds no frame."""
 
 
+class CorruptFrame(CameraError):
+    """One frame could not be decoded (a truncated or corrupt image file). The source skips it
+    and goes on with the next: :meth:`~oibar.camera.sources.CameraSource.read` never raises it;
+    it counts it in ``corrupt_frames``."""
+
+
 class EndOfStream(CameraError):
     """A finite source (video file, frame folder) has delivered its last frame."""
 

@@ -22,6 +22,7 @@ runs a source in a background thread for the 10 Hz loop.
 from __future__ import annotations
 
 import csv
+import logging
 import math
 import os
 import re
@@ -38,11 +39,14 @@ from oibar.camera.errors import (
     CameraError,
     CameraLost,
     CameraOpenError,
+    CorruptFrame,
     EmptySource,
     EndOfStream,
     SourceNotFound,
     SourceUnreadable,
 )
+
+log = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 VIDEO_EXTENSIONS = (".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg")
@@ -109,6 +113,9 @@ class CameraSource(ABC):
         self._opened = False
         self._seq = 0
         self._last_t = -math.inf
+        # Frames skipped because they could not be decoded (CorruptFrame), over every open.
+        self.corrupt_frames = 0
+        self.last_corrupt = ""
 
     # --- lifecycle -------------------------------------------------------------------------
     def open(self) -> CameraSource:
@@ -143,7 +150,14 @@ class CameraSource(ABC):
         last frame of a finite source and :class:`CameraLost` when a live source stops."""
         if not self._opened:
             raise CameraError(f"{self.name}: read() on a source that is not open")
-        image, t_s = self._read()
+        while True:
+            try:
+                image, t_s = self._read()
+                break
+            except CorruptFrame as exc:  # skipped and counted; the next frame follows
+                self.corrupt_frames += 1
+                self.last_corrupt = str(exc)
+                log.warning("%s: frame skipped: %s", self.name, exc)
         if not t_s > self._last_t:
             raise CameraError(
                 f"{self.name}: capture time went backwards or repeated ({t_s} after {self._last_t})"
@@ -467,9 +481,14 @@ class FolderSource(CameraSource):
         cv2 = _cv2()
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None:
-            raise SourceUnreadable(f"cannot decode image {path} (missing, truncated or not an image)")
+            # one bad file must not end (or, reopened, restart) the sequence: skipped, counted
+            raise CorruptFrame(f"cannot decode image {path} (missing, truncated or not an image)")
+        try:
+            rgb = to_rgb(img, str(path), bgr=True)
+        except CameraError as exc:
+            raise CorruptFrame(str(exc)) from exc
         self._pacer.wait(t_s)
-        return to_rgb(img, str(path), bgr=True), t_s
+        return rgb, t_s
 
     def _close(self) -> None:
         pass

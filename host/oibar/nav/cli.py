@@ -8,20 +8,28 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from oibar import argtypes
 from oibar.progress import StatusLine
 
 if TYPE_CHECKING:
     from oibar.link.client import LinkClient
 
-EXIT_OK = 0
-EXIT_ERROR = 2
+# Exit status of `oibar nav` (also in its --help and docs/navigation.md).
+EXIT_OK = 0  # mission over, --duration-s reached, or Ctrl-C / SIGTERM: MCU session ended as planned
+EXIT_INTERNAL = 1  # an unexpected error inside oibar (one line; -v for the traceback)
+EXIT_ERROR = 2  # bad argument or start-up error (model, camera spec, empty source, vehicle, log)
+EXIT_SOURCE_ENDED = 3  # the camera source ended (last frame of a video file or frame folder)
+EXIT_SOURCE_DIED = 4  # the camera source died: no frame for --camera-dead-s
+EXIT_MCU_NOT_SAFE = 5  # stopped otherwise cleanly, but the MCU did not accept the planned end
+EXIT_INTERRUPTED = 130  # Ctrl-C before the daemon was running (oibar.cli)
 
 _NAV_DESCRIPTION = """\
 Run the OIBAR navigation daemon: every 100 ms take the newest camera frame, estimate the
 relative pose of the berthing fixture with OibarNet (ONNX), filter it, decide the guidance
 (phase, velocity setpoint, hold or retreat) and command the docking mechanism's MCU over the
-serial link. One status line shows what it is doing; Ctrl-C stops it cleanly (vehicle hold,
-link and camera closed, log footer written).
+serial link. One status line shows what it is doing; Ctrl-C or SIGTERM stops it cleanly
+(vehicle hold, the MCU session ended as planned: valves closed, mechanism held or homed, no
+fault raised; link and camera closed, log footer written).
 
 Every cycle is logged as one JSON line (--log); with --record-frames the frames are kept too,
 so `oibar replay` can re-run the estimation on exactly what the daemon saw.
@@ -52,8 +60,21 @@ examples:
   oibar nav --camera data/synthetic/seq01/frames --port none --record-frames --duration-s 60
   oibar replay runs/nav/20261122-101500/cycles.jsonl --model models/other.onnx
 
-exit status: 0 on a finished mission or Ctrl-C, 2 on a start-up error (model, camera spec,
-vehicle), with one line saying what is wrong.
+exit status (one line on stderr says why; never a traceback):
+  0    mission over, --duration-s reached, or Ctrl-C / SIGTERM: the MCU accepted the planned
+       end of the session (CMD_END_SESSION), or there is no MCU (--port none)
+  1    an unexpected internal error (run with -v for the traceback); the MCU session is
+       still ended as planned first
+  2    bad argument or start-up error: model, camera spec, empty or undecodable source,
+       vehicle, log folder
+  3    the camera source ended (last frame of a video file or frame folder); MCU safe first
+  4    the camera source died: no frame for --camera-dead-s (camera unplugged, never
+       opened); MCU safe first
+  5    stopped otherwise cleanly (0 above), but the MCU did not accept the planned end (link
+       down, no answer): it takes the silence for a host link loss (FAULT outside
+       BOOT/IDLE/FAULT, valves closed)
+  130  Ctrl-C before the daemon was running
+A corrupt frame (a truncated JPEG in a folder) is skipped and counted, not an error.
 """
 
 
@@ -73,10 +94,18 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     nav.add_argument(
-        "--camera", required=True, metavar="SPEC", help="camera device, video file or frame folder"
+        "--camera",
+        required=True,
+        metavar="SPEC",
+        type=argtypes.non_empty("--camera"),
+        help="camera device, video file or frame folder",
     )
     nav.add_argument(
-        "--port", required=True, metavar="URL", help="MCU serial port, socket://HOST:PORT, or none"
+        "--port",
+        required=True,
+        metavar="URL",
+        type=argtypes.non_empty("--port"),
+        help="MCU serial port, socket://HOST:PORT, or none",
     )
     nav.add_argument(
         "--model",
@@ -86,7 +115,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="OibarNet ONNX model (default: $OIBAR_MODEL, else the shipped oibarnet.onnx)",
     )
     nav.add_argument(
-        "--vehicle", default="none", metavar="SPEC", help="where velocity setpoints go (default: none)"
+        "--vehicle",
+        default="none",
+        metavar="SPEC",
+        type=argtypes.non_empty("--vehicle"),
+        help="where velocity setpoints go (default: none)",
     )
     nav.add_argument(
         "--log",
@@ -99,17 +132,46 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     nav.add_argument(
         "--record-frames", action="store_true", help="also keep every frame used (for oibar replay)"
     )
-    nav.add_argument("--rate-hz", type=float, default=10.0, help="navigation rate (default: 10)")
+    nav.add_argument(
+        "--rate-hz",
+        type=argtypes.positive(100.0),
+        default=10.0,
+        metavar="HZ",
+        help="navigation rate, > 0 and <= 100 (default: 10)",
+    )
     nav.add_argument(
         "--camera-rate-hz",
-        type=float,
+        type=argtypes.positive(1000.0),
         default=10.0,
-        help="pace for frame folders without time stamps (default: 10)",
+        metavar="HZ",
+        help="pace for frame folders without time stamps, > 0 and <= 1000 (default: 10)",
     )
-    nav.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default: 2)")
-    nav.add_argument("--duration-s", type=float, default=None, metavar="S", help="stop after S seconds")
-    nav.add_argument("--target-pressure-kpa", type=float, default=1200.0, help="fill target (default: 1200)")
-    nav.add_argument("--baudrate", type=int, default=115200)
+    nav.add_argument(
+        "--camera-dead-s",
+        type=argtypes.positive(3600.0),
+        default=4.0,
+        metavar="S",
+        help="no frame for S seconds: the camera source is dead, stop with exit status 4 (default: 4)",
+    )
+    nav.add_argument(
+        "--threads",
+        type=argtypes.positive_int(256),
+        default=2,
+        help="onnxruntime threads, 1-256 (default: 2)",
+    )
+    nav.add_argument(
+        "--duration-s", type=argtypes.positive(), default=None, metavar="S", help="stop after S seconds (> 0)"
+    )
+    nav.add_argument(
+        "--target-pressure-kpa",
+        type=argtypes.positive(10000.0),
+        default=1200.0,
+        metavar="KPA",
+        help="fill target, > 0 (the MCU checks its own bounds) (default: 1200)",
+    )
+    nav.add_argument(
+        "--baudrate", type=argtypes.positive_int(), default=115200, help="serial baud rate (default: 115200)"
+    )
     nav.set_defaults(handler=cmd_nav, run=run)
 
     rp = sub.add_parser(
@@ -123,12 +185,18 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--model", type=Path, default=None, metavar="ONNX", help="model (default: as for oibar nav)"
     )
     rp.add_argument("--out", type=Path, default=None, help="write the replayed estimates here (JSON lines)")
-    rp.add_argument("--threads", type=int, default=2)
+    rp.add_argument(
+        "--threads",
+        type=argtypes.positive_int(256),
+        default=2,
+        help="onnxruntime threads, 1-256 (default: 2)",
+    )
     rp.set_defaults(handler=cmd_replay, run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Start-up errors become one line and exit 2."""
+    """Start-up errors become one line and exit 2; anything unexpected one line and exit 1
+    (the traceback only with -v)."""
     from oibar.camera import CameraError
     from oibar.nav.cyclelog import CycleLogError
     from oibar.nav.pose import ModelFileError
@@ -139,6 +207,37 @@ def run(args: argparse.Namespace) -> int:
     except (ModelFileError, CameraError, VehicleError, CycleLogError, OSError) as exc:
         print(f"oibar: error: {exc}", file=sys.stderr, flush=True)
         return EXIT_ERROR
+    except Exception as exc:
+        if getattr(args, "verbose", 0):
+            import traceback
+
+            traceback.print_exc()
+        print(
+            f"oibar: internal error: {type(exc).__name__}: {exc} (run with -v for the traceback)",
+            file=sys.stderr,
+            flush=True,
+        )
+        return EXIT_INTERNAL
+
+
+def exit_status(daemon: Any) -> tuple[int, str]:
+    """`oibar nav`'s exit status and its one-line reason, from why the daemon stopped and how the
+    planned end of the MCU session went (the table in the --help epilog)."""
+    from oibar.nav import daemon as d
+
+    reason = daemon.stop_reason
+    end = daemon.session_end
+    if reason == d.STOP_SOURCE_ENDED:
+        return EXIT_SOURCE_ENDED, f"camera source ended ({daemon._cam_error or 'no more frames'})"
+    if reason == d.STOP_SOURCE_DIED:
+        return EXIT_SOURCE_DIED, (
+            f"camera source dead: no frame for {daemon.p.camera_dead_s:g} s "
+            f"({daemon._cam_error or 'no frame'})"
+        )
+    if daemon.link is not None and (end is None or not end.accepted):
+        why = end.detail if end is not None else "not attempted"
+        return EXIT_MCU_NOT_SAFE, f"the MCU did not accept the planned end of the session: {why}"
+    return EXIT_OK, ""
 
 
 def open_link(port: str, **settings: Any) -> LinkClient:
@@ -151,7 +250,7 @@ def open_link(port: str, **settings: Any) -> LinkClient:
 
 
 def cmd_nav(a: argparse.Namespace) -> int:
-    from oibar.camera import open_source
+    from oibar.camera import FolderSource, VideoFileSource, open_source
     from oibar.nav.cyclelog import CycleLog
     from oibar.nav.daemon import (
         DaemonParams,
@@ -178,6 +277,11 @@ def cmd_nav(a: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     camera = open_source(a.camera, rate_hz=a.camera_rate_hz, realtime=True)
+    if isinstance(camera, (FolderSource, VideoFileSource)):
+        # a finite source is checked before anything opens: an empty folder or an undecodable
+        # video is a start-up error (exit 2), not a run that waits for frames forever
+        with camera:
+            pass
     vehicle = open_vehicle(a.vehicle)
     log = None
     if not a.no_log:
@@ -198,7 +302,7 @@ def cmd_nav(a: argparse.Namespace) -> int:
         link=link,
         vehicle=vehicle,
         log=log,
-        params=DaemonParams(rate_hz=a.rate_hz),
+        params=DaemonParams(rate_hz=a.rate_hz, camera_dead_s=a.camera_dead_s),
         status=status.show,
     )
     install_sigint(daemon)
@@ -216,8 +320,20 @@ def cmd_nav(a: argparse.Namespace) -> int:
         else f"{summary['cycles']} cycles, {summary['missed_deadlines']} missed deadlines, no frame used",
         file=sys.stderr,
     )
+    if summary.get("corrupt_frames"):
+        print(f"{summary['corrupt_frames']} corrupt frame(s) skipped", file=sys.stderr)
     print(f"mission: {guidance.outcome}", file=sys.stderr)
-    return EXIT_OK
+    end = daemon.session_end
+    if end is not None and link is not None:
+        print(
+            f"MCU: planned end {'accepted' if end.accepted else 'NOT accepted'}"
+            f"{f', state {end.state}' if end.state else ''} ({end.detail})",
+            file=sys.stderr,
+        )
+    rc, why = exit_status(daemon)
+    if rc != EXIT_OK:
+        print(f"oibar: error: {why} (exit status {rc})", file=sys.stderr, flush=True)
+    return rc
 
 
 def cmd_replay(a: argparse.Namespace) -> int:

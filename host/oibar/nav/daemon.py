@@ -19,12 +19,21 @@ handle with ``done``, ``error``, ``response`` and ``response_kind`` (oibar.link.
 Failure behaviour (each has a test in tests/host/test_nav_daemon.py):
 - model file missing or corrupt: ModelFileError at start, before the camera or the port is opened;
 - camera lost (unplugged, stalled): the cycle gets no frame, guidance holds; the daemon
-  reopens the camera every ``camera_retry_s``; after ``nav_lost_abort_s`` guidance aborts.
-  A reader stuck inside the source's read is waited for, never doubled: no reopen until it
-  has left (two readers on one device would interleave its frames);
+  reopens the camera every ``camera_retry_s``. A reader stuck inside the source's read is
+  waited for, never doubled: no reopen until it has left (two readers on one device would
+  interleave its frames). No frame for ``camera_dead_s`` (also: none since the start): the
+  source is dead, ``run`` ends with ``stop_reason = "source_died"`` (exit 4) after the planned
+  end of the MCU session (below);
+- a frame that cannot be decoded (a corrupt JPEG in a folder): skipped by the source and
+  counted (``corrupt_frames``), the next one is used;
 - end of a finite stream (video file, frame folder): not a lost camera. Nothing is reopened
   (that would start the recording again from frame 0), the cycle holds with reason
-  "camera: end of stream", and ``run`` ends;
+  "camera: end of stream", and ``run`` ends with ``stop_reason = "source_ended"`` (exit 3)
+  after the planned end of the MCU session;
+- stop (Ctrl-C, SIGTERM, --duration-s, mission over, source ended or died): the vehicle holds,
+  then the MCU session ends as planned (``end_session``: ``CMD_END_SESSION``, valves closed,
+  mated states hold, moving ones abort, and the silence that follows is no link-loss fault);
+  ``session_end`` says whether the MCU accepted it;
 - link lost: no mechanism command is sent (the request fails with LinkDown, guidance retries when
   the MCU is back), navigation updates and heartbeats are skipped, the vehicle holds; the link
   client reconnects (also after an MCU reboot, which it notices by itself);
@@ -67,6 +76,8 @@ class DaemonParams:
     camera_retry_s: float = 2.0  # reopen a lost camera this often
     camera_join_s: float = 2.0  # how long stopping a lost camera waits for its reader
     status_every_s: float = 0.5  # live status line refresh
+    camera_dead_s: float = 4.0  # no frame this long (or since the start): the source is dead, stop
+    end_session_s: float = 3.0  # stop: how long the planned end of the MCU session may take
     stats_window: int = 36_000  # cycle timings kept for the percentiles (1 h at 10 Hz)
 
 
@@ -81,6 +92,7 @@ class DaemonStats:
     camera_reopens: int = 0
     holds: int = 0
     odometry_errors: int = 0  # the vehicle's relative_velocity raised
+    corrupt_frames: int = 0  # frames the source could not decode: skipped
 
     def summary(self) -> dict[str, Any]:
         def pct(xs: collections.deque[float], q: float) -> float | None:
@@ -93,12 +105,35 @@ class DaemonStats:
             "camera_reopens": self.camera_reopens,
             "hold_cycles": self.holds,
             "odometry_errors": self.odometry_errors,
+            "corrupt_frames": self.corrupt_frames,
             "cycle_ms_median": pct(self.cycle_ms, 50),
             "cycle_ms_p99": pct(self.cycle_ms, 99),
             "frame_to_command_ms_median": pct(self.frame_to_command_ms, 50),
             "frame_to_command_ms_p99": pct(self.frame_to_command_ms, 99),
             "frame_to_command_ms_max": max(self.frame_to_command_ms) if self.frame_to_command_ms else None,
         }
+
+
+# Why run() ended (NavDaemon.stop_reason); the CLI maps each to its exit status (oibar.nav.cli).
+STOP_FINISHED = "finished"  # guidance: mission completed, aborted or safed
+STOP_DURATION = "duration"  # --duration-s / max_cycles reached
+STOP_SIGNAL = "signal"  # Ctrl-C, SIGTERM (NavDaemon.stop)
+STOP_SOURCE_ENDED = "source_ended"  # a finite source (video file, frame folder) delivered its last frame
+STOP_SOURCE_DIED = "source_died"  # no frame for camera_dead_s (camera gone, never opened)
+
+
+@dataclass
+class SessionEnd:
+    """How the planned end of the MCU session went (NavDaemon.end_session)."""
+
+    sent: bool  # CMD_END_SESSION reached the MCU and was answered
+    accepted: bool  # the MCU accepted it: safe, and its link timeout will not fault
+    state: str | None = None  # the MCU's state after it
+    detail: str = ""
+
+    @property
+    def safe(self) -> bool:
+        return self.accepted
 
 
 def request_result(req: MechRequest, handle: Request) -> RequestResult:
@@ -140,6 +175,10 @@ class NavDaemon:
             frame_to_command_ms=collections.deque(maxlen=self.p.stats_window),
         )
         self._stop = threading.Event()
+        self.stop_reason: str | None = None  # why run() ended (STOP_*)
+        self.stop_signal: str | None = None  # SIGINT / SIGTERM when a signal stopped it
+        self.session_end: SessionEnd | None = None
+        self._last_frame_at: float | None = None  # clock() of the newest frame (or run's start)
         self._cam: LatestFrame | None = None
         self._stuck_cam: LatestFrame | None = None  # a reader still blocked in read(): not reopened under it
         self.camera_ended = False  # a finite source delivered its last frame
@@ -244,6 +283,7 @@ class NavDaemon:
                 t_s, frame.image, frame_t_s=frame.t_host - self._t0, frame_seq=frame.seq, odometry=odometry
             )
             self.stats.frames_used += 1
+            self._last_frame_at = start
         else:
             step = self.nav.step(t_s, None, odometry=odometry)
             if camera_error:
@@ -273,6 +313,7 @@ class NavDaemon:
             self._submit(out.request)
         end = self.clock()
         st = self.stats
+        st.corrupt_frames = int(getattr(self.camera_source, "corrupt_frames", 0) or 0)
         st.cycles += 1
         st.cycle_ms.append((end - start) * 1e3)
         if frame is not None:
@@ -403,17 +444,73 @@ class NavDaemon:
         cyc = self.stats.cycle_ms[-1] if self.stats.cycle_ms else 0.0
         hold = f"  HOLD: {sol.hold_reason}" if sol.hold_reason else ""
         logw = f"  LOG: {self.log.error}" if self.log is not None and self.log.error else ""
+        bad = f"  corrupt {self.stats.corrupt_frames}" if self.stats.corrupt_frames else ""
         return (
             f"t {self._last_t():7.1f} s  {out.phase:<18} range {rng}  lat {sol.lateral_m * 100:5.1f} cm  "
             f"conf {sol.confidence:4.2f}  MCU {st:<16} link {link}  cycle {cyc:5.1f} ms  "
-            f"missed {self.stats.missed_deadlines}{hold}{logw}"
+            f"missed {self.stats.missed_deadlines}{bad}{hold}{logw}"
         )
 
     def _last_t(self) -> float:
         return self.clock() - self._t0
 
-    def stop(self) -> None:
+    def stop(self, signal_name: str | None = None) -> None:
+        """Ask ``run`` to end after the current cycle (a planned stop; thread and signal safe)."""
+        if signal_name is not None and self.stop_signal is None:
+            self.stop_signal = signal_name
         self._stop.set()
+
+    def source_dead(self, now: float) -> bool:
+        """True when the camera has delivered no frame for ``camera_dead_s`` (counted from the
+        newest frame, or from the start of ``run``), and is not just a finite source that ended."""
+        if self.camera_ended or self._last_frame_at is None:
+            return False
+        return now - self._last_frame_at >= self.p.camera_dead_s
+
+    def end_session(self, timeout_s: float | None = None) -> SessionEnd:
+        """The planned end of the MCU session: wait (boundedly) for a request still in flight
+        (stop and wait: one at a time), then send ``CMD_END_SESSION`` and wait for its answer,
+        heartbeating meanwhile. The MCU closes the valves, stops a transfer, holds mated states,
+        aborts moving ones (docs/state_table.md) and, once it has accepted, does not count the
+        silence that follows as a host link loss. Never raises."""
+        link = self.link
+        if link is None:
+            self.session_end = SessionEnd(False, False, None, "no MCU (--port none)")
+            return self.session_end
+        deadline = time.monotonic() + (self.p.end_session_s if timeout_s is None else timeout_s)
+
+        def beat() -> None:
+            try:
+                link.heartbeat()
+            except Exception:
+                pass
+            time.sleep(0.01)
+
+        try:
+            while self._handle is not None and not self._handle.done and time.monotonic() < deadline:
+                beat()
+            if not link.link_alive:
+                res = SessionEnd(
+                    False, False, None, "link down: the MCU takes the silence for a host link loss"
+                )
+            else:
+                handle = link.submit_command(pb.CMD_END_SESSION, None)
+                while not handle.done and time.monotonic() < deadline:
+                    beat()
+                if not handle.done:
+                    res = SessionEnd(False, False, None, "no answer from the MCU")
+                elif handle.error is not None:
+                    res = SessionEnd(False, False, None, f"{type(handle.error).__name__}: {handle.error}")
+                else:
+                    body = handle.response
+                    state = pb.enum_name(pb.State, body.state) if handle.response_kind == "ack" else None
+                    accepted = bool(getattr(body, "accepted", False))
+                    reason = pb.enum_name(pb.NackReason, body.reason)
+                    res = SessionEnd(True, accepted, state, "accepted" if accepted else f"refused: {reason}")
+        except Exception as exc:  # LinkDown, closed, another request out: reported, never raised
+            res = SessionEnd(False, False, None, f"{type(exc).__name__}: {exc}")
+        self.session_end = res
+        return res
 
     def run(self, duration_s: float | None = None, max_cycles: int | None = None) -> dict[str, Any]:
         """Frame-driven at ``rate_hz``: each cycle starts when a frame arrives that was captured
@@ -441,17 +538,30 @@ class NavDaemon:
             )
         last_start = t_start - period
         last_capture = -1e18
+        self._last_frame_at = t_start
+        self.stop_reason = None
         k = 0
         try:
-            while not self._stop.is_set() and not self.guidance.finished and not self.camera_ended:
-                if duration_s is not None and self.clock() - t_start >= duration_s:
-                    break
-                if max_cycles is not None and k >= max_cycles:
+            while True:
+                if self._stop.is_set():
+                    self.stop_reason = STOP_SIGNAL
+                elif self.guidance.finished:
+                    self.stop_reason = STOP_FINISHED
+                elif self.camera_ended:
+                    self.stop_reason = STOP_SOURCE_ENDED
+                elif self.source_dead(self.clock()):
+                    self.stop_reason = STOP_SOURCE_DIED
+                elif (duration_s is not None and self.clock() - t_start >= duration_s) or (
+                    max_cycles is not None and k >= max_cycles
+                ):
+                    self.stop_reason = STOP_DURATION
+                if self.stop_reason is not None:
                     break
                 frame = self.wait_frame(
                     until=last_start + 1.5 * period, min_capture_host=last_capture + 0.9 * period
                 )
                 if self._stop.is_set():
+                    self.stop_reason = STOP_SIGNAL
                     break
                 start = self.clock()
                 if frame is not None:
@@ -472,12 +582,15 @@ class NavDaemon:
         return self.stats.summary()
 
     def shutdown(self) -> None:
-        """Vehicle hold and close, camera stopped, log footer written. The link is its
-        opener's to close (oibar nav closes it after ``run``)."""
+        """Vehicle hold, the planned end of the MCU session (``end_session``), vehicle closed,
+        camera stopped, log footer written. The link is its opener's to close (oibar nav closes
+        it after ``run``)."""
         try:
             self.vehicle.hold(self._last_t())
         except Exception:
             pass
+        if self.session_end is None:
+            self.end_session()
         try:
             self.vehicle.close()
         except Exception:
@@ -495,6 +608,15 @@ class NavDaemon:
                     "kind": "footer",
                     "summary": self.stats.summary(),
                     "outcome": self.guidance.outcome,
+                    "stop_reason": self.stop_reason,
+                    "stop_signal": self.stop_signal,
+                    "session_end": None
+                    if self.session_end is None
+                    else {
+                        "accepted": self.session_end.accepted,
+                        "state": self.session_end.state,
+                        "detail": self.session_end.detail,
+                    },
                     "notes": self.guidance.notes,
                     "log_lines_lost": self.log.lines_lost,
                     "log_error": self.log.error,
@@ -505,12 +627,17 @@ class NavDaemon:
 
 
 def install_sigint(daemon: NavDaemon) -> None:
-    """Ctrl-C / SIGTERM: finish the current cycle, hold the vehicle, close everything."""
+    """Ctrl-C / SIGTERM: a planned stop. Finish the current cycle, hold the vehicle, end the
+    MCU session (CMD_END_SESSION), close everything. A second signal while stopping changes
+    nothing (the stop is already under way; no KeyboardInterrupt traceback)."""
 
     def handler(signum: int, _frame: object) -> None:
-        daemon.stop()
+        name = signal.Signals(signum).name
+        if daemon._stop.is_set():
+            return
+        daemon.stop(name)
         print(
-            f"\n{signal.Signals(signum).name}: stopping (vehicle hold, closing link and camera)",
+            f"\n{name}: stopping (vehicle hold, planned end of the MCU session, closing link and camera)",
             file=sys.stderr,
         )
 

@@ -29,6 +29,14 @@ static uint32_t s_irq_windows;  /* ... at this one (1 = the next) */
 static uint8_t s_tx[TX_CAP];
 static size_t s_tx_len;
 
+/* parameter flash */
+static uint8_t f_mem[HAL_FLASH_SECTORS][HAL_FLASH_SECTOR_BYTES];
+static uint32_t f_ops;
+static int32_t f_cut_after; /* -1: no cut armed */
+static bool f_dead;         /* power is off: nothing programs any more */
+static bool f_fail;
+static bool f_drop;
+
 /* plant */
 static bool p_on;
 static bool p_probe;
@@ -75,6 +83,12 @@ void fake_hal_reset(void)
     s_crit_depth = 0;
     s_irq_fn = NULL;
     s_tx_len = 0;
+    fake_flash_blank();
+    f_ops = 0;
+    f_cut_after = -1;
+    f_dead = false;
+    f_fail = false;
+    f_drop = false;
 
     p_on = false;
     p_probe = false;
@@ -201,6 +215,97 @@ void hal_critical_exit(uint32_t saved)
 }
 
 hal_reset_cause_t hal_reset_cause(void) { return s_reset_cause; }
+
+/* --- parameter flash -------------------------------------------------- */
+uint8_t *fake_flash_sector(unsigned sector) { return f_mem[sector % HAL_FLASH_SECTORS]; }
+void fake_flash_blank(void) { memset(f_mem, 0xFF, sizeof f_mem); }
+uint32_t fake_flash_ops(void) { return f_ops; }
+void fake_flash_cut_after(int32_t ops) { f_cut_after = ops; }
+void fake_flash_set_fail(bool fail) { f_fail = fail; }
+void fake_flash_set_silent_drop(bool drop) { f_drop = drop; }
+
+void fake_hal_power_cycle(void)
+{
+    static uint8_t keep[HAL_FLASH_SECTORS][HAL_FLASH_SECTOR_BYTES];
+    memcpy(keep, f_mem, sizeof keep);
+    fake_hal_reset();
+    memcpy(f_mem, keep, sizeof keep);
+}
+
+static bool flash_range_ok(unsigned sector, uint32_t offset, size_t len)
+{
+    return sector < HAL_FLASH_SECTORS && offset <= HAL_FLASH_SECTOR_BYTES &&
+           len <= HAL_FLASH_SECTOR_BYTES - offset;
+}
+
+/* One erase or word program: true when it may run whole; false when the
+ * power is gone (the cut one runs half way, `*cut` set). */
+static bool flash_op_begins(bool *cut)
+{
+    *cut = false;
+    if (f_dead || f_fail) {
+        return false;
+    }
+    if (f_cut_after == 0) {
+        f_dead = true;
+        *cut = true;
+        return false;
+    }
+    if (f_cut_after > 0) {
+        f_cut_after--;
+    }
+    f_ops++;
+    return true;
+}
+
+bool hal_flash_read(unsigned sector, uint32_t offset, void *dst, size_t len)
+{
+    if (dst == NULL || !flash_range_ok(sector, offset, len)) {
+        return false;
+    }
+    memcpy(dst, &f_mem[sector][offset], len);
+    return true;
+}
+
+bool hal_flash_erase_sector(unsigned sector)
+{
+    if (sector >= HAL_FLASH_SECTORS) {
+        return false;
+    }
+    bool cut;
+    if (!flash_op_begins(&cut)) {
+        if (cut) {
+            memset(f_mem[sector], 0xFF, HAL_FLASH_SECTOR_BYTES / 2u);
+        }
+        return false;
+    }
+    memset(f_mem[sector], 0xFF, HAL_FLASH_SECTOR_BYTES);
+    return true;
+}
+
+bool hal_flash_program(unsigned sector, uint32_t offset, const uint32_t *words, size_t n_words)
+{
+    if (words == NULL || (offset & 3u) != 0u || n_words > HAL_FLASH_SECTOR_BYTES / 4u ||
+        !flash_range_ok(sector, offset, n_words * 4u)) {
+        return false;
+    }
+    for (size_t i = 0; i < n_words; i++) {
+        uint8_t *at = &f_mem[sector][offset + 4u * i];
+        uint32_t old;
+        memcpy(&old, at, 4u);
+        bool cut;
+        if (!flash_op_begins(&cut)) {
+            if (cut) {
+                const uint32_t half = old & (words[i] | 0x0000FFFFu); /* upper half written */
+                memcpy(at, &half, 4u);
+            }
+            return false;
+        }
+        const uint32_t v = f_drop ? old : (old & words[i]); /* flash clears bits, never sets them */
+        memcpy(at, &v, 4u);
+    }
+    return true;
+}
 
 /* --- knobs ------------------------------------------------------------- */
 void fake_hal_set_di(hal_di_t di, bool level)

@@ -58,6 +58,26 @@ const uint8_t *fake_hal_uart_tx_data(void);
 void fake_hal_uart_tx_clear(void);
 void fake_hal_uart_rx_inject(const uint8_t *bytes, size_t len);
 
+/* --- parameter flash (hal_flash_*) ------------------------------------ */
+/* Two in-memory sectors of HAL_FLASH_SECTOR_BYTES that keep flash semantics
+ * (erased = 0xFF, programming ANDs bits in). fake_hal_reset() blanks them;
+ * fake_hal_power_cycle() keeps them (a reboot of the same board). */
+uint8_t *fake_flash_sector(unsigned sector); /* raw bytes, for tests to corrupt */
+void fake_flash_blank(void);
+/* Erase operations and programmed words since the last reset. */
+uint32_t fake_flash_ops(void);
+/* Power cut: `ops` more erase/word-program operations complete, the next one
+ * is cut half way (an erase leaves the sector's second half unerased and the
+ * first half erased; a word keeps some of its old bits), and every later one
+ * fails (no power) until fake_hal_power_cycle(). -1 disarms. */
+void fake_flash_cut_after(int32_t ops);
+/* Fail every erase or program (a flash error) while on. */
+void fake_flash_set_fail(bool fail);
+/* Word programs report success but write nothing (a flash that fails silently) while on. */
+void fake_flash_set_silent_drop(bool drop);
+/* Everything as fake_hal_reset() except the flash contents. */
+void fake_hal_power_cycle(void);
+
 /* --- plant model ------------------------------------------------------ */
 #define FAKE_PLANT_TRAVEL_MM 40.0f
 #define FAKE_PLANT_LATCH_RELEASE_STEPS 600

@@ -36,6 +36,9 @@ bool oibar_app_next_event(oibar_v1_Event *out);
 
 oibar_v1_State oibar_app_state(void);
 bool oibar_app_host_link_alive(void);
+/* CMD_END_SESSION accepted since the last handshake (and no other command
+ * but NOOP after it): a link loss now is the host's planned end, no fault. */
+bool oibar_app_session_ended(void);
 oibar_v1_ResetCause oibar_app_reset_cause(void);
 /* Capture envelope (paper: <= 50 mm/s, <= 10 deg) from the latest fresh
  * navigation update. */

@@ -35,7 +35,7 @@
 #define OIBAR_FSM_SUPER_MATED 18u
 #define OIBAR_FSM_NODE_LAST 18u
 #define OIBAR_CMD_FIRST 1u
-#define OIBAR_CMD_LAST 11u
+#define OIBAR_CMD_LAST 12u
 /* Table event ids: signals keep their value, commands are offset. */
 #define OIBAR_FSM_EV_CMD_BASE 32u
 #define OIBAR_FSM_EV_CMD(op) ((uint8_t)(OIBAR_FSM_EV_CMD_BASE + (unsigned)(op)))

@@ -134,4 +134,12 @@ oibar_v1_NackReason oibar_param_set(uint32_t id, float value, oibar_v1_State sta
 /* True in the states where parameters may change. */
 bool oibar_params_settable_in(oibar_v1_State state);
 
+/* The whole table, in id order (index = id - 1), for the parameter store. */
+void oibar_params_snapshot(float out[OIBAR_PARAM_COUNT]);
+/* Replace the whole table if every value is in its bounds (a whole number
+ * where the parameter is an integer, never NaN) and the table passes the
+ * cross-parameter rules; otherwise change nothing and return false. The
+ * parameter store loads a copy from flash only through this. */
+bool oibar_params_apply(const float in[OIBAR_PARAM_COUNT]);
+
 #endif

@@ -127,6 +127,31 @@ uint32_t hal_critical_enter(void);
 void hal_critical_exit(uint32_t saved);
 hal_reset_cause_t hal_reset_cause(void);
 
+/* --- parameter flash (app/src/pstore.c) -------------------------------- */
+/* Two flash sectors reserved for the stored parameters, numbered 0 and 1 here
+ * (STM32F405: sectors 1 and 2, 16 KiB each at 0x08004000 and 0x08008000,
+ * kept out of the image by the linker script and checked after the link).
+ * Erased flash reads 0xFF; programming only clears bits.
+ *
+ * The one exception to "nothing here blocks": hal_flash_erase_sector and
+ * hal_flash_program return when the operation has finished. A 16 KiB sector
+ * erase stalls the flash bank for up to about a second (typical 250 ms,
+ * 500 ms maximum at 32-bit parallelism, STM32F405 datasheet), longer than the
+ * 250 ms watchdog: the port keeps the watchdog fed while it waits (STM32F4:
+ * from code in RAM, interrupts masked, the IWDG reloaded on every poll of
+ * BSY). Interrupts and the control tick are held off for that time, so the
+ * application calls these only from the main loop in a safe state
+ * (STATE_BOOT or STATE_IDLE, valves closed: CMD_SAVE_PARAMS).
+ * Each returns false on a bad argument (sector >= HAL_FLASH_SECTORS, a range
+ * past the sector's end, an offset not word-aligned) or a hardware error. */
+#define HAL_FLASH_SECTORS 2u
+#define HAL_FLASH_SECTOR_BYTES 16384u
+bool hal_flash_read(unsigned sector, uint32_t offset, void *dst, size_t len);
+bool hal_flash_erase_sector(unsigned sector);
+/* Program n_words 32-bit words at a word-aligned offset, in increasing
+ * address order (a power cut leaves a prefix written). */
+bool hal_flash_program(unsigned sector, uint32_t offset, const uint32_t *words, size_t n_words);
+
 #ifdef __cplusplus
 }
 #endif

@@ -2,12 +2,17 @@
  * oibar_sim_mcu: the OIBAR firmware (application + link) on simulated time,
  * in lockstep with the HIL rig's plant (docs/hil.md).
  *
- *   oibar_sim_mcu --lockstep-fd N [--watchdog-ms N] [--build-id S]
+ *   oibar_sim_mcu --lockstep-fd N [--watchdog-ms N] [--build-id S] [--flash-image PATH]
  *   oibar_sim_mcu --list-params
  *
  * --list-params prints the firmware's parameter table (app_params) as
  * tab-separated lines, id name unit default min max integer, and exits: the
  * rig reads parameter names and ids from the firmware, not from a copy.
+ *
+ * --flash-image PATH (or the environment's OIBAR_SIM_FLASH_IMAGE) keeps the
+ * parameter flash (the board's sectors 1 and 2, CMD_SAVE_PARAMS) in that file
+ * across processes; without it the flash starts blank (the defaults) and
+ * lives only as long as this process (flash_sim.c).
  *
  * Prints "PTY <slave path>" on stdout, then serves lockstep exchanges on the
  * inherited SOCK_SEQPACKET socket N until the plant sends QUIT or closes it.
@@ -44,6 +49,7 @@ typedef struct {
     int fd;
     uint32_t watchdog_ms;
     const char *build_id;
+    const char *flash_image;
 } options_t;
 
 static oibar_link_t g_link;
@@ -200,6 +206,12 @@ static bool exchange(const options_t *opt)
         return true;
     }
     g_expected_frame++;
+    if ((in.flags & SIM_LS_FLAG_RESET_PIN) != 0u) {
+        /* The MCU restarts (outputs off, RAM lost; the parameter flash kept, as on the
+         * board): issue 59 item 5, "reset mid-transfer". */
+        g_resets++;
+        mcu_boot(HAL_RESET_PIN, opt);
+    }
     hal_sim_set_inputs(in.di_bits, in.adc_counts, SIM_LS_ADC_SLOTS, in.adc_fail_bits);
     if ((in.flags & SIM_LS_FLAG_HANG_MAIN_LOOP) != 0u) {
         g_hung = true;
@@ -243,6 +255,8 @@ static bool parse_args(int argc, char **argv, options_t *opt)
             /* parsed */
         } else if (strcmp(a, "--build-id") == 0) {
             opt->build_id = v;
+        } else if (strcmp(a, "--flash-image") == 0 && *v != '\0') {
+            opt->flash_image = v;
         } else {
             return false;
         }
@@ -262,13 +276,13 @@ static void list_params(void)
 
 int main(int argc, char **argv)
 {
-    options_t opt = { -1, 100u, "sim" };
+    options_t opt = { -1, 100u, "sim", NULL };
     if (argc == 2 && strcmp(argv[1], "--list-params") == 0) {
         list_params();
         return 0;
     }
     if (!parse_args(argc, argv, &opt)) {
-        (void)fprintf(stderr, "usage: %s --lockstep-fd N [--watchdog-ms N] [--build-id S] | --list-params\n", argv[0]);
+        (void)fprintf(stderr, "usage: %s --lockstep-fd N [--watchdog-ms N] [--build-id S] [--flash-image PATH] | --list-params\n", argv[0]);
         return 2;
     }
     char path[128];
@@ -278,6 +292,13 @@ int main(int argc, char **argv)
     }
     hal_sim_set_uart_tx(sim_pty_write);
     hal_sim_set_watchdog_timeout_ms(opt.watchdog_ms);
+    if (opt.flash_image == NULL) {
+        const char *env = getenv("OIBAR_SIM_FLASH_IMAGE");
+        opt.flash_image = (env != NULL && *env != '\0') ? env : NULL;
+    }
+    if (opt.flash_image != NULL && !hal_sim_flash_attach(opt.flash_image)) {
+        return 1;
+    }
     mcu_boot(HAL_RESET_POWER_ON, &opt);
     (void)printf("PTY %s\n", path);
     (void)fflush(stdout);

@@ -41,4 +41,10 @@ typedef size_t (*hal_sim_tx_fn)(const uint8_t *data, size_t len);
 void hal_sim_set_uart_tx(hal_sim_tx_fn tx);
 void hal_sim_uart_rx_byte(uint8_t byte);
 
+/* Keep the parameter flash (hal_flash_*) in this image file: created blank
+ * (0xFF) when missing or empty, loaded when it holds the two sectors, every
+ * erase and program written through. False (and a message) when it cannot be
+ * opened or has another size. Without it the flash lives in memory only. */
+bool hal_sim_flash_attach(const char *path);
+
 #endif /* OIBAR_HAL_SIM_H */

@@ -28,6 +28,7 @@
 /* plant -> MCU flags */
 #define SIM_LS_FLAG_HANG_MAIN_LOOP 0x1u /* main loop stops until the next reset */
 #define SIM_LS_FLAG_QUIT 0x2u           /* reply once, then exit */
+#define SIM_LS_FLAG_RESET_PIN 0x4u      /* the reset pin pulled (brown-out, a restart): boot again before this exchange runs */
 
 /* MCU -> plant status */
 enum {
