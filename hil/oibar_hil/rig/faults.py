@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from oibar_hil.rig.lockstep import ADC
+
 FAULT_TYPES = (
     "link_loss",
     "bit_errors",
@@ -35,7 +37,25 @@ FAULT_TYPES = (
     # issue 16 (fw-app): abort with slow valves, host-side parameter attack
     "valve_slow_close",
     "param_attack",
+    # issue 59 item 5: the FMEA's new failure modes (firmware/fmea.toml)
+    "plane_retracted_wire_break",
+    "home_wire_break",
+    "switch_stuck",
+    "plane_pos_adc_fail",
+    "backflow",
+    "mcu_reset",
 )
+
+# Lockstep DI names of the switches a fault may break or stick (hil/oibar_hil/rig/lockstep.py).
+SWITCHES = {
+    "contact": "CONTACT",
+    "latch_home": "LATCH_HOME",
+    "plane_extended": "PLANE_EXTENDED",
+    "plane_retracted": "PLANE_RETRACTED",
+    "connector": "CONNECTOR_MATED",
+    "sv_valve": "SV_VALVE_OPEN",
+    "tv_valve": "TV_VALVE_OPEN",
+}
 
 
 @dataclass
@@ -104,6 +124,8 @@ class FaultInjector:
         for fault in list(self.active):
             if fault.spec.type == "overpressure":
                 self._overpressure(fault, t_s, dt_s, rig)
+            if fault.spec.type == "backflow":
+                self._backflow(fault, dt_s, rig)
             if fault.spec.type == "replay":
                 self._replay(fault, t_s, rig)
             if fault.end_s is not None and t_s >= fault.end_s:
@@ -166,6 +188,31 @@ class FaultInjector:
             # The host tries to zero or loosen each protection (args: {name: value}).
             if on:
                 rig.host_param_attack(dict(spec.args.get("values", {})))
+        elif kind in ("plane_retracted_wire_break", "home_wire_break"):
+            # Switches are wired normally closed to ground with a pull-up: a broken wire reads
+            # "actuated" for good (docs/hardware.md, Switch inputs).
+            name = "PLANE_RETRACTED" if kind == "plane_retracted_wire_break" else "LATCH_HOME"
+            if on:
+                mech.di_forced[name] = True
+            else:
+                mech.di_forced.pop(name, None)
+        elif kind == "switch_stuck":
+            # A switch stuck at one level (a broken lever: never actuated; welded: always).
+            name = SWITCHES[spec.args.get("switch", "plane_extended")]
+            if on:
+                mech.di_forced[name] = bool(spec.args.get("level", False))
+            else:
+                mech.di_forced.pop(name, None)
+        elif kind == "plane_pos_adc_fail":
+            # Every conversion of the plane's position sensor fails (hal_adc_read false).
+            bit = 1 << ADC.index("PLANE_POS")
+            mech.adc_fail_bits = (mech.adc_fail_bits | bit) if on else (mech.adc_fail_bits & ~bit)
+        elif kind == "backflow":
+            pass  # the supply's fall is played step by step (_backflow)
+        elif kind == "mcu_reset":
+            # The MCU restarts (reset pin, brown-out): outputs off, RAM lost, flash kept.
+            if on:
+                rig.request_reset()
         elif kind == "valve_slow_close":
             # Both valves stroke in stroke_s (e.g. 300 ms, slower than valve_mismatch_ms), and
             # the host sends ABORT at the injection: the plane must wait for the valves.
@@ -186,6 +233,17 @@ class FaultInjector:
         if t_s >= st.get("next_s", t_s):
             rig.wire.replay()
             st["next_s"] = t_s + float(fault.spec.args.get("period_s", 0.25))
+
+    @staticmethod
+    def _backflow(fault: ActiveFault, dt_s: float, rig: Any) -> None:
+        """The supply tank falls below the target tank (a leak on the supply side, upstream of
+        the couplings; an emptied supply) at ``rate_kpa_s`` (a real tank, not a sensor jump) down
+        to ``sv_kpa``: with the valves open gas would flow back from the target tank."""
+        args = fault.spec.args
+        mech = rig.mech
+        floor = float(args.get("sv_kpa", 250.0))
+        rate = float(args.get("rate_kpa_s", 400.0))
+        mech.sv_kpa = max(min(mech.sv_kpa, floor), mech.sv_kpa - rate * dt_s)
 
     @staticmethod
     def _overpressure(fault: ActiveFault, t_s: float, dt_s: float, rig: Any) -> None:

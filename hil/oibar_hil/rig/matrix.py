@@ -18,6 +18,8 @@ Every applicable cell is checked for (ids G-* here, REQ-*/EXP-* from ``checks.py
                 running), not in TRANSFERRING, valves sensed closed unless one is stuck open;
 - G-VALVES      valves that were open at the injection sensed closed within the fault's
                 stated bound (``VALVES_CLOSED_BOUND_S``);
+- G-LATCH       the latch never released with the plane away from retracted (ground truth,
+                every exchange: the cam at its release position, the plane beyond 2.5 mm);
 - G-REPORTED    the host was told: every expected fault reached it, as EVT_FAULT or in the
                 fault flags of the telemetry it received (a fault raised while the link is
                 down, or before the handshake after a reset, can only arrive the second way).
@@ -41,7 +43,10 @@ from oibar_hil.rig.runner import REPO_ROOT
 from oibar_hil.rig.scenario import Scenario
 
 FUEL_LOST_MAX_KG = 0.0  # the couplings must never vent (checks.py allows 1e-9 for rounding)
-MAX_SIM_TIME_S = 240.0  # a cell that has not ended by then is "stuck"
+MAX_SIM_TIME_S = 240.0
+# G-LATCH: "retracted" as the firmware judges it (OIBAR_PLANE_RETRACTED_MAX_MM, app_params.h):
+# the end switch and the position sensor agree within this; the couplings part at ~30 mm
+LATCH_PLANE_MAX_MM = 2.5  # a cell that has not ended by then is "stuck"
 DOC_PATH = REPO_ROOT / "docs" / "reliability.md"
 BEGIN, END = "<!-- fault-matrix:begin -->", "<!-- fault-matrix:end -->"
 
@@ -138,6 +143,15 @@ FAULT_ARGS: dict[str, dict[str, Any]] = {
             "plane_mm_per_count": 0.02,
         }
     },
+    # issue 59 item 5: the FMEA's new failure modes (firmware/fmea.toml), each for good
+    "plane_retracted_wire_break": {},
+    "home_wire_break": {},
+    "switch_stuck": {"switch": "plane_extended", "level": False},  # a broken lever: never actuated
+    "plane_pos_adc_fail": {},
+    # the supply falls at 1000 kPa/s (under the 2000 kPa/s rate check: a real tank) to 250 kPa,
+    # below the target tank (300 -> 600 kPa)
+    "backflow": {"sv_kpa": 250.0, "rate_kpa_s": 1000.0},
+    "mcu_reset": {},  # reset pin: the MCU boots again, the parameter flash kept (rig.flash_image)
 }
 FAULT_TITLES = {
     "link_loss": "link loss 3 s",
@@ -161,6 +175,12 @@ FAULT_TITLES = {
     "slow_inference": "inference 300 ms (3 periods) for 3 s",
     "valve_slow_close": "valves stroke 300 ms, host aborts",
     "param_attack": "host loosens every protection",
+    "plane_retracted_wire_break": "plane retracted switch: broken wire",
+    "home_wire_break": "latch home switch: broken wire",
+    "switch_stuck": "plane extended switch stuck open",
+    "plane_pos_adc_fail": "plane position ADC fails",
+    "backflow": "supply below target (back-flow)",
+    "mcu_reset": "MCU reset (pin), flash kept",
 }
 assert set(FAULT_ARGS) == set(FAULT_TYPES), "a fault type of the rig is missing from the matrix"
 
@@ -188,6 +208,12 @@ VALVES_CLOSED_BOUND_S: dict[str, float | None] = {
     "slow_inference": None,  # late cycles still beat the link timeout: the fill goes on
     "valve_slow_close": 0.4,  # the 300 ms stroke + debounce
     "param_attack": None,  # refused: nothing changes, the fill goes on
+    "plane_retracted_wire_break": None,  # the fill goes on: the switch is not read while mated
+    "home_wire_break": None,  # latent until the latch homes
+    "switch_stuck": 0.1,  # the extended switch is a valve precondition: debounce 10 ms + stroke
+    "plane_pos_adc_fail": 0.1,  # bad run 10 ms: FAULT_PLANE_POSITION + stroke
+    "backflow": 2.5,  # the supply's fall to below the target (~1.8 s) + the no-back-flow check + stroke
+    "mcu_reset": 0.1,  # outputs off at the reset + stroke
 }
 
 NOT_APPLICABLE: dict[tuple[str, str], str] = {
@@ -396,11 +422,109 @@ def expectation(fault: str, phase: str) -> Expect | str:
                 why="valves closed: ABORT safes at once; the retried fill's valves close slower "
                 "than valve_mismatch_ms: FAULT with the plane held mated, nothing vented",
             )
+    elif fault in NEW_MODES:
+        e = _new_mode_expectation(fault, phase)
     else:
         raise ValueError(f"no expectation for fault {fault!r}")
     if e.final_state is None:
         e.final_state = _final(e.outcome)
     return e
+
+
+NEW_MODES = (
+    "plane_retracted_wire_break",
+    "home_wire_break",
+    "switch_stuck",
+    "plane_pos_adc_fail",
+    "backflow",
+    "mcu_reset",
+)
+
+
+def _new_mode_expectation(fault: str, phase: str) -> Expect:
+    """Issue 59 item 5: each new failure mode of the FMEA (firmware/fmea.toml) in each phase.
+    Nothing vents in any of them (FUEL_LOST_MAX_KG), and G-LATCH holds in all."""
+    if fault == "plane_retracted_wire_break":
+        if phase == "unmating":
+            return Expect(
+                "completed",
+                [],
+                why="the wire breaks while the plane retracts: the end counts only once the position "
+                "sensor agrees (D9), so the latch waits for the real end; separation goes on",
+            )
+        return Expect(
+            "safed",
+            ["FAULT_PLANE_POSITION"],
+            why=("latent until the plane reaches its extended switch; " if phase != "hard_docked" else "")
+            + "both end switches read actuated: FAULT_PLANE_POSITION, valves closed, not clearable "
+            "while implausible: hold mated, the latch never released",
+        )
+    if fault == "home_wire_break":
+        return Expect(
+            "safed",
+            ["FAULT_LATCH_STALL"],
+            why="latent until the latch homes after its release (plane retracted): the home switch "
+            "reads 'home' from the start, the pull-off does not clear it (D7): stall, hold",
+        )
+    if fault == "switch_stuck":
+        if phase in ("approach", "reception", "hard_docking"):
+            return Expect(
+                "aborted",
+                ["FAULT_PLANE_TIMEOUT"],
+                why="the extend never sees its switch: plane timeout; clear, the plane retracts, separate",
+            )
+        if phase == "unmating":
+            return Expect("completed", [], why="the extended switch is not read once the plane leaves it")
+        return Expect(
+            "aborted",
+            ["FAULT_PLANE_POSITION"],
+            why="the plane no longer reads mated (switch and sensor disagree): valves closed "
+            "(SAFETY_RULE_VALVES_NEED_PLANE_MATED); clear, abort, separate",
+        )
+    if fault == "plane_pos_adc_fail":
+        return Expect(
+            "safed",
+            ["FAULT_PLANE_POSITION"],
+            why="a run of failed conversions for 10 ms (D3): FAULT_PLANE_POSITION, nothing moves "
+            "or opens on a stale number; not clearable while it fails: hold",
+        )
+    if fault == "backflow":
+        if phase == "unmating":
+            return Expect("completed", [], why="valves closed for good: the supply's level no longer matters")
+        if phase == "approach":
+            return Expect(
+                "aborted",
+                ["FAULT_PRESSURE_SENSOR_RATE"],
+                why="the supply's fall read by the rate check on the rig's 20 ms coast exchanges "
+                "(a faster fall than the fill allows): FAULT; clear, separate",
+            )
+        if phase in ("reception", "hard_docking"):
+            return Expect(
+                "aborted",
+                [],
+                why="the supply is below the target before the fill: START refused (D2, no head); "
+                "the host gives up and separates",
+            )
+        return Expect(
+            "aborted",
+            ["FAULT_FILL_STALLED"],
+            why="the supply falls below the target: the valves close at once "
+            "(SAFETY_RULE_NO_BACKFLOW, D2); clear, abort, separate",
+        )
+    if fault == "mcu_reset":
+        if phase == "approach":
+            return Expect(
+                "completed",
+                [],
+                why="a reset at home is no fault: the host re-handshakes and the mission goes on",
+            )
+        return Expect(
+            "aborted",
+            ["FAULT_RESET_AWAY_FROM_HOME"],
+            why="outputs off at the reset (valves close by their springs); boots into FAULT with the "
+            "mechanism away from home, parameters from the flash; host re-handshakes, clears, separates",
+        )
+    raise ValueError(fault)
 
 
 def cell_scenario(fault: str, phase: str, exp: Expect, seed: int = 7) -> Scenario:
@@ -420,7 +544,7 @@ def cell_scenario(fault: str, phase: str, exp: Expect, seed: int = 7) -> Scenari
             "seed": seed,
             "start": {"range_m": 1.2, "lateral_m": [0.02, -0.01], "misalignment_deg": [1.0, -0.5]},
             "mission": {"target_kpa": 600, "arm_range_m": 2.0, "retreat_to_m": 0.5},
-            "rig": {"max_time_s": MAX_SIM_TIME_S},
+            "rig": {"max_time_s": MAX_SIM_TIME_S, "flash_image": fault == "mcu_reset"},
             "faults": [spec],
             "expect": expect,
         }
@@ -500,6 +624,15 @@ def generic_checks(fault: str, result: Any) -> list[Check]:
                 "never" if vc is None else f"{vc:.3f} s",
             )
         )
+    out_mm = m.get("latch_released_plane_out_mm", 0.0)
+    checks.append(
+        Check(
+            "G-LATCH",
+            f"the latch cam never at its release position with the plane beyond {LATCH_PLANE_MAX_MM} mm",
+            out_mm <= LATCH_PLANE_MAX_MM,
+            "never" if out_mm == 0.0 else f"released with the plane at {out_mm:.1f} mm",
+        )
+    )
     want = set(result.scenario.expect.get("faults", []))
     events, flags = set(m["faults_reported_to_host"]), set(m["faults_in_host_telemetry"])
     checks.append(

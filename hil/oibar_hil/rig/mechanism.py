@@ -145,6 +145,10 @@ class Mechanism:
     latch_wire_broken: str | None = None
     # pressure transducers: bad ADC samples still to come, per sensor (one per 1 ms exchange)
     adc_glitch_samples: dict = field(default_factory=lambda: {"sv": 0, "tv": 0, "line": 0})
+    # digital inputs forced to a level whatever the mechanism does (issue 59 item 5): a broken
+    # wire of a switch wired normally closed to ground reads "actuated" (docs/hardware.md,
+    # Switch inputs), a stuck or welded switch reads its stuck level; by lockstep DI name
+    di_forced: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.sv_kpa = self.p.sv_initial_kpa
@@ -381,6 +385,7 @@ class Mechanism:
             "SV_VALVE_OPEN": self.sv_valve.open,
             "TV_VALVE_OPEN": self.tv_valve.open,
         }
+        levels.update(self.di_forced)
         return sum(1 << DI.index(k) for k, v in levels.items() if v)
 
     def adc_counts(self) -> list[int]:

@@ -20,6 +20,7 @@ and ``coast_exchange_ms`` (20) in free flight with the mechanism idle.
 from __future__ import annotations
 
 import dataclasses
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -36,7 +37,7 @@ from oibar.nav.guidance import Guidance, MechRequest
 from oibar.nav.vehicle import VehicleInterface
 from oibar_hil.rig.faults import FaultInjector
 from oibar_hil.rig.fw_params import default_mcu_path, param_ids
-from oibar_hil.rig.lockstep import FLAG_HANG_MAIN_LOOP, RESET_CAUSES, SimMcu
+from oibar_hil.rig.lockstep import FLAG_HANG_MAIN_LOOP, FLAG_RESET_PIN, RESET_CAUSES, SimMcu
 from oibar_hil.rig.mechanism import Mechanism, MechanismParams
 from oibar_hil.rig.navigation import make_nav
 from oibar_hil.rig.scenario import Scenario
@@ -119,6 +120,9 @@ class _SafetyWatch:
     first_fault_s: float | None = None  # the MCU entered STATE_FAULT
     coils_off_after_fault_s: float | None = None  # then both valve coils were off after this long
     valves_closed_after_injection_s: float | None = None  # both valves closed after the first injected fault
+    # The latch cam at its release position while the plane was out of its retracted band (mm of
+    # plane travel at the worst such moment; 0.0 never): the mated couplings would be pulled apart
+    latch_released_plane_out_mm: float = 0.0
 
     def observe(
         self, t_s: float, state: str, reply: Any, mech: Mechanism, first_injection_s: float | None
@@ -138,6 +142,8 @@ class _SafetyWatch:
             and not (mech.sv_valve.open or mech.tv_valve.open)
         ):
             self.valves_closed_after_injection_s = t_s - first_injection_s
+        if mech.latch_released and not mech.plane_retracted:
+            self.latch_released_plane_out_mm = max(self.latch_released_plane_out_mm, mech.plane_mm)
 
 
 class Rig:
@@ -184,6 +190,7 @@ class Rig:
         self.wire = Wire(self.rng)
         self.faults = FaultInjector(scenario.faults)
         self._hang = False
+        self._reset = False
         self._host_alive = True
         self._nav_hung = False
         self._camera_out = False
@@ -198,6 +205,11 @@ class Rig:
 
     def request_hang(self) -> None:
         self._hang = True
+
+    def request_reset(self) -> None:
+        """The MCU restarts at the next exchange (reset pin, brown-out): outputs off, RAM lost,
+        the parameter flash kept (issue 59 item 5)."""
+        self._reset = True
 
     def nav_hang(self, hung: bool) -> None:
         """The host's navigation loop stops cycling (a hung inference, a deadlock): its link
@@ -502,11 +514,16 @@ class Rig:
         next_record = 0.0
         out = None
         wall0 = time.perf_counter()
+        flash_dir = tempfile.TemporaryDirectory(prefix="oibar_flash_") if sc.rig.flash_image else None
+        flash_image = None
+        if flash_dir is not None:
+            flash_image = (self.out_dir or Path(flash_dir.name)) / "params_flash.bin"
         with SimMcu(
             self.mcu_path,
             watchdog_ms=sc.rig.watchdog_ms,
             build_id=f"rig-{sc.name}"[:24],
             stderr_path=stderr_path,
+            flash_image=flash_image,
         ) as mcu:
             self.mcu = mcu
             while self.t_s < sc.rig.max_time_s:
@@ -610,8 +627,8 @@ class Rig:
         advanced, its outputs to the wire, the mechanism and the vehicle moved by the same time.
         -> (the MCU's reply, the time step in s)."""
         adv = self._advance_ms(reply, state)
-        flags = FLAG_HANG_MAIN_LOOP if self._hang else 0
-        self._hang = False
+        flags = (FLAG_HANG_MAIN_LOOP if self._hang else 0) | (FLAG_RESET_PIN if self._reset else 0)
+        self._hang = self._reset = False
         to_mcu = self.wire.take_to_mcu()
         if to_mcu:
             mcu.write_uart(to_mcu)
@@ -670,6 +687,7 @@ class Rig:
             "first_fault_s": watch.first_fault_s,
             "coils_off_after_fault_s": watch.coils_off_after_fault_s,
             "valves_closed_after_injection_s": watch.valves_closed_after_injection_s,
+            "latch_released_plane_out_mm": watch.latch_released_plane_out_mm,
             "first_injection_s": self.faults.first_injection_s,
             "captured": self.mech.capture_record is not None,
         }

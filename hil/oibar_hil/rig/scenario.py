@@ -44,6 +44,9 @@ class RigSpec:
     exchange_ms: int = 10  # while the mechanism or the contact is active
     coast_exchange_ms: int = 20  # free flight far from the drogue, mechanism idle
     watchdog_ms: int = 100
+    # The MCU's parameter flash kept in a file next to the run's logs (SimMcu flash_image): it
+    # survives a reset of the MCU like the board's sectors 1 and 2 (fault mcu_reset)
+    flash_image: bool = False
     guidance_period_s: float = 0.1  # navigation/guidance at 10 Hz (SPEC section 5)
     record_period_s: float = 0.05
 
