@@ -174,3 +174,31 @@ def test_approach_corridor_stops_closing_outside_and_backs_off_far_outside():
     assert outside.v_sp_D_mps[2] == 0 and outside.v_sp_D_mps[0] < 0 and outside.phase == "HOLD"
     far = g.step(0.2, obs(0.2, nav(3.0, lateral=(0.7, 0.0))))
     assert far.v_sp_D_mps[2] > 0 and far.v_sp_D_mps[0] < 0 and far.phase == "RETREAT"
+
+
+def test_a_command_refused_for_a_lasting_reason_ends_the_mission_safely():
+    """Issue 59's fault matrix: with a supply below the target tank (back-flow) or a stuck switch
+    the MCU refuses ARM or START for a precondition, and guidance asked again every cycle for
+    ever, the mission never ending. After MAX_REFUSALS refusals in a row the mission is aborted,
+    so the sequence goes on to its safe end (here: hard-docked and aborted, it unmates). A
+    refusal that passes (the link, a busy MCU) or an accepted command starts the count again."""
+    from oibar.nav.guidance import MAX_REFUSALS, RequestResult
+
+    tm = telemetry("STATE_HARD_DOCKED", contact=True)
+    g = Guidance(MissionParams())
+    g.contacted = True
+    req = g.step(0.0, obs(0.0, nav(0.0), tm=tm)).request
+    assert req is not None and req.opcode == pb.CMD_ARM_TRANSFER
+    t = 0.0
+    for k in range(1, MAX_REFUSALS):
+        t += 0.1
+        reason = "NACK_BUSY" if k == 5 else "NACK_PRECONDITION_FAILED"  # a passing refusal in between
+        res = RequestResult(req, False, reason)
+        req = g.step(t, Observation(t, nav(0.0), True, tm, results=[res])).request
+        assert req is not None and req.opcode == pb.CMD_ARM_TRANSFER and not g.mission_aborted, k
+    for _ in range(6):  # the count started again after the passing refusal (14 so far): six more
+        t += 0.1
+        res = RequestResult(req, False, "NACK_PRECONDITION_FAILED")
+        req = g.step(t, Observation(t, nav(0.0), True, tm, results=[res])).request
+    assert g.mission_aborted and any("refused" in n for _, n in g.notes)
+    assert req is None or req.opcode != pb.CMD_ARM_TRANSFER  # no more asking: valves closed, unmate next

@@ -42,6 +42,12 @@ MAX_RECOVERIES = 1  # after one recovered fault that recurs, leave it to the gro
 CLEAR_RETRY_S = 2.0
 SAFED_HOLD_S = 5.0
 FILL_STALL_S = 5.0  # no TV pressure rise for this long while filling -> abort
+# A mechanism command the MCU keeps refusing for a reason that will not pass by itself (a
+# precondition: a stuck switch, a supply below the target tank, a sensor out of its window) is
+# sent again each cycle; after this many refusals in a row the mission is aborted, so the
+# sequence goes on to its safe end (disarm, unmate, separate) instead of asking for ever.
+MAX_REFUSALS = 20  # 2 s of cycles
+LASTING_REFUSALS = frozenset({"NACK_PRECONDITION_FAILED", "NACK_PREARM_SENSOR", "NACK_PREARM_IMPLAUSIBLE"})
 FILL_STALL_MIN_RISE_KPA = 5.0
 HOLD_GATE_RANGE_M = 0.5  # wait here until armed and aligned
 GATE_MAX_LATERAL_M = 0.02
@@ -194,6 +200,7 @@ class Guidance:
         self._valves_closed_since: float | None = None
         self._nav_bad_since: float | None = None
         self._blind_retreat_until: float | None = None
+        self._refusals: tuple[str, int] = ("", 0)  # (command, refusals in a row)
 
     # -- bookkeeping --------------------------------------------------------------------
 
@@ -223,6 +230,14 @@ class Guidance:
                     self._dock_sent = False
             if op == "CMD_CLEAR_FAULT" and r.accepted:
                 self.recoveries += 1
+            if r.accepted or r.reason not in LASTING_REFUSALS:
+                if self._refusals[0] == op:
+                    self._refusals = ("", 0)
+            else:
+                n = self._refusals[1] + 1 if self._refusals[0] == op else 1
+                self._refusals = (op, n)
+                if n >= MAX_REFUSALS:
+                    self._abort_mission(t_s, f"{op} refused {n} times in a row ({r.reason})")
 
     def _on_state(self, t_s: float, state: str, tm: Telemetry) -> None:
         last = self._last_state
