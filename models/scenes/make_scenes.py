@@ -208,6 +208,80 @@ def wandering(looks: list[dict], prefix: str, first: int, seed0: int, rng: np.ra
     return out
 
 
+# The second renderer's validation looks (issue 58): six of the validation scenes, the same
+# trajectories and seeds, every 48th frame (a Mitsuba frame of the station takes about 7 s here).
+LOOK_SCENES = ("va000", "va002", "va004", "va005", "va014", "va019")
+LOOK_NOTE = (
+    "Validation looks of the second renderer (issue 58, part 2): six of the validation scenes "
+    "(models/scenes/val.json, the same trajectories and seeds) drawn by Mitsuba 3, every 48th frame. "
+    "For choices only; the shipped model never trains on them."
+)
+
+
+def looks(val: list[dict]) -> dict[str, dict]:
+    picked = [dict(s, frame_stride=48) for s in val if s["name"] in LOOK_SCENES]
+    return {
+        "val_mitsuba": {
+            "set": "val_mitsuba",
+            "note": LOOK_NOTE + " Our materials, Sun, Earth and backdrop, 32 samples a pixel.",
+            "scenes": [dict(s, renderer="mitsuba", mitsuba_spp=32) for s in picked],
+        },
+        "val_lab": {
+            "set": "val_lab",
+            "note": LOOK_NOTE
+            + " The lab's look: the fixture alone in matte grey print, one lamp beside the camera, black.",
+            "scenes": [dict(s, renderer="mitsuba", look="lab", mitsuba_spp=32) for s in picked],
+        },
+    }
+
+
+# THE FROZEN TEST SET (issue 58, part 6): never used for a choice; read once per shipped model.
+# Its own seeds (50000-50005); off-axis, turned and rolled approaches, since the paper's test
+# sequences are so well aligned that a constant mean pose scores 0.07 deg.
+FROZEN = (
+    {"name": "tf000", "port": 1, "approach": "+V-bar", "sun_elevation_deg": 48.0, "background": "iss",
+     "seed": 50000, "rolled_deg": 25.0, "offaxis_m": 0.3},
+    {"name": "tf001", "port": 2, "approach": "-R-bar", "sun_elevation_deg": 118.0, "background": "perlin",
+     "seed": 50001, "rolled_deg": -60.0},
+    {"name": "tf002", "port": 3, "approach": "-V-bar", "sun_elevation_deg": 72.0, "background": "iss",
+     "seed": 50002, "turned_deg": 5.0, "offaxis_m": 0.4},
+    {"name": "tf003", "port": 4, "approach": "-R-bar", "sun_elevation_deg": 135.0, "background": "iss",
+     "seed": 50003, "rolled_deg": 90.0},
+    {"name": "tf004", "port": 5, "approach": "+R-bar", "sun_elevation_deg": 35.0, "background": "perlin",
+     "seed": 50004, "offaxis_m": 0.45, "turned_deg": 3.0},
+    {"name": "tf005", "port": 6, "approach": "+R-bar", "sun_elevation_deg": 100.0, "background": "iss",
+     "seed": 50005, "rolled_deg": 150.0, "noise_sigma_dn": 2.5},
+)  # fmt: skip
+FROZEN_NOTE = (
+    "THE FROZEN TEST SET (issue 58, part 6): never used for any choice, constant or table; read once per "
+    "shipped model, after its verdict, for its card (kp_evaluate keeps the ledger models/scenes/test_reads.jsonl). "
+    "Six scenes of their own seeds (50000-50005, disjoint from train, validation and the paper's), off-axis, "
+    "turned and rolled approaches, "
+)
+
+
+def frozen_test() -> dict[str, dict]:
+    return {
+        "test_frozen": {
+            "set": "test_frozen",
+            "note": FROZEN_NOTE + "drawn by our renderer, every 4th frame.",
+            "scenes": [dict(s, frame_stride=4) for s in FROZEN],
+        },
+        "test_frozen_mitsuba": {
+            "set": "test_frozen_mitsuba",
+            "note": FROZEN_NOTE + "drawn by Mitsuba 3 with our materials and lights, every 48th frame.",
+            "scenes": [dict(s, frame_stride=48, renderer="mitsuba", mitsuba_spp=32) for s in FROZEN],
+        },
+        "test_frozen_lab": {
+            "set": "test_frozen_lab",
+            "note": FROZEN_NOTE + "drawn by Mitsuba 3 in the lab's look, every 48th frame.",
+            "scenes": [
+                dict(s, frame_stride=48, renderer="mitsuba", look="lab", mitsuba_spp=32) for s in FROZEN
+            ],
+        },
+    }
+
+
 def main() -> None:
     rng = np.random.default_rng(20261123)
     train = scenes("tr", 20000, 4, rng, TEST_KEYS)
@@ -312,6 +386,8 @@ def main() -> None:
         "train_sunfine_only": {"set": "train", "scenes": train_sunfine[len(train_sunwander) :]},
         "val": {"set": "val", "scenes": val},
         "test": {"set": "test", "scenes": TEST},
+        **looks(val),
+        **frozen_test(),
     }
     for name, data in sets.items():
         (HERE / f"{name}.json").write_text(json.dumps(data, indent=1) + "\n")

@@ -62,10 +62,11 @@ DISTRIBUTION = {
     "oibar_hil": "oibar-hil",
     "oibar_models": "oibar-models",
     "oibar_bench": "oibar-bench",
+    "mitsuba": "mitsuba",
 }
 
-# modules of the host package that may use an extra: (module prefix, extra)
-HOST_EXTRAS = (("oibar.calib", "calib"),)
+# modules of a package that may use one of its extras: (package folder, module prefix, extra)
+EXTRAS = (("host", "oibar.calib", "calib"), ("hil", "oibar_hil.render_mitsuba", "mitsuba"))
 
 
 def _name(req: str) -> tuple[str, tuple[str, ...]]:
@@ -115,8 +116,8 @@ def test_pyproject_declares_what_the_package_imports(folder):
         module = ".".join((pkg, *path.relative_to(ROOT / folder / pkg).with_suffix("").parts))
         extras = tuple(
             e
-            for prefix, e in HOST_EXTRAS
-            if folder == "host" and (module == prefix or module.startswith(prefix + "."))
+            for where, prefix, e in EXTRAS
+            if folder == where and (module == prefix or module.startswith(prefix + "."))
         )
         have = _provided(dist, extras)
         for name in sorted(_third_party_imports(path)):
