@@ -53,6 +53,11 @@ class CropAugment:
     # view of it too; without, 0.8.1 leans: a -0.24 deg tilt about y on validation at 2-5 m,
     # +0.12 deg on the same crops mirrored (stage 9).
     p_mirror: float = 0.0
+    # Domain randomisation of the crop's pixels (oibar_models.domain: white balance, exposure,
+    # response, glare, occlusion, blur, defocus, noise, compression; issue 58, part 3), on this
+    # share of crops, after the photometric terms above. Off unless a config asks: every model
+    # trained so far saw none, and its crops draw the same numbers as before.
+    p_domain: float = 0.0
 
 
 def open_scenes(root: Path, names: list[str] | None = None) -> list[Sequence]:
@@ -92,6 +97,18 @@ def visible(
     return ok
 
 
+_DOMAIN: list = []
+
+
+def _domain():
+    """The domain-randomisation pipeline, built on first use in this process (worker)."""
+    if not _DOMAIN:
+        from .domain import DomainAugment
+
+        _DOMAIN.append(DomainAugment())
+    return _DOMAIN[0]
+
+
 def photometric(img: np.ndarray, rng: np.random.Generator, a: CropAugment) -> np.ndarray:
     x = img.astype(np.float32) / 255.0
     if rng.random() < a.p_photometric:
@@ -107,6 +124,8 @@ def photometric(img: np.ndarray, rng: np.random.Generator, a: CropAugment) -> np
     if rng.random() < a.p_noise:
         x = x + rng.normal(0, rng.uniform(0.005, a.noise_sigma_max), x.shape).astype(np.float32)
     out = (np.clip(x, 0, 1) * 255 + 0.5).astype(np.uint8)
+    if a.p_domain > 0 and rng.random() < a.p_domain:
+        out = _domain()(out, int(rng.integers(2**31)))
     if rng.random() < a.p_jpeg:
         buf = io.BytesIO()
         Image.fromarray(out).save(buf, format="JPEG", quality=int(rng.integers(40, 95)))

@@ -63,6 +63,7 @@ DISTRIBUTION = {
     "oibar_models": "oibar-models",
     "oibar_bench": "oibar-bench",
     "mitsuba": "mitsuba",
+    "albumentations": "albumentations",
 }
 
 # modules of a package that may use one of its extras: (package folder, module prefix, extra)
