@@ -352,6 +352,35 @@ static void test_S_plane_position_out_of_range_is_a_sensor_fault(void)
     TEST_ASSERT_TRUE(fault_latched(oibar_v1_FAULT_PLANE_POSITION));
 }
 
+/* FMEA SW-EXT-STUCK: the extended end switch lost in HARD_DOCKED with the
+ * position sensor still at full mate. The valves need both witnesses
+ * (docs/firmware.md), so ARM can never succeed: it is FAULT_PLANE_POSITION,
+ * not a refusal of every ARM for ever. The plane is not driven either way. */
+static void test_S_extended_switch_lost_while_hard_docked_is_a_fault(void)
+{
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_HARD_DOCKED));
+    fake_hal_advance_ms(2000); /* healthy: no fault however long it rests there */
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_HARD_DOCKED, oibar_app_state());
+    TEST_ASSERT_TRUE(fake_plant_plane_mm() >= OIBAR_PLANE_MATED_MIN_MM);
+    fake_plant_override_di(HAL_DI_PLANE_EXTENDED, 0);
+    fake_hal_advance_ms(100);
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_FAULT, oibar_app_state());
+    TEST_ASSERT_TRUE(fault_latched(oibar_v1_FAULT_PLANE_POSITION));
+    TEST_ASSERT_FALSE(bench_any_valve_driven());
+    TEST_ASSERT_FALSE(fake_hal_do(HAL_DO_PLANE_EXTEND) || fake_hal_do(HAL_DO_PLANE_RETRACT));
+}
+
+/* The same while armed: TRANSFER_ARMED rests on full mate too. */
+static void test_S_extended_switch_lost_while_armed_is_a_fault(void)
+{
+    TEST_ASSERT_TRUE(bench_goto(oibar_v1_STATE_TRANSFER_ARMED));
+    fake_plant_override_di(HAL_DI_PLANE_EXTENDED, 0);
+    fake_hal_advance_ms(100);
+    TEST_ASSERT_EQUAL(oibar_v1_STATE_FAULT, oibar_app_state());
+    TEST_ASSERT_TRUE(fault_latched(oibar_v1_FAULT_PLANE_POSITION));
+    TEST_ASSERT_FALSE(bench_any_valve_driven());
+}
+
 static char *read_source(const char *rel)
 {
     char path[512];
@@ -404,5 +433,7 @@ int main(void)
     RUN_TEST(test_D10_abort_timeout_covers_a_full_plane_move);
     RUN_TEST(test_S_plane_position_out_of_range_is_a_sensor_fault);
     RUN_TEST(test_S_state_shared_with_the_step_isr_is_volatile);
+    RUN_TEST(test_S_extended_switch_lost_while_hard_docked_is_a_fault);
+    RUN_TEST(test_S_extended_switch_lost_while_armed_is_a_fault);
     return UNITY_END();
 }

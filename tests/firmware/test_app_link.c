@@ -295,6 +295,29 @@ static void test_events_lost_to_a_full_log_are_counted(void)
     TEST_ASSERT_TRUE(tm.events_lost >= 3u);
 }
 
+/* The UART's receive errors (framing/noise/parity, overruns; FMEA LINK-NOISE)
+ * reach the host in every telemetry, encoded and decoded over the frame. */
+static void test_uart_receive_errors_are_in_telemetry(void)
+{
+    fake_hal_uart_set_errors(7u, 3u);
+    oibar_v1_Packet p = oibar_v1_Packet_init_zero;
+    p.which_body = oibar_v1_Packet_telemetry_tag;
+    oibar_app_link_callbacks()->fill_telemetry(NULL, &p.body.telemetry);
+    TEST_ASSERT_EQUAL_UINT32(7u, p.body.telemetry.uart_rx_errors);
+    TEST_ASSERT_EQUAL_UINT32(3u, p.body.telemetry.uart_rx_overruns);
+    uint8_t frame[OIBAR_FRAME_MAX_WIRE_BYTES];
+    size_t n = oibar_frame_encode(&p, frame, sizeof frame);
+    TEST_ASSERT_TRUE(n > 0u);
+    oibar_frame_decoder_t dec;
+    oibar_frame_decoder_init(&dec, OIBAR_BODIES_MCU_TO_HOST);
+    oibar_v1_Packet back = oibar_v1_Packet_init_zero;
+    size_t used = 0;
+    TEST_ASSERT_EQUAL(OIBAR_RX_PACKET, oibar_frame_decoder_feed_buf(&dec, frame, n, &used, &back));
+    TEST_ASSERT_EQUAL_UINT32(7u, back.body.telemetry.uart_rx_errors);
+    TEST_ASSERT_EQUAL_UINT32(3u, back.body.telemetry.uart_rx_overruns);
+    fake_hal_uart_set_errors(0u, 0u);
+}
+
 int main(void)
 {
     UNITY_BEGIN();
@@ -305,5 +328,6 @@ int main(void)
     RUN_TEST(test_SAFETY_RULE_REPLAYED_ARM_START_DO_NOT_REOPEN_VALVES);
     RUN_TEST(test_events_kept_until_the_port_takes_them);
     RUN_TEST(test_events_lost_to_a_full_log_are_counted);
+    RUN_TEST(test_uart_receive_errors_are_in_telemetry);
     return UNITY_END();
 }

@@ -273,6 +273,23 @@ static void test_writes_telemetry_transferring(void) {
     check_written("telemetry_transferring", &p);
 }
 
+static void test_writes_telemetry_link_errors(void) {
+    oibar_v1_Packet p = oibar_v1_Packet_init_zero;
+    p.seq = 502;
+    p.which_body = oibar_v1_Packet_telemetry_tag;
+    oibar_v1_Telemetry *t = &p.body.telemetry;
+    t->uptime_ms = 600100;
+    t->state = oibar_v1_STATE_HARD_DOCKED;
+    t->has_link = true;
+    t->link.rx_packets = 900;
+    t->link.rx_crc_errors = 4;
+    t->host_link_alive = true;
+    t->events_lost = 2;
+    t->uart_rx_errors = 5;
+    t->uart_rx_overruns = 300;
+    check_written("telemetry_link_errors", &p);
+}
+
 static void test_writes_event_fault_overpressure(void) {
     oibar_v1_Packet p = oibar_v1_Packet_init_zero;
     p.seq = 501;
@@ -327,6 +344,7 @@ int main(void) {
     RUN_TEST(test_writes_ack_accepted);
     RUN_TEST(test_writes_ack_nack_invalid_in_state);
     RUN_TEST(test_writes_telemetry_transferring);
+    RUN_TEST(test_writes_telemetry_link_errors);
     RUN_TEST(test_writes_event_fault_overpressure);
     RUN_TEST(test_writes_param_value);
     RUN_TEST(test_writes_heartbeat_mcu_max_seq);

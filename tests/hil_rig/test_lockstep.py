@@ -1,6 +1,9 @@
 """The lockstep contract: frames in order, lost or repeated exchanges refused, outputs and
 step pulses accounted, the pty carrying the link, the watchdog resetting the MCU."""
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -85,11 +88,23 @@ def test_host_session_over_the_pty_on_simulated_time(mcu):
     assert s.handshake_info.reset_cause == pb.RESET_POWER_ON
 
 
+def _board_watchdog_ms() -> int:
+    """HAL_WATCHDOG_TIMEOUT_MS (firmware/hal/include/oibar/hal.h): the board's number."""
+    hal_h = Path(__file__).resolve().parents[2] / "firmware" / "hal" / "include" / "oibar" / "hal.h"
+    m = re.search(r"#define\s+HAL_WATCHDOG_TIMEOUT_MS\s+(\d+)u", hal_h.read_text(encoding="utf-8"))
+    assert m, "HAL_WATCHDOG_TIMEOUT_MS not in oibar/hal.h"
+    return int(m.group(1))
+
+
 def test_hung_main_loop_trips_the_watchdog(mcu):
+    # The simulated MCU's watchdog (the fixture passes no --watchdog-ms) is the board's.
+    wdg_ms = _board_watchdog_ms()
+    assert wdg_ms == 250
     r = mcu.exchange(50, AT_HOME, ADC_OK)
     kicks = r.watchdog_kicks
-    r = mcu.exchange(50, AT_HOME, ADC_OK, flags=ls.FLAG_HANG_MAIN_LOOP)
-    assert r.watchdog_kicks == kicks and r.resets == 0  # hung, not yet expired (100 ms)
+    for _ in range(4):  # hung for wdg_ms - 50: not yet expired (an exchange advances <= 100 ms)
+        r = mcu.exchange((wdg_ms - 50) // 4, AT_HOME, ADC_OK, flags=ls.FLAG_HANG_MAIN_LOOP)
+    assert r.watchdog_kicks == kicks and r.resets == 0
     r = mcu.exchange(60, AT_HOME, ADC_OK)
     assert r.resets == 1 and ls.RESET_CAUSES[r.reset_cause] == "WATCHDOG"
     assert r.uptime_ms < 60 and r.do_bits == 0

@@ -39,6 +39,10 @@ static void fill_telemetry(void *ctx, oibar_v1_Telemetry *out)
     (void)ctx;
     oibar_app_fill_telemetry(out);
     out->events_lost = oibar_evlog_dropped();
+    hal_uart_errors_t uart;
+    hal_uart_errors(&uart);
+    out->uart_rx_errors = uart.rx_errors;
+    out->uart_rx_overruns = uart.rx_overruns;
 }
 
 static void on_link_state(void *ctx, bool up)

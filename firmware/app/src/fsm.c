@@ -210,6 +210,8 @@ static bool s_capture_ok;
 static float s_cmd_target_kpa; /* argument of the command being dispatched */
 static uint16_t s_sig_arg;      /* argument of the signal being dispatched */
 static bool s_valve_wait;       /* ABORTING: plane held until the valves read closed */
+static bool s_mate_lost;        /* a mated state without full mate (oibar_fsm_tick) */
+static uint32_t s_mate_lost_since_ms;
 /* D1: RECEPTION entered and DOCK (capture_confirmed) not yet accepted. An
  * abort or a fault recovery must not land in SOFT_DOCKED past that refusal:
  * with the latches popped it releases the probe instead. */
@@ -553,6 +555,7 @@ static void enter(oibar_v1_State next, uint32_t now_ms)
     }
     s_timer_armed = false;
     s_valve_wait = false;
+    s_mate_lost = false;
     if (next == oibar_v1_STATE_RECEPTION) {
         s_dock_unconfirmed = true;
     } else if (next == oibar_v1_STATE_SOFT_DOCKED || next == oibar_v1_STATE_IDLE ||
@@ -581,6 +584,8 @@ void oibar_fsm_init(uint32_t now_ms)
     s_sig_arg = 0;
     s_valve_wait = false;
     s_valve_wait_since_ms = 0;
+    s_mate_lost = false;
+    s_mate_lost_since_ms = 0;
     s_dock_unconfirmed = false;
     enter(oibar_v1_STATE_BOOT, now_ms);
 }
@@ -655,8 +660,37 @@ oibar_v1_NackReason oibar_fsm_command(oibar_v1_CommandOpcode op, float target_kp
     return r;
 }
 
+/* FMEA SW-EXT-STUCK: HARD_DOCKED and TRANSFER_ARMED rest on full mate, which
+ * HARD_DOCKING established with both witnesses (the extended end switch and
+ * the position sensor at OIBAR_PLANE_MATED_MIN_MM, drv_plane.c), and nothing
+ * drives the plane there. A witness that stops reading full mate (a switch
+ * lost while the sensor reads mated, or the reverse) is a failed sensor or a
+ * plane that moved: the valves' precondition (docs/firmware.md) can no longer
+ * be shown, so it is FAULT_PLANE_POSITION, not a silent refusal of every ARM.
+ * TRANSFERRING has the valve interlock (safety.c), which closes the valves
+ * and raises the same fault at once. Held for OIBAR_PLANE_MATE_LOST_MS past
+ * the switch's debounce so one sensor sample at the threshold is no fault. */
+#define OIBAR_PLANE_MATE_LOST_MS 20u
+static void mated_plane_check(uint32_t now_ms)
+{
+    const bool mated_state =
+        s_state == oibar_v1_STATE_HARD_DOCKED || s_state == oibar_v1_STATE_TRANSFER_ARMED;
+    if (!mated_state || oibar_plane_motion() != OIBAR_PLANE_STOPPED || oibar_plane_is_extended()) {
+        s_mate_lost = false;
+        return;
+    }
+    if (!s_mate_lost) {
+        s_mate_lost = true;
+        s_mate_lost_since_ms = now_ms;
+    } else if (now_ms - s_mate_lost_since_ms >= OIBAR_PLANE_MATE_LOST_MS) {
+        s_mate_lost = false;
+        oibar_fault_raise(oibar_v1_FAULT_PLANE_POSITION);
+    }
+}
+
 void oibar_fsm_tick(uint32_t now_ms)
 {
+    mated_plane_check(now_ms);
     if (s_valve_wait) {
         if (!oibar_valves_any_sensed_open()) {
             s_valve_wait = false;

@@ -43,7 +43,7 @@ class RigSpec:
     max_time_s: float = 900.0
     exchange_ms: int = 10  # while the mechanism or the contact is active
     coast_exchange_ms: int = 20  # free flight far from the drogue, mechanism idle
-    watchdog_ms: int = 100
+    watchdog_ms: int | None = None  # None: the firmware's own, HAL_WATCHDOG_TIMEOUT_MS (250 ms, the board's)
     # The MCU's parameter flash kept in a file next to the run's logs (SimMcu flash_image): it
     # survives a reset of the MCU like the board's sectors 1 and 2 (fault mcu_reset)
     flash_image: bool = False

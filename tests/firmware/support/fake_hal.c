@@ -15,6 +15,7 @@ static uint32_t s_now_ms;
 static hal_isr_fn s_tick_fn;
 static hal_isr_fn s_step_fn;
 static hal_uart_rx_fn s_rx_fn;
+static hal_uart_errors_t s_uart_errors;
 static void (*s_main_fn)(void);
 static bool s_tick_enabled;
 static uint32_t s_kicks;
@@ -83,6 +84,8 @@ void fake_hal_reset(void)
     s_crit_depth = 0;
     s_irq_fn = NULL;
     s_tx_len = 0;
+    s_uart_errors.rx_errors = 0;
+    s_uart_errors.rx_overruns = 0;
     fake_flash_blank();
     f_ops = 0;
     f_cut_after = -1;
@@ -198,6 +201,7 @@ size_t hal_uart_write(const uint8_t *data, size_t len)
 }
 
 void hal_uart_rx_attach(hal_uart_rx_fn on_byte) { s_rx_fn = on_byte; }
+void hal_uart_errors(hal_uart_errors_t *out) { *out = s_uart_errors; }
 void hal_watchdog_kick(void) { s_kicks++; }
 
 uint32_t hal_critical_enter(void)
@@ -331,6 +335,11 @@ uint32_t fake_hal_max_step_isr_per_ms(void) { return s_max_isr_per_ms; }
 size_t fake_hal_uart_tx_len(void) { return s_tx_len; }
 const uint8_t *fake_hal_uart_tx_data(void) { return s_tx; }
 void fake_hal_uart_tx_clear(void) { s_tx_len = 0; }
+void fake_hal_uart_set_errors(uint32_t rx_errors, uint32_t rx_overruns)
+{
+    s_uart_errors.rx_errors = rx_errors;
+    s_uart_errors.rx_overruns = rx_overruns;
+}
 
 void fake_hal_uart_rx_inject(const uint8_t *bytes, size_t len)
 {

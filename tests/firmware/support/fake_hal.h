@@ -56,6 +56,8 @@ uint32_t fake_hal_max_step_isr_per_ms(void);
 size_t fake_hal_uart_tx_len(void);
 const uint8_t *fake_hal_uart_tx_data(void);
 void fake_hal_uart_tx_clear(void);
+/* What hal_uart_errors() reports (0 and 0 after fake_hal_reset). */
+void fake_hal_uart_set_errors(uint32_t rx_errors, uint32_t rx_overruns);
 void fake_hal_uart_rx_inject(const uint8_t *bytes, size_t len);
 
 /* --- parameter flash (hal_flash_*) ------------------------------------ */

@@ -118,8 +118,22 @@ bool hal_adc_read(hal_adc_t ch, uint16_t *counts);
 size_t hal_uart_write(const uint8_t *data, size_t len);
 /* The port calls `on_byte` from the receive interrupt for each byte. */
 void hal_uart_rx_attach(hal_uart_rx_fn on_byte);
+/* Receive errors the UART counted since the reset (Telemetry.uart_rx_errors
+ * and uart_rx_overruns): framing, noise and parity errors; overruns (a byte
+ * arrived before the previous one was read). */
+typedef struct {
+    uint32_t rx_errors;
+    uint32_t rx_overruns;
+} hal_uart_errors_t;
+void hal_uart_errors(hal_uart_errors_t *out);
 
 /* --- watchdog, critical sections, reset cause -------------------------- */
+/* The watchdog fires if it is not kicked for this long: one number for every
+ * port, the board's IWDG (stm32f4/src/hal_core.c) and the simulated MCU's
+ * (port/sim, its default; `--watchdog-ms` overrides it for a test only). The
+ * main loop kicks about every millisecond; 250 ms leaves room for the slowest
+ * pass (a 247-byte frame encoded and queued) without hiding a stuck loop. */
+#define HAL_WATCHDOG_TIMEOUT_MS 250u
 void hal_watchdog_kick(void);
 /* Disable interrupts; returns the previous mask for hal_critical_exit.
  * Nests. */

@@ -27,7 +27,7 @@ static uint32_t s_steps_fwd;
 static uint32_t s_steps_rev;
 static uint32_t s_steps_total;
 
-static uint32_t s_wdg_timeout_ms = 100u;
+static uint32_t s_wdg_timeout_ms = HAL_WATCHDOG_TIMEOUT_MS; /* the board's number */
 static uint32_t s_wdg_since_kick_ms;
 static uint32_t s_wdg_kicks;
 static uint32_t s_crit_depth;
@@ -170,6 +170,13 @@ size_t hal_uart_write(const uint8_t *data, size_t len)
 }
 
 void hal_uart_rx_attach(hal_uart_rx_fn on_byte) { s_rx_fn = on_byte; }
+/* The pty delivers whole bytes: the simulated UART sees no framing error or
+ * overrun (the rig's bit errors damage bytes, which the frame CRC drops). */
+void hal_uart_errors(hal_uart_errors_t *out)
+{
+    out->rx_errors = 0u;
+    out->rx_overruns = 0u;
+}
 
 void hal_watchdog_kick(void)
 {

@@ -276,7 +276,7 @@ static void list_params(void)
 
 int main(int argc, char **argv)
 {
-    options_t opt = { -1, 100u, "sim", NULL };
+    options_t opt = { -1, HAL_WATCHDOG_TIMEOUT_MS, "sim", NULL }; /* the board's watchdog */
     if (argc == 2 && strcmp(argv[1], "--list-params") == 0) {
         list_params();
         return 0;

@@ -51,7 +51,8 @@ void port_uart_service_kick(void);
 /* Drive every output to its safe (de-energised) level; usable from a fault handler. */
 void port_outputs_safe(void);
 
-/* Counters for diagnosis (not in telemetry; visible with a debugger). */
+/* Counters for diagnosis (the UART's receive errors are in telemetry,
+ * hal_uart_errors(); the rest is visible with a debugger). */
 typedef struct {
     uint32_t uart_rx_errors;   /* framing/noise/parity */
     uint32_t uart_rx_overruns; /* a byte arrived before the previous was read */
@@ -71,12 +72,25 @@ typedef struct {
 #define PORT_NOTE_HARDFAULT 1u
 #define PORT_NOTE_ASSERT 2u
 #define PORT_NOTE_UNEXPECTED_IRQ 3u
+#define PORT_NOTE_CLOCK_FAILURE 4u /* the HSE failed in flight (clock security NMI) */
+#define PORT_NOTE_STACK_OVERFLOW 5u /* the stack guard below the main stack was written */
 extern port_reset_note_t g_reset_note;
 
 /* Interrupt handlers, named in the vector table (startup.c). */
+void NMI_Handler(void); /* clock security (clock.c) */
 void SysTick_Handler(void);
 void TIM2_IRQHandler(void);
 void USART1_IRQHandler(void);
+
+/* Run-time stack guard (startup.c): PORT_STACK_GUARD_WORDS words at the
+ * bottom of the stack region (.stack_guard in stm32f405.ld, between the
+ * static data and the lowest address the main stack may reach) hold
+ * PORT_STACK_CANARY from the reset on; the 1 kHz tick checks them and a
+ * changed word is a stack overflow: outputs safe, note, reset. */
+#define PORT_STACK_GUARD_WORDS 8u
+#define PORT_STACK_CANARY 0x5AC4C0DEu
+void port_stack_guard_fill(void);
+void port_stack_guard_check(void);
 
 /* Safe the outputs, note why, and reset the chip. */
 __attribute__((noreturn)) void port_fatal_reset(uint32_t reason, uint32_t pc);

@@ -50,8 +50,12 @@ typedef struct {
 #define RCC_CR_HSIRDY (1u << 1)
 #define RCC_CR_HSEON (1u << 16)
 #define RCC_CR_HSERDY (1u << 17)
+#define RCC_CR_CSSON (1u << 19)  /* clock security: HSE failure -> NMI, SYSCLK to HSI */
 #define RCC_CR_PLLON (1u << 24)
 #define RCC_CR_PLLRDY (1u << 25)
+
+#define RCC_CIR_CSSF (1u << 7)   /* clock security interrupt flag (HSE failed) */
+#define RCC_CIR_CSSC (1u << 23)  /* write 1: clear CSSF */
 
 #define RCC_PLLCFGR_PLLM_POS 0u   /* VCO input divider, 2..63 */
 #define RCC_PLLCFGR_PLLN_POS 6u   /* VCO multiplier, 50..432 */

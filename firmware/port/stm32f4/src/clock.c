@@ -13,6 +13,15 @@
  * brown-out reset is programmed to level 3 (2.70 V) before the clock goes
  * up: below that the chip is held in reset instead of misreading flash.
  *
+ * Clock security (RCC_CR.CSSON) is switched on once the core runs from the
+ * crystal: if the HSE stops in flight the hardware switches SYSCLK to the
+ * HSI at once and raises the NMI (RM0090 section 6.2.7). NMI_Handler drives
+ * every output to its safe level (valves de-energised, motors off), notes
+ * PORT_NOTE_CLOCK_FAILURE and resets; the next boot finds no crystal, runs
+ * the PLL from the HSI (CLOCK_SRC_HSI_PLL) and starts in FAULT (the note
+ * makes the reset a RESET_LOCKUP). Without CSS a dead crystal would stop the
+ * core until the 250 ms watchdog.
+ *
  * Built with OIBAR_QEMU (the emulator image of `make qemu-test` only): an RCC
  * that reports nothing is taken to run the nominal 168 MHz (QEMU's stub).
  * The flight image never assumes a clock it cannot see.
@@ -161,8 +170,24 @@ void clock_init(clock_info_t *out)
         s_info = *out;
         return;
     }
+    if (src == CLOCK_SRC_HSE_PLL) {
+        RCC->CR |= RCC_CR_CSSON; /* HSE failure from now on: NMI_Handler */
+    }
     info_168(out, src);
     s_info = *out;
+}
+
+/* The only NMI source on this board is the clock security system; any NMI
+ * is handled the same way: outputs safe first, then the reset. */
+void NMI_Handler(void)
+{
+    port_outputs_safe(); /* valves closed, motors off, before anything else */
+    uint32_t reason = PORT_NOTE_UNEXPECTED_IRQ;
+    if ((RCC->CIR & RCC_CIR_CSSF) != 0u) {
+        RCC->CIR = RCC_CIR_CSSC; /* acknowledged, or the NMI re-enters at once */
+        reason = PORT_NOTE_CLOCK_FAILURE;
+    }
+    port_fatal_reset(reason, 0u);
 }
 
 const clock_info_t *clock_info(void) { return &s_info; }

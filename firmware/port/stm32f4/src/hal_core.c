@@ -9,10 +9,8 @@
 #include "port.h"
 #include "stm32f4_regs.h"
 
-/* The watchdog fires if neither loop kicks it for this long. The main loop
- * kicks about every millisecond; 250 ms leaves room for the slowest pass
- * (a 247-byte frame encoded and queued) without hiding a stuck loop. */
-#define WATCHDOG_TIMEOUT_MS 250u
+/* The watchdog timeout is HAL_WATCHDOG_TIMEOUT_MS (oibar/hal.h), the number
+ * the simulated MCU uses too. */
 #define LSI_HZ 32000u /* RM0090: 17..47 kHz; the nominal value sets the timeout */
 #define IWDG_WAIT_LOOPS 100000u
 
@@ -59,6 +57,7 @@ void SysTick_Handler(void)
 {
     uint32_t now = s_time_ms + 1u;
     s_time_ms = now;
+    port_stack_guard_check(); /* a written guard word: outputs safe, reset */
     port_adc_service_isr(now);
 #if defined(OIBAR_QEMU) && OIBAR_QEMU
     port_uart_service_kick(); /* emulator image only (hal_uart.c) */
@@ -107,7 +106,7 @@ void port_watchdog_init(void)
     IWDG->KR = IWDG_KEY_UNLOCK;
     iwdg_wait_idle();
     IWDG->PR = IWDG_PR_DIV32;
-    IWDG->RLR = WATCHDOG_TIMEOUT_MS * (LSI_HZ / 32u) / 1000u;
+    IWDG->RLR = HAL_WATCHDOG_TIMEOUT_MS * (LSI_HZ / 32u) / 1000u;
     iwdg_wait_idle(); /* bounded: on a board without LSI the values simply never load */
     IWDG->KR = IWDG_KEY_RELOAD;
 }

@@ -78,6 +78,12 @@ size_t hal_uart_write(const uint8_t *data, size_t len)
 #define UART_RX_BYTES_PER_IRQ 16u
 #define UART_TX_BYTES_PER_IRQ 32u
 
+void hal_uart_errors(hal_uart_errors_t *out)
+{
+    out->rx_errors = g_port_diag.uart_rx_errors;
+    out->rx_overruns = g_port_diag.uart_rx_overruns;
+}
+
 void USART1_IRQHandler(void)
 {
     /* Receive: on silicon one byte per interrupt; a model that hands the

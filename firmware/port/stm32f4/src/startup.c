@@ -5,7 +5,9 @@
  * Any fault or an interrupt nobody enabled is a firmware bug: the outputs go
  * to their safe level first, the cause is noted in .noinit RAM, and the chip
  * resets (the next boot reports RESET_LOCKUP or RESET_SOFTWARE and the
- * application starts in FAULT; see hal_reset_cause()).
+ * application starts in FAULT; see hal_reset_cause()). The NMI (clock
+ * security, clock.c) and a written stack guard (port_stack_guard_check, from
+ * the tick) end the same way.
  */
 #include <stdint.h>
 #include <string.h>
@@ -16,6 +18,7 @@
 /* Symbols from stm32f405.ld. */
 extern uint32_t _estack;
 extern uint32_t _sidata[], _sdata[], _edata[], _sbss[], _ebss[];
+extern uint32_t _sstack_guard[]; /* PORT_STACK_GUARD_WORDS words (asserted by the linker script) */
 
 int main(void);
 
@@ -35,7 +38,7 @@ typedef union {
 __attribute__((section(".isr_vector"), used)) const vector_t g_vectors[16u + IRQN_COUNT] = {
     { .stack_top = &_estack },
     { Reset_Handler },
-    { D },                 /* NMI */
+    { NMI_Handler },       /* NMI: clock security (clock.c) */
     { HardFault_Handler },
     { HardFault_Handler }, /* MemManage (disabled: escalates to HardFault) */
     { HardFault_Handler }, /* BusFault */
@@ -84,11 +87,32 @@ __attribute__((noreturn)) void Reset_Handler(void)
     for (uint32_t i = 0; i < bss_words; i++) {
         _sbss[i] = 0u;
     }
+    port_stack_guard_fill();
     SCB->VTOR = (uint32_t)(uintptr_t)g_vectors;
     cpu_dsb();
 
     (void)main();
     port_fatal_reset(PORT_NOTE_ASSERT, 0u); /* main never returns */
+}
+
+/* The guard is written once here, before main, and never again by the
+ * firmware: only a stack that ran past its lowest address changes it. */
+void port_stack_guard_fill(void)
+{
+    for (uint32_t i = 0; i < PORT_STACK_GUARD_WORDS; i++) {
+        _sstack_guard[i] = PORT_STACK_CANARY;
+    }
+}
+
+/* From the 1 kHz tick. noinline: the image test finds the call in the tick. */
+__attribute__((noinline)) void port_stack_guard_check(void)
+{
+    const volatile uint32_t *guard = _sstack_guard;
+    for (uint32_t i = 0; i < PORT_STACK_GUARD_WORDS; i++) {
+        if (guard[i] != PORT_STACK_CANARY) {
+            port_fatal_reset(PORT_NOTE_STACK_OVERFLOW, (uint32_t)(uintptr_t)&guard[i]);
+        }
+    }
 }
 
 void Default_Handler(void)
