@@ -123,9 +123,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="target pressure sent with the commands (used by START_TRANSFER)",
     )
     from oibar.calib.cli import register as register_calib
+    from oibar.camera.calibrate import register as register_calibrate_camera
     from oibar.nav.cli import register as register_nav
 
     register_calib(sub)
+    register_calibrate_camera(sub)
     register_nav(sub)
     return parser
 

@@ -94,7 +94,11 @@ def register(sub) -> None:
         help="folder the file column is relative to (default: the poses file's folder)",
     )
     ov.add_argument(
-        "--intrinsics", type=Path, default=None, help="intrinsics JSON (default: the OIBAR camera)"
+        "--intrinsics",
+        type=Path,
+        default=None,
+        help="intrinsics: the toolbox's JSON, OpenCV calibration YAML or ROS camera_info YAML "
+        "(default: the OIBAR camera)",
     )
     ov.add_argument(
         "--every", type=positive_int(), default=10, metavar="N", help="every N-th row (default 10)"
@@ -110,7 +114,11 @@ def _inputs(p) -> None:
     p.add_argument("--mocap-units", choices=("m", "mm"), default="m", help="position unit in the mocap CSV")
     p.add_argument("--frames", type=Path, required=True, help="frame index CSV (frame,file,time_s)")
     p.add_argument(
-        "--intrinsics", type=Path, default=None, help="intrinsics JSON (default: the OIBAR camera)"
+        "--intrinsics",
+        type=Path,
+        default=None,
+        help="intrinsics: the toolbox's JSON, OpenCV calibration YAML or ROS camera_info YAML "
+        "(default: the OIBAR camera)",
     )
 
 

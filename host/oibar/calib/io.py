@@ -221,10 +221,16 @@ def write_pattern(path: Path, p: Pattern) -> None:
 
 
 def read_intrinsics(path: Path | None) -> Intrinsics:
-    """OpenCV convention (pixel centres on integers). None: the OIBAR camera of docs/synthetic.md."""
+    """OpenCV convention (pixel centres on integers). None: the OIBAR camera of docs/synthetic.md.
+    The toolbox's intrinsics JSON, or the files ``--calibration`` reads (OpenCV's calibration
+    YAML/XML/JSON, ROS camera_info YAML: oibar.camera.calibration)."""
     if path is None:
         return Intrinsics.oibar_default()
+    if Path(path).suffix.lower() in (".yaml", ".yml", ".xml"):
+        return _intrinsics_from_calibration(path)
     d = _load_json(path)
+    if "fx_px" not in d and any(k in d for k in ("camera_matrix", "K", "k")):
+        return _intrinsics_from_calibration(path)
     try:
         K = np.array(
             [[float(d["fx_px"]), 0, float(d["cx_px"])], [0, float(d["fy_px"]), float(d["cy_px"])], [0, 0, 1]]
@@ -238,6 +244,16 @@ def read_intrinsics(path: Path | None) -> Intrinsics:
     if K[0, 0] <= 0 or K[1, 1] <= 0 or dist.ndim != 1 or len(dist) not in (4, 5, 8, 12, 14):
         raise CalibError(f"{path}: need fx_px, fy_px > 0 and 4, 5, 8, 12 or 14 distortion coefficients")
     return intr
+
+
+def _intrinsics_from_calibration(path: Path) -> Intrinsics:
+    from oibar.camera.calibration import CalibrationError, load_calibration
+
+    try:
+        c = load_calibration(path)
+    except CalibrationError as exc:
+        raise CalibError(str(exc)) from None
+    return Intrinsics(c.width_px, c.height_px, c.K, c.dist)
 
 
 def write_intrinsics(path: Path, intr: Intrinsics) -> None:

@@ -1,4 +1,5 @@
-"""``oibar nav`` (the navigation daemon) and ``oibar replay`` (re-run estimation on a log)."""
+"""``oibar nav`` (the navigation daemon), ``oibar replay`` (re-run estimation on a log) and
+``oibar pose`` (the estimator alone on image files)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,8 @@ EXIT_SOURCE_ENDED = 3  # the camera source ended (last frame of a video file or 
 EXIT_SOURCE_DIED = 4  # the camera source died: no frame for --camera-dead-s
 EXIT_MCU_NOT_SAFE = 5  # stopped otherwise cleanly, but the MCU did not accept the planned end
 EXIT_INTERRUPTED = 130  # Ctrl-C before the daemon was running (oibar.cli)
+# `oibar pose`: 0, 1, 2 as above, and
+EXIT_FRAMES_FAILED = 3  # a frame could not be read or was refused (the others are still estimated)
 
 _NAV_DESCRIPTION = """\
 Run the OIBAR navigation daemon: every 100 ms take the newest camera frame, estimate the
@@ -58,7 +61,16 @@ vehicle (--vehicle), where velocity setpoints go:
 examples:
   oibar nav --camera 0 --port /dev/ttyACM0 --model models/oibarnet.onnx
   oibar nav --camera data/synthetic/seq01/frames --port none --record-frames --duration-s 60
+  oibar nav --camera 0 --calibration camera.yaml --port /dev/ttyACM0
   oibar replay runs/nav/20261122-101500/cycles.jsonl --model models/other.onnx
+
+calibration (--calibration FILE): the camera that takes the frames, as OpenCV's calibration
+YAML (`oibar calibrate-camera`) or ROS camera_info YAML (plumb_bob, rational_polynomial or no
+distortion; any resolution). Each frame is undistorted and remapped to the network's canonical
+camera (744x480, f 583.33 px) by one cv2.remap; a camera narrower than that view is accepted
+with a warning (its uncovered border is black). A frame of another size than the calibration's
+is refused (a hold, "malformed frame"), never guessed. Without it, only 744x480 frames of the
+canonical camera are read.
 
 exit status (one line on stderr says why; never a traceback):
   0    mission over, --duration-s reached, or Ctrl-C / SIGTERM: the MCU accepted the planned
@@ -75,6 +87,34 @@ exit status (one line on stderr says why; never a traceback):
        BOOT/IDLE/FAULT, valves closed)
   130  Ctrl-C before the daemon was running
 A corrupt frame (a truncated JPEG in a folder) is skipped and counted, not an error.
+"""
+
+
+_POSE_DESCRIPTION = """\
+Estimate the berthing fixture's pose in each image file with OibarNet, without the daemon: one
+JSON line per frame on stdout, in the order given:
+  {"frame": PATH, "T_cam_target_m": [x, y, z], "q_cam_target_wxyz": [w, x, y, z],
+   "confidence": 0..1, "flags": [...], "latency_ms": MS}
+Each frame is read cold, on its own, with the full search (no crop budget, nothing carried from
+the previous frame). A frame that cannot be read or is refused gives a line with "error" (the
+pose fields null) and one line on stderr.
+"""
+
+_POSE_EPILOG = """\
+frames: the network's canonical camera (744x480, f 583.33 px, principal point at the centre)
+unless --calibration names the camera that took them (any resolution: undistorted and remapped
+to the canonical camera); a frame whose size does not match the calibration is refused.
+
+examples:
+  oibar pose frame.png
+  oibar pose shots/*.jpg --calibration camera.yaml > poses.jsonl
+
+exit status (one line on stderr says why; never a traceback):
+  0    every frame read and estimated (a low confidence or a flag is an answer, not an error)
+  1    an unexpected internal error (run with -v for the traceback)
+  2    bad argument or start-up error: model, calibration file
+  3    at least one frame could not be read (missing, corrupt, not an image) or was refused
+       (wrong size, not RGB); the others are still estimated
 """
 
 
@@ -114,6 +154,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="ONNX",
         help="OibarNet ONNX model (default: $OIBAR_MODEL, else the shipped oibarnet.onnx)",
     )
+    _calibration_arg(nav)
     nav.add_argument(
         "--vehicle",
         default="none",
@@ -185,6 +226,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--model", type=Path, default=None, metavar="ONNX", help="model (default: as for oibar nav)"
     )
     rp.add_argument("--out", type=Path, default=None, help="write the replayed estimates here (JSON lines)")
+    _calibration_arg(rp)
     rp.add_argument(
         "--threads",
         type=argtypes.positive_int(256),
@@ -193,18 +235,51 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     rp.set_defaults(handler=cmd_replay, run=run)
 
+    ps = sub.add_parser(
+        "pose",
+        help="estimate the fixture's pose in image files (no daemon): one JSON line per frame",
+        description=_POSE_DESCRIPTION,
+        epilog=_POSE_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ps.add_argument("frames", nargs="+", type=Path, metavar="FRAME", help="image files (PNG, JPEG, ...)")
+    ps.add_argument(
+        "--model", type=Path, default=None, metavar="ONNX", help="model (default: as for oibar nav)"
+    )
+    _calibration_arg(ps)
+    ps.add_argument(
+        "--threads",
+        type=argtypes.positive_int(256),
+        default=2,
+        help="onnxruntime threads, 1-256 (default: 2)",
+    )
+    ps.set_defaults(handler=cmd_pose, run=run)
+
+
+def _calibration_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="the camera's calibration (OpenCV YAML from `oibar calibrate-camera`, or ROS camera_info "
+        "YAML): frames are undistorted and remapped to the network's canonical camera; frames of "
+        "another size are refused. Without it only the canonical camera's own 744x480 frames are read",
+    )
+
 
 def run(args: argparse.Namespace) -> int:
     """Start-up errors become one line and exit 2; anything unexpected one line and exit 1
     (the traceback only with -v)."""
     from oibar.camera import CameraError
+    from oibar.camera.calibration import CalibrationError
     from oibar.nav.cyclelog import CycleLogError
     from oibar.nav.pose import ModelFileError
     from oibar.nav.vehicle import VehicleError
 
     try:
         return int(args.handler(args))
-    except (ModelFileError, CameraError, VehicleError, CycleLogError, OSError) as exc:
+    except (ModelFileError, CameraError, VehicleError, CycleLogError, CalibrationError, OSError) as exc:
         print(f"oibar: error: {exc}", file=sys.stderr, flush=True)
         return EXIT_ERROR
     except Exception as exc:
@@ -263,8 +338,12 @@ def cmd_nav(a: argparse.Namespace) -> int:
     from oibar.nav.vehicle import open_vehicle
 
     model = a.model or default_model_path()
-    navigator = load_navigator(model, threads=a.threads)  # model errors first, nothing opened yet
+    # model and calibration errors first, nothing opened yet
+    navigator = load_navigator(model, threads=a.threads)
     est = navigator.estimator
+    if a.calibration is not None:
+        est.use_calibration(a.calibration)
+        _report_calibration(est)
     lo, hi = est.range_limits_m
     origin = (
         "from the model's oibar.train_range_m"
@@ -342,6 +421,9 @@ def cmd_replay(a: argparse.Namespace) -> int:
 
     model = a.model or default_model_path()
     navigator = load_navigator(model, threads=a.threads)
+    if a.calibration is not None:
+        navigator.estimator.use_calibration(a.calibration)
+        _report_calibration(navigator.estimator)
     status = StatusLine()
 
     def progress(i: int, n: int) -> None:
@@ -350,4 +432,83 @@ def cmd_replay(a: argparse.Namespace) -> int:
     res = replay(a.log, navigator, a.out, progress=progress)
     status.end()
     print(format_summary(res))
+    return EXIT_OK
+
+
+def _report_calibration(est: Any) -> None:
+    """The camera in use, on stderr; a warning when it covers less than the canonical view."""
+    fm = getattr(est, "frame_map", None)
+    if fm is None:
+        return
+    print(
+        f"calibration {fm.calib.source}: {fm.calib.describe()}, remapped to the canonical camera",
+        file=sys.stderr,
+    )
+    if fm.warning():
+        print(f"oibar: warning: {fm.warning()}", file=sys.stderr, flush=True)
+
+
+def _finite(values: Any) -> list[float | None]:
+    """Numbers for JSON: NaN/inf (no answer) become null."""
+    import numpy as np
+
+    return [float(v) if np.isfinite(v) else None for v in np.asarray(values, float).ravel()]
+
+
+def cmd_pose(a: argparse.Namespace) -> int:
+    import json
+
+    import numpy as np
+    from PIL import Image
+
+    from oibar.nav.pose import FrameError, KeypointPoseEstimator, PoseEstimator
+
+    model = a.model or default_model_path()
+    est = PoseEstimator(model, threads=a.threads)
+    est.use_calibration(a.calibration)
+    _report_calibration(est)
+    if isinstance(est, KeypointPoseEstimator):
+        est.search.cold_crop_budget = None  # every frame read cold with the full search
+    failed = 0
+    for path in a.frames:
+        line: dict[str, Any] = {"frame": str(path)}
+        try:
+            with Image.open(path) as im:
+                image = np.asarray(im.convert("RGB"))
+        except Exception as exc:  # missing, unreadable, truncated, not an image (PIL raises several)
+            failed += 1
+            why = (
+                exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc) or type(exc).__name__
+            )
+            line["error"] = f"cannot read the frame: {why}"
+        else:
+            est.forget()  # each frame on its own: nothing carried from the previous one
+            t0 = time.perf_counter()
+            try:
+                e = est.estimate(image, t_s=0.0)
+            except FrameError as exc:
+                failed += 1
+                line["error"] = f"frame refused: {exc}"
+            else:
+                line.update(
+                    T_cam_target_m=_finite(e.T_cam_target_m),
+                    q_cam_target_wxyz=_finite(e.q_cam_target),
+                    confidence=float(e.confidence) if np.isfinite(e.confidence) else None,
+                    flags=list(e.flags),
+                    latency_ms=round((time.perf_counter() - t0) * 1e3, 3),
+                )
+        if "error" in line:
+            line.update(
+                T_cam_target_m=None, q_cam_target_wxyz=None, confidence=None, flags=[], latency_ms=None
+            )
+            print(f"oibar: error: {path}: {line['error']}", file=sys.stderr, flush=True)
+        print(json.dumps(line), flush=True)
+    if failed:
+        print(
+            f"oibar: error: {failed} of {len(a.frames)} frame(s) could not be read or were refused "
+            f"(exit status {EXIT_FRAMES_FAILED})",
+            file=sys.stderr,
+            flush=True,
+        )
+        return EXIT_FRAMES_FAILED
     return EXIT_OK

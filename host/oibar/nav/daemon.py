@@ -645,10 +645,17 @@ def install_sigint(daemon: NavDaemon) -> None:
     signal.signal(signal.SIGTERM, handler)
 
 
-def load_navigator(model_path: str | Path, threads: int = 2) -> Navigator:
+def load_navigator(
+    model_path: str | Path, threads: int = 2, calibration: str | Path | None = None
+) -> Navigator:
+    """The model's navigator; with ``calibration`` (OpenCV or ROS camera_info YAML) its frames are
+    remapped to the model's canonical camera (PoseEstimator.use_calibration)."""
     from oibar.nav.pose import PoseEstimator
 
-    return Navigator(PoseEstimator(model_path, threads=threads))
+    estimator = PoseEstimator(model_path, threads=threads)
+    if calibration is not None:
+        estimator.use_calibration(calibration)
+    return Navigator(estimator)
 
 
 def connect_in_background(

@@ -10,14 +10,17 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from PIL import Image
 
-from oibar.nav.pose.frames import check_rgb_frame, check_time, resize_frame, to_input
+from oibar.nav.pose.frames import FrameError, check_rgb_frame, check_time, resize_frame, to_input
 from oibar.nav.pose.model_file import ModelFileError, open_session, range_limits, read_metadata
 from oibar.nav.pose.result import PoseEstimate
+
+if TYPE_CHECKING:
+    from oibar.camera.calibration import CameraCalibration, CanonicalRemap
 
 REQUIRED_OUTPUTS = ("position_m", "q_cam_target", "R_cam_target")
 # Raw-6D orthonormality defect at which confidence falls to exp(-1/2) = 0.61: about 5x the
@@ -111,6 +114,41 @@ class PoseEstimator:
 
     # Whether estimate() uses a predicted pose (the navigation filter's) to look in the right place.
     uses_prior = False
+    # Frames of another camera remapped to this model's canonical camera (use_calibration); None:
+    # frames must be the canonical camera's own.
+    frame_map: CanonicalRemap | None = None
+
+    def use_calibration(self, calibration: CameraCalibration | str | Path | None) -> CanonicalRemap | None:
+        """Read frames of the calibrated camera (a CameraCalibration, or its OpenCV or ROS
+        camera_info YAML): each is undistorted and remapped to the model's canonical camera
+        (``oibar.camera``) by one precomputed cv2.remap before anything else; a frame of another
+        size is a FrameError. None: back to canonical frames only. Returns the remap (its
+        ``warning()`` says when the camera covers less than the canonical view)."""
+        from oibar.camera.calibration import (
+            CameraCalibration,
+            CanonicalRemap,
+            canonical_camera,
+            load_calibration,
+        )
+
+        if calibration is None:
+            self.frame_map = None
+            return None
+        calib = calibration if isinstance(calibration, CameraCalibration) else load_calibration(calibration)
+        K, wh = canonical_camera(self.meta)
+        self.frame_map = CanonicalRemap(calib, K, wh)
+        return self.frame_map
+
+    def canonical_frame(self, image: Any) -> Any:
+        """The frame in the canonical camera: remapped when a calibration is in use, else as given."""
+        if self.frame_map is None:
+            return image
+        from oibar.camera.calibration import CalibrationError
+
+        try:
+            return self.frame_map.apply(image)
+        except CalibrationError as exc:
+            raise FrameError(str(exc)) from None
 
     def forget(self) -> None:
         """Drop what earlier frames left (a new sequence, or frames to be judged each on its
@@ -125,6 +163,7 @@ class PoseEstimator:
         """One frame -> pose. `prior` (R_cam_target, T_cam_target_m), the pose predicted for this
         frame, is ignored by a direct model: it sees the whole frame anyway."""
         check_time(t_s)
+        image_rgb_uint8 = self.canonical_frame(image_rgb_uint8)
         self.check_frame(image_rgb_uint8)
         t0 = time.perf_counter()
         out = self.run(to_input(resize_frame(image_rgb_uint8, self.size_wh)))

@@ -172,6 +172,7 @@ class KeypointPoseEstimator(PoseEstimator):
         """One frame -> pose; `prior` (R_cam_target, T_cam_target_m), the pose predicted for this
         frame (the daemon passes its filter's), places the first crop (WindowSearch.solve)."""
         check_time(t_s)
+        image_rgb_uint8 = self.canonical_frame(image_rgb_uint8)
         self.check_frame(image_rgb_uint8)
         prior = _checked_prior(prior)
         t0 = time.perf_counter()
