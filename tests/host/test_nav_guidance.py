@@ -202,3 +202,27 @@ def test_a_command_refused_for_a_lasting_reason_ends_the_mission_safely():
         req = g.step(t, Observation(t, nav(0.0), True, tm, results=[res])).request
     assert g.mission_aborted and any("refused" in n for _, n in g.notes)
     assert req is None or req.opcode != pb.CMD_ARM_TRANSFER  # no more asking: valves closed, unmate next
+
+
+def test_a_clear_accepted_after_guidance_gave_up_is_followed_not_called_safed():
+    """The fault matrix's overpressure@reception: guidance's third CLEAR_FAULT went out while the
+    tank was still high, it gave up ("holding, valves closed"), and the answer that came back
+    accepted the clear: the MCU let the probe go and homed the latch (D1), which takes longer
+    than the 5 s hold, and the mission was called safed in LATCH_RESET. Leaving FAULT now takes
+    the give-up back."""
+    from oibar.nav.guidance import MAX_CLEAR_ATTEMPTS, SAFED_HOLD_S, RequestResult
+
+    g = Guidance(MissionParams())
+    g.contacted = True
+    fault = telemetry("STATE_FAULT")
+    t, results = 0.0, []
+    for _ in range(MAX_CLEAR_ATTEMPTS + 1):
+        req = g.step(t, Observation(t, nav(0.0), True, fault, results=results)).request
+        results = [RequestResult(req, False, "NACK_PRECONDITION_FAILED")] if req is not None else []
+        t += 2.5
+    assert g.gave_up_at is not None
+    reset = telemetry("STATE_LATCH_RESET")
+    for _ in range(int(SAFED_HOLD_S / 0.1) + 20):
+        g.step(t, obs(t, nav(0.0), tm=reset))
+        t += 0.1
+    assert g.gave_up_at is None and g.outcome != "safed"

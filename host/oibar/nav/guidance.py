@@ -247,6 +247,12 @@ class Guidance:
         if state == "STATE_FAULT":
             self._abort_mission(t_s, f"MCU fault flags 0x{tm.fault_flags:x}")
             self.clear_attempts = 0
+        elif last == "STATE_FAULT" and self.gave_up_at is not None:
+            # the last clear was accepted after all (its answer came after the third try): the
+            # MCU is on its way to a safe end (since issue 59's D1 an unconfirmed capture lets the
+            # probe go and homes the latch, which takes longer than the hold), so follow it
+            self.gave_up_at = None
+            self._note(t_s, f"fault cleared: {state}")
         if last == "STATE_TRANSFERRING" and state == "STATE_HARD_DOCKED":
             if tm.tv_tank_kpa >= 0.99 * self.m.target_kpa:
                 self.filled = True
