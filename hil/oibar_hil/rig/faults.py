@@ -13,6 +13,16 @@ from typing import Any
 
 from oibar_hil.rig.lockstep import ADC
 
+# Issue 59 item 5: the FMEA's new failure modes (firmware/fmea.toml), also the fault matrix's.
+NEW_MODES = (
+    "plane_retracted_wire_break",
+    "home_wire_break",
+    "switch_stuck",
+    "plane_pos_adc_fail",
+    "backflow",
+    "mcu_reset",
+)
+
 FAULT_TYPES = (
     "link_loss",
     "bit_errors",
@@ -38,12 +48,7 @@ FAULT_TYPES = (
     "valve_slow_close",
     "param_attack",
     # issue 59 item 5: the FMEA's new failure modes (firmware/fmea.toml)
-    "plane_retracted_wire_break",
-    "home_wire_break",
-    "switch_stuck",
-    "plane_pos_adc_fail",
-    "backflow",
-    "mcu_reset",
+    *NEW_MODES,
 )
 
 # Lockstep DI names of the switches a fault may break or stick (hil/oibar_hil/rig/lockstep.py).

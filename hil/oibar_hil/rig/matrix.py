@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from oibar_hil.rig.checks import Check
-from oibar_hil.rig.faults import FAULT_TYPES
+from oibar_hil.rig.faults import FAULT_TYPES, NEW_MODES
 from oibar_hil.rig.runner import REPO_ROOT
 from oibar_hil.rig.scenario import Scenario
 
@@ -431,14 +431,7 @@ def expectation(fault: str, phase: str) -> Expect | str:
     return e
 
 
-NEW_MODES = (
-    "plane_retracted_wire_break",
-    "home_wire_break",
-    "switch_stuck",
-    "plane_pos_adc_fail",
-    "backflow",
-    "mcu_reset",
-)
+# the FMEA's new modes (issue 59 item 5): one list, the injector's (oibar_hil.rig.faults.NEW_MODES)
 
 
 def _new_mode_expectation(fault: str, phase: str) -> Expect:
