@@ -30,6 +30,8 @@ from .meshes import ID_ADAPTER, ID_MODULE, Part
 from .textures import earth_texture, perlin_background
 
 EARTH_RADIUS_KM = 6371.0
+# Where the Earth's centre is when a caller gives none: straight below (LVLH +Z), 420 km down.
+DEFAULT_EARTH_CENTER_LVLH_KM = (0.0, 0.0, EARTH_RADIUS_KM + 420.0)
 
 _MESH_VS = """
 #version 330
@@ -643,7 +645,7 @@ class Renderer:
         sun = np.asarray(sun_lvlh, dtype=float)
         sun = sun / np.linalg.norm(sun)
         earth_c = (
-            np.array([0.0, 0.0, 6371.0 + 420.0])
+            np.array(DEFAULT_EARTH_CENTER_LVLH_KM)
             if earth_center_lvlh_km is None
             else np.asarray(earth_center_lvlh_km, float)
         )

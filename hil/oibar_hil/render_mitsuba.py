@@ -31,7 +31,7 @@ import numpy as np
 from oibar.geometry.camera import PinholeCamera
 
 from .meshes import Part
-from .render import EARTH_RADIUS_KM, RenderSettings, apply_sensor_effects
+from .render import DEFAULT_EARTH_CENTER_LVLH_KM, EARTH_RADIUS_KM, RenderSettings, apply_sensor_effects
 from .textures import earth_texture, perlin_background
 
 # "matched": our materials, Sun, Earth and backdrop. "lab": the paper's lab (its experimental
@@ -234,7 +234,7 @@ class MitsubaRenderer:
         sun = np.asarray(sun_lvlh, float)
         sun = sun / np.linalg.norm(sun)
         earth_c = (
-            np.array([0.0, 0.0, EARTH_RADIUS_KM + 420.0])
+            np.array(DEFAULT_EARTH_CENTER_LVLH_KM)
             if earth_center_lvlh_km is None
             else np.asarray(earth_center_lvlh_km, float)
         )

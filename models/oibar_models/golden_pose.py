@@ -16,7 +16,6 @@ purpose; the test then says which call or which pose moved.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
 from pathlib import Path
@@ -102,6 +101,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from oibar.nav.pose import KeypointPoseEstimator, ModelFileError, PoseEstimator
     from oibar_hil.rig.camera import RigCamera, RigCameraError
+    from oibar_hil.sequence import sha256_file
 
     ap = argparse.ArgumentParser(
         prog="python -m oibar_models.golden_pose", description=__doc__.split("\n\n")[0]
@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     np.savez_compressed(a.out / "raw.npz", **rec.arrays)
     meta = {
         "model": a.model.name,
-        "model_sha256": hashlib.sha256(a.model.read_bytes()).hexdigest(),
+        "model_sha256": sha256_file(a.model),
         "scene": SCENE,
         "threads": 1,
         "frames": [

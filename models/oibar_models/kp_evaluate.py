@@ -32,6 +32,7 @@ import numpy as np
 from PIL import Image
 
 from oibar.geometry.rotations import matrix_to_quat, matrix_to_rotvec, quat_to_matrix
+from oibar_hil.sequence import sha256_file
 
 from . import metrics
 from .config import REPO_ROOT
@@ -74,12 +75,6 @@ SETS = {
 # that a test set is read once per shipped model: a second read of the same file is refused
 # unless it says why (--reread), and that reason is kept too.
 TEST_LEDGER = "models/scenes/test_reads.jsonl"
-
-
-def _sha256(path: Path) -> str:
-    import hashlib
-
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def test_reads(ledger: Path, set_name: str, sha: str) -> list[dict]:
@@ -364,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     for p in a.models if test_sets else []:
         if not Path(p).is_file():
             continue  # the estimator below reports a missing file
-        shas[p] = _sha256(p)
+        shas[p] = sha256_file(p)
         for n in test_sets:
             if test_reads(a.ledger, n, shas[p]) and not a.reread:
                 print(

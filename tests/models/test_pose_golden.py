@@ -31,12 +31,12 @@ def _estimator():
 
 
 def test_the_golden_vectors_are_of_the_shipped_model(golden):
-    import hashlib
+    from oibar_hil.sequence import sha256_file
 
     meta, _, _ = golden
-    assert (
-        meta["model_sha256"] == hashlib.sha256((ROOT / "models" / "oibarnet.onnx").read_bytes()).hexdigest()
-    ), "models/oibarnet.onnx changed: make its golden vectors again (python -m oibar_models.golden_pose)"
+    assert meta["model_sha256"] == sha256_file(ROOT / "models" / "oibarnet.onnx"), (
+        "models/oibarnet.onnx changed: make its golden vectors again (python -m oibar_models.golden_pose)"
+    )
     assert [p["frame"] for p in meta["poses"]] == [f[0] for f in FRAMES]
 
 
