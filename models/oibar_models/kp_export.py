@@ -264,7 +264,7 @@ def checkpoint_path(cfg: KpConfig, which: str) -> Path:
 
 def load_head_gain(path: Path) -> dict:
     """The head-gain table of a `kp_head_gain` JSON, checked as the flight code checks it."""
-    from oibar.nav.keypoints import HeadGainModel
+    from oibar.nav.error_models import HeadGainModel
 
     table = json.loads(Path(path).read_text())["head_gain"]
     HeadGainModel(table)

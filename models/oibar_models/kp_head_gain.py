@@ -27,7 +27,8 @@ from PIL import Image
 
 from oibar.geometry.docking import docking_from_camera_pose
 from oibar.geometry.rotations import quat_to_matrix
-from oibar.nav.keypoints import HEAD_GAIN_LIMITS, HeadGainModel, project, window_around
+from oibar.nav.error_models import HEAD_GAIN_LIMITS, HeadGainModel
+from oibar.nav.keypoints import project, window_around
 
 from .config import REPO_ROOT
 from .data import DatasetError, load_sequence

@@ -272,7 +272,7 @@ def test_per_keypoint_sigmas_let_a_poorly_found_point_count_less():
 
 
 def test_error_model_scales_by_range_and_refuses_bad_tables():
-    from oibar.nav.keypoints import KeypointErrorModel
+    from oibar.nav.error_models import KeypointErrorModel
 
     table = {"range_edges_m": [0.0, 1.5, 5.0, 100.0], "rms_crop_px": [[0.5, 0.3, 0.4], [2.0, 0.3, 0.5]]}
     m = KeypointErrorModel(table)
@@ -576,7 +576,7 @@ def test_tilt_scaled_gives_a_shrunk_tilt_back_its_size_and_keeps_the_roll():
 def test_the_head_gain_model_reads_its_range_bin_and_refuses_a_bad_table():
     """fusion.head_gain: one tilt gain per range bin, looked up by range (the end bins beyond the
     edges); a table of the wrong length, with falling edges or a gain outside 0.5-2 is refused."""
-    from oibar.nav.keypoints import HeadGainModel
+    from oibar.nav.error_models import HeadGainModel
 
     m = HeadGainModel({"range_edges_m": [0.0, 1.0, 3.0, 100.0], "tilt_gain": [0.8, 0.9, 1.0]})
     assert [m.gain(r) for r in (0.5, 1.0, 2.9, 50.0, 500.0, -1.0)] == [0.8, 0.9, 0.9, 1.0, 1.0, 0.8]
@@ -636,7 +636,7 @@ def test_the_prior_error_model_weighs_the_prior_by_range(monkeypatch):
     """fusion.prior_error_model: the prior's sigma at a range is sigma_prior_deg times that bin's
     RMS over the overall RMS; a bad table is refused."""
     import oibar.nav.pose.fusion as fusion_mod
-    from oibar.nav.keypoints import PriorErrorModel
+    from oibar.nav.error_models import PriorErrorModel
 
     table = {"range_edges_m": [0.0, 3.0, 8.0, 100.0], "rms_deg": [2.0, 0.5, 2.0]}
     m = PriorErrorModel(table)

@@ -539,7 +539,7 @@ def test_a_checkpoint_without_the_attitude_head_loads_with_a_fresh_one():
 def test_the_prior_error_model_is_each_priors_rms_per_range_bin():
     """kp_fusion.prior_error_model: per range bin the RMS of one prior's attitude error, clipped
     at PRIOR_CLIP_DEG; a thin bin takes the overall RMS; a prior that never answered has none."""
-    from oibar.nav.keypoints import PriorErrorModel
+    from oibar.nav.error_models import PriorErrorModel
     from oibar_models.kp_fusion import ERROR_RANGE_EDGES_M, PRIOR_CLIP_DEG, prior_error_model
 
     rows = []
@@ -646,7 +646,7 @@ def test_the_error_model_is_each_keypoints_rms_per_range_bin():
     """kp_fusion.error_model: RMS per keypoint and range bin, errors clipped at the inlier
     threshold (RANSAC drops worse ones), a bin with under 5 answers takes the keypoint's overall
     RMS, and every entry at least the floor."""
-    from oibar.nav.keypoints import KeypointErrorModel
+    from oibar.nav.error_models import KeypointErrorModel
     from oibar_models.kp_fusion import ERROR_RANGE_EDGES_M, MIN_RMS_CROP_PX, error_model
 
     rows = []
@@ -1076,7 +1076,7 @@ def test_the_head_gain_is_the_slope_of_the_heads_tilt_on_the_truths_per_range_bi
     """kp_head_gain.gain_table: per range bin the pooled slope of the head's tilt on the true one,
     each axis's own offset taken out (a lean is not a gain), with its standard error; a bin with
     too few frames or a gain the flight code would refuse is an error, not a table."""
-    from oibar.nav.keypoints import HeadGainModel
+    from oibar.nav.error_models import HeadGainModel
     from oibar_models.kp_head_gain import MIN_FRAMES_PER_BIN, HeadGainError, gain_table
 
     rng = np.random.default_rng(0)

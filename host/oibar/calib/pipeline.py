@@ -24,7 +24,7 @@ from oibar.geometry.transforms import adjoint, inv_T, make_T
 from . import handeye, io, timing
 from .errors import CalibError
 from .pnp import Detector, Intrinsics, Observation, Pattern, project
-from .refine import MocapNoise, refine
+from .refine import MocapNoise, RefineResult, refine
 
 OFFSET_FINE_WINDOW_S = 0.010
 
@@ -123,6 +123,90 @@ def estimate(
     return estimate_from_observations(inp, housing, tmarkers, frames, obs, pattern, intr)
 
 
+def _start_offset(
+    inp: EstimateInputs, t_f: np.ndarray, A: np.ndarray, housing: timing.Track, tmarkers: timing.Track
+) -> tuple[float, float, float | None]:
+    """The clock offset to start the refinement from: (by speed matching, by the closed-form
+    hand-eye scan, the refinement's search window), or the user's --offset-s (no window)."""
+    if t_f[-1] + inp.offset_search_s < housing.t_s[0] or t_f[0] - inp.offset_search_s > housing.t_s[-1]:
+        raise CalibError(
+            f"the mocap ({housing.t_s[0]:.2f}-{housing.t_s[-1]:.2f} s) and the frames "
+            f"({t_f[0]:.2f}-{t_f[-1]:.2f} s) do not overlap; pass --offset-s with the clock difference"
+        )
+    if inp.offset_s is not None:
+        return float(inp.offset_s), float(inp.offset_s), None
+    hw = inp.smooth_half_width_s
+    off_speed = timing.offset_by_speed(t_f, A[:, :3, :3], housing, tmarkers, inp.offset_search_s)
+    off0 = timing.offset_by_handeye(t_f, A, housing, tmarkers, off_speed, smooth_half_width_s=hw)
+    return off_speed, off0, OFFSET_FINE_WINDOW_S
+
+
+def _chain_reprojection_px(
+    found: list[Observation], inliers: np.ndarray, A_pred: np.ndarray, pattern: Pattern, intr: Intrinsics
+) -> np.ndarray:
+    """The detected corners' reprojection errors (px) through the calibrated mocap chain
+    (A_pred: the camera-pattern poses it predicts), inlier poses only."""
+    parts = [
+        np.linalg.norm(project(pattern.corners_pattern_m()[o.ids], A_pred[j], intr) - o.uv_px, axis=1)
+        for j, o in enumerate(found)
+        if inliers[j]
+    ]
+    return np.concatenate(parts)
+
+
+def _report(
+    inp: EstimateInputs,
+    res: RefineResult,
+    pattern: Pattern,
+    found: list[Observation],
+    reproj_px: np.ndarray,
+    sigma_px: float,
+    poses: dict,
+    offset_stages_s: dict,
+) -> dict:
+    """The calibration's result: the two transforms, the offset, their 1-sigma, the poses used,
+    the residuals, the offset's stages and the settings."""
+    r = res.residuals[res.inliers]
+    P = pattern.T_target_pattern
+    Ad_Z, Ad_PX = adjoint(res.Z), adjoint(P @ res.X)
+    return {
+        "housing_body": inp.housing_body,
+        "target_body": inp.target_body,
+        "T_housing_cam": inv_T(res.Z),
+        "T_tmarkers_target": inv_T(res.X) @ inv_T(P),
+        "offset_s": res.offset_s,
+        "offset_convention": "mocap time = frame time_s + offset_s",
+        "sigma_1": {
+            "T_housing_cam": _sigma(Ad_Z @ res.cov_Z @ Ad_Z.T),
+            "T_tmarkers_target": _sigma(Ad_PX @ res.cov_X @ Ad_PX.T),
+            "offset_ms": None if not np.isfinite(res.sigma_offset_s) else round(res.sigma_offset_s * 1e3, 4),
+        },
+        "poses": poses,
+        "residuals": {
+            "chi2_per_dof": round(res.chi2_per_dof, 4),
+            "pose_translation_mm": {
+                k: round(v * 1e3, 4) for k, v in _stats(np.linalg.norm(r[:, :3], axis=1)).items()
+            },
+            "pose_rotation_deg": {
+                k: round(float(np.degrees(v)), 4) for k, v in _stats(np.linalg.norm(r[:, 3:], axis=1)).items()
+            },
+            "chain_reprojection_px": {k: round(v, 4) for k, v in _stats(reproj_px).items()},
+            "pnp_reprojection_px": {
+                k: round(v, 4) for k, v in _stats(np.array([o.rms_px for o in found])).items()
+            },
+        },
+        "offset_stages_s": offset_stages_s,
+        "settings": {
+            "mocap_sigma_mm": inp.mocap_sigma_mm,
+            "mocap_sigma_deg": inp.mocap_sigma_deg,
+            "corner_sigma_px": round(sigma_px, 4),
+            "position_unit": inp.position_unit,
+            "pattern": str(inp.pattern_json),
+            "intrinsics": str(inp.intrinsics_json or "oibar default"),
+        },
+    }
+
+
 def estimate_from_observations(
     inp: EstimateInputs,
     housing: timing.Track,
@@ -150,19 +234,8 @@ def estimate_from_observations(
     A_cov = np.stack([o.cov for o in found]) * sigma_px**2
     spread = handeye.check_motion(A, inp.min_poses)
 
-    if t_f[-1] + inp.offset_search_s < housing.t_s[0] or t_f[0] - inp.offset_search_s > housing.t_s[-1]:
-        raise CalibError(
-            f"the mocap ({housing.t_s[0]:.2f}-{housing.t_s[-1]:.2f} s) and the frames "
-            f"({t_f[0]:.2f}-{t_f[-1]:.2f} s) do not overlap; pass --offset-s with the clock difference"
-        )
     hw = inp.smooth_half_width_s
-    if inp.offset_s is None:
-        off_speed = timing.offset_by_speed(t_f, A[:, :3, :3], housing, tmarkers, inp.offset_search_s)
-        off0 = timing.offset_by_handeye(t_f, A, housing, tmarkers, off_speed, smooth_half_width_s=hw)
-        window = OFFSET_FINE_WINDOW_S
-    else:
-        off_speed = off0 = float(inp.offset_s)
-        window = None
+    off_speed, off0, window = _start_offset(inp, t_f, A, housing, tmarkers)
 
     B0, valid0 = timing.relative_at(housing, tmarkers, t_f + off0, smooth_half_width_s=hw)
     if valid0.sum() < inp.min_poses:
@@ -189,76 +262,25 @@ def estimate_from_observations(
         min_poses=inp.min_poses,
     )
 
-    # Reprojection of the detected corners through the calibrated mocap chain.
     B, _ = timing.relative_at(housing, tmarkers, t_f + res.offset_s, smooth_half_width_s=hw)
     A_pred = res.Z @ B @ inv_T(res.X)
-    reproj_parts = []
-    for j, o in enumerate(found):
-        if res.inliers[j]:
-            uv = project(pattern.corners_pattern_m()[o.ids], A_pred[j], intr)
-            reproj_parts.append(np.linalg.norm(uv - o.uv_px, axis=1))
-    reproj = np.concatenate(reproj_parts)
-    r = res.residuals[res.inliers]
-
-    T_housing_cam = inv_T(res.Z)
-    P = pattern.T_target_pattern
-    T_tmarkers_target = inv_T(res.X) @ inv_T(P)
-    Ad_Z, Ad_PX = adjoint(res.Z), adjoint(P @ res.X)
-    result = {
-        "housing_body": inp.housing_body,
-        "target_body": inp.target_body,
-        "T_housing_cam": T_housing_cam,
-        "T_tmarkers_target": T_tmarkers_target,
-        "offset_s": res.offset_s,
-        "offset_convention": "mocap time = frame time_s + offset_s",
-        "sigma_1": {
-            "T_housing_cam": _sigma(Ad_Z @ res.cov_Z @ Ad_Z.T),
-            "T_tmarkers_target": _sigma(Ad_PX @ res.cov_X @ Ad_PX.T),
-            "offset_ms": None if not np.isfinite(res.sigma_offset_s) else round(res.sigma_offset_s * 1e3, 4),
-        },
-        "poses": {
-            "frames": len(frames),
-            "pattern_found": len(seen),
-            "used": int(res.inliers.sum()),
-            "outliers": int(len(seen) - res.inliers.sum()),
-            **{k: round(v, 4) for k, v in spread.items()},
-        },
-        "residuals": {
-            "chi2_per_dof": round(res.chi2_per_dof, 4),
-            "pose_translation_mm": {
-                k: round(v * 1e3, 4) for k, v in _stats(np.linalg.norm(r[:, :3], axis=1)).items()
-            },
-            "pose_rotation_deg": {
-                k: round(float(np.degrees(v)), 4) for k, v in _stats(np.linalg.norm(r[:, 3:], axis=1)).items()
-            },
-            "chain_reprojection_px": {k: round(v, 4) for k, v in _stats(reproj).items()},
-            "pnp_reprojection_px": {
-                k: round(v, 4) for k, v in _stats(np.array([o.rms_px for o in found])).items()
-            },
-        },
-        "offset_stages_s": {
-            "speed_match": round(off_speed, 6),
-            "closed_form_scan": round(off0, 6),
-            "refined": round(res.offset_s, 6),
-        },
-        "settings": {
-            "mocap_sigma_mm": inp.mocap_sigma_mm,
-            "mocap_sigma_deg": inp.mocap_sigma_deg,
-            "corner_sigma_px": round(sigma_px, 4),
-            "position_unit": inp.position_unit,
-            "pattern": str(inp.pattern_json),
-            "intrinsics": str(inp.intrinsics_json or "oibar default"),
-        },
-        "_details": {
-            "seen": seen,
-            "obs": obs,
-            "A_pred": A_pred,
-            "inliers": res.inliers,
-            "frames": frames,
-            "pattern": pattern,
-            "intr": intr,
-        },
+    poses = {
+        "frames": len(frames),
+        "pattern_found": len(seen),
+        "used": int(res.inliers.sum()),
+        "outliers": int(len(seen) - res.inliers.sum()),
+        **{k: round(v, 4) for k, v in spread.items()},
     }
+    stages = {
+        "speed_match": round(off_speed, 6),
+        "closed_form_scan": round(off0, 6),
+        "refined": round(res.offset_s, 6),
+    }
+    reproj_px = _chain_reprojection_px(found, res.inliers, A_pred, pattern, intr)
+    result = _report(inp, res, pattern, found, reproj_px, sigma_px, poses, stages)
+    result["_details"] = dict(
+        seen=seen, obs=obs, A_pred=A_pred, inliers=res.inliers, frames=frames, pattern=pattern, intr=intr
+    )
     return result
 
 

@@ -17,12 +17,12 @@ from oibar.camera.errors import (
     SourceNotFound,
     SourceUnreadable,
 )
+from oibar.camera.folder import FolderSource
 from oibar.camera.latest import LatestFrame, LatestFrameStats
 from oibar.camera.sources import (
     CallableSource,
     CameraSource,
     DeviceSource,
-    FolderSource,
     Frame,
     VideoFileSource,
     open_source,

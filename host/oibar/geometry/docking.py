@@ -163,7 +163,7 @@ def R_cam_target_aligned(geom: DockingGeometry = GEOMETRY) -> FloatArray:
 def tilt_scaled(R_cam_target: ArrayLike, factor: float, geom: DockingGeometry = GEOMETRY) -> FloatArray:
     """`R_cam_target` turned about "aligned" so that its tilt (the attitude error about the
     camera's x and y) is `factor` times as large; the roll about the boresight is kept. How an
-    attitude reading shrunk toward "aligned" is given back its size (oibar.nav.keypoints.HeadGainModel)."""
+    attitude reading shrunk toward "aligned" is given back its size (oibar.nav.error_models.HeadGainModel)."""
     att = docking_from_camera_pose(np.zeros(3), R_cam_target, geom).att_rad
     att[:2] *= float(factor)
     return camera_pose_from_docking(np.zeros(3), att, geom)[1]

@@ -5,14 +5,7 @@ The low-level pieces (:mod:`~oibar.link.crc`, :mod:`~oibar.link.cobs`,
 can reuse them; :class:`LinkClient` adds the serial port and the link rules.
 """
 
-from oibar.link.client import (
-    CommandResult,
-    HandshakeInfo,
-    LinkClient,
-    LinkStatistics,
-    ParamValue,
-    parse_opcode,
-)
+from oibar.link.client import LinkClient
 from oibar.link.errors import (
     LinkClosed,
     LinkDown,
@@ -24,6 +17,7 @@ from oibar.link.errors import (
     ProtocolVersionError,
 )
 from oibar.link.framing import DecoderCounters, FrameDecoder, encode_frame
+from oibar.link.results import CommandResult, HandshakeInfo, LinkStatistics, ParamValue, parse_opcode
 
 __all__ = [
     "CommandResult",

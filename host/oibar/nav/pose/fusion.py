@@ -12,15 +12,8 @@ import numpy as np
 
 from oibar.geometry.docking import tilt_scaled
 from oibar.geometry.rotations import rotation_angle_deg
-from oibar.nav.keypoints import (
-    CropWindow,
-    HeadGainModel,
-    KeypointErrorModel,
-    PnpResult,
-    PriorErrorModel,
-    map_pose,
-    solve_pnp,
-)
+from oibar.nav.error_models import HeadGainModel, KeypointErrorModel, PriorErrorModel
+from oibar.nav.keypoints import CropWindow, PnpResult, map_pose, solve_pnp
 from oibar.nav.pose.model_file import ModelFileError
 from oibar.nav.pose.reader import CROP_REF_PX
 

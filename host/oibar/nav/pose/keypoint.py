@@ -19,7 +19,7 @@ from PIL import Image
 
 from oibar.geometry.rotations import matrix_to_quat, rotation_angle_deg
 from oibar.nav.fit_history import FitHistory
-from oibar.nav.keypoints import CropWindow
+from oibar.nav.keypoints import CropWindow, PnpResult
 from oibar.nav.pose.direct import DEFAULT_DEFECT_SCALE, PoseEstimator
 from oibar.nav.pose.frames import FrameError, check_time, is_blank
 from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, Fusion, fit_rms_crop_px, measurement_without_prior
@@ -188,21 +188,7 @@ class KeypointPoseEstimator(PoseEstimator):
         # filter waits for a run of them (fit_history) when the direct model disagrees, and each
         # cold frame would otherwise pay for the whole search again
         hint = self.fit_history.latest() if prior is None else None
-        pool = self._first_pass_pool() if self.overlap_first_pass else None
-        placed = prior if prior is not None else hint
-        win_p = self.reader.window_for(*placed) if pool is not None and placed is not None else None
-        placed_reading: tuple[CropWindow, CropReading] | None = None
-        if pool is not None and win_p is not None:
-            job = pool.submit(self.first.estimate, image_rgb_uint8, t_s)
-            try:
-                placed_reading = (
-                    win_p,
-                    self.reader.read_crop(image_rgb_uint8, win_p, self.search.placed_pass_refines),
-                )
-            finally:
-                direct = job.result()  # never leave it running into the next frame
-        else:
-            direct = self.first.estimate(image_rgb_uint8, t_s)
+        direct, placed_reading = self._first_pass(image_rgb_uint8, t_s, prior if prior is not None else hint)
         if not direct.finite or direct.confidence <= 0.0:
             direct.latency_ms = (time.perf_counter() - t0) * 1e3
             direct.flags = tuple(direct.flags) + ("no_first_pass",)
@@ -228,6 +214,36 @@ class KeypointPoseEstimator(PoseEstimator):
             direct.confidence *= FALLBACK_FACTOR
             direct.flags = tuple(direct.flags) + ("pnp_failed", "fallback_direct") + searching
             return direct
+        return self._answer(r, win, direct, float(t_s), t0, searching)
+
+    def _first_pass(
+        self, image: np.ndarray, t_s: float, placed: tuple[np.ndarray, np.ndarray] | None
+    ) -> tuple[PoseEstimate, tuple[CropWindow, CropReading] | None]:
+        """The direct model's answer and, when a pose places the first crop, that crop's reading,
+        made on the direct model's thread meanwhile (`overlap_first_pass`)."""
+        pool = self._first_pass_pool() if self.overlap_first_pass else None
+        win_p = self.reader.window_for(*placed) if pool is not None and placed is not None else None
+        if pool is None or win_p is None:
+            return self.first.estimate(image, t_s), None
+        job = pool.submit(self.first.estimate, image, t_s)
+        try:
+            placed_reading = (win_p, self.reader.read_crop(image, win_p, self.search.placed_pass_refines))
+        finally:
+            direct = job.result()  # never leave it running into the next frame
+        return direct, placed_reading
+
+    def _answer(
+        self,
+        r: PnpResult,
+        win: CropWindow,
+        direct: PoseEstimate,
+        t_s: float,
+        t0: float,
+        searching: tuple[str, ...],
+    ) -> PoseEstimate:
+        """The search's fit as the frame's answer: its confidence lowered by the plausibility
+        checks, the reprojection, a weak fit and a gross disagreement with the direct model
+        (unless a run of strong fits overrules it), each flagged."""
         R, T = r.pose()
         latency_ms = (time.perf_counter() - t0) * 1e3
         conf, rng_m, _, checks = self.plausibility(T, R, None)
@@ -261,7 +277,7 @@ class KeypointPoseEstimator(PoseEstimator):
             T_cam_target_m=T,
             q_cam_target=matrix_to_quat(R),
             R_cam_target=R,
-            t_s=float(t_s),
+            t_s=t_s,
             latency_ms=latency_ms,
             confidence=float(np.clip(conf, 0.0, 1.0)),
             camera_range_m=rng_m,

@@ -177,6 +177,27 @@ class ColdSearch:
     t_last_s: float = float("nan")
 
 
+class _Keeper:
+    """The search's fits so far: the first strong one (`best`), else the best weak one (`weak`,
+    by `weak_rank`)."""
+
+    def __init__(self, weak_rank: Callable[[PnpResult, CropWindow], tuple[bool, float]]):
+        self.weak_rank = weak_rank
+        self.best: tuple[PnpResult, CropWindow] | None = None
+        self.weak: tuple[PnpResult, CropWindow] | None = None
+
+    def consider(self, r: PnpResult | None, win: CropWindow | None) -> bool:
+        """Keep a strong fit (True: stop searching); remember the best weak one."""
+        if r is None or win is None:
+            return False
+        if fit_rms_crop_px(r, win) <= STRONG_FIT_RMS_CROP_PX:
+            self.best = (r, win)
+            return True
+        if self.weak is None or self.weak_rank(r, win) < self.weak_rank(*self.weak):
+            self.weak = (r, win)
+        return False
+
+
 class WindowSearch:
     """The search for a strong fit in one frame (`solve`), and the cold search it carries from
     frame to frame (`cold`). Options: `refine_passes` (crops cut around the newest fit, the first
@@ -243,70 +264,91 @@ class WindowSearch:
         (the estimator reads it while the direct model runs), so neither is computed again here.
         Returns (PnpResult, its window): the first strong fit, else the best weak one
         (`_weak_rank`), else (None, None)."""
-        reader = self.reader
         f = self.fusion.table if fusion is None else fusion
-        best: tuple[PnpResult, CropWindow] | None = None
-        weak: tuple[PnpResult, CropWindow] | None = None
-
-        def consider(r: PnpResult | None, win: CropWindow | None) -> bool:
-            """Keep a strong fit (True: stop searching); remember the best weak one."""
-            nonlocal best, weak
-            if r is None or win is None:
-                return False
-            if fit_rms_crop_px(r, win) <= STRONG_FIT_RMS_CROP_PX:
-                best = (r, win)
-                return True
-            if weak is None or self._weak_rank(r, win) < self._weak_rank(*weak):
-                weak = (r, win)
-            return False
-
+        keep = _Keeper(self._weak_rank)
         # a cold search carried from earlier frames goes on here; a prediction ends it
         cold = self.cold if prior is None else None
         self.cold = None
-        crops = 0  # read for this frame, counted against the cold search's budget
         placed = prior if prior is not None else hint
-        refined = False  # the placed read was a refining one, strong and well placed: final
+        crops, refined = 0, False  # crops read for this frame (the cold search's budget counts them)
         if placed is not None:
-            win_p = placed_reading[0] if placed_reading is not None else reader.window_for(*placed)
-            if win_p is not None:
-                crops += 1
-                r, pwin = self._one_pass(
-                    image,
-                    win_p,
-                    R_direct,
-                    f,
-                    float(np.linalg.norm(placed[1])),
-                    refining=self.placed_pass_refines,
-                    reading=placed_reading[1] if placed_reading is not None else None,
-                )
-                refined = consider(r, pwin) and self.placed_pass_refines and self._well_placed(r, pwin)
-        base: CropWindow | None = None
+            crops, refined = self._placed_pass(image, placed, placed_reading, R_direct, f, keep)
         # SEARCH_STEPS are never cut short (they run with a prediction too); a carried search skips
         # them: they found nothing on its first frame, and the fixture has barely moved since
-        if best is None and cold is None:
-            base = reader.window_for(R_direct, T_direct)
+        if keep.best is None and cold is None:
+            base = self.reader.window_for(R_direct, T_direct)
             if base is not None:
-                for dx, dy, k in SEARCH_STEPS:
-                    win = base.stepped(dx, dy, k)
-                    crops += 1
-                    if consider(
-                        *self._one_pass(image, win, R_direct, f, float(np.linalg.norm(T_direct)) / k)
-                    ):
-                        break
+                crops += self._steps_pass(image, base, R_direct, T_direct, f, keep)
             # the zoom and the scan only on a cold start or a lost track: with a prediction their
             # cost would come out of the 100 ms frame budget on every weak far frame of a healthy track
-            if best is None and prior is None:
+            if keep.best is None and prior is None:
                 if base is not None and self.zoom_search:
                     cold = ColdSearch(level=0, base=base)
                 elif self.scan_search:
                     cold = ColdSearch(level=ZOOM_LEVELS)
-        if best is None and cold is not None:
+        if keep.best is None and cold is not None:
             budget = np.inf if self.cold_crop_budget is None else self.cold_crop_budget
-            if not self._cold_search(image, cold, R_direct, T_direct, f, consider, budget - crops):
+            if not self._cold_search(image, cold, R_direct, T_direct, f, keep.consider, budget - crops):
                 self.cold = cold  # out of crops: the next frames go on (the estimator flags `searching`)
-        if best is None:
-            return weak if weak is not None else (None, None)
-        for _ in range(0 if refined else self.refine_passes - 1):
+        if keep.best is None:
+            return keep.weak if keep.weak is not None else (None, None)
+        return keep.best if refined else self._refined(image, keep.best, R_direct, f)
+
+    def _placed_pass(
+        self,
+        image: np.ndarray,
+        placed: tuple[np.ndarray, np.ndarray],
+        placed_reading: tuple[CropWindow, CropReading] | None,
+        R_direct: np.ndarray,
+        f: dict[str, Any] | None,
+        keep: _Keeper,
+    ) -> tuple[int, bool]:
+        """The window a predicted pose (or the hint) places: (crops read, whether its strong,
+        well-placed refining read is final)."""
+        win_p = placed_reading[0] if placed_reading is not None else self.reader.window_for(*placed)
+        if win_p is None:
+            return 0, False
+        r, pwin = self._one_pass(
+            image,
+            win_p,
+            R_direct,
+            f,
+            float(np.linalg.norm(placed[1])),
+            refining=self.placed_pass_refines,
+            reading=placed_reading[1] if placed_reading is not None else None,
+        )
+        return 1, keep.consider(r, pwin) and self.placed_pass_refines and self._well_placed(r, pwin)
+
+    def _steps_pass(
+        self,
+        image: np.ndarray,
+        base: CropWindow,
+        R_direct: np.ndarray,
+        T_direct: np.ndarray,
+        f: dict[str, Any] | None,
+        keep: _Keeper,
+    ) -> int:
+        """SEARCH_STEPS' windows around the direct model's, in turn until a strong fit: crops read."""
+        crops = 0
+        for dx, dy, k in SEARCH_STEPS:
+            crops += 1
+            r, win = self._one_pass(
+                image, base.stepped(dx, dy, k), R_direct, f, float(np.linalg.norm(T_direct)) / k
+            )
+            if keep.consider(r, win):
+                break
+        return crops
+
+    def _refined(
+        self,
+        image: np.ndarray,
+        best: tuple[PnpResult, CropWindow],
+        R_direct: np.ndarray,
+        f: dict[str, Any] | None,
+    ) -> tuple[PnpResult, CropWindow]:
+        """`refine_passes - 1` crops cut around the newest strong fit, while they stay strong."""
+        reader = self.reader
+        for _ in range(self.refine_passes - 1):
             R_best, T_best = best[0].pose()
             uv = project(reader.K_frame, reader.points_m, R_best, T_best)
             around = window_around(uv, reader.out_px, reader.margin)
@@ -406,32 +448,62 @@ class WindowSearch:
         fixture-like solved). True when it is over (`consider` kept a strong fit, or nothing is
         left to try); False when the next read would take more than `crops_left` crops: `c` then
         says where to go on."""
-        reader = self.reader
+        if c.level < ZOOM_LEVELS:
+            done, crops_left = self._zoom(image, c, R_direct, T_direct, f, consider, crops_left)
+            if done is not None:
+                return done
+        if not self.scan_search:
+            return True
+        return self._scan(image, c, R_direct, f, consider, crops_left)
+
+    def _zoom(
+        self,
+        image: np.ndarray,
+        c: ColdSearch,
+        R_direct: np.ndarray,
+        T_direct: np.ndarray,
+        f: dict[str, Any] | None,
+        consider: Consider,
+        crops_left: float,
+    ) -> tuple[bool | None, float]:
+        """The zoom's levels from where `c` stands: (True: a strong fit; False: out of crops;
+        None: the zoom is over, on to the scan, with the crops left)."""
         range_m = float(np.linalg.norm(T_direct))
-        while c.level < ZOOM_LEVELS:  # the zoom
+        while c.level < ZOOM_LEVELS:
             assert c.base is not None
             if c.ranked is None:
                 wide = c.level == 0 and c.base.side_px * 2.0 <= WIDE_MAX_SIDE_PX
                 n = len(self._zoom_candidates(c.base, wide))
                 if n > crops_left:
-                    return False
+                    return False, crops_left
                 crops_left -= n
                 c.ranked = self._zoom_windows(image, c.base, wide=wide)
             while c.tried < len(c.ranked):
                 if crops_left < 1:
-                    return False
+                    return False, crops_left
                 crops_left -= 1
                 zwin, k = c.ranked[c.tried]
                 c.tried += 1
                 if consider(*self._one_pass(image, zwin, R_direct, f, range_m / (c.k_base * k))):
-                    return True
+                    return True, crops_left
             if c.ranked and c.level + 1 < ZOOM_LEVELS:  # zoom again, into the most fixture-like
                 c.level, c.base, c.k_base = c.level + 1, c.ranked[0][0], c.k_base * c.ranked[0][1]
                 c.ranked, c.tried = None, 0
             else:  # on to the scan
                 c.level, c.base, c.ranked, c.tried = ZOOM_LEVELS, None, None, 0
-        if not self.scan_search:
-            return True
+        return None, crops_left
+
+    def _scan(
+        self,
+        image: np.ndarray,
+        c: ColdSearch,
+        R_direct: np.ndarray,
+        f: dict[str, Any] | None,
+        consider: Consider,
+        crops_left: float,
+    ) -> bool:
+        """The scan of the whole frame from where `c` stands (as _cold_search returns)."""
+        reader = self.reader
         h, w = image.shape[:2]
         wins = scan_windows((w, h), SCAN_SIDE_PX, SCAN_STRIDE, reader.out_px)
         read = sum(len(s) for s in c.scan_scores)
