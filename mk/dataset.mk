@@ -5,7 +5,7 @@ DATASET_ARGS ?=
 .PHONY: dataset
 
 # Rendering needs the simulator, not torch (Makefile, SETUP_PROFILE).
-dataset dataset-train dataset-val dataset-envelope: SETUP_PROFILE = demo
+dataset dataset-train dataset-val dataset-envelope dataset-train-dr: SETUP_PROFILE = demo
 
 dataset: setup ## render the 12 synthetic sequences into data/synthetic (resumable; DATASET_ARGS="--seqs 1,8")
 	@$(PY) -m oibar_hil.dataset --out $(DATASET_DIR) --workers $(JOBS) $(DATASET_ARGS)
@@ -23,6 +23,13 @@ TRAIN_SPEC ?= models/scenes/train.json
 .PHONY: dataset-train dataset-val
 dataset-train: setup ## render the training scenes (TRAIN_SPEC, default models/scenes/train.json) into data/train (resumable; SHARD=i/N)
 	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/train --spec $(TRAIN_SPEC) --workers $(JOBS) $(if $(SHARD),--shard $(SHARD))
+
+# The domain-randomised training scenes (issue 58, part 3): 288 scenes, each in a look drawn by
+# oibar_hil.randomize (materials, lamps, backdrop, vignetting, lens distortion), every 24th frame
+# (~43k frames, train.json's size class). Our renderer only: no model trains on a Mitsuba frame.
+.PHONY: dataset-train-dr
+dataset-train-dr: setup ## render the domain-randomised training scenes (models/scenes/train_dr.json) into data/train_dr (resumable; SHARD=i/N)
+	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/train_dr --spec models/scenes/train_dr.json --workers $(JOBS) $(if $(SHARD),--shard $(SHARD))
 
 dataset-val: setup ## render the validation scenes (models/scenes/val.json) into data/val (resumable; SHARD=i/N)
 	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/val --spec models/scenes/val.json --workers $(JOBS) $(if $(SHARD),--shard $(SHARD))

@@ -41,6 +41,7 @@ from oibar.geometry.fixture import FIXTURE
 from . import __version__
 from .orbit import DEFAULT_EPOCH_UTC, DEFAULT_TLE, TargetOrbit, julian_date, parse_utc
 from .ports import PORTS
+from .randomize import LOOK_VERSION, LookParams, look_for
 from .relpose import camera_poses
 from .render import RenderSettings
 from .sequence import (  # noqa: F401  (DatasetError re-exported)
@@ -85,10 +86,14 @@ class SequenceSpec:
     rolled_deg: float = 0.0
     # Who draws the frames: "raster" (render.Renderer, our training renderer) or "mitsuba" (the
     # path tracer of render_mitsuba: validation and test looks only, issue 58), and its look:
-    # "matched" (our materials and lights) or "lab" (grey print, a lamp beside the camera, black).
+    # "matched" (our materials and lights), "lab" (Mitsuba only: grey print, a lamp beside the
+    # camera, black) or "randomized" (raster only: materials, lamps, backdrop and optics drawn
+    # once per sequence by oibar_hil.randomize.look_for(look_seed), issue 58 part 3).
     renderer: str = "raster"
     look: str = "matched"
     mitsuba_spp: int = 64
+    # The randomised look's seed; None: the trajectory's `seed` (its own stream of it).
+    look_seed: int | None = None
 
     def validate(self) -> None:
         if self.frame_stride < 1:
@@ -114,8 +119,15 @@ class SequenceSpec:
             raise ValueError(f"{self.name}: rolled_deg must be -180-180 deg, got {self.rolled_deg}")
         if self.renderer not in ("raster", "mitsuba"):
             raise ValueError(f"{self.name}: renderer must be raster or mitsuba, got {self.renderer!r}")
-        if self.look not in ("matched", "lab") or (self.look == "lab" and self.renderer != "mitsuba"):
-            raise ValueError(f"{self.name}: look must be matched, or lab with the mitsuba renderer")
+        if (
+            self.look not in ("matched", "lab", "randomized")
+            or (self.look == "lab" and self.renderer != "mitsuba")
+            or (self.look == "randomized" and self.renderer != "raster")
+        ):
+            raise ValueError(
+                f"{self.name}: look must be matched, lab with the mitsuba renderer, "
+                f"or randomized with the raster renderer; got {self.look!r}"
+            )
         if self.mitsuba_spp < 1:
             raise ValueError(f"{self.name}: mitsuba_spp must be >= 1")
 
@@ -133,8 +145,19 @@ def spec_dict(spec: SequenceSpec) -> dict:
     if d.get("rolled_deg") == 0.0:
         del d["rolled_deg"]
     if d.get("renderer") == "raster":
-        del d["renderer"], d["look"], d["mitsuba_spp"]
+        del d["renderer"], d["mitsuba_spp"]
+        if d.get("look") == "matched":
+            del d["look"]
+    if d.get("look_seed") is None:
+        del d["look_seed"]
     return d
+
+
+def spec_look(spec: SequenceSpec) -> LookParams | None:
+    """The randomised look a spec draws (None for the others)."""
+    if spec.look != "randomized":
+        return None
+    return look_for(spec.seed if spec.look_seed is None else spec.look_seed)
 
 
 def _paper(n: int, port: int, approach: str, sun: float, bg: str) -> SequenceSpec:
@@ -325,11 +348,23 @@ def _renderer_for(spec: SequenceSpec):
             r = Renderer(PinholeCamera(), settings)
         _WORKER["renderer"], _WORKER["kind"] = r, kind
         _WORKER["scene"] = None
-    key = (spec.background, spec.port, spec.seed)
+    key = (spec.background, spec.port, spec.seed, spec.look, spec.look_seed)
     if _WORKER.get("scene") != key:
         # the lab's mock-up is the fixture alone
         parts = scene_parts("perlin" if spec.look == "lab" else spec.background, spec.port)
-        r.load_scene(parts, spec.background, PORTS[spec.port].p_lvlh_t, perlin_seed=spec.seed)
+        port = PORTS[spec.port]
+        look = spec_look(spec)
+        if look is None:
+            r.load_scene(parts, spec.background, port.p_lvlh_t, perlin_seed=spec.seed)
+        else:
+            r.load_scene(
+                parts,
+                spec.background,
+                port.p_lvlh_t,
+                perlin_seed=spec.seed,
+                look=look,
+                R_lvlh_t=port.R_lvlh_t,
+            )
         _WORKER["scene"] = key
     return r
 
@@ -400,7 +435,8 @@ def gl_renderer_name() -> str:
 
 # ----------------------------------------------------------------------------- sequence bookkeeping
 def _spec_identity(spec: SequenceSpec) -> dict:
-    return {"generator_version": __version__, **spec_dict(spec)}
+    look = {"look_version": LOOK_VERSION} if spec.look == "randomized" else {}
+    return {"generator_version": __version__, **look, **spec_dict(spec)}
 
 
 def prepare_sequence_dir(seq_dir: Path, spec: SequenceSpec, force: bool = False) -> None:
@@ -456,6 +492,8 @@ def write_manifest(seq_dir: Path, plan: SequencePlan, frames_limit: int | None, 
             "trajectory": plan.trajectory_info,
             "orbit": plan.orbit_info,
             "fixture": asdict(FIXTURE),
+            # what a randomised look drew (oibar_hil.randomize); absent for the others
+            **({"look": look.as_dict()} if (look := spec_look(s)) is not None else {}),
         },
         "labels": "T_cam_target = fixture origin in camera frame (OpenCV axes), m; "
         "q_cam_target = (w,x,y,z) of R_cam_target (F_t -> camera); see docs/synthetic.md",

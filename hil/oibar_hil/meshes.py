@@ -62,6 +62,9 @@ class Part:
     rgb: tuple
     specular: float
     part_id: int
+    # which part of the fixture this is (rim, plate, ...): the key of its material in a
+    # randomised look (oibar_hil.randomize); empty for the station's parts
+    name: str = ""
 
 
 # ----------------------------------------------------------------------------- fixture
@@ -129,13 +132,13 @@ def berthing_fixture(d: FixtureDims = FIXTURE) -> list[Part]:
         connector = connector - _box((0.010, 0.012, 0.02), (cx - 0.03 + 0.02 * i, cy, 0.0))
 
     return [
-        Part(_to_trimesh(rim), (0.10, 0.10, 0.12), 0.3, ID_BOUNDARY),
-        Part(_to_trimesh(plate), (0.72, 0.72, 0.75), 0.6, ID_PLATE),
-        Part(_to_trimesh(bosses), (0.70, 0.50, 0.28), 0.5, ID_PIN_GUIDE),
-        Part(_to_trimesh(drogue), (0.82, 0.82, 0.85), 0.8, ID_DROGUE),
-        Part(_to_trimesh(bore), (0.03, 0.03, 0.035), 0.05, ID_DROGUE),
-        Part(_to_trimesh(couplings), (0.85, 0.65, 0.22), 0.7, ID_COUPLING),
-        Part(_to_trimesh(connector), (0.06, 0.06, 0.07), 0.2, ID_CONNECTOR),
+        Part(_to_trimesh(rim), (0.10, 0.10, 0.12), 0.3, ID_BOUNDARY, "rim"),
+        Part(_to_trimesh(plate), (0.72, 0.72, 0.75), 0.6, ID_PLATE, "plate"),
+        Part(_to_trimesh(bosses), (0.70, 0.50, 0.28), 0.5, ID_PIN_GUIDE, "pin_guides"),
+        Part(_to_trimesh(drogue), (0.82, 0.82, 0.85), 0.8, ID_DROGUE, "drogue"),
+        Part(_to_trimesh(bore), (0.03, 0.03, 0.035), 0.05, ID_DROGUE, "bore"),
+        Part(_to_trimesh(couplings), (0.85, 0.65, 0.22), 0.7, ID_COUPLING, "couplings"),
+        Part(_to_trimesh(connector), (0.06, 0.06, 0.07), 0.2, ID_CONNECTOR, "connector"),
     ]
 
 
@@ -215,6 +218,7 @@ def _transform_part(part: Part, R: np.ndarray, p: np.ndarray, part_id: int | Non
         part.rgb,
         part.specular,
         part.part_id if part_id is None else part_id,
+        part.name,
     )
 
 

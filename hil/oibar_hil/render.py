@@ -10,6 +10,12 @@ the pixels left uncovered (black space with an analytic Earth, or a Perlin backd
 pass (its own flat shader) writes each part's id into the red channel instead of a colour, for
 label checks. Performance notes for llvmpipe are in docs/synthetic.md.
 
+A scene may carry a randomised look (oibar_hil.randomize, issue 58 part 3): the same passes with
+the mesh shader compiled with LOOK defined (per-part materials with a procedural texture, spot
+lamps each with a perspective shadow map, drawn ambient, Sun and Earth-shine scales), one of
+several backdrops, and an optics pass after them (vignetting, a residual lens distortion).
+Without one, every pass is what it was, pixel for pixel.
+
 World coordinates are LVLH metres (the station flies LVLH-hold). The Earth is drawn by
 ray-sphere intersection in the background shader rather than as a mesh: its 6371 km radius
 would wreck the depth precision of a metre-scale scene, and the limb is exact this way.
@@ -26,8 +32,15 @@ import numpy as np
 from oibar.geometry.camera import PinholeCamera
 
 from .camera import R_GL_CV, gl_projection
-from .meshes import ID_ADAPTER, ID_MODULE, Part
-from .textures import earth_texture, perlin_background
+from .meshes import ID_ADAPTER, ID_MODULE, ID_OTHER_FIXTURE, Part
+from .randomize import MAX_LAMPS, LookParams
+from .textures import (
+    earth_texture,
+    lab_clutter_background,
+    periodic_noise3d,
+    perlin_background,
+    star_background,
+)
 
 EARTH_RADIUS_KM = 6371.0
 # Where the Earth's centre is when a caller gives none: straight below (LVLH +Z), 420 km down.
@@ -47,8 +60,32 @@ out vec3 v_s0; out vec3 v_ds0;
 // The Earth's shadow-map coordinates of the vertex, offset 1 cm along its normal: affine too.
 uniform mat4 u_earth_vp[EARTH_SAMPLES];
 out vec3 v_e[EARTH_SAMPLES];
+#ifdef LOOK
+// A randomised look (oibar_hil.randomize): each vertex names its material slot, and each spot
+// lamp's shadow-map coordinates are interpolated as homogeneous clip coordinates (affine in
+// position; the fragment divides), offset ~1.5 shadow texels along the normal at the vertex's
+// distance from the lamp.
+in float in_slot;
+flat out int v_slot;
+#if N_LAMPS > 0
+uniform mat4 u_lamp_vp[N_LAMPS];
+uniform vec3 u_lamp_pos[N_LAMPS];
+uniform float u_lamp_texel[N_LAMPS];   // one shadow texel per metre from the lamp
+out vec4 v_l[N_LAMPS];
+#endif
+#endif
 void main() {
     v_pos = in_pos; v_nrm = in_nrm; v_col = in_col;
+#ifdef LOOK
+    v_slot = int(in_slot + 0.5);
+#if N_LAMPS > 0
+    vec3 nn = normalize(in_nrm);
+    for (int k = 0; k < N_LAMPS; ++k) {
+        float off = 1.5 * u_lamp_texel[k] * length(u_lamp_pos[k] - in_pos);
+        v_l[k] = u_lamp_vp[k] * vec4(in_pos + off * nn, 1.0);
+    }
+#endif
+#endif
     v_s0 = (u_light_vp_near * vec4(in_pos, 1.0)).xyz * 0.5 + 0.5;
     v_ds0 = mat3(u_light_vp_near) * in_nrm * 0.5;
     vec3 p_off = in_pos + 0.01 * normalize(in_nrm);
@@ -83,6 +120,23 @@ uniform float u_far_scale;       // near / far cascade half-extent
 uniform sampler2DShadow u_shadow; // atlas: cascade 0 in the left half, cascade 1 in the right
 in vec3 v_pos; in vec3 v_nrm; in vec4 v_col;
 in vec3 v_s0; in vec3 v_ds0;
+#ifdef LOOK
+flat in int v_slot;
+uniform vec4 u_surf[LOOK_SLOTS];     // per material slot: shininess, grain, bump, banding
+uniform vec4 u_texp[LOOK_SLOTS];     // fBm cycles per metre, stretch along X_t, band period (m), -
+uniform mat3 u_R_t_world;            // LVLH -> the fixture's frame F_t (textures stick to it)
+uniform sampler3D u_noise;           // periodic fBm: R grain, GBA bump vector
+// N_LAMPS spot lamps (a program per count: a look without lamps pays nothing for them)
+#if N_LAMPS > 0
+in vec4 v_l[N_LAMPS];
+uniform vec3 u_lamp_pos[N_LAMPS];
+uniform vec3 u_lamp_dir[N_LAMPS];    // unit, along the beam
+uniform vec3 u_lamp_i[N_LAMPS];      // intensity x tint: irradiance = u_lamp_i / distance^2
+uniform vec2 u_lamp_cos[N_LAMPS];    // cos(cut-off), cos(cut-off - soft edge)
+uniform sampler2DShadow u_lamp_shadow;   // MAX_LAMPS perspective maps side by side
+uniform float u_lamp_margin;         // half a texel of one map
+#endif
+#endif
 out vec4 f_color;
 bool inside(vec3 s) {
     return s.x > u_atlas_margin && s.x < 1.0 - u_atlas_margin && s.y > u_atlas_margin && s.y < 1.0 - u_atlas_margin
@@ -93,6 +147,20 @@ void main() {
     vec3 n = v_nrm * inv_len;
     vec3 view = normalize(u_cam_pos - v_pos);
     if (dot(n, view) < 0.0) { n = -n; inv_len = -inv_len; }   // thin panels are seen from both sides
+#ifdef LOOK
+    // the material's procedural texture, fixed to the fixture: fBm grain on the albedo (stretched
+    // along X_t for brushed metal), banding along Y_t faded out where finer than a pixel (no
+    // moire), a bumped normal (crinkled foil)
+    vec4 surf = u_surf[v_slot];
+    vec4 tp = u_texp[v_slot];
+    vec3 pt = u_R_t_world * (v_pos - u_focus);
+    vec4 nz = texture(u_noise, pt * tp.x * vec3(1.0 / tp.y, 1.0, 1.0)) * 2.0 - 1.0;
+    float band = pt.y / tp.z;
+    float band_w = surf.w * clamp(1.0 - 2.0 * fwidth(band), 0.0, 1.0);
+    vec3 albedo = v_col.rgb * max(1.0 + surf.y * nz.r + band_w * sin(6.2831853 * band), 0.0);
+    n = normalize(n + surf.z * nz.gba);
+    float shin = surf.x;
+#endif
     float ndl = max(dot(n, u_sun_dir), 0.0);
     // Normal-offset lookup (2 mm near, 2 cm far: a few texels of each cascade) plus a depth bias
     // of about a texel, scaled with the slope of the surface to the light: enough against shadow
@@ -109,7 +177,11 @@ void main() {
     float lit = texture(u_shadow, vec3(s.xy, s.z - bias));
     lit = (near || inside(s1)) ? lit : 1.0;    // (irrelevant where ndl == 0)
     vec3 h = normalize(u_sun_dir + view);
+#ifdef LOOK
+    float spec = ndl > 0.0 ? pow(max(dot(n, h), 0.0), shin) * v_col.a : 0.0;
+#else
     float spec = ndl > 0.0 ? pow(max(dot(n, h), 0.0), 48.0) * v_col.a : 0.0;
+#endif
     // Earth-shine: each sample's cosine, occluded through its own shadow map (1 cm normal offset,
     // about a texel, and a slope-scaled depth bias, as for the Sun) near the fixture; unoccluded
     // beyond the maps' reach.
@@ -143,8 +215,32 @@ void main() {
         }
         earth += u_earth_w[k] * ndk * vis;
     }
+#ifdef LOOK
+    // spot lamps: inverse square, a soft-edged cone, each its own shadow map (one filtered tap)
+    vec3 lamp_d = vec3(0.0), lamp_s = vec3(0.0);
+#if N_LAMPS > 0
+    for (int k = 0; k < N_LAMPS; ++k) {
+        vec3 L = u_lamp_pos[k] - v_pos;
+        float d2 = dot(L, L);
+        vec3 l = L * inversesqrt(d2);
+        float ndk = max(dot(n, l), 0.0);
+        float cone = smoothstep(u_lamp_cos[k].x, u_lamp_cos[k].y, dot(-l, u_lamp_dir[k]));
+        vec3 sl = v_l[k].xyz / v_l[k].w * 0.5 + 0.5;
+        bool in_map = v_l[k].w > 0.0 && sl.x > u_lamp_margin && sl.x < 1.0 - u_lamp_margin
+            && sl.y > u_lamp_margin && sl.y < 1.0 - u_lamp_margin && sl.z < 1.0;
+        float vis = in_map ? texture(u_lamp_shadow, vec3((sl.x + float(k)) / float(MAX_LAMPS), sl.y, sl.z)) : 1.0;
+        vec3 e = u_lamp_i[k] * (cone * vis / d2);
+        lamp_d += e * ndk;
+        vec3 hk = normalize(l + view);
+        lamp_s += e * (ndk > 0.0 ? pow(max(dot(n, hk), 0.0), shin) * v_col.a : 0.0);
+    }
+#endif
+    vec3 c = albedo * (u_ambient + earth + u_sun_intensity * ndl * lit + lamp_d)
+           + vec3(spec * lit * u_sun_intensity) + lamp_s;
+#else
     vec3 c = v_col.rgb * (u_ambient + earth + u_sun_intensity * ndl * lit)
            + vec3(spec * lit * u_sun_intensity);
+#endif
     f_color = vec4(pow(clamp(u_exposure * c, 0.0, 1.0), vec3(1.0 / u_gamma)), 1.0);
 }
 """
@@ -268,6 +364,43 @@ void main() {
 )
 
 
+# A randomised look's optics, after the scene: radial lens distortion (the canonical camera's
+# k1, OpenCV's model: x_d = x_u (1 + k1 |x_u|^2)) by resampling the pinhole image, and
+# vignetting as a gain on the sensor's linear signal, 1 - v (r / r_corner)^2.
+_POST_VS = """
+#version 330
+in vec2 in_xy;
+void main() { gl_Position = vec4(in_xy, 0.0, 1.0); }
+"""
+
+_POST_FS = """
+#version 330
+uniform sampler2D u_img;
+uniform vec4 u_intr;              // fx, fy, cx, cy (pixel-corner convention, rows from the top)
+uniform vec2 u_size;
+uniform float u_k1;
+uniform float u_vignetting;
+uniform float u_r_corner2;        // the corner's squared normalised radius
+uniform float u_gamma;
+out vec4 f_color;
+void main() {
+    vec2 px = vec2(gl_FragCoord.x, u_size.y - gl_FragCoord.y);
+    vec2 xd = (px - u_intr.zw) / u_intr.xy;
+    // the pinhole point the lens brings here (fixed-point inverse of the radial model)
+    vec2 xu = xd;
+    for (int i = 0; i < 4; ++i) xu = xd / (1.0 + u_k1 * dot(xu, xu));
+    vec2 src = xu * u_intr.xy + u_intr.zw;
+    vec3 c = texture(u_img, vec2(src.x / u_size.x, 1.0 - src.y / u_size.y)).rgb;
+    // a gain g on the linear signal is g^(1 / gamma) on the encoded one
+    float g = 1.0 - u_vignetting * dot(xd, xd) / u_r_corner2;
+    f_color = vec4(c * pow(g, 1.0 / u_gamma), 1.0);
+}
+"""
+
+LOOK_SLOTS = 8  # material slots of a randomised look: 0 as built, then the fixture's parts
+LAMP_SHADOW_PX = 1024  # side of each spot lamp's shadow map
+
+
 @dataclass(frozen=True)
 class RenderSettings:
     shadow_map_px: int = 2048
@@ -342,23 +475,27 @@ def crease_normals(
     return v[corner_vertex], normals
 
 
-def _vertex_data(parts: list[Part]) -> tuple[np.ndarray, np.ndarray]:
-    """Interleaved float32 (pos3, nrm3, rgb+spec4, id1) and uint32 indices."""
+def _vertex_data(parts: list[Part], slots: list[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Interleaved float32 (pos3, nrm3, rgb+spec4, id1[, slot1]) and uint32 indices; `slots`, a
+    material slot per part, adds the last column (a randomised look)."""
+    cols = 11 if slots is None else 12
     verts = []
-    for p in parts:
+    for i, p in enumerate(parts):
         pos, nrm = crease_normals(p.mesh.vertices, p.mesh.faces)
-        v = np.empty((len(pos), 11), dtype=np.float32)
+        v = np.empty((len(pos), cols), dtype=np.float32)
         v[:, 0:3] = pos
         v[:, 3:6] = nrm
         v[:, 6:9] = p.rgb
         v[:, 9] = p.specular
         v[:, 10] = p.part_id
+        if slots is not None:
+            v[:, 11] = slots[i]
         verts.append(v)
     data = np.concatenate(verts)
     # Share identical corners (same position, normal, colour, id): ~4x fewer vertices to shade,
     # while the triangle order, and so the rasterised result, stays the same.
     uniq, first, inverse = np.unique(
-        data.view(np.dtype((np.void, data.dtype.itemsize * 11))).ravel(),
+        data.view(np.dtype((np.void, data.dtype.itemsize * cols))).ravel(),
         return_index=True,
         return_inverse=True,
     )
@@ -385,6 +522,26 @@ def light_matrix(sun_dir: np.ndarray, focus: np.ndarray, half_extent_m: float, d
     V[:3, 3] = -V[:3, :3] @ focus
     s, d = half_extent_m, depth_m
     P = np.diag([1 / s, 1 / s, -1 / d, 1.0])  # z_eye in [-d, d] -> ndc [1, -1]
+    return P @ V
+
+
+def spot_matrix(
+    pos: np.ndarray, direction: np.ndarray, fov_deg: float, near_m: float, far_m: float
+) -> np.ndarray:
+    """Perspective view-projection of a spot lamp at `pos` looking along `direction`."""
+    z = -np.asarray(direction, float) / np.linalg.norm(direction)  # eye looks along -z
+    up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(up, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    V = np.eye(4)
+    V[:3, :3] = np.stack([x, y, z])
+    V[:3, 3] = -V[:3, :3] @ np.asarray(pos, float)
+    f = 1.0 / np.tan(np.radians(fov_deg) / 2)
+    n, fa = near_m, far_m
+    P = np.array(
+        [[f, 0, 0, 0], [0, f, 0, 0], [0, 0, (fa + n) / (n - fa), 2 * fa * n / (n - fa)], [0, 0, -1, 0]]
+    )
     return P @ V
 
 
@@ -454,7 +611,8 @@ class Renderer:
             f"#define EARTH_SAMPLES {s.earth_samples}\n#define EARTH_TILES {self.earth_tiles}\n"
             f"#define EARTH_TILE_PX {float(s.earth_shadow_px)}\n#define EARTH_TAPS {s.earth_shadow_taps}\n"
         )
-        self.mesh_prog = c.program(
+        self._defines = defines
+        self.mesh_prog = self.default_mesh_prog = c.program(
             vertex_shader=_MESH_VS.replace("#version 330\n", "#version 330\n" + defines, 1),
             fragment_shader=_MESH_FS.replace("#version 330\n", "#version 330\n" + defines, 1),
         )
@@ -512,6 +670,58 @@ class Renderer:
         self._ibo: Any = None
         self.focus = np.zeros(3)
         self.gl_renderer = c.info.get("GL_RENDERER", "unknown")
+        # A randomised look (oibar_hil.randomize): its programs, maps and textures are made for
+        # the first scene that has one; a scene without one renders exactly as before.
+        self.look: LookParams | None = None
+        self._look_gl: dict[str, Any] = {}
+        self._R_lvlh_t = np.eye(3)
+        self._lamp_key: tuple[object, ...] | None = None
+        self._lamp_vp = np.tile(np.eye(4), (MAX_LAMPS, 1, 1))
+        self._lamp_texel = np.zeros(MAX_LAMPS)
+
+    def _look_programs(self) -> dict[str, Any]:
+        """The randomised look's mesh program (the mesh shader with LOOK defined), the optics
+        pass, the spot lamps' shadow atlas and the frame buffers the optics pass reads and
+        writes: made once, on first use."""
+        import moderngl
+
+        g = self._look_gl
+        if g:
+            return g
+        c = self.ctx
+        W, H = self.camera.width_px, self.camera.height_px
+        g["mesh"] = {}
+        g["post"] = c.program(vertex_shader=_POST_VS, fragment_shader=_POST_FS)
+        tri = c.buffer(np.array([-1, -1, 3, -1, -1, 3], dtype="f4").tobytes())
+        g["post_vao"] = c.vertex_array(g["post"], [(tri, "2f", "in_xy")])
+        n = LAMP_SHADOW_PX
+        g["lamp_tex"] = c.depth_texture((MAX_LAMPS * n, n))
+        g["lamp_tex"].compare_func = "<="
+        g["lamp_tex"].filter = (moderngl.LINEAR, moderngl.LINEAR)
+        g["lamp_tex"].repeat_x = g["lamp_tex"].repeat_y = False
+        g["lamp_fbo"] = c.framebuffer(depth_attachment=g["lamp_tex"])
+        g["src_tex"] = c.texture((W, H), 4)
+        g["src_tex"].filter = (moderngl.LINEAR, moderngl.LINEAR)
+        g["src_tex"].repeat_x = g["src_tex"].repeat_y = False
+        g["src_fbo"] = c.framebuffer(
+            color_attachments=[g["src_tex"]], depth_attachment=c.depth_renderbuffer((W, H))
+        )
+        g["out_fbo"] = c.framebuffer(color_attachments=[c.renderbuffer((W, H), 4)])
+        return g
+
+    def _look_mesh_program(self, n_lamps: int) -> Any:
+        """The mesh shader with LOOK defined, for `n_lamps` lamps (compiled once per count)."""
+        progs = self._look_programs()["mesh"]
+        if n_lamps not in progs:
+            defines = self._defines + (
+                f"#define LOOK 1\n#define N_LAMPS {n_lamps}\n#define MAX_LAMPS {MAX_LAMPS}\n"
+                f"#define LOOK_SLOTS {LOOK_SLOTS}\n"
+            )
+            progs[n_lamps] = self.ctx.program(
+                vertex_shader=_MESH_VS.replace("#version 330\n", "#version 330\n" + defines, 1),
+                fragment_shader=_MESH_FS.replace("#version 330\n", "#version 330\n" + defines, 1),
+            )
+        return progs[n_lamps]
 
     def _texture(self, img: np.ndarray):
         import moderngl
@@ -526,11 +736,19 @@ class Renderer:
     # several (the dataset writer's cached one, a rig camera, a test's), and GL calls issued
     # while another one, or none, is current crash inside the driver instead of raising.
     def load_scene(
-        self, parts: list[Part], background: str, focus_lvlh: np.ndarray, perlin_seed: int | None = None
+        self,
+        parts: list[Part],
+        background: str,
+        focus_lvlh: np.ndarray,
+        perlin_seed: int | None = None,
+        look: LookParams | None = None,
+        R_lvlh_t: np.ndarray | None = None,
     ):
-        """Upload the meshes; `focus_lvlh` centres the shadow map (the target port)."""
+        """Upload the meshes; `focus_lvlh` centres the shadow map (the target port, the fixture's
+        origin). `look`: a randomised look (oibar_hil.randomize) for every frame of this scene;
+        `R_lvlh_t`, the fixture's axes, places its lamps and textures (default: LVLH's)."""
         with self.ctx:
-            self._load_scene(parts, background, focus_lvlh, perlin_seed)
+            self._load_scene(parts, background, focus_lvlh, perlin_seed, look, R_lvlh_t)
 
     def render(
         self,
@@ -550,31 +768,49 @@ class Renderer:
             )
 
     def _load_scene(
-        self, parts: list[Part], background: str, focus_lvlh: np.ndarray, perlin_seed: int | None
+        self,
+        parts: list[Part],
+        background: str,
+        focus_lvlh: np.ndarray,
+        perlin_seed: int | None,
+        look: LookParams | None = None,
+        R_lvlh_t: np.ndarray | None = None,
     ) -> None:
         for obj in (self.mesh_vao, self.depth_vao, self.id_vao, self._vbo, self._ibo):
             if obj is not None:
                 obj.release()
         # Target fixture first, station last: front-to-back order lets early-z skip hidden work.
         parts = sorted(parts, key=lambda p: (p.part_id >= ID_ADAPTER, p.part_id >= ID_MODULE))
-        data, idx = _vertex_data(parts)
+        self.look = look
+        self._R_lvlh_t = np.eye(3) if R_lvlh_t is None else np.asarray(R_lvlh_t, float)
+        self._lamp_key = None
+        if look is None:
+            self.mesh_prog = self.default_mesh_prog
+            data, idx = _vertex_data(parts)
+            mesh_fmt, id_fmt, depth_fmt = "3f 3f 4f 4x", "3f 28x 1f", "3f 32x"
+            attrs: tuple[str, ...] = ("in_pos", "in_nrm", "in_col")
+        else:
+            self.mesh_prog = self._look_mesh_program(len(look.lamps))
+            parts, slots = self._look_materials(parts, look)
+            data, idx = _vertex_data(parts, slots)
+            mesh_fmt, id_fmt, depth_fmt = "3f 3f 4f 4x 1f", "3f 28x 1f 4x", "3f 36x"
+            attrs = ("in_pos", "in_nrm", "in_col", "in_slot")
         vbo = self._vbo = self.ctx.buffer(data.tobytes())
         ibo = self._ibo = self.ctx.buffer(idx.tobytes())
         self.mesh_vao = self.ctx.vertex_array(
-            self.mesh_prog,
-            [(vbo, "3f 3f 4f 4x", "in_pos", "in_nrm", "in_col")],
-            index_buffer=ibo,
-            index_element_size=4,
+            self.mesh_prog, [(vbo, mesh_fmt, *attrs)], index_buffer=ibo, index_element_size=4
         )
         self.id_vao = self.ctx.vertex_array(
-            self.id_prog, [(vbo, "3f 28x 1f", "in_pos", "in_id")], index_buffer=ibo, index_element_size=4
+            self.id_prog, [(vbo, id_fmt, "in_pos", "in_id")], index_buffer=ibo, index_element_size=4
         )
         self.depth_vao = self.ctx.vertex_array(
-            self.depth_prog, [(vbo, "3f 32x", "in_pos")], index_buffer=ibo, index_element_size=4
+            self.depth_prog, [(vbo, depth_fmt, "in_pos")], index_buffer=ibo, index_element_size=4
         )
         self.background = background
         self.focus = np.asarray(focus_lvlh, dtype=float)
-        if background == "perlin":
+        if look is not None:
+            self._load_look_textures(look)
+        elif background == "perlin":
             if perlin_seed is None:
                 raise ValueError("the perlin background needs a seed")
             self.bg_tex = self._texture(perlin_background(perlin_seed))
@@ -585,6 +821,108 @@ class Renderer:
         self._shadow_key = None
         self._earth_key = None
         self.triangles = int(len(idx))
+
+    @staticmethod
+    def _look_materials(parts: list[Part], look: LookParams) -> tuple[list[Part], list[int]]:
+        """The target fixture's parts in the look's materials (colour and specular in the vertex
+        data, the rest by material slot); everything else keeps its own (slot 0). The other
+        ports' fixtures share the parts' names but not their id, and stay as built."""
+        names = [name for name, _ in look.materials]
+        out, slots = [], []
+        for p in parts:
+            m = look.material(p.name) if p.part_id != ID_OTHER_FIXTURE else None
+            if m is None:
+                out.append(p)
+                slots.append(0)
+                continue
+            rgb, spec = (p.rgb, p.specular) if m.kind == "as_built" else (m.rgb, m.specular)
+            out.append(Part(p.mesh, tuple(rgb), float(spec), p.part_id, p.name))
+            slots.append(1 + names.index(p.name))
+        return out, slots
+
+    def _load_look_textures(self, look: LookParams) -> None:
+        """The look's material table, its fBm volume and its backdrop."""
+        import moderngl
+
+        mp = self.mesh_prog
+        surf = np.zeros((LOOK_SLOTS, 4), dtype="f4")
+        texp = np.zeros((LOOK_SLOTS, 4), dtype="f4")
+        surf[0] = (48.0, 0.0, 0.0, 0.0)  # as built: the default shader's shininess, no texture
+        texp[0] = (1.0, 1.0, 1.0, 0.0)
+        for i, (_, m) in enumerate(look.materials):
+            surf[i + 1] = (m.shininess, m.grain, m.bump, m.banding)
+            texp[i + 1] = (m.scale_per_m, m.stretch, m.band_period_m, 0.0)
+        mp["u_surf"].write(surf.tobytes())
+        mp["u_texp"].write(texp.tobytes())
+        mp["u_R_t_world"].write(_m3(self._R_lvlh_t.T))
+        if "noise" in self._look_gl:
+            self._look_gl["noise"].release()
+        vol = periodic_noise3d(look.seed)
+        noise = self.ctx.texture3d(vol.shape[:3], 4, np.ascontiguousarray(vol).tobytes())
+        noise.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        noise.repeat_x = noise.repeat_y = noise.repeat_z = True
+        noise.build_mipmaps()
+        self._look_gl["noise"] = noise
+        if look.backdrop == "earth":
+            if self._earth_tex is None:
+                self._earth_tex = self._texture(earth_texture(width=2048, height=1024))
+            self.bg_tex = self._earth_tex
+        elif look.backdrop == "perlin":
+            self.bg_tex = self._texture(perlin_background(look.backdrop_seed))
+        elif look.backdrop == "stars":
+            self.bg_tex = self._texture(star_background(look.backdrop_seed))
+        elif look.backdrop == "clutter":
+            self.bg_tex = self._texture(lab_clutter_background(look.backdrop_seed))
+        else:
+            self.bg_tex = None
+
+    def _lamps(self, R_lvlh_cam: np.ndarray, p_lvlh_cam: np.ndarray) -> list[dict[str, Any]]:
+        """This frame's spot lamps in LVLH: position, beam axis, intensity (its irradiance at the
+        aim point is the look's, whatever the distance) and cosines of its cone."""
+        assert self.look is not None
+        out = []
+        for lamp in self.look.lamps:
+            p = np.asarray(lamp.position_m, float)
+            pos = p_lvlh_cam + R_lvlh_cam @ p if lamp.mount == "camera" else self.focus + self._R_lvlh_t @ p
+            aim = self.focus + self._R_lvlh_t @ np.asarray(lamp.aim_m, float)
+            axis = aim - pos
+            dist = float(np.linalg.norm(axis))
+            out.append(
+                {
+                    "pos": pos,
+                    "dir": axis / dist,
+                    "dist": dist,
+                    "i": np.asarray(lamp.rgb) * lamp.irradiance * dist * dist * self.settings.sun_intensity,
+                    "cos": (
+                        float(np.cos(np.radians(lamp.cone_deg))),
+                        float(np.cos(np.radians(lamp.cone_deg - lamp.soft_deg))),
+                    ),
+                    "fov_deg": min(2.0 * lamp.cone_deg + 4.0, 150.0),
+                }
+            )
+        return out
+
+    def _update_lamp_shadows(self, lamps: list[dict[str, Any]]) -> None:
+        """Each lamp's perspective shadow map (re-rendered when a lamp moves: every frame for a
+        lamp on the camera, once per scene for one fixed in the lab)."""
+        key = tuple(tuple(np.round(np.concatenate([lp["pos"], lp["dir"]]), 9)) for lp in lamps)
+        if not lamps or key == self._lamp_key:
+            return
+        g = self._look_gl
+        self.ctx.enable(self.ctx.DEPTH_TEST | self.ctx.CULL_FACE)
+        self.ctx.polygon_offset = (1.5, 2.0)
+        n = LAMP_SHADOW_PX
+        g["lamp_fbo"].use()
+        g["lamp_fbo"].clear(depth=1.0)
+        for k, lp in enumerate(lamps):
+            # the near plane well in front of anything lit, the far one past the station behind
+            self._lamp_vp[k] = spot_matrix(lp["pos"], lp["dir"], lp["fov_deg"], 0.05, lp["dist"] + 80.0)
+            self._lamp_texel[k] = 2.0 * np.tan(np.radians(lp["fov_deg"]) / 2) / n
+            g["lamp_fbo"].viewport = (k * n, 0, n, n)
+            self.depth_prog["u_light_vp"].write(_m4(self._lamp_vp[k]))
+            self.depth_vao.render()
+        self.ctx.polygon_offset = (0.0, 0.0)
+        self._lamp_key = key
 
     def _update_shadow(self, sun_lvlh: np.ndarray) -> None:
         key = (tuple(np.round(sun_lvlh, 12)), tuple(self.focus))
@@ -649,13 +987,22 @@ class Renderer:
             if earth_center_lvlh_km is None
             else np.asarray(earth_center_lvlh_km, float)
         )
+        look = self.look if mode == "shaded" else None
+        lamps: list[dict[str, Any]] = []
         if mode == "shaded":
             self._update_shadow(sun)
             self._update_earth_shadow(earth_c)
+        if look is not None:
+            lamps = self._lamps(np.asarray(R_lvlh_cam, float), np.asarray(p_lvlh_cam, float))
+            self._update_lamp_shadows(lamps)
         R_ecef = np.eye(3) if R_ecef_lvlh is None else R_ecef_lvlh
+        exposure = s.exposure if look is None else look.exposure
 
-        self.fbo.use()
-        self.fbo.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
+        optics = look is not None and (look.vignetting > 0 or look.distortion_k1 != 0)
+        # the optics pass samples the frame: drawn straight into a texture (without MSAA), no copy
+        fbo = self._look_gl["src_fbo"] if optics and not s.msaa_samples else self.fbo
+        fbo.use()
+        fbo.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
         # All meshes are closed with outward CCW faces: culling back faces halves the work.
         ctx.enable(ctx.DEPTH_TEST | ctx.CULL_FACE)
         ctx.depth_func = "<="
@@ -672,6 +1019,8 @@ class Renderer:
             mp["u_sun_dir"].value = tuple(sun)
             mp["u_earth_l"].write(self._earth_l.astype("f4").tobytes())
             w = self._earth.weights(sun) * s.sun_intensity
+            if look is not None:
+                w = w * look.earth_scale
             mp["u_earth_w"].write(w.astype("f4").tobytes())
             mp["u_earth_vp"].write(b"".join(_m4(M) for M in self._earth_vp))
             mp["u_focus"].value = tuple(self.focus)
@@ -682,9 +1031,11 @@ class Renderer:
             self.earth_shadow_tex.use(location=3)
             mp["u_earth_shadow"].value = 3
             mp["u_cam_pos"].value = tuple(np.asarray(p_lvlh_cam, float))
-            mp["u_sun_intensity"].value = s.sun_intensity
-            mp["u_ambient"].value = s.ambient
-            mp["u_exposure"].value, mp["u_gamma"].value = s.exposure, s.gamma
+            mp["u_sun_intensity"].value = (
+                s.sun_intensity if look is None else s.sun_intensity * look.sun_scale
+            )
+            mp["u_ambient"].value = s.ambient if look is None else look.ambient
+            mp["u_exposure"].value, mp["u_gamma"].value = exposure, s.gamma
             n = s.shadow_map_px
             mp["u_texel_depth"].value = (
                 s.shadow_near_half_extent_m / (n * s.shadow_depth_m),
@@ -695,27 +1046,23 @@ class Renderer:
             mp["u_atlas_margin"].value = 0.5 / s.shadow_map_px
             self.shadow_tex.use(location=2)
             mp["u_shadow"].value = 2
+            if look is not None:
+                self._set_look_uniforms(mp, lamps)
             self.mesh_vao.render()
 
             ctx.disable(ctx.CULL_FACE)
-            kind = "perlin" if self.background == "perlin" else "iss"
-            bp = self.bg_progs[kind]
-            bp["u_R_world_cam"].write(_m3(R_lvlh_cam))
-            bp["u_intr"].value = (cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
-            bp["u_size"].value = (float(cam.width_px), float(cam.height_px))
-            bp["u_exposure"].value, bp["u_gamma"].value = s.exposure, s.gamma
-            if kind == "iss":
-                clen = float(np.linalg.norm(earth_c))
-                bp["u_sun_dir"].value = tuple(sun)
-                bp["u_earth_center_km"].value = tuple(earth_c)
-                bp["u_c2_minus_r2"].value = clen * clen - EARTH_RADIUS_KM**2
-                bp["u_inv_clen"].value = 1.0 / clen
-                bp["u_limb"].value = float(np.arcsin(EARTH_RADIUS_KM / clen))
-                bp["u_R_ecef_world"].write(_m3(R_ecef))
-            self.bg_tex.use(location=1)
-            bp["u_tex"].value = 1
-            self.bg_vaos[kind].render()
+            kind: str | None = "perlin" if self.background == "perlin" else "iss"
+            bg_exposure = exposure
+            if look is not None:
+                kind = {"black": None, "earth": "iss"}.get(look.backdrop, "perlin")
+                # a display-referred backdrop: its gain applies after the sensor's encoding
+                bg_exposure = exposure * look.backdrop_gain**s.gamma
+            if kind is not None:
+                self._draw_background(kind, R_lvlh_cam, sun, earth_c, R_ecef, bg_exposure)
 
+        if look is not None and optics:
+            img = self._optics(look, copy=fbo is self.fbo)
+            return apply_sensor_effects(img, s.noise_sigma_dn, s.blur_sigma_px, rng)
         if self.resolve_fbo is not self.fbo:
             ctx.copy_framebuffer(self.resolve_fbo, self.fbo)
         raw = self.resolve_fbo.read(components=3, alignment=1)
@@ -723,6 +1070,76 @@ class Renderer:
         if mode == "id":
             return np.ascontiguousarray(img)
         return apply_sensor_effects(np.ascontiguousarray(img), s.noise_sigma_dn, s.blur_sigma_px, rng)
+
+    def _draw_background(
+        self,
+        kind: str,
+        R_lvlh_cam: np.ndarray,
+        sun: np.ndarray,
+        earth_c: np.ndarray,
+        R_ecef: np.ndarray,
+        exposure: float,
+    ) -> None:
+        cam, s = self.camera, self.settings
+        bp = self.bg_progs[kind]
+        bp["u_R_world_cam"].write(_m3(R_lvlh_cam))
+        bp["u_intr"].value = (cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
+        bp["u_size"].value = (float(cam.width_px), float(cam.height_px))
+        bp["u_exposure"].value, bp["u_gamma"].value = exposure, s.gamma
+        if kind == "iss":
+            clen = float(np.linalg.norm(earth_c))
+            bp["u_sun_dir"].value = tuple(sun)
+            bp["u_earth_center_km"].value = tuple(earth_c)
+            bp["u_c2_minus_r2"].value = clen * clen - EARTH_RADIUS_KM**2
+            bp["u_inv_clen"].value = 1.0 / clen
+            bp["u_limb"].value = float(np.arcsin(EARTH_RADIUS_KM / clen))
+            bp["u_R_ecef_world"].write(_m3(R_ecef))
+        self.bg_tex.use(location=1)
+        bp["u_tex"].value = 1
+        self.bg_vaos[kind].render()
+
+    def _set_look_uniforms(self, mp: Any, lamps: list[dict[str, Any]]) -> None:
+        g = self._look_gl
+        g["noise"].use(location=5)
+        mp["u_noise"].value = 5
+        n = len(lamps)
+        if n == 0:
+            return
+
+        def rows(key: str) -> bytes:
+            return np.array([lp[key] for lp in lamps], "f4").tobytes()
+
+        mp["u_lamp_pos"].write(rows("pos"))
+        mp["u_lamp_dir"].write(rows("dir"))
+        mp["u_lamp_i"].write(rows("i"))
+        mp["u_lamp_cos"].write(rows("cos"))
+        mp["u_lamp_vp"].write(b"".join(_m4(M) for M in self._lamp_vp[:n]))
+        mp["u_lamp_texel"].write(self._lamp_texel[:n].astype("f4").tobytes())
+        mp["u_lamp_margin"].value = 0.5 / LAMP_SHADOW_PX
+        g["lamp_tex"].use(location=4)
+        mp["u_lamp_shadow"].value = 4
+
+    def _optics(self, look: LookParams, copy: bool) -> np.ndarray:
+        """The look's lens distortion and vignetting on the frame just drawn (in the optics'
+        source texture, or `copy` it there from the MSAA frame buffer); (H, W, 3) uint8."""
+        g, cam, ctx = self._look_gl, self.camera, self.ctx
+        if copy:
+            ctx.copy_framebuffer(g["src_fbo"], self.fbo)
+        g["out_fbo"].use()
+        ctx.disable(ctx.DEPTH_TEST | ctx.CULL_FACE)
+        pp = g["post"]
+        g["src_tex"].use(location=0)
+        pp["u_img"].value = 0
+        pp["u_intr"].value = (cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
+        pp["u_size"].value = (float(cam.width_px), float(cam.height_px))
+        pp["u_k1"].value = look.distortion_k1
+        pp["u_vignetting"].value = look.vignetting
+        pp["u_r_corner2"].value = float((cam.cx_px**2 + cam.cy_px**2) / cam.fx_px**2)
+        pp["u_gamma"].value = self.settings.gamma
+        g["post_vao"].render()
+        raw = g["out_fbo"].read(components=3, alignment=1)
+        img = np.frombuffer(raw, dtype=np.uint8).reshape(cam.height_px, cam.width_px, 3)[::-1]
+        return np.ascontiguousarray(img)
 
     def release(self) -> None:
         self.ctx.release()

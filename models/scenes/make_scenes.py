@@ -282,6 +282,42 @@ def frozen_test() -> dict[str, dict]:
     }
 
 
+# The domain-randomised training set (issue 58, part 3): our renderer's scenes, each in a look drawn
+# by oibar_hil.randomize (materials, lamps, backdrop, vignetting, lens distortion; one look per
+# scene, seeded by the scene's seed). Same size class as train.json (~43k frames): three times its
+# scenes at a third of its frames each, since looks gain more from more scenes than from more frames.
+DR_SCENES = 288
+DR_STRIDE = 24
+DR_SEED0 = 60000  # seeds of their own: train 20000+, validation 30000+, frozen test 50000-50005
+DR_NOTE = (
+    "Domain-randomised training scenes (issue 58, part 3): each scene's look (materials, lamps, backdrop, "
+    "vignetting, lens distortion) drawn by oibar_hil.randomize from its seed; ports cycling, backgrounds "
+    "alternating, Suns clear of the validation and test scenes; every other one off the axis (0.06-0.9 m), "
+    "every fourth turned (1.5-6 deg), every third rolled (-180-180 deg). Every 24th frame."
+)
+
+
+def domain_randomised(clear: list[tuple]) -> dict:
+    """DR_SCENES scenes in the randomised look, drawn from a generator of their own so every set
+    above stays as it was. Their Suns keep clear of `clear` (test, validation, frozen test)."""
+    rng = np.random.default_rng(20261202)
+    out = []
+    for j in range(DR_SCENES):
+        port, bg = int(j % 6 + 1), ("iss", "perlin")[(j // 6 + j) % 2]
+        s = _scene(f"dr{j:03d}", port, bg, DR_SEED0 + j, rng, clear) | {
+            "frame_stride": DR_STRIDE,
+            "look": "randomized",
+        }
+        if j % 2:
+            s["offaxis_m"] = float(np.round(rng.uniform(0.06, 0.9), 2))
+        if j % 4 == 3:
+            s["turned_deg"] = float(np.round(rng.uniform(1.5, 6.0), 1))
+        if j % 3 == 2:
+            s["rolled_deg"] = float(np.round(rng.uniform(-180.0, 180.0), 1))
+        out.append(s)
+    return {"set": "train", "note": DR_NOTE, "scenes": out}
+
+
 def main() -> None:
     rng = np.random.default_rng(20261123)
     train = scenes("tr", 20000, 4, rng, TEST_KEYS)
@@ -388,6 +424,9 @@ def main() -> None:
         "test": {"set": "test", "scenes": TEST},
         **looks(val),
         **frozen_test(),
+        "train_dr": domain_randomised(
+            clear + [(s["port"], s["background"], s["sun_elevation_deg"]) for s in FROZEN]
+        ),
     }
     for name, data in sets.items():
         (HERE / f"{name}.json").write_text(json.dumps(data, indent=1) + "\n")
