@@ -152,6 +152,7 @@ class RigCamera:
         seed: int = 0,
         sensor_effects: bool = True,
         geometry: DockingGeometry = GEOMETRY,
+        exposure: float = 1.0,  # RenderSettings.exposure: the sensor's gain (issue 62 disperses it)
     ) -> None:
         self.spec = scene_spec(scene)  # unknown scene: fail before any GL work
         self.seed = int(seed)
@@ -164,9 +165,13 @@ class RigCamera:
         self._frames = 0
         self._renderer = None
         settings = (
-            RenderSettings(noise_sigma_dn=self.spec.noise_sigma_dn, blur_sigma_px=self.spec.blur_sigma_px)
+            RenderSettings(
+                noise_sigma_dn=self.spec.noise_sigma_dn,
+                blur_sigma_px=self.spec.blur_sigma_px,
+                exposure=float(exposure),
+            )
             if self.sensor_effects
-            else RenderSettings()
+            else RenderSettings(exposure=float(exposure))
         )
         try:
             from ..render import Renderer, create_context

@@ -118,6 +118,7 @@ class CnnNav:
         seed: int = 0,
         threads: int = 2,
         camera_blackout=None,
+        camera_options: dict | None = None,  # more RigCamera arguments (exposure, sensor_effects)
     ) -> None:
         from oibar.nav.core import Navigator
         from oibar.nav.pose import PoseEstimator
@@ -126,7 +127,7 @@ class CnnNav:
         self.model_path = Path(model_path) if model_path else DEFAULT_MODEL
         # model first: a missing or corrupt model is reported before the GL context is made
         self.navigator = Navigator(PoseEstimator(self.model_path, threads=threads))
-        self.camera = RigCamera(scene=scene, seed=seed)
+        self.camera = RigCamera(scene=scene, seed=seed, **(camera_options or {}))
         self.blackout = camera_blackout
         self.frames = 0
         self.last_timings_ms: dict[str, float] = {}

@@ -182,12 +182,14 @@ class Rig:
         st = scenario.start
         world_state = WorldState(
             r_D_m=np.array([st.lateral_m[0], st.lateral_m[1], st.range_m], dtype=float),
-            v_D_mps=np.array([0.0, 0.0, -st.closing_speed_mps]),
-            att_rad=np.radians([st.misalignment_deg[0], st.misalignment_deg[1], 0.0]),
+            v_D_mps=np.array([st.lateral_speed_mps[0], st.lateral_speed_mps[1], -st.closing_speed_mps]),
+            att_rad=np.radians([st.misalignment_deg[0], st.misalignment_deg[1], st.roll_deg]),
+            w_rad_s=np.radians(np.asarray(st.rate_deg_s, dtype=float)),
         )
         self.world = World(VehicleParams(**scenario.vehicle), world_state, self.rng)
         self.mech = Mechanism(MechanismParams(**scenario.plant), self.rng)
         self.wire = Wire(self.rng)
+        self.wire.ber = scenario.rig.wire_ber
         self.faults = FaultInjector(scenario.faults)
         self._hang = False
         self._reset = False

@@ -36,6 +36,11 @@ class StartCondition:
     lateral_m: tuple[float, float] = (0.3, -0.2)
     misalignment_deg: tuple[float, float] = (2.0, -1.5)  # about camera x (pitch), y (yaw)
     closing_speed_mps: float = 0.0
+    # Start rates (issue 62, the dispersion campaigns): lateral drift in D (x, y), the chaser's
+    # roll about the docking axis and its body rates (camera x, y, z); all zero in the scenarios
+    lateral_speed_mps: tuple[float, float] = (0.0, 0.0)
+    roll_deg: float = 0.0
+    rate_deg_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -49,6 +54,9 @@ class RigSpec:
     flash_image: bool = False
     guidance_period_s: float = 0.1  # navigation/guidance at 10 Hz (SPEC section 5)
     record_period_s: float = 0.05
+    # A bit-error rate on the cable from the start (issue 62: a dispersed link, not a fault); the
+    # bit_errors fault overrides it while injected
+    wire_ber: float = 0.0
 
 
 @dataclass
@@ -89,6 +97,9 @@ class Scenario:
                 lateral_m=tuple(start.get("lateral_m", (0.3, -0.2))),
                 misalignment_deg=tuple(start.get("misalignment_deg", (2.0, -1.5))),
                 closing_speed_mps=float(start.get("closing_speed_mps", 0.0)),
+                lateral_speed_mps=tuple(start.get("lateral_speed_mps", (0.0, 0.0))),
+                roll_deg=float(start.get("roll_deg", 0.0)),
+                rate_deg_s=tuple(start.get("rate_deg_s", (0.0, 0.0, 0.0))),
             ),
             mission=MissionSpec(**d.get("mission", {})),
             rig=RigSpec(**d.get("rig", {})),

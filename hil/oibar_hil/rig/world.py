@@ -43,6 +43,9 @@ class VehicleParams:
     odometry_bias_mps: float = (
         0.002  # assumption: 1-sigma per axis of a constant error per approach, unreported
     )
+    # A constant unmodelled acceleration in D (thruster misalignment, plume impingement), which
+    # the velocity loop must fight; zero in the scenarios (issue 62 disperses it)
+    accel_bias_mps2: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -93,6 +96,8 @@ class World:
             p.mass_kg * (self.v_sp_mps - s.v_D_mps) / p.velocity_tau_s, -p.thrust_max_n, p.thrust_max_n
         )
         a = (self.thrust_n + f_ext_D_n) / p.mass_kg + self._noise_a
+        if any(p.accel_bias_mps2):
+            a = a + np.asarray(p.accel_bias_mps2, dtype=float)
         s.v_D_mps = s.v_D_mps + a * dt_s  # semi-implicit Euler: stable with the probe spring
         s.r_D_m = s.r_D_m + s.v_D_mps * dt_s
         alpha = (

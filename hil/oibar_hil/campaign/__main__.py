@@ -1,0 +1,5 @@
+import sys
+
+from oibar_hil.campaign.cli import main
+
+sys.exit(main())

@@ -1,0 +1,223 @@
+"""Running a campaign's missions: on Ray (local processes by default, or an existing cluster)
+or in this one process, each finished mission written to its Parquet part at once.
+
+Ray: one task per mission, ``num_cpus=1`` (a mission is one core: the lockstep MCU process
+waits on the rig, the renderer and onnxruntime get one thread each), ``max_retries`` so a task
+whose worker process dies (killed, out of memory, a lost node) runs again elsewhere; an
+exception inside a mission is not retried (it is a result: outcome "error"). Only this driver
+writes parts, one per returned mission index, so a retried mission cannot land twice. At most
+two tasks per worker are in flight, so a stopped campaign leaves few started missions behind.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from oibar_hil.campaign.dispersion import CampaignConfig
+from oibar_hil.campaign.mission import ENV_THREADS, run_mission
+from oibar_hil.campaign.stats import rate
+from oibar_hil.campaign.store import clean_temporaries, done_indices, read_rows, write_part
+
+# Tests only: each task writes "<index>.<pid>" here when it starts, so a test can kill the
+# worker process that runs a given mission.
+PID_DIR_ENV = "OIBAR_CAMPAIGN_PID_DIR"
+# The niceness a mission runs at (``run --nice``): set in the worker, not on the driver, so Ray's
+# own daemons start at normal priority (Ray gives its node 30 s to come up, which a starved
+# niced raylet on a loaded machine misses) while the missions yield to everything else.
+NICE_ENV = "OIBAR_CAMPAIGN_NICE"
+
+
+class RayStartError(RuntimeError):
+    """Ray could not start or reach its cluster (the message says what to try)."""
+
+
+@dataclass
+class RunSummary:
+    planned: int  # missions 0..planned-1
+    already_done: int  # found in the folder at the start (a resume)
+    finished: int = 0  # written by this run
+    lost: list[tuple[int, str]] = field(default_factory=list)  # (index, why): not written, rerun later
+    interrupted: bool = False
+    wall_s: float = 0.0
+    workers: int = 1
+
+    @property
+    def complete(self) -> bool:
+        return not self.lost and not self.interrupted
+
+
+class _Tally:
+    """The live success rate on the progress bar."""
+
+    def __init__(self, rows: list[dict[str, Any]]) -> None:
+        self.n = len(rows)
+        self.ok = sum(bool(r["success"]) for r in rows)
+
+    def add(self, row: dict[str, Any]) -> None:
+        self.n += 1
+        self.ok += bool(row["success"])
+
+    def text(self) -> str:
+        if not self.n:
+            return ""
+        r = rate(self.ok, self.n)
+        return f"success {self.ok}/{self.n} = {100 * r.rate:.1f} % (>= {100 * r.lower_bound:.1f} % at 95 %)"
+
+
+def _mission_task(
+    cfg: CampaignConfig, index: int, mcu_path: str | None, model_path: str | None
+) -> dict[str, Any]:
+    nice = int(os.environ.get(NICE_ENV, "0") or 0)
+    if nice > os.getpriority(os.PRIO_PROCESS, 0):  # only ever lower the priority
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+    pid_dir = os.environ.get(PID_DIR_ENV)
+    if pid_dir:
+        Path(pid_dir, f"{index}.{os.getpid()}").touch()
+    return run_mission(cfg, index, mcu_path=mcu_path, model_path=model_path).row
+
+
+def pending_indices(folder: Path, missions: int) -> list[int]:
+    done = done_indices(folder)
+    return [i for i in range(missions) if i not in done]
+
+
+def run_missions(
+    cfg: CampaignConfig,
+    folder: Path,
+    *,
+    executor: str = "ray",
+    workers: int | None = None,
+    address: str | None = None,
+    max_retries: int = 3,
+    mcu_path: str | None = None,
+    model_path: str | None = None,
+    progress: bool = True,
+    on_row: Callable[[dict[str, Any]], None] | None = None,
+) -> RunSummary:
+    """Run every mission 0..cfg.missions-1 that has no part in ``folder`` yet."""
+    folder = Path(folder)
+    clean_temporaries(folder)
+    todo = pending_indices(folder, cfg.missions)
+    previous = read_rows(folder)
+    summary = RunSummary(planned=cfg.missions, already_done=cfg.missions - len(todo))
+    tally = _Tally([r for r in previous if r["index"] < cfg.missions])
+    bar = None
+    if progress and todo:
+        from oibar.progress import Progress
+
+        bar = Progress(f"campaign {cfg.name} ({cfg.nav})", total=len(todo), unit="mission")
+        bar.set_postfix_str(tally.text())
+
+    def finished(row: dict[str, Any]) -> None:
+        write_part(folder, row)
+        summary.finished += 1
+        tally.add(row)
+        if on_row is not None:
+            on_row(row)
+        if bar is not None:
+            bar.set_postfix_str(tally.text())
+            bar.update(1)
+            if row["outcome"] == "error":
+                bar.write(f"mission {row['index']}: rig error: {row['error'][:200]}")
+
+    t0 = time.perf_counter()
+    try:
+        if not todo:
+            pass
+        elif executor == "serial":
+            summary.workers = 1
+            nice = int(os.environ.get(NICE_ENV, "0") or 0)
+            if nice > os.getpriority(os.PRIO_PROCESS, 0):
+                os.setpriority(os.PRIO_PROCESS, 0, nice)
+            for i in todo:
+                finished(_mission_task(cfg, i, mcu_path, model_path))
+        elif executor == "ray":
+            _run_on_ray(cfg, todo, summary, finished, workers, address, max_retries, mcu_path, model_path)
+        else:
+            raise ValueError(f"unknown executor {executor!r}: ray or serial")
+    except KeyboardInterrupt:
+        summary.interrupted = True
+    finally:
+        summary.wall_s = time.perf_counter() - t0
+        if bar is not None:
+            bar.close()
+    return summary
+
+
+def _worker_env() -> dict[str, str]:
+    env = dict(ENV_THREADS)
+    for k, v in os.environ.items():
+        if k.startswith("OIBAR_CAMPAIGN_"):
+            env[k] = v
+    return env
+
+
+def _run_on_ray(
+    cfg: CampaignConfig,
+    todo: list[int],
+    summary: RunSummary,
+    finished: Callable[[dict[str, Any]], None],
+    workers: int | None,
+    address: str | None,
+    max_retries: int,
+    mcu_path: str | None,
+    model_path: str | None,
+) -> None:
+    import ray
+
+    runtime_env = {"env_vars": _worker_env()}
+    try:
+        if address:
+            ray.init(
+                address=address, runtime_env=runtime_env, log_to_driver=False, logging_level=logging.WARNING
+            )
+        else:
+            # "local": a cluster of our own, never one somebody else started on this machine
+            ray.init(
+                address="local",
+                num_cpus=workers or os.cpu_count() or 1,
+                include_dashboard=False,
+                runtime_env=runtime_env,
+                log_to_driver=False,
+                logging_level=logging.WARNING,
+            )
+    except Exception as exc:  # noqa: BLE001 - Ray raises plain Exceptions for a node that did not start
+        ray.shutdown()
+        where = f"the cluster at {address}" if address else "a local Ray node"
+        raise RayStartError(
+            f"could not start {where}: {str(exc).splitlines()[0]} (an overloaded machine: run again, "
+            "do not nice the driver (use --nice), or --executor serial)"
+        ) from exc
+    # A stop (SIGTERM from a scheduler, nohup's kill) ends the run as Ctrl-C does: parts stay.
+    previous_term = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        cpus = int(ray.cluster_resources().get("CPU", 1))
+        summary.workers = cpus
+        task = ray.remote(num_cpus=1, max_retries=max_retries, retry_exceptions=False)(_mission_task)
+        cfg_ref = ray.put(cfg)
+        queue = list(todo)
+        inflight: dict[Any, int] = {}
+        window = max(1, 2 * cpus)
+        while queue or inflight:
+            while queue and len(inflight) < window:
+                i = queue.pop(0)
+                inflight[task.remote(cfg_ref, i, mcu_path, model_path)] = i
+            ready, _ = ray.wait(list(inflight), num_returns=1, timeout=2.0)
+            for ref in ready:
+                i = inflight.pop(ref)
+                try:
+                    row = ray.get(ref)
+                except ray.exceptions.RayError as exc:  # its worker died more than max_retries times
+                    summary.lost.append((i, f"{type(exc).__name__}: {str(exc).splitlines()[0][:300]}"))
+                    continue
+                finished(row)
+    finally:
+        signal.signal(signal.SIGTERM, previous_term)
+        ray.shutdown()

@@ -1,0 +1,316 @@
+"""Monte Carlo dispersion campaigns (issue 62, hil/oibar_hil/campaign): the draws, the bounds,
+Clopper-Pearson, and a tiny campaign of short truth-navigation missions flown in one process
+and on Ray with a worker killed mid-mission: same table, no mission lost, none twice."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from oibar_hil.campaign.dispersion import (
+    INPUTS,
+    ConfigError,
+    draw_fault,
+    draw_mission,
+    load_config,
+    parse_config,
+    read_toml,
+)
+from oibar_hil.campaign.stats import missions_for_claim, rate
+from oibar_hil.rig.matrix import expectation
+
+ROOT = Path(__file__).resolve().parents[2]
+DEFAULT = ROOT / "hil" / "campaigns" / "default.toml"
+SHORT = ROOT / "hil" / "campaigns" / "short.toml"
+TINY_MISSIONS = 3
+
+
+# -- the dispersion model -------------------------------------------------------------------
+
+
+def test_draws_are_reproducible_and_inside_their_stated_bounds():
+    cfg = load_config(DEFAULT)
+    assert cfg.inputs, "the default model disperses nothing"
+    seen: dict[str, list[float]] = {n: [] for n in cfg.inputs}
+    for i in range(200):
+        a, b = draw_mission(cfg, i), draw_mission(cfg, i)
+        assert a == b, f"mission {i} drew differently twice"
+        for name, dist in cfg.inputs.items():
+            v = a.values[name]
+            lo, hi = dist.bounds
+            assert lo <= v <= hi, f"mission {i}: {name} = {v} outside [{lo}, {hi}]"
+            ilo, ihi = INPUTS[name].valid
+            assert ilo <= v <= ihi
+            if dist.kind == "choice":
+                assert v in dist.values
+            if INPUTS[name].integer:
+                assert v == int(v)
+            seen[name].append(v)
+        for name in set(INPUTS) - set(cfg.inputs):
+            assert a.values[name] == INPUTS[name].nominal  # not dispersed: the rig's nominal
+    for name, dist in cfg.inputs.items():
+        if dist.dispersed:  # a dispersed input does vary, and spreads over its range
+            vals = np.array(seen[name])
+            lo, hi = dist.bounds
+            assert np.ptp(vals) > 0.3 * (hi - lo), f"{name} barely varies: {np.ptp(vals)} of {hi - lo}"
+    # another mission, another seed: other draws
+    assert draw_mission(cfg, 0).values != draw_mission(cfg, 1).values
+    other = dataclasses.replace(cfg, seed=cfg.seed + 1)
+    assert draw_mission(other, 0).values != draw_mission(cfg, 0).values
+
+
+def test_an_input_draw_does_not_depend_on_the_other_inputs():
+    data = read_toml(DEFAULT)
+    full = parse_config(data)
+    data["inputs"].pop("start_range_m")
+    fewer = parse_config(data)
+    for i in range(20):
+        a, b = draw_mission(full, i), draw_mission(fewer, i)
+        assert b.values["start_range_m"] == INPUTS["start_range_m"].nominal
+        assert a.values["start_lateral_x_m"] == b.values["start_lateral_x_m"]
+        assert (a.fault, a.fault_phase, a.rig_seed) == (b.fault, b.fault_phase, b.rig_seed)
+    assert full.identity() != fewer.identity()
+
+
+def test_faults_are_drawn_with_the_stated_probability():
+    cfg = load_config(DEFAULT)
+    n = 2000
+    draws = [draw_fault(cfg, i) for i in range(n)]
+    k = sum(bool(fault) for fault, _ in draws)
+    p = cfg.fault_probability
+    assert abs(k - n * p) < 4 * math.sqrt(n * p * (1 - p)), f"{k} faulted of {n}, expected ~{n * p:.0f}"
+    for fault, phase in draws:
+        assert bool(fault) == bool(phase)
+        if fault:
+            assert fault in cfg.fault_weights and phase in cfg.fault_phases
+            assert not isinstance(expectation(fault, phase), str)  # never a not-applicable cell
+    assert len({fault for fault, _ in draws if fault}) > 15  # every type can come up
+    assert draw_mission(cfg, 7).fault == draws[7][0]
+    never = dataclasses.replace(cfg, fault_probability=0.0)
+    assert not any(draw_fault(never, i)[0] for i in range(50))
+
+
+def test_the_short_model_inherits_the_default_one():
+    short, default = load_config(SHORT), load_config(DEFAULT)
+    assert short.inputs["start_range_m"].bounds == (1.2, 1.6)
+    assert short.inputs["chaser_mass_kg"] == default.inputs["chaser_mass_kg"]
+    assert short.fault_probability == 0.3 and short.mission == default.mission
+
+
+@pytest.mark.parametrize(
+    "inputs, why",
+    [
+        ({"start_range_m": {"dist": "uniform", "low": 8.0, "high": 30.0}}, "outside what the rig accepts"),
+        ({"warp_drive": {"dist": "fixed", "value": 1.0}}, "unknown input"),
+        ({"start_range_m": {"dist": "gauss", "low": 8.0, "high": 9.0}}, "dist must be one of"),
+        ({"start_range_m": {"dist": "uniform", "low": 9.0, "high": 8.0}}, "low 9.0 > high 8.0"),
+        ({"start_range_m": {"dist": "normal", "mean": 9.0, "sigma": 1.0}}, "missing 'low'"),
+        ({"start_range_m": {"dist": "uniform", "low": 8.0, "high": 9.0, "sigma": 1}}, "do not belong"),
+        ({"approach_port": {"dist": "uniform", "low": 1, "high": 6}}, "integer input"),
+        ({"link_ber": {"dist": "loguniform", "low": 0.0, "high": 1e-6}}, "low > 0"),
+    ],
+)
+def test_an_invalid_model_is_refused_with_its_reason(inputs, why):
+    with pytest.raises(ConfigError, match=why):
+        parse_config({"campaign": {"seed": 1}, "inputs": inputs})
+
+
+def test_a_bad_campaign_table_is_refused():
+    with pytest.raises(ConfigError, match="seed"):
+        parse_config({"campaign": {"seed": -1}})
+    with pytest.raises(ConfigError, match="nav"):
+        parse_config({"campaign": {"seed": 1, "nav": "lidar"}})
+    with pytest.raises(ConfigError, match="unknown fault type"):
+        parse_config({"campaign": {"seed": 1}, "faults": {"probability": 0.1, "weights": {"meteor": 1}}})
+    with pytest.raises(ConfigError, match="MissionParams"):
+        parse_config({"campaign": {"seed": 1}, "mission": {"warp_kpa": 1}})
+
+
+def test_a_draw_lands_where_the_model_says(sim_mcu_path):
+    """The new rig hooks carry the draw into the world, the wire, the plant and the camera's
+    scene; a scenario that does not use them starts exactly as before."""
+    from oibar_hil.campaign.mission import build_scenario, make_nav, scene_of
+    from oibar_hil.rig.runner import Rig
+    from oibar_hil.rig.scenario import Scenario
+
+    cfg = load_config(DEFAULT)
+    d = draw_mission(cfg, 3)
+    v = d.values
+    rig = Rig(build_scenario(cfg, d), mcu_path=sim_mcu_path, nav=make_nav(cfg, d))
+    s = rig.world.s
+    assert s.r_D_m.tolist() == [v["start_lateral_x_m"], v["start_lateral_y_m"], v["start_range_m"]]
+    assert s.v_D_mps.tolist() == [
+        v["start_lateral_speed_x_mps"],
+        v["start_lateral_speed_y_mps"],
+        -v["start_closing_speed_mps"],
+    ]
+    assert np.degrees(s.att_rad).tolist() == pytest.approx(
+        [v["start_pitch_deg"], v["start_yaw_deg"], v["start_roll_deg"]]
+    )
+    assert np.degrees(s.w_rad_s).tolist() == pytest.approx(
+        [v["start_rate_x_deg_s"], v["start_rate_y_deg_s"], v["start_rate_z_deg_s"]]
+    )
+    assert rig.wire.ber == v["link_ber"] > 0
+    assert rig.world.p.mass_kg == v["chaser_mass_kg"]
+    assert rig.world.p.accel_bias_mps2 == (
+        v["thrust_bias_x_mps2"],
+        v["thrust_bias_y_mps2"],
+        v["thrust_bias_z_mps2"],
+    )
+    assert rig.mech.p.press_zero_counts == pytest.approx(410.0 + v["pressure_offset_counts"])
+    assert rig.mech.p.valve_stroke_s == v["valve_stroke_s"]
+    assert rig.nav.name == "truth" and rig.nav.bias_m[:2].tolist() == [v["nav_bias_x_m"], v["nav_bias_y_m"]]
+    spec = scene_of(d)
+    assert spec.port == v["approach_port"] and spec.noise_sigma_dn == v["camera_noise_dn"]
+    spec.validate()
+    # the push acts: a world with a bias and no noise drifts by a t^2 / 2
+    from oibar_hil.rig.world import VehicleParams, World, WorldState
+
+    quiet = dict(accel_noise_mps2=0.0, ang_noise_rad_s2=0.0, odometry=False, velocity_tau_s=1e9)
+    w = World(
+        VehicleParams(**quiet, accel_bias_mps2=(1e-3, 0.0, 0.0)), WorldState(), np.random.default_rng(0)
+    )
+    for _ in range(100):
+        w.step(0.01, np.zeros(3))
+    assert w.s.r_D_m[0] == pytest.approx(0.5 * 1e-3 * 1.0**2, rel=0.02)
+    # no new keys: the start and the wire as before the hooks
+    plain = Rig(
+        Scenario.from_dict({"name": "plain", "start": {"closing_speed_mps": 0.01}}), mcu_path=sim_mcu_path
+    )
+    assert plain.world.s.v_D_mps.tolist() == [0.0, 0.0, -0.01] and not plain.world.s.w_rad_s.any()
+    assert plain.world.s.att_rad[2] == 0.0 and plain.wire.ber == 0.0
+
+
+# -- Clopper-Pearson ------------------------------------------------------------------------
+
+
+def test_clopper_pearson_figures():
+    r = rate(300, 300)
+    assert r.lower_bound == pytest.approx(0.05 ** (1 / 300), abs=1e-9)  # the issue's 0.990
+    assert round(r.lower_bound, 3) == 0.990
+    assert r.low == pytest.approx(0.025 ** (1 / 300), abs=1e-9) and r.high == 1.0
+    z = rate(0, 20)
+    assert z.low == 0.0 and z.high == pytest.approx(1 - 0.025 ** (1 / 20), abs=1e-9)
+    # a general case against the beta quantiles that define the exact interval
+    from scipy.stats import beta
+
+    g = rate(87, 100)
+    assert g.low == pytest.approx(beta.ppf(0.025, 87, 14), abs=1e-9)
+    assert g.high == pytest.approx(beta.ppf(0.975, 88, 13), abs=1e-9)
+    assert g.lower_bound == pytest.approx(beta.ppf(0.05, 87, 14), abs=1e-9)
+    assert missions_for_claim(0.99) == 299
+    with pytest.raises(ValueError):
+        rate(5, 4)
+
+
+# -- a tiny campaign ----------------------------------------------------------------------------
+
+
+def _deterministic(rows):
+    from oibar_hil.campaign.mission import VOLATILE_COLUMNS
+
+    return [{k: v for k, v in r.items() if k not in VOLATILE_COLUMNS} for r in rows]
+
+
+@pytest.fixture(scope="module")
+def serial_campaign(tmp_path_factory, sim_mcu_path):
+    """The short model's first missions flown in this one process (2, then extended to 4)."""
+    pytest.importorskip("pyarrow")
+    from oibar_hil.campaign.execute import run_missions
+    from oibar_hil.campaign.store import open_campaign, read_rows
+
+    folder = tmp_path_factory.mktemp("serial")
+    cfg = dataclasses.replace(load_config(SHORT), missions=2)
+    open_campaign(folder, cfg)
+    first = run_missions(cfg, folder, executor="serial", mcu_path=str(sim_mcu_path), progress=False)
+    assert (first.already_done, first.finished) == (0, 2)
+    cfg = dataclasses.replace(cfg, missions=TINY_MISSIONS)
+    open_campaign(folder, cfg)  # the same campaign, longer: accepted
+    more = run_missions(cfg, folder, executor="serial", mcu_path=str(sim_mcu_path), progress=False)
+    assert (more.already_done, more.finished) == (2, TINY_MISSIONS - 2), "the resume flew done missions again"
+    return folder, cfg, read_rows(folder)
+
+
+def test_serial_campaign_rows(serial_campaign):
+    folder, cfg, rows = serial_campaign
+    assert [r["index"] for r in rows] == list(range(TINY_MISSIONS))
+    for r in rows:
+        assert r["outcome"] in ("completed", "aborted", "safed"), r["error"]
+        assert r["success"], f"mission {r['index']}: {r['failed_checks']}"
+        assert r["sim_time_s"] > 0 and r["wall_time_s"] > 0 and r["cpu_time_s"] > 0
+        if not r["fault"]:
+            assert r["captured"] and r["contact_lateral_m"] < 0.05 and r["fuel_transferred_kg"] > 0.02
+        d = draw_mission(cfg, r["index"])
+        assert r["in_start_range_m"] == d.values["start_range_m"] and r["fault"] == d.fault
+
+
+def test_another_campaign_in_the_same_folder_is_refused(serial_campaign):
+    from oibar_hil.campaign.store import CampaignFolderError, open_campaign
+
+    folder, cfg, _ = serial_campaign
+    with pytest.raises(CampaignFolderError, match="another campaign"):
+        open_campaign(folder, dataclasses.replace(cfg, seed=cfg.seed + 1))
+
+
+@pytest.mark.slow
+def test_ray_campaign_with_a_killed_worker_gives_the_same_table(serial_campaign, tmp_path, sim_mcu_path):
+    """Two Ray workers; the worker flying mission 1 is killed (SIGKILL) in the middle of it.
+    Ray runs the mission again; the table has every mission once, equal to the serial one."""
+    pytest.importorskip("ray")
+    import pyarrow.parquet as pq
+
+    _, cfg, serial_rows = serial_campaign
+    out, pids = tmp_path / "ray", tmp_path / "pids"
+    pids.mkdir()
+    env = {**os.environ, "OIBAR_CAMPAIGN_PID_DIR": str(pids), "PYTHONPATH": f"{ROOT / 'hil'}:{ROOT / 'host'}"}
+    cmd = [sys.executable, "-m", "oibar_hil.campaign", "run", "--config", str(SHORT), "--no-progress",
+           "--missions", str(TINY_MISSIONS), "--workers", "2", "--out", str(out),
+           "--mcu", str(sim_mcu_path)]  # fmt: skip
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    killed = None
+    try:
+        deadline = time.monotonic() + 90
+        while killed is None and time.monotonic() < deadline and proc.poll() is None:
+            started = sorted(pids.glob("1.*"))
+            if started and not (out / "parts" / "mission_000001.parquet").exists():
+                killed = int(started[0].suffix[1:])
+                os.kill(killed, signal.SIGKILL)
+            time.sleep(0.05)
+        output, _ = proc.communicate(timeout=150)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert killed is not None, "mission 1 never started on a worker"
+    assert proc.returncode == 0, output
+    attempts = sorted(p.name for p in pids.glob("1.*"))
+    assert len(attempts) >= 2, f"mission 1 was not run again after its worker died: {attempts}"
+    parts = sorted(p.name for p in (out / "parts").glob("*.parquet"))
+    assert parts == [f"mission_{i:06d}.parquet" for i in range(TINY_MISSIONS)]
+    table = pq.read_table(out / "missions.parquet").to_pylist()
+    assert [r["index"] for r in table] == list(range(TINY_MISSIONS)), "a mission lost or duplicated"
+    assert _deterministic(table) == _deterministic(serial_rows), "Ray's table differs from one process's"
+    assert len({r["worker"] for r in table}) >= 2  # the missions did spread over workers
+    report = (out / "report.md").read_text()
+    assert f"{TINY_MISSIONS}/{TINY_MISSIONS}" in report and "Clopper-Pearson" in report
+    assert (out / "figures" / "inputs_success.png").exists()
+
+
+def test_replay_reproduces_a_stored_mission(serial_campaign, capsys):
+    from oibar_hil.campaign.cli import main
+
+    folder, _, rows = serial_campaign
+    index = next((r["index"] for r in rows if r["fault"]), 1)  # a faulted one when there is one
+    assert main(["replay", str(folder), str(index)]) == 0
+    out = capsys.readouterr().out
+    assert "reproduced" in out
+    assert (folder / "replay" / f"{index:06d}" / "report.html").exists()
+    assert main(["replay", str(folder), "99"]) == 2  # not in the campaign
