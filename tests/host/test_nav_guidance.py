@@ -226,3 +226,36 @@ def test_a_clear_accepted_after_guidance_gave_up_is_followed_not_called_safed():
         g.step(t, obs(t, nav(0.0), tm=reset))
         t += 0.1
     assert g.gave_up_at is None and g.outcome != "safed"
+
+
+def test_a_misaligned_vehicle_held_at_the_gate_turns_its_boresight_in_without_steering():
+    # campaign truth_1000, mission 12: a start turned 5.6 deg held at the gate until the mission
+    # timed out, since nothing turned the vehicle with steer_attitude off
+    g = Guidance(MissionParams())
+    n = nav(0.5)
+    n.att_rad = np.radians([6.0, -2.0, 30.0])  # tilted 6.3 deg, rolled 30 deg
+    n.misalignment_deg = 6.3
+    out = g.step(0.0, obs(0.0, n, tm=telemetry("STATE_APPROACH_READY")))
+    assert out.phase == "HOLD"
+    w = out.w_sp_rad_s
+    assert w[0] < 0 and w[1] > 0 and w[2] == 0  # the tilt turned in, the roll left alone
+    far = nav(5.0)
+    far.att_rad, far.misalignment_deg = n.att_rad, n.misalignment_deg
+    assert np.all(Guidance(MissionParams()).step(0.0, obs(0.0, far)).w_sp_rad_s == 0)  # only at the gate
+    aligned = nav(0.5)
+    aligned.att_rad, aligned.misalignment_deg = np.radians([3.0, 0.0, 30.0]), 3.0
+    out = Guidance(MissionParams()).step(0.0, obs(0.0, aligned, tm=telemetry("STATE_APPROACH_READY")))
+    assert np.all(out.w_sp_rad_s == 0)  # within the gate: nothing to turn
+
+
+def test_held_at_the_gate_too_long_aborts_the_mission_and_says_why():
+    g = Guidance(MissionParams(gate_hold_max_s=60.0))
+    n = nav(0.5)  # aligned and centred, but the MCU never arms (stays IDLE)
+    for t in np.arange(0.0, 59.0, 0.5):
+        g.step(float(t), obs(float(t), n, tm=telemetry("STATE_IDLE")))
+    assert not g.mission_aborted
+    for t in np.arange(59.0, 61.0, 0.5):
+        out = g.step(float(t), obs(float(t), n, tm=telemetry("STATE_IDLE")))
+    assert g.mission_aborted
+    assert any("held at the gate for 60 s" in text and "MCU IDLE, not APPROACH_READY" in text for _, text in g.notes)
+    assert out.v_sp_D_mps[2] > 0  # backing off

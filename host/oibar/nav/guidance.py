@@ -51,6 +51,14 @@ LASTING_REFUSALS = frozenset({"NACK_PRECONDITION_FAILED", "NACK_PREARM_SENSOR", 
 FILL_STALL_MIN_RISE_KPA = 5.0
 HOLD_GATE_RANGE_M = 0.5  # wait here until armed and aligned
 GATE_MAX_LATERAL_M = 0.02
+# Held at the gate for a misalignment alone, the vehicle turns its boresight in (tilt only, the
+# part beyond ATT_DEADBAND_DEG) even with steer_attitude off: the vehicle's attitude hold keeps
+# the attitude it started with, and without this a start turned 5.6 deg held at the gate until
+# the mission timed out (campaign truth_1000, mission 12, docs/campaign.md). Stationary at
+# 0.5 m, where the network reads attitude best, and only beyond the deadband, the network's
+# ~1 deg bias cannot turn the vehicle away as it did when steering on it all the way in.
+GATE_TURN_GAIN_PER_S = 0.5
+GATE_TURN_MAX_RAD_S = float(np.radians(0.5))
 GATE_MAX_MISALIGN_DEG = 5.0  # half the 10 deg capture envelope: the CNN's attitude is good to ~2 deg
 CORRIDOR_SLOPE = 0.10  # approach corridor half-width per metre of range (a 5.7 deg cone)
 CORRIDOR_MIN_HALF_WIDTH_M = 0.05
@@ -111,6 +119,10 @@ class MissionParams:
     # partly (slope 0.5-0.7, 1.2-1.8 deg RMS on the rig probe): closing the loop on it turned the
     # vehicle from 2.5 to 10.4 deg in the 10 m mission and the probe bounced off the drogue.
     steer_attitude: bool = False
+    # Held at the 0.5 m gate (not armed, off-centre or misaligned) this long: abort and back off.
+    # Every wait is bounded; an MCU arms in well under a second and a misalignment is turned out
+    # at the gate in about 10 s (GATE_TURN_MAX_RAD_S), so a minute means the gate will not open.
+    gate_hold_max_s: float = 60.0
 
 
 @dataclass
@@ -159,6 +171,18 @@ class GuidanceOutput:
     phase: str
 
 
+def gate_turn_rad_s(att_rad: np.ndarray) -> np.ndarray:
+    """The body rate that turns the boresight's tilt (the attitude error about the camera's x and
+    y, not the roll about it) in, beyond ATT_DEADBAND_DEG only (GATE_TURN_*)."""
+    tilt = np.array([att_rad[0], att_rad[1], 0.0], dtype=float)
+    size = float(np.linalg.norm(tilt))
+    excess = max(0.0, size - np.radians(ATT_DEADBAND_DEG))
+    out: np.ndarray = np.clip(
+        -GATE_TURN_GAIN_PER_S * tilt * (excess / max(size, 1e-12)), -GATE_TURN_MAX_RAD_S, GATE_TURN_MAX_RAD_S
+    )
+    return out
+
+
 def corridor_half_width_m(range_m: float) -> float:
     """The approach corridor's half-width at a probe range: 10 % of the range (a 5.7 deg cone,
     comfortably wider than the network's lateral error, 1-3 % of range), never under the 5 cm
@@ -200,6 +224,7 @@ class Guidance:
         self._valves_closed_since: float | None = None
         self._nav_bad_since: float | None = None
         self._blind_retreat_until: float | None = None
+        self._gate_hold_since: float | None = None  # when the vehicle began holding at the gate
         self._refusals: tuple[str, int] = ("", 0)  # (command, refusals in a row)
 
     # -- bookkeeping --------------------------------------------------------------------
@@ -419,7 +444,37 @@ class Guidance:
             # Hold at the gate: a proportional brake onto the gate range.
             closing = float(np.clip(0.2 * (r - HOLD_GATE_RANGE_M), -0.02, closing))
             phase = "HOLD"
+            self._hold_at_gate(obs.t_s, state, float(np.hypot(*lat)), nav.misalignment_deg)
+            if nav.misalignment_deg > GATE_MAX_MISALIGN_DEG and not self.m.steer_attitude:
+                w = gate_turn_rad_s(att_err)
+        else:
+            self._gate_hold_since = None
         return np.array([v_lat[0], v_lat[1], -closing]), w, phase
+
+    def _hold_at_gate(self, t_s: float, state: str, lateral_m: float, misalignment_deg: float) -> None:
+        """Count the time held at the gate; past gate_hold_max_s, abort the mission (the retreat
+        follows) and say what kept the gate closed."""
+        if self._gate_hold_since is None:
+            self._gate_hold_since = t_s
+            return
+        if t_s - self._gate_hold_since < self.m.gate_hold_max_s:
+            return
+        why = [
+            text
+            for text, bad in (
+                (f"MCU {state.removeprefix('STATE_')}, not APPROACH_READY", state != "STATE_APPROACH_READY"),
+                (
+                    f"lateral {lateral_m * 100:.0f} cm > {GATE_MAX_LATERAL_M * 100:.0f}",
+                    lateral_m > GATE_MAX_LATERAL_M,
+                ),
+                (
+                    f"misaligned {misalignment_deg:.1f} deg > {GATE_MAX_MISALIGN_DEG:.0f}",
+                    misalignment_deg > GATE_MAX_MISALIGN_DEG,
+                ),
+            )
+            if bad
+        ]
+        self._abort_mission(t_s, f"held at the gate for {self.m.gate_hold_max_s:.0f} s ({'; '.join(why)})")
 
     def _nav(self, obs: Observation, phase: str) -> pb.NavUpdate:
         """The NavUpdate for the MCU. ``valid`` says the filter has a solution (initialised, not
