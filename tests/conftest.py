@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+
+# No oibar configuration file for the whole session (oibar.config's search: --config, then
+# $OIBAR_CONFIG, then ~/.config/oibar/oibar.toml and /etc/oibar/oibar.toml): a developer's own
+# file must not change what a test runs. Set in the environment, so the `oibar` processes the
+# tests start inherit it; a test that reads a file names it (--config) or sets its own search.
+os.environ["OIBAR_CONFIG"] = "none"
 
 
 @pytest.fixture(scope="session")

@@ -39,7 +39,7 @@ commands (the CMD_ prefix is optional, any case):
 
 exit status: 0 when the link worked (a refused command is reported, not an error),
 2 when the port cannot be opened, the MCU does not answer or speaks another protocol
-version, 130 on Ctrl-C.
+version, or the configuration file (--config) is invalid, 130 on Ctrl-C.
 """
 
 
@@ -129,7 +129,17 @@ def build_parser() -> argparse.ArgumentParser:
     register_calib(sub)
     register_calibrate_camera(sub)
     register_nav(sub)
+    _add_config_options(parser)
     return parser
+
+
+def _add_config_options(parser: argparse.ArgumentParser) -> None:
+    """``--config FILE`` on the top level and on every subcommand (oibar.config)."""
+    from oibar.config import add_config_option, subparsers
+
+    add_config_option(parser)
+    for child in subparsers(parser).values():
+        _add_config_options(child)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -160,10 +170,22 @@ def _import_link_modules() -> bool:
 
 
 def _main(argv: Sequence[str] | None) -> int:
-    from oibar.link.client import parse_opcode
+    from oibar.config import ConfigError, apply, config_from_argv, find_config
+    from oibar.link.results import parse_opcode
 
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        config = find_config(argv)
+        if config is not None:
+            apply(parser, config)
+    except ConfigError as exc:
+        _error(f"configuration: {exc}")
+        return EXIT_ERROR
     args = parser.parse_args(argv)
+    if getattr(args, "config", None) != config_from_argv(argv):
+        # argparse took an abbreviation (--conf FILE) that the file search above did not see
+        parser.error("write --config in full")
     logging.basicConfig(
         level=max(logging.DEBUG, logging.WARNING - 10 * args.verbose),
         format="%(levelname)s %(name)s: %(message)s",

@@ -1,6 +1,8 @@
 """The navigation daemon's failure behaviour (issue 8 "Failures", issue 11 host robustness):
 camera unplugged and replugged, link lost and back, low confidence, log disk full, model file
-missing or corrupt, a log cut by a kill, and the replay of a recorded run.
+missing or corrupt, and the replay of a recorded run. The flight log itself (MCAP: its
+channels, a kill, exact replay with the real model, the live view) is tested in
+test_flightlog.py.
 
 The estimator here is a stand-in that reports a fixed true pose (the network itself is tested
 in test_nav_pose.py); everything else is the real daemon: threads, scheduler, filter, guidance,
@@ -20,9 +22,10 @@ from oibar.geometry.docking import camera_pose_from_docking
 from oibar.geometry.rotations import matrix_to_quat
 from oibar.link.core import Request
 from oibar.nav.core import Navigator
-from oibar.nav.cyclelog import CycleLog, CycleLogError, read_log
 from oibar.nav.daemon import DaemonParams, NavDaemon
+from oibar.nav.flightlog import FlightLog, FlightLogError, inspect_log, read_messages, read_summary
 from oibar.nav.guidance import Guidance, MissionParams
+from oibar.nav.logschema import ProtobufDecoder
 from oibar.nav.pose import PoseEstimate
 from oibar.nav.replay import replay
 from oibar.nav.vehicle import NullVehicle, RelativeVelocity, VehicleInterface, open_vehicle
@@ -101,6 +104,14 @@ class RecordingVehicle(VehicleInterface):
         self.sent.append((t_s, np.asarray(v).copy(), phase))
 
 
+def decoded(path, topic):
+    """The messages of one topic of a flight log, decoded."""
+    dec = ProtobufDecoder()
+    return [
+        dec.decode(m.schema_id, m.schema_name, m.schema_data, m.data) for m in read_messages(path, [topic])
+    ]
+
+
 def grey(level=128):
     return np.full((40, 64, 3), level, np.uint8)
 
@@ -128,16 +139,17 @@ def make_daemon(camera, link=None, log=None, vehicle=None, confidence=0.9, **par
 
 def test_nominal_cycles_are_logged_and_commanded(tmp_path):
     link = FakeLink()
-    log = CycleLog(tmp_path / "cycles.jsonl")
+    log = FlightLog(tmp_path / "flight.mcap")
     veh = RecordingVehicle()
     d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=link, log=log, vehicle=veh)
     summary = d.run(max_cycles=30)
     assert summary["cycles"] == 30 and summary["frames_used"] >= 20
-    recs = list(read_log(tmp_path / "cycles.jsonl"))
-    assert recs[0]["kind"] == "header" and recs[-1]["kind"] == "footer"
-    assert recs[-1]["vehicle"] == {}  # a sink without counters (VehicleInterface default)
-    cycles = [r for r in recs if r["kind"] == "cycle"]
-    assert len(cycles) == 30
+    inv = inspect_log(tmp_path / "flight.mcap")
+    assert inv.complete and inv.message_counts["/run/info"] >= 1
+    assert inv.message_counts["/nav/cycle"] == 30
+    footer = read_summary(tmp_path / "flight.mcap")
+    assert footer["vehicle"] == {}  # a sink without counters (VehicleInterface default)
+    assert footer["summary"]["cycles"] == 30 and footer["log_messages_lost"] == 0
     moving = [v for _, v, ph in veh.sent if ph != "HOLD"]
     assert moving and all(v[2] < 0 for v in moving), "approaching on a trusted solution"
     assert link.navs, "navigation updates reach the MCU"
@@ -206,22 +218,14 @@ def test_low_confidence_holds():
 def test_log_disk_full_does_not_stop_navigation():
     if not os.path.exists("/dev/full"):
         pytest.skip("no /dev/full on this system")
-    log = CycleLog("/dev/full", flush_every=1)
+    # a flush per cycle: the full disk is met during the run, not at the end
+    log = FlightLog("/dev/full", frames=True)
+    log.flush_every_s = 0.0
     d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=FakeLink(), log=log)
     summary = d.run(max_cycles=15)
     assert summary["cycles"] == 15
     assert log.error and "space" in log.error.lower()
-    assert log.lines_lost >= 14
-    assert "LOG:" in d.status_line()
-
-
-def test_log_cut_by_a_kill_is_read_up_to_the_cut(tmp_path):
-    p = tmp_path / "cycles.jsonl"
-    p.write_text('{"kind":"header"}\n{"kind":"cycle","t_s":0.1}\n{"kind":"cycle","t_')
-    assert [r["kind"] for r in read_log(p)] == ["header", "cycle"]
-    p.write_text('{"kind":"header"}\nnot json\n{"kind":"cycle","t_s":0.1}\n')
-    with pytest.raises(CycleLogError, match=":2:"):
-        list(read_log(p))
+    assert log.messages_lost >= 14
 
 
 def test_replay_rereads_the_recorded_frames(tmp_path):
@@ -229,26 +233,27 @@ def test_replay_rereads_the_recorded_frames(tmp_path):
     d = make_daemon(
         CallableSource(lambda t: grey(next(levels, 200)), rate_hz=100.0),
         link=FakeLink(),
-        log=CycleLog(tmp_path / "cycles.jsonl", frames_dir=tmp_path / "frames"),
+        log=FlightLog(tmp_path / "flight.mcap", frames=True),
     )
     d.run(max_cycles=20)
-    n_frames = len(list((tmp_path / "frames").glob("*.jpg")))
-    assert n_frames >= 10
-    res = replay(tmp_path / "cycles.jsonl", Navigator(TruthEstimator()), tmp_path / "replay.jsonl")
+    n_frames = inspect_log(tmp_path / "flight.mcap").message_counts["/camera/image"]
+    assert n_frames == d.stats.frames_used >= 10
+    res = replay(tmp_path / "flight.mcap", Navigator(TruthEstimator()), tmp_path / "replay.jsonl")
     assert res.frames_replayed == n_frames and res.frames_missing == 0
-    # JPEG changes the mean level by at most a little: the replayed ranges match the record
-    assert res.dt_m and max(res.dt_m) < 0.02
-    # a missing frame is counted, not fatal
-    next((tmp_path / "frames").glob("*.jpg")).unlink()
-    res2 = replay(tmp_path / "cycles.jsonl", Navigator(TruthEstimator()))
-    assert res2.frames_missing == 1
+    # lossless frames, the same times: every estimate and filter state bit for bit
+    assert res.exact and res.estimates_exact == res.estimates_compared >= 10
+    assert res.filter_exact == res.filter_compared == 20
+    assert max(res.dt_m) == 0.0
+    # another estimator on the same flight: the differences are reported, not hidden
+    res2 = replay(tmp_path / "flight.mcap", Navigator(TruthEstimator(confidence=0.7)))
+    assert not res2.exact and "estimate differs" in res2.first_difference
 
 
 def test_replay_without_frames_says_how_to_record(tmp_path):
-    d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), log=CycleLog(tmp_path / "c.jsonl"))
+    d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), log=FlightLog(tmp_path / "c.mcap"))
     d.run(max_cycles=3)
-    with pytest.raises(CycleLogError, match="--record-frames"):
-        replay(tmp_path / "c.jsonl", Navigator(TruthEstimator()))
+    with pytest.raises(FlightLogError, match="no camera frame.*--record-frames"):
+        replay(tmp_path / "c.mcap", Navigator(TruthEstimator()))
 
 
 @pytest.mark.parametrize("content", [None, b"", b"\x00garbage" * 100])
@@ -396,20 +401,21 @@ def test_the_vehicles_odometry_reaches_the_filter_and_the_mcu(tmp_path):
         d.run(max_cycles=30)
         return d, link.navs[-1][1]["closing_speed_mps"]
 
-    log = CycleLog(tmp_path / "cycles.jsonl", frames_dir=tmp_path / "frames")
+    log = FlightLog(tmp_path / "flight.mcap", frames=True)
     veh = OdometryVehicle()
     d, closing = closing_after(veh, log)
     assert len(veh.asked) >= 30, "asked once per cycle"
     assert d.nav.filter.velocity_counts["fused"] >= 20
     assert closing == pytest.approx(0.02, abs=0.005)
-    cycles = [r for r in read_log(tmp_path / "cycles.jsonl") if r["kind"] == "cycle"]
-    fused = [c["odometry"] for c in cycles if c["odometry"] and c["odometry"]["reason"] == "fused"]
-    assert fused and fused[0]["v_D_mps"] == [0.0, 0.0, -0.02] and fused[0]["sigma_mps"] == 0.002
-    # replay feeds the recorded odometry again
+    cycles = decoded(tmp_path / "flight.mcap", "/nav/cycle")
+    fused = [c.odometry for c in cycles if c.HasField("odometry") and c.odometry.reason == "fused"]
+    assert fused and list(fused[0].v_D_mps) == [0.0, 0.0, -0.02] and fused[0].sigma_mps == 0.002
+    # replay feeds the recorded odometry again: the same filter, bit for bit
     again = Navigator(TruthEstimator())
-    replay(tmp_path / "cycles.jsonl", again)
-    assert again.filter.velocity_counts["fused"] >= len(fused) - 2
-    assert again.filter.state(cycles[-1]["t_s"]).closing_speed_mps == pytest.approx(0.02, abs=0.005)
+    res = replay(tmp_path / "flight.mcap", again)
+    assert again.filter.velocity_counts == d.nav.filter.velocity_counts
+    assert res.exact and res.filter_exact == res.filter_compared == 30
+    assert again.filter.state(cycles[-1].t_s).closing_speed_mps == pytest.approx(0.02, abs=0.005)
     d0, closing0 = closing_after(RecordingVehicle())
     assert abs(closing0) < 0.002 and d0.nav.filter.velocity_counts["fused"] == 0
 
@@ -452,8 +458,9 @@ def test_end_of_a_recorded_stream_is_not_a_lost_camera(tmp_path):
 
 def test_recorded_frames_survive_a_camera_reopen(tmp_path):
     """Issue 17: recorded frames were named by the camera's frame counter, which restarts when
-    the camera is reopened, so the frames before the reopen were overwritten."""
-    log = CycleLog(tmp_path / "cycles.jsonl", frames_dir=tmp_path / "frames")
+    the camera is reopened, so the frames before the reopen were overwritten. In the flight log
+    each frame belongs to its cycle, numbered by the daemon."""
+    log = FlightLog(tmp_path / "flight.mcap", frames=True)
     d = make_daemon(CallableSource(lambda t: grey(), rate_hz=100.0), link=FakeLink(), log=log)
     d._t0 = d.clock()
     for _ in range(6):
@@ -466,13 +473,10 @@ def test_recorded_frames_survive_a_camera_reopen(tmp_path):
         tick(d)
     d.shutdown()
     assert d.stats.camera_reopens == 1
-    files = [
-        r["frame"]["file"]
-        for r in read_log(tmp_path / "cycles.jsonl")
-        if r.get("kind") == "cycle" and r.get("frame")
-    ]
-    assert len(files) == d.stats.frames_used and len(set(files)) == len(files)
-    assert len(list((tmp_path / "frames").glob("*.jpg"))) == len(files)
+    cycles = [c for c in decoded(tmp_path / "flight.mcap", "/nav/cycle") if c.has_frame]
+    assert len(cycles) == d.stats.frames_used and len({c.cycle for c in cycles}) == len(cycles)
+    assert inspect_log(tmp_path / "flight.mcap").message_counts["/camera/image"] == len(cycles)
+    assert min(c.frame_seq for c in cycles[1:]) == 0, "the camera's counter restarted: cycles tell them apart"
 
 
 def test_a_reader_stuck_in_read_is_never_doubled():

@@ -64,16 +64,27 @@ DISTRIBUTION = {
     "oibar_bench": "oibar-bench",
     "mitsuba": "mitsuba",
     "albumentations": "albumentations",
+    "foxglove": "foxglove-sdk",
+    "mcap": "mcap",
+    "pyarrow": "pyarrow",
+    "ray": "ray",
+    "mlflow": "mlflow-skinny",
 }
 
 # modules of a package that may use one of its extras: (package folder, module prefix, extra)
-EXTRAS = (("host", "oibar.calib", "calib"), ("hil", "oibar_hil.render_mitsuba", "mitsuba"))
+EXTRAS = (
+    ("host", "oibar.calib", "calib"),
+    ("hil", "oibar_hil.render_mitsuba", "mitsuba"),
+    ("hil", "oibar_hil.campaign", "campaign"),
+)
 
 
 def _name(req: str) -> tuple[str, tuple[str, ...]]:
-    """'oibar[calib]' -> ('oibar', ('calib',)); version specifiers are not used here."""
-    name, _, extras = req.partition("[")
-    return name.strip().lower(), tuple(e.strip() for e in extras.rstrip("]").split(",") if e.strip())
+    """'oibar[calib]' -> ('oibar', ('calib',)); 'protobuf>=4.21.6,<5' -> ('protobuf', ())."""
+    name, _, rest = req.partition("[")
+    extras = rest.split("]")[0] if rest else ""
+    name = re.split(r"[<>=!~;\s]", name, maxsplit=1)[0]
+    return name.strip().lower(), tuple(e.strip() for e in extras.split(",") if e.strip())
 
 
 def _project(folder: str) -> dict:

@@ -48,7 +48,16 @@ class Rule:
 RULES = (
     Rule(
         "flight",
-        ("oibar.nav", "oibar.link", "oibar.camera", "oibar.geometry", "oibar.cli", "oibar.pb"),
+        (
+            "oibar.nav",
+            "oibar.link",
+            "oibar.camera",
+            "oibar.geometry",
+            "oibar.cli",
+            "oibar.pb",
+            "oibar.config",  # the daemon's configuration file, read before it flies
+            "oibar.sdnotify",  # its systemd readiness and watchdog
+        ),
         SIMULATOR_AND_TRAINING + ("oibar.calib",),
         "flight code imports neither the simulator nor the training library nor torch, nor the lab toolbox",
         allowed=("oibar.calib.cli",),
@@ -185,3 +194,14 @@ def test_a_forbidden_import_would_fail(module):
     bad = Import(module, planted.path, 1, "oibar_hil.meshes")
     problems = violations(imports + [bad])
     assert problems and all("oibar_hil.meshes" in p for p in problems)
+
+
+@pytest.mark.parametrize("module", ["oibar.config", "oibar.sdnotify"])
+def test_config_and_watchdog_are_flight_code(module):
+    """The configuration file the daemon reads before it flies and its systemd watchdog are
+    flight code: torch or the lab toolbox planted in them breaks the flight wall."""
+    imports = all_imports()
+    planted = next(i for i in imports if i.module == module)
+    for target in ("torch", "oibar.calib.pipeline"):
+        problems = violations(imports + [Import(module, planted.path, 1, target)])
+        assert any(target in p and "rule 'flight'" in p for p in problems), problems

@@ -12,8 +12,10 @@ own process, with its sensors and actuators on the simulator:
 
 Everything runs in real time on loopback only: the rig paces its lockstep loop to the wall clock.
 The run ends when ``oibar nav`` exits (its guidance finished the mission) or at the scenario's
-``max_time_s``. The output names the process (PID, exit status) and its own cycle log, and the
-rig's checks (capture envelope, forces, valves, outcome) judge the mission from ground truth.
+``max_time_s``. The output names the process (PID, exit status) and its own flight log (MCAP, with
+its frames), and the rig's checks (capture envelope, forces, valves, outcome) judge the mission
+from ground truth. One more check opens that flight log with the ``mcap`` reader and wants every
+channel of oibar.nav.flightlog.CHANNELS in it (``flight_log_channels``).
 
     python -m oibar_hil.rig.sitl [--scenario hil/scenarios/nominal.yaml] [--out build/sitl]
 """
@@ -148,6 +150,7 @@ class SitlRig(Rig):
             str(self.model),
             "--log",
             str(self.nav_log_dir),
+            "--record-frames",
             "--threads",
             str(self.threads),
             "--target-pressure-kpa",
@@ -175,22 +178,21 @@ class SitlRig(Rig):
             self._read_footer()
         return True
 
+    @property
+    def flight_log(self) -> Path:
+        return self.nav_log_dir / "flight.mcap"
+
     def _read_footer(self) -> None:
-        log = self.nav_log_dir / "cycles.jsonl"
+        from oibar.nav.flightlog import FlightLogError, read_summary
+
         try:
-            lines = log.read_text().splitlines()
-        except OSError:
+            rec = read_summary(self.flight_log)
+        except (FlightLogError, OSError):
             return
-        for line in reversed(lines):
-            try:
-                rec = json.loads(line)
-            except ValueError:
-                continue
-            if rec.get("kind") == "footer":
-                self.footer = rec
-                self._ctl.outcome = rec.get("outcome", "running")
-                self._ctl.notes = [(float(t), f"oibar nav: {n}") for t, n in rec.get("notes", [])]
-                return
+        if rec is not None:
+            self.footer = rec
+            self._ctl.outcome = rec.get("outcome", "running")
+            self._ctl.notes = [(float(t), f"oibar nav: {n}") for t, n in rec.get("notes", [])]
 
     def _host_step(self, out: Any) -> Any:
         # the serial cable: host bytes into the wire (the MCU reads them next exchange), the
@@ -293,13 +295,32 @@ class SitlRig(Rig):
             "host": "oibar nav (separate process)",
             "host_pid": self.proc.pid if self.proc else None,
             "host_exit_status": self.proc.returncode if self.proc else None,
-            "host_cycle_log": str(self.nav_log_dir / "cycles.jsonl"),
+            "host_flight_log": str(self.flight_log),
+            **flight_log_metrics(self.flight_log),
             "host_cycles": summary.get("cycles"),
             "host_missed_deadlines": summary.get("missed_deadlines"),
             "host_frames_used": summary.get("frames_used"),
             "host_frame_to_command_ms_p99": summary.get("frame_to_command_ms_p99"),
             "frames_served": self.frames_sent,
         }
+
+
+def flight_log_metrics(path: Path) -> dict:
+    """The ``mcap`` reader's view of the daemon's flight log: its size, whether it was finished,
+    its channels and the ones of oibar.nav.flightlog.CHANNELS it lacks."""
+    from oibar.nav.flightlog import CHANNELS, FlightLogError, inspect_log
+
+    try:
+        inv = inspect_log(path)
+    except (FlightLogError, OSError) as exc:
+        return {"flight_log_error": str(exc), "flight_log_missing_channels": list(CHANNELS)}
+    return {
+        "flight_log_bytes": inv.size_bytes,
+        "flight_log_complete": inv.complete,
+        "flight_log_duration_s": inv.duration_s,
+        "flight_log_messages": dict(sorted(inv.message_counts.items())),
+        "flight_log_missing_channels": inv.missing(),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -331,12 +352,23 @@ def main(argv: list[str] | None = None) -> int:
         f"{m.get('host_frame_to_command_ms_p99') or float('nan'):.1f} ms, "
         f"{m['frames_served']} frames served; {result.sim_time_s:.0f} s in {result.wall_time_s:.0f} s wall"
     )
-    print(f"  its cycle log: {m['host_cycle_log']}; its output: {out_dir / 'oibar_nav.out'}")
+    print(f"  its flight log: {m['host_flight_log']}; its output: {out_dir / 'oibar_nav.out'}")
     for c in result.checks:
         verdict = "n/a " if c.ok is None else ("pass" if c.ok else "FAIL")
         print(f"  [{verdict}] {c.id:<32} {c.text}  ({c.measured})")
+    missing = m.get("flight_log_missing_channels") or []
+    log_ok = not missing and bool(m.get("flight_log_complete"))
+    size_mb = (m.get("flight_log_bytes") or 0) / 1e6
+    per_min = size_mb / max(m.get("flight_log_duration_s") or 0.0, 1e-9) * 60.0
+    print(
+        f"  [{'pass' if log_ok else 'FAIL'}] {'flight_log_channels':<32} the flight log opens with the mcap reader, "
+        f"finished, with every channel  ({m.get('flight_log_error') or ''}"
+        f"{size_mb:.1f} MB, {per_min:.1f} MB/min, "
+        f"{'complete' if m.get('flight_log_complete') else 'NOT finished'}, "
+        f"{'all channels' if not missing else 'missing ' + ', '.join(missing)})"
+    )
     print(f"  report: {result.report_path}")
-    return 0 if result.passed and m["host_exit_status"] == 0 else 1
+    return 0 if result.passed and log_ok and m["host_exit_status"] == 0 else 1
 
 
 if __name__ == "__main__":

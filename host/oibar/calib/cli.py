@@ -32,7 +32,13 @@ def register(sub) -> None:
     )
     calib.set_defaults(handler=lambda a: (calib.print_help(sys.stderr), EXIT_ERROR)[1])
     cs = calib.add_subparsers(dest="calib_command", metavar="COMMAND")
+    _register_extract(cs)
+    _register_estimate(cs)
+    _register_apply(cs)
+    _register_overlay(cs)
 
+
+def _register_extract(cs) -> None:
     ex = cs.add_parser(
         "extract", help="split a video into frames/ and frames.csv (time stamps from the video)"
     )
@@ -43,6 +49,8 @@ def register(sub) -> None:
     )
     ex.set_defaults(handler=cmd_extract)
 
+
+def _register_estimate(cs) -> None:
     es = cs.add_parser("estimate", help="estimate T_housing_cam, T_tmarkers_target and the time offset")
     _inputs(es)
     es.add_argument(
@@ -71,6 +79,8 @@ def register(sub) -> None:
     es.add_argument("-o", "--out", type=Path, required=True, help="calibration JSON to write")
     es.set_defaults(handler=cmd_estimate)
 
+
+def _register_apply(cs) -> None:
     ap = cs.add_parser("apply", help="write the ground-truth camera-to-target poses for every frame")
     _inputs(ap)
     ap.add_argument("--calib", type=Path, required=True, help="calibration JSON from `estimate`")
@@ -83,6 +93,8 @@ def register(sub) -> None:
     ap.add_argument("-o", "--out", type=Path, required=True, help="poses CSV to write (dataset format)")
     ap.set_defaults(handler=cmd_apply)
 
+
+def _register_overlay(cs) -> None:
     ov = cs.add_parser("overlay", help="draw the target model from a poses file onto its frames")
     ov.add_argument(
         "--poses", type=Path, required=True, help="poses CSV (from `apply`, or a dataset's poses.csv)"

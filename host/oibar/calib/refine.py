@@ -139,7 +139,19 @@ def refine(
     `B_at(offset_s)` returns T_housing_tmarkers for every pose, a validity mask and the
     variance factors of both bodies (timing.relative_at(..., with_variance=True)); for the
     joint fit of the offset it must be smooth in the offset (timing.smooth)."""
-    n = len(A)
+    idx = _covered_poses(B_at, len(A), offset0_s, offset_window_s, min_poses)
+    poses = _Poses(A, A_cov, B_at, idx, noise_housing, noise_tmarkers)
+    fit = _Fit(poses, X0, Z0, offset0_s, offset_window_s)
+    inl = fit.reject_outliers(min_poses)
+    W = poses.W(fit.offset, fit.X)
+    cost_val, J = fit.solve(W, inl, joint=True)
+    return _result(fit, W, inl, cost_val, J, len(A))
+
+
+def _covered_poses(
+    B_at: Callable[[float], tuple], n: int, offset0_s: float, offset_window_s: float | None, min_poses: int
+) -> np.ndarray:
+    """Indices of the poses with mocap coverage at every offset the fit may try."""
     # Keep the same poses for every trial offset, or the costs would not be comparable.
     keep = np.ones(n, bool)
     probes = (
@@ -154,71 +166,101 @@ def refine(
             f"too few poses with mocap coverage: {int(keep.sum())} (need {min_poses}); "
             "missing frames or mocap gaps?"
         )
-    idx = np.flatnonzero(keep)
-    A_inv, Acov_k = inv_T(A[idx]), A_cov[idx]
-    B_cache: dict = {}
+    return np.flatnonzero(keep)
 
-    def B_full(off):
+
+class _Poses:
+    """The poses kept (``idx``): A inverted, and the mocap B with its weights at a trial offset,
+    cached (``B_at`` interpolates every body at every call)."""
+
+    def __init__(self, A, A_cov, B_at, idx, noise_housing: MocapNoise, noise_tmarkers: MocapNoise):
+        self.idx = idx
+        self.A_inv, self.A_cov = inv_T(A[idx]), A_cov[idx]
+        self._B_at = B_at
+        self._noise = (noise_housing, noise_tmarkers)
+        self._cache: dict = {}
+
+    def _full(self, off):
         key = float(off)
-        if key not in B_cache:
-            if len(B_cache) > 64:
-                B_cache.clear()
-            B, _, k_h, k_m = B_at(key)
-            B_cache[key] = (B[idx], k_h[idx], k_m[idx])
-        return B_cache[key]
+        if key not in self._cache:
+            if len(self._cache) > 64:
+                self._cache.clear()
+            B, _, k_h, k_m = self._B_at(key)
+            self._cache[key] = (B[self.idx], k_h[self.idx], k_m[self.idx])
+        return self._cache[key]
 
-    def B_k(off):
-        return B_full(off)[0]
+    def B(self, off):
+        return self._full(off)[0]
 
-    def W_k(off, X):
+    def W(self, off, X):
         # Weights follow the offset (variance factors), with X fixed per pass.
-        B, k_h, k_m = B_full(off)
-        return _whitening(Acov_k, B, X, noise_housing, noise_tmarkers, k_h, k_m)
+        B, k_h, k_m = self._full(off)
+        return _whitening(self.A_cov, B, X, *self._noise, k_h, k_m)
 
-    X, Z, offset = X0, Z0, offset0_s
-    inl = np.ones(len(idx), bool)
-    lo_s = offset0_s - (offset_window_s or 0.0)
-    hi_s = offset0_s + (offset_window_s or 0.0)
-    profile: list = []
 
-    def solve(W, mask, joint):
-        nonlocal X, Z, offset
-        if offset_window_s and joint:
-            X, Z, offset, cost, J = _solve_joint(
-                A_inv[mask], lambda o: B_k(o)[mask], W[mask], X, Z, offset, lo_s, hi_s
+class _Fit:
+    """X, Z and the offset as the passes refine them, and the joint fit's cost profile."""
+
+    def __init__(self, poses: _Poses, X0, Z0, offset0_s: float, offset_window_s: float | None):
+        self.poses = poses
+        self.X, self.Z, self.offset = X0, Z0, offset0_s
+        self.window_s = offset_window_s
+        self.lo_s = offset0_s - (offset_window_s or 0.0)
+        self.hi_s = offset0_s + (offset_window_s or 0.0)
+        self.profile: list = []
+
+    def solve(self, W, mask, joint):
+        p = self.poses
+        if self.window_s and joint:
+            self.X, self.Z, self.offset, cost, J = _solve_joint(
+                p.A_inv[mask],
+                lambda o: p.B(o)[mask],
+                W[mask],
+                self.X,
+                self.Z,
+                self.offset,
+                self.lo_s,
+                self.hi_s,
             )
-            profile.append((round(offset, 7), cost))
+            self.profile.append((round(self.offset, 7), cost))
         else:
-            X, Z, cost, J = _solve(A_inv[mask], B_k(offset)[mask], W[mask], X, Z)
+            self.X, self.Z, cost, J = _solve(p.A_inv[mask], p.B(self.offset)[mask], W[mask], self.X, self.Z)
         return cost, J
 
-    # Pass 0 gets X, Z close with weights from the closed form (offset fixed); passes 1 and 2
-    # fit the offset too, with the weights re-made from the better X, and reject outliers.
-    for it in range(3):
-        W = W_k(offset, X)
-        solve(W, inl, joint=it > 0)
-        wr = np.einsum("nij,nj->ni", W, _residuals(A_inv, B_k(offset), X, Z))
-        d2 = np.sum(wr**2, axis=1)
-        if it == 0:
-            continue
-        # Outliers: far beyond chi-square(6), scaled by the median so that a wrong noise figure
-        # does not reject everything.
-        scale = max(1.0, float(np.median(d2[inl])) / chi2.median(6))
-        inl = d2 <= scale * chi2.ppf(OUTLIER_P, 6)
-        if inl.sum() < min_poses:
-            raise CalibError(
-                f"only {int(inl.sum())} poses agree with the model; check the body names, "
-                "the pattern file and the time columns"
-            )
+    def reject_outliers(self, min_poses: int) -> np.ndarray:
+        """Three passes; the inlier mask over the poses kept."""
+        p = self.poses
+        inl = np.ones(len(p.idx), bool)
+        # Pass 0 gets X, Z close with weights from the closed form (offset fixed); passes 1 and 2
+        # fit the offset too, with the weights re-made from the better X, and reject outliers.
+        for it in range(3):
+            W = p.W(self.offset, self.X)
+            self.solve(W, inl, joint=it > 0)
+            wr = np.einsum("nij,nj->ni", W, _residuals(p.A_inv, p.B(self.offset), self.X, self.Z))
+            d2 = np.sum(wr**2, axis=1)
+            if it == 0:
+                continue
+            # Outliers: far beyond chi-square(6), scaled by the median so that a wrong noise figure
+            # does not reject everything.
+            scale = max(1.0, float(np.median(d2[inl])) / chi2.median(6))
+            inl = d2 <= scale * chi2.ppf(OUTLIER_P, 6)
+            if inl.sum() < min_poses:
+                raise CalibError(
+                    f"only {int(inl.sum())} poses agree with the model; check the body names, "
+                    "the pattern file and the time columns"
+                )
+        return inl
 
-    W = W_k(offset, X)
-    cost_val, J = solve(W, inl, joint=True)
+
+def _result(fit: _Fit, W, inl, cost_val: float, J, n: int) -> RefineResult:
+    """The final fit's covariances (from its Jacobian) and per-pose figures over all ``n`` poses."""
+    p, idx = fit.poses, fit.poses.idx
     n_par = J.shape[1]
     dof = max(6 * int(inl.sum()) - n_par, 1)
     chi2_dof = cost_val / dof
     cov = np.linalg.pinv(J.T @ J) * max(1.0, chi2_dof)  # inflate when the data are noisier than stated
     sigma_offset = float(np.sqrt(cov[12, 12])) if n_par == 13 else float("nan")
-    r = _residuals(A_inv, B_k(offset), X, Z)
+    r = _residuals(p.A_inv, p.B(fit.offset), fit.X, fit.Z)
     wr = np.einsum("nij,nj->ni", W, r)
     inliers = np.zeros(n, bool)
     inliers[idx[inl]] = True
@@ -227,9 +269,9 @@ def refine(
     res_all = np.full((n, 6), np.nan)
     res_all[idx] = r
     return RefineResult(
-        X=X,
-        Z=Z,
-        offset_s=offset,
+        X=fit.X,
+        Z=fit.Z,
+        offset_s=fit.offset,
         cov_X=cov[6:12, 6:12],
         cov_Z=cov[:6, :6],
         sigma_offset_s=sigma_offset,
@@ -237,5 +279,5 @@ def refine(
         d2=d2_all,
         residuals=res_all,
         chi2_per_dof=float(chi2_dof),
-        offset_profile=profile,
+        offset_profile=fit.profile,
     )

@@ -1,7 +1,7 @@
 """The navigation cycle's latency, frame to command, on this machine (`make bench`, issue 8).
 
 The real daemon (scheduler, camera thread, navigator with the given model, filter, guidance,
-vehicle sink, cycle log) runs at 10 Hz on a camera that delivers frames in real time: frames
+vehicle sink, flight log without frames) runs at 10 Hz on a camera that delivers frames in real time: frames
 from a synthetic sequence when one is given (the pose changes, so the filter and guidance do real
 work), otherwise a fixed noise frame. The MCU side is a stub that is always up and answers
 instantly, so the figure is the companion computer's own time; the serial link's round trip is
@@ -78,8 +78,8 @@ def nav_cycle_latency(
     """-> dict(median_ms, p99_ms, max_ms, cycles, missed_deadlines, cycle_ms_median, cycle_ms_p99,
     frames_used, source). Runs ``cycles / rate_hz`` seconds of wall time."""
     from oibar.camera import CallableSource
-    from oibar.nav.cyclelog import CycleLog
     from oibar.nav.daemon import DaemonParams, NavDaemon, load_navigator
+    from oibar.nav.flightlog import FlightLog
     from oibar.nav.guidance import Guidance, MissionParams
 
     if frames_dir is None:
@@ -95,7 +95,7 @@ def nav_cycle_latency(
 
     nav = load_navigator(model_path, threads=threads)
     with tempfile.TemporaryDirectory() as tmp:
-        log = CycleLog(Path(tmp) / "cycles.jsonl")
+        log = FlightLog(Path(tmp) / "flight.mcap", frames=False)  # what `oibar nav` writes by default
         d = NavDaemon(
             nav,
             Guidance(MissionParams(nav_lost_abort_s=1e9)),

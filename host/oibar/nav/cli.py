@@ -10,12 +10,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from oibar import argtypes
+from oibar.nav import helptext
 from oibar.progress import StatusLine
 
 if TYPE_CHECKING:
     from oibar.link.client import LinkClient
 
-# Exit status of `oibar nav` (also in its --help and docs/navigation.md).
+# Exit status of `oibar nav` (also in its --help, oibar.nav.helptext, and docs/navigation.md).
 EXIT_OK = 0  # mission over, --duration-s reached, or Ctrl-C / SIGTERM: MCU session ended as planned
 EXIT_INTERNAL = 1  # an unexpected error inside oibar (one line; -v for the traceback)
 EXIT_ERROR = 2  # bad argument or start-up error (model, camera spec, empty source, vehicle, log)
@@ -26,97 +27,6 @@ EXIT_INTERRUPTED = 130  # Ctrl-C before the daemon was running (oibar.cli)
 # `oibar pose`: 0, 1, 2 as above, and
 EXIT_FRAMES_FAILED = 3  # a frame could not be read or was refused (the others are still estimated)
 
-_NAV_DESCRIPTION = """\
-Run the OIBAR navigation daemon: every 100 ms take the newest camera frame, estimate the
-relative pose of the berthing fixture with OibarNet (ONNX), filter it, decide the guidance
-(phase, velocity setpoint, hold or retreat) and command the docking mechanism's MCU over the
-serial link. One status line shows what it is doing; Ctrl-C or SIGTERM stops it cleanly
-(vehicle hold, the MCU session ended as planned: valves closed, mechanism held or homed, no
-fault raised; link and camera closed, log footer written).
-
-Every cycle is logged as one JSON line (--log); with --record-frames the frames are kept too,
-so `oibar replay` can re-run the estimation on exactly what the daemon saw.
-"""
-
-_NAV_EPILOG = """\
-camera (--camera):
-  0, 1, ...            an OpenCV camera device index (/dev/video0, ...)
-  /dev/video2          a V4L2 device path
-  approach.mp4         a video file (played at its frame rate)
-  frames/              a folder of images (frames.csv with times if present, else --camera-rate-hz)
-  frames+tcp://H:P     RGB frames from another process over a local TCP socket
-                       (oibar.camera.stream; `make sitl` feeds the rig's renderer this way)
-
-port (--port):
-  /dev/ttyACM0, COM3   the MCU's serial port (115200 baud)
-  socket://HOST:PORT   a TCP bridge, e.g. the STM32 image under QEMU
-  none                 no MCU: navigation and logging only; guidance holds
-
-vehicle (--vehicle), where velocity setpoints go:
-  none                 keep them in the log only (default)
-  udp://HOST:PORT      one JSON datagram per cycle for the vehicle's GNC computer;
-                       its odometry datagrams back are fused (oibar.nav.vehicle)
-  python:MOD:CLASS     your own oibar.nav.vehicle.VehicleInterface subclass
-
-examples:
-  oibar nav --camera 0 --port /dev/ttyACM0 --model models/oibarnet.onnx
-  oibar nav --camera data/synthetic/seq01/frames --port none --record-frames --duration-s 60
-  oibar nav --camera 0 --calibration camera.yaml --port /dev/ttyACM0
-  oibar replay runs/nav/20261122-101500/cycles.jsonl --model models/other.onnx
-
-calibration (--calibration FILE): the camera that takes the frames, as OpenCV's calibration
-YAML (`oibar calibrate-camera`) or ROS camera_info YAML (plumb_bob, rational_polynomial or no
-distortion; any resolution). Each frame is undistorted and remapped to the network's canonical
-camera (744x480, f 583.33 px) by one cv2.remap; a camera narrower than that view is accepted
-with a warning (its uncovered border is black). A frame of another size than the calibration's
-is refused (a hold, "malformed frame"), never guessed. Without it, only 744x480 frames of the
-canonical camera are read.
-
-exit status (one line on stderr says why; never a traceback):
-  0    mission over, --duration-s reached, or Ctrl-C / SIGTERM: the MCU accepted the planned
-       end of the session (CMD_END_SESSION), or there is no MCU (--port none)
-  1    an unexpected internal error (run with -v for the traceback); the MCU session is
-       still ended as planned first
-  2    bad argument or start-up error: model, camera spec, empty or undecodable source,
-       vehicle, log folder
-  3    the camera source ended (last frame of a video file or frame folder); MCU safe first
-  4    the camera source died: no frame for --camera-dead-s (camera unplugged, never
-       opened); MCU safe first
-  5    stopped otherwise cleanly (0 above), but the MCU did not accept the planned end (link
-       down, no answer): it takes the silence for a host link loss (FAULT outside
-       BOOT/IDLE/FAULT, valves closed)
-  130  Ctrl-C before the daemon was running
-A corrupt frame (a truncated JPEG in a folder) is skipped and counted, not an error.
-"""
-
-
-_POSE_DESCRIPTION = """\
-Estimate the berthing fixture's pose in each image file with OibarNet, without the daemon: one
-JSON line per frame on stdout, in the order given:
-  {"frame": PATH, "T_cam_target_m": [x, y, z], "q_cam_target_wxyz": [w, x, y, z],
-   "confidence": 0..1, "flags": [...], "latency_ms": MS}
-Each frame is read cold, on its own, with the full search (no crop budget, nothing carried from
-the previous frame). A frame that cannot be read or is refused gives a line with "error" (the
-pose fields null) and one line on stderr.
-"""
-
-_POSE_EPILOG = """\
-frames: the network's canonical camera (744x480, f 583.33 px, principal point at the centre)
-unless --calibration names the camera that took them (any resolution: undistorted and remapped
-to the canonical camera); a frame whose size does not match the calibration is refused.
-
-examples:
-  oibar pose frame.png
-  oibar pose shots/*.jpg --calibration camera.yaml > poses.jsonl
-
-exit status (one line on stderr says why; never a traceback):
-  0    every frame read and estimated (a low confidence or a flag is an answer, not an error)
-  1    an unexpected internal error (run with -v for the traceback)
-  2    bad argument or start-up error: model, calibration file
-  3    at least one frame could not be read (missing, corrupt, not an image) or was refused
-       (wrong size, not RGB); the others are still estimated
-"""
-
 
 def default_model_path() -> Path:
     """$OIBAR_MODEL, else the shipped model of this install (oibar.resources)."""
@@ -126,13 +36,29 @@ def default_model_path() -> Path:
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """``oibar nav``, ``oibar replay`` and ``oibar pose`` on the ``oibar`` parser's subparsers."""
+    _register_nav(sub)
+    _register_replay(sub)
+    _register_pose(sub)
+
+
+def _register_nav(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     nav = sub.add_parser(
         "nav",
         help="run the navigation daemon (camera -> OibarNet -> guidance -> MCU)",
-        description=_NAV_DESCRIPTION,
-        epilog=_NAV_EPILOG,
+        description=helptext.NAV_DESCRIPTION,
+        epilog=helptext.NAV_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    # the options in --help's order: where frames come from and commands go, the log, the pace
+    _nav_io_args(nav)
+    _nav_log_args(nav)
+    _nav_pace_args(nav)
+    nav.set_defaults(handler=cmd_nav, run=run)
+
+
+def _nav_io_args(nav: argparse.ArgumentParser) -> None:
+    """The camera, the MCU's port, the model and its calibration, the vehicle."""
     nav.add_argument(
         "--camera",
         required=True,
@@ -162,17 +88,37 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=argtypes.non_empty("--vehicle"),
         help="where velocity setpoints go (default: none)",
     )
+
+
+def _nav_log_args(nav: argparse.ArgumentParser) -> None:
+    """The flight log (MCAP), its frames and the live view."""
     nav.add_argument(
         "--log",
         type=Path,
         default=None,
         metavar="DIR",
-        help="log folder (default: runs/nav/<date-time>); cycles.jsonl is written there",
+        help="log folder (default: runs/nav/<date-time>); the flight log flight.mcap is written there",
     )
-    nav.add_argument("--no-log", action="store_true", help="do not write a cycle log")
+    nav.add_argument("--no-log", action="store_true", help="do not write a flight log")
     nav.add_argument(
-        "--record-frames", action="store_true", help="also keep every frame used (for oibar replay)"
+        "--record-frames",
+        action="store_true",
+        help="also record every frame read, lossless (about 50 MB per minute at 10 Hz): `oibar replay` needs them",
     )
+    nav.add_argument(
+        "--live",
+        nargs="?",
+        const=("127.0.0.1", 8765),  # (not passed through type)
+        default=None,
+        metavar="[HOST:]PORT",
+        type=_live_address,
+        help="serve the flight log's channels to the Foxglove app over WebSocket while flying "
+        "(default address 127.0.0.1:8765; no authentication: loopback unless you mean it)",
+    )
+
+
+def _nav_pace_args(nav: argparse.ArgumentParser) -> None:
+    """Rates, time limits, threads, the fill target and the serial speed."""
     nav.add_argument(
         "--rate-hz",
         type=argtypes.positive(100.0),
@@ -213,15 +159,19 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     nav.add_argument(
         "--baudrate", type=argtypes.positive_int(), default=115200, help="serial baud rate (default: 115200)"
     )
-    nav.set_defaults(handler=cmd_nav, run=run)
 
+
+def _register_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rp = sub.add_parser(
         "replay",
-        help="re-run pose estimation and the filter on a recorded cycle log",
-        description="Feed the frames recorded by `oibar nav --record-frames` through a fresh "
-        "navigator (optionally another model) and compare with the recorded estimates.",
+        help="re-run pose estimation and the filter on a recorded flight log (MCAP)",
+        description="Feed the frames of a flight log written by `oibar nav --record-frames` (MCAP), "
+        "at their recorded times with the recorded odometry, through a fresh navigator and compare "
+        "with the recorded estimates. With the flight's model, calibration and onnxruntime thread "
+        "count (the defaults: taken from the log) on the same machine, every estimate comes out bit "
+        "for bit; another --model or --calibration compares two estimators on the same flight.",
     )
-    rp.add_argument("log", type=Path, help="cycles.jsonl written by oibar nav")
+    rp.add_argument("log", type=Path, help="flight.mcap written by oibar nav")
     rp.add_argument(
         "--model", type=Path, default=None, metavar="ONNX", help="model (default: as for oibar nav)"
     )
@@ -230,16 +180,18 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rp.add_argument(
         "--threads",
         type=argtypes.positive_int(256),
-        default=2,
-        help="onnxruntime threads, 1-256 (default: 2)",
+        default=None,
+        help="onnxruntime threads, 1-256 (default: the flight's, from the log)",
     )
     rp.set_defaults(handler=cmd_replay, run=run)
 
+
+def _register_pose(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     ps = sub.add_parser(
         "pose",
         help="estimate the fixture's pose in image files (no daemon): one JSON line per frame",
-        description=_POSE_DESCRIPTION,
-        epilog=_POSE_EPILOG,
+        description=helptext.POSE_DESCRIPTION,
+        epilog=helptext.POSE_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     ps.add_argument("frames", nargs="+", type=Path, metavar="FRAME", help="image files (PNG, JPEG, ...)")
@@ -254,6 +206,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="onnxruntime threads, 1-256 (default: 2)",
     )
     ps.set_defaults(handler=cmd_pose, run=run)
+
+
+def _live_address(spec: str) -> tuple[str, int]:
+    from oibar.nav.live import LiveError, parse_address
+
+    try:
+        return parse_address(spec)
+    except LiveError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _calibration_arg(p: argparse.ArgumentParser) -> None:
@@ -273,13 +234,13 @@ def run(args: argparse.Namespace) -> int:
     (the traceback only with -v)."""
     from oibar.camera import CameraError
     from oibar.camera.calibration import CalibrationError
-    from oibar.nav.cyclelog import CycleLogError
+    from oibar.nav.flightlog import FlightLogError
     from oibar.nav.pose import ModelFileError
     from oibar.nav.vehicle import VehicleError
 
     try:
         return int(args.handler(args))
-    except (ModelFileError, CameraError, VehicleError, CycleLogError, CalibrationError, OSError) as exc:
+    except (ModelFileError, CameraError, VehicleError, FlightLogError, CalibrationError, OSError) as exc:
         print(f"oibar: error: {exc}", file=sys.stderr, flush=True)
         return EXIT_ERROR
     except Exception as exc:
@@ -325,20 +286,63 @@ def open_link(port: str, **settings: Any) -> LinkClient:
 
 
 def cmd_nav(a: argparse.Namespace) -> int:
-    from oibar.camera import FolderSource, VideoFileSource, open_source
-    from oibar.nav.cyclelog import CycleLog
-    from oibar.nav.daemon import (
-        DaemonParams,
-        NavDaemon,
-        connect_in_background,
-        install_sigint,
-        load_navigator,
-    )
+    from oibar.nav.daemon import DaemonParams, NavDaemon, connect_in_background, install_sigint
     from oibar.nav.guidance import Guidance, MissionParams
     from oibar.nav.vehicle import open_vehicle
+    from oibar.sdnotify import Notifier
+
+    # model and calibration errors first, nothing opened yet
+    navigator = _load_nav_model(a)
+    camera = _open_camera(a)
+    vehicle = open_vehicle(a.vehicle)
+    log = _open_flight_log(a)
+    link = None
+    if a.port.lower() != "none":
+        link = open_link(a.port, baudrate=a.baudrate)
+        connect_in_background(link, on_error=lambda m: print(f"\nlink: {m} (retrying)", file=sys.stderr))
+    guidance = Guidance(MissionParams(target_kpa=a.target_pressure_kpa))
+    # the live status line on a terminal; in a log, one line every few seconds
+    status = StatusLine()
+    # under systemd (Type=notify): READY=1 now, WATCHDOG=1 from the loop's own status calls, so a
+    # hung loop stops petting and the service is restarted (deploy/systemd/oibar-nav.service)
+    notifier = Notifier()
+
+    def show_status(line: str) -> None:
+        notifier.watchdog(line)
+        status.show(line)
+
+    daemon = NavDaemon(
+        navigator,
+        guidance,
+        camera,
+        link=link,
+        vehicle=vehicle,
+        log=log,
+        params=DaemonParams(rate_hz=a.rate_hz, camera_dead_s=a.camera_dead_s),
+        status=show_status,
+    )
+    install_sigint(daemon)
+    notifier.ready(f"navigating: camera {a.camera}, port {a.port}")
+    try:
+        summary = daemon.run(duration_s=a.duration_s)
+    finally:
+        notifier.stopping(f"stopped: {daemon.stop_reason}")
+        notifier.close()
+        if link is not None:
+            link.close()
+        status.end()
+    _report_run(summary, daemon)
+    rc, why = exit_status(daemon)
+    if rc != EXIT_OK:
+        print(f"oibar: error: {why} (exit status {rc})", file=sys.stderr, flush=True)
+    return rc
+
+
+def _load_nav_model(a: argparse.Namespace) -> Any:
+    """The navigator of ``--model`` (with ``--calibration``), described in one line on stderr."""
+    from oibar.nav.daemon import load_navigator
 
     model = a.model or default_model_path()
-    # model and calibration errors first, nothing opened yet
     navigator = load_navigator(model, threads=a.threads)
     est = navigator.estimator
     if a.calibration is not None:
@@ -355,42 +359,40 @@ def cmd_nav(a: argparse.Namespace) -> int:
         f"input {est.size_wh[0]}x{est.size_wh[1]}, range check {lo:g}-{hi:g} m ({origin})",
         file=sys.stderr,
     )
+    return navigator
+
+
+def _open_camera(a: argparse.Namespace) -> Any:
+    from oibar.camera import FolderSource, VideoFileSource, open_source
+
     camera = open_source(a.camera, rate_hz=a.camera_rate_hz, realtime=True)
     if isinstance(camera, (FolderSource, VideoFileSource)):
         # a finite source is checked before anything opens: an empty folder or an undecodable
         # video is a start-up error (exit 2), not a run that waits for frames forever
         with camera:
             pass
-    vehicle = open_vehicle(a.vehicle)
-    log = None
-    if not a.no_log:
-        log_dir = a.log or Path("runs") / "nav" / time.strftime("%Y%m%d-%H%M%S")
-        log = CycleLog(log_dir / "cycles.jsonl", frames_dir=(log_dir / "frames") if a.record_frames else None)
-        print(f"log {log.path}", file=sys.stderr)
-    link = None
-    if a.port.lower() != "none":
-        link = open_link(a.port, baudrate=a.baudrate)
-        connect_in_background(link, on_error=lambda m: print(f"\nlink: {m} (retrying)", file=sys.stderr))
-    guidance = Guidance(MissionParams(target_kpa=a.target_pressure_kpa))
-    # the live status line on a terminal; in a log, one line every few seconds
-    status = StatusLine()
-    daemon = NavDaemon(
-        navigator,
-        guidance,
-        camera,
-        link=link,
-        vehicle=vehicle,
-        log=log,
-        params=DaemonParams(rate_hz=a.rate_hz, camera_dead_s=a.camera_dead_s),
-        status=status.show,
-    )
-    install_sigint(daemon)
-    try:
-        summary = daemon.run(duration_s=a.duration_s)
-    finally:
-        if link is not None:
-            link.close()
-        status.end()
+    return camera
+
+
+def _open_flight_log(a: argparse.Namespace) -> Any:
+    """The flight log of ``--log``/``--no-log``, ``--record-frames`` and ``--live`` (None: neither
+    a file nor a live view)."""
+    from oibar.nav.flightlog import FlightLog
+
+    if a.no_log and a.live is None:
+        return None
+    log_dir = a.log or Path("runs") / "nav" / time.strftime("%Y%m%d-%H%M%S")
+    log = FlightLog(None if a.no_log else log_dir / "flight.mcap", live=a.live, frames=a.record_frames)
+    if log.path is not None:
+        print(f"log {log.path}{' (with frames)' if a.record_frames else ''}", file=sys.stderr)
+    if log.live is not None:
+        print(f"live view {log.live.url} (Foxglove: Open connection, Foxglove WebSocket)", file=sys.stderr)
+    return log
+
+
+def _report_run(summary: dict[str, Any], daemon: Any) -> None:
+    """The run's last lines on stderr: cycles and latency, corrupt frames, the mission's
+    outcome and how the planned end of the MCU session went."""
     p99 = summary.get("frame_to_command_ms_p99")
     print(
         f"{summary['cycles']} cycles, {summary['missed_deadlines']} missed deadlines, "
@@ -401,28 +403,27 @@ def cmd_nav(a: argparse.Namespace) -> int:
     )
     if summary.get("corrupt_frames"):
         print(f"{summary['corrupt_frames']} corrupt frame(s) skipped", file=sys.stderr)
-    print(f"mission: {guidance.outcome}", file=sys.stderr)
+    print(f"mission: {daemon.guidance.outcome}", file=sys.stderr)
     end = daemon.session_end
-    if end is not None and link is not None:
+    if end is not None and daemon.link is not None:
         print(
             f"MCU: planned end {'accepted' if end.accepted else 'NOT accepted'}"
             f"{f', state {end.state}' if end.state else ''} ({end.detail})",
             file=sys.stderr,
         )
-    rc, why = exit_status(daemon)
-    if rc != EXIT_OK:
-        print(f"oibar: error: {why} (exit status {rc})", file=sys.stderr, flush=True)
-    return rc
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
     from oibar.nav.daemon import load_navigator
-    from oibar.nav.replay import format_summary, replay
+    from oibar.nav.replay import calibration_from_info, format_summary, read_run_info, replay
 
     model = a.model or default_model_path()
-    navigator = load_navigator(model, threads=a.threads)
-    if a.calibration is not None:
-        navigator.estimator.use_calibration(a.calibration)
+    info = read_run_info(a.log)  # the flight's thread count and calibration: the defaults
+    threads = a.threads or (int(info.ort_intra_op_threads) if info is not None else 0) or 2
+    navigator = load_navigator(model, threads=threads)
+    calibration = a.calibration if a.calibration is not None else calibration_from_info(info)
+    if calibration is not None:
+        navigator.estimator.use_calibration(calibration)
         _report_calibration(navigator.estimator)
     status = StatusLine()
 

@@ -53,19 +53,20 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from oibar import pb
 from oibar.camera import CameraError, CameraLost, CameraSource, EndOfStream, Frame, LatestFrame
 from oibar.link.core import Request
-from oibar.link.protocols import Connectable, Event, NavLink, Telemetry
+from oibar.link.protocols import Connectable, Event, NavLink
 from oibar.nav.core import Navigator, NavStep
-from oibar.nav.cyclelog import CycleLog
+from oibar.nav.cycle_stats import DaemonStats
+from oibar.nav.flightlog import CycleInputs, FlightLog, camera_intrinsics, run_info
 from oibar.nav.guidance import Guidance, GuidanceOutput, MechRequest, Observation, RequestResult
+from oibar.nav.mcu_requests import SessionEnd, request_result
+from oibar.nav.mcu_requests import end_session as end_mcu_session
 from oibar.nav.vehicle import NullVehicle, VehicleInterface
 
 
@@ -81,70 +82,12 @@ class DaemonParams:
     stats_window: int = 36_000  # cycle timings kept for the percentiles (1 h at 10 Hz)
 
 
-@dataclass
-class DaemonStats:
-    cycles: int = 0
-    missed_deadlines: int = 0
-    # cycle start -> end of work; capture -> setpoint sent (the newest DaemonParams.stats_window)
-    cycle_ms: collections.deque[float] = field(default_factory=collections.deque)
-    frame_to_command_ms: collections.deque[float] = field(default_factory=collections.deque)
-    frames_used: int = 0
-    camera_reopens: int = 0
-    holds: int = 0
-    odometry_errors: int = 0  # the vehicle's relative_velocity raised
-    corrupt_frames: int = 0  # frames the source could not decode: skipped
-
-    def summary(self) -> dict[str, Any]:
-        def pct(xs: collections.deque[float], q: float) -> float | None:
-            return float(np.percentile(xs, q)) if xs else None
-
-        return {
-            "cycles": self.cycles,
-            "missed_deadlines": self.missed_deadlines,
-            "frames_used": self.frames_used,
-            "camera_reopens": self.camera_reopens,
-            "hold_cycles": self.holds,
-            "odometry_errors": self.odometry_errors,
-            "corrupt_frames": self.corrupt_frames,
-            "cycle_ms_median": pct(self.cycle_ms, 50),
-            "cycle_ms_p99": pct(self.cycle_ms, 99),
-            "frame_to_command_ms_median": pct(self.frame_to_command_ms, 50),
-            "frame_to_command_ms_p99": pct(self.frame_to_command_ms, 99),
-            "frame_to_command_ms_max": max(self.frame_to_command_ms) if self.frame_to_command_ms else None,
-        }
-
-
 # Why run() ended (NavDaemon.stop_reason); the CLI maps each to its exit status (oibar.nav.cli).
 STOP_FINISHED = "finished"  # guidance: mission completed, aborted or safed
 STOP_DURATION = "duration"  # --duration-s / max_cycles reached
 STOP_SIGNAL = "signal"  # Ctrl-C, SIGTERM (NavDaemon.stop)
 STOP_SOURCE_ENDED = "source_ended"  # a finite source (video file, frame folder) delivered its last frame
 STOP_SOURCE_DIED = "source_died"  # no frame for camera_dead_s (camera gone, never opened)
-
-
-@dataclass
-class SessionEnd:
-    """How the planned end of the MCU session went (NavDaemon.end_session)."""
-
-    sent: bool  # CMD_END_SESSION reached the MCU and was answered
-    accepted: bool  # the MCU accepted it: safe, and its link timeout will not fault
-    state: str | None = None  # the MCU's state after it
-    detail: str = ""
-
-    @property
-    def safe(self) -> bool:
-        return self.accepted
-
-
-def request_result(req: MechRequest, handle: Request) -> RequestResult:
-    """Guidance's view of a completed link request handle (oibar.link.core.Request)."""
-    if handle.error is not None:  # LinkDown, LinkTimeout, closed: guidance hears it and retries
-        return RequestResult(req, False, type(handle.error).__name__)
-    body = handle.response
-    reason = pb.enum_name(pb.NackReason, body.reason)
-    if handle.response_kind == "ack":
-        return RequestResult(req, bool(body.accepted), reason, pb.enum_name(pb.State, body.state))
-    return RequestResult(req, body.reason == pb.NACK_NONE, reason)
 
 
 class NavDaemon:
@@ -155,7 +98,7 @@ class NavDaemon:
         camera: CameraSource,
         link: NavLink | None = None,
         vehicle: VehicleInterface | None = None,
-        log: CycleLog | None = None,
+        log: FlightLog | None = None,
         params: DaemonParams | None = None,
         status: Callable[[str], object] | None = None,
         clock: Callable[[], float] = time.monotonic,
@@ -320,7 +263,7 @@ class NavDaemon:
             st.frame_to_command_ms.append((sent - frame.t_host) * 1e3)
         if step.hold_reason:
             st.holds += 1
-        self._log_cycle(t_s, frame, step, out, link_up, telemetry, (end - start) * 1e3, odometry)
+        self._log_cycle(t_s, frame, step, out, obs, (end - start) * 1e3, odometry, camera_error)
         self._last_out, self._last_step = out, step
         return step, out
 
@@ -354,83 +297,55 @@ class NavDaemon:
             self.stats.odometry_errors += 1
             return None
 
-    @staticmethod
-    def _odometry_record(odometry: Any, upd: Any) -> dict[str, Any] | None:
-        """The vehicle's measurement as fed (replay feeds it again) and the filter's verdict."""
-        if odometry is None:
-            return None
-        try:
-            rec = {
-                "t_s": float(odometry[0]),
-                "v_D_mps": [float(v) for v in odometry[1]],
-                "sigma_mps": float(odometry[2]),
-            }
-        except (TypeError, ValueError, IndexError):
-            rec = {"malformed": repr(odometry)[:80]}
-        return {**rec, "reason": upd.reason if upd is not None else "dropped"}
-
     def _log_cycle(
         self,
         t_s: float,
         frame: Frame | None,
         step: NavStep,
         out: GuidanceOutput,
-        link_up: bool,
-        tm: Telemetry | None,
+        obs: Observation,
         cycle_ms: float,
         odometry: Any = None,
+        camera_error: str = "",
     ) -> None:
+        """The cycle into the flight log (oibar.nav.flightlog): it copies what it needs and
+        writes in its own thread, and never raises."""
         if self.log is None:
             return
-        est = step.estimate
-        # named by the cycle, not the camera's seq: that restarts at 0 when the camera is reopened
-        frame_file = self.log.save_frame(frame.image, self.stats.cycles) if frame is not None else None
-        sol = step.solution
-        upd = step.update
-        self.log.write(
-            {
-                "kind": "cycle",
-                "t_s": t_s,
-                "cycle": self.stats.cycles,
-                "frame": None
-                if frame is None
-                else {"seq": frame.seq, "t_s": frame.t_host - self._t0, "file": frame_file},
-                "estimate": None
-                if est is None
-                else {
-                    "T_cam_target_m": est.T_cam_target_m,
-                    "q_cam_target": est.q_cam_target,
-                    "confidence": est.confidence,
-                    "latency_ms": est.latency_ms,
-                },
-                "filter": None
-                if upd is None
-                else {
-                    "accepted": upd.accepted,
-                    "gated": upd.gated,
-                    "reinitialised": getattr(upd, "reinitialised", False),
-                },
-                "odometry": self._odometry_record(odometry, step.velocity_update),
-                "nav": {
-                    "valid": sol.valid,
-                    "r_D_m": sol.r_D_m,
-                    "v_D_mps": sol.v_D_mps,
-                    "att_rad": sol.att_rad,
-                    "hold_reason": sol.hold_reason,
-                },
-                "guidance": {
-                    "phase": out.phase,
-                    "v_sp_D_mps": out.v_sp_D_mps,
-                    "w_sp_rad_s": out.w_sp_rad_s,
-                    "request": out.request.label if out.request else None,
-                },
-                "link_up": link_up,
-                "mcu_state": pb.enum_name(pb.State, tm.state) if tm is not None else None,
-                "timings_ms": {**step.timings_ms, "cycle": cycle_ms},
-            }
+        tm = obs.telemetry
+        self.log.cycle(
+            CycleInputs(
+                t_s=t_s,
+                # numbered by the daemon: the camera's seq restarts at 0 when the camera is reopened
+                cycle=self.stats.cycles,
+                step=step,
+                out=out,
+                image=frame.image if frame is not None else None,
+                frame_seq=frame.seq if frame is not None else None,
+                frame_t_s=frame.t_host - self._t0 if frame is not None else None,
+                odometry=odometry,
+                link_up=obs.link_up,
+                telemetry=tm,
+                events=list(obs.events),
+                results=list(obs.results),
+                mcu_state=pb.enum_name(pb.State, tm.state) if tm is not None else "",
+                cycle_ms=cycle_ms,
+                corrupt_frames=self.stats.corrupt_frames,
+                camera_error=camera_error if frame is None else "",
+            ),
+            nav_filter=self.nav.filter,
         )
 
     # -- the loop -----------------------------------------------------------------------
+
+    def start_log(self) -> None:
+        """The flight log's run information: versions, model, onnxruntime threads, intrinsics
+        (``run`` calls it; a caller that drives ``cycle`` itself calls it first)."""
+        if self.log is None:
+            return
+        est = self.nav.estimator
+        info = run_info(est, self.camera_source.name, self.p.rate_hz, time.time() - (self.clock() - self._t0))
+        self.log.start(info, camera_intrinsics(est)[1])
 
     def status_line(self) -> str:
         out, step = self._last_out, self._last_step
@@ -468,49 +383,17 @@ class NavDaemon:
         return now - self._last_frame_at >= self.p.camera_dead_s
 
     def end_session(self, timeout_s: float | None = None) -> SessionEnd:
-        """The planned end of the MCU session: wait (boundedly) for a request still in flight
-        (stop and wait: one at a time), then send ``CMD_END_SESSION`` and wait for its answer,
-        heartbeating meanwhile. The MCU closes the valves, stops a transfer, holds mated states,
-        aborts moving ones (docs/state_table.md) and, once it has accepted, does not count the
-        silence that follows as a host link loss. Never raises."""
-        link = self.link
-        if link is None:
+        """The planned end of the MCU session (oibar.nav.mcu_requests.end_session): wait
+        (boundedly) for a request still in flight, then send ``CMD_END_SESSION`` and wait for its
+        answer. The MCU closes the valves, stops a transfer, holds mated states, aborts moving
+        ones (docs/state_table.md) and, once it has accepted, does not count the silence that
+        follows as a host link loss. Never raises."""
+        if self.link is None:
             self.session_end = SessionEnd(False, False, None, "no MCU (--port none)")
-            return self.session_end
-        deadline = time.monotonic() + (self.p.end_session_s if timeout_s is None else timeout_s)
-
-        def beat() -> None:
-            try:
-                link.heartbeat()
-            except Exception:
-                pass
-            time.sleep(0.01)
-
-        try:
-            while self._handle is not None and not self._handle.done and time.monotonic() < deadline:
-                beat()
-            if not link.link_alive:
-                res = SessionEnd(
-                    False, False, None, "link down: the MCU takes the silence for a host link loss"
-                )
-            else:
-                handle = link.submit_command(pb.CMD_END_SESSION, None)
-                while not handle.done and time.monotonic() < deadline:
-                    beat()
-                if not handle.done:
-                    res = SessionEnd(False, False, None, "no answer from the MCU")
-                elif handle.error is not None:
-                    res = SessionEnd(False, False, None, f"{type(handle.error).__name__}: {handle.error}")
-                else:
-                    body = handle.response
-                    state = pb.enum_name(pb.State, body.state) if handle.response_kind == "ack" else None
-                    accepted = bool(getattr(body, "accepted", False))
-                    reason = pb.enum_name(pb.NackReason, body.reason)
-                    res = SessionEnd(True, accepted, state, "accepted" if accepted else f"refused: {reason}")
-        except Exception as exc:  # LinkDown, closed, another request out: reported, never raised
-            res = SessionEnd(False, False, None, f"{type(exc).__name__}: {exc}")
-        self.session_end = res
-        return res
+        else:
+            wait_s = self.p.end_session_s if timeout_s is None else timeout_s
+            self.session_end = end_mcu_session(self.link, self._handle, wait_s)
+        return self.session_end
 
     def run(self, duration_s: float | None = None, max_cycles: int | None = None) -> dict[str, Any]:
         """Frame-driven at ``rate_hz``: each cycle starts when a frame arrives that was captured
@@ -526,16 +409,7 @@ class NavDaemon:
         if not self._t0_fixed:
             self._t0 = t_start
         if self.log is not None:
-            self.log.write(
-                {
-                    "kind": "header",
-                    "rate_hz": self.p.rate_hz,
-                    "camera": self.camera_source.name,
-                    "model": str(getattr(self.nav.estimator, "path", "")),
-                    "model_version": getattr(self.nav.estimator, "meta", {}).get("model_version"),
-                    "wall_clock_start": time.time(),
-                }
-            )
+            self.start_log()
         last_start = t_start - period
         last_capture = -1e18
         self._last_frame_at = t_start
@@ -603,9 +477,8 @@ class NavDaemon:
                 vehicle = self.vehicle.statistics()
             except Exception as exc:  # a user's vehicle class: its counters must not lose the footer
                 vehicle = {"error": repr(exc)[:80]}
-            self.log.write(
+            self.log.close(
                 {
-                    "kind": "footer",
                     "summary": self.stats.summary(),
                     "outcome": self.guidance.outcome,
                     "stop_reason": self.stop_reason,
@@ -618,12 +491,10 @@ class NavDaemon:
                         "detail": self.session_end.detail,
                     },
                     "notes": self.guidance.notes,
-                    "log_lines_lost": self.log.lines_lost,
-                    "log_error": self.log.error,
                     "vehicle": vehicle,
-                }
+                },
+                t_s=self._last_t(),
             )
-            self.log.close()
 
 
 def install_sigint(daemon: NavDaemon) -> None:
