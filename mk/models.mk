@@ -142,3 +142,21 @@ judge-kp-loop: firmware-host gen ## the ship rule's part 4: the shipped model's 
 golden-pose: SETUP_PROFILE = train
 golden-pose: setup ## rewrite tests/golden/pose from the shipped model (on purpose: commit with the change)
 	@$(PY) -m oibar_models.golden_pose
+
+# One recipe per shipped model (issue 61): a TOML file in models/recipes/ takes the ImageNet
+# backbone and the data generator to the exported, checked ONNX file, every stage resumable
+# (runs/<recipe>/<stage>/stage_done.json), seeded, logged to MLflow (oibar_models.tracking:
+# runs/mlflow, or $(MLFLOW_TRACKING_URI)). models/recipes/oibarnet_kp_smoke.toml is the same chain
+# at toy size (a minute or two on 2 cores; tests/models/test_build.py runs it).
+RECIPE ?= models/recipes/oibarnet_kp.toml
+BUILD_ARGS ?=
+.PHONY: build-model registry-card registry-verify
+build-model registry-card registry-verify: SETUP_PROFILE = train
+build-model: setup ## build a model from its recipe: data, training stages, selection, export, evaluation, card (RECIPE=...; resumes)
+	@$(PY) -m oibar_models.build $(RECIPE) $(BUILD_ARGS)
+
+registry-card: setup ## rewrite docs/model_card.md's registry tables from models/registry.toml
+	@$(PY) -m oibar_models.registry card
+
+registry-verify: setup ## the shipped ONNX files against their sha256 in models/registry.toml
+	@$(PY) -m oibar_models.registry verify

@@ -170,6 +170,14 @@ class CropDataset(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return len(self.items)
 
+    def _draw_seed(self, i: int) -> list[int]:
+        """A training draw's seed: the config's seed, this process's torch seed (the trainer seeds
+        torch, and the DataLoader seeds each worker from it, handing batches out in a fixed
+        order), the draw's count in this process and the index. The same run seed gives the same
+        augmentation run after run (issue 61: it was unseeded), and no two draws share one."""
+        self._draws = getattr(self, "_draws", 0) + 1
+        return [self.seed, torch.initial_seed() % 2**63, self._draws, i]
+
     def window(self, uv: np.ndarray, rng: np.random.Generator) -> CropWindow:
         a = self.aug
         base = window_around(uv[np.all(np.isfinite(uv), axis=1)], self.out_px, a.margin)
@@ -181,7 +189,7 @@ class CropDataset(torch.utils.data.Dataset):
     def __getitem__(self, i: int) -> dict:
         s, k = self.items[i]
         sc = self.scenes[s]
-        rng = np.random.default_rng(None if self.train else [self.seed, i])
+        rng = np.random.default_rng(self._draw_seed(i) if self.train else [self.seed, i])
         img = np.asarray(Image.open(sc.dir / sc.files[k]).convert("RGB"))
         R = quat_to_matrix_np(sc.q_cam_target[k])
         T = sc.T_cam_target[k]

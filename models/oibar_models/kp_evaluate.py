@@ -6,7 +6,10 @@ and the mean-pose baseline; errors per range bin (table and plot), with the mean
 error of what the navigation filter is fed (a bias the filter keeps, where the mean error angle
 hides it); latency of the whole estimator, frame in to pose out.
 
-Two modes (`--modes`): `single`, every frame on its own (the paper's protocol), and `track`,
+Three modes (`--modes`): `single`, every frame on its own with the whole cold search (the
+paper's protocol: no crop budget, up to ~480 crops and 2 s a frame); `cold`, every frame on its
+own at the flight setting (the search stops at the crop budget the daemon flies,
+oibar.nav.pose.search.COLD_CROP_BUDGET, and answers what it has, flagged `searching`); and `track`,
 where each frame also gets the pose predicted from the previous answers (constant velocity over
 the last two confident ones), as the daemon gives its filter's: a keypoint model then places its
 first crop there, and its recent strong fits can overrule the direct model (oibar.nav.fit_history);
@@ -132,6 +135,7 @@ def run_sequence(est, seq, stride: int, progress: bool, track: bool = False) -> 
     q_meas = np.full((len(idx), 4), np.nan)  # what the daemon's filter is fed (PoseEstimate.measurement)
     conf = np.zeros(len(idx))
     lat = np.zeros(len(idx))
+    flags: list[tuple[str, ...]] = [()] * len(idx)  # why each answer's confidence was lowered
     it = enumerate(idx)
     if progress:
         from oibar.progress import progress_iter
@@ -149,7 +153,7 @@ def run_sequence(est, seq, stride: int, progress: bool, track: bool = False) -> 
         lat[j] = (time.perf_counter() - t0) * 1e3
         if pred:
             pred.add(t_s, e)
-        T_hat[j], q_hat[j], conf[j] = e.T_cam_target_m, e.q_cam_target, e.confidence
+        T_hat[j], q_hat[j], conf[j], flags[j] = e.T_cam_target_m, e.q_cam_target, e.confidence, e.flags
         if e.finite:
             q_meas[j] = matrix_to_quat(e.measurement()[1])
     return {
@@ -159,6 +163,7 @@ def run_sequence(est, seq, stride: int, progress: bool, track: bool = False) -> 
         "q_meas": q_meas,
         "confidence": conf,
         "latency_ms": lat,
+        "flags": flags,
     }
 
 
@@ -341,9 +346,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--modes",
         nargs="+",
-        choices=("single", "track"),
+        choices=("single", "cold", "track"),
         default=["single", "track"],
-        help="every frame alone, and/or with the predicted pose as the daemon gives it (default both)",
+        help="every frame alone with the whole search (single) or at the flight setting's crop budget "
+        "(cold), and/or with the predicted pose as the daemon gives it (track); default single track",
     )
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/eval_kp")
     ap.add_argument("--no-progress", action="store_true")
@@ -353,7 +359,16 @@ def main(argv: list[str] | None = None) -> int:
         help="read a test set again with a model file that has read it before, and say why (kept in the ledger)",
     )
     ap.add_argument("--ledger", type=Path, default=REPO_ROOT / TEST_LEDGER, help=argparse.SUPPRESS)
+    ap.add_argument(
+        "--val-set",
+        nargs=2,
+        metavar=("SPEC", "ROOT"),
+        default=None,
+        help="the validation scenes (a scene set) and where they are rendered, instead of "
+        f"{SETS['val'][0]} in {SETS['val'][1]} (a recipe's build)",
+    )
     a = ap.parse_args(argv)
+    sets = dict(SETS, val=tuple(a.val_set)) if a.val_set else SETS
     test_sets = [n for n in a.sets if n.startswith("test")]
     shas = {}
     for p in a.models if test_sets else []:
@@ -384,13 +399,15 @@ def main(argv: list[str] | None = None) -> int:
             for mode in a.modes:
                 if mode == "single":
                     ests.append((label, est, False))
+                elif mode == "cold" and isinstance(est, KeypointPoseEstimator):
+                    ests.append((label + " cold", PoseEstimator(p), False))  # the flight budget
                 elif est.uses_prior:
                     ests.append((label + " tracking", est, True))
     except ModelFileError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     for set_name in a.sets:
-        spec, root = SETS[set_name]
+        spec, root = sets[set_name]
         try:
             seqs = [load_sequence(REPO_ROOT / root / s.name) for s in load_set(REPO_ROOT / spec)]
         except DatasetError as exc:

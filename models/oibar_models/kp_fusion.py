@@ -10,7 +10,7 @@ prior repeats on every frame (the head's tilt shrunk toward "aligned"). That is 
 navigator's filter is fed the same keypoints' prior-free fit (oibar.nav.pose.PoseEstimate.
 measurement), chosen on the closed loop of validation looks (docs/model_history.md, 2026-11-24).
 
-The error model (oibar.nav.keypoints.KeypointErrorModel) is measured here too: each keypoint's
+The error model (oibar.nav.error_models.KeypointErrorModel) is measured here too: each keypoint's
 RMS error per range bin, in crops cut around the true pose of the validation frames (errors past
 the PnP inlier threshold clipped to it: RANSAC drops those anyway).
 
@@ -131,7 +131,11 @@ def error_model(rows: list[dict], clip_crop_px: float) -> dict:
     5 answers takes the keypoint's overall RMS."""
     err = np.minimum(np.array([r["kp_err_crop_px"] for r in rows]), clip_crop_px)  # NaN stays NaN
     rng = np.array([float(np.linalg.norm(r["T"])) for r in rows])
-    overall = np.sqrt(np.nanmean(err**2, axis=0))
+    answered = np.isfinite(err)
+    n_all = answered.sum(axis=0)
+    # nanmean's figure without its warning for a keypoint never answered (NaN, filled in below)
+    sq_all = (np.where(answered, err, 0.0) ** 2).sum(axis=0)
+    overall = np.where(n_all > 0, np.sqrt(sq_all / np.maximum(n_all, 1)), np.nan)
     edges = np.asarray(ERROR_RANGE_EDGES_M)
     table = np.empty((err.shape[1], len(edges) - 1))
     for b, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=False)):
@@ -142,7 +146,10 @@ def error_model(rows: list[dict], clip_crop_px: float) -> dict:
         sq = np.where(np.isfinite(e), e, 0.0) ** 2
         rms = np.sqrt(sq.sum(axis=0) / np.maximum(n, 1))
         table[:, b] = np.where(n >= 5, rms, overall)
-    table = np.maximum(np.nan_to_num(table, nan=float(np.nanmax(overall))), MIN_RMS_CROP_PX)
+    # a keypoint never answered at all counts as the clip (as bad as a kept answer can be); when
+    # none was ever answered (an untrained network on a handful of frames), every one does
+    worst = float(np.nanmax(overall)) if np.any(np.isfinite(overall)) else float(clip_crop_px)
+    table = np.maximum(np.nan_to_num(table, nan=worst), MIN_RMS_CROP_PX)
     return {"range_edges_m": list(ERROR_RANGE_EDGES_M), "rms_crop_px": np.round(table, 4).tolist()}
 
 
@@ -277,6 +284,14 @@ def main(argv: list[str] | None = None) -> int:
         help="score only these weights, KP_PX:PRIOR_DEG[,...] (keypoint sigma at a 128 px crop, "
         "prior sigma), each prior with both error models, and PnP alone; default: the whole grid",
     )
+    ap.add_argument(
+        "--val-set",
+        nargs=2,
+        type=Path,
+        metavar=("SPEC", "ROOT"),
+        default=(Path("models/scenes/val.json"), Path("data/val")),
+        help="the validation scenes (a scene set) and where they are rendered (a recipe's build)",
+    )
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
     pairs = None
@@ -305,9 +320,8 @@ def main(argv: list[str] | None = None) -> int:
     # the grid solves unrelated frames one by one, with no cycle to keep: the whole cold search on
     # each, none carried from one frame to the next (search.COLD_CROP_BUDGET)
     est.search.cold_crop_budget = None
-    seqs = [
-        load_sequence(REPO_ROOT / "data/val" / s.name) for s in load_set(REPO_ROOT / "models/scenes/val.json")
-    ]
+    spec, root = a.val_set
+    seqs = [load_sequence(REPO_ROOT / root / s.name) for s in load_set(REPO_ROOT / spec)]
     rows = collect(est, seqs, a.stride, track=not a.single)
     em = error_model(rows, float(est.reader.reproj_crop_px))
     pems = {source: prior_error_model(rows, source) for source in ("direct", "head")}
@@ -333,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
     a.out.write_text(
         json.dumps(
             {
-                "chosen_on": "validation scenes (models/scenes/val.json)",
+                "chosen_on": f"validation scenes ({spec})",
                 "out_px": est.reader.out_px,  # the crop the sigmas are in (kp_export checks it)
                 "frames": len(rows),
                 "stride": a.stride,

@@ -1,0 +1,313 @@
+"""A model's recipe: one TOML file (models/recipes/*.toml) that says everything `python -m
+oibar_models.build` needs to go from the ImageNet backbone and the data generator to the exported,
+checked ONNX file. Validated before anything runs: an unknown key, a missing one, a value of the
+wrong type or a stage that names a stage it cannot use is a RecipeError naming the file and key.
+
+    [recipe]    name, model_version, seed, description, threads
+    [datasets.NAME]   spec (a scene set, models/scenes/*.json), root, scenes, frames_limit
+    [[stages]]  name, kind, and the keys of its kind (STAGE_KEYS):
+      train     a keypoint training stage (a kp_engine YAML config): from the ImageNet backbone
+                (init = "imagenet") or another train stage's checkpoint (init = "STAGE:best|last")
+      export    one or two trained networks to the flight file (kp_export), parity-checked and
+                opened as the flight runtime opens it
+      fusion    the fit's weights chosen on validation (kp_fusion's grid) for an export's file
+      evaluate  the flight estimator on the validation set (kp_evaluate): the paper's metrics
+      card      the model card's tables and a registry entry for the build, from an evaluate stage
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .config import REPO_ROOT
+
+
+class RecipeError(ValueError):
+    """A recipe file is missing, not TOML, or holds unknown keys or values that cannot work."""
+
+
+VERSION_RE = re.compile(r"\d+\.\d+\.\d+")
+NAME_RE = re.compile(r"[a-z][a-z0-9_]*")
+STAGE_KINDS = ("train", "export", "fusion", "evaluate", "card")
+# every key a stage of each kind may have (beyond name and kind), with its type and default;
+# None as a default: required
+STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
+    "train": {
+        "config": (str, None),
+        "init": (str, None),  # "imagenet" or "STAGE:best|last"
+        "train_data": (str, ""),  # a dataset: the config's data.train_spec
+        "far_only_data": (str, ""),  # a dataset: the config's data.far_only_spec
+        "val_data": (str, None),
+        "overrides": (dict, {}),
+        "note": (str, ""),
+    },
+    "export": {
+        "network": (str, None),  # "STAGE:best|last"
+        "far_network": (str, ""),  # "STAGE:best|last": read every window from far_from_m on
+        "far_from_m": (float, 8.0),
+        "first_pass": (str, "models/oibarnet_lite.onnx"),
+        "first_pass_sha256": (str, ""),
+        "fusion": (str, ""),  # a fusion stage, a kp_fusion JSON file, or "" for PnP with the prior off
+        "corner_refine_side_px": (float, -1.0),  # -1: the config's
+        "note": (str, ""),
+    },
+    "fusion": {
+        "model": (str, None),  # an export stage
+        "val_data": (str, None),
+        "stride": (int, 16),
+        "priors": (list, ["direct", "head"]),
+        "pairs": (list, []),  # [[KP_PX, PRIOR_DEG], ...]; empty: the whole grid
+        "note": (str, ""),
+    },
+    "evaluate": {
+        "model": (str, None),  # an export stage
+        "val_data": (str, None),
+        "stride": (int, 2),
+        "modes": (list, ["track"]),
+        "note": (str, ""),
+    },
+    "card": {
+        "evaluate": (str, None),
+        "note": (str, ""),
+    },
+}
+
+
+@dataclass
+class Dataset:
+    name: str
+    spec: str  # a scene set (models/scenes/*.json), repository-relative or absolute
+    root: str = ""  # where it is rendered; "": runs/<recipe>/data/<name>
+    scenes: list[str] = field(default_factory=list)  # a subset of the spec's scenes; []: all
+    frames_limit: int = 0  # the first N frames of each scene; 0: all
+
+
+@dataclass
+class Stage:
+    name: str
+    kind: str
+    opts: dict[str, Any]
+
+    def __getitem__(self, key: str) -> Any:
+        return self.opts[key]
+
+
+@dataclass
+class Recipe:
+    path: Path
+    name: str
+    model_version: str
+    seed: int
+    description: str
+    threads: int
+    runs_dir: str
+    datasets: dict[str, Dataset]
+    stages: list[Stage]
+
+    def stage(self, name: str) -> Stage:
+        for s in self.stages:
+            if s.name == name:
+                return s
+        raise KeyError(name)
+
+
+def resolve(p: str | Path) -> Path:
+    q = Path(p)
+    return q if q.is_absolute() else REPO_ROOT / q
+
+
+def _typed(where: str, value: Any, want: type | tuple[type, ...]) -> Any:
+    if want is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, bool) and want is not bool:
+        raise RecipeError(f"{where}: expected {getattr(want, '__name__', want)}, got {value!r}")
+    if not isinstance(value, want):
+        raise RecipeError(f"{where}: expected {getattr(want, '__name__', want)}, got {value!r}")
+    return value
+
+
+def _only(where: str, table: dict, known: set[str]) -> None:
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise RecipeError(f"{where}: unknown key(s) {unknown}; known: {sorted(known)}")
+
+
+def split_ref(ref: str, where: str) -> tuple[str, str]:
+    """'STAGE:best|last' -> (STAGE, best|last)."""
+    stage, _, which = ref.partition(":")
+    if not stage or which not in ("best", "last"):
+        raise RecipeError(f"{where}: expected STAGE:best or STAGE:last, got {ref!r}")
+    return stage, which
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    """Read and check a recipe; RecipeError with the file and key on anything wrong."""
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise RecipeError(f"{path}: cannot read the recipe ({exc})") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise RecipeError(f"{path}: not valid TOML ({exc})") from exc
+    w = str(path)
+    _only(w, doc, {"recipe", "datasets", "stages"})
+    head = doc.get("recipe")
+    if not isinstance(head, dict):
+        raise RecipeError(f"{w}: a [recipe] table is required")
+    _only(f"{w} [recipe]", head, {"name", "model_version", "seed", "description", "threads", "runs_dir"})
+    for key in ("name", "model_version", "seed"):
+        if key not in head:
+            raise RecipeError(f"{w} [recipe]: {key} is required")
+    name = _typed(f"{w} recipe.name", head["name"], str)
+    if not NAME_RE.fullmatch(name):
+        raise RecipeError(f"{w} recipe.name: lower case, digits and _ only, got {name!r}")
+    version = _typed(f"{w} recipe.model_version", head["model_version"], str)
+    if not VERSION_RE.fullmatch(version):
+        raise RecipeError(f"{w} recipe.model_version: MAJOR.MINOR.PATCH, got {version!r}")
+    seed = _typed(f"{w} recipe.seed", head["seed"], int)
+    if seed < 0:
+        raise RecipeError(f"{w} recipe.seed: must be >= 0, got {seed}")
+    threads = _typed(f"{w} recipe.threads", head.get("threads", 2), int)
+    if threads < 1:
+        raise RecipeError(f"{w} recipe.threads: must be >= 1, got {threads}")
+
+    datasets: dict[str, Dataset] = {}
+    raw_sets = doc.get("datasets", {})
+    if not isinstance(raw_sets, dict) or not raw_sets:
+        raise RecipeError(f"{w}: at least one [datasets.NAME] table is required")
+    for dname, d in raw_sets.items():
+        where = f"{w} [datasets.{dname}]"
+        if not NAME_RE.fullmatch(dname) or not isinstance(d, dict):
+            raise RecipeError(f"{where}: a table named in lower case, digits and _")
+        _only(where, d, {"spec", "root", "scenes", "frames_limit"})
+        if "spec" not in d:
+            raise RecipeError(f"{where}: spec is required (a scene set, models/scenes/*.json)")
+        ds = Dataset(
+            dname,
+            _typed(f"{where} spec", d["spec"], str),
+            _typed(f"{where} root", d.get("root", ""), str),
+            list(_typed(f"{where} scenes", d.get("scenes", []), list)),
+            _typed(f"{where} frames_limit", d.get("frames_limit", 0), int),
+        )
+        if not resolve(ds.spec).is_file():
+            raise RecipeError(f"{where} spec: scene set not found: {ds.spec}")
+        if ds.frames_limit < 0:
+            raise RecipeError(f"{where} frames_limit: must be >= 0 (0: every frame), got {ds.frames_limit}")
+        if not all(isinstance(s, str) for s in ds.scenes):
+            raise RecipeError(f"{where} scenes: a list of scene names")
+        datasets[dname] = ds
+
+    stages: list[Stage] = []
+    raw_stages = doc.get("stages", [])
+    if not isinstance(raw_stages, list) or not raw_stages:
+        raise RecipeError(f"{w}: at least one [[stages]] entry is required")
+    for i, s in enumerate(raw_stages):
+        where = f"{w} stages[{i}]"
+        if not isinstance(s, dict) or "name" not in s or "kind" not in s:
+            raise RecipeError(f"{where}: every stage has a name and a kind")
+        sname = _typed(f"{where} name", s["name"], str)
+        where = f"{w} stage {sname!r}"
+        if not NAME_RE.fullmatch(sname):
+            raise RecipeError(f"{where}: a name in lower case, digits and _")
+        if any(x.name == sname for x in stages) or sname in ("data",):
+            raise RecipeError(f"{where}: the name is used twice (or is reserved)")
+        kind = s["kind"]
+        if kind not in STAGE_KINDS:
+            raise RecipeError(f"{where} kind: one of {list(STAGE_KINDS)}, got {kind!r}")
+        spec = STAGE_KEYS[kind]
+        opts = {k: v for k, v in s.items() if k not in ("name", "kind")}
+        _only(where, opts, set(spec))
+        for key, (typ, default) in spec.items():
+            if key in opts:
+                opts[key] = _typed(f"{where} {key}", opts[key], typ)
+            elif default is None:
+                raise RecipeError(f"{where}: {key} is required for a {kind} stage")
+            else:
+                opts[key] = default
+        _check_stage(where, kind, opts, stages, datasets)
+        stages.append(Stage(sname, kind, opts))
+    return Recipe(
+        path=path,
+        name=name,
+        model_version=version,
+        seed=seed,
+        description=str(head.get("description", "")),
+        threads=threads,
+        runs_dir=_typed(f"{w} recipe.runs_dir", head.get("runs_dir", "runs"), str),
+        datasets=datasets,
+        stages=stages,
+    )
+
+
+def _earlier(where: str, key: str, ref: str, before: list[Stage], kind: str) -> None:
+    for s in before:
+        if s.name == ref:
+            if s.kind != kind:
+                raise RecipeError(f"{where} {key}: {ref!r} is a stage of kind {s.kind}, not {kind}")
+            return
+    raise RecipeError(f"{where} {key}: no earlier {kind} stage named {ref!r} (stages run in file order)")
+
+
+def _dataset(where: str, key: str, name: str, datasets: dict[str, Dataset]) -> None:
+    if name and name not in datasets:
+        raise RecipeError(f"{where} {key}: no dataset {name!r} (known: {sorted(datasets)})")
+
+
+def _check_stage(where: str, kind: str, o: dict, before: list[Stage], datasets: dict[str, Dataset]) -> None:
+    if kind == "train":
+        if not resolve(o["config"]).is_file():
+            raise RecipeError(f"{where} config: not found: {o['config']}")
+        if o["init"] != "imagenet":
+            stage, _ = split_ref(o["init"], f"{where} init")
+            _earlier(where, "init", stage, before, "train")
+        if not o["train_data"] and not o["far_only_data"]:
+            raise RecipeError(f"{where}: train_data or far_only_data is required (nothing to train on)")
+        for key in ("train_data", "far_only_data", "val_data"):
+            _dataset(where, key, o[key], datasets)
+        for key, value in o["overrides"].items():
+            if key.split(".")[0] not in ("data", "model", "augment", "train", "export"):
+                raise RecipeError(f"{where} overrides: {key!r} is not SECTION.KEY of a keypoint config")
+            if key in ("train.seed", "train.init_from", "model.pretrained", "run_dir") or isinstance(
+                value, dict
+            ):
+                raise RecipeError(f"{where} overrides: {key!r} is set by the build (seed, init, run folder)")
+    elif kind == "export":
+        _earlier(where, "network", split_ref(o["network"], f"{where} network")[0], before, "train")
+        if o["far_network"]:
+            _earlier(
+                where, "far_network", split_ref(o["far_network"], f"{where} far_network")[0], before, "train"
+            )
+            if not o["far_from_m"] > 0:
+                raise RecipeError(f"{where} far_from_m: must be > 0, got {o['far_from_m']}")
+        if not resolve(o["first_pass"]).is_file():
+            raise RecipeError(f"{where} first_pass: not found: {o['first_pass']}")
+        if o["fusion"] and not any(s.name == o["fusion"] for s in before):
+            if not o["fusion"].endswith(".json") or not resolve(o["fusion"]).is_file():
+                raise RecipeError(
+                    f"{where} fusion: neither an earlier fusion stage nor a kp_fusion JSON file: {o['fusion']!r}"
+                )
+        elif o["fusion"]:
+            _earlier(where, "fusion", o["fusion"], before, "fusion")
+    elif kind in ("fusion", "evaluate"):
+        _earlier(where, "model", o["model"], before, "export")
+        _dataset(where, "val_data", o["val_data"], datasets)
+        if o["stride"] < 1:
+            raise RecipeError(f"{where} stride: must be >= 1, got {o['stride']}")
+        if kind == "fusion":
+            if not o["priors"] or any(p not in ("direct", "head") for p in o["priors"]):
+                raise RecipeError(f"{where} priors: direct and/or head, got {o['priors']!r}")
+            for p in o["pairs"]:
+                if not (
+                    isinstance(p, list)
+                    and len(p) == 2
+                    and all(isinstance(x, (int, float)) and x > 0 for x in p)
+                ):
+                    raise RecipeError(f"{where} pairs: [[KP_PX, PRIOR_DEG], ...], each > 0, got {p!r}")
+        elif not o["modes"] or any(m not in ("single", "track") for m in o["modes"]):
+            raise RecipeError(f"{where} modes: single and/or track, got {o['modes']!r}")
+    elif kind == "card":
+        _earlier(where, "evaluate", o["evaluate"], before, "evaluate")
