@@ -5,6 +5,7 @@ and on Ray with a worker killed mid-mission: same table, no mission lost, none t
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import signal
@@ -218,23 +219,28 @@ def test_clopper_pearson_figures():
 def _deterministic(rows):
     from oibar_hil.campaign.mission import VOLATILE_COLUMNS
 
-    return [{k: v for k, v in r.items() if k not in VOLATILE_COLUMNS} for r in rows]
+    # code_sha: the same unless someone edits the shared checkout between two campaigns
+    return [{k: v for k, v in r.items() if k not in (*VOLATILE_COLUMNS, "code_sha")} for r in rows]
 
 
 @pytest.fixture(scope="module")
 def serial_campaign(tmp_path_factory, sim_mcu_path):
     """The short model's first missions flown in this one process (2, then extended to 4)."""
     pytest.importorskip("pyarrow")
+    from oibar_hil.campaign import fingerprint
     from oibar_hil.campaign.execute import run_missions
     from oibar_hil.campaign.store import open_campaign, read_rows
 
     folder = tmp_path_factory.mktemp("serial")
     cfg = dataclasses.replace(load_config(SHORT), missions=2)
-    open_campaign(folder, cfg)
-    first = run_missions(cfg, folder, executor="serial", mcu_path=str(sim_mcu_path), progress=False)
-    assert (first.already_done, first.finished) == (0, 2)
-    cfg = dataclasses.replace(cfg, missions=TINY_MISSIONS)
-    open_campaign(folder, cfg)  # the same campaign, longer: accepted
+    code = fingerprint.code_fingerprint(cfg.nav, mcu_path=sim_mcu_path)
+    with pytest.MonkeyPatch.context() as mp:  # this checkout's, held: others may edit the tree meanwhile
+        mp.setattr(fingerprint, "code_fingerprint", lambda *a, **k: code)
+        open_campaign(folder, cfg, mcu_path=sim_mcu_path)
+        first = run_missions(cfg, folder, executor="serial", mcu_path=str(sim_mcu_path), progress=False)
+        assert (first.already_done, first.finished) == (0, 2)
+        cfg = dataclasses.replace(cfg, missions=TINY_MISSIONS)
+        assert open_campaign(folder, cfg, mcu_path=sim_mcu_path).status == "same"  # longer: accepted
     more = run_missions(cfg, folder, executor="serial", mcu_path=str(sim_mcu_path), progress=False)
     assert (more.already_done, more.finished) == (2, TINY_MISSIONS - 2), "the resume flew done missions again"
     return folder, cfg, read_rows(folder)
@@ -243,6 +249,8 @@ def serial_campaign(tmp_path_factory, sim_mcu_path):
 def test_serial_campaign_rows(serial_campaign):
     folder, cfg, rows = serial_campaign
     assert [r["index"] for r in rows] == list(range(TINY_MISSIONS))
+    code = json.loads((folder / "campaign.json").read_text())["code"]
+    assert [r["code_sha"] for r in rows] == [code["short"]] * TINY_MISSIONS  # the code that flew them
     for r in rows:
         assert r["outcome"] in ("completed", "aborted", "safed"), r["error"]
         assert r["success"], f"mission {r['index']}: {r['failed_checks']}"
@@ -299,6 +307,8 @@ def test_ray_campaign_with_a_killed_worker_gives_the_same_table(serial_campaign,
     assert [r["index"] for r in table] == list(range(TINY_MISSIONS)), "a mission lost or duplicated"
     assert _deterministic(table) == _deterministic(serial_rows), "Ray's table differs from one process's"
     assert len({r["worker"] for r in table}) >= 2  # the missions did spread over workers
+    code = json.loads((out / "campaign.json").read_text())["code"]
+    assert {r["code_sha"] for r in table} == {code["short"]}  # the driver stamps Ray's rows too
     report = (out / "report.md").read_text()
     assert f"{TINY_MISSIONS}/{TINY_MISSIONS}" in report and "Clopper-Pearson" in report
     assert (out / "figures" / "inputs_success.png").exists()
@@ -314,3 +324,163 @@ def test_replay_reproduces_a_stored_mission(serial_campaign, capsys):
     assert "reproduced" in out
     assert (folder / "replay" / f"{index:06d}" / "report.html").exists()
     assert main(["replay", str(folder), "99"]) == 2  # not in the campaign
+
+
+# -- one version of the code per campaign ------------------------------------------------------
+
+
+@pytest.fixture
+def code_tree(tmp_path, monkeypatch):
+    """A source tree of the fingerprint's groups (fingerprint.SOURCE_ROOT points at it) and a
+    stand-in simulated MCU binary; -> (root, mcu path)."""
+    from oibar_hil.campaign import fingerprint
+
+    root = tmp_path / "src"
+    files = {
+        "host/oibar/nav/guidance.py": "GATE = 5\n",
+        "host/oibar/_generated/oibar_pb2.py": "generated\n",
+        "firmware/app/fsm.c": "int x;\n",
+        "firmware/app/fsm.h": "#pragma once\n",
+        "proto/oibar.proto": 'syntax = "proto3";\n',
+        "hil/oibar_hil/rig/runner.py": "RIG = 1\n",
+        "models/oibarnet.onnx": "weights",
+        "models/oibarnet.int8.onnx": "not shipped",
+        "build/oibar_sim_mcu": "ELF 1",
+    }
+    for rel, text in files.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(text)
+    monkeypatch.setattr(fingerprint, "SOURCE_ROOT", root)
+    return root, root / "build" / "oibar_sim_mcu"
+
+
+def test_the_code_fingerprint_covers_what_flies(code_tree):
+    from oibar_hil.campaign.fingerprint import changed_groups, code_fingerprint
+
+    root, mcu = code_tree
+    a = code_fingerprint("cnn", mcu_path=mcu)
+    assert a == code_fingerprint("cnn", mcu_path=mcu) and a["short"] == a["sha256"][:12]
+    assert set(a["groups"]) == {"host", "firmware", "proto", "hil", "models", "sim_mcu"}
+    assert a["groups"]["firmware"]["files"] == 2 and a["groups"]["models"]["files"] == 1
+    assert "models" not in code_fingerprint("truth", mcu_path=mcu)["groups"]  # truth flies no model
+    (root / "host/oibar/_generated/oibar_pb2.py").write_text("regenerated\n")  # not hashed
+    (root / "models/oibarnet.int8.onnx").write_text("requantised")
+    (root / "host/oibar/nav/__pycache__").mkdir()
+    (root / "host/oibar/nav/__pycache__/guidance.py").write_text("cache\n")
+    assert code_fingerprint("cnn", mcu_path=mcu) == a
+    edits = {
+        "host": "host/oibar/nav/guidance.py",
+        "firmware": "firmware/app/fsm.h",
+        "proto": "proto/oibar.proto",
+        "hil": "hil/oibar_hil/rig/runner.py",
+        "models": "models/oibarnet.onnx",
+        "sim MCU binary": "build/oibar_sim_mcu",
+    }
+    for group, rel in edits.items():
+        before = code_fingerprint("cnn", mcu_path=mcu)
+        (root / rel).write_text((root / rel).read_text() + " ")
+        after = code_fingerprint("cnn", mcu_path=mcu)
+        assert changed_groups(before, after) == [group] and after["sha256"] != before["sha256"]
+    # a file's path is hashed with its contents: a move is a change
+    before = code_fingerprint("cnn", mcu_path=mcu)
+    (root / "firmware/app/fsm.c").rename(root / "firmware/app/fsm2.c")
+    assert changed_groups(before, code_fingerprint("cnn", mcu_path=mcu)) == ["firmware"]
+
+
+def _fake_mission(calls):
+    """run_mission without the rig: a fault-free success row, the index noted in ``calls``."""
+    from oibar_hil.campaign.mission import MissionRun, complete_row
+
+    def run(cfg, index, *, mcu_path=None, model_path=None, out_dir=None):
+        calls.append(index)
+        d = draw_mission(cfg, index)
+        row = {"index": index, "campaign": cfg.name, "config_id": cfg.identity(), "nav": cfg.nav,
+               "fault": "", "fault_phase": "", "outcome": "completed", "success": True,
+               "wall_time_s": 0.01, "cpu_time_s": 0.01, "sim_time_s": 1.0,
+               **{f"in_{k}": v for k, v in d.values.items()}}  # fmt: skip
+        return MissionRun(complete_row(row))
+
+    return run
+
+
+def test_a_campaign_flies_one_version_of_the_code(code_tree, tmp_path, monkeypatch, capsys):
+    """A resume with the same code proceeds; changed code is refused (exit 3, one line naming
+    the groups) unless --allow-code-change gives the reason, which campaign.json, the rows'
+    code_sha and the report keep."""
+    pytest.importorskip("pyarrow")
+    from oibar_hil.campaign import execute
+    from oibar_hil.campaign.cli import EXIT_FOLDER, main
+    from oibar_hil.campaign.report import code_lines
+    from oibar_hil.campaign.store import read_rows
+
+    root, mcu = code_tree
+    calls: list[int] = []
+    monkeypatch.setattr(execute, "run_mission", _fake_mission(calls))
+    folder = tmp_path / "camp"
+
+    def run(n, *extra):
+        calls.clear()
+        rc = main(["run", "--config", str(SHORT), "--missions", str(n), "--out", str(folder),
+                   "--executor", "serial", "--mcu", str(mcu), "--no-progress", "--no-report", *extra])  # fmt: skip
+        return rc, list(calls), capsys.readouterr().err
+
+    assert run(2)[:2] == (0, [0, 1])
+    meta = json.loads((folder / "campaign.json").read_text())
+    first = meta["code"]
+    assert set(first["groups"]) == {"host", "firmware", "proto", "hil", "sim_mcu"}  # truth: no models
+    assert first["git"] is None and first["time"]  # the tree is not a git checkout
+    assert run(3)[:2] == (0, [2])  # unchanged code: the resume proceeds
+    assert [r["code_sha"] for r in read_rows(folder)] == [first["short"]] * 3
+    meta = json.loads((folder / "campaign.json").read_text())
+    assert meta["code"] == first and "code_changes" not in meta
+
+    (root / "host/oibar/nav/guidance.py").write_text("GATE = 4\n")
+    (root / "build/oibar_sim_mcu").write_text("ELF 2")
+    rc, flown, err = run(4)
+    assert (rc, flown) == (EXIT_FOLDER, [])
+    assert len(err.strip().splitlines()) == 1, err
+    assert "host, sim MCU binary changed" in err and "--allow-code-change REASON" in err
+    assert first["short"] in err and f"exit {EXIT_FOLDER}" in err and "--name" in err
+    assert json.loads((folder / "campaign.json").read_text()) == meta  # nothing recorded
+
+    rc, flown, err = run(4, "--allow-code-change", "gate fix: guidance only")
+    assert (rc, flown) == (0, [3]) and "resumed anyway" in err
+    meta = json.loads((folder / "campaign.json").read_text())
+    (change,) = meta["code_changes"]
+    assert change["reason"] == "gate fix: guidance only" and change["time"]
+    assert change["changed"] == ["host", "sim MCU binary"] and change["missions_before"] == 3
+    assert change["old"]["sha256"] == first["sha256"] and meta["code"] == first
+    second = change["new"]["short"]
+    assert second != first["short"]
+    assert [r["code_sha"] for r in read_rows(folder)] == [first["short"]] * 3 + [second]
+    assert run(5)[:2] == (0, [4])  # the accepted code is the campaign's now
+    report = "\n".join(code_lines(folder, read_rows(folder)))
+    assert first["short"] in report and "gate fix: guidance only" in report
+    assert "code changed during this campaign" in report and f"`{second}` 2" in report
+
+
+def test_a_folder_made_before_fingerprints_adopts_the_code(code_tree, tmp_path):
+    """An older campaign.json (no code) resumes, recording this checkout's fingerprint, and its
+    older parts (no code_sha column) still read."""
+    pyarrow = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
+    from oibar_hil.campaign.mission import complete_row
+    from oibar_hil.campaign.store import open_campaign, part_path, read_rows
+
+    _, mcu = code_tree
+    folder = tmp_path / "old"
+    cfg = dataclasses.replace(load_config(SHORT), missions=2)
+    open_campaign(folder, cfg, mcu_path=mcu)
+    meta = json.loads((folder / "campaign.json").read_text())
+    del meta["code"]
+    (folder / "campaign.json").write_text(json.dumps(meta))
+    old = {k: v for k, v in complete_row({"index": 0, "success": True}).items() if k != "code_sha"}
+    pq.write_table(pyarrow.Table.from_pylist([old]), part_path(folder, 0))
+    check = open_campaign(folder, cfg, mcu_path=mcu)
+    assert check.status == "adopted"
+    meta = json.loads((folder / "campaign.json").read_text())
+    assert meta["code"]["sha256"] == check.fingerprint["sha256"]
+    assert meta["code_adopted"]["missions_before"] == 1
+    assert [(r["index"], r["code_sha"]) for r in read_rows(folder)] == [(0, "")]
+    assert open_campaign(folder, cfg, mcu_path=mcu).status == "same"

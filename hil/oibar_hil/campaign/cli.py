@@ -2,13 +2,17 @@
 
     python -m oibar_hil.campaign run [--config hil/campaigns/default.toml] [--missions N] [--nav cnn]
                                      [--workers K | --address HOST:PORT] [--executor serial]
+                                     [--allow-code-change REASON]
     python -m oibar_hil.campaign report CAMPAIGN_DIR
     python -m oibar_hil.campaign replay CAMPAIGN_DIR INDEX
     python -m oibar_hil.campaign draws [--config FILE] [--first I] [--count N]
 
 ``run`` writes build/campaigns/<name>/ (``--out`` to change): a part per mission the moment it
 finishes, then missions.parquet and report.md. Run it again with the same arguments to resume a
-stopped campaign (only the missing missions fly); a larger ``--missions`` extends it.
+stopped campaign (only the missing missions fly); a larger ``--missions`` extends it. A campaign
+flies one version of the code: a resume from a checkout whose fingerprint (fingerprint.py: the
+host, firmware, proto, hil sources, the models for cnn, the simulated MCU binary) differs from
+the one campaign.json recorded is refused (exit 3) unless ``--allow-code-change REASON``.
 
 Exit status:
   0  run: every planned mission is in the table; report: written; replay: the mission
@@ -17,7 +21,8 @@ Exit status:
      worker was lost more than --max-retries times): run again to resume; replay: the mission
      differs from its stored row
   2  bad arguments: an invalid campaign file, no simulated MCU, a missing model, an unknown index
-  3  the folder holds another campaign, or another run is writing to it
+  3  the folder holds another campaign, or was flown by other code (a changed fingerprint, no
+     --allow-code-change), or another run is writing to it
 """
 
 from __future__ import annotations
@@ -58,12 +63,18 @@ def _non_negative(text: str) -> int:
     return v
 
 
+def _reason(text: str) -> str:
+    if not text.strip():
+        raise argparse.ArgumentTypeError("give the reason the code change is acceptable")
+    return text.strip()
+
+
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="python -m oibar_hil.campaign",
         description="Monte Carlo dispersion campaigns on the HIL rig (issue 62)",
         epilog="Exit status: 0 done, 1 incomplete (resume) or not reproduced, 2 bad arguments, "
-        "3 the folder holds another campaign or is in use.",
+        "3 the folder holds another campaign, was flown by other code, or is in use.",
     )
     sub = ap.add_subparsers(dest="cmd", required=True)
     run = sub.add_parser("run", help="run (or resume) a campaign")
@@ -104,6 +115,14 @@ def _parser() -> argparse.ArgumentParser:
         metavar="0..19",
         default=0,
         help="run the missions at this niceness (a shared machine); the driver and Ray stay at normal priority",
+    )
+    run.add_argument(
+        "--allow-code-change",
+        metavar="REASON",
+        type=_reason,
+        default=None,
+        help="resume a campaign flown by other code anyway (recorded with REASON in campaign.json "
+        "and the report)",
     )
     run.add_argument("--no-progress", action="store_true")
     run.add_argument("--no-report", action="store_true", help="only the parts; `report` later")
@@ -167,7 +186,8 @@ def _print_rates(rows: list[dict[str, Any]]) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from oibar_hil.campaign.execute import NICE_ENV, RayStartError, run_missions
-    from oibar_hil.campaign.store import CampaignFolderError, locked, open_campaign
+    from oibar_hil.campaign.fingerprint import describe
+    from oibar_hil.campaign.store import CampaignFolderError, CodeChangedError, locked, open_campaign
 
     try:
         cfg = load_config(args.config)
@@ -195,7 +215,23 @@ def cmd_run(args: argparse.Namespace) -> int:
         os.environ[NICE_ENV] = str(args.nice)
     try:
         with locked(folder):
-            open_campaign(folder, cfg)
+            code = open_campaign(
+                folder, cfg, mcu_path=mcu, model_path=model, allow_code_change=args.allow_code_change
+            )
+            if code.status == "allowed":
+                print(
+                    f"code changed ({', '.join(code.changed)}): {describe(code.previous)} -> "
+                    f"{describe(code.fingerprint)}, resumed anyway: {args.allow_code_change!r} "
+                    "(recorded in campaign.json)",
+                    file=sys.stderr,
+                )
+            elif code.status == "adopted":
+                print(
+                    f"{folder / 'campaign.json'} had no code fingerprint (made before them): "
+                    f"recorded this checkout's, {describe(code.fingerprint)}; the rows already there "
+                    "carry no code_sha",
+                    file=sys.stderr,
+                )
             summary = run_missions(
                 cfg,
                 folder,
@@ -206,8 +242,12 @@ def cmd_run(args: argparse.Namespace) -> int:
                 mcu_path=mcu,
                 model_path=model,
                 progress=not args.no_progress,
+                code_sha=code.short,
             )
             report_path, rows = (None, None) if args.no_report else summarise(folder)
+    except CodeChangedError as exc:
+        _err(f"{exc} (exit {EXIT_FOLDER})")
+        return EXIT_FOLDER
     except CampaignFolderError as exc:
         _err(str(exc))
         return EXIT_FOLDER
@@ -215,7 +255,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         _err(f"{exc}; the missions already flown are kept")
         return EXIT_INCOMPLETE
     print(
-        f"campaign {cfg.name} ({cfg.nav}, seed {cfg.seed}): {summary.already_done} missions already done, "
+        f"campaign {cfg.name} ({cfg.nav}, seed {cfg.seed}, code {code.short}): "
+        f"{summary.already_done} missions already done, "
         f"{summary.finished} flown now in {summary.wall_s:.0f} s on {summary.workers} worker(s)"
     )
     if rows:
@@ -250,8 +291,9 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    from oibar_hil.campaign.fingerprint import changed_groups, code_fingerprint, describe
     from oibar_hil.campaign.mission import VOLATILE_COLUMNS, run_mission
-    from oibar_hil.campaign.store import CampaignFolderError, part_path
+    from oibar_hil.campaign.store import CampaignFolderError, code_record, current_code, part_path
     from oibar_hil.campaign.store import load_config as load_folder_config
     from oibar_hil.rig.report import write_report
 
@@ -276,6 +318,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         out_dir=out,
     )
     row = run.row
+    now = code_fingerprint(cfg.nav, mcu_path=args.mcu, model_path=args.model)
+    row["code_sha"] = now["short"]
     if run.result is not None:
         report = write_report(run.result, out)
         print(f"report: {report}")
@@ -291,7 +335,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
     import pyarrow.parquet as pq  # type: ignore[import-untyped]
 
     stored = pq.read_table(stored_path).to_pylist()[0]
-    diff = [k for k in row if k not in VOLATILE_COLUMNS and k in stored and stored[k] != row[k]]
+    if stored.get("code_sha") and stored["code_sha"] != now["short"]:
+        flew = current_code(code_record(args.folder)) or {}
+        changed = changed_groups(flew, now) if flew.get("short") == stored["code_sha"] else []
+        print(
+            f"note: flown by code {stored['code_sha']}, replayed by {describe(now)}"
+            + (f" ({', '.join(changed)} changed)" if changed else "")
+        )
+    skip = (*VOLATILE_COLUMNS, "code_sha")
+    diff = [k for k in row if k not in skip and k in stored and stored[k] != row[k]]
     if diff:
         for k in diff:
             print(f"  differs: {k}: stored {stored[k]!r}, now {row[k]!r}")

@@ -23,7 +23,14 @@ from typing import Any
 from oibar_hil.campaign.dispersion import CampaignConfig
 from oibar_hil.campaign.mission import ENV_THREADS, run_mission
 from oibar_hil.campaign.stats import rate
-from oibar_hil.campaign.store import clean_temporaries, done_indices, read_rows, write_part
+from oibar_hil.campaign.store import (
+    clean_temporaries,
+    code_record,
+    current_code,
+    done_indices,
+    read_rows,
+    write_part,
+)
 
 # Tests only: each task writes "<index>.<pid>" here when it starts, so a test can kill the
 # worker process that runs a given mission.
@@ -100,9 +107,14 @@ def run_missions(
     model_path: str | None = None,
     progress: bool = True,
     on_row: Callable[[dict[str, Any]], None] | None = None,
+    code_sha: str | None = None,
 ) -> RunSummary:
-    """Run every mission 0..cfg.missions-1 that has no part in ``folder`` yet."""
+    """Run every mission 0..cfg.missions-1 that has no part in ``folder`` yet. Each row gets
+    ``code_sha``: the short hash of the code that flies (default: the one ``open_campaign``
+    checked and recorded in the folder)."""
     folder = Path(folder)
+    if code_sha is None:
+        code_sha = str((current_code(code_record(folder)) or {}).get("short", ""))
     clean_temporaries(folder)
     todo = pending_indices(folder, cfg.missions)
     previous = read_rows(folder)
@@ -116,6 +128,7 @@ def run_missions(
         bar.set_postfix_str(tally.text())
 
     def finished(row: dict[str, Any]) -> None:
+        row = {**row, "code_sha": code_sha}
         write_part(folder, row)
         summary.finished += 1
         tally.add(row)

@@ -359,6 +359,7 @@ OUTPUT_COLUMNS: dict[str, str] = {
     "campaign": "string",
     "campaign_seed": "int64",
     "config_id": "string",
+    "code_sha": "string",  # the short hash of the code that flew it (fingerprint.py; set by the driver)
     "nav": "string",
     "rig_seed": "int64",
     "nav_seed": "int64",

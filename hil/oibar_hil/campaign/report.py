@@ -1,5 +1,7 @@
 """The campaign report (report.md and figures/ in the campaign folder).
 
+0. the code that flew the campaign (its fingerprint, git commit) and any change allowed on a
+   resume (``--allow-code-change``), with the missions each code version flew;
 1. the success rate with its Clopper-Pearson interval and one-sided lower bound: all missions,
    fault-free ones (the docking success rate) and faulted ones (ended as the fault matrix
    expects), and the outcomes;
@@ -15,6 +17,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import shlex
 from collections import Counter, defaultdict
@@ -222,6 +225,69 @@ def _figures(rows: list[dict[str, Any]], cfg: CampaignConfig, fig_dir: Path) -> 
     return made
 
 
+def _when(text: Any) -> str:
+    return str(text or "?").replace("T", " ").replace("Z", " UTC")
+
+
+def code_lines(folder: Path, rows: list[dict[str, Any]]) -> list[str]:
+    """The report's code version: campaign.json's fingerprint, the changes allowed on a resume,
+    and how many missions each code version flew (a row's ``code_sha``)."""
+    from oibar_hil.campaign.fingerprint import describe
+
+    # campaign.json read here, not through store: a driver started before fingerprints (its old
+    # store already imported) still writes its final report with this module
+    path = Path(folder) / "campaign.json"
+    record = json.loads(path.read_text()) if path.exists() else {}
+    code = record.get("code")
+    out = ["## Code version", ""]
+    if not code:
+        out.append(
+            "No code fingerprint recorded: the folder was made before campaigns recorded one, "
+            "so nothing says that every mission was flown by the same code."
+        )
+    else:
+        groups = ", ".join(sorted(code.get("groups", {})))
+        out.append(
+            f"Flown by code `{describe(code)}`, recorded {_when(code.get('time'))}: the SHA-256 "
+            f"`{code.get('sha256', '?')}` over {groups} (docs/campaign.md). A resume from other "
+            "code is refused unless a reason is given."
+        )
+    adopted = record.get("code_adopted")
+    if adopted:
+        out += [
+            "",
+            f"The fingerprint was recorded at a resume ({_when(adopted.get('time'))}), after "
+            f"{adopted.get('missions_before', '?')} missions flown before campaigns recorded one: "
+            "their rows have no `code_sha`.",
+        ]
+    changes = record.get("code_changes") or []
+    if changes:
+        out += [
+            "",
+            f"**The code changed during this campaign** ({len(changes)} change(s), each allowed with "
+            "`--allow-code-change`): the missions do not all come from one version of the code.",
+            "",
+            "| time | reason | changed | from | to | missions flown before |",
+            "| --- | --- | --- | --- | --- | --- |",
+        ]
+        for c in changes:
+            reason = str(c.get("reason", "")).replace("|", "\\|")
+            out.append(
+                f"| {_when(c.get('time'))} | {reason} | {', '.join(c.get('changed', [])) or '-'} | "
+                f"`{describe(c.get('old'))}` | `{describe(c.get('new'))}` | {c.get('missions_before', '?')} |"
+            )
+    by_code = Counter(r.get("code_sha") or "" for r in rows)
+    if by_code:
+        out += [
+            "",
+            "Missions by code (`code_sha`): "
+            + ", ".join(f"`{k}` {v}" if k else f"none recorded {v}" for k, v in by_code.items())
+            + ".",
+        ]
+    out.append("")
+    return out
+
+
 def write_report(folder: Path, rows: list[dict[str, Any]], cfg: CampaignConfig, figures: bool = True) -> Path:
     folder = Path(folder)
     lines: list[str] = []
@@ -236,6 +302,7 @@ def write_report(folder: Path, rows: list[dict[str, Any]], cfg: CampaignConfig, 
         f"`{replay_command(folder, 0).replace(' 0', ' INDEX')}`."
     )
     add("")
+    lines += code_lines(folder, rows)
     if not rows:
         add("No mission has finished yet.")
         path = folder / "report.md"
