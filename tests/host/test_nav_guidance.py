@@ -257,5 +257,7 @@ def test_held_at_the_gate_too_long_aborts_the_mission_and_says_why():
     for t in np.arange(59.0, 61.0, 0.5):
         out = g.step(float(t), obs(float(t), n, tm=telemetry("STATE_IDLE")))
     assert g.mission_aborted
-    assert any("held at the gate for 60 s" in text and "MCU IDLE, not APPROACH_READY" in text for _, text in g.notes)
+    assert any(
+        "held at the gate for 60 s" in text and "MCU IDLE, not APPROACH_READY" in text for _, text in g.notes
+    )
     assert out.v_sp_D_mps[2] > 0  # backing off
