@@ -49,7 +49,7 @@ KP_CONFIGS ?= models/configs/keypoints/oibarnet_kp.yaml models/configs/keypoints
 KP_CONFIG ?= models/configs/keypoints/oibarnet_kp_stage15.yaml
 KP_EVAL_ARGS ?= --sets val test
 # 0.7.0: both priors scored (the direct model's and the crop's attitude head) on the 22
-# validation scenes, every 24th frame in tracking mode (docs/data/kp_fusion_grid_070.json); the
+# validation scenes, every 24th frame in tracking mode (MLflow history run kp_fusion_grid_070); the
 # direct one won, 2 crop px : 5 deg. 0.6.0 had been limited to the direct prior because the head
 # drifted in the closed loop off the axis; the cause was the throat hidden behind the port
 # adapter (docs/synthetic.md, generator 0.2.0), not the head.
@@ -58,7 +58,7 @@ KP_FUSION_ARGS ?= --priors direct,head --stride 24
 # crop's attitude head as prior, 1 crop px : 3 deg, both error models (score 0.0301; 0.7.0's
 # direct 2 : 5 scored 0.0339), committed so that the export is reproducible without the 22-min
 # grid. Empty (`make export-kp KP_FUSION_JSON=`) runs the grid again and exports with its choice.
-KP_FUSION_JSON ?= docs/data/kp_fusion_grid_081.json
+KP_FUSION_JSON ?= models/registry/oibarnet-0.34.0/kp_fusion_grid_081.json
 # The attitude head's tilt gain per range (`python -m oibar_models.kp_head_gain`, measured on the
 # validation scenes); empty: the head's reading is the prior as it is.
 KP_HEAD_GAIN_JSON ?=
@@ -76,7 +76,7 @@ KP_MODEL_VERSION ?= 0.34.0
 # The fusion tables the main file is retagged with last (kp_export --retag --fusion: a kp_fusion
 # choice, head gain included), measured on the two networks above (0.34.0, docs/model_history.md
 # "Candidate 0.33.0"); empty: the tables KP_FUSION_JSON gave the export.
-KP_RETAG_FUSION_JSON ?= docs/data/kp_fusion_0330.json
+KP_RETAG_FUSION_JSON ?= models/registry/oibarnet-0.34.0/kp_fusion_0330.json
 
 train-kp: setup ## train the keypoint model, all six stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
 	@for c in $(KP_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.kp_train --config $$c $(TRAIN_ARGS) || exit 1; done

@@ -58,8 +58,8 @@ REPO = Path(__file__).resolve().parents[2]
 SHIPPED = REPO / "models/oibarnet.onnx"
 # The shipped model's own probe and closed-loop runs, the bases of parts 2 and 4. When a model
 # ships, its probe and its loop arm become the new bases (and these two names change with it).
-BASE_PROBE = REPO / "docs/data/probe_val_0340.json"
-BASE_LOOP = REPO / "docs/data/loop_candidate_0340.json"
+BASE_PROBE = REPO / "models/registry/oibarnet-0.34.0/probe_val_0340.json"
+BASE_LOOP = REPO / "models/registry/oibarnet-0.34.0/loop_candidate_0340.json"
 LOOP_SETS = ("held_out", "default")  # flown in this order (the held-out looks first)
 
 

@@ -9,7 +9,12 @@ tolerance, and compliance no lower.
 
     python -m oibar_models.registry check MODEL METRICS.json [--registry models/registry.toml]
     python -m oibar_models.registry card [--check] [--card docs/model_card.md]
-    python -m oibar_models.registry verify     # the registered files' sha256
+    python -m oibar_models.registry verify     # the shipped files' and every entry's records' sha256
+
+An entry's records (its [models.records] table) are the files it needs kept, beside the registry
+under models/registry/NAME-VERSION/: the tables its export read, the evaluations its metrics come
+from, its ship verdict and the ship rule's bases. The rest of the history is in MLflow
+(oibar_models.history).
 """
 
 from __future__ import annotations
@@ -64,6 +69,8 @@ def load_registry(path: Path = REGISTRY) -> dict:
                 raise RegistryError(f"{path}: models[{i}] ({m.get('name', '?')}): {key} is required")
         if m["status"] not in ("shipped", "retired"):
             raise RegistryError(f"{path}: {m['name']} {m['version']}: status is shipped or retired")
+        if not isinstance(m.get("records", {}), dict):
+            raise RegistryError(f"{path}: {m['name']} {m['version']}: records is a table of path = sha256")
     return doc
 
 
@@ -193,19 +200,20 @@ def entry_toml(entry: dict) -> str:
     out = ["[[models]]", *(f"{k} = {_toml_value(v)}" for k, v in scalars.items())]
     for k, v in entry.items():
         if isinstance(v, dict):
-            table = k if k in ("files", "datasets", "checkpoints") else f"metrics.{k}"
+            table = k if k in ("files", "datasets", "checkpoints", "records") else f"metrics.{k}"
             out.append(f"[models.{table}]")
             out.extend(f"{json.dumps(str(kk))} = {_toml_value(vv)}" for kk, vv in v.items())
     return "\n".join(out) + "\n"
 
 
 def verify(doc: dict, root: Path = REPO_ROOT) -> list[str]:
-    """The shipped entries' files against their recorded sha256: one line per mismatch."""
+    """The shipped entries' files, and every entry's records (committed, whatever its status),
+    against their recorded sha256: one line per mismatch."""
     bad = []
     for m in doc["models"]:
-        if m["status"] != "shipped":
-            continue
-        for rel, sha in m["files"].items():
+        files = dict(m["files"]) if m["status"] == "shipped" else {}
+        files.update(m.get("records", {}))
+        for rel, sha in files.items():
             p = root / rel
             if not p.is_file():
                 bad.append(f"{rel}: missing")
@@ -230,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     k = sub.add_parser("card", help="write the card's registry tables (--check: fail if they differ)")
     k.add_argument("--card", type=Path, default=CARD)
     k.add_argument("--check", action="store_true")
-    sub.add_parser("verify", help="the shipped files against their sha256")
+    sub.add_parser("verify", help="the shipped files and the records against their sha256")
     a = ap.parse_args(argv)
     try:
         doc = load_registry(a.registry)

@@ -294,7 +294,7 @@ def test_training_resumes_and_exports_an_estimator(tiny_dataset, kp_sets, tmp_pa
     assert PoseEstimator(mirrored, warmup_runs=1, mirror=False).reader.mirror is None  # the caller overrules
 
     # fusion weights chosen for another crop size are refused (their sigmas are in its pixels)
-    best = json.loads((REPO / "docs/data/kp_fusion_grid_081.json").read_text())["best"]
+    best = json.loads((REPO / "models/registry/oibarnet-0.34.0/kp_fusion_grid_081.json").read_text())["best"]
     fused = tmp_path / "models" / "kp_fused.onnx"
     args = ["--config", str(CONFIG), "--out", str(fused), "--fusion"]
     for doc, ok in (

@@ -101,10 +101,38 @@ def test_a_build_entry_is_registry_toml(doc):
         "files": {"export/oibarnet.onnx": "ab" * 32},
         "datasets": {"val": "cd" * 32},
         "checkpoints": {},
+        "records": {"models/registry/oibarnet_kp-0.34.1/eval.json": "ef" * 32},
         "validation": {"dt_mean_pct": 0.3, "dq_mean_deg": 0.5, "frames": 10},
     }
     parsed = tomllib.loads(entry_toml(entry))["models"][0]
     assert parsed["files"] == entry["files"] and parsed["metrics"]["validation"] == entry["validation"]
+    assert parsed["records"] == entry["records"]
+
+
+def test_the_records_lie_beside_the_registry_and_the_judge_reads_them(doc, tmp_path):
+    """Issue 61 item 3: what a shipped model needs is committed beside the registry, pinned by
+    sha256 (verify checks them), every figure's source among them; nothing is read from docs/."""
+    from oibar_models.config import REPO_ROOT
+    from oibar_models.judge import BASE_LOOP, BASE_PROBE
+
+    m = find(doc, "oibarnet")
+    records = m["records"]
+    assert records and all(p.startswith("models/registry/oibarnet-0.34.0/") for p in records)
+    for base in (BASE_PROBE, BASE_LOOP):
+        assert str(base.relative_to(REPO_ROOT)) in records
+    for entry in doc["models"]:
+        for metrics in entry["metrics"].values():
+            src = metrics.get("source", "")
+            assert src and any(src in e.get("records", {}) for e in doc["models"]), src
+    text = REGISTRY.read_text()
+    assert "docs/data" not in text
+    # a changed record is caught
+    changed = tmp_path / "r.toml"
+    first = next(iter(records))
+    changed.write_text(text.replace(records[first], "0" * 64))
+    assert verify(load_registry(changed)) == [
+        f"{first}: sha256 differs from the registry's (oibarnet 0.34.0)"
+    ]
 
 
 def test_a_malformed_registry_is_refused(tmp_path):
