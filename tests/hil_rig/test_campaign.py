@@ -394,7 +394,8 @@ def _fake_mission(calls):
     def run(cfg, index, *, mcu_path=None, model_path=None, out_dir=None):
         calls.append(index)
         d = draw_mission(cfg, index)
-        row = {"index": index, "campaign": cfg.name, "config_id": cfg.identity(), "nav": cfg.nav,
+        row = {"index": index, "campaign": cfg.name, "campaign_seed": cfg.seed, "config_id": cfg.identity(),
+               "nav": cfg.nav,
                "fault": "", "fault_phase": "", "outcome": "completed", "success": True,
                "wall_time_s": 0.01, "cpu_time_s": 0.01, "sim_time_s": 1.0,
                **{f"in_{k}": v for k, v in d.values.items()}}  # fmt: skip
@@ -484,3 +485,169 @@ def test_a_folder_made_before_fingerprints_adopts_the_code(code_tree, tmp_path):
     assert meta["code_adopted"]["missions_before"] == 1
     assert [(r["index"], r["code_sha"]) for r in read_rows(folder)] == [(0, "")]
     assert open_campaign(folder, cfg, mcu_path=mcu).status == "same"
+
+
+# -- resuming from the merged table (pack) -------------------------------------------------------
+
+
+@pytest.fixture
+def fake_runs(code_tree, tmp_path, monkeypatch, capsys):
+    """``main`` of the CLI with the short model's missions faked (nothing flies, the code tree's
+    fingerprint): -> run(args) -> (exit status, missions flown, stderr)."""
+    pytest.importorskip("pyarrow")
+    from oibar_hil.campaign import execute
+    from oibar_hil.campaign.cli import main
+
+    _, mcu = code_tree
+    calls: list[int] = []
+    monkeypatch.setattr(execute, "run_mission", _fake_mission(calls))
+
+    def run(*args):
+        calls.clear()
+        capsys.readouterr()
+        argv = list(args)
+        if args[0] == "run":
+            argv += ["--config", str(SHORT), "--executor", "serial", "--mcu", str(mcu), "--no-progress"]
+            argv += ["--no-report"]
+        elif args[0] == "report":
+            argv += ["--no-figures"]
+        rc = main(argv)
+        return rc, list(calls), capsys.readouterr().err
+
+    return run
+
+
+def test_a_packed_campaign_resumes_from_its_table(fake_runs, tmp_path):
+    """pack -> campaign.json + missions.parquet (zstd, index order); a folder holding them and a
+    few parts flies only the missions in neither; its table equals a one-folder campaign's."""
+    import shutil
+
+    import pyarrow.parquet as pq
+
+    from oibar_hil.campaign.cli import EXIT_FOLDER
+    from oibar_hil.campaign.store import read_rows, stored_row
+
+    camp, packed, resumed, whole = (tmp_path / n for n in ("camp", "results/short", "resumed", "whole"))
+    assert fake_runs("run", "--missions", "4", "--out", str(camp))[:2] == (0, [0, 1, 2, 3])
+    (camp / "parts" / "mission_000001.parquet").unlink()  # a campaign with a gap: 0, 2, 3 finished
+    assert fake_runs("pack", str(camp), "--to", str(packed))[0] == 0
+    assert sorted(p.name for p in packed.iterdir()) == ["campaign.json", "missions.parquet"]
+    assert (packed / "campaign.json").read_bytes() == (camp / "campaign.json").read_bytes()
+    meta = pq.ParquetFile(packed / "missions.parquet").metadata
+    assert meta.row_group(0).column(0).compression == "ZSTD"
+    assert [r["index"] for r in pq.read_table(packed / "missions.parquet").to_pylist()] == [0, 2, 3]
+
+    # a fresh checkout: the committed folder copied back, plus a part of a mission also in the table
+    shutil.copytree(packed, resumed)
+    (resumed / "parts").mkdir()
+    shutil.copy(camp / "parts" / "mission_000002.parquet", resumed / "parts")
+    rc, flown, err = fake_runs("run", "--missions", "6", "--out", str(resumed))
+    assert (rc, flown) == (0, [1, 4, 5]), err  # no mission flown twice
+    assert sorted(p.name for p in (resumed / "parts").iterdir()) == [
+        f"mission_{i:06d}.parquet" for i in (1, 2, 4, 5)
+    ]
+    rows = read_rows(resumed)
+    assert [r["index"] for r in rows] == list(range(6))  # mission 2 kept once
+    assert stored_row(resumed, 3)["index"] == 3  # replay finds a row only the table holds
+    assert fake_runs("run", "--missions", "6", "--out", str(resumed))[:2] == (0, [])  # all done
+
+    assert fake_runs("run", "--missions", "6", "--out", str(whole))[:2] == (0, list(range(6)))
+    assert fake_runs("report", str(resumed))[0] == 0 and fake_runs("report", str(whole))[0] == 0
+    merged = pq.read_table(resumed / "missions.parquet").to_pylist()
+    one_folder = pq.read_table(whole / "missions.parquet").to_pylist()
+    assert _deterministic(merged) == _deterministic(one_folder)
+    assert {r["code_sha"] for r in merged} == {
+        json.loads((whole / "campaign.json").read_text())["code"]["short"]
+    }
+
+    # packed again over the committed folder: it grows; a source lacking its missions is refused
+    assert fake_runs("pack", str(resumed), "--to", str(packed))[0] == 0
+    assert [r["index"] for r in pq.read_table(packed / "missions.parquet").to_pylist()] == list(range(6))
+    rc, _, err = fake_runs("pack", str(camp), "--to", str(packed))
+    assert rc == EXIT_FOLDER and "1, 4-5" in err and "would drop them" in err
+    assert fake_runs("pack", str(tmp_path / "nowhere"), "--to", str(packed))[0] == 2
+
+
+def test_a_packed_campaign_keeps_its_code_fingerprint(fake_runs, code_tree, tmp_path):
+    """The code rules hold for a packed folder as for parts: other code is refused (exit 3)."""
+    import shutil
+
+    from oibar_hil.campaign.cli import EXIT_FOLDER
+
+    root, _ = code_tree
+    camp, packed = tmp_path / "camp", tmp_path / "packed"
+    assert fake_runs("run", "--missions", "2", "--out", str(camp))[0] == 0
+    assert fake_runs("pack", str(camp), "--to", str(packed))[0] == 0
+    (root / "firmware/app/fsm.c").write_text("int y;\n")
+    resumed = tmp_path / "resumed"
+    shutil.copytree(packed, resumed)
+    rc, flown, err = fake_runs("run", "--missions", "3", "--out", str(resumed))
+    assert (rc, flown) == (EXIT_FOLDER, []) and "firmware changed" in err
+    rc, flown, _ = fake_runs("run", "--missions", "3", "--out", str(resumed), "--allow-code-change", "fsm")
+    assert (rc, flown) == (0, [2])
+
+
+def test_a_bad_missions_table_is_refused(fake_runs, tmp_path):
+    """An unreadable missions.parquet, another campaign's (seed, name), one of code campaign.json
+    does not record, or one disagreeing with a part: refused with the reason, exit 3, nothing
+    flown or recorded."""
+    import shutil
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from oibar_hil.campaign.cli import EXIT_FOLDER
+
+    camp = tmp_path / "camp"
+    assert fake_runs("run", "--missions", "3", "--out", str(camp))[0] == 0
+    assert fake_runs("pack", str(camp), "--to", str(tmp_path / "good"))[0] == 0
+    good = tmp_path / "good" / "missions.parquet"
+    others = {}
+    for name, extra in {"seed": ["--seed", "7"], "name": ["--name", "other"]}.items():
+        out = tmp_path / f"other_{name}"
+        assert fake_runs("run", "--missions", "3", "--out", str(out), *extra)[0] == 0
+        assert fake_runs("report", str(out))[0] == 0
+        others[name] = out / "missions.parquet"
+    rows = pq.read_table(good).to_pylist()
+    schema = pq.read_schema(good)
+
+    def table(rows):
+        buf = pa.BufferOutputStream()
+        pq.write_table(pa.Table.from_pylist(rows, schema=schema), buf)
+        return buf.getvalue().to_pybytes()
+
+    cases = {
+        "truncated": (good.read_bytes()[:-100], "not a readable table of missions"),
+        "not parquet": (b"version https://git-lfs.github.com/spec/v1\n", "not a readable table of missions"),
+        "other seed": (others["seed"].read_bytes(), "seed 7"),
+        "other name": (others["name"].read_bytes(), "campaign 'other'"),
+        "twice": (table(rows + rows[:1]), "missions 0 appear more than once"),
+        "other code": (table([{**r, "code_sha": "0123456789ab"} for r in rows]), "0123456789ab (3 rows)"),
+    }
+    for case, (data, why) in cases.items():
+        folder = tmp_path / f"bad_{case.replace(' ', '_')}"
+        shutil.copytree(tmp_path / "good", folder)
+        (folder / "missions.parquet").write_bytes(data)
+        meta = (folder / "campaign.json").read_text()
+        rc, flown, err = fake_runs("run", "--missions", "5", "--out", str(folder))
+        assert (rc, flown) == (EXIT_FOLDER, []), (case, err)
+        assert why in err and str(folder / "missions.parquet") in err, (case, err)
+        assert len(err.strip().splitlines()) == 1, err
+        assert (folder / "campaign.json").read_text() == meta  # nothing recorded
+        assert (folder / "missions.parquet").read_bytes() == data  # nor rewritten
+        assert fake_runs("report", str(folder))[0] == EXIT_FOLDER
+        assert (
+            fake_runs("pack", str(folder), "--to", str(tmp_path / f"{folder.name}_packed"))[0] == EXIT_FOLDER
+        )
+    # a part and the table's row of one mission that differ: two flights, not one
+    folder = tmp_path / "disagree"
+    shutil.copytree(camp, folder)
+    assert fake_runs("report", str(folder))[0] == 0  # parts + the table written from them: fine
+    part = folder / "parts" / "mission_000001.parquet"
+    t = pq.read_table(part)
+    pq.write_table(t.set_column(t.schema.get_field_index("success"), "success", pa.array([False])), part)
+    rc, flown, err = fake_runs("run", "--missions", "5", "--out", str(folder))
+    assert (rc, flown) == (EXIT_FOLDER, []) and "mission 1 is in both" in err and "success" in err
+    # another campaign's folder as the destination of a pack
+    rc, _, err = fake_runs("pack", str(camp), "--to", str(others["seed"].parent))
+    assert rc == EXIT_FOLDER and "holds another campaign" in err

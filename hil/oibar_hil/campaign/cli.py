@@ -4,6 +4,7 @@
                                      [--workers K | --address HOST:PORT] [--executor serial]
                                      [--allow-code-change REASON]
     python -m oibar_hil.campaign report CAMPAIGN_DIR
+    python -m oibar_hil.campaign pack CAMPAIGN_DIR --to DEST_DIR
     python -m oibar_hil.campaign replay CAMPAIGN_DIR INDEX
     python -m oibar_hil.campaign draws [--config FILE] [--first I] [--count N]
 
@@ -14,15 +15,24 @@ flies one version of the code: a resume from a checkout whose fingerprint (finge
 host, firmware, proto, hil sources, the models for cnn, the simulated MCU binary) differs from
 the one campaign.json recorded is refused (exit 3) unless ``--allow-code-change REASON``.
 
+``pack`` writes DEST_DIR/campaign.json and DEST_DIR/missions.parquet (every finished row, zstd):
+the form to commit (hil/campaigns/results/<name>/). A folder holding missions.parquet and fewer
+parts (or none) resumes from the table: its rows count as finished, new parts go beside it, and
+``report`` merges both.
+
 Exit status:
-  0  run: every planned mission is in the table; report: written; replay: the mission
+  0  run: every planned mission is in the table; report, pack: written; replay: the mission
      reproduced its stored row (or had none); draws: printed
   1  run: some missions are not in the table (interrupted, Ray did not start, or a mission's
      worker was lost more than --max-retries times): run again to resume; replay: the mission
      differs from its stored row
-  2  bad arguments: an invalid campaign file, no simulated MCU, a missing model, an unknown index
+  2  bad arguments: an invalid campaign file, no simulated MCU, a missing model, an unknown index,
+     a folder that is not a campaign (no campaign.json)
   3  the folder holds another campaign, or was flown by other code (a changed fingerprint, no
-     --allow-code-change), or another run is writing to it
+     --allow-code-change), or another run is writing to it; its missions.parquet cannot be read,
+     holds another campaign's rows (name, seed, model) or rows of code campaign.json does not
+     record, or disagrees with a part of the same mission; pack: DEST_DIR holds another campaign
+     or missions CAMPAIGN_DIR lacks
 """
 
 from __future__ import annotations
@@ -74,7 +84,8 @@ def _parser() -> argparse.ArgumentParser:
         prog="python -m oibar_hil.campaign",
         description="Monte Carlo dispersion campaigns on the HIL rig (issue 62)",
         epilog="Exit status: 0 done, 1 incomplete (resume) or not reproduced, 2 bad arguments, "
-        "3 the folder holds another campaign, was flown by other code, or is in use.",
+        "3 the folder holds another campaign, was flown by other code, is in use, or its "
+        "missions.parquet is unreadable or not this campaign's.",
     )
     sub = ap.add_subparsers(dest="cmd", required=True)
     run = sub.add_parser("run", help="run (or resume) a campaign")
@@ -129,6 +140,14 @@ def _parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("report", help="missions.parquet and report.md of a campaign folder")
     rep.add_argument("folder", type=Path)
     rep.add_argument("--no-figures", action="store_true")
+    pck = sub.add_parser(
+        "pack",
+        help="campaign.json + missions.parquet of a campaign folder, to commit (a later session resumes from it)",
+    )
+    pck.add_argument("folder", type=Path)
+    pck.add_argument(
+        "--to", type=Path, required=True, metavar="DEST_DIR", help="e.g. hil/campaigns/results/<name>"
+    )
     rpl = sub.add_parser("replay", help="fly one mission of a campaign again, with the rig's full report")
     rpl.add_argument("folder", type=Path)
     rpl.add_argument("index", type=_non_negative)
@@ -276,13 +295,16 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from oibar_hil.campaign.store import CampaignFolderError
+    from oibar_hil.campaign.store import CONFIG_FILE, CampaignFolderError
 
+    if not (args.folder / CONFIG_FILE).exists():
+        _err(f"{args.folder} is not a campaign folder (no {CONFIG_FILE})")
+        return EXIT_USAGE
     try:
         path, rows = summarise(args.folder, figures=not args.no_figures)
     except CampaignFolderError as exc:
         _err(str(exc))
-        return EXIT_USAGE
+        return EXIT_FOLDER
     print(f"{len(rows)} missions in {args.folder / 'missions.parquet'}")
     if rows:
         _print_rates(rows)
@@ -290,10 +312,34 @@ def cmd_report(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_pack(args: argparse.Namespace) -> int:
+    from oibar_hil.campaign.store import CONFIG_FILE, CampaignFolderError, index_ranges, load_config, pack
+
+    if not (args.folder / CONFIG_FILE).exists():
+        _err(f"{args.folder} is not a campaign folder (no {CONFIG_FILE})")
+        return EXIT_USAGE
+    try:
+        cfg = load_config(args.folder)
+        path, rows = pack(args.folder, args.to)
+    except CampaignFolderError as exc:
+        _err(str(exc))
+        return EXIT_FOLDER
+    done = {int(r["index"]) for r in rows}
+    missing = [i for i in range(cfg.missions) if i not in done]
+    print(
+        f"packed {len(rows)} missions of campaign {cfg.name} into {path} ({path.stat().st_size} bytes, "
+        f"zstd) and {args.to / CONFIG_FILE}"
+    )
+    if missing:
+        print(f"  not flown yet: {len(missing)} of {cfg.missions} ({index_ranges(missing)[:200]})")
+    print(f"  resume elsewhere: copy {args.to} to build/campaigns/{cfg.name} and run the same `run` command")
+    return EXIT_OK
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     from oibar_hil.campaign.fingerprint import changed_groups, code_fingerprint, describe
     from oibar_hil.campaign.mission import VOLATILE_COLUMNS, run_mission
-    from oibar_hil.campaign.store import CampaignFolderError, code_record, current_code, part_path
+    from oibar_hil.campaign.store import CampaignFolderError, code_record, current_code, stored_row
     from oibar_hil.campaign.store import load_config as load_folder_config
     from oibar_hil.rig.report import write_report
 
@@ -328,13 +374,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
         + (f" ({row['failed_checks'] or row['error']})" if not row["success"] else "")
         + (f"; fault {row['fault']}@{row['fault_phase']}" if row["fault"] else "")
     )
-    stored_path = part_path(args.folder, args.index)
-    if not stored_path.exists():
+    try:
+        stored = stored_row(args.folder, args.index)
+    except CampaignFolderError as exc:
+        _err(str(exc))
+        return EXIT_FOLDER
+    if stored is None:
         print("no stored row for this mission (not flown yet): nothing to compare")
         return EXIT_OK
-    import pyarrow.parquet as pq  # type: ignore[import-untyped]
-
-    stored = pq.read_table(stored_path).to_pylist()[0]
     if stored.get("code_sha") and stored["code_sha"] != now["short"]:
         flew = current_code(code_record(args.folder)) or {}
         changed = changed_groups(flew, now) if flew.get("short") == stored["code_sha"] else []
@@ -375,7 +422,14 @@ def cmd_draws(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    return {"run": cmd_run, "report": cmd_report, "replay": cmd_replay, "draws": cmd_draws}[args.cmd](args)
+    commands = {
+        "run": cmd_run,
+        "report": cmd_report,
+        "pack": cmd_pack,
+        "replay": cmd_replay,
+        "draws": cmd_draws,
+    }
+    return commands[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -109,7 +109,8 @@ def run_missions(
     on_row: Callable[[dict[str, Any]], None] | None = None,
     code_sha: str | None = None,
 ) -> RunSummary:
-    """Run every mission 0..cfg.missions-1 that has no part in ``folder`` yet. Each row gets
+    """Run every mission 0..cfg.missions-1 not finished in ``folder`` yet (no part, no row in
+    its missions.parquet: a packed campaign resumes from its table). Each row gets
     ``code_sha``: the short hash of the code that flies (default: the one ``open_campaign``
     checked and recorded in the folder)."""
     folder = Path(folder)
