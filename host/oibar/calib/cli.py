@@ -4,6 +4,8 @@
     oibar calib estimate --mocap M --frames F --pattern P --housing-body H --target-body T -o calib.json
     oibar calib apply --calib calib.json --mocap M --frames F -o poses.csv
     oibar calib overlay --poses poses.csv --out DIR [--every N]
+    oibar calib to-dataset LABELLED_DIR --calib calib.json --out DATA_DIR/NAME
+                                                 frames + labels -> a sequence in the generator's layout
 
 A synthetic recording with known truth (rendered, so it lives with the simulator):
     python -m oibar_hil.calib_synth OUT_DIR
@@ -27,7 +29,7 @@ def register(sub) -> None:
     """Add the `calib` subcommand group to the `oibar` parser's subparsers."""
     calib = sub.add_parser(
         "calib",
-        help="mocap ground-truth calibration (estimate, apply, overlay)",
+        help="mocap ground-truth calibration (estimate, apply, overlay, to-dataset)",
         description="Ground-truth calibration toolbox for the motion-capture lab (docs/calibration.md).",
     )
     calib.set_defaults(handler=lambda a: (calib.print_help(sys.stderr), EXIT_ERROR)[1])
@@ -36,6 +38,7 @@ def register(sub) -> None:
     _register_estimate(cs)
     _register_apply(cs)
     _register_overlay(cs)
+    _register_to_dataset(cs)
 
 
 def _register_extract(cs) -> None:
@@ -117,6 +120,32 @@ def _register_overlay(cs) -> None:
     )
     ov.add_argument("--out", type=Path, required=True, help="output folder for the PNGs")
     ov.set_defaults(handler=cmd_overlay)
+
+
+def _register_to_dataset(cs) -> None:
+    td = cs.add_parser(
+        "to-dataset",
+        help="a labelled recording (frames + `apply`'s poses.csv) -> one sequence in the data set layout",
+        description="Write a labelled lab recording as one sequence in the data set generator's layout "
+        "(docs/calibration.md, 'From a lab recording to a fine-tuned model').",
+    )
+    td.add_argument(
+        "labelled_dir", type=Path, help="the recording: frames.csv, frames/ and apply's poses.csv"
+    )
+    td.add_argument("--calib", type=Path, required=True, help="the calibration JSON the labels came from")
+    td.add_argument("--out", type=Path, required=True, help="the sequence folder to write (DATA_DIR/NAME)")
+    td.add_argument("--poses", type=Path, default=None, help="the labels (default LABELLED_DIR/poses.csv)")
+    td.add_argument(
+        "--frames", type=Path, default=None, help="the frame index (default LABELLED_DIR/frames.csv)"
+    )
+    td.add_argument(
+        "--intrinsics", type=Path, default=None, help="the camera (default: the calibration's own)"
+    )
+    td.add_argument(
+        "--drop-unlabelled", action="store_true", help="leave out frames without a label instead of refusing"
+    )
+    td.add_argument("--force", action="store_true", help="replace an output that holds something else")
+    td.set_defaults(handler=cmd_to_dataset)
 
 
 def _inputs(p) -> None:
@@ -277,4 +306,18 @@ def cmd_overlay(a) -> int:
         cv2.imwrite(str(a.out / f"overlay_{row['frame']:06d}.png"), img)
         n += 1
     print(f"{n} overlays -> {a.out}")
+    return EXIT_OK
+
+
+def cmd_to_dataset(a) -> int:
+    from .dataset import Inputs, to_dataset
+
+    inp = Inputs(a.labelled_dir, a.calib, a.out, a.poses, a.frames, a.intrinsics, a.drop_unlabelled, a.force)
+    manifest, written = to_dataset(inp)
+    lab = manifest["lab"]
+    how = "remapped into the canonical camera" if lab["remapped_to_canonical"] else "copied"
+    if written:
+        print(f"{manifest['frames']} labelled frames ({how}) -> {a.out} (lab recording, manifest.json)")
+    else:
+        print(f"{a.out} already holds this recording ({manifest['frames']} frames); nothing written")
     return EXIT_OK

@@ -1,0 +1,134 @@
+"""Fine-tuning on lab recordings (oibar_models.finetune, issue 58 item 5) at toy size: lab
+sequences made the lab's way (a synthetic mocap recording labelled by `oibar calib apply`, its
+frames drawn at the labels, written by `oibar calib to-dataset`), one step on 8 crops; the
+candidate opens in the flight estimator and its table holds finite metrics; bad inputs refused."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from models_helpers import SHIPPED_KP, draw_frame
+
+from oibar.calib import io
+from oibar.cli import main as oibar_main
+from oibar.geometry.rotations import matrix_to_quat
+from oibar_models.finetune import main
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "hil"))
+
+
+def lab_sequence(rec: Path, out: Path, n: int, seed: int) -> Path:
+    """One lab recording through the calib toolbox: mocap + frame index (calib_synth), labels
+    (`apply` with the true calibration), frames drawn at the labels, then `to-dataset`."""
+    from oibar_hil.calib_synth import SynthConfig, truth, write_recording
+
+    cfg = SynthConfig(n_frames=n, seed=seed)
+    write_recording(rec, cfg, images=False)
+    tr = truth(cfg)
+    calib = {
+        "format": io.CALIB_FORMAT,
+        "housing_body": "housing",
+        "target_body": "tmarkers",
+        "T_housing_cam": tr["T_housing_cam"],
+        "T_tmarkers_target": tr["T_tmarkers_target"],
+        "offset_s": cfg.offset_s,
+        "settings": {"intrinsics": "oibar default"},
+    }
+    (rec / "calib.json").write_text(json.dumps(calib))
+    apply = ["calib", "apply", "--calib", str(rec / "calib.json"), "--mocap", str(rec / "mocap.csv")]
+    assert oibar_main([*apply, "--frames", str(rec / "frames.csv"), "-o", str(rec / "poses.csv")]) == 0
+    rng = np.random.default_rng(seed)
+    for row in io.read_poses_csv(rec / "poses.csv"):
+        T = row["T_cam_target"]
+        draw_frame(T[:3, 3], matrix_to_quat(T[:3, :3]), rng).save(rec / row["file"])
+    argv = ["calib", "to-dataset", str(rec), "--calib", str(rec / "calib.json"), "--out", str(out)]
+    assert oibar_main(argv) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory) -> dict:
+    root = tmp_path_factory.mktemp("lab")
+    train = lab_sequence(root / "rec_a", root / "data" / "lab01", 8, seed=3)
+    held = lab_sequence(root / "rec_b", root / "data" / "lab02", 3, seed=4)
+    return {"train": train, "held": held, "root": root}
+
+
+def test_the_lab_sequences_read_back_with_their_labels(lab):
+    from oibar_models.data import load_sequence
+
+    seq = load_sequence(lab["train"], verify_hashes=True)
+    labels = io.read_poses_csv(lab["root"] / "rec_a" / "poses.csv")
+    assert len(seq) == len(labels) == 8
+    assert np.abs(seq.T_cam_target - np.stack([r["T_cam_target"][:3, 3] for r in labels])).max() < 1e-9
+
+
+def test_one_step_fine_tune_exports_a_flight_model_and_its_table(lab, tmp_path, monkeypatch):
+    import onnxruntime as ort
+
+    from oibar.nav.pose import KeypointPoseEstimator, PoseEstimator, read_metadata
+    from oibar_models import tracking
+
+    # what goes to MLflow (the store itself is tested with the build, tests/models/test_build.py)
+    logged_runs: dict = {}
+    monkeypatch.setattr(
+        tracking, "log_training", lambda r, stage, cfg, d, m: logged_runs.setdefault(stage, (r, d))
+    )
+    monkeypatch.setattr(
+        tracking,
+        "log_evaluation",
+        lambda r, stage, model, d, m, o: logged_runs.setdefault(stage, (r, model, m)),
+    )
+    out = tmp_path / "run"
+    argv = ["--data", str(lab["train"]), "--val", str(lab["held"]), "--init", str(SHIPPED_KP)]
+    argv += ["--out", str(out), "--steps", "1", "--batch-size", "8", "--calibrate-crops", "8"]
+    argv += ["--val-frames", "3", "--modes", "cold", "--no-baseline", "--threads", "2", "--no-progress"]
+    assert main(argv) == 0
+    est = PoseEstimator(out / "oibarnet.onnx", warmup_runs=0)
+    assert isinstance(est, KeypointPoseEstimator)
+    meta, shipped = read_metadata(out / "oibarnet.onnx"), read_metadata(SHIPPED_KP)
+    assert meta["fusion"] == shipped["fusion"] and meta["camera"] == shipped["camera"]
+    assert meta["finetune"]["ships"] is False and meta["finetune"]["steps"] == 1
+    assert meta["model_version"].endswith("+finetune")
+    res = json.loads((out / "eval.json").read_text())
+    row = res["fine-tuned cold"]["_all"]
+    assert row["frames"] == 3
+    for k in ("dt_mean_pct", "dq_mean_deg", "compliance_pos_pct", "compliance_att_pct"):
+        assert np.isfinite(row[k]), (k, row)
+    assert "| lab02 | fine-tuned cold |" in (out / "eval.md").read_text()
+    logged = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in logged] == [0, 1]
+    for name in ("recovered.pt", "finetuned.pt", "config.yaml", "done.json", "metrics.json"):
+        assert (out / name).is_file(), name
+    # the step changed the network (the graph and its tables are the shipped file's)
+    x = np.random.default_rng(0).random((1, 3, 128, 128), dtype=np.float32)
+    got = [
+        ort.InferenceSession(str(p)).run(None, {"image": x})[0] for p in (out / "oibarnet.onnx", SHIPPED_KP)
+    ]
+    assert np.abs(got[0] - got[1]).max() > 1e-4
+    # and both stages go to MLflow, as a build's do
+    assert set(logged_runs) == {"run/train", "run/evaluate"}
+    run_info, model, metrics = logged_runs["run/evaluate"]
+    assert run_info.name == "finetune_lab" and model == out / "oibarnet.onnx"
+    assert np.isfinite(metrics["finetuned_cold.dt_mean_pct"])
+
+
+def test_bad_inputs_are_refused(lab, tmp_path, capsys):
+    def refused(message: str, *argv: str) -> None:
+        assert main([*argv, "--no-progress"]) == 2
+        assert message in capsys.readouterr().err
+
+    base = ["--init", str(SHIPPED_KP), "--out", str(tmp_path / "run")]
+    refused("both trained on and held", "--data", str(lab["train"]), "--val", str(lab["train"]), *base)
+    refused("sequence folder not found", "--data", str(tmp_path / "nope"), "--val", str(lab["held"]), *base)
+    direct = ["--init", str(REPO / "models" / "oibarnet_lite.onnx"), "--out", str(tmp_path / "r2")]
+    refused("not a keypoint model", "--data", str(lab["train"]), "--val", str(lab["held"]), *direct)
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("")
+    busy = ["--init", str(SHIPPED_KP), "--out", str(tmp_path / "full")]
+    refused("is not empty", "--data", str(lab["train"]), "--val", str(lab["held"]), *busy)
