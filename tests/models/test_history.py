@@ -53,10 +53,12 @@ def repo(tmp_path):
 @pytest.fixture()
 def store(tmp_path, monkeypatch):
     monkeypatch.setenv("MLFLOW_ALLOW_FILE_STORE", "true")
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", (tmp_path / "mlruns").as_uri())
+    uri = (tmp_path / "mlruns").as_uri()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     from mlflow.tracking import MlflowClient
 
-    return MlflowClient()
+    # the URI given, not MLflow's process-wide one: an earlier test (a build) may have set that
+    return MlflowClient(tracking_uri=uri)
 
 
 def _runs(client) -> dict:
