@@ -2,7 +2,8 @@
 """Run every OIBAR test suite and print each one's counts, then one closing line.
 
 C: every Unity executable `test_*` in the firmware host build, plus cppcheck on the firmware.
-Python: pytest over tests/ (one run, counted per folder from its JUnit XML report).
+Python: pytest over tests/ (two runs at once over two groups of folders, counted per folder from
+their JUnit XML reports).
 The closing line reads `total: N passed, M failed` so CI and people see one verdict.
 """
 
@@ -91,44 +92,71 @@ def run_cppcheck() -> tuple[int, int]:
     return (1, 0) if ok else (0, 1)
 
 
+# pytest runs as two processes at once, one per group of test folders, so that both cores work
+# (one pytest process keeps one core busy: 18 minutes of suites on 2 cores, 2026-12-02). The
+# groups hold about the same time; every folder under tests/ not named here goes to the second.
+PYTEST_GROUPS = (("tests/hil_rig", "tests/calib", "tests/fuzz", "tests/bench", "tests/board"),)
+
+
+def _pytest_groups() -> list[list[str]]:
+    first = [f for f in PYTEST_GROUPS[0] if (ROOT / f).is_dir()]
+    rest = sorted(
+        str(p.relative_to(ROOT))
+        for p in (ROOT / "tests").iterdir()
+        if p.is_dir() and not p.name.startswith((".", "_")) and str(p.relative_to(ROOT)) not in first
+    )
+    return [g for g in (first, rest) if g]
+
+
 def run_pytest(extra: list[str]) -> tuple[int, int]:
     with tempfile.TemporaryDirectory() as tmp:
-        report = Path(tmp) / "pytest.xml"
-        cmd = [
-            sys.executable,
-            "-m",
-            "pytest",
-            "tests",
-            "-q",
-            "-p",
-            "no:cacheprovider",
-            f"--junitxml={report}",
-            "-o",
-            "junit_family=xunit1",
-            *extra,
-        ]
-        print("== pytest: " + " ".join(cmd[3:]), flush=True)
-        rc = subprocess.call(cmd, cwd=ROOT)
-        if not report.exists():
-            print(f"pytest produced no report (exit {rc})", file=sys.stderr)
-            return 0, 1
+        procs = []
+        for i, folders in enumerate(_pytest_groups()):
+            report, log = Path(tmp) / f"pytest{i}.xml", Path(tmp) / f"pytest{i}.log"
+            cmd = [
+                sys.executable,
+                "-m",
+                "pytest",
+                *folders,
+                "-q",
+                "-p",
+                "no:cacheprovider",
+                f"--junitxml={report}",
+                "-o",
+                "junit_family=xunit1",
+                *extra,
+            ]
+            print("== pytest: " + " ".join(cmd[3:]), flush=True)
+            with open(log, "w") as out:
+                procs.append(
+                    (subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT), report, log)
+                )
         per_folder: dict[str, list[int]] = collections.defaultdict(lambda: [0, 0, 0])
-        for case in ET.parse(report).iter("testcase"):
-            # xunit1 reports carry the file; count per test folder (tests/host, tests/hil, ...).
-            folder = str(Path(case.get("file", "?")).parent)
-            outcome = 0
-            if case.find("failure") is not None or case.find("error") is not None:
-                outcome = 1
-            elif case.find("skipped") is not None:
-                outcome = 2
-            per_folder[folder][outcome] += 1
+        failed_runs = 0
+        for proc, report, log in procs:
+            rc = proc.wait()
+            print(log.read_text(), end="", flush=True)  # each group's output whole, in order
+            if not report.exists():
+                print(f"pytest produced no report (exit {rc})", file=sys.stderr)
+                failed_runs += 1
+                continue
+            before = sum(v[1] for v in per_folder.values())
+            for case in ET.parse(report).iter("testcase"):
+                # xunit1 reports carry the file; count per test folder (tests/host, tests/hil, ...).
+                folder = str(Path(case.get("file", "?")).parent)
+                outcome = 0
+                if case.find("failure") is not None or case.find("error") is not None:
+                    outcome = 1
+                elif case.find("skipped") is not None:
+                    outcome = 2
+                per_folder[folder][outcome] += 1
+            if rc not in (0, 1) and sum(v[1] for v in per_folder.values()) == before:
+                failed_runs += 1  # interrupted, usage error, nothing collected...
     print("== pytest per folder")
     for folder, (ok, bad, skipped) in sorted(per_folder.items()):
         print(f"   {folder:<34} {ok:4d} passed {bad:3d} failed {skipped:3d} skipped")
     passed = sum(v[0] for v in per_folder.values())
-    failed = sum(v[1] for v in per_folder.values())
-    if rc not in (0, 1) and failed == 0:  # interrupted, usage error, nothing collected...
-        failed = 1
+    failed = sum(v[1] for v in per_folder.values()) + failed_runs
     return passed, failed
 
 
