@@ -11,7 +11,6 @@ qw..qz, range_m, ...), frames/NNNNNN.jpg|png.
 from __future__ import annotations
 
 import csv
-import hashlib
 import json
 import os
 from collections.abc import Callable, Sequence
@@ -19,6 +18,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from oibar.hashing import sha256_file
 
 MANIFEST = "manifest.json"
 POSES = "poses.csv"
@@ -30,14 +31,6 @@ _JPG_END = b"\xff\xd9"
 class DatasetError(RuntimeError):
     """A data set on disk is missing, incomplete, inconsistent or corrupt; the message names the
     file at fault."""
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def check_image_trailer(path: Path) -> str | None:

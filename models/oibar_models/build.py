@@ -27,6 +27,8 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from oibar.hashing import sha256_file
+
 from .recipe import Dataset, Recipe, RecipeError, Stage, load_recipe, resolve, split_ref
 
 MARKER = "stage_done.json"  # the trainer writes its own done.json beside it
@@ -46,14 +48,6 @@ CARD_METRICS = (
 
 class BuildError(RuntimeError):
     """A stage failed; the message says which and why. Finished stages stay finished."""
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def fingerprint(obj: Any) -> str:

@@ -26,6 +26,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+from oibar.hashing import sha256_file as _file_sha256
 from oibar_hil.rig.runner import REPO_ROOT
 
 # The root the groups' paths are taken from (tests point it at a tree of their own).
@@ -68,14 +69,6 @@ def _hash_files(root: Path, paths: Iterable[Path]) -> dict[str, Any]:
         h.update(data)
         n += 1
     return {"sha256": h.hexdigest(), "files": n}
-
-
-def _file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _git(root: Path) -> dict[str, Any] | None:

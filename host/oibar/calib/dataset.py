@@ -27,7 +27,6 @@ it holds this very input (same hashes), else refused unless `--force`.
 from __future__ import annotations
 
 import csv
-import hashlib
 import io as _io
 import json
 import os
@@ -40,6 +39,7 @@ import numpy as np
 
 from oibar.dataset_format import POSES_COLUMNS
 from oibar.geometry.camera import PinholeCamera, intrinsics_corner_to_centre
+from oibar.hashing import sha256_file
 
 from . import io
 from .errors import CalibError
@@ -65,14 +65,6 @@ class Label:
     T_m: np.ndarray  # (3,)
     q_wxyz: np.ndarray  # (4,) unit
     distance_m: float | None
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _number(text: str | None, where: str, col: str) -> float:

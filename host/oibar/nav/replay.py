@@ -269,10 +269,10 @@ def _check_run_info(res: ReplayResult, est: Any, info: Any, threads_recorded_che
         return  # repeated for live viewers: the first is the flight's
     res.threads_recorded = int(info.ort_intra_op_threads)
     if info.model_sha256 and getattr(est, "path", None) is not None:
-        from oibar.nav.flightlog import file_sha256
+        from oibar.hashing import sha256_file
 
         try:
-            res.model_matches = file_sha256(Path(est.path)) == info.model_sha256
+            res.model_matches = sha256_file(Path(est.path)) == info.model_sha256
         except OSError:
             res.model_matches = None
         if res.model_matches is False:

@@ -49,7 +49,7 @@ from oibar.nav.flightlog.channels import CHANNELS
 from oibar.nav.flightlog.errors import FlightLogError
 from oibar.nav.flightlog.messages import estimate_message, filter_message, odometry_message
 from oibar.nav.flightlog.reader import LogInventory, LogMessage, inspect_log, read_messages, read_summary
-from oibar.nav.flightlog.runinfo import camera_intrinsics, file_sha256, ort_threads, run_info
+from oibar.nav.flightlog.runinfo import camera_intrinsics, ort_threads, run_info
 from oibar.nav.flightlog.wellknown import fixture_outline_entities
 from oibar.nav.flightlog.writer import CycleInputs, FlightLog
 
@@ -62,7 +62,6 @@ __all__ = [
     "LogMessage",
     "camera_intrinsics",
     "estimate_message",
-    "file_sha256",
     "filter_message",
     "fixture_outline_entities",
     "inspect_log",

@@ -3,7 +3,6 @@ SHA-256, onnxruntime's thread count, the camera's intrinsics."""
 
 from __future__ import annotations
 
-import hashlib
 import platform
 import socket
 import sys
@@ -12,17 +11,10 @@ from typing import Any
 
 import numpy as np
 
+from oibar.hashing import sha256_file
 from oibar.nav import logschema
 from oibar.nav.flightlog.channels import FRAME_CAMERA
 from oibar.nav.flightlog.messages import vec
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def camera_intrinsics(estimator: Any) -> tuple[Any, Any]:
@@ -92,7 +84,7 @@ def run_info(estimator: Any, camera: str, rate_hz: float, wall_clock_start_s: fl
     if path is not None:
         info.model_path = str(path)
         try:
-            info.model_sha256 = file_sha256(Path(path))
+            info.model_sha256 = sha256_file(Path(path))
         except OSError:
             pass
         from oibar.resources import model_version_text
