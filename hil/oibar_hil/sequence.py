@@ -10,7 +10,6 @@ qw..qz, range_m, ...), frames/NNNNNN.jpg|png.
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 from collections.abc import Callable, Sequence
@@ -19,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from oibar.dataset_format import read_pose_rows
 from oibar.hashing import sha256_file
 
 MANIFEST = "manifest.json"
@@ -109,19 +109,12 @@ def read_pose_table(
     """poses.csv -> (rows as dicts of strings, the ``numeric`` columns as a float array (N, C)).
     Checks that the ``required`` and ``numeric`` columns exist and parse; keeps the first
     ``frames_limit`` rows when given."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: missing pose table (render the sequence with `make dataset`)")
-    try:
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise DatasetError(f"{path}: unreadable ({exc})") from exc
-    if not rows:
-        raise DatasetError(f"{path}: no rows")
-    missing = [c for c in (*required, *numeric) if c not in rows[0]]
-    if missing:
-        raise DatasetError(f"{path}: missing column(s) {missing}")
+    rows = read_pose_rows(
+        path,
+        (*required, *numeric),
+        DatasetError,
+        "a missing pose table: render the sequence with `make dataset`",
+    )
     rows = rows[:frames_limit] if frames_limit else rows
     try:
         num = np.array([[float(r[c]) for c in numeric] for r in rows])

@@ -4,6 +4,9 @@ generator oibar_hil.dataset, the calibration toolbox's recordings oibar.calib.io
 
 from __future__ import annotations
 
+import csv
+from pathlib import Path
+
 POSES_COLUMNS: tuple[str, ...] = (
     "frame",
     "file",
@@ -23,3 +26,24 @@ POSES_COLUMNS: tuple[str, ...] = (
     "sun_cam_y",
     "sun_cam_z",
 )
+
+
+def read_pose_rows(path, required, error, hint: str) -> list[dict[str, str]]:
+    """poses.csv's rows as dicts of strings, each ``required`` column present, or ``error`` (an
+    exception class) with one line: no file (``hint`` says how to make one), unreadable, no rows,
+    a missing column. The one reader of the table for the generator's sequences and the
+    calibration toolbox's labels, which check their values each in their own way."""
+    path = Path(path)
+    if not path.is_file():
+        raise error(f"{path}: no such file ({hint})")
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise error(f"{path}: unreadable ({exc})") from None
+    if not rows:
+        raise error(f"{path}: no rows")
+    missing = [c for c in required if c not in rows[0]]
+    if missing:
+        raise error(f"{path}: missing column(s) {missing}")
+    return rows

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from oibar.dataset_format import POSES_COLUMNS
+from oibar.dataset_format import POSES_COLUMNS, read_pose_rows
 from oibar.geometry.camera import PinholeCamera, intrinsics_corner_to_centre
 from oibar.hashing import sha256_file
 
@@ -80,19 +80,12 @@ def _number(text: str | None, where: str, col: str) -> float:
 def read_labels(path: Path) -> list[Label]:
     """The poses CSV of `oibar calib apply` (or a dataset's poses.csv): one label per row, each
     checked (a finite pose, a unit quaternion, times increasing, no frame twice)."""
-    path = Path(path)
-    if not path.is_file():
-        raise CalibError(f"{path}: no such file (write it with `oibar calib apply ... -o {path}`)")
-    try:
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise CalibError(f"{path}: unreadable ({exc})") from None
-    if not rows:
-        raise CalibError(f"{path}: no labelled frames")
-    missing = [c for c in ("frame", "file", "time_s", *POSE_KEYS) if c not in rows[0]]
-    if missing:
-        raise CalibError(f"{path}: no {missing[0]!r} column (the poses format of `oibar calib apply`)")
+    rows = read_pose_rows(
+        path,
+        ("frame", "file", "time_s", *POSE_KEYS),
+        CalibError,
+        f"write it with `oibar calib apply ... -o {path}`",
+    )
     labels = []
     for line, r in enumerate(rows, start=2):
         where = f"{path}:{line}"
