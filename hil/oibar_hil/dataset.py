@@ -328,8 +328,31 @@ def _worker_init(lp_threads: int) -> None:
     os.environ["LP_NUM_THREADS"] = str(lp_threads)
 
 
-def _renderer_for(spec: SequenceSpec):
+def load_spec_scene(r, spec: SequenceSpec) -> None:
+    """Load `spec`'s scene into renderer `r` (render.Renderer or render_mitsuba's), as every frame
+    of the spec is drawn with: its parts, backdrop, Perlin seed and, for a randomised look, the
+    LookParams of spec_look (materials, lamps, backdrop and optics, placed in the port's axes).
+    The rig's rendered camera (oibar_hil.rig.camera) loads its scene with this too."""
     from .meshes import scene_parts
+
+    # the lab's mock-up is the fixture alone
+    parts = scene_parts("perlin" if spec.look == "lab" else spec.background, spec.port)
+    port = PORTS[spec.port]
+    look = spec_look(spec)
+    if look is None:
+        r.load_scene(parts, spec.background, port.p_lvlh_t, perlin_seed=spec.seed)
+    else:
+        r.load_scene(
+            parts,
+            spec.background,
+            port.p_lvlh_t,
+            perlin_seed=spec.seed,
+            look=look,
+            R_lvlh_t=port.R_lvlh_t,
+        )
+
+
+def _renderer_for(spec: SequenceSpec):
     from .render import Renderer
 
     settings = RenderSettings(noise_sigma_dn=spec.noise_sigma_dn, blur_sigma_px=spec.blur_sigma_px)
@@ -350,21 +373,7 @@ def _renderer_for(spec: SequenceSpec):
         _WORKER["scene"] = None
     key = (spec.background, spec.port, spec.seed, spec.look, spec.look_seed)
     if _WORKER.get("scene") != key:
-        # the lab's mock-up is the fixture alone
-        parts = scene_parts("perlin" if spec.look == "lab" else spec.background, spec.port)
-        port = PORTS[spec.port]
-        look = spec_look(spec)
-        if look is None:
-            r.load_scene(parts, spec.background, port.p_lvlh_t, perlin_seed=spec.seed)
-        else:
-            r.load_scene(
-                parts,
-                spec.background,
-                port.p_lvlh_t,
-                perlin_seed=spec.seed,
-                look=look,
-                R_lvlh_t=port.R_lvlh_t,
-            )
+        load_spec_scene(r, spec)
         _WORKER["scene"] = key
     return r
 

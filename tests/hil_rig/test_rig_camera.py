@@ -3,6 +3,7 @@ for the same pose and time, and the fixture where the pinhole model puts it."""
 
 import json
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,13 +26,16 @@ from oibar_hil.meshes import (
     end_effector,
 )
 from oibar_hil.ports import PORTS
-from oibar_hil.rig.camera import OrbitClock, RigCamera, RigCameraError, pose_to_lvlh
+from oibar_hil.rig.camera import OrbitClock, RigCamera, RigCameraError, pose_to_lvlh, scene_spec
 
 REPO = Path(__file__).resolve().parents[2]
 
 SEQ01 = PAPER_SEQUENCES[1]  # iss background, port 1 (+V-bar): the default scene
 SEQ07 = PAPER_SEQUENCES[7]  # perlin background, port 4 (-R-bar): another port, approach and backdrop
 FACE = {ID_PLATE, ID_PIN_GUIDE, ID_COUPLING, ID_CONNECTOR}  # the fixture's face around the drogue
+# A randomised look (issue 58 part 3) on a fixture-only scene (quick to load): two lamps riding on
+# the camera and one fixed in F_t, a Perlin backdrop, vignetting, lens distortion, exposure 1.5.
+DR070 = f"{REPO / 'models/scenes/train_dr.json'}:dr070"
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +81,25 @@ def test_a_scene_set_files_scene_can_be_the_loops_look(tmp_path):
     bad.write_text(json.dumps({"scenes": [{"name": "x1", "port": 9}]}))
     with pytest.raises(RigCameraError, match="scene 0"):
         scene_spec(f"{bad}:x1")
+
+
+def test_a_mitsuba_scene_is_refused_with_what_to_use_instead():
+    """The lab look and the matched validation looks are the Mitsuba path tracer's; the rig camera
+    rasterises, so it says so before any GL work rather than fly the loop on another image."""
+    lab = f"{REPO / 'models/scenes/val_lab.json'}:va000"
+    mitsuba_set = REPO / "models/scenes/val_mitsuba.json"
+    matched = f"{mitsuba_set}:{json.loads(mitsuba_set.read_text())['scenes'][0]['name']}"
+    for scene in (lab, matched, scene_spec(f"{REPO / 'models/scenes/val.json'}:va000")):
+        if not isinstance(scene, str):
+            scene = replace(scene, renderer="mitsuba", look="lab")
+        with pytest.raises(RigCameraError, match=r"Mitsuba path tracer.*fly a raster scene") as e:
+            RigCamera(scene=scene)
+        assert "\n" not in str(e.value)
+    # the raster scene of the same name flies
+    assert scene_spec(f"{REPO / 'models/scenes/val.json'}:va000").renderer == "raster"
+    # A randomised look draws its own exposure: a dispersed one would be silently ignored.
+    with pytest.raises(RigCameraError, match="randomized look.*exposure=2.0 would be ignored"):
+        RigCamera(scene=DR070, exposure=2.0)
 
 
 def test_mount_and_probe_have_one_source():
@@ -172,6 +195,37 @@ def test_same_frame_as_the_dataset(cam, plans, dataset_renderer, tmp_path, name,
     assert diff.mean() < 0.05
     # Not a vacuous match: the frame has content (the fixture and a backdrop), not a black image.
     assert want.std() > 5.0
+
+
+def test_a_randomized_look_is_the_datasets_frame(headless_gl, dataset_renderer, tmp_path):
+    """A scene with look "randomized" (models/scenes/train_dr.json:dr070) gives, at a data-set
+    frame's pose and time, the generator's frame for the same spec and index: the same LookParams
+    (materials, lamps that follow the camera, backdrop, exposure, optics) and the same JPEG
+    round trip. Two frames, far (the first) and close (the last); the tolerance is
+    test_same_frame_as_the_dataset's (on llvmpipe the frames have been bit-identical)."""
+    spec = scene_spec(DR070)
+    look = dataset.spec_look(spec)
+    assert look is not None and spec.background == "perlin"
+    assert "camera" in {lamp.mount for lamp in look.lamps} and look.vignetting > 0 and look.distortion_k1 != 0
+    plan = plan_sequence(spec)
+    ks = (0, plan.n_frames - 1)
+    got = {}
+    with RigCamera(scene=DR070) as c:
+        assert c.spec == spec
+        for k in ks:
+            st = docking_from_camera_pose(plan.T_cam_target[k], quat_to_matrix(plan.q_cam_target[k]))
+            got[k] = c.render(st.r_D_m, st.att_rad, t_s=float(plan.t_s[k])).image
+    for k in ks:
+        want = _dataset_frame(plan, k, tmp_path)
+        diff = np.abs(got[k].astype(np.int16) - want.astype(np.int16))
+        assert np.count_nonzero(diff.max(axis=2)) <= 0.001 * 480 * 744, f"frame {k} ({plan.range_m[k]:.2f} m)"
+        assert diff.mean() < 0.05
+        assert want.std() > 5.0
+    # Not the matched look under another name: the same spec's matched frame is another image.
+    with RigCamera(scene=replace(spec, look="matched")) as m:
+        st = docking_from_camera_pose(plan.T_cam_target[0], quat_to_matrix(plan.q_cam_target[0]))
+        matched = m.render(st.r_D_m, st.att_rad, t_s=float(plan.t_s[0])).image
+    assert np.abs(matched.astype(np.int16) - got[0].astype(np.int16)).mean() > 5.0
 
 
 # (r_D_m, att_rad): on the axis at 5 m; offset, misaligned and rolled at 2 m; close with roll.

@@ -9,7 +9,13 @@ the synthetic dataset (oibar_hil.dataset) for one of the paper's sequence specs:
             oibar.geometry.docking.camera_pose_from_docking (the mount and probe numbers of
             GEOMETRY, the same ones oibar_hil.relpose labels the dataset with), then the
             camera's pose in LVLH from the spec's port, as relpose.camera_poses does;
-  scene     scene_parts(background, port), Perlin seed = the spec's seed (dataset._renderer_for);
+  scene     loaded by dataset.load_spec_scene, the generator's own: scene_parts(background, port),
+            Perlin seed = the spec's seed and, for a spec with look "randomized", the LookParams
+            dataset.spec_look draws (oibar_hil.randomize: materials, lamps, backdrop, exposure,
+            vignetting, lens distortion; the renderer keeps each lamp's irradiance at the
+            fixture as the camera moves, per frame, as for the data set). A spec drawn by
+            Mitsuba (render_mitsuba: the lab look, the matched validation and test looks),
+            which the rig does not run, is refused (RigCameraError);
   orbit     rig time t_s = 0 is the dataset's t = 0 for the spec (the moment the Sun has the
             spec's in-plane elevation; both start the approach at 10 m). The orbit clock runs
             with t_s: Sun sampled once per second (dataset.SUN_UPDATE_S, so the shadow map is
@@ -39,7 +45,15 @@ import numpy as np
 from oibar.geometry.camera import PinholeCamera
 from oibar.geometry.docking import GEOMETRY, DockingGeometry, camera_pose_from_docking
 
-from ..dataset import PAPER_SEQUENCES, SUN_UPDATE_S, DatasetError, SequenceSpec, encode_image, load_spec_file
+from ..dataset import (
+    PAPER_SEQUENCES,
+    SUN_UPDATE_S,
+    DatasetError,
+    SequenceSpec,
+    encode_image,
+    load_spec_file,
+    load_spec_scene,
+)
 from ..orbit import DEFAULT_TLE, TargetOrbit, julian_date, parse_utc
 from ..ports import PORTS, Port
 from ..render import RenderSettings
@@ -49,7 +63,8 @@ DEFAULT_SCENE = "seq01"  # a test sequence of the CNN: the demo runs on a scene 
 
 
 class RigCameraError(RuntimeError):
-    """The rendered camera cannot be built or used: unknown scene, no GL context, closed."""
+    """The rendered camera cannot be built or used: unknown scene, a look it cannot draw, no GL
+    context, closed."""
 
 
 @dataclass(frozen=True)
@@ -64,7 +79,8 @@ class RenderedFrame:
 def scene_spec(scene: str | SequenceSpec) -> SequenceSpec:
     """A paper sequence name (seq01..seq12), ``FILE:NAME`` (scene NAME of a scene-set file such
     as models/scenes/val.json: the closed loop on a validation scene's look, so a choice made
-    in the loop need not be made on a test scene's) or a full SequenceSpec -> a validated spec."""
+    in the loop need not be made on a test scene's; models/scenes/train_dr.json:dr005, a
+    randomised look) or a full SequenceSpec -> a validated spec the rig camera can render."""
     if isinstance(scene, SequenceSpec):
         spec = scene
     elif isinstance(scene, str) and scene in SCENES:
@@ -89,6 +105,12 @@ def scene_spec(scene: str | SequenceSpec) -> SequenceSpec:
         spec.validate()
     except ValueError as exc:
         raise RigCameraError(f"bad scene spec: {exc}") from exc
+    if spec.renderer == "mitsuba":  # the lab look, or a matched look the path tracer would draw
+        raise RigCameraError(
+            f"scene {spec.name!r} is drawn by the Mitsuba path tracer (look {spec.look!r}), which the "
+            "rig camera does not run (it rasterises): fly a raster scene, matched or randomized "
+            "(e.g. models/scenes/val.json:NAME), or render it open-loop with python -m oibar_hil.dataset --spec FILE"
+        )
     return spec
 
 
@@ -155,6 +177,12 @@ class RigCamera:
         exposure: float = 1.0,  # RenderSettings.exposure: the sensor's gain (issue 62 disperses it)
     ) -> None:
         self.spec = scene_spec(scene)  # unknown scene: fail before any GL work
+        if self.spec.look == "randomized" and float(exposure) != 1.0:
+            # a randomised look draws its own exposure, which replaces RenderSettings.exposure
+            raise RigCameraError(
+                f"scene {self.spec.name!r} has a randomized look, whose own exposure the renderer "
+                f"uses: exposure={exposure} would be ignored (leave it at 1.0)"
+            )
         self.seed = int(seed)
         self.sensor_effects = bool(sensor_effects)
         self.geometry = geometry
@@ -181,15 +209,8 @@ class RigCamera:
             raise RigCameraError(f"rendered camera unavailable: {exc}") from exc
         try:
             with ctx:  # leaves the context current nowhere, so any thread may render later
-                from ..meshes import scene_parts
-
                 self._renderer = Renderer(self.camera, settings, ctx=ctx)
-                self._renderer.load_scene(
-                    scene_parts(self.spec.background, self.spec.port),
-                    self.spec.background,
-                    self.port.p_lvlh_t,
-                    perlin_seed=self.spec.seed,
-                )
+                load_spec_scene(self._renderer, self.spec)
         except Exception as exc:
             ctx.release()
             self._renderer = None
