@@ -241,7 +241,7 @@ def serial_campaign(tmp_path_factory, sim_mcu_path):
         assert (first.already_done, first.finished) == (0, 2)
         cfg = dataclasses.replace(cfg, missions=TINY_MISSIONS)
         assert open_campaign(folder, cfg, mcu_path=sim_mcu_path).status == "same"  # longer: accepted
-    more = run_missions(cfg, folder, executor="serial", mcu_path=str(sim_mcu_path), progress=False)
+        more = run_missions(cfg, folder, executor="serial", mcu_path=str(sim_mcu_path), progress=False)
     assert (more.already_done, more.finished) == (2, TINY_MISSIONS - 2), "the resume flew done missions again"
     return folder, cfg, read_rows(folder)
 
@@ -308,7 +308,7 @@ def test_ray_campaign_with_a_killed_worker_gives_the_same_table(serial_campaign,
     assert _deterministic(table) == _deterministic(serial_rows), "Ray's table differs from one process's"
     assert len({r["worker"] for r in table}) >= 2  # the missions did spread over workers
     code = json.loads((out / "campaign.json").read_text())["code"]
-    assert {r["code_sha"] for r in table} == {code["short"]}  # the driver stamps Ray's rows too
+    assert {r["code_sha"] for r in table} == {code["short"]}  # each worker's own: the campaign's
     report = (out / "report.md").read_text()
     assert f"{TINY_MISSIONS}/{TINY_MISSIONS}" in report and "Clopper-Pearson" in report
     assert (out / "figures" / "inputs_success.png").exists()
@@ -389,6 +389,8 @@ def test_the_code_fingerprint_covers_what_flies(code_tree):
 
 def _fake_mission(calls):
     """run_mission without the rig: a fault-free success row, the index noted in ``calls``."""
+    import socket
+
     from oibar_hil.campaign.mission import MissionRun, complete_row
 
     def run(cfg, index, *, mcu_path=None, model_path=None, out_dir=None):
@@ -398,6 +400,7 @@ def _fake_mission(calls):
                "nav": cfg.nav,
                "fault": "", "fault_phase": "", "outcome": "completed", "success": True,
                "wall_time_s": 0.01, "cpu_time_s": 0.01, "sim_time_s": 1.0,
+               "worker": f"{socket.gethostname()}:{os.getpid()}",
                **{f"in_{k}": v for k, v in d.values.items()}}  # fmt: skip
         return MissionRun(complete_row(row))
 
@@ -458,6 +461,73 @@ def test_a_campaign_flies_one_version_of_the_code(code_tree, tmp_path, monkeypat
     report = "\n".join(code_lines(folder, read_rows(folder)))
     assert first["short"] in report and "gate fix: guidance only" in report
     assert "code changed during this campaign" in report and f"`{second}` 2" in report
+
+
+def test_a_mission_flown_by_a_worker_with_other_code_is_not_written(code_tree, tmp_path, monkeypatch, capsys):
+    """Each worker fingerprints the code it flies. A worker with a stale checkout (its own tree,
+    another guidance.py): the driver writes none of its rows, stops, names the worker, both
+    fingerprints and the group, exit 3; with --allow-code-change its rows are kept under its
+    own code_sha, which campaign.json and the report record."""
+    pytest.importorskip("pyarrow")
+    import shutil
+    import socket
+
+    from oibar_hil.campaign import execute, fingerprint
+    from oibar_hil.campaign.cli import EXIT_FOLDER, main
+    from oibar_hil.campaign.report import code_lines
+    from oibar_hil.campaign.store import code_record, part_indices, read_rows
+
+    root, mcu = code_tree
+    calls: list[int] = []
+    monkeypatch.setattr(execute, "run_mission", _fake_mission(calls))
+    folder = tmp_path / "camp"
+
+    def run(n, *extra):
+        calls.clear()
+        rc = main(["run", "--config", str(SHORT), "--missions", str(n), "--out", str(folder),
+                   "--executor", "serial", "--mcu", str(mcu), "--no-progress", "--no-report", *extra])  # fmt: skip
+        return rc, list(calls), capsys.readouterr().err
+
+    assert run(2)[:2] == (0, [0, 1])  # the normal path: the worker's code is the campaign's
+    meta = json.loads((folder / "campaign.json").read_text())
+    campaign = meta["code"]["short"]
+    assert [r["code_sha"] for r in read_rows(folder)] == [campaign] * 2
+
+    stale = tmp_path / "stale"  # the worker's own checkout, one file behind
+    shutil.copytree(root, stale)
+    (stale / "host/oibar/nav/guidance.py").write_text("GATE = 4\n")
+    theirs = execute.worker_code
+    computed: list[str] = []
+
+    def stale_worker(nav, mcu_path, model_path):
+        with pytest.MonkeyPatch.context() as mp:  # SOURCE_ROOT as that worker sees it
+            mp.setattr(fingerprint, "SOURCE_ROOT", stale)
+            code = theirs(nav, mcu_path, model_path)
+        computed.append(code["short"])
+        return code
+
+    monkeypatch.setattr(execute, "worker_code", stale_worker)
+    rc, flown, err = run(4)
+    (other,) = set(computed)
+    assert (rc, flown) == (EXIT_FOLDER, [2]), err  # flown, then the campaign stopped
+    assert len(err.strip().splitlines()) == 1, err
+    assert f"mission 2 was flown by worker {socket.gethostname()}:{os.getpid()}" in err
+    assert other in err and campaign in err and "differ in host)" in err and f"exit {EXIT_FOLDER}" in err
+    assert part_indices(folder) == {0, 1} and [r["index"] for r in read_rows(folder)] == [0, 1]
+    assert code_record(folder) == {"code": meta["code"]}  # no code recorded
+
+    rc, flown, err = run(4, "--allow-code-change", "stale node, guidance only")
+    assert (rc, flown) == (0, [2, 3]), err
+    assert "kept: 'stale node, guidance only'" in err
+    assert [r["code_sha"] for r in read_rows(folder)] == [campaign] * 2 + [other] * 2
+    meta = json.loads((folder / "campaign.json").read_text())
+    (kept,) = meta["worker_code"]
+    assert kept["code"]["short"] == other and kept["changed"] == ["host"] and kept["first_mission"] == 2
+    assert kept["reason"] == "stale node, guidance only" and meta["code"]["short"] == campaign
+    assert main(["report", str(folder), "--no-figures"]) == 0  # its table holds known code
+    assert run(4)[:2] == (0, [])  # and resumes from it
+    report = "\n".join(code_lines(folder, read_rows(folder)))
+    assert f"`{campaign}` 2, `{other}` 2" in report and "stale node, guidance only" in report
 
 
 def test_a_folder_made_before_fingerprints_adopts_the_code(code_tree, tmp_path):

@@ -13,7 +13,9 @@ finishes, then missions.parquet and report.md. Run it again with the same argume
 stopped campaign (only the missing missions fly); a larger ``--missions`` extends it. A campaign
 flies one version of the code: a resume from a checkout whose fingerprint (fingerprint.py: the
 host, firmware, proto, hil sources, the models for cnn, the simulated MCU binary) differs from
-the one campaign.json recorded is refused (exit 3) unless ``--allow-code-change REASON``.
+the one campaign.json recorded is refused (exit 3) unless ``--allow-code-change REASON``; so is
+a mission a Ray worker flew with other code (its own checkout's fingerprint): its row is not
+written and the run stops (exit 3), or with the reason the row is kept under the worker's code.
 
 ``pack`` writes DEST_DIR/campaign.json and DEST_DIR/missions.parquet (every finished row, zstd):
 the form to commit (hil/campaigns/results/<name>/). A folder holding missions.parquet and fewer
@@ -28,11 +30,12 @@ Exit status:
      differs from its stored row
   2  bad arguments: an invalid campaign file, no simulated MCU, a missing model, an unknown index,
      a folder that is not a campaign (no campaign.json)
-  3  the folder holds another campaign, or was flown by other code (a changed fingerprint, no
-     --allow-code-change), or another run is writing to it; its missions.parquet cannot be read,
-     holds another campaign's rows (name, seed, model) or rows of code campaign.json does not
-     record, or disagrees with a part of the same mission; pack: DEST_DIR holds another campaign
-     or missions CAMPAIGN_DIR lacks
+  3  the folder holds another campaign, or was flown by other code (a changed fingerprint, or a
+     Ray worker's that differs from the campaign's: that mission is not written, a resume flies
+     it; no --allow-code-change), or another run is writing to it; its missions.parquet cannot
+     be read, holds another campaign's rows (name, seed, model) or rows of code campaign.json
+     does not record, or disagrees with a part of the same mission; pack: DEST_DIR holds another
+     campaign or missions CAMPAIGN_DIR lacks
 """
 
 from __future__ import annotations
@@ -84,8 +87,8 @@ def _parser() -> argparse.ArgumentParser:
         prog="python -m oibar_hil.campaign",
         description="Monte Carlo dispersion campaigns on the HIL rig (issue 62)",
         epilog="Exit status: 0 done, 1 incomplete (resume) or not reproduced, 2 bad arguments, "
-        "3 the folder holds another campaign, was flown by other code, is in use, or its "
-        "missions.parquet is unreadable or not this campaign's.",
+        "3 the folder holds another campaign, was flown by other code (this checkout's or a "
+        "worker's), is in use, or its missions.parquet is unreadable or not this campaign's.",
     )
     sub = ap.add_subparsers(dest="cmd", required=True)
     run = sub.add_parser("run", help="run (or resume) a campaign")
@@ -132,8 +135,8 @@ def _parser() -> argparse.ArgumentParser:
         metavar="REASON",
         type=_reason,
         default=None,
-        help="resume a campaign flown by other code anyway (recorded with REASON in campaign.json "
-        "and the report)",
+        help="resume a campaign flown by other code anyway, and keep missions a worker flies with "
+        "other code (recorded with REASON in campaign.json and the report)",
     )
     run.add_argument("--no-progress", action="store_true")
     run.add_argument("--no-report", action="store_true", help="only the parts; `report` later")
@@ -261,7 +264,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 mcu_path=mcu,
                 model_path=model,
                 progress=not args.no_progress,
-                code_sha=code.short,
+                code=code.fingerprint,
+                allow_code_change=args.allow_code_change,
             )
             report_path, rows = (None, None) if args.no_report else summarise(folder)
     except CodeChangedError as exc:

@@ -7,6 +7,11 @@ whose worker process dies (killed, out of memory, a lost node) runs again elsewh
 exception inside a mission is not retried (it is a result: outcome "error"). Only this driver
 writes parts, one per returned mission index, so a retried mission cannot land twice. At most
 two tasks per worker are in flight, so a stopped campaign leaves few started missions behind.
+
+A worker on another machine imports its own checkout: each worker process fingerprints the code
+it flies (``worker_code``) and returns it with every row. A row whose code is not the campaign's
+is not written and stops the campaign (``WorkerCodeError``) unless ``allow_code_change`` gives
+the reason to keep it: then the worker's fingerprint goes into campaign.json before its rows.
 """
 
 from __future__ import annotations
@@ -14,21 +19,25 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from oibar_hil.campaign import fingerprint
 from oibar_hil.campaign.dispersion import CampaignConfig
 from oibar_hil.campaign.mission import ENV_THREADS, run_mission
 from oibar_hil.campaign.stats import rate
 from oibar_hil.campaign.store import (
+    CodeChangedError,
     clean_temporaries,
     code_record,
     current_code,
     done_indices,
     read_rows,
+    record_worker_code,
     write_part,
 )
 
@@ -39,10 +48,18 @@ PID_DIR_ENV = "OIBAR_CAMPAIGN_PID_DIR"
 # own daemons start at normal priority (Ray gives its node 30 s to come up, which a starved
 # niced raylet on a loaded machine misses) while the missions yield to everything else.
 NICE_ENV = "OIBAR_CAMPAIGN_NICE"
+# The key of a task's row that carries the worker's fingerprint to the driver, which takes it
+# out before writing (a row, not a tuple: a driver started before this still reads the row).
+WORKER_CODE_KEY = "_worker_code"
 
 
 class RayStartError(RuntimeError):
     """Ray could not start or reach its cluster (the message says what to try)."""
+
+
+class WorkerCodeError(CodeChangedError):
+    """A mission was flown by a worker whose code is not the campaign's (a node with a stale or
+    edited checkout, another simulated MCU or model) and no reason to keep it was given."""
 
 
 @dataclass
@@ -78,6 +95,20 @@ class _Tally:
         return f"success {self.ok}/{self.n} = {100 * r.rate:.1f} % (>= {100 * r.lower_bound:.1f} % at 95 %)"
 
 
+# This process's fingerprints, per (source root, navigation, MCU, model): a worker imports its
+# modules once, so it hashes its tree once, at its first mission.
+_WORKER_CODE: dict[tuple[str, str, str | None, str | None], dict[str, Any]] = {}
+
+
+def worker_code(nav: str, mcu_path: str | None, model_path: str | None) -> dict[str, Any]:
+    """The fingerprint of the code this process flies: its own checkout (``SOURCE_ROOT`` as it
+    sees it), the simulated MCU and model it runs (None: its own defaults)."""
+    key = (str(fingerprint.SOURCE_ROOT), nav, mcu_path, model_path)
+    if key not in _WORKER_CODE:
+        _WORKER_CODE[key] = fingerprint.code_fingerprint(nav, mcu_path=mcu_path, model_path=model_path)
+    return _WORKER_CODE[key]
+
+
 def _mission_task(
     cfg: CampaignConfig, index: int, mcu_path: str | None, model_path: str | None
 ) -> dict[str, Any]:
@@ -87,7 +118,46 @@ def _mission_task(
     pid_dir = os.environ.get(PID_DIR_ENV)
     if pid_dir:
         Path(pid_dir, f"{index}.{os.getpid()}").touch()
-    return run_mission(cfg, index, mcu_path=mcu_path, model_path=model_path).row
+    code = worker_code(cfg.nav, mcu_path, model_path)  # before the flight: a bad tree costs none
+    row = run_mission(cfg, index, mcu_path=mcu_path, model_path=model_path).row
+    return {**row, "code_sha": code["short"], WORKER_CODE_KEY: code}
+
+
+def _check_worker_code(
+    folder: Path,
+    row: dict[str, Any],
+    flown_by: dict[str, Any] | None,
+    code: dict[str, Any],
+    allow_code_change: str | None,
+    kept: set[str],
+    say: Callable[[str], None],
+) -> None:
+    """Refuse a row flown by other code than the campaign's (``WorkerCodeError``: it is not
+    written, so a resume flies the mission again), or, with a reason, record the worker's
+    fingerprint in campaign.json (once) so the rows it flies are known code."""
+    if flown_by is not None and flown_by.get("sha256") == code["sha256"]:
+        return
+    if flown_by is None:  # a worker whose checkout predates worker fingerprints
+        changed, theirs = ["the fingerprint, none sent"], "unknown"
+    else:
+        changed, theirs = fingerprint.changed_groups(code, flown_by), fingerprint.describe(flown_by)
+    what = (
+        f"mission {row['index']} was flown by worker {row.get('worker') or '?'} with code {theirs}, "
+        f"the campaign flies {fingerprint.describe(code)} (they differ in "
+        f"{', '.join(changed) or 'the fingerprint'})"
+    )
+    if not allow_code_change or flown_by is None:  # unknown code cannot be recorded, so not kept
+        raise WorkerCodeError(
+            f"{what}; its row was not written and the campaign stopped: give that node the "
+            "campaign's code (checkout, simulated MCU, model) and run again to resume"
+            + (", or pass --allow-code-change REASON to keep missions of other code" if flown_by else ""),
+            changed,
+        )
+    if flown_by["sha256"] not in kept:
+        kept.add(flown_by["sha256"])
+        worker = str(row.get("worker", ""))
+        record_worker_code(folder, flown_by, worker, int(row["index"]), allow_code_change, changed)
+        say(f"{what}; kept: {allow_code_change!r} (recorded in campaign.json)")
 
 
 def pending_indices(folder: Path, missions: int) -> list[int]:
@@ -107,15 +177,19 @@ def run_missions(
     model_path: str | None = None,
     progress: bool = True,
     on_row: Callable[[dict[str, Any]], None] | None = None,
-    code_sha: str | None = None,
+    code: dict[str, Any] | None = None,
+    allow_code_change: str | None = None,
 ) -> RunSummary:
     """Run every mission 0..cfg.missions-1 not finished in ``folder`` yet (no part, no row in
-    its missions.parquet: a packed campaign resumes from its table). Each row gets
-    ``code_sha``: the short hash of the code that flies (default: the one ``open_campaign``
-    checked and recorded in the folder)."""
+    its missions.parquet: a packed campaign resumes from its table). Each row's ``code_sha`` is
+    the short hash of the code its worker flew; it must be ``code``, the campaign's fingerprint
+    (default: the one ``open_campaign`` checked and recorded in the folder), else the run stops
+    with ``WorkerCodeError`` before writing that row, unless ``allow_code_change`` gives the
+    reason to keep it."""
     folder = Path(folder)
-    if code_sha is None:
-        code_sha = str((current_code(code_record(folder)) or {}).get("short", ""))
+    if code is None:
+        code = current_code(code_record(folder))
+    kept: set[str] = set()
     clean_temporaries(folder)
     todo = pending_indices(folder, cfg.missions)
     previous = read_rows(folder)
@@ -128,8 +202,19 @@ def run_missions(
         bar = Progress(f"campaign {cfg.name} ({cfg.nav})", total=len(todo), unit="mission")
         bar.set_postfix_str(tally.text())
 
+    def say(text: str) -> None:
+        if bar is not None:
+            bar.write(text)
+        else:
+            print(text, file=sys.stderr)
+
     def finished(row: dict[str, Any]) -> None:
-        row = {**row, "code_sha": code_sha}
+        row = dict(row)
+        flown_by = row.pop(WORKER_CODE_KEY, None)
+        if code is None:  # a folder never opened (no fingerprint): its rows say none
+            row["code_sha"] = ""
+        else:
+            _check_worker_code(folder, row, flown_by, code, allow_code_change, kept, say)
         write_part(folder, row)
         summary.finished += 1
         tally.add(row)
@@ -147,6 +232,7 @@ def run_missions(
             pass
         elif executor == "serial":
             summary.workers = 1
+            _WORKER_CODE.clear()  # this process is the worker: its code now (a test edits the tree)
             nice = int(os.environ.get(NICE_ENV, "0") or 0)
             if nice > os.getpriority(os.PRIO_PROCESS, 0):
                 os.setpriority(os.PRIO_PROCESS, 0, nice)

@@ -1,7 +1,8 @@
 """The campaign report (report.md and figures/ in the campaign folder).
 
-0. the code that flew the campaign (its fingerprint, git commit) and any change allowed on a
-   resume (``--allow-code-change``), with the missions each code version flew;
+0. the code that flew the campaign (its fingerprint, git commit), any change allowed on a
+   resume and any workers' other code kept (``--allow-code-change``), with the missions each
+   code version flew;
 1. the success rate with its Clopper-Pearson interval and one-sided lower bound: all missions,
    fault-free ones (the docking success rate) and faulted ones (ended as the fault matrix
    expects), and the outcomes;
@@ -231,7 +232,7 @@ def _when(text: Any) -> str:
 
 def code_lines(folder: Path, rows: list[dict[str, Any]]) -> list[str]:
     """The report's code version: campaign.json's fingerprint, the changes allowed on a resume,
-    and how many missions each code version flew (a row's ``code_sha``)."""
+    other code kept from workers, and how many missions each code version flew (``code_sha``)."""
     from oibar_hil.campaign.fingerprint import describe
 
     # campaign.json read here, not through store: a driver started before fingerprints (its old
@@ -275,6 +276,20 @@ def code_lines(folder: Path, rows: list[dict[str, Any]]) -> list[str]:
             out.append(
                 f"| {_when(c.get('time'))} | {reason} | {', '.join(c.get('changed', [])) or '-'} | "
                 f"`{describe(c.get('old'))}` | `{describe(c.get('new'))}` | {c.get('missions_before', '?')} |"
+            )
+    kept = record.get("worker_code") or []
+    if kept:
+        out += [
+            "",
+            f"**Ray workers flew missions with other code** ({len(kept)} fingerprint(s), each kept "
+            "with `--allow-code-change`; their rows carry the worker's `code_sha`):",
+            "",
+        ]
+        for k in kept:
+            out.append(
+                f"- `{describe(k.get('code'))}` on worker {k.get('worker') or '?'}, first mission "
+                f"{k.get('first_mission', '?')}: differs in {', '.join(k.get('changed', [])) or '-'}; "
+                f"reason: {k.get('reason', '')}"
             )
     by_code = Counter(r.get("code_sha") or "" for r in rows)
     if by_code:

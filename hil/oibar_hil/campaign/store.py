@@ -16,7 +16,9 @@ its worker died after all) lands in the same file name, once.
 A campaign flies one version of the code: ``open_campaign`` records the fingerprint of what
 flies (``fingerprint.code_fingerprint``) when it makes the folder and refuses a resume from a
 checkout whose fingerprint differs (``CodeChangedError``), unless it is given the reason to
-accept it, which it appends to ``code_changes``. Every row carries the short hash (``code_sha``).
+accept it, which it appends to ``code_changes``. Every row carries the short hash of the code
+its worker flew (``code_sha``); a worker's other code kept with that reason is appended to
+``worker_code`` (``record_worker_code``) before its rows are written.
 
 A campaign travels as its merged table: ``pack`` writes campaign.json and missions.parquet
 (zstd) to another folder, the form a session commits. A folder with a missions.parquet and
@@ -50,7 +52,7 @@ PART_RE = re.compile(r"^mission_(\d{6,})\.parquet$")
 CONFIG_FILE = "campaign.json"
 TABLE_FILE = "missions.parquet"
 TABLE_COMPRESSION = "zstd"  # 1000 rows in a few hundred kB: small enough to commit
-CODE_KEYS = ("code", "code_changes", "code_adopted")  # campaign.json's record of what flies
+CODE_KEYS = ("code", "code_changes", "code_adopted", "worker_code")  # campaign.json's record of what flies
 
 
 class CampaignFolderError(RuntimeError):
@@ -175,6 +177,30 @@ def current_code(record: dict[str, Any]) -> dict[str, Any] | None:
     if changes:
         return changes[-1]["new"]
     return record.get("code")
+
+
+def record_worker_code(
+    folder: Path, fp: dict[str, Any], worker: str, index: int, reason: str, changed: list[str]
+) -> None:
+    """Append the fingerprint of a worker's code that is not the campaign's, kept with
+    ``reason``, to campaign.json's ``worker_code`` (once per fingerprint): its rows are known
+    code then (``known_code``), and the report says who flew them."""
+    path = Path(folder) / CONFIG_FILE
+    data = json.loads(path.read_text())
+    entries = data.setdefault("worker_code", [])
+    if any(e.get("code", {}).get("sha256") == fp["sha256"] for e in entries):
+        return
+    entries.append(
+        {
+            "time": _now(),
+            "reason": reason,
+            "worker": worker,
+            "first_mission": index,
+            "changed": changed,
+            "code": fp,
+        }
+    )
+    _write_json(path, data)
 
 
 def code_record(folder: Path) -> dict[str, Any]:
@@ -353,13 +379,16 @@ def table_rows(folder: Path) -> list[dict[str, Any]]:
 
 def known_code(record: dict[str, Any]) -> set[str]:
     """The short hashes of every code version campaign.json records (the first, each change's
-    old and new one), and "" (rows flown before campaigns recorded a fingerprint)."""
+    old and new one, each worker's kept other code), and "" (rows flown before campaigns
+    recorded a fingerprint)."""
     shorts = {""}
     if record.get("code"):
         shorts.add(str(record["code"].get("short", "")))
     for change in record.get("code_changes") or []:
         for side in ("old", "new"):
             shorts.add(str((change.get(side) or {}).get("short", "")))
+    for kept in record.get("worker_code") or []:
+        shorts.add(str((kept.get("code") or {}).get("short", "")))
     return shorts
 
 
