@@ -53,8 +53,9 @@ class CropAugment:
     # view of it too; without, 0.8.1 leans: a -0.24 deg tilt about y on validation at 2-5 m,
     # +0.12 deg on the same crops mirrored (stage 9).
     p_mirror: float = 0.0
-    # Domain randomisation of the crop's pixels (oibar_models.domain: white balance, exposure,
-    # response, glare, occlusion, blur, defocus, noise, compression; issue 58, part 3), on this
+    # Domain randomisation of the crop's pixels (oibar_models.domain: random-convolution texture,
+    # Fourier-amplitude mixing, white balance, exposure, response, glare, occlusion, blur, defocus,
+    # noise, compression; issue 58, part 3), on this
     # share of crops, after the photometric terms above. Off unless a config asks: every model
     # trained so far saw none, and its crops draw the same numbers as before.
     p_domain: float = 0.0
