@@ -530,6 +530,38 @@ def test_a_mission_flown_by_a_worker_with_other_code_is_not_written(code_tree, t
     assert f"`{campaign}` 2, `{other}` 2" in report and "stale node, guidance only" in report
 
 
+def test_a_worker_hashes_again_an_mcu_or_model_rebuilt_under_it(code_tree, monkeypatch):
+    """A worker hashes its tree once (its Python is imported once) but starts the simulated MCU
+    and opens the models afresh each mission: one rebuilt under a running campaign must show in
+    the fingerprint its next mission returns, not the one cached at its first."""
+    from oibar_hil.campaign import execute, fingerprint
+    from oibar_hil.campaign.fingerprint import changed_groups
+
+    root, mcu = code_tree
+    monkeypatch.setattr(execute, "_WORKER_CODE", {})
+    hashed: list[str] = []
+    theirs = fingerprint.code_fingerprint
+
+    def counting(nav, **kw):
+        hashed.append(nav)
+        return theirs(nav, **kw)
+
+    monkeypatch.setattr(fingerprint, "code_fingerprint", counting)
+    first = execute.worker_code("cnn", str(mcu), None)
+    assert execute.worker_code("cnn", str(mcu), None) is first and len(hashed) == 1  # cached
+    mcu.write_text("ELF 2, rebuilt")
+    rebuilt = execute.worker_code("cnn", str(mcu), None)
+    assert changed_groups(first, rebuilt) == ["sim MCU binary"] and len(hashed) == 2
+    (root / "models/oibarnet.onnx").write_text("weights, retrained")
+    assert changed_groups(rebuilt, execute.worker_code("cnn", str(mcu), None)) == ["models"]
+    # a truth mission opens no model: a model written under it does not cost a hash
+    execute.worker_code("truth", str(mcu), None)
+    (root / "models/oibarnet.onnx").write_text("weights, retrained again")
+    n = len(hashed)
+    execute.worker_code("truth", str(mcu), None)
+    assert len(hashed) == n
+
+
 def test_a_folder_made_before_fingerprints_adopts_the_code(code_tree, tmp_path):
     """An older campaign.json (no code) resumes, recording this checkout's fingerprint, and its
     older parts (no code_sha column) still read."""

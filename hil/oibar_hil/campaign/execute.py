@@ -95,15 +95,18 @@ class _Tally:
         return f"success {self.ok}/{self.n} = {100 * r.rate:.1f} % (>= {100 * r.lower_bound:.1f} % at 95 %)"
 
 
-# This process's fingerprints, per (source root, navigation, MCU, model): a worker imports its
-# modules once, so it hashes its tree once, at its first mission.
-_WORKER_CODE: dict[tuple[str, str, str | None, str | None], dict[str, Any]] = {}
+# This process's fingerprints, per (source root, navigation, MCU, model, and the size and mtime of
+# the MCU binary and model files): a worker imports its modules once, so it hashes its tree once,
+# at its first mission, but it starts the MCU binary and opens the models afresh each mission,
+# so one rebuilt under a running campaign is hashed again.
+_WORKER_CODE: dict[tuple[Any, ...], dict[str, Any]] = {}
 
 
 def worker_code(nav: str, mcu_path: str | None, model_path: str | None) -> dict[str, Any]:
     """The fingerprint of the code this process flies: its own checkout (``SOURCE_ROOT`` as it
     sees it), the simulated MCU and model it runs (None: its own defaults)."""
-    key = (str(fingerprint.SOURCE_ROOT), nav, mcu_path, model_path)
+    stamp = fingerprint.loaded_files_stamp(nav, mcu_path, model_path)
+    key = (str(fingerprint.SOURCE_ROOT), nav, mcu_path, model_path, stamp)
     if key not in _WORKER_CODE:
         _WORKER_CODE[key] = fingerprint.code_fingerprint(nav, mcu_path=mcu_path, model_path=model_path)
     return _WORKER_CODE[key]

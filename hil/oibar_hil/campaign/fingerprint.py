@@ -95,13 +95,44 @@ def _git(root: Path) -> dict[str, Any] | None:
     return {"commit": head.stdout.strip(), "dirty": dirty}
 
 
+def _model_files(root: Path, model_path: str | Path | None) -> list[Path]:
+    models = [p for p in _files(root, "models", ["*.onnx"]) if not p.name.endswith(".int8.onnx")]
+    if model_path is not None:
+        extra = Path(model_path).resolve()
+        if extra.is_file() and extra not in {p.resolve() for p in models}:
+            models.append(extra)
+    return models
+
+
+def _mcu_file(mcu_path: str | Path | None) -> Path:
+    from oibar_hil.rig.fw_params import default_mcu_path
+
+    return Path(mcu_path) if mcu_path else default_mcu_path()
+
+
+def loaded_files_stamp(
+    nav: str, mcu_path: str | Path | None = None, model_path: str | Path | None = None
+) -> tuple[tuple[str, int, int], ...]:
+    """(path, size, mtime_ns) of the files a mission loads afresh (the simulated MCU binary it
+    starts, the models it opens), where the Python a worker imported is fixed for its life: a
+    worker's cached fingerprint is good while this stays the same. Costs a few stat calls."""
+    root = Path(SOURCE_ROOT)
+    paths = [_mcu_file(mcu_path)] + (_model_files(root, model_path) if nav == "cnn" else [])
+    out = []
+    for p in paths:
+        try:
+            st = p.stat()
+            out.append((str(p), st.st_size, st.st_mtime_ns))
+        except OSError:
+            out.append((str(p), -1, -1))
+    return tuple(out)
+
+
 def code_fingerprint(
     nav: str, mcu_path: str | Path | None = None, model_path: str | Path | None = None
 ) -> dict[str, Any]:
     """The fingerprint of what flies a campaign of navigation ``nav`` with this simulated MCU
     (default: the rig's) and model (cnn; default: the shipped ones)."""
-    from oibar_hil.rig.fw_params import default_mcu_path
-
     root = Path(SOURCE_ROOT)
     groups: dict[str, dict[str, Any]] = {
         "host": _hash_files(root, _files(root, "host/oibar", ["**/*.py"])),
@@ -110,13 +141,8 @@ def code_fingerprint(
         "hil": _hash_files(root, _files(root, "hil/oibar_hil", ["**/*.py"])),
     }
     if nav == "cnn":
-        models = [p for p in _files(root, "models", ["*.onnx"]) if not p.name.endswith(".int8.onnx")]
-        if model_path is not None:
-            extra = Path(model_path).resolve()
-            if extra.is_file() and extra not in {p.resolve() for p in models}:
-                models.append(extra)
-        groups["models"] = _hash_files(root, models)
-    mcu = Path(mcu_path) if mcu_path else default_mcu_path()
+        groups["models"] = _hash_files(root, _model_files(root, model_path))
+    mcu = _mcu_file(mcu_path)
     groups["sim_mcu"] = {"sha256": _file_sha256(mcu) if mcu.is_file() else "absent", "path": str(mcu)}
     overall = hashlib.sha256(
         json.dumps({k: g["sha256"] for k, g in groups.items()}, sort_keys=True).encode()
