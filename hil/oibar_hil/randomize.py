@@ -363,7 +363,7 @@ def contact_sheet(
     from oibar.geometry.fixture import keypoints_m
     from oibar.geometry.rotations import quat_to_matrix
 
-    from .dataset import load_spec_file, plan_sequence, spec_look
+    from .dataset import load_spec_file, load_spec_scene, plan_sequence, spec_look
     from .meshes import scene_parts
     from .ports import PORTS
     from .render import Renderer
@@ -395,9 +395,7 @@ def contact_sheet(
                 t = time.process_time()
                 draw(k)
                 times["default"].append(time.process_time() - t)
-        r.load_scene(
-            parts, spec.background, port.p_lvlh_t, perlin_seed=spec.seed, look=look, R_lvlh_t=port.R_lvlh_t
-        )
+        load_spec_scene(r, spec)  # its own look, as the generator draws it
         for k in frames:
             t = time.process_time()
             img = draw(k)
