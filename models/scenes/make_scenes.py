@@ -318,6 +318,49 @@ def domain_randomised(clear: list[tuple]) -> dict:
     return {"set": "train", "note": DR_NOTE, "scenes": out}
 
 
+# Stand-ins for the paper's lab recordings (issue 58, part 5): twelve scenes of their own seeds
+# (70000-70011) drawn by Mitsuba 3 in the lab's look, turned into lab recordings (video, mocap)
+# by oibar_hil.lab_recording and labelled back by the calibration toolbox, as real runs would be.
+# The paper's split: the first 10 fine-tune, the last 2 (LAB_HELD) are held for its table. Neither
+# a validation nor a test look, and no shipped model trains on them.
+LAB_DEMO_SCENES = 12
+LAB_HELD = ("lb010", "lb011")
+LAB_NOTE = (
+    "Lab-recording stand-ins (issue 58, part 5): twelve scenes of their own seeds (70000-70011), ports "
+    "cycling, off the axis, turned and rolled as a hand-guided lab approach would be, drawn by Mitsuba 3 in "
+    "the lab's look (matte grey print, one lamp beside the camera, black), every 48th frame. lb000-lb009 "
+    "fine-tune the demonstration model (make lab-demo), lb010 and lb011 are held for its table. "
+    "Never a validation or test look; no shipped model trains on them."
+)
+
+
+def lab_demo() -> dict:
+    rng = np.random.default_rng(20261203)  # its own generator: every set above stays as it was
+    out = []
+    for j in range(LAB_DEMO_SCENES):
+        port = int(j % 6 + 1)
+        s = {
+            "name": f"lb{j:03d}",
+            "port": port,
+            "approach": PORT_APPROACH[port],
+            "sun_elevation_deg": 90.0,  # the lab has no Sun (the look's lamp lights it)
+            "background": "perlin",
+            "seed": 70000 + j,
+            "frame_stride": 48,
+            "renderer": "mitsuba",
+            "look": "lab",
+            "mitsuba_spp": 32,
+        }
+        if j % 2:
+            s["offaxis_m"] = float(np.round(rng.uniform(0.1, 0.5), 2))
+        if j % 3 == 1:
+            s["turned_deg"] = float(np.round(rng.uniform(1.5, 5.0), 1))
+        if j % 3 == 2:
+            s["rolled_deg"] = float(np.round(rng.uniform(-180.0, 180.0), 1))
+        out.append(s)
+    return {"set": "lab_demo", "note": LAB_NOTE, "scenes": out}
+
+
 def main() -> None:
     rng = np.random.default_rng(20261123)
     train = scenes("tr", 20000, 4, rng, TEST_KEYS)
@@ -426,7 +469,7 @@ def main() -> None:
         **frozen_test(),
         "train_dr": domain_randomised(
             clear + [(s["port"], s["background"], s["sun_elevation_deg"]) for s in FROZEN]
-        ),
+        ),        "lab_demo": lab_demo(),
     }
     for name, data in sets.items():
         (HERE / f"{name}.json").write_text(json.dumps(data, indent=1) + "\n")
