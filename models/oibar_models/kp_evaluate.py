@@ -68,6 +68,8 @@ SETS = {
     # drawn by Mitsuba 3, with our materials and lights and in the lab's look (make dataset-looks)
     "val_mitsuba": ("models/scenes/val_mitsuba.json", "data/val_mitsuba"),
     "val_lab": ("models/scenes/val_lab.json", "data/val_lab"),
+    # a roll sweep in our renderer (13 rolls of one approach, 0-180 deg; make dataset-val-roll)
+    "val_roll": ("models/scenes/val_roll.json", "data/val_roll"),
     # the one frozen test set (issue 58, part 6), in our renderer and in Mitsuba's two looks: read
     # once per shipped model (TEST_LEDGER)
     "test_frozen": ("models/scenes/test_frozen.json", "data/test_frozen"),

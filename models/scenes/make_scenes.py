@@ -361,6 +361,29 @@ def lab_demo() -> dict:
     return {"set": "lab_demo", "note": LAB_NOTE, "scenes": out}
 
 
+# Roll sweep (validation, 2026-12-03): one approach to port 1 flown at 13 rolls of the chaser about
+# the docking axis (0-180 deg and back), our renderer, every 120th frame. Why: every training set
+# before train_dr is unrolled, the frozen test set is rolled up to 150 deg, and the lab stand-in
+# lb011 (-93 deg) read at 91 deg of attitude error. Seeds of their own (71000-71012). Its Sun (60
+# deg) cannot keep SUN_MARGIN_DEG from the training scenes of that port: train_sunfine's Suns cover
+# the whole range 6 deg apart. Its trajectories and rolls are new; its light is not.
+ROLLS_DEG = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0, 45.0, 60.0, 90.0, 135.0, 180.0, -30.0, -90.0)
+
+
+def val_roll() -> dict:
+    out = []
+    for j, roll in enumerate(ROLLS_DEG):
+        sc = {"name": f"vr{j:03d}", "port": 1, "approach": PORT_APPROACH[1], "sun_elevation_deg": 60.0,
+              "background": "iss", "seed": 71000 + j, "frame_stride": 120}  # fmt: skip
+        if roll:
+            sc["rolled_deg"] = roll
+        out.append(sc)
+    note = ("Roll sweep (validation): one approach to port 1 at 13 rolls about the docking axis, our renderer, "
+            "every 120th frame (make dataset-val-roll; kp_evaluate --sets val_roll). Its Sun (60 deg) is within "
+            "15 deg of training scenes of the port; trajectories (seeds 71000-71012) and rolls are new.")  # fmt: skip
+    return {"set": "val", "note": note, "scenes": out}
+
+
 def main() -> None:
     rng = np.random.default_rng(20261123)
     train = scenes("tr", 20000, 4, rng, TEST_KEYS)
@@ -469,7 +492,9 @@ def main() -> None:
         **frozen_test(),
         "train_dr": domain_randomised(
             clear + [(s["port"], s["background"], s["sun_elevation_deg"]) for s in FROZEN]
-        ),        "lab_demo": lab_demo(),
+        ),
+        "lab_demo": lab_demo(),
+        "val_roll": val_roll(),
     }
     for name, data in sets.items():
         (HERE / f"{name}.json").write_text(json.dumps(data, indent=1) + "\n")
