@@ -43,6 +43,13 @@ dataset-looks: setup ## render the Mitsuba validation looks (models/scenes/val_m
 	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/val_lab --spec models/scenes/val_lab.json --workers 1
 	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/val_mitsuba --spec models/scenes/val_mitsuba.json --workers 1
 
+# The roll sweep (validation): one approach at 13 rolls about the docking axis, our renderer, 401
+# frames, under a minute on 2 cores; `kp_evaluate --sets val_roll` reads it (docs/model_card.md).
+.PHONY: dataset-val-roll
+dataset-val-roll: SETUP_PROFILE = demo
+dataset-val-roll: setup ## render the roll sweep (models/scenes/val_roll.json) into data/val_roll
+	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/val_roll --spec models/scenes/val_roll.json --workers $(JOBS)
+
 # THE FROZEN TEST SET (issue 58, part 6): six scenes of their own seeds, off-axis, turned and rolled
 # approaches, in our renderer (every 4th frame) and in Mitsuba's two looks (every 48th frame).
 # Never used for a choice; `make eval-test-frozen` reads it once per shipped model.
