@@ -16,6 +16,12 @@ from oibar_models.golden_pose import FRAMES, estimate_frames, sessions
 
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN = ROOT / "tests" / "golden" / "pose"
+# onnxruntime's kernels differ by CPU (AVX-512 or AVX2 GEMM sum in other orders): on an AMD EPYC
+# without AVX-512 (2026-12-03) the near network's keypoints came out up to 4.4e-3 crop px from the
+# stored ones and a tracked 5 m pose 0.17 mm away. A model, graph or runtime change moves them by
+# far more; the post-processing itself is pinned exactly by the replay test (no onnxruntime).
+ORT_ATOL = 1e-2  # raw outputs: crop px for keypoints (the crop is 128 px), the heads' own units
+ORT_POS_FRAC = 1e-4  # position: 0.01 % of range (the model's error is 0.25 %), 0.5 mm at 5 m
 
 
 @pytest.fixture(scope="module")
@@ -81,8 +87,9 @@ def test_the_stored_raw_outputs_give_the_stored_poses(golden):
 
 
 def test_onnxruntime_here_answers_as_stored(golden):
-    """The networks themselves on this machine: each call's raw outputs within 1e-3 of the
-    stored (keypoints in crop pixels, the heads' readings), the poses within 0.1 mm and 0.01 deg."""
+    """The networks themselves on this machine: each call's raw outputs within ORT_ATOL of the
+    stored (keypoints in crop pixels, the heads' readings), the poses within ORT_POS_FRAC of the
+    range and 0.01 deg."""
     meta, raw, frames = golden
     est = _estimator()
     seen = {}
@@ -96,14 +103,17 @@ def test_onnxruntime_here_answers_as_stored(golden):
             for k, v in enumerate(out):
                 stored = raw.get(f"{role}{i}_out{k}")
                 if stored is not None and stored.shape == np.shape(v):
-                    assert np.allclose(v, stored, rtol=0, atol=1e-3), f"{role}{i}_out{k}"
+                    assert np.allclose(v, stored, rtol=0, atol=ORT_ATOL), f"{role}{i}_out{k}"
             return out
 
         sess.run = checked
     poses = estimate_frames(est, frames)
     assert seen == meta["calls"]
     for got, want in zip(poses, meta["poses"], strict=True):
-        assert np.allclose(got["T_cam_target_m"], want["T_cam_target_m"], rtol=0, atol=1e-4), got["frame"]
+        range_m = float(np.linalg.norm(want["T_cam_target_m"]))
+        assert np.allclose(
+            got["T_cam_target_m"], want["T_cam_target_m"], rtol=0, atol=ORT_POS_FRAC * range_m
+        ), got["frame"]
         turn = rotation_angle_deg(
             quat_to_matrix(np.array(got["q_cam_target"])).T @ quat_to_matrix(np.array(want["q_cam_target"]))
         )
