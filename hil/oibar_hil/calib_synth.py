@@ -108,7 +108,9 @@ def T_mocap_target_at(tau_s: np.ndarray, cfg: SynthConfig) -> np.ndarray:
     return cfg.T_mocap_target0 @ wob
 
 
-def _noisy(T: np.ndarray, rng, sigma_t_m: float, sigma_r_rad: float) -> np.ndarray:
+def body_noise(T: np.ndarray, rng, sigma_t_m: float, sigma_r_rad: float) -> np.ndarray:
+    """Each pose of (n, 4, 4) `T` perturbed in its body frame, per axis sigma_t_m and sigma_r_rad:
+    the mocap's per-sample noise (oibar_hil.lab_recording draws its runs' with it too)."""
     d = np.concatenate([rng.normal(0, sigma_t_m, (len(T), 3)), rng.normal(0, sigma_r_rad, (len(T), 3))], 1)
     E = np.zeros((len(T), 4, 4))
     E[:, :3, :3] = Rotation.from_rotvec(d[:, 3:]).as_matrix()
@@ -138,15 +140,23 @@ def mocap_samples(cfg: SynthConfig) -> dict:
     housing = T_mc @ inv_T(cfg.T_housing_cam)
     tmarkers = T_mt @ inv_T(cfg.T_tmarkers_target)
     st, sr = cfg.sigma_t_m / np.sqrt(3), np.radians(cfg.sigma_r_deg) / np.sqrt(3)
-    return {"t_s": tau, "housing": _noisy(housing, rng, st, sr), "tmarkers": _noisy(tmarkers, rng, st, sr)}
+    return {
+        "t_s": tau,
+        "housing": body_noise(housing, rng, st, sr),
+        "tmarkers": body_noise(tmarkers, rng, st, sr),
+    }
 
 
 def write_mocap_csv(path: Path, mocap: dict, names=("housing", "tmarkers")) -> None:
-    """Long layout, one row per sample and rigid body (see docs/calibration.md)."""
+    """Long layout, one row per sample and rigid body (see docs/calibration.md); a pose of NaN
+    (an occluded sample) is written as a row of NaN."""
     lines = ["time_s,body,x_m,y_m,z_m,qw,qx,qy,qz"]
     for k, t in enumerate(mocap["t_s"]):
         for name in names:
             T = mocap[name][k]
+            if not np.isfinite(T[0, 0]):
+                lines.append(f"{t:.4f},{name}," + ",".join(["NaN"] * 7))
+                continue
             q = R_to_quat_wxyz(T[:3, :3])
             lines.append(
                 f"{t:.4f},{name},"

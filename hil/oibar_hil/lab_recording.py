@@ -65,7 +65,7 @@ from scipy.spatial.transform import Rotation, RotationSpline
 from oibar.geometry.transforms import inv_T, make_T
 from oibar.hashing import sha256_file
 
-from .calib_synth import SynthConfig
+from .calib_synth import SynthConfig, body_noise, write_mocap_csv
 from .dataset import GENERATOR, SequenceSpec, plan_sequence
 from .sequence import DatasetError, read_manifest, read_pose_table, verify_files
 
@@ -226,18 +226,6 @@ def source_motion(src: Source) -> tuple[CameraMotion, np.ndarray, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- mocap
-def _mocap_noise(T: np.ndarray, rng: np.random.Generator, cfg: SynthConfig) -> np.ndarray:
-    """White noise per sample in the body frame, RMS |dp| sigma_t_m and RMS angle sigma_r_deg
-    (per axis / sqrt(3)): calib_synth's model, the one the calibration's settings assume."""
-    per_axis = 1.0 / np.sqrt(3.0)
-    dp_m = rng.standard_normal((len(T), 3)) * cfg.sigma_t_m * per_axis
-    dr_rad = rng.standard_normal((len(T), 3)) * np.radians(cfg.sigma_r_deg) * per_axis
-    E = np.tile(np.eye(4), (len(T), 1, 1))
-    E[:, :3, :3] = Rotation.from_rotvec(dr_rad).as_matrix()
-    E[:, :3, 3] = dp_m
-    return T @ E
-
-
 def _occlusions(rng: np.random.Generator, t_mocap_s: np.ndarray, t_query_s: np.ndarray, count: int) -> list:
     """`count` one-sample dropouts, never two within 3 samples (a gap of 2 sample periods is
     bridged by `apply`, a longer one is not), the first on a sample a frame's label is
@@ -274,36 +262,13 @@ def mocap_samples(
     T_mocap_tmarkers = np.broadcast_to(T_MOCAP_TARGET @ inv_T(cfg.T_tmarkers_target), T_mocap_housing.shape)
     out = {"t_s": t_mocap_s, "occluded_s": {}}
     for body, T in ((HOUSING_BODY, T_mocap_housing), (TARGET_BODY, T_mocap_tmarkers)):
-        T = _mocap_noise(np.array(T), rng, cfg)
+        # calib_synth's noise model, the one the calibration's settings assume (per axis / sqrt 3)
+        T = body_noise(np.array(T), rng, cfg.sigma_t_m / np.sqrt(3), np.radians(cfg.sigma_r_deg) / np.sqrt(3))
         drop = _occlusions(rng, t_mocap_s, t_query, occlusions)
         T[drop] = np.nan
         out[body] = T
         out["occluded_s"][body] = [round(float(t_mocap_s[i]), 4) for i in drop]
     return out
-
-
-def write_mocap_csv(path: Path, mocap: dict) -> None:
-    """Long layout (docs/calibration.md): time_s,body,x_m,y_m,z_m,qw,qx,qy,qz; NaN marks an
-    occluded sample."""
-    lines = ["time_s,body,x_m,y_m,z_m,qw,qx,qy,qz"]
-    per_body = {}
-    for body in (HOUSING_BODY, TARGET_BODY):
-        T = mocap[body]
-        ok = np.isfinite(T[:, 0, 0])
-        q = np.full((len(T), 4), np.nan)
-        q_xyzw = Rotation.from_matrix(T[ok, :3, :3]).as_quat()
-        q_xyzw[q_xyzw[:, 3] < 0] *= -1.0  # w >= 0, the toolbox's convention
-        q[ok] = q_xyzw[:, [3, 0, 1, 2]]
-        per_body[body] = (T[:, :3, 3], q)
-    for k, t in enumerate(mocap["t_s"]):
-        for body in (HOUSING_BODY, TARGET_BODY):
-            p, q = per_body[body][0][k], per_body[body][1][k]
-            if np.isfinite(p[0]):
-                vals = ",".join(f"{v:.6f}" for v in p) + "," + ",".join(f"{v:.9f}" for v in q)
-            else:
-                vals = ",".join(["NaN"] * 7)
-            lines.append(f"{t:.4f},{body},{vals}")
-    path.write_text("\n".join(lines) + "\n")
 
 
 # ----------------------------------------------------------------------------- video
@@ -454,7 +419,7 @@ def write_lab_recording(
         finally:
             if bar:
                 bar.close()
-        write_mocap_csv(tmp / MOCAP, mocap)
+        write_mocap_csv(tmp / MOCAP, mocap, names=(HOUSING_BODY, TARGET_BODY))
         log = {
             "format": FORMAT,
             "run": src.name,
