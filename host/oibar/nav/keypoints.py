@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oibar.geometry.camera import project_target_points as project  # noqa: F401  (target points -> px, corner convention)
+from oibar.geometry.camera import project_target_points as project  # target points -> px, corner convention
 from oibar.geometry.fixture import FIXTURE_KEYPOINTS  # noqa: F401  (re-exported)
 from oibar.geometry.rotations import matrix_to_rotvec, rotvec_to_matrix, skew
 
@@ -60,12 +60,38 @@ class CropWindow:
         return out
 
 
-def window_around(points_px: np.ndarray, out_px: int, margin: float, min_side_px: float = 24.0) -> CropWindow:
-    """The square window centred on the points' bounding box, `margin` times its larger side."""
+def window_around(
+    points_px: np.ndarray, out_px: int, margin: float, min_side_px: float = 24.0, angle_rad: float = 0.0
+) -> CropWindow:
+    """The square window centred on the points' bounding box, `margin` times its larger side. A
+    window turned by `angle_rad` takes the box in its own turned axes, so that it frames the
+    points as the crop will show them (a turned fixture's box along the frame's axes is larger)."""
     p = np.asarray(points_px, float)
-    lo, hi = p.min(0), p.max(0)
+    if angle_rad == 0.0:
+        lo, hi = p.min(0), p.max(0)
+        side = max(float(np.max(hi - lo)) * margin, min_side_px)
+        return CropWindow(center_px=tuple((lo + hi) / 2.0), side_px=side, out_px=out_px)
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    rot = np.array([[c, -s], [s, c]])  # frame -> crop axes (CropWindow.matrix)
+    q = p @ rot.T
+    lo, hi = q.min(0), q.max(0)
     side = max(float(np.max(hi - lo)) * margin, min_side_px)
-    return CropWindow(center_px=tuple((lo + hi) / 2.0), side_px=side, out_px=out_px)
+    centre = rot.T @ ((lo + hi) / 2.0)
+    return CropWindow(
+        center_px=(float(centre[0]), float(centre[1])), side_px=side, out_px=out_px, angle_rad=angle_rad
+    )
+
+
+def image_roll_rad(K: np.ndarray, R_cam_target: np.ndarray, T_cam_target_m: np.ndarray) -> float:
+    """How far the fixture is turned in the image: the angle (rad, (-pi, pi]) of the target's +x
+    axis, drawn at the target's origin, from the frame's +u axis towards +v. 0 for a fixture seen
+    as in training (every training set but train_dr is unrolled); a camera rolled about its
+    boresight by a turns it by about a. NaN where the origin projects nowhere."""
+    uv = project(K, np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]]), R_cam_target, T_cam_target_m)
+    d = uv[1] - uv[0]
+    if not np.all(np.isfinite(d)):
+        return float("nan")
+    return float(np.arctan2(d[1], d[0]))
 
 
 def cut(image: np.ndarray, win: CropWindow) -> np.ndarray:

@@ -82,6 +82,7 @@ class KeypointPoseEstimator(PoseEstimator):
         corner_refine_side_px: float | None = None,
         placed_pass_refines: bool | None = None,
         overlap_first_pass: bool = True,
+        upright: bool = True,
     ):
         self.path = Path(path)
         # When a prediction (or the latest strong fit) places the first crop, the direct model
@@ -118,6 +119,7 @@ class KeypointPoseEstimator(PoseEstimator):
             turned_reading_deg=turned_reading_deg,
             turned_reading_head=turned_reading_head,
             corner_refine_side_px=corner_refine_side_px,
+            upright=upright,
         )
         self.fusion = Fusion(
             self.path,

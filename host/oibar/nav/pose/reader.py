@@ -19,6 +19,7 @@ from oibar.nav.keypoints import (
     CropWindow,
     attitude_from_crop,
     cut,
+    image_roll_rad,
     mirror_crop_px,
     mirror_permutation,
     mirror_symmetric_attitude,
@@ -70,6 +71,26 @@ CORNER_HALF_WIN_PER_EXTENT = 0.02
 CORNER_HALF_WIN_PX = (2, 6)
 CORNER_MAX_MOVE_PER_HALF_WIN = 0.4
 KEYPOINT_OUTPUTS = ("kp_crop_px", "kp_present")
+# Windows placed by a pose are turned to show the fixture upright when the pose has it turned in
+# the image by more than this. Every training set of the shipped network is unrolled: on the roll
+# sweep val_roll (0.34.0, every frame alone) compliance was 100 % at 0 and 5 deg of roll, 90-94 %
+# at 10-20, 50 % at 30 and 0 from 45, while the same network read the same frames in windows
+# turned upright to 0.2-1.1 % / 2-6 deg at 90 and 180 deg (the approach's own error unrolled:
+# docs/model_card.md). Within the 15 deg its crops were turned in training, turning gains nothing:
+# from 7.5 deg on, the 10 deg scene read 3.97 -> 4.19 deg (frames beyond 5 deg 2 -> 6), the 15
+# and 20 deg ones 3.81 -> 3.88 and 3.58 -> 3.69; from 15 deg on, the 10 deg scene is untouched.
+# Below it the windows stay as they were, so everything measured on unrolled scenes (the
+# campaigns' roll is +-5 deg) holds.
+UPRIGHT_FROM_DEG = 15.0
+
+
+def upright_angle_rad(K: np.ndarray, R_cam_target: np.ndarray, T_cam_target_m: np.ndarray) -> float:
+    """The turn (CropWindow.angle_rad) that shows a fixture at this pose upright in its crop: minus
+    its image roll (image_roll_rad) beyond UPRIGHT_FROM_DEG, else 0 (the window as trained)."""
+    roll = image_roll_rad(K, R_cam_target, T_cam_target_m)
+    if not np.isfinite(roll) or abs(roll) <= np.radians(UPRIGHT_FROM_DEG):
+        return 0.0
+    return -roll
 
 
 @dataclass
@@ -90,7 +111,8 @@ class KeypointReader:
     """The keypoint network of a keypoint export (and its far network, ``oibar.far_network``),
     with the reading options the export chose (each may be overridden for studies):
     ``mirror`` (``oibar.mirror_reading``), ``turned_reading_deg`` and ``turned_reading_head``
-    (``oibar.turned_reading_*``), ``corner_refine_side_px`` (``oibar.corner_refine_side_px``).
+    (``oibar.turned_reading_*``), ``corner_refine_side_px`` (``oibar.corner_refine_side_px``);
+    ``upright`` (windows turned to a rolled fixture, UPRIGHT_FROM_DEG; off only for studies).
     A malformed export is a ModelFileError naming the file."""
 
     def __init__(
@@ -103,8 +125,11 @@ class KeypointReader:
         turned_reading_deg: float | None = None,
         turned_reading_head: bool | None = None,
         corner_refine_side_px: float | None = None,
+        upright: bool = True,
     ):
         self.path, self.meta = path, meta
+        # windows turned to show a rolled fixture upright, and the search's roll checks (search.UPRIGHT_TURNS)
+        self.upright = bool(upright)
         self.session = open_session(path, threads, allow_spinning)
         self.input_name = self.session.get_inputs()[0].name
         self.output_names = [o.name for o in self.session.get_outputs()]
@@ -242,11 +267,20 @@ class KeypointReader:
                 self.far_session.run(None, {self.input_name: zero})
 
     # ------------------------------------------------------------------ geometry of the windows
-    def window_for(self, R_cam_target: np.ndarray, T_cam_target_m: np.ndarray) -> CropWindow | None:
-        """The window around a pose's projected keypoints; None where it projects nowhere
-        (behind the camera)."""
+    def window_for(
+        self, R_cam_target: np.ndarray, T_cam_target_m: np.ndarray, upright: bool = True
+    ) -> CropWindow | None:
+        """The window around a pose's projected keypoints, turned so that the network sees the
+        fixture upright where the pose has it turned beyond UPRIGHT_FROM_DEG in the image
+        (upright_angle_rad; not with `upright` False or the reader's `upright` off); None where it
+        projects nowhere (behind the camera)."""
         uv = project(self.K_frame, self.points_m, R_cam_target, T_cam_target_m)
-        return window_around(uv, self.out_px, self.margin) if np.all(np.isfinite(uv)) else None
+        if not np.all(np.isfinite(uv)):
+            return None
+        angle = (
+            upright_angle_rad(self.K_frame, R_cam_target, T_cam_target_m) if upright and self.upright else 0.0
+        )
+        return window_around(uv, self.out_px, self.margin, angle_rad=angle)
 
     def range_for_side_m(self, side_px: float) -> float:
         """The range at which the fixture, seen head-on, fills a window of side_px (its
@@ -386,13 +420,26 @@ class KeypointReader:
     def fixture_likeness(self, image: np.ndarray, wins: list[CropWindow]) -> np.ndarray:
         """How much each window looks like the fixture, read in one batch: mean presence x
         exp(-mean heat-map spread / 4 px, CROP_REF_PX terms)."""
+        present, spread = self._presence_and_spread(image, wins)
+        score: np.ndarray = present * np.exp(-(np.zeros(len(wins)) if spread is None else spread) / 4.0)
+        return score
+
+    def heat_spread(self, image: np.ndarray, wins: list[CropWindow]) -> np.ndarray | None:
+        """Each window's mean heat-map spread (CROP_REF_PX terms), read in one batch; None for a
+        network without the spread output. The fixture's keypoints are tightest in a crop that
+        shows it as trained (upright): search.UPRIGHT_TURNS."""
+        return self._presence_and_spread(image, wins)[1]
+
+    def _presence_and_spread(
+        self, image: np.ndarray, wins: list[CropWindow]
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Each window's mean keypoint presence and mean heat-map spread (CROP_REF_PX terms; None
+        without that output), one batch."""
         out = self.run_windows(np.concatenate([to_input(cut(image, w)) for w in wins]), wins)
         present = out["kp_present"].astype(float).mean(axis=1)
-        spread = (
-            out["kp_spread_px"].astype(float).mean(axis=1) if "kp_spread_px" in out else np.zeros(len(wins))
-        )
-        score: np.ndarray = present * np.exp(-spread * CROP_REF_PX / self.out_px / 4.0)
-        return score
+        if "kp_spread_px" not in out:
+            return present, None
+        return present, out["kp_spread_px"].astype(float).mean(axis=1) * CROP_REF_PX / self.out_px
 
     def refined_corners(self, image: np.ndarray, win: CropWindow, uv: np.ndarray) -> np.ndarray:
         """The fixture's sharp corners (CORNER_NAMES: the rim's, the connector's) moved onto the

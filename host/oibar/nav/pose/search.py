@@ -2,20 +2,23 @@
 
 In order: the window a prediction places (the navigation filter's, or the estimator's own latest
 strong fit); SEARCH_STEPS around the direct model's window; then, on a cold start or a lost track
-only, the zoom (smaller windows inside the direct model's, level after level) and the scan of the
-whole frame. The zoom and the scan (the cold search) stop at a per-frame crop budget and go on in
-the next frames (ColdSearch), so that no cycle nears the MCU's link timeout.
+only, the turn stage (the direct model's window turned, TURN_STEPS_DEG), the zoom (smaller windows
+inside it, level after level) and the scan of the whole frame. The zoom and the scan (the cold
+search) stop at a per-frame crop budget and go on in the next frames (ColdSearch), so that no
+cycle nears the MCU's link timeout. A fit the search found is read at each UPRIGHT_TURNS first:
+the network reads a rolled fixture as unrolled.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from oibar.geometry.camera import project_target_points as project
-from oibar.nav.keypoints import CropWindow, PnpResult, window_around
+from oibar.nav.keypoints import CropWindow, PnpResult
 from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, Fusion, fit_rms_crop_px
 from oibar.nav.pose.model_file import ModelFileError, export_flag
 from oibar.nav.pose.reader import CropReading, KeypointReader
@@ -150,6 +153,32 @@ COLD_CARRY_MAX_AGE_S = 3.0
 # elsewhere the usual refining pass follows.
 WELL_PLACED_CROP_PX = 8.0
 WELL_PLACED_SIDE_FRAC = 0.10
+WELL_PLACED_ANGLE_DEG = 3.0  # and its turn (reader.UPRIGHT_FROM_DEG) within this of the placed one's
+# Roll. The network reads a fixture turned in its crop by up to ~20 deg and no further: at 45 deg
+# off upright its keypoints are gone (fixture likeness 0.001-0.007 against 0.22-0.24 upright, at
+# 0.6-10.4 m on the roll sweep val_roll), at 90 deg it reads a weak fit 90 deg off (likeness
+# 0.1-0.15), and upside down (180 deg) it reads a strong fit 180 deg off, since the plate maps onto
+# itself and the drogue is on the axis. Windows placed by a pose are turned upright
+# (reader.window_for); a fit the search found (no pose placed its window) is checked first:
+# - UPRIGHT_TURNS: its window turned by each is read in one batch, and the one whose keypoints are
+#   tightest (least mean heat-map spread) is the fixture upright; a strong fit there replaces the
+#   first. On val_roll (171 frames at 13 rolls, 0.4-10.4 m, windows cut on the truth) the upright
+#   window was the tighter of it and its 180 deg twin on 170 (margin median 0.22 px, 5th
+#   percentile 0.09); the other was at 0.42 m, where the upright window gave no fit at all.
+#   4 crops (one batch) and at most one pass more, on a frame whose fit the search found.
+# - TURN_STEPS_DEG: when SEARCH_STEPS give no strong fit on a cold frame, the direct model's window
+#   turned by each is read in one batch and, where one looks more like the fixture than the
+#   unturned window, it is solved and the cold search (the zoom, the scan) goes on at its turn.
+#   45 deg apart, so a fixture at any roll is within 22.5 deg of one (likeness 0.20-0.24 up to
+#   20-25 deg off). Only a turn at least TURN_MIN_LIKENESS fixture-like counts: where the direct
+#   model's window misses the fixture (10 m, far frames of val_roll's unrolled approach), all eight
+#   read 0.000-0.001, and the noisiest of them sent the zoom off at its turn (1 of 2 such frames
+#   answered 88 deg off, the other no fit, where the unturned zoom found both). Upright windows
+#   over the fixture read 0.14-0.24 (0.6-10.4 m), 90 deg off 0.10-0.15. 8 crops and one pass, on
+#   the first frame of a cold search only.
+UPRIGHT_TURNS = (0.0, np.pi / 2, np.pi, -np.pi / 2)
+TURN_STEPS_DEG = (0.0, 45.0, 90.0, 135.0, 180.0, -135.0, -90.0, -45.0)
+TURN_MIN_LIKENESS = 0.05
 
 Fit = tuple[PnpResult, CropWindow] | tuple[None, None]
 Consider = Callable[[PnpResult | None, CropWindow | None], bool]
@@ -237,28 +266,49 @@ class WindowSearch:
         crops, refined = 0, False  # crops read for this frame (the cold search's budget counts them)
         if placed is not None:
             crops, refined = self._placed_pass(image, placed, placed_reading, R_direct, f, keep)
+        # a strong fit in the window a pose placed is upright already (reader.window_for)
+        upright_done = keep.best is not None
         # SEARCH_STEPS are never cut short (they run with a prediction too); a carried search skips
         # them: they found nothing on its first frame, and the fixture has barely moved since
         if keep.best is None and cold is None:
-            base = self.reader.window_for(R_direct, T_direct)
+            # the direct model reads every view unrolled: its window stays unturned
+            base = self.reader.window_for(R_direct, T_direct, upright=False)
             if base is not None:
                 crops += self._steps_pass(image, base, R_direct, T_direct, f, keep)
-            # the zoom and the scan only on a cold start or a lost track: with a prediction their
-            # cost would come out of the 100 ms frame budget on every weak far frame of a healthy track
+            # the turn stage, the zoom and the scan only on a cold start or a lost track: with a
+            # prediction their cost would come out of the 100 ms frame budget on every weak far
+            # frame of a healthy track
             if keep.best is None and prior is None:
-                if base is not None and self.zoom_search:
-                    cold = ColdSearch(level=0, base=base)
-                elif self.scan_search:
-                    cold = ColdSearch(level=ZOOM_LEVELS)
+                if base is not None:
+                    turned, n = self._turned_pass(image, base, R_direct, T_direct, f, keep)
+                    crops += n
+                    base = turned if turned is not None else base
+                if keep.best is None:
+                    if base is not None and self.zoom_search:
+                        cold = ColdSearch(level=0, base=base, angle_rad=base.angle_rad)
+                    elif self.scan_search:
+                        cold = ColdSearch(
+                            level=ZOOM_LEVELS, angle_rad=base.angle_rad if base is not None else 0.0
+                        )
         placed_found = keep.best is not None
         if keep.best is None and cold is not None:
             budget = np.inf if self.cold_crop_budget is None else self.cold_crop_budget
             if not self._cold_search(image, cold, R_direct, T_direct, f, keep.consider, budget - crops):
                 self.cold = cold  # out of crops: the next frames go on (the estimator flags `searching`)
+        if keep.best is None and keep.weak is not None and prior is None:
+            # a weak fit of a cold frame may be the fixture read turned (90 deg off reads weak):
+            # read upright, it can be strong, and that ends a carried search
+            upright = self._upright(image, keep.weak, R_direct, f)
+            if upright is not None:
+                keep.best, upright_done, self.cold = upright, True, None
         if keep.best is None:
             return keep.weak if keep.weak is not None else (None, None)
-        # outside the cold search's crop budget, as the refining pass is: at most 27 crops and 2
-        # passes more (a frame of 60 budgeted crops then takes ~0.45 s, within the link's 1 s)
+        # outside the cold search's crop budget, as the refining pass is: at most 4 + 27 crops and
+        # 3 passes more (a frame of 60 budgeted crops then takes ~0.5 s, within the link's 1 s)
+        if not upright_done:
+            upright = self._upright(image, keep.best, R_direct, f)
+            if upright is not None:
+                keep.best, refined = upright, False
         if self.zoom_out and not placed_found:
             bigger = self._zoom_out(image, keep.best, R_direct, f)
             if bigger is not None:
@@ -321,8 +371,9 @@ class WindowSearch:
         reader = self.reader
         for _ in range(self.refine_passes - 1):
             R_best, T_best = best[0].pose()
-            uv = project(reader.K_frame, reader.points_m, R_best, T_best)
-            around = window_around(uv, reader.out_px, reader.margin)
+            around = reader.window_for(R_best, T_best)
+            if around is None:
+                break
             r, rwin = self._one_pass(image, around, R_direct, f, float(np.linalg.norm(T_best)), refining=True)
             if r is None or rwin is None or fit_rms_crop_px(r, rwin) > STRONG_FIT_RMS_CROP_PX:
                 break
@@ -366,15 +417,67 @@ class WindowSearch:
         (WELL_PLACED_CROP_PX, WELL_PLACED_SIDE_FRAC): then its refining read is final."""
         if r is None or win is None:
             return False
-        reader = self.reader
-        around = window_around(
-            project(reader.K_frame, reader.points_m, *r.pose()), reader.out_px, reader.margin
-        )
+        around = self.reader.window_for(*r.pose())
+        if around is None:
+            return False
         off_crop_px = float(np.hypot(*np.subtract(around.center_px, win.center_px))) * win.scale
+        turn_rad = float(np.angle(np.exp(1j * (around.angle_rad - win.angle_rad))))
         return (
             off_crop_px <= WELL_PLACED_CROP_PX
             and abs(around.side_px / win.side_px - 1.0) <= WELL_PLACED_SIDE_FRAC
+            and abs(turn_rad) <= np.radians(WELL_PLACED_ANGLE_DEG)
         )
+
+    def _upright(
+        self,
+        image: np.ndarray,
+        fit: tuple[PnpResult, CropWindow],
+        R_direct: np.ndarray,
+        f: dict[str, Any] | None,
+    ) -> tuple[PnpResult, CropWindow] | None:
+        """The fit the search found read again in the window its pose places, turned by each of
+        UPRIGHT_TURNS: where another turn's keypoints are tighter, that turn shows the fixture
+        upright, and its strong fit replaces `fit` (returned); None: `fit` stands."""
+        reader = self.reader
+        if not reader.upright:
+            return None
+        R, T = fit[0].pose()
+        w0 = reader.window_for(R, T)
+        if w0 is None:
+            return None
+        wins = [replace(w0, angle_rad=w0.angle_rad + a) for a in UPRIGHT_TURNS]
+        spread = reader.heat_spread(image, wins)
+        if spread is None:
+            return None
+        best = int(np.argmin(spread))
+        if best == 0:
+            return None
+        r, win = self._one_pass(image, wins[best], R_direct, f, float(np.linalg.norm(T)))
+        if r is None or win is None or fit_rms_crop_px(r, win) > STRONG_FIT_RMS_CROP_PX:
+            return None
+        return r, win
+
+    def _turned_pass(
+        self,
+        image: np.ndarray,
+        base: CropWindow,
+        R_direct: np.ndarray,
+        T_direct: np.ndarray,
+        f: dict[str, Any] | None,
+        keep: FitKeeper,
+    ) -> tuple[CropWindow | None, int]:
+        """The turn stage (TURN_STEPS_DEG) on the direct model's window `base`: (the turned window
+        that looks more like the fixture than `base`, solved and offered to `keep`, or None;
+        crops read)."""
+        if not self.reader.upright:
+            return None, 0
+        wins = [replace(base, angle_rad=base.angle_rad + np.radians(a)) for a in TURN_STEPS_DEG]
+        score = self.reader.fixture_likeness(image, wins)
+        best = int(np.argmax(score))
+        if best == 0 or score[best] < TURN_MIN_LIKENESS:  # argmax: the first of equals, unturned
+            return None, len(wins)
+        keep.consider(*self._one_pass(image, wins[best], R_direct, f, float(np.linalg.norm(T_direct))))
+        return wins[best], len(wins) + 1
 
     def _weak_rank(self, r: PnpResult, win: CropWindow) -> tuple[bool, float]:
         """Which weak fit to return when no strong one is found: one inside the range envelope
@@ -476,7 +579,7 @@ class WindowSearch:
         """The scan of the whole frame from where `c` stands (as _cold_search returns)."""
         reader = self.reader
         h, w = image.shape[:2]
-        wins = scan_windows((w, h), SCAN_SIDE_PX, SCAN_STRIDE, reader.out_px)
+        wins = scan_windows((w, h), SCAN_SIDE_PX, SCAN_STRIDE, reader.out_px, c.angle_rad)
         read = sum(len(s) for s in c.scan_scores)
         while read < len(wins):
             n = int(min(SCAN_BATCH, len(wins) - read, crops_left))

@@ -12,15 +12,17 @@ from oibar.nav.keypoints import CropWindow, PnpResult
 from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
 
 
-def scan_windows(frame_wh: tuple[int, int], side_px: float, stride: float, out_px: int) -> list[CropWindow]:
+def scan_windows(
+    frame_wh: tuple[int, int], side_px: float, stride: float, out_px: int, angle_rad: float = 0.0
+) -> list[CropWindow]:
     """Square windows of side_px covering the frame, centres `stride` sides apart (row-major),
-    the outer ones flush with the frame's edges."""
+    the outer ones flush with the frame's edges, each turned by `angle_rad`."""
     w, h = frame_wh
     step = side_px * stride
     windows = []
     for cy in _spaced(h, side_px, step):
         for cx in _spaced(w, side_px, step):
-            windows.append(CropWindow((cx, cy), side_px, out_px))
+            windows.append(CropWindow((cx, cy), side_px, out_px, angle_rad))
     return windows
 
 
@@ -45,6 +47,7 @@ class ColdSearch:
     ranked: list[tuple[CropWindow, float]] | None = None  # the level's windows to solve (None: unread)
     scan_scores: list[np.ndarray] = field(default_factory=list)  # the scan's, batch by batch
     tried: int = 0  # ranked windows solved so far
+    angle_rad: float = 0.0  # the turn the scan's windows read at (the first frame's turn stage's)
     # its first frame's time and the latest one's (the estimator stamps them; NaN: never stamped)
     t_first_s: float = float("nan")
     t_last_s: float = float("nan")
