@@ -258,7 +258,7 @@ def simulate_observations(
     T_tc = T_target_cam_at(tau, cfg)
     rng = np.random.default_rng([cfg.seed, 4000])
     K, dist = intr.K, intr.dist
-    out = []
+    out: list[Observation | None] = []  # None: a frame with too few corners in view
     for k in range(cfg.n_frames):
         T_cp = inv_T(T_tc[k]) @ cfg.pattern.T_target_pattern
         rvec = cv2.Rodrigues(T_cp[:3, :3])[0]

@@ -618,7 +618,7 @@ def generate_dataset(
 def parse_seqs(text: str | None) -> list[int]:
     if not text:
         return sorted(PAPER_SEQUENCES)
-    out = []
+    out: list[int] = []
     for part in text.split(","):
         part = part.strip()
         if "-" in part:

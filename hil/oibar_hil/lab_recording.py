@@ -57,6 +57,7 @@ import sys
 import zlib
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -260,14 +261,15 @@ def mocap_samples(
     T_mocap_cam = T_MOCAP_TARGET @ motion.T_target_cam(t_mocap_s - cfg.offset_s)
     T_mocap_housing = T_mocap_cam @ inv_T(cfg.T_housing_cam)
     T_mocap_tmarkers = np.broadcast_to(T_MOCAP_TARGET @ inv_T(cfg.T_tmarkers_target), T_mocap_housing.shape)
-    out = {"t_s": t_mocap_s, "occluded_s": {}}
+    occluded_s: dict[str, list[float]] = {}
+    out: dict[str, Any] = {"t_s": t_mocap_s, "occluded_s": occluded_s}
     for body, T in ((HOUSING_BODY, T_mocap_housing), (TARGET_BODY, T_mocap_tmarkers)):
         # calib_synth's noise model, the one the calibration's settings assume (per axis / sqrt 3)
         T = body_noise(np.array(T), rng, cfg.sigma_t_m / np.sqrt(3), np.radians(cfg.sigma_r_deg) / np.sqrt(3))
         drop = _occlusions(rng, t_mocap_s, t_query, occlusions)
         T[drop] = np.nan
         out[body] = T
-        out["occluded_s"][body] = [round(float(t_mocap_s[i]), 4) for i in drop]
+        occluded_s[body] = [round(float(t_mocap_s[i]), 4) for i in drop]
     return out
 
 
@@ -289,7 +291,7 @@ def write_video(path: Path, src: Source, idx: np.ndarray, bar) -> dict:
     rate_hz = 1.0 / src.dt_s
     first = _read_frame(src.frame_files[0])
     h, w = first.shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*VIDEO_FOURCC), rate_hz, (w, h))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*VIDEO_FOURCC), rate_hz, (w, h))
     if not writer.isOpened():
         raise LabRecordingError(f"{path}: OpenCV's FFmpeg cannot write {VIDEO_FOURCC} video here")
     black = np.zeros_like(first)

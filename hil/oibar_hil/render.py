@@ -550,7 +550,7 @@ def fibonacci_disc(earth_c_km: np.ndarray, n: int) -> np.ndarray:
     the station (a Fibonacci spiral on the cap of half-angle asin(R / |c|))."""
     c = np.asarray(earth_c_km, float)
     e = c / np.linalg.norm(c)
-    cos_a = np.sqrt(max(0.0, 1.0 - (EARTH_RADIUS_KM / np.linalg.norm(c)) ** 2))
+    cos_a = np.sqrt(max(0.0, 1.0 - float(EARTH_RADIUS_KM / np.linalg.norm(c)) ** 2))
     i = np.arange(n) + 0.5
     cos_t = 1.0 - i / n * (1.0 - cos_a)
     sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t**2))
@@ -1018,6 +1018,7 @@ class Renderer:
             mp["u_far_scale"].value = s.shadow_near_half_extent_m / s.shadow_far_half_extent_m
             mp["u_sun_dir"].value = tuple(sun)
             mp["u_earth_l"].write(self._earth_l.astype("f4").tobytes())
+            assert self._earth is not None  # _update_earth_shadow ran above
             w = self._earth.weights(sun) * s.sun_intensity
             if look is not None:
                 w = w * look.earth_scale

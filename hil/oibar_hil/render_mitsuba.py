@@ -153,6 +153,7 @@ class MitsubaRenderer:
             params["faces"] = f.ravel()
             params.update()
             rgb = [float(x) for x in p.rgb]
+            bsdf: dict[str, Any]
             if self.look == "lab":
                 bsdf = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [LAB_GREY] * 3}}
             elif p.specular > 0:
@@ -174,7 +175,9 @@ class MitsubaRenderer:
         if background == "perlin" and perlin_seed is None:
             raise ValueError("the perlin background needs a seed")
         self._perlin = (
-            perlin_background(perlin_seed) if background == "perlin" and self.look != "lab" else None
+            perlin_background(perlin_seed)
+            if background == "perlin" and perlin_seed is not None and self.look != "lab"
+            else None
         )
 
     def _sensor(self, R_lvlh_cam: np.ndarray, p_lvlh_cam: np.ndarray, spp: int, rfilter: str) -> Any:

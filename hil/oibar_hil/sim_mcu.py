@@ -79,7 +79,7 @@ class PtyMcuRig(Rig):
         self._image: Any = None
         self._rendered_t_s = 0.0
 
-    @property
+    @property  # type: ignore[misc]  # Rig's controller is the mission's; here it is another process's
     def controller(self) -> Any:
         return self._ctl
 
@@ -89,7 +89,7 @@ class PtyMcuRig(Rig):
 
         # the rig's own view of the link, a passive decoder of the MCU's bytes (telemetry for
         # the summary); it never sends. The host is whatever opens the pty.
-        self.session = LinkCore(auto_connect=False)
+        self.session = LinkCore(auto_connect=False)  # type: ignore[assignment]  # a passive decoder, not a host session
         self.pty = PtyPort()
         urls = {"pty": self.pty.path, "frames": ""}
         if self.serve_frames:

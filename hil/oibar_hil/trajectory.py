@@ -242,7 +242,7 @@ def generate(
         rot.append(r_start + s * (r_goal - r_start))
         misalign.append(m_start)
         phase.append(PHASE_ALIGNMENT_SOFT_DOCK)
-    z = p_goal[2]
+    z = float(p_goal[2])
     while -z > p.soft_dock_distance_m + 1e-12:
         if envelope:
             speed = env_speed
@@ -263,8 +263,8 @@ def generate(
         dv = np.gradient(off, dt, axis=0)
         vel = [v + np.array([w[0], w[1], 0.0]) for v, w in zip(vel, dv, strict=True)]
     if turned_deg:
-        a = np.random.default_rng([seed, 7]).uniform(0.0, 2 * np.pi)
-        turn = np.radians(turned_deg) * np.array([np.cos(a), np.sin(a), 0.0])
+        axis_rad = np.random.default_rng([seed, 7]).uniform(0.0, 2 * np.pi)
+        turn = np.radians(turned_deg) * np.array([np.cos(axis_rad), np.sin(axis_rad), 0.0])
         rot = [r + turn for r in rot]
         misalign = [m + turn for m in misalign]
     n = len(pos)

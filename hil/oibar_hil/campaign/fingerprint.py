@@ -155,7 +155,7 @@ def changed_groups(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     og, ng = old.get("groups", {}), new.get("groups", {})
     keys = list(GROUP_LABELS) + sorted((og.keys() | ng.keys()) - GROUP_LABELS.keys())
     return [
-        GROUP_LABELS.get(k, k) for k in keys if og.get(k, {}).get("sha256") != ng.get(k, {}).get("sha256")
+        GROUP_LABELS.get(k) or k for k in keys if og.get(k, {}).get("sha256") != ng.get(k, {}).get("sha256")
     ]
 
 

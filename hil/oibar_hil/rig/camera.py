@@ -148,7 +148,7 @@ class OrbitClock:
         self.jd0 = julian_date(start)
         self.earth_center_lvlh_km = self.orbit.state(self.jd0).earth_center_lvlh_km
         self._sun_key: float | None = None
-        self._sun_lvlh = None
+        self._sun_lvlh: np.ndarray = np.zeros(3)  # set on the first at(): no key matches None
 
     def at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """(sun_lvlh unit vector, R_ecef_lvlh) at rig time t_s."""

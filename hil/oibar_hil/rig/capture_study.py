@@ -125,6 +125,7 @@ def run_soak(sim_s: float, *, odometry: bool = True) -> list[dict]:
     class Recorder(Soak):
         def between_missions(self, rig: Rig) -> bool:
             if not self._turning:  # the mission just ended: read it before the soak clears it
+                assert isinstance(self.nav, RecordingNav)  # set below, before run()
                 notes = sorted(rig.notes + rig.controller.notes)
                 rows.append(
                     _mission_row(

@@ -116,6 +116,7 @@ class FaultInjector:
                 seen = self.state_seen_at.get(spec.at_state)
                 due = seen is not None and t_s >= seen + spec.after_s
             else:
+                assert spec.at_s is not None  # FaultSpec.from_dict: a trigger, at_s or at_state
                 due = t_s >= float(spec.at_s) + spec.after_s
             if due:
                 self.pending.remove(spec)

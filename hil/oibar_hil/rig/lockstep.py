@@ -133,6 +133,7 @@ class SimMcu:
         exe = Path(exe)
         if not exe.exists():
             raise FileNotFoundError(f"simulated MCU not found at {exe} (run `make firmware-host`)")
+        self.pty_fd = -1  # the pseudo-terminal's descriptor once opened; -1: none (closed)
         self._sock, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self._stderr = open(stderr_path, "wb") if stderr_path else subprocess.DEVNULL  # noqa: SIM115  (closed by close())
         self.proc = subprocess.Popen(
@@ -150,6 +151,7 @@ class SimMcu:
             stderr=self._stderr,
         )
         child.close()
+        assert self.proc.stdout is not None  # stdout=PIPE
         line = self.proc.stdout.readline().decode(errors="replace").strip()
         if not line.startswith("PTY "):
             self.close()
@@ -236,12 +238,12 @@ class SimMcu:
                 self.proc.kill()
                 self.proc.wait()
         self._sock.close()
-        if getattr(self, "pty_fd", None) is not None:
+        if self.pty_fd >= 0:
             os.close(self.pty_fd)
-            self.pty_fd = None
+            self.pty_fd = -1
         if self.proc.stdout:
             self.proc.stdout.close()
-        if self._stderr is not subprocess.DEVNULL:
+        if not isinstance(self._stderr, int):  # a file of ours, not subprocess.DEVNULL
             self._stderr.close()
 
     def __enter__(self) -> SimMcu:

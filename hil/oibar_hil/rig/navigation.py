@@ -69,7 +69,11 @@ class TruthNav:
         if image is not None and (frame_t_s is None or t_s - frame_t_s <= self.max_frame_age_s):
             self._last = self.solve(t_s, self.world_of())
             return NavStep(t_s, self._last)
-        reason = "no new frame" if image is None else f"stale frame ({t_s - frame_t_s:.2f} s old)"
+        reason = (
+            "no new frame"
+            if image is None or frame_t_s is None
+            else f"stale frame ({t_s - frame_t_s:.2f} s old)"
+        )
         last = self._last or NavSolution(valid=False)
         sol = NavSolution(
             valid=last.valid,
@@ -131,7 +135,7 @@ class CnnNav:
         self.blackout = camera_blackout
         self.frames = 0
         self.last_timings_ms: dict[str, float] = {}
-        self.last_step = None
+        self.last_step: NavStep | None = None
 
     def frame(self, t_s: float, world: Any) -> Frame | None:
         """This cycle's camera frame, rendered for the world's pose (None during a blackout)."""

@@ -49,7 +49,7 @@ def offsets(range_m: float) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """(kind, probe tip r_D_m, attitude error att_rad) of one range's frames: 'lateral' and
     'attitude', the centre first, then STEPS on x, then on y."""
     d = LATERAL_FRACTION * range_m
-    out = []
+    out: list[tuple[str, np.ndarray, np.ndarray]] = []
     for kind in ("lateral", "attitude"):
         for step, axis in [(0.0, 0)] + [(s, a) for a in (0, 1) for s in STEPS]:
             off = np.zeros(2)

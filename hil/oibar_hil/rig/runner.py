@@ -147,6 +147,8 @@ class _SafetyWatch:
 
 
 class Rig:
+    world: World  # set in __init__, after the navigation that reads it through world_of
+
     def __init__(
         self,
         scenario: Scenario,
@@ -378,6 +380,7 @@ class Rig:
         step, out = self.daemon.cycle(frame, camera_error="unplugged (rig fault)" if self._camera_out else "")
         cycle_ms = (time.perf_counter() - t0) * 1e3
         obs = self.daemon.last_observation
+        assert obs is not None  # cycle() has just set it
         for ev in obs.events:
             self.events_log.append((self.t_s, self._event_text(ev)))
         for res in obs.results:
@@ -401,7 +404,8 @@ class Rig:
         row = signed_errors("", sol.r_D_m, sol.att_rad, w.s) if sol.valid else {}
         if estimate is not None and estimate.finite:
             row.update(pose_errors("ans_", estimate.T_cam_target_m, estimate.R_cam_target, w.s))
-            row.update(pose_errors("meas_", *estimate.measurement(), w.s))
+            T_meas, R_meas = estimate.measurement()
+            row.update(pose_errors("meas_", T_meas, R_meas, w.s))
         b_true = w.odometry_bias_mps  # unreported: the filter only allows for it
         self.nav_log.append(
             {

@@ -124,14 +124,14 @@ class SitlRig(Rig):
 
     # -- the external host ----------------------------------------------------------------
 
-    @property
+    @property  # type: ignore[misc]  # Rig's controller is the mission's; here it is another process's
     def controller(self) -> Any:
         return self._ctl
 
     def _new_host(self) -> None:
         # the rig's own view of the link: a passive decoder of the MCU's bytes (telemetry for
         # the report); it never sends. The host is the oibar nav process.
-        self.session = LinkCore(auto_connect=False)
+        self.session = LinkCore(auto_connect=False)  # type: ignore[assignment]  # a passive decoder, not a host session
         self.pty = PtyPort()
         self.frames = FrameStreamServer("127.0.0.1", 0)
         self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -161,6 +161,7 @@ class SitlRig(Rig):
         env = dict(os.environ)
         inherited = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT / "host"), *inherited])
+        assert self.out_dir is not None  # a SitlRig is always given one
         self._stdout = open(Path(self.out_dir) / "oibar_nav.out", "wb")  # noqa: SIM115  (closed by stop())
         self.command = cmd
         self.proc = subprocess.Popen(

@@ -140,7 +140,7 @@ class Soak:
         mcu_path: Path | None = None,
         progress: bool = False,
         use_tracemalloc: bool = False,
-        nav: str = "truth",
+        nav: str | Any = "truth",  # as Rig's: a name, or a navigation object
         nav_options: dict | None = None,
     ) -> None:
         self.nav = nav
@@ -182,6 +182,7 @@ class Soak:
         }
 
     def _sample(self, rig: Rig) -> None:
+        assert rig.mcu is not None  # sampled between missions of a running rig
         gc.collect()
         _malloc_trim()
         self.memory.append(

@@ -95,7 +95,7 @@ class NavDaemon:
         self,
         navigator: Navigator,
         guidance: Guidance,
-        camera: CameraSource,
+        camera: CameraSource | None,  # None: the caller feeds each frame to cycle() (the HIL rig)
         link: NavLink | None = None,
         vehicle: VehicleInterface | None = None,
         log: FlightLog | None = None,
@@ -141,6 +141,9 @@ class NavDaemon:
     # -- camera -------------------------------------------------------------------------
 
     def _ensure_camera(self, now: float) -> LatestFrame | None:
+        if self.camera_source is None:
+            self._cam_error = "no camera: frames come through cycle()"
+            return None
         if self._cam is None:
             if self.camera_ended or now < self._next_cam_try:
                 return None
@@ -344,7 +347,8 @@ class NavDaemon:
         if self.log is None:
             return
         est = self.nav.estimator
-        info = run_info(est, self.camera_source.name, self.p.rate_hz, time.time() - (self.clock() - self._t0))
+        source = "cycle() caller" if self.camera_source is None else self.camera_source.name
+        info = run_info(est, source, self.p.rate_hz, time.time() - (self.clock() - self._t0))
         self.log.start(info, camera_intrinsics(est)[1])
 
     def status_line(self) -> str:
