@@ -21,7 +21,7 @@ from oibar.geometry.camera import project_target_points as project
 from oibar.nav.keypoints import CropWindow, PnpResult
 from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, Fusion, fit_rms_crop_px
 from oibar.nav.pose.model_file import ModelFileError, export_flag
-from oibar.nav.pose.reader import CropReading, KeypointReader
+from oibar.nav.pose.reader import CROP_REF_PX, CropReading, KeypointReader
 from oibar.nav.pose.search_state import ColdSearch, FitKeeper, scan_windows
 
 # Windows tried in turn until the keypoints give a consistent pose: (shift x, shift y) in window
@@ -160,12 +160,16 @@ WELL_PLACED_ANGLE_DEG = 3.0  # and its turn (reader.UPRIGHT_FROM_DEG) within thi
 # 0.1-0.15), and upside down (180 deg) it reads a strong fit 180 deg off, since the plate maps onto
 # itself and the drogue is on the axis. Windows placed by a pose are turned upright
 # (reader.window_for); a fit the search found (no pose placed its window) is checked first:
-# - UPRIGHT_TURNS: its window turned by each is read in one batch, and the one whose keypoints are
-#   tightest (least mean heat-map spread) is the fixture upright; a strong fit there replaces the
-#   first. On val_roll (171 frames at 13 rolls, 0.4-10.4 m, windows cut on the truth) the upright
-#   window was the tighter of it and its 180 deg twin on 170 (margin median 0.22 px, 5th
-#   percentile 0.09); the other was at 0.42 m, where the upright window gave no fit at all.
-#   4 crops (one batch) and at most one pass more, on a frame whose fit the search found.
+# - UPRIGHT_TURNS: its window, and that window turned by each of these, are read, and the one whose
+#   keypoints are tightest (least mean heat-map spread) is the fixture upright; a strong fit there
+#   replaces the first. On val_roll (171 frames at 13 rolls, 0.4-10.4 m, windows cut on the truth)
+#   the upright window was the tighter of it and its 180 deg twin on 170 (margin median 0.22 px,
+#   5th percentile 0.09); the other was at 0.42 m, where the upright window gave no fit at all.
+#   90 deg off, 17 probe frames read weak fits (1.3-2.5 crop px), but the search can find a strong
+#   one (val_roll, 90 deg, 9.4 m: 19 % and 89 deg off at confidence 0.95), so all three turns are
+#   read. A strong fit's own window is read as the refining pass reads it, and that reading is the
+#   refining pass's: 3 crops (one batch) and at most one pass more. A weak fit (a cold frame with
+#   nothing strong) is checked the same way, in one batch of four.
 # - TURN_STEPS_DEG: when SEARCH_STEPS give no strong fit on a cold frame, the direct model's window
 #   turned by each is read in one batch and, where one looks more like the fixture than the
 #   unturned window, it is solved and the cold search (the zoom, the scan) goes on at its turn.
@@ -175,8 +179,10 @@ WELL_PLACED_ANGLE_DEG = 3.0  # and its turn (reader.UPRIGHT_FROM_DEG) within thi
 #   read 0.000-0.001, and the noisiest of them sent the zoom off at its turn (1 of 2 such frames
 #   answered 88 deg off, the other no fit, where the unturned zoom found both). Upright windows
 #   over the fixture read 0.14-0.24 (0.6-10.4 m), 90 deg off 0.10-0.15. 8 crops and one pass, on
-#   the first frame of a cold search only.
-UPRIGHT_TURNS = (0.0, np.pi / 2, np.pi, -np.pi / 2)
+#   the first frame of a cold search only, outside its crop budget as SEARCH_STEPS are: counted,
+#   they left too few crops for the zoom's first batch on 7 of 2499 validation frames (va012 at
+#   7-10 m), which then answered a frame later instead of at once.
+UPRIGHT_TURNS = (np.pi / 2, np.pi, -np.pi / 2)
 TURN_STEPS_DEG = (0.0, 45.0, 90.0, 135.0, 180.0, -135.0, -90.0, -45.0)
 TURN_MIN_LIKENESS = 0.05
 
@@ -280,8 +286,7 @@ class WindowSearch:
             # frame of a healthy track
             if keep.best is None and prior is None:
                 if base is not None:
-                    turned, n = self._turned_pass(image, base, R_direct, T_direct, f, keep)
-                    crops += n
+                    turned = self._turned_pass(image, base, R_direct, T_direct, f, keep)
                     base = turned if turned is not None else base
                 if keep.best is None:
                     if base is not None and self.zoom_search:
@@ -298,22 +303,23 @@ class WindowSearch:
         if keep.best is None and keep.weak is not None and prior is None:
             # a weak fit of a cold frame may be the fixture read turned (90 deg off reads weak):
             # read upright, it can be strong, and that ends a carried search
-            upright = self._upright(image, keep.weak, R_direct, f)
+            upright, _ = self._upright(image, keep.weak, R_direct, f)
             if upright is not None:
                 keep.best, upright_done, self.cold = upright, True, None
         if keep.best is None:
             return keep.weak if keep.weak is not None else (None, None)
-        # outside the cold search's crop budget, as the refining pass is: at most 4 + 27 crops and
+        # outside the cold search's crop budget, as the refining pass is: at most 3 + 27 crops and
         # 3 passes more (a frame of 60 budgeted crops then takes ~0.5 s, within the link's 1 s)
+        read: tuple[CropWindow, CropReading] | None = None  # the refining pass's first, read already
         if not upright_done:
-            upright = self._upright(image, keep.best, R_direct, f)
+            upright, read = self._upright(image, keep.best, R_direct, f)
             if upright is not None:
                 keep.best, refined = upright, False
         if self.zoom_out and not placed_found:
             bigger = self._zoom_out(image, keep.best, R_direct, f)
             if bigger is not None:
                 keep.best, refined = bigger, False
-        return keep.best if refined else self._refined(image, keep.best, R_direct, f)
+        return keep.best if refined else self._refined(image, keep.best, R_direct, f, read)
 
     def _placed_pass(
         self,
@@ -366,15 +372,22 @@ class WindowSearch:
         best: tuple[PnpResult, CropWindow],
         R_direct: np.ndarray,
         f: dict[str, Any] | None,
+        read: tuple[CropWindow, CropReading] | None = None,
     ) -> tuple[PnpResult, CropWindow]:
-        """`refine_passes - 1` crops cut around the newest strong fit, while they stay strong."""
+        """`refine_passes - 1` crops cut around the newest strong fit, while they stay strong;
+        `read`: a window and its refining reading made already (the upright check's), used when
+        the first of them is that window."""
         reader = self.reader
         for _ in range(self.refine_passes - 1):
             R_best, T_best = best[0].pose()
             around = reader.window_for(R_best, T_best)
             if around is None:
                 break
-            r, rwin = self._one_pass(image, around, R_direct, f, float(np.linalg.norm(T_best)), refining=True)
+            reading = read[1] if read is not None and read[0] == around else None
+            read = None
+            r, rwin = self._one_pass(
+                image, around, R_direct, f, float(np.linalg.norm(T_best)), refining=True, reading=reading
+            )
             if r is None or rwin is None or fit_rms_crop_px(r, rwin) > STRONG_FIT_RMS_CROP_PX:
                 break
             best = (r, rwin)
@@ -434,28 +447,36 @@ class WindowSearch:
         fit: tuple[PnpResult, CropWindow],
         R_direct: np.ndarray,
         f: dict[str, Any] | None,
-    ) -> tuple[PnpResult, CropWindow] | None:
-        """The fit the search found read again in the window its pose places, turned by each of
-        UPRIGHT_TURNS: where another turn's keypoints are tighter, that turn shows the fixture
-        upright, and its strong fit replaces `fit` (returned); None: `fit` stands."""
+    ) -> tuple[tuple[PnpResult, CropWindow] | None, tuple[CropWindow, CropReading] | None]:
+        """The fit the search found read again in the window its pose places, and in that window
+        turned by each of UPRIGHT_TURNS: where a turn's keypoints are tighter, it shows the
+        fixture upright, and its strong fit replaces `fit`. Returns (that fit, else None: `fit`
+        stands; for a strong `fit`, its window with the refining reading made of it here, which
+        the refining pass then uses instead of reading it again)."""
         reader = self.reader
         if not reader.upright:
-            return None
+            return None, None
         R, T = fit[0].pose()
         w0 = reader.window_for(R, T)
         if w0 is None:
-            return None
+            return None, None
         wins = [replace(w0, angle_rad=w0.angle_rad + a) for a in UPRIGHT_TURNS]
-        spread = reader.heat_spread(image, wins)
-        if spread is None:
-            return None
-        best = int(np.argmin(spread))
-        if best == 0:
-            return None
-        r, win = self._one_pass(image, wins[best], R_direct, f, float(np.linalg.norm(T)))
+        read = None
+        if fit_rms_crop_px(*fit) <= STRONG_FIT_RMS_CROP_PX:
+            read = (w0, reader.read_crop(image, w0, refining=True))
+            own = float(np.mean(read[1].spread_crop_px)) * CROP_REF_PX / reader.out_px
+            spread = reader.heat_spread(image, wins)
+        else:
+            spread = reader.heat_spread(image, [w0, *wins])
+            if spread is not None:
+                own, spread = float(spread[0]), spread[1:]
+        if spread is None or not float(np.min(spread)) < own:
+            return None, read
+        turned = wins[int(np.argmin(spread))]
+        r, win = self._one_pass(image, turned, R_direct, f, float(np.linalg.norm(T)))
         if r is None or win is None or fit_rms_crop_px(r, win) > STRONG_FIT_RMS_CROP_PX:
-            return None
-        return r, win
+            return None, read
+        return (r, win), read
 
     def _turned_pass(
         self,
@@ -465,19 +486,18 @@ class WindowSearch:
         T_direct: np.ndarray,
         f: dict[str, Any] | None,
         keep: FitKeeper,
-    ) -> tuple[CropWindow | None, int]:
-        """The turn stage (TURN_STEPS_DEG) on the direct model's window `base`: (the turned window
-        that looks more like the fixture than `base`, solved and offered to `keep`, or None;
-        crops read)."""
+    ) -> CropWindow | None:
+        """The turn stage (TURN_STEPS_DEG) on the direct model's window `base`: the turned window
+        that looks more like the fixture than `base`, solved and offered to `keep`, or None."""
         if not self.reader.upright:
-            return None, 0
+            return None
         wins = [replace(base, angle_rad=base.angle_rad + np.radians(a)) for a in TURN_STEPS_DEG]
         score = self.reader.fixture_likeness(image, wins)
         best = int(np.argmax(score))
         if best == 0 or score[best] < TURN_MIN_LIKENESS:  # argmax: the first of equals, unturned
-            return None, len(wins)
+            return None
         keep.consider(*self._one_pass(image, wins[best], R_direct, f, float(np.linalg.norm(T_direct))))
-        return wins[best], len(wins) + 1
+        return wins[best]
 
     def _weak_rank(self, r: PnpResult, win: CropWindow) -> tuple[bool, float]:
         """Which weak fit to return when no strong one is found: one inside the range envelope
