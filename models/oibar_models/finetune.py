@@ -54,6 +54,11 @@ from .kp_recover import PARITY_TOL, RecoverError, calibrate, parity, recover
 EXPERIMENT = "finetune_lab"
 CONFIG_DIR = REPO_ROOT / "models" / "configs" / "keypoints"
 MODES = ("cold", "track")
+# The batch norms while fine-tuning: "train" normalises each batch by its own statistics (as the
+# trainer does); "frozen" keeps the statistics start_network calibrated on the training crops, and
+# trains only their scale and shift with the weights: a batch of 16 crops of a few lab runs is a
+# narrow sample.
+BATCH_NORM = ("train", "frozen")
 EVAL_COLUMNS_EXTRA = [
     ("answered_pct", "answered (%)", "{:.1f}"),
     ("silent_failures", "silent failures", "{:d}"),
@@ -86,6 +91,7 @@ class Options:
     threads: int = 0
     progress: bool = True
     force: bool = False
+    batch_norm: str = "train"  # BATCH_NORM: "frozen" keeps the calibrated statistics while fine-tuning
 
 
 @dataclass
@@ -170,13 +176,12 @@ def crop_sets(cfg, train: list[Sequence], held: list[Sequence], seed: int):
     return train_ds, val_ds
 
 
-def start_network(o: Options, cfg, train: list[Sequence]):
-    """The shipped network recovered, its batch norms calibrated on the training crops (as
-    validation cuts them), checked against the file on those crops."""
+def calibration_crops(o: Options, cfg, train: list[Sequence], meta: dict):
+    """`calibrate_crops` crops of the training sequences, cut as validation cuts them (no
+    augmentation), with their keypoints' visibility."""
     from .kp_data import CropAugment, CropDataset, spread_frames
     from .kp_engine import keypoints_m
 
-    net, meta, pairs = recover(o.init)
     aug = CropAugment(margin=float(meta["crop"]["margin"]))
     ds = CropDataset(
         train,
@@ -186,7 +191,29 @@ def start_network(o: Options, cfg, train: list[Sequence]):
         train=False,
         frames=spread_frames(train, o.calibrate_crops),
     )
-    crops = torch.stack([ds[i]["image"] for i in range(len(ds))])
+    items = [ds[i] for i in range(len(ds))]
+    return torch.stack([it["image"] for it in items]), torch.stack(
+        [torch.as_tensor(it["visible"]) for it in items]
+    )
+
+
+@torch.no_grad()
+def spread_median(net, crops: torch.Tensor, visible: torch.Tensor) -> float:
+    """The median heat-map spread (crop px) of the visible keypoints on `crops`, in evaluation."""
+    from .kpnet import soft_argmax
+
+    was = net.training
+    net.eval()
+    spreads = [soft_argmax(net(crops[i : i + 32])[0])[1] for i in range(0, len(crops), 32)]
+    net.train(was)
+    return float(torch.cat(spreads)[visible.bool()].median())
+
+
+def start_network(o: Options, cfg, train: list[Sequence]):
+    """The shipped network recovered, its batch norms calibrated on the training crops (as
+    validation cuts them), checked against the file on those crops."""
+    net, meta, pairs = recover(o.init)
+    crops, _ = calibration_crops(o, cfg, train, meta)
     calibrate(net, pairs, crops)
     err = parity(o.init, net, crops[:16].numpy())
     if not err < PARITY_TOL:
@@ -223,6 +250,10 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence]) 
     rows = [{"step": 0, **{f"val_{k}": v for k, v in validate(net, val_ds, device, t).items()}}]
     t0, running = time.monotonic(), {}
     net.train()
+    if o.batch_norm == "frozen":
+        for m in net.modules():
+            if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+                m.eval()
     for step in range(t.steps):
         b = next(loader)
         for g in opt.param_groups:
@@ -253,9 +284,13 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence]) 
 
 
 # ----------------------------------------------------------------------------- export
-def export_candidate(o: Options, cfg, net, meta: dict, val: dict) -> Path:
+def export_candidate(o: Options, cfg, net, meta: dict, val: dict, spreads: dict[str, float]) -> Path:
     """The fine-tuned graph with the shipped file's metadata (its fusion tables, reading options,
-    camera and companions), parity-checked, opened as flight opens it."""
+    camera and companions), parity-checked, opened as flight opens it. Its keypoint gate
+    (``oibar.pnp.max_spread_crop_px``) is the starting model's scaled by how much broader its heat
+    maps came out on the training crops (`spreads`: median spreads before and after): trained on
+    measured labels, they grow as broad as the labels' noise, and the starting model's gate would
+    take every keypoint for absent."""
     import onnx
     import onnxruntime as ort
 
@@ -267,7 +302,14 @@ def export_candidate(o: Options, cfg, net, meta: dict, val: dict) -> Path:
     tmp = out.with_suffix(".tmp.onnx")
     torch.manual_seed(o.seed)
     wrapper, dummy = export_graph(net, True, cfg.model.out_px, cfg.export.opset, tmp)
+    from oibar.nav.pose.reader import MAX_SPREAD_CROP_PX
+
     new = dict(meta)
+    gate = float(meta["pnp"].get("max_spread_crop_px", MAX_SPREAD_CROP_PX))
+    new["pnp"] = {
+        **meta["pnp"],
+        "max_spread_crop_px": round(gate * spreads["finetuned"] / spreads["start"], 3),
+    }
     new.update(
         model_version=f"{meta.get('model_version', '0.0.0')}+finetune",
         name=cfg.name,
@@ -280,6 +322,8 @@ def export_candidate(o: Options, cfg, net, meta: dict, val: dict) -> Path:
             "held": [str(p) for p in o.val],
             "steps": cfg.train.steps,
             "seed": o.seed,
+            "batch_norm": o.batch_norm,
+            "spread_median_crop_px": spreads,
             "ships": False,
             "note": "a demonstration (issue 58 item 5): never judged, registered or shipped",
         },
@@ -415,9 +459,12 @@ def run(o: Options) -> dict:
         yaml.safe_dump({"derived_from": str(cfg_path), **asdict(cfg)}, sort_keys=False)
     )
     net, meta = start_network(o, cfg, train)
+    crops, visible = calibration_crops(o, cfg, train, meta)
+    spread_start = spread_median(net, crops, visible)
     say(o, f"fine-tuning {cfg.train.steps} steps of {cfg.train.batch_size} crops (from {cfg_path.name})")
     last = finetune(o, cfg, net, train, held)
-    candidate = export_candidate(o, cfg, net, meta, last)
+    spreads = {"start": round(spread_start, 3), "finetuned": round(spread_median(net, crops, visible), 3)}
+    candidate = export_candidate(o, cfg, net, meta, last, spreads)
     say(o, f"exported {candidate}")
     results, rows = evaluate(o, candidate, held)
     summary = write_tables(o, results, rows)
@@ -461,13 +508,19 @@ def parse(argv: list[str] | None) -> Options:
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--force", action="store_true", help="write into a --out that is not empty")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument(
+        "--batch-norm",
+        choices=BATCH_NORM,
+        default="train",
+        help="the batch norms' statistics while fine-tuning: each batch's (train) or the calibrated ones (frozen)",
+    )
     a = ap.parse_args(argv)
     if a.steps < 0 or a.epochs <= 0 or a.batch_size < 1 or a.stride < 1 or a.calibrate_crops < 1:
         ap.error("--steps >= 0, --epochs > 0, --batch-size, --stride and --calibrate-crops >= 1")
     return Options(
         a.data, a.val, a.init, a.out, a.config, a.epochs, a.steps, a.batch_size, a.lr, a.seed,
         a.calibrate_crops, a.val_frames, a.stride, tuple(a.modes), not a.no_baseline,
-        not a.no_far_network, a.workers, a.threads, not a.no_progress, a.force,
+        not a.no_far_network, a.workers, a.threads, not a.no_progress, a.force, a.batch_norm,
     )  # fmt: skip
 
 

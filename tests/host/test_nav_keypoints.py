@@ -309,6 +309,7 @@ def _shell(
     reader.path, reader.meta = Path("test.onnx"), dict(meta or {})
     reader.points_m, reader.K_frame, reader.out_px, reader.margin = points, K, out_px, 1.25
     reader.reproj_crop_px, reader.min_present = 4.0, 0.5
+    reader.max_spread_crop_px, reader.spread_scale = 9.0, 1.0
     reader.R_att_ref, reader.mirror = None, None
     reader.turned_reading_deg, reader.turned_reading_head = 0.0, False
     reader.corner_refine_side_px, reader.corner_idx = 0.0, np.zeros(0, int)
@@ -1442,6 +1443,37 @@ def test_a_keypoint_with_a_broad_heat_map_is_not_there(out_px):
     assert np.all(np.isnan(r.uv_px[:8])) and np.allclose(r.uv_px[8:], truth[8:], atol=1e-3)
     spread[:8] = (MAX_SPREAD_CROP_PX - 0.5) * scale  # tight enough: all kept
     assert np.all(np.isfinite(est.read_crop(image, win).uv_px))
+    # a network with its own, broader gate (oibar.pnp.max_spread_crop_px: trained on measured
+    # labels) keeps what the default gate drops, and reports its spreads in the default's terms
+    spread[:8] = (MAX_SPREAD_CROP_PX + 1.0) * scale
+    est.max_spread_crop_px, est.spread_scale = 2 * MAX_SPREAD_CROP_PX, 0.5
+    assert np.all(np.isfinite(est.read_crop(image, win).uv_px))
+    spread[:8] = (2 * MAX_SPREAD_CROP_PX + 1.0) * scale
+    assert np.all(np.isnan(est.read_crop(image, win).uv_px[:8]))
+    assert est.heat_spread(image, [win])[0] == pytest.approx(0.5 * spread.mean() / scale)
+
+
+@pytest.mark.parametrize("gate", [0, -3.0, "9", True, float("inf")])
+def test_a_keypoint_gate_that_is_not_a_spread_is_refused(gate, tmp_path):
+    """oibar.pnp.max_spread_crop_px, when an export carries it, must be a spread > 0."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    import onnx
+
+    from oibar.nav.pose import KeypointPoseEstimator, ModelFileError
+
+    shipped = Path(__file__).resolve().parents[2] / "models"
+    m = onnx.load(str(shipped / "oibarnet.onnx"))
+    for p in m.metadata_props:
+        if p.key == "oibar.pnp":
+            p.value = json.dumps({**json.loads(p.value), "max_spread_crop_px": gate})
+    onnx.save(m, str(tmp_path / "oibarnet.onnx"))
+    for name in ("oibarnet_lite.onnx", "oibarnet_far.onnx"):
+        shutil.copy(shipped / name, tmp_path / name)
+    with pytest.raises(ModelFileError, match="max_spread_crop_px"):
+        KeypointPoseEstimator(tmp_path / "oibarnet.onnx", warmup_runs=0)
 
 
 def _windowed_estimator(monkeypatch, truth: np.ndarray, turned_deg: float, seen_in=None):

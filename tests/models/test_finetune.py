@@ -94,6 +94,11 @@ def test_one_step_fine_tune_exports_a_flight_model_and_its_table(lab, tmp_path, 
     meta, shipped = read_metadata(out / "oibarnet.onnx"), read_metadata(SHIPPED_KP)
     assert meta["fusion"] == shipped["fusion"] and meta["camera"] == shipped["camera"]
     assert meta["finetune"]["ships"] is False and meta["finetune"]["steps"] == 1
+    # its keypoint gate: the shipped one scaled with how its heat maps broadened on the training crops
+    s = meta["finetune"]["spread_median_crop_px"]
+    assert s["start"] > 0 and s["finetuned"] > 0
+    assert meta["pnp"]["max_spread_crop_px"] == pytest.approx(9.0 * s["finetuned"] / s["start"], abs=2e-3)
+    assert est.reader.max_spread_crop_px == meta["pnp"]["max_spread_crop_px"]
     assert meta["model_version"].endswith("+finetune")
     res = json.loads((out / "eval.json").read_text())
     row = res["fine-tuned cold"]["_all"]

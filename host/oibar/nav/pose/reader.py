@@ -46,6 +46,11 @@ MIRROR_AGREE_CROP_PX = 2.0
 # station's structure can still give a few keypoints that PnP fits within the strong-fit bound:
 # on va012's cold start (the first pass takes the 10 m fixture for a 0.45 m one) 0.11.0's fit of
 # six keypoints spread 8.5-25 px answered 0.42 m at confidence 0.94. Broader than this: not there.
+# That is the gate of a network trained on exact labels; one trained on measured ones learns heat
+# maps as broad as their noise (the lab fine-tune, labelled through motion capture: 13-18 px on
+# the fixture, every keypoint gated), so an export may carry its own gate
+# (``oibar.pnp.max_spread_crop_px``), and every spread it reports is read in this gate's terms
+# (`spread_scale`), so that the search's likeness scores and floors hold for it too.
 MAX_SPREAD_CROP_PX = 9.0
 # The largest turn of the refining pass's extra readings: the network was trained on crops
 # turned up to 15 deg (kp_data.CropAugment.angle_deg); beyond, it reads crops it never saw.
@@ -141,6 +146,15 @@ class KeypointReader:
         self.points_m = np.asarray(meta["keypoints_3d_m"], float)
         self.reproj_crop_px = float(meta["pnp"]["reproj_crop_px"])
         self.min_present = float(meta["pnp"]["min_present"])
+        gate = meta["pnp"].get("max_spread_crop_px", MAX_SPREAD_CROP_PX)
+        if isinstance(gate, bool) or not isinstance(gate, int | float) or not 0.0 < float(gate) < np.inf:
+            raise ModelFileError(
+                f"{path}: oibar.pnp.max_spread_crop_px must be a spread in crop pixels > 0, got {gate!r}"
+            )
+        self.max_spread_crop_px = float(gate)  # CROP_REF_PX terms
+        self.spread_scale = (
+            MAX_SPREAD_CROP_PX / self.max_spread_crop_px
+        )  # its spreads in MAX_SPREAD_CROP_PX's terms
         self.K_frame = np.array(meta["camera"]["K_frame"], float)
         self.R_att_ref = self._attitude_head()
         # each crop read with its mirror in the refining pass: as the export says (chosen per
@@ -409,7 +423,9 @@ class KeypointReader:
         present = out["kp_present"]
         spread = out["kp_spread_px"] if "kp_spread_px" in out else np.zeros(len(kp))
         uv = win.to_frame(kp)
-        uv[(present < self.min_present) | (spread > MAX_SPREAD_CROP_PX * self.out_px / CROP_REF_PX)] = np.nan
+        uv[(present < self.min_present) | (spread > self.max_spread_crop_px * self.out_px / CROP_REF_PX)] = (
+            np.nan
+        )
         R_head = None
         if self.R_att_ref is not None:
             att = out[self.head_output]
@@ -433,13 +449,15 @@ class KeypointReader:
     def _presence_and_spread(
         self, image: np.ndarray, wins: list[CropWindow]
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Each window's mean keypoint presence and mean heat-map spread (CROP_REF_PX terms; None
-        without that output), one batch."""
+        """Each window's mean keypoint presence and mean heat-map spread (CROP_REF_PX terms, and in
+        MAX_SPREAD_CROP_PX's: `spread_scale`; None without that output), one batch."""
         out = self.run_windows(np.concatenate([to_input(cut(image, w)) for w in wins]), wins)
         present = out["kp_present"].astype(float).mean(axis=1)
         if "kp_spread_px" not in out:
             return present, None
-        return present, out["kp_spread_px"].astype(float).mean(axis=1) * CROP_REF_PX / self.out_px
+        return present, out["kp_spread_px"].astype(float).mean(
+            axis=1
+        ) * CROP_REF_PX / self.out_px * self.spread_scale
 
     def refined_corners(self, image: np.ndarray, win: CropWindow, uv: np.ndarray) -> np.ndarray:
         """The fixture's sharp corners (CORNER_NAMES: the rim's, the connector's) moved onto the

@@ -464,7 +464,7 @@ class WindowSearch:
         read = None
         if fit_rms_crop_px(*fit) <= STRONG_FIT_RMS_CROP_PX:
             read = (w0, reader.read_crop(image, w0, refining=True))
-            own = float(np.mean(read[1].spread_crop_px)) * CROP_REF_PX / reader.out_px
+            own = float(np.mean(read[1].spread_crop_px)) * CROP_REF_PX / reader.out_px * reader.spread_scale
             spread = reader.heat_spread(image, wins)
         else:
             spread = reader.heat_spread(image, [w0, *wins])
