@@ -133,7 +133,7 @@ class KeypointReader:
         upright: bool = True,
     ):
         self.path, self.meta = path, meta
-        # windows turned to show a rolled fixture upright, and the search's roll checks (search.UPRIGHT_TURNS)
+        # windows turned to show a rolled fixture upright, and the search's roll checks (search.UPRIGHT_TWIN)
         self.upright = bool(upright)
         self.session = open_session(path, threads, allow_spinning)
         self.input_name = self.session.get_inputs()[0].name
@@ -443,7 +443,7 @@ class KeypointReader:
     def heat_spread(self, image: np.ndarray, wins: list[CropWindow]) -> np.ndarray | None:
         """Each window's mean heat-map spread (CROP_REF_PX terms), read in one batch; None for a
         network without the spread output. The fixture's keypoints are tightest in a crop that
-        shows it as trained (upright): search.UPRIGHT_TURNS."""
+        shows it as trained (upright): search.UPRIGHT_TWIN."""
         return self._presence_and_spread(image, wins)[1]
 
     def _presence_and_spread(

@@ -5,8 +5,8 @@ strong fit); SEARCH_STEPS around the direct model's window; then, on a cold star
 only, the turn stage (the direct model's window turned, TURN_STEPS_DEG), the zoom (smaller windows
 inside it, level after level) and the scan of the whole frame. The zoom and the scan (the cold
 search) stop at a per-frame crop budget and go on in the next frames (ColdSearch), so that no
-cycle nears the MCU's link timeout. A fit the search found is read at each UPRIGHT_TURNS first:
-the network reads a rolled fixture as unrolled.
+cycle nears the MCU's link timeout. A strong fit the search found is read upside down too
+(UPRIGHT_TWIN): the network reads a rolled fixture as unrolled.
 """
 
 from __future__ import annotations
@@ -159,19 +159,20 @@ WELL_PLACED_ANGLE_DEG = 3.0  # and its turn (reader.UPRIGHT_FROM_DEG) within thi
 # 0.6-10.4 m on the roll sweep val_roll), at 90 deg it reads a weak fit 90 deg off (likeness
 # 0.1-0.15), and upside down (180 deg) it reads a strong fit 180 deg off, since the plate maps onto
 # itself and the drogue is on the axis. Windows placed by a pose are turned upright
-# (reader.window_for); a fit the search found (no pose placed its window) is checked first:
-# - UPRIGHT_TURNS: its window, and that window turned by each of these, are read, and the one whose
-#   keypoints are tightest (least mean heat-map spread) is the fixture upright; a strong fit there
-#   replaces the first. On val_roll (171 frames at 13 rolls, 0.4-10.4 m, windows cut on the truth)
-#   the upright window was the tighter of it and its 180 deg twin on 170 (margin median 0.22 px,
-#   5th percentile 0.09); the other was at 0.42 m, where the upright window gave no fit at all.
-#   90 deg off, 17 probe frames read weak fits (1.3-2.5 crop px), but the search can find a strong
-#   one (val_roll, 90 deg, 9.4 m: 19 % and 89 deg off at confidence 0.95), so all three turns are
-#   read. A strong fit's own window is read as the refining pass reads it, and that reading is the
-#   refining pass's: 3 crops (one batch) and at most one pass more. A weak fit (a cold frame with
-#   nothing strong) is checked the same way, in one batch of four.
+# (reader.window_for); a strong fit the search found (no pose placed its window) is checked first:
+# - UPRIGHT_TWIN: its window and that window turned half a turn are read; where the twin's
+#   keypoints are tighter (mean heat-map spread) by UPRIGHT_MARGIN_PX and its fit is strong and
+#   better by UPRIGHT_RMS_RATIO, the twin shows the fixture upright and its fit replaces the first.
+#   On val_roll (windows on the truth) the needed flips won by 0.09-3.6 px (median 0.31), their
+#   fits' RMS 0.2-1.1 of the first's. In the lab look (the Mitsuba stand-ins lb000-lb009: matte
+#   grey print, one lamp) the heat maps are about as tight one way up as the other: the twin came
+#   out tighter by 0.001-0.06 px on 98 of 341 frames whose fit was right, and a flip read once is
+#   carried by the track; hence the margin and the RMS ratio. The quarter turns are not checked:
+#   in the lab they won wrongly under 3 m, by 0.2-7.5 px. The fit's own window is read as the
+#   refining pass reads it, and the refining pass takes that reading: one crop more, and at most
+#   one pass.
 # - TURN_STEPS_DEG: when SEARCH_STEPS give no strong fit on a cold frame, the direct model's window
-#   turned by each is read in one batch and, where one looks more like the fixture than the
+#   turned by each is read in one batch and, where one looks much more like the fixture than the
 #   unturned window, it is solved and the cold search (the zoom, the scan) goes on at its turn.
 #   45 deg apart, so a fixture at any roll is within 22.5 deg of one (likeness 0.20-0.24 up to
 #   20-25 deg off). Only a turn at least TURN_MIN_LIKENESS fixture-like counts: where the direct
@@ -182,9 +183,15 @@ WELL_PLACED_ANGLE_DEG = 3.0  # and its turn (reader.UPRIGHT_FROM_DEG) within thi
 #   the first frame of a cold search only, outside its crop budget as SEARCH_STEPS are: counted,
 #   they left too few crops for the zoom's first batch on 7 of 2499 validation frames (va012 at
 #   7-10 m), which then answered a frame later instead of at once.
-UPRIGHT_TURNS = (np.pi / 2, np.pi, -np.pi / 2)
+UPRIGHT_TWIN = np.pi
+UPRIGHT_MARGIN_PX = 0.1
+UPRIGHT_RMS_RATIO = 0.8
 TURN_STEPS_DEG = (0.0, 45.0, 90.0, 135.0, 180.0, -135.0, -90.0, -45.0)
 TURN_MIN_LIKENESS = 0.05
+# ... and at least TURN_MIN_GAIN times the unturned window's: a fixture 45 deg or more off upright
+# reads 0.001-0.007 unturned against 0.2-0.24 turned, while in the lab look (lb000-lb009) a turn
+# that merely tied with the unturned window sent 2 of 382 frames at 3.7-4.3 m 90-180 deg off.
+TURN_MIN_GAIN = 2.0
 
 Fit = tuple[PnpResult, CropWindow] | tuple[None, None]
 Consider = Callable[[PnpResult | None, CropWindow | None], bool]
@@ -300,12 +307,6 @@ class WindowSearch:
             budget = np.inf if self.cold_crop_budget is None else self.cold_crop_budget
             if not self._cold_search(image, cold, R_direct, T_direct, f, keep.consider, budget - crops):
                 self.cold = cold  # out of crops: the next frames go on (the estimator flags `searching`)
-        if keep.best is None and keep.weak is not None and prior is None:
-            # a weak fit of a cold frame may be the fixture read turned (90 deg off reads weak):
-            # read upright, it can be strong, and that ends a carried search
-            upright, _ = self._upright(image, keep.weak, R_direct, f)
-            if upright is not None:
-                keep.best, upright_done, self.cold = upright, True, None
         if keep.best is None:
             return keep.weak if keep.weak is not None else (None, None)
         # outside the cold search's crop budget, as the refining pass is: at most 3 + 27 crops and
@@ -448,11 +449,11 @@ class WindowSearch:
         R_direct: np.ndarray,
         f: dict[str, Any] | None,
     ) -> tuple[tuple[PnpResult, CropWindow] | None, tuple[CropWindow, CropReading] | None]:
-        """The fit the search found read again in the window its pose places, and in that window
-        turned by each of UPRIGHT_TURNS: where a turn's keypoints are tighter, it shows the
-        fixture upright, and its strong fit replaces `fit`. Returns (that fit, else None: `fit`
-        stands; for a strong `fit`, its window with the refining reading made of it here, which
-        the refining pass then uses instead of reading it again)."""
+        """The strong fit the search found read again in the window its pose places, and that
+        window turned half a turn (UPRIGHT_TWIN): where the twin clearly reads tighter and fits
+        better, it shows the fixture upright, and its fit replaces `fit`. Returns (that fit, else
+        None: `fit` stands; `fit`'s window with the refining reading made of it here, which the
+        refining pass then uses instead of reading it again)."""
         reader = self.reader
         if not reader.upright:
             return None, None
@@ -460,21 +461,15 @@ class WindowSearch:
         w0 = reader.window_for(R, T)
         if w0 is None:
             return None, None
-        wins = [replace(w0, angle_rad=w0.angle_rad + a) for a in UPRIGHT_TURNS]
-        read = None
-        if fit_rms_crop_px(*fit) <= STRONG_FIT_RMS_CROP_PX:
-            read = (w0, reader.read_crop(image, w0, refining=True))
-            own = float(np.mean(read[1].spread_crop_px)) * CROP_REF_PX / reader.out_px * reader.spread_scale
-            spread = reader.heat_spread(image, wins)
-        else:
-            spread = reader.heat_spread(image, [w0, *wins])
-            if spread is not None:
-                own, spread = float(spread[0]), spread[1:]
-        if spread is None or not float(np.min(spread)) < own:
+        rms0 = fit_rms_crop_px(*fit)
+        read = (w0, reader.read_crop(image, w0, refining=True))
+        own = float(np.mean(read[1].spread_crop_px)) * CROP_REF_PX / reader.out_px * reader.spread_scale
+        twin = replace(w0, angle_rad=w0.angle_rad + UPRIGHT_TWIN)
+        spread = reader.heat_spread(image, [twin])
+        if spread is None or not float(spread[0]) < own - UPRIGHT_MARGIN_PX:
             return None, read
-        turned = wins[int(np.argmin(spread))]
-        r, win = self._one_pass(image, turned, R_direct, f, float(np.linalg.norm(T)))
-        if r is None or win is None or fit_rms_crop_px(r, win) > STRONG_FIT_RMS_CROP_PX:
+        r, win = self._one_pass(image, twin, R_direct, f, float(np.linalg.norm(T)))
+        if r is None or win is None or not fit_rms_crop_px(r, win) < UPRIGHT_RMS_RATIO * rms0:
             return None, read
         return (r, win), read
 
@@ -494,8 +489,8 @@ class WindowSearch:
         wins = [replace(base, angle_rad=base.angle_rad + np.radians(a)) for a in TURN_STEPS_DEG]
         score = self.reader.fixture_likeness(image, wins)
         best = int(np.argmax(score))
-        if best == 0 or score[best] < TURN_MIN_LIKENESS:  # argmax: the first of equals, unturned
-            return None
+        if best == 0 or score[best] < max(TURN_MIN_LIKENESS, TURN_MIN_GAIN * score[0]):
+            return None  # (argmax: the first of equals, the unturned window)
         keep.consider(*self._one_pass(image, wins[best], R_direct, f, float(np.linalg.norm(T_direct))))
         return wins[best]
 
