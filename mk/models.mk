@@ -143,7 +143,7 @@ lab-demo: SETUP_PROFILE = train
 lab-demo: setup ## item 5's demonstration: render the 12 lab stand-ins, label them through the calibration toolbox, fine-tune (runs/finetune_lab)
 	@$(PY) -m oibar_hil.dataset --out $(ROOT)/data/lab_demo --spec models/scenes/lab_demo.json --workers 1
 	@PY=$(PY) bash scripts/lab_demo.sh
-	@$(MAKE) --no-print-directory finetune-lab
+	@$(MAKE) --no-print-directory finetune-lab FINETUNE_ARGS="--no-far-network $(FINETUNE_ARGS)"
 
 # The ship rule for a keypoint candidate against the shipped model (oibar_models.judge, issue 15;
 # docs/model_card.md, "How a candidate ships"): a part that fails stops the rest; verdicts in

@@ -57,8 +57,10 @@ MODES = ("cold", "track")
 # The batch norms while fine-tuning: "train" normalises each batch by its own statistics (as the
 # trainer does); "frozen" keeps the statistics start_network calibrated on the training crops, and
 # trains only their scale and shift with the weights: a batch of 16 crops of a few lab runs is a
-# narrow sample.
-BATCH_NORM = ("train", "frozen")
+# narrow sample. Chosen on the lab demonstration's validation run (lb009, trained on lb000-lb008,
+# 3 epochs, every frame alone at the flight setting): frames within 5 % and 5 deg 24 -> 32 %,
+# silent failures 13 -> 6 of 75 (the median attitude error 1.63 -> 2.59 deg the other way).
+BATCH_NORM = ("frozen", "train")
 EVAL_COLUMNS_EXTRA = [
     ("answered_pct", "answered (%)", "{:.1f}"),
     ("silent_failures", "silent failures", "{:d}"),
@@ -91,7 +93,7 @@ class Options:
     threads: int = 0
     progress: bool = True
     force: bool = False
-    batch_norm: str = "train"  # BATCH_NORM: "frozen" keeps the calibrated statistics while fine-tuning
+    batch_norm: str = "frozen"  # BATCH_NORM: keep the calibrated statistics while fine-tuning, or "train"
 
 
 @dataclass
@@ -511,8 +513,8 @@ def parse(argv: list[str] | None) -> Options:
     ap.add_argument(
         "--batch-norm",
         choices=BATCH_NORM,
-        default="train",
-        help="the batch norms' statistics while fine-tuning: each batch's (train) or the calibrated ones (frozen)",
+        default="frozen",
+        help="the batch norms' statistics while fine-tuning: the calibrated ones (frozen) or each batch's (train)",
     )
     a = ap.parse_args(argv)
     if a.steps < 0 or a.epochs <= 0 or a.batch_size < 1 or a.stride < 1 or a.calibrate_crops < 1:
