@@ -313,7 +313,7 @@ def _shell(
     reader.R_att_ref, reader.mirror = None, None
     reader.turned_reading_deg, reader.turned_reading_head = 0.0, False
     reader.corner_refine_side_px, reader.corner_idx = 0.0, np.zeros(0, int)
-    # these fakes read a window alike at any turn, so the roll checks (search.UPRIGHT_TWIN,
+    # these fakes read a window alike at any turn, so the roll checks (roll.UPRIGHT_TWIN,
     # TURN_STEPS_DEG) could only cost crops here: they are tested on the real network (test_nav_roll)
     reader.upright = False
     est = object.__new__(KeypointPoseEstimator)

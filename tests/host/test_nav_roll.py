@@ -1,4 +1,4 @@
-"""Rolled views (oibar.nav.pose: reader.window_for's upright windows, search.UPRIGHT_TWIN and
+"""Rolled views (oibar.nav.pose: reader.window_for's upright windows, roll.UPRIGHT_TWIN and
 TURN_STEPS_DEG). The shipped network was trained on unrolled views only and reads a fixture
 turned by more than ~20 deg in its crop as unrolled. Rolling the camera about its boresight is
 exact in the image: a frame turned about the principal point is the same scene seen by the camera

@@ -11,7 +11,8 @@ The modules, one responsibility each: ``model_file`` (the file, its metadata, it
 ``frames`` (frame checks and network input), ``result`` (PoseEstimate), ``direct`` (the direct
 model: the first pass and fallback), ``reader`` (the keypoint network on crop windows),
 ``fusion`` (PnP with an attitude prior, fit quality, the filter's measurement), ``search``
-(which windows are read, the cold search carried across frames) and ``keypoint`` (the keypoint
+(which windows are read, the cold search carried across frames), ``roll`` (which turn of a window
+shows a rolled fixture upright) and ``keypoint`` (the keypoint
 estimator that joins them).
 """
 

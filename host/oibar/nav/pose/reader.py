@@ -89,6 +89,17 @@ KEYPOINT_OUTPUTS = ("kp_crop_px", "kp_present")
 UPRIGHT_FROM_DEG = 15.0
 
 
+def keypoint_gate(path: Path, meta: dict[str, Any]) -> float:
+    """The export's keypoint gate (``oibar.pnp.max_spread_crop_px``, CROP_REF_PX terms), else
+    MAX_SPREAD_CROP_PX; ModelFileError when it is not a spread > 0."""
+    gate = meta["pnp"].get("max_spread_crop_px", MAX_SPREAD_CROP_PX)
+    if isinstance(gate, bool) or not isinstance(gate, int | float) or not 0.0 < float(gate) < np.inf:
+        raise ModelFileError(
+            f"{path}: oibar.pnp.max_spread_crop_px must be a spread in crop pixels > 0, got {gate!r}"
+        )
+    return float(gate)
+
+
 def upright_angle_rad(K: np.ndarray, R_cam_target: np.ndarray, T_cam_target_m: np.ndarray) -> float:
     """The turn (CropWindow.angle_rad) that shows a fixture at this pose upright in its crop: minus
     its image roll (image_roll_rad) beyond UPRIGHT_FROM_DEG, else 0 (the window as trained)."""
@@ -133,7 +144,7 @@ class KeypointReader:
         upright: bool = True,
     ):
         self.path, self.meta = path, meta
-        # windows turned to show a rolled fixture upright, and the search's roll checks (search.UPRIGHT_TWIN)
+        # windows turned to show a rolled fixture upright, and the search's roll checks (roll.UPRIGHT_TWIN)
         self.upright = bool(upright)
         self.session = open_session(path, threads, allow_spinning)
         self.input_name = self.session.get_inputs()[0].name
@@ -146,12 +157,7 @@ class KeypointReader:
         self.points_m = np.asarray(meta["keypoints_3d_m"], float)
         self.reproj_crop_px = float(meta["pnp"]["reproj_crop_px"])
         self.min_present = float(meta["pnp"]["min_present"])
-        gate = meta["pnp"].get("max_spread_crop_px", MAX_SPREAD_CROP_PX)
-        if isinstance(gate, bool) or not isinstance(gate, int | float) or not 0.0 < float(gate) < np.inf:
-            raise ModelFileError(
-                f"{path}: oibar.pnp.max_spread_crop_px must be a spread in crop pixels > 0, got {gate!r}"
-            )
-        self.max_spread_crop_px = float(gate)  # CROP_REF_PX terms
+        self.max_spread_crop_px = keypoint_gate(path, meta)  # CROP_REF_PX terms
         self.spread_scale = (
             MAX_SPREAD_CROP_PX / self.max_spread_crop_px
         )  # its spreads in MAX_SPREAD_CROP_PX's terms
@@ -443,7 +449,7 @@ class KeypointReader:
     def heat_spread(self, image: np.ndarray, wins: list[CropWindow]) -> np.ndarray | None:
         """Each window's mean heat-map spread (CROP_REF_PX terms), read in one batch; None for a
         network without the spread output. The fixture's keypoints are tightest in a crop that
-        shows it as trained (upright): search.UPRIGHT_TWIN."""
+        shows it as trained (upright): roll.UPRIGHT_TWIN."""
         return self._presence_and_spread(image, wins)[1]
 
     def _presence_and_spread(

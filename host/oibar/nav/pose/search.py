@@ -12,7 +12,6 @@ cycle nears the MCU's link timeout. A strong fit the search found is read upside
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -21,7 +20,8 @@ from oibar.geometry.camera import project_target_points as project
 from oibar.nav.keypoints import CropWindow, PnpResult
 from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, Fusion, fit_rms_crop_px
 from oibar.nav.pose.model_file import ModelFileError, export_flag
-from oibar.nav.pose.reader import CROP_REF_PX, CropReading, KeypointReader
+from oibar.nav.pose.reader import CropReading, KeypointReader
+from oibar.nav.pose.roll import turned_pass, upright_pass
 from oibar.nav.pose.search_state import ColdSearch, FitKeeper, scan_windows
 
 # Windows tried in turn until the keypoints give a consistent pose: (shift x, shift y) in window
@@ -154,45 +154,6 @@ COLD_CARRY_MAX_AGE_S = 3.0
 WELL_PLACED_CROP_PX = 8.0
 WELL_PLACED_SIDE_FRAC = 0.10
 WELL_PLACED_ANGLE_DEG = 3.0  # and its turn (reader.UPRIGHT_FROM_DEG) within this of the placed one's
-# Roll. The network reads a fixture turned in its crop by up to ~20 deg and no further: at 45 deg
-# off upright its keypoints are gone (fixture likeness 0.001-0.007 against 0.22-0.24 upright, at
-# 0.6-10.4 m on the roll sweep val_roll), at 90 deg it reads a weak fit 90 deg off (likeness
-# 0.1-0.15), and upside down (180 deg) it reads a strong fit 180 deg off, since the plate maps onto
-# itself and the drogue is on the axis. Windows placed by a pose are turned upright
-# (reader.window_for); a strong fit the search found (no pose placed its window) is checked first:
-# - UPRIGHT_TWIN: its window and that window turned half a turn are read; where the twin's
-#   keypoints are tighter (mean heat-map spread) by UPRIGHT_MARGIN_PX and its fit is strong and
-#   better by UPRIGHT_RMS_RATIO, the twin shows the fixture upright and its fit replaces the first.
-#   On val_roll (windows on the truth) the needed flips won by 0.09-3.6 px (median 0.31), their
-#   fits' RMS 0.2-1.1 of the first's. In the lab look (the Mitsuba stand-ins lb000-lb009: matte
-#   grey print, one lamp) the heat maps are about as tight one way up as the other: the twin came
-#   out tighter by 0.001-0.06 px on 98 of 341 frames whose fit was right, and a flip read once is
-#   carried by the track; hence the margin and the RMS ratio. The quarter turns are not checked:
-#   in the lab they won wrongly under 3 m, by 0.2-7.5 px. The fit's own window is read as the
-#   refining pass reads it, and the refining pass takes that reading: one crop more, and at most
-#   one pass.
-# - TURN_STEPS_DEG: when SEARCH_STEPS give no strong fit on a cold frame, the direct model's window
-#   turned by each is read in one batch and, where one looks much more like the fixture than the
-#   unturned window, it is solved and the cold search (the zoom, the scan) goes on at its turn.
-#   45 deg apart, so a fixture at any roll is within 22.5 deg of one (likeness 0.20-0.24 up to
-#   20-25 deg off). Only a turn at least TURN_MIN_LIKENESS fixture-like counts: where the direct
-#   model's window misses the fixture (10 m, far frames of val_roll's unrolled approach), all eight
-#   read 0.000-0.001, and the noisiest of them sent the zoom off at its turn (1 of 2 such frames
-#   answered 88 deg off, the other no fit, where the unturned zoom found both). Upright windows
-#   over the fixture read 0.14-0.24 (0.6-10.4 m), 90 deg off 0.10-0.15. 8 crops and one pass, on
-#   the first frame of a cold search only, outside its crop budget as SEARCH_STEPS are: counted,
-#   they left too few crops for the zoom's first batch on 7 of 2499 validation frames (va012 at
-#   7-10 m), which then answered a frame later instead of at once.
-UPRIGHT_TWIN = np.pi
-UPRIGHT_MARGIN_PX = 0.1
-UPRIGHT_RMS_RATIO = 0.8
-TURN_STEPS_DEG = (0.0, 45.0, 90.0, 135.0, 180.0, -135.0, -90.0, -45.0)
-TURN_MIN_LIKENESS = 0.05
-# ... and at least TURN_MIN_GAIN times the unturned window's: a fixture 45 deg or more off upright
-# reads 0.001-0.007 unturned against 0.2-0.24 turned, while in the lab look (lb000-lb009) a turn
-# that merely tied with the unturned window sent 2 of 382 frames at 3.7-4.3 m 90-180 deg off.
-TURN_MIN_GAIN = 2.0
-
 Fit = tuple[PnpResult, CropWindow] | tuple[None, None]
 Consider = Callable[[PnpResult | None, CropWindow | None], bool]
 
@@ -293,15 +254,16 @@ class WindowSearch:
             # frame of a healthy track
             if keep.best is None and prior is None:
                 if base is not None:
-                    turned = self._turned_pass(image, base, R_direct, T_direct, f, keep)
+                    turned = turned_pass(
+                        self.reader, self._one_pass, image, base, R_direct, T_direct, f, keep
+                    )
                     base = turned if turned is not None else base
                 if keep.best is None:
+                    turn_rad = base.angle_rad if base is not None else 0.0  # the scan's too
                     if base is not None and self.zoom_search:
-                        cold = ColdSearch(level=0, base=base, angle_rad=base.angle_rad)
+                        cold = ColdSearch(level=0, base=base, angle_rad=turn_rad)
                     elif self.scan_search:
-                        cold = ColdSearch(
-                            level=ZOOM_LEVELS, angle_rad=base.angle_rad if base is not None else 0.0
-                        )
+                        cold = ColdSearch(level=ZOOM_LEVELS, angle_rad=turn_rad)
         placed_found = keep.best is not None
         if keep.best is None and cold is not None:
             budget = np.inf if self.cold_crop_budget is None else self.cold_crop_budget
@@ -309,11 +271,11 @@ class WindowSearch:
                 self.cold = cold  # out of crops: the next frames go on (the estimator flags `searching`)
         if keep.best is None:
             return keep.weak if keep.weak is not None else (None, None)
-        # outside the cold search's crop budget, as the refining pass is: at most 3 + 27 crops and
+        # outside the cold search's crop budget, as the refining pass is: at most 1 + 27 crops and
         # 3 passes more (a frame of 60 budgeted crops then takes ~0.5 s, within the link's 1 s)
         read: tuple[CropWindow, CropReading] | None = None  # the refining pass's first, read already
         if not upright_done:
-            upright, read = self._upright(image, keep.best, R_direct, f)
+            upright, read = upright_pass(self.reader, self._one_pass, image, keep.best, R_direct, f)
             if upright is not None:
                 keep.best, refined = upright, False
         if self.zoom_out and not placed_found:
@@ -441,58 +403,6 @@ class WindowSearch:
             and abs(around.side_px / win.side_px - 1.0) <= WELL_PLACED_SIDE_FRAC
             and abs(turn_rad) <= np.radians(WELL_PLACED_ANGLE_DEG)
         )
-
-    def _upright(
-        self,
-        image: np.ndarray,
-        fit: tuple[PnpResult, CropWindow],
-        R_direct: np.ndarray,
-        f: dict[str, Any] | None,
-    ) -> tuple[tuple[PnpResult, CropWindow] | None, tuple[CropWindow, CropReading] | None]:
-        """The strong fit the search found read again in the window its pose places, and that
-        window turned half a turn (UPRIGHT_TWIN): where the twin clearly reads tighter and fits
-        better, it shows the fixture upright, and its fit replaces `fit`. Returns (that fit, else
-        None: `fit` stands; `fit`'s window with the refining reading made of it here, which the
-        refining pass then uses instead of reading it again)."""
-        reader = self.reader
-        if not reader.upright:
-            return None, None
-        R, T = fit[0].pose()
-        w0 = reader.window_for(R, T)
-        if w0 is None:
-            return None, None
-        rms0 = fit_rms_crop_px(*fit)
-        read = (w0, reader.read_crop(image, w0, refining=True))
-        own = float(np.mean(read[1].spread_crop_px)) * CROP_REF_PX / reader.out_px * reader.spread_scale
-        twin = replace(w0, angle_rad=w0.angle_rad + UPRIGHT_TWIN)
-        spread = reader.heat_spread(image, [twin])
-        if spread is None or not float(spread[0]) < own - UPRIGHT_MARGIN_PX:
-            return None, read
-        r, win = self._one_pass(image, twin, R_direct, f, float(np.linalg.norm(T)))
-        if r is None or win is None or not fit_rms_crop_px(r, win) < UPRIGHT_RMS_RATIO * rms0:
-            return None, read
-        return (r, win), read
-
-    def _turned_pass(
-        self,
-        image: np.ndarray,
-        base: CropWindow,
-        R_direct: np.ndarray,
-        T_direct: np.ndarray,
-        f: dict[str, Any] | None,
-        keep: FitKeeper,
-    ) -> CropWindow | None:
-        """The turn stage (TURN_STEPS_DEG) on the direct model's window `base`: the turned window
-        that looks more like the fixture than `base`, solved and offered to `keep`, or None."""
-        if not self.reader.upright:
-            return None
-        wins = [replace(base, angle_rad=base.angle_rad + np.radians(a)) for a in TURN_STEPS_DEG]
-        score = self.reader.fixture_likeness(image, wins)
-        best = int(np.argmax(score))
-        if best == 0 or score[best] < max(TURN_MIN_LIKENESS, TURN_MIN_GAIN * score[0]):
-            return None  # (argmax: the first of equals, the unturned window)
-        keep.consider(*self._one_pass(image, wins[best], R_direct, f, float(np.linalg.norm(T_direct))))
-        return wins[best]
 
     def _weak_rank(self, r: PnpResult, win: CropWindow) -> tuple[bool, float]:
         """Which weak fit to return when no strong one is found: one inside the range envelope
