@@ -1,7 +1,7 @@
 """Rolled views: which turn of a crop window shows the fixture upright. The shipped network was
 trained on unrolled views and reads a fixture turned in its crop as unrolled; rolling the camera
-about its boresight only turns the image, so the search turns its windows (search.WindowSearch:
-`_upright`, `_turned_pass`; reader.window_for turns the windows a pose places).
+about its boresight only turns the image, so the search turns its windows (search.WindowSearch.solve
+calls upright_pass and turned_pass; reader.window_for turns the windows a pose places).
 """
 
 from __future__ import annotations
