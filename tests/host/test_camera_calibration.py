@@ -398,9 +398,10 @@ def test_oibar_pose_prints_one_json_line_per_frame(capsys):
     lines = [json.loads(x) for x in out.splitlines()]
     assert [x["frame"] for x in lines] == frames
     for x in lines:
-        assert set(x) == {"frame", "T_cam_target_m", "q_cam_target_wxyz", "confidence", "flags", "latency_ms"}
+        keys = {"frame", "T_cam_target_m", "q_cam_target_wxyz", "confidence", "flags", "latency_ms", "crops"}
+        assert set(x) == keys
         assert len(x["T_cam_target_m"]) == 3 and len(x["q_cam_target_wxyz"]) == 4
-        assert 0.0 <= x["confidence"] <= 1.0 and x["latency_ms"] > 0
+        assert 0.0 <= x["confidence"] <= 1.0 and x["latency_ms"] > 0 and x["crops"] >= 1
     assert 3.0 < np.linalg.norm(lines[0]["T_cam_target_m"]) < 4.5 and lines[0]["confidence"] > 0.9
 
 

@@ -219,7 +219,10 @@ def test_replay_reproduces_the_shipped_models_estimates_bit_for_bit(tmp_path, ca
     res = replay(tmp_path / "flight.mcap", load_navigator(MODEL, threads=1))
     assert res.model_matches is True and res.threads == res.threads_recorded == 1
     assert res.estimates_compared >= 4 and res.exact, res.summary()
-    assert any(np.isfinite(e.T_cam_target_m[0]) for e in decoded(tmp_path / "flight.mcap", "/nav/estimate"))
+    logged = decoded(tmp_path / "flight.mcap", "/nav/estimate")
+    assert any(np.isfinite(e.T_cam_target_m[0]) for e in logged)
+    # what each cycle's search read, for a slow cycle's cause (PoseEstimate.crops)
+    assert all(e.crops >= 1 for e in logged if np.isfinite(e.T_cam_target_m[0]))
     # the command line: the thread count comes from the log
     assert main(["replay", str(tmp_path / "flight.mcap"), "--model", str(MODEL)]) == 0
     out = capsys.readouterr().out

@@ -1728,7 +1728,7 @@ def test_a_fixture_part_read_as_a_far_fixture_is_read_again_larger():
     """The lab look (validation scene va000 drawn by Mitsuba 3: matte grey print, one lamp at the
     camera, black background; 8 samples a pixel): at 2.36 m the keypoint network takes the plate's
     right coupling for a whole fixture 8.6 m away, a strong fit the direct model agrees with. The
-    zoom-out (oibar.nav.pose.search.ZOOM_OUT_*) finds the plate around it."""
+    zoom-out (oibar.nav.pose.zoom_out.ZOOM_OUT_*) finds the plate around it."""
     from pathlib import Path
 
     from PIL import Image

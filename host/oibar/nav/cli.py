@@ -497,10 +497,16 @@ def cmd_pose(a: argparse.Namespace) -> int:
                     confidence=float(e.confidence) if np.isfinite(e.confidence) else None,
                     flags=list(e.flags),
                     latency_ms=round((time.perf_counter() - t0) * 1e3, 3),
+                    crops=int(e.crops),
                 )
         if "error" in line:
             line.update(
-                T_cam_target_m=None, q_cam_target_wxyz=None, confidence=None, flags=[], latency_ms=None
+                T_cam_target_m=None,
+                q_cam_target_wxyz=None,
+                confidence=None,
+                flags=[],
+                latency_ms=None,
+                crops=None,
             )
             print(f"oibar: error: {path}: {line['error']}", file=sys.stderr, flush=True)
         print(json.dumps(line), flush=True)

@@ -76,7 +76,8 @@ POSE_DESCRIPTION = """\
 Estimate the berthing fixture's pose in each image file with OibarNet, without the daemon: one
 JSON line per frame on stdout, in the order given:
   {"frame": PATH, "T_cam_target_m": [x, y, z], "q_cam_target_wxyz": [w, x, y, z],
-   "confidence": 0..1, "flags": [...], "latency_ms": MS}
+   "confidence": 0..1, "flags": [...], "latency_ms": MS, "crops": N}
+("crops": the crop windows the search read through the keypoint networks, what the time went on)
 Each frame is read cold, on its own, with the full search (no crop budget, nothing carried from
 the previous frame). A frame that cannot be read or is refused gives a line with "error" (the
 pose fields null) and one line on stderr.

@@ -120,6 +120,7 @@ MESSAGES: dict[str, list[FieldSpec]] = {
         ("T_meas_cam_target_m", DOUBLE, REPEATED),  # the prior-free pose the filter fuses
         ("R_meas_cam_target", DOUBLE, REPEATED),  # 3x3 row-major
         ("error", STRING),  # the frame was refused (malformed, stale): why
+        ("crops", UINT32),  # crop windows read through the keypoint networks: a slow cycle's cause
     ],
     # /nav/filter: the navigation filter at the cycle's time, with its 1-sigma uncertainties
     "FilterState": [

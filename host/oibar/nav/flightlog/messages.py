@@ -95,6 +95,7 @@ def estimate_message(cycle: int, step: Any) -> Any:
         ortho_defect=float(e.ortho_defect),
         flags=[str(f) for f in e.flags],
         latency_ms=float(e.latency_ms),
+        crops=int(e.crops),
     )
     if e.T_meas_cam_target_m is not None and e.R_meas_cam_target is not None:
         m.T_meas_cam_target_m.extend(vec(e.T_meas_cam_target_m))

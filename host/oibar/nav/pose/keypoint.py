@@ -172,7 +172,29 @@ class KeypointPoseEstimator(PoseEstimator):
         prior: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> PoseEstimate:
         """One frame -> pose; `prior` (R_cam_target, T_cam_target_m), the pose predicted for this
-        frame (the daemon passes its filter's), places the first crop (WindowSearch.solve)."""
+        frame (the daemon passes its filter's), places the first crop (WindowSearch.solve). The
+        answer's `crops` counts the crops it read; `last_crops` says which stage read them."""
+        crops0 = self.reader.crops_read
+        self.search.last_crops = {}
+        est = self._estimate(image_rgb_uint8, t_s, prior)
+        est.crops = self.reader.crops_read - crops0
+        # the crop a prediction places is read beside the direct model (_first_pass), before solve
+        placed = est.crops - sum(self.search.last_crops.values())
+        if placed:
+            self.search.last_crops["placed"] = self.search.last_crops.get("placed", 0) + placed
+        return est
+
+    @property
+    def last_crops(self) -> dict[str, int]:
+        """The crops each stage of the search (search.STAGES) read for the latest frame."""
+        return dict(self.search.last_crops)
+
+    def _estimate(
+        self,
+        image_rgb_uint8: np.ndarray,
+        t_s: float,
+        prior: tuple[np.ndarray, np.ndarray] | None,
+    ) -> PoseEstimate:
         check_time(t_s)
         image_rgb_uint8 = self.canonical_frame(image_rgb_uint8)
         self.check_frame(image_rgb_uint8)

@@ -213,6 +213,9 @@ class KeypointReader:
     head_output = ""  # the attitude head's output name (set by _attitude_head when there is one)
     far_session: Any = None  # the far network's session (open_far_network); None: one network
     far_from_m = np.inf  # the head-on range from which it reads a window
+    # crops read through the keypoint networks so far (every row of every batch: a crop read
+    # with its mirror or turned counts each): what a frame's search cost, for its stage tally
+    crops_read = 0
 
     def _attitude_head(self) -> np.ndarray | None:
         """R_ref of the attitude head (model >= 0.6.0), None for a model without one."""
@@ -322,6 +325,7 @@ class KeypointReader:
         """Crops (N, 3, S, S) of the windows `wins` (one per row) -> every output by name, each
         row read by the network for its window's range (`reads_far`); one network, one batch,
         without a far network."""
+        self.crops_read += len(x)
         if self.far_session is None:
             return self.run(x)
         far = np.array([self.reads_far(w) for w in wins], bool)

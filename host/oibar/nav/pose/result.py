@@ -26,6 +26,7 @@ class PoseEstimate:
     # filter cannot average away; PnP alone is noisier and unbiased (docs/model_history.md).
     T_meas_cam_target_m: np.ndarray | None = None
     R_meas_cam_target: np.ndarray | None = None
+    crops: int = 0  # crop windows read through a keypoint network for this frame (its latency's driver)
 
     @property
     def finite(self) -> bool:

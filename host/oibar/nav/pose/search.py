@@ -11,18 +11,19 @@ cycle nears the MCU's link timeout. A strong fit the search found is read upside
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
 
-from oibar.geometry.camera import project_target_points as project
 from oibar.nav.keypoints import CropWindow, PnpResult
 from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, Fusion, fit_rms_crop_px
 from oibar.nav.pose.model_file import ModelFileError, export_flag
 from oibar.nav.pose.reader import CropReading, KeypointReader
 from oibar.nav.pose.roll import turned_pass, upright_pass
 from oibar.nav.pose.search_state import ColdSearch, FitKeeper, scan_windows
+from oibar.nav.pose.zoom_out import bigger_fixture
 
 # Windows tried in turn until the keypoints give a consistent pose: (shift x, shift y) in window
 # sides and a size factor, around the direct model's window. The network was trained with the
@@ -100,27 +101,6 @@ SCAN_TRY = 3
 # the plain scan had nothing from that window.
 SCAN_SHRINK_FACTOR = 0.6
 SCAN_SHRINK = tuple((dx, dy) for dy in (-0.25, 0.0, 0.25) for dx in (-0.25, 0.0, 0.25))
-# A strong fit the search found (not one a predicted pose placed) is read again larger, in case
-# the fixture it found is a part of a bigger, nearer one: on the lab look (matte grey print, one
-# lamp at the camera, black background: validation looks val_lab) the keypoint network takes
-# the plate's right coupling for a whole fixture 3-5x farther away, a strong fit (0.4-0.7 crop
-# px) that the direct model, fooled too, agrees with: 2.4 m read as 8.6 m at confidence 0.97.
-# Windows ZOOM_OUT_FACTORS times the fit's, a quarter side either way, read in one batch; the
-# ZOOM_OUT_TRY most fixture-like solved. A strong fit there replaces the first when it is nearer
-# by at least ZOOM_OUT_MIN_RATIO and its fixture's outline holds the first one's keypoints (a
-# fixture seen inside a bigger one is a part of it). Only fits beyond ZOOM_OUT_FROM_M (the parts
-# read as a fixture read 6-15 m) and windows up to the frame's height. Cost: one batch of 27
-# crops and up to 2 passes (~0.15 s on 2 cores) on a frame whose fit the search found beyond
-# 4 m, not on tracked frames. On val_lab's scenes (Mitsuba, 8 spp, every frame alone) it took
-# the gross failures read at confidence >= 0.5 from 85 to 68 of 456 frames (silent failures 256
-# -> 239, mean position error 108 -> 94 %); on the same frames of our renderer nothing changed.
-ZOOM_OUT_FACTORS = (2.0, 3.0, 4.0)
-ZOOM_OUT_STEPS = tuple(
-    (dx, dy, k) for k in ZOOM_OUT_FACTORS for dy in (-0.25, 0.0, 0.25) for dx in (-0.25, 0.0, 0.25)
-)
-ZOOM_OUT_TRY = 2
-ZOOM_OUT_MIN_RATIO = 0.7
-ZOOM_OUT_FROM_M = 4.0
 # Crops one cold frame may read through the keypoint network (the hint's and SEARCH_STEPS' count
 # but are never cut short; past the budget the zoom and the scan stop and go on in the next
 # frames, ColdSearch), so that no cycle nears the MCU's 1 s link timeout: the whole cold search
@@ -134,6 +114,11 @@ ZOOM_OUT_FROM_M = 4.0
 # (12 crops, ~60 ms) is not affected; nor is the refining pass after a strong fit (outside the
 # budget: 1 crop for the shipped model).
 COLD_CROP_BUDGET = 60
+# The search's stages, in the order a frame may reach them; WindowSearch.last_crops counts the
+# crops each read (the window a pose placed; SEARCH_STEPS; the turn stage; the zoom and the scan,
+# the cold search under its budget; the upside-down check, the zoom-out and the refining pass
+# after a strong fit, outside it). What a slow frame spent its time on (docs/benchmarks.md).
+STAGES = ("placed", "steps", "turn", "zoom", "scan", "upright", "zoom_out", "refine")
 MIN_COLD_CROP_BUDGET = len(ZOOM_STEPS) + len(WIDE_STEPS) + 1  # the largest batch, the hint's crop
 # A carried cold search is dropped this long (frame time) after its first frame. Its scores and
 # windows stay valid while the fixture barely moves in the image: on the validation scenes it
@@ -168,7 +153,7 @@ class WindowSearch:
     frame to frame (`cold`). Options: `refine_passes` (crops cut around the newest fit, the first
     included), `zoom_search` and `scan_search` (the cold search's two stages),
     `cold_crop_budget` (crops a cold frame may read; None: no budget, for tools that judge frames
-    one by one), `zoom_out` (a found fit read again larger: ZOOM_OUT_*) and
+    one by one), `zoom_out` (a found fit read again larger: zoom_out.bigger_fixture) and
     `placed_pass_refines` (``oibar.placed_pass_refines``, as the export says unless told)."""
 
     def __init__(
@@ -202,6 +187,8 @@ class WindowSearch:
             )
         self.placed_pass_refines = placed
         self.cold: ColdSearch | None = None  # a cold search that goes on in the next frames
+        # crops each stage read in the latest solve (STAGES)
+        self.last_crops: dict[str, int] = {}
 
     def solve(
         self,
@@ -233,37 +220,22 @@ class WindowSearch:
         (`_weak_rank`), else (None, None)."""
         f = self.fusion.table if fusion is None else fusion
         keep = FitKeeper(self._weak_rank)
+        self.last_crops = {}
         # a cold search carried from earlier frames goes on here; a prediction ends it
         cold = self.cold if prior is None else None
         self.cold = None
         placed = prior if prior is not None else hint
         crops, refined = 0, False  # crops read for this frame (the cold search's budget counts them)
         if placed is not None:
-            crops, refined = self._placed_pass(image, placed, placed_reading, R_direct, f, keep)
+            with self._tally("placed"):
+                crops, refined = self._placed_pass(image, placed, placed_reading, R_direct, f, keep)
         # a strong fit in the window a pose placed is upright already (reader.window_for)
         upright_done = keep.best is not None
-        # SEARCH_STEPS are never cut short (they run with a prediction too); a carried search skips
-        # them: they found nothing on its first frame, and the fixture has barely moved since
+        # a carried search skips SEARCH_STEPS: they found nothing on its first frame, and the
+        # fixture has barely moved since
         if keep.best is None and cold is None:
-            # the direct model reads every view unrolled: its window stays unturned
-            base = self.reader.window_for(R_direct, T_direct, upright=False)
-            if base is not None:
-                crops += self._steps_pass(image, base, R_direct, T_direct, f, keep)
-            # the turn stage, the zoom and the scan only on a cold start or a lost track: with a
-            # prediction their cost would come out of the 100 ms frame budget on every weak far
-            # frame of a healthy track
-            if keep.best is None and prior is None:
-                if base is not None:
-                    turned = turned_pass(
-                        self.reader, self._one_pass, image, base, R_direct, T_direct, f, keep
-                    )
-                    base = turned if turned is not None else base
-                if keep.best is None:
-                    turn_rad = base.angle_rad if base is not None else 0.0  # the scan's too
-                    if base is not None and self.zoom_search:
-                        cold = ColdSearch(level=0, base=base, angle_rad=turn_rad)
-                    elif self.scan_search:
-                        cold = ColdSearch(level=ZOOM_LEVELS, angle_rad=turn_rad)
+            steps, cold = self._first_windows(image, R_direct, T_direct, f, keep, cold_start=prior is None)
+            crops += steps
         placed_found = keep.best is not None
         if keep.best is None and cold is not None:
             budget = np.inf if self.cold_crop_budget is None else self.cold_crop_budget
@@ -275,14 +247,65 @@ class WindowSearch:
         # 3 passes more (a frame of 60 budgeted crops then takes ~0.5 s, within the link's 1 s)
         read: tuple[CropWindow, CropReading] | None = None  # the refining pass's first, read already
         if not upright_done:
-            upright, read = upright_pass(self.reader, self._one_pass, image, keep.best, R_direct, f)
+            with self._tally("upright"):
+                upright, read = upright_pass(self.reader, self._one_pass, image, keep.best, R_direct, f)
             if upright is not None:
                 keep.best, refined = upright, False
         if self.zoom_out and not placed_found:
-            bigger = self._zoom_out(image, keep.best, R_direct, f)
+            with self._tally("zoom_out"):
+                bigger = bigger_fixture(self.reader, self._one_pass, image, keep.best, R_direct, f)
             if bigger is not None:
                 keep.best, refined = bigger, False
-        return keep.best if refined else self._refined(image, keep.best, R_direct, f, read)
+        if refined:
+            return keep.best
+        with self._tally("refine"):
+            return self._refined(image, keep.best, R_direct, f, read)
+
+    @contextmanager
+    def _tally(self, stage: str) -> Iterator[None]:
+        """Count the crops read inside the block as `stage`'s, in `last_crops`."""
+        crops0 = self.reader.crops_read
+        try:
+            yield
+        finally:
+            n = self.reader.crops_read - crops0
+            if n:
+                self.last_crops[stage] = self.last_crops.get(stage, 0) + n
+
+    def _first_windows(
+        self,
+        image: np.ndarray,
+        R_direct: np.ndarray,
+        T_direct: np.ndarray,
+        f: dict[str, Any] | None,
+        keep: FitKeeper,
+        cold_start: bool,
+    ) -> tuple[int, ColdSearch | None]:
+        """SEARCH_STEPS around the direct model's window (never cut short: they run with a
+        prediction too) and, on a cold start or a lost track (`cold_start`: no prediction), the
+        turn stage: (SEARCH_STEPS' crops, the cold search to go on with when neither found a
+        strong fit, else None). The turn stage's crops are outside the cold search's budget."""
+        # the direct model reads every view unrolled: its window stays unturned
+        base = self.reader.window_for(R_direct, T_direct, upright=False)
+        crops = 0
+        if base is not None:
+            with self._tally("steps"):
+                crops = self._steps_pass(image, base, R_direct, T_direct, f, keep)
+        # the turn stage, the zoom and the scan only on a cold start or a lost track: with a
+        # prediction their cost would come out of the 100 ms frame budget on every weak far
+        # frame of a healthy track
+        if keep.best is not None or not cold_start:
+            return crops, None
+        if base is not None:
+            with self._tally("turn"):
+                turned = turned_pass(self.reader, self._one_pass, image, base, R_direct, T_direct, f, keep)
+            base = turned if turned is not None else base
+        if keep.best is not None:
+            return crops, None
+        turn_rad = base.angle_rad if base is not None else 0.0  # the scan's too
+        if base is not None and self.zoom_search:
+            return crops, ColdSearch(level=0, base=base, angle_rad=turn_rad)
+        return crops, ColdSearch(level=ZOOM_LEVELS, angle_rad=turn_rad) if self.scan_search else None
 
     def _placed_pass(
         self,
@@ -448,12 +471,14 @@ class WindowSearch:
         left to try); False when the next read would take more than `crops_left` crops: `c` then
         says where to go on."""
         if c.level < ZOOM_LEVELS:
-            done, crops_left = self._zoom(image, c, R_direct, T_direct, f, consider, crops_left)
+            with self._tally("zoom"):
+                done, crops_left = self._zoom(image, c, R_direct, T_direct, f, consider, crops_left)
             if done is not None:
                 return done
         if not self.scan_search:
             return True
-        return self._scan(image, c, R_direct, f, consider, crops_left)
+        with self._tally("scan"):
+            return self._scan(image, c, R_direct, f, consider, crops_left)
 
     def _zoom(
         self,
@@ -544,37 +569,6 @@ class WindowSearch:
                         return True
             c.tried += 1
         return True
-
-    def _zoom_out(
-        self,
-        image: np.ndarray,
-        fit: tuple[PnpResult, CropWindow],
-        R_direct: np.ndarray,
-        f: dict[str, Any] | None,
-    ) -> tuple[PnpResult, CropWindow] | None:
-        """A bigger, nearer fixture around the strong fit `fit` (ZOOM_OUT_*), or None."""
-        r, win = fit
-        range_m = float(np.linalg.norm(r.pose()[1]))
-        if range_m < ZOOM_OUT_FROM_M:
-            return None
-        wins = [win.stepped(dx, dy, k) for dx, dy, k in ZOOM_OUT_STEPS]
-        wins = [w for w in wins if w.side_px <= image.shape[0]]
-        if not wins:
-            return None
-        score = self.reader.fixture_likeness(image, wins)
-        reader = self.reader
-        uv_first = project(reader.K_frame, reader.points_m, *r.pose())
-        for i in np.argsort(-score, kind="stable")[:ZOOM_OUT_TRY]:
-            zwin = wins[int(i)]
-            r2, w2 = self._one_pass(image, zwin, R_direct, f, range_m * win.side_px / zwin.side_px)
-            if r2 is None or w2 is None or fit_rms_crop_px(r2, w2) > STRONG_FIT_RMS_CROP_PX:
-                continue
-            if float(np.linalg.norm(r2.pose()[1])) > ZOOM_OUT_MIN_RATIO * range_m:
-                continue
-            uv = project(reader.K_frame, reader.points_m, *r2.pose())
-            if np.all((uv_first >= uv.min(axis=0)) & (uv_first <= uv.max(axis=0))):
-                return r2, w2
-        return None
 
     def _shrunk_scan_pass(
         self, image: np.ndarray, swin: CropWindow, R_direct: np.ndarray, f: dict[str, Any] | None
