@@ -19,7 +19,7 @@ import time
 import traceback
 from pathlib import Path
 
-from . import firmware, hil, link, machine, nav, pose, render  # noqa: F401  (register the measurements)
+from . import firmware, hil, link, machine, nav, pose, pose_cold, render  # noqa: F401  (register the measurements)
 from .core import REGISTRY, ROOT, SECTIONS, Context, Result, load_average
 from .report import previous_blocks, write_json, write_markdown
 
