@@ -94,6 +94,7 @@ class Options:
     progress: bool = True
     force: bool = False
     batch_norm: str = "frozen"  # BATCH_NORM: keep the calibrated statistics while fine-tuning, or "train"
+    turn_deg: float | None = None  # the crops' in-plane turn, uniform +-; None: the stage's own
 
 
 @dataclass
@@ -157,6 +158,8 @@ def stage_config(o: Options, meta: dict, n_frames: int):
             "ema_decay": 0.0,
         },
     }
+    if o.turn_deg is not None:
+        over["augment"] = {"angle_deg": o.turn_deg}
     cfg = _build(KpConfig, read_yaml(path, over), str(path))
     out_px = int(meta["crop"]["out_px"])
     if cfg.model.out_px != out_px:
@@ -516,13 +519,23 @@ def parse(argv: list[str] | None) -> Options:
         default="frozen",
         help="the batch norms' statistics while fine-tuning: the calibrated ones (frozen) or each batch's (train)",
     )
+    ap.add_argument(
+        "--turn-deg",
+        type=float,
+        default=None,
+        help="turn the training crops in-plane by up to this, either way (default: the stage's own, "
+        "15): 90 and more teach the network rolled views",
+    )
     a = ap.parse_args(argv)
+    if a.turn_deg is not None and not 0.0 <= a.turn_deg <= 180.0:
+        ap.error("--turn-deg must be in [0, 180]")
     if a.steps < 0 or a.epochs <= 0 or a.batch_size < 1 or a.stride < 1 or a.calibrate_crops < 1:
         ap.error("--steps >= 0, --epochs > 0, --batch-size, --stride and --calibrate-crops >= 1")
     return Options(
         a.data, a.val, a.init, a.out, a.config, a.epochs, a.steps, a.batch_size, a.lr, a.seed,
         a.calibrate_crops, a.val_frames, a.stride, tuple(a.modes), not a.no_baseline,
         not a.no_far_network, a.workers, a.threads, not a.no_progress, a.force, a.batch_norm,
+        a.turn_deg,
     )  # fmt: skip
 
 
