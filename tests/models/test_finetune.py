@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from models_helpers import SHIPPED_KP, draw_frame
 
 from oibar.calib import io
@@ -88,7 +89,9 @@ def test_one_step_fine_tune_exports_a_flight_model_and_its_table(lab, tmp_path, 
     argv = ["--data", str(lab["train"]), "--val", str(lab["held"]), "--init", str(SHIPPED_KP)]
     argv += ["--out", str(out), "--steps", "1", "--batch-size", "8", "--calibrate-crops", "8"]
     argv += ["--val-frames", "3", "--modes", "cold", "--no-baseline", "--threads", "2", "--no-progress"]
+    argv += ["--turn-deg", "90"]  # rolled crops (the stage's own turn is 15 deg)
     assert main(argv) == 0
+    assert yaml.safe_load((out / "config.yaml").read_text())["augment"]["angle_deg"] == 90.0
     est = PoseEstimator(out / "oibarnet.onnx", warmup_runs=0)
     assert isinstance(est, KeypointPoseEstimator)
     meta, shipped = read_metadata(out / "oibarnet.onnx"), read_metadata(SHIPPED_KP)
@@ -137,3 +140,6 @@ def test_bad_inputs_are_refused(lab, tmp_path, capsys):
     (tmp_path / "full" / "x").write_text("")
     busy = ["--init", str(SHIPPED_KP), "--out", str(tmp_path / "full")]
     refused("is not empty", "--data", str(lab["train"]), "--val", str(lab["held"]), *busy)
+    with pytest.raises(SystemExit):  # a turn beyond a half turn is a mistake, not a roll
+        main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--turn-deg", "200"])
+    assert "--turn-deg must be in [0, 180]" in capsys.readouterr().err
