@@ -3,7 +3,7 @@ for training, 2 held for its table): a demonstration. Its model does not ship: i
 judged (`make judge-kp`), registered or copied to models/.
 
 python -m oibar_models.finetune --data DIR [DIR ...] --val DIR [DIR ...] \
-    [--init models/oibarnet.onnx] --out runs/NAME [--epochs 3] [--seed 0]
+    [--init models/oibarnet.onnx] --out runs/NAME [--steps 1000] [--lr 2e-4] [--seed 0]
 
 The sequences are folders in the data set generator's layout: a lab recording becomes one with
 `oibar calib to-dataset` (docs/calibration.md, "From a lab recording to a fine-tuned model"); a
@@ -15,7 +15,7 @@ nothing is chosen on them (the network exported is the last step's).
 2. Fine-tuning with the keypoint trainer's pieces (kp_engine: the crops and augmentation of
    kp_data, the loss, the learning-rate schedule, the crop-level validation) under a config
    derived from the shipped network's last stage (models/configs/keypoints/<oibar.name>.yaml:
-   its crop, augmentation and loss weights), a few epochs at a lower learning rate, seeded.
+   its crop, augmentation and loss weights), STEPS steps at LR (SCHEDULE below), seeded.
 3. The export (kp_export.export_graph, parity-checked against PyTorch) with every table of the
    shipped file's metadata (fusion weights and error models, reading options, camera, first
    pass, far network: copied beside it), marked `oibar.finetune` with where it came from, and
@@ -61,6 +61,17 @@ MODES = ("cold", "track")
 # 3 epochs, every frame alone at the flight setting): frames within 5 % and 5 deg 24 -> 32 %,
 # silent failures 13 -> 6 of 75 (the median attitude error 1.63 -> 2.59 deg the other way).
 BATCH_NORM = ("frozen", "train")
+# The schedule: STEPS steps of 16 crops at a peak learning rate of LR (cosine to LR / 40). Chosen
+# on the same validation run, pooled with lb009 rolled by 90 deg (oibar_models.rolled): against
+# 3 epochs at 8e-5 (128 steps), lb009 every frame alone went 41 -> 53 % within 5 % of range and
+# 59 -> 92 % within 5 deg, silent failures 6 -> 4 of 75; tracking both looks, 63 % / 81 %, 8
+# silent of 150. Turning the crops by up to 100 deg (--turn-deg 100, the same schedule) read the
+# rolled look better alone (within 5 deg 21 -> 51 %) but the unrolled one worse (53 -> 25 % in
+# position; tracking both, 48 % / 79 % with 20 silent): not at this length, on a CPU. Checked on a
+# second validation run (lb008, rolled -62 deg; trained on lb000-lb007 and lb009): tracking
+# within 5 % 88 -> 97 %, within 5 deg 3 -> 60 % (3 epochs read it upside down). docs/calibration.md.
+STEPS = 1000
+LR = 2e-4
 EVAL_COLUMNS_EXTRA = [
     ("answered_pct", "answered (%)", "{:.1f}"),
     ("silent_failures", "silent failures", "{:d}"),
@@ -78,10 +89,10 @@ class Options:
     init: Path
     out: Path
     config: Path | None = None  # default: the shipped network's last stage
-    epochs: float = 3.0
-    steps: int = 0  # > 0: this many steps instead of epochs
+    epochs: float | None = None  # passes over the training frames instead of `steps`
+    steps: int = STEPS
     batch_size: int = 16
-    lr: float = 8e-5
+    lr: float = LR
     seed: int = 0
     calibrate_crops: int = 256
     val_frames: int = 300
@@ -137,7 +148,7 @@ def stage_config(o: Options, meta: dict, n_frames: int):
         raise FinetuneError(
             f"no stage config for {o.init} (oibar.name {meta.get('name')!r}): {path} not found; give --config"
         )
-    steps = o.steps or max(1, math.ceil(o.epochs * n_frames / o.batch_size))
+    steps = max(1, math.ceil(o.epochs * n_frames / o.batch_size)) if o.epochs else o.steps
     over = {
         "name": f"finetune_{o.out.name}",
         "run_dir": str(o.out),
@@ -498,10 +509,12 @@ def parse(argv: list[str] | None) -> Options:
     ap.add_argument(
         "--config", type=Path, default=None, help="the stage config (default: the model's own, by oibar.name)"
     )
-    ap.add_argument("--epochs", type=float, default=3.0, help="passes over the training frames (default 3)")
-    ap.add_argument("--steps", type=int, default=0, help="this many steps instead of --epochs")
+    ap.add_argument("--steps", type=int, default=STEPS, help=f"training steps (default {STEPS})")
+    ap.add_argument(
+        "--epochs", type=float, default=None, help="this many passes over the training frames instead"
+    )
     ap.add_argument("--batch-size", type=int, default=16)
-    ap.add_argument("--lr", type=float, default=8e-5, help="peak learning rate (default 8e-5)")
+    ap.add_argument("--lr", type=float, default=LR, help=f"peak learning rate (default {LR:g})")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--calibrate-crops", type=int, default=256, help="crops for the batch norms' statistics")
     ap.add_argument("--val-frames", type=int, default=300, help="held crops the trainer validates on")
@@ -529,8 +542,10 @@ def parse(argv: list[str] | None) -> Options:
     a = ap.parse_args(argv)
     if a.turn_deg is not None and not 0.0 <= a.turn_deg <= 180.0:
         ap.error("--turn-deg must be in [0, 180]")
-    if a.steps < 0 or a.epochs <= 0 or a.batch_size < 1 or a.stride < 1 or a.calibrate_crops < 1:
-        ap.error("--steps >= 0, --epochs > 0, --batch-size, --stride and --calibrate-crops >= 1")
+    if a.steps < 1 or (a.epochs is not None and a.epochs <= 0):
+        ap.error("--steps must be >= 1 and --epochs > 0")
+    if a.batch_size < 1 or a.stride < 1 or a.calibrate_crops < 1 or not a.lr > 0:
+        ap.error("--batch-size, --stride and --calibrate-crops must be >= 1, --lr > 0")
     return Options(
         a.data, a.val, a.init, a.out, a.config, a.epochs, a.steps, a.batch_size, a.lr, a.seed,
         a.calibrate_crops, a.val_frames, a.stride, tuple(a.modes), not a.no_baseline,
