@@ -537,7 +537,7 @@ def parse(argv: list[str] | None) -> Options:
         type=float,
         default=None,
         help="turn the training crops in-plane by up to this, either way (default: the stage's own, "
-        "15): 90 and more teach the network rolled views",
+        "15; 100 was tried for rolled views: docs/calibration.md)",
     )
     a = ap.parse_args(argv)
     if a.turn_deg is not None and not 0.0 <= a.turn_deg <= 180.0:

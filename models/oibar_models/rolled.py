@@ -1,8 +1,8 @@
 """A sequence as the camera rolled about its boresight would see it: every frame turned about the
 principal point and every pose turned with it. Exact for a pinhole camera (rolling it only turns
 the image; what the turn brings in from outside the frame reads black), so any sequence in the
-generator's layout, a lab recording's too, gets rolled looks with exact labels: the lab look at a
-quarter turn, say, which no lab run but the held lb011 shows (issue 58, rolled views).
+generator's layout, a lab recording's too, gets rolled looks with exact labels: a validation run
+at the roll of a held one, say (issue 58, rolled views; docs/calibration.md, "The schedule").
 
     python -m oibar_models.rolled SRC --roll-deg 90 --out DIR
 
