@@ -13,6 +13,7 @@ sequence 1's approach frames (pose.shipped's).
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -45,11 +46,9 @@ STAGE_COLUMNS = [
 ]
 
 
-def _val_frames(ctx: Context) -> tuple[list[tuple[np.ndarray, float, float]], str]:
-    """(frame, t_s, true range m) of every VAL_STRIDE-th validation frame, and where from."""
+def _val_frames(ctx: Context) -> tuple[list[tuple[Path, float, float]], str]:
+    """(frame file, t_s, true range m) of every VAL_STRIDE-th validation frame, and where from."""
     from dataclasses import replace
-
-    from PIL import Image
 
     from oibar_hil.dataset import generate_dataset
     from oibar_models.data import load_sequence
@@ -70,36 +69,31 @@ def _val_frames(ctx: Context) -> tuple[list[tuple[np.ndarray, float, float]], st
         picks = [(q, k) for q in seqs for k in range(len(q))]
         where = f"the {len(specs)} validation scenes rendered here, every {VAL_STRIDE}th frame of data/val's"
     frames = [
-        (
-            np.asarray(Image.open(q.dir / q.files[k]).convert("RGB")),
-            float(q.time_s[k]),
-            float(np.linalg.norm(q.T_cam_target[k])),
-        )
-        for q, k in picks
+        (q.dir / q.files[k], float(q.time_s[k]), float(np.linalg.norm(q.T_cam_target[k]))) for q, k in picks
     ]
     return frames, where
 
 
-def _quick_frames(ctx: Context) -> tuple[list[tuple[np.ndarray, float, float]], str]:
-    from PIL import Image
-
+def _quick_frames(ctx: Context) -> tuple[list[tuple[Path, float, float]], str]:
     seq_dir, where = approach_frames_dir(ctx, 40)
     if seq_dir is None:
         return [], where
-    files = sorted(seq_dir.iterdir())
-    return [(np.asarray(Image.open(f).convert("RGB")), 0.1 * i, np.nan) for i, f in enumerate(files)], where
+    return [(f, 0.1 * i, np.nan) for i, f in enumerate(sorted(seq_dir.iterdir()))], where
 
 
 def cold_run(ctx: Context) -> dict:
     """Every frame alone through the shipped estimator: latency, crops and crops by stage."""
     if "cold_run" in ctx.shared:
         return ctx.shared["cold_run"]
+    from PIL import Image
+
     from oibar.nav.pose import PoseEstimator
 
     frames, where = _quick_frames(ctx) if ctx.quick else _val_frames(ctx)
     est = PoseEstimator(ctx.root / SHIPPED_KP, threads=ctx.threads)
     lat, crops, ranges, stages = [], [], [], []
-    for i, (img, t_s, range_m) in enumerate(frames):
+    for i, (path, t_s, range_m) in enumerate(frames):
+        img = np.asarray(Image.open(path).convert("RGB"))  # one at a time: 635 frames are 0.7 GB
         est.forget()  # nothing carried: each frame is a cold start
         t0 = time.perf_counter()
         e = est.estimate(img, t_s)
