@@ -178,10 +178,6 @@ class KeypointPoseEstimator(PoseEstimator):
         self.search.last_crops = {}
         est = self._estimate(image_rgb_uint8, t_s, prior)
         est.crops = self.reader.crops_read - crops0
-        # the crop a prediction places is read beside the direct model (_first_pass), before solve
-        placed = est.crops - sum(self.search.last_crops.values())
-        if placed:
-            self.search.last_crops["placed"] = self.search.last_crops.get("placed", 0) + placed
         return est
 
     @property
@@ -251,7 +247,8 @@ class KeypointPoseEstimator(PoseEstimator):
             return self.first.estimate(image, t_s), None
         job = pool.submit(self.first.estimate, image, t_s)
         try:
-            placed_reading = (win_p, self.reader.read_crop(image, win_p, self.search.placed_pass_refines))
+            with self.search.tally("placed"):  # the placed crop, read while the direct model runs
+                placed_reading = (win_p, self.reader.read_crop(image, win_p, self.search.placed_pass_refines))
         finally:
             direct = job.result()  # never leave it running into the next frame
         return direct, placed_reading

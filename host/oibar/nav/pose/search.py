@@ -187,7 +187,7 @@ class WindowSearch:
             )
         self.placed_pass_refines = placed
         self.cold: ColdSearch | None = None  # a cold search that goes on in the next frames
-        # crops each stage read in the latest solve (STAGES)
+        # crops each stage read for the frame under way (STAGES)
         self.last_crops: dict[str, int] = {}
 
     def solve(
@@ -220,14 +220,13 @@ class WindowSearch:
         (`_weak_rank`), else (None, None)."""
         f = self.fusion.table if fusion is None else fusion
         keep = FitKeeper(self._weak_rank)
-        self.last_crops = {}
         # a cold search carried from earlier frames goes on here; a prediction ends it
         cold = self.cold if prior is None else None
         self.cold = None
         placed = prior if prior is not None else hint
         crops, refined = 0, False  # crops read for this frame (the cold search's budget counts them)
         if placed is not None:
-            with self._tally("placed"):
+            with self.tally("placed"):
                 crops, refined = self._placed_pass(image, placed, placed_reading, R_direct, f, keep)
         # a strong fit in the window a pose placed is upright already (reader.window_for)
         upright_done = keep.best is not None
@@ -247,23 +246,24 @@ class WindowSearch:
         # 3 passes more (a frame of 60 budgeted crops then takes ~0.5 s, within the link's 1 s)
         read: tuple[CropWindow, CropReading] | None = None  # the refining pass's first, read already
         if not upright_done:
-            with self._tally("upright"):
+            with self.tally("upright"):
                 upright, read = upright_pass(self.reader, self._one_pass, image, keep.best, R_direct, f)
             if upright is not None:
                 keep.best, refined = upright, False
         if self.zoom_out and not placed_found:
-            with self._tally("zoom_out"):
+            with self.tally("zoom_out"):
                 bigger = bigger_fixture(self.reader, self._one_pass, image, keep.best, R_direct, f)
             if bigger is not None:
                 keep.best, refined = bigger, False
         if refined:
             return keep.best
-        with self._tally("refine"):
+        with self.tally("refine"):
             return self._refined(image, keep.best, R_direct, f, read)
 
     @contextmanager
-    def _tally(self, stage: str) -> Iterator[None]:
-        """Count the crops read inside the block as `stage`'s, in `last_crops`."""
+    def tally(self, stage: str) -> Iterator[None]:
+        """Count the crops read inside the block as `stage`'s, in `last_crops` (which the
+        estimator clears at each frame's start: the placed window can be read before solve)."""
         crops0 = self.reader.crops_read
         try:
             yield
@@ -289,7 +289,7 @@ class WindowSearch:
         base = self.reader.window_for(R_direct, T_direct, upright=False)
         crops = 0
         if base is not None:
-            with self._tally("steps"):
+            with self.tally("steps"):
                 crops = self._steps_pass(image, base, R_direct, T_direct, f, keep)
         # the turn stage, the zoom and the scan only on a cold start or a lost track: with a
         # prediction their cost would come out of the 100 ms frame budget on every weak far
@@ -297,7 +297,7 @@ class WindowSearch:
         if keep.best is not None or not cold_start:
             return crops, None
         if base is not None:
-            with self._tally("turn"):
+            with self.tally("turn"):
                 turned = turned_pass(self.reader, self._one_pass, image, base, R_direct, T_direct, f, keep)
             base = turned if turned is not None else base
         if keep.best is not None:
@@ -471,13 +471,13 @@ class WindowSearch:
         left to try); False when the next read would take more than `crops_left` crops: `c` then
         says where to go on."""
         if c.level < ZOOM_LEVELS:
-            with self._tally("zoom"):
+            with self.tally("zoom"):
                 done, crops_left = self._zoom(image, c, R_direct, T_direct, f, consider, crops_left)
             if done is not None:
                 return done
         if not self.scan_search:
             return True
-        with self._tally("scan"):
+        with self.tally("scan"):
             return self._scan(image, c, R_direct, f, consider, crops_left)
 
     def _zoom(
