@@ -114,6 +114,16 @@ def cold_run(ctx: Context) -> dict:
     return run
 
 
+def _run_or_why(ctx: Context) -> tuple[dict | None, str]:
+    """The cold run both tables read, or None and why there is none."""
+    if not (ctx.root / SHIPPED_KP).is_file():
+        return None, f"{SHIPPED_KP} does not exist: no cold-frame tables."
+    run = cold_run(ctx)
+    if not len(run["lat"]):
+        return None, f"No frames: {run['where']}."
+    return run, ""
+
+
 def _latency_row(what: str, lat: np.ndarray, crops: np.ndarray) -> dict:
     p50, p90, p95 = (float(np.percentile(lat, q)) for q in (50, 90, 95))
     c50, c95 = (float(np.percentile(crops, q)) for q in (50, 95))
@@ -134,11 +144,9 @@ def _latency_row(what: str, lat: np.ndarray, crops: np.ndarray) -> dict:
 def cold_latency(ctx: Context) -> Result:
     from oibar.nav.pose.search import COLD_CROP_BUDGET
 
-    if not (ctx.root / SHIPPED_KP).is_file():
-        return Result([], [f"{SHIPPED_KP} does not exist: no cold-frame table."])
-    run = cold_run(ctx)
-    if not len(run["lat"]):
-        return Result([], [f"No frames: {run['where']}."])
+    run, why = _run_or_why(ctx)
+    if run is None:
+        return Result([], [why])
     lat, crops, rng = run["lat"], run["crops"], run["range_m"]
     rows = [_latency_row("all", lat, crops)]
     if np.isfinite(rng).all():
@@ -184,11 +192,9 @@ def _stage_rows(stages: list[dict[str, int]], lat: np.ndarray) -> list[dict]:
 
 @measurement("pose.cold_stages", "Where a cold frame's crops go (search stages)", STAGE_COLUMNS)
 def cold_stages(ctx: Context) -> Result:
-    if not (ctx.root / SHIPPED_KP).is_file():
-        return Result([], [f"{SHIPPED_KP} does not exist: no stage table."])
-    run = cold_run(ctx)
-    if not len(run["lat"]):
-        return Result([], [f"No frames: {run['where']}."])
+    run, why = _run_or_why(ctx)
+    if run is None:
+        return Result([], [why])
     notes = [
         "Stages in the order a frame may reach them (oibar.nav.pose.search.STAGES): placed (a window a "
         "pose placed: none on a cold frame), steps (SEARCH_STEPS around the direct model's window), "
