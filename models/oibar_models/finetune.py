@@ -15,7 +15,7 @@ nothing is chosen on them (the network exported is the last step's).
 2. Fine-tuning with the keypoint trainer's pieces (kp_engine: the crops and augmentation of
    kp_data, the loss, the learning-rate schedule, the crop-level validation) under a config
    derived from the shipped network's last stage (models/configs/keypoints/<oibar.name>.yaml:
-   its crop, augmentation and loss weights), STEPS steps at LR (SCHEDULE below), seeded.
+   its crop, augmentation and loss weights), STEPS steps at a peak rate of LR (below), seeded.
 3. The export (kp_export.export_graph, parity-checked against PyTorch) with every table of the
    shipped file's metadata (fusion weights and error models, reading options, camera, first
    pass, far network: copied beside it), marked `oibar.finetune` with where it came from, and

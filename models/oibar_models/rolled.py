@@ -74,9 +74,8 @@ def roll_sequence(src: Path, out: Path, roll_deg: float) -> Path:
         files[name] = _sha256(out / name)
     _write_poses(src / "poses.csv", out / "poses.csv", roll_matrix(roll_deg))
     files["poses.csv"] = _sha256(out / "poses.csv")
-    for extra in ("spec.json",):
-        if (src / extra).is_file():
-            shutil.copy(src / extra, out / extra)
+    if (src / "spec.json").is_file():
+        shutil.copy(src / "spec.json", out / "spec.json")
     manifest["files"] = files
     manifest["rolled"] = {"from": str(src), "roll_deg": float(roll_deg), "about": "the principal point"}
     (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
