@@ -312,6 +312,7 @@ def test_ray_campaign_with_a_killed_worker_gives_the_same_table(serial_campaign,
     report = (out / "report.md").read_text()
     assert f"{TINY_MISSIONS}/{TINY_MISSIONS}" in report and "Clopper-Pearson" in report
     assert (out / "figures" / "inputs_success.png").exists()
+    assert (out / "figures" / "inputs_vs_nav_lateral_err_m_p95_below_5m.png").exists()  # what drives nav error
 
 
 def test_replay_reproduces_a_stored_mission(serial_campaign, capsys):

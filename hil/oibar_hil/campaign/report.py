@@ -9,8 +9,9 @@
 2. failure drivers: every dispersed input, failed against passed missions (Mann-Whitney U:
    does the input sit elsewhere in the missions that failed?), and the failure rate per fault
    type, phase and approach port;
-3. figures: each dispersed input's histogram split by success; each contact and load outcome
-   against each dispersed input; the outcome distributions against their limits;
+3. figures: each dispersed input's histogram split by success; each contact and load outcome,
+   and the navigation's lateral error, against each dispersed input; the outcome distributions
+   against their limits;
 4. the worst missions (failures first, then the smallest margin to a limit), each with the one
    command that flies it again;
 5. the dispersion model itself and what the rig cannot apply yet.
@@ -38,7 +39,14 @@ LIMITS = {
     "peak_force_n": (60.0, "hard-docking force limit"),
     "peak_force_soft_n": (30.0, "soft-docking force limit"),
 }
-OUTCOME_PLOTS = ("contact_lateral_m", "contact_closing_speed_mps", "peak_force_n")
+# Navigation has no limit of its own: its error is drawn against the funnel mouth it must find.
+NAV_REFERENCE = {"nav_lateral_err_m_p95_below_5m": (0.10, "funnel mouth radius")}
+OUTCOME_PLOTS = (
+    "contact_lateral_m",
+    "contact_closing_speed_mps",
+    "peak_force_n",
+    "nav_lateral_err_m_p95_below_5m",
+)
 WORST_SHOWN = 10
 
 
@@ -188,19 +196,20 @@ def _figures(rows: list[dict[str, Any]], cfg: CampaignConfig, fig_dir: Path) -> 
             y = np.array([np.nan if r[out_col] is None else r[out_col] for r in rows], dtype=float)
             if not np.isfinite(y).any():
                 continue
+            limit, what = {**LIMITS, **NAV_REFERENCE}[out_col]
             fig, axes = plt.subplots(nrows, cols, figsize=(3.2 * cols, 2.4 * nrows), squeeze=False)
             for ax, name in zip(axes.flat, names, strict=False):
                 x = input_values(rows, name)
                 ax.scatter(x[ok], y[ok], s=6, c="tab:green", alpha=0.6)
                 ax.scatter(x[~ok], y[~ok], s=14, c="tab:red", marker="x")
-                ax.axhline(LIMITS[out_col][0], color="k", ls="--", lw=0.8)
+                ax.axhline(limit, color="k", ls="--", lw=0.8)
                 if _log_axis(cfg, name):
                     ax.set_xscale("log")
                 ax.set_title(f"{name} [{input_unit(name)}]", fontsize=8)
                 ax.tick_params(labelsize=7)
             for ax in list(axes.flat)[len(names) :]:
                 ax.axis("off")
-            fig.suptitle(f"{cfg.name}: {out_col} against each dispersed input (dashed: {LIMITS[out_col][1]})")
+            fig.suptitle(f"{cfg.name}: {out_col} against each dispersed input (dashed: {what})")
             fig.tight_layout()
             fig.savefig(fig_dir / f"inputs_vs_{out_col}.png", dpi=80)
             plt.close(fig)
