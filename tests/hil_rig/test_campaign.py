@@ -213,6 +213,32 @@ def test_clopper_pearson_figures():
         rate(5, 4)
 
 
+def test_outcome_drivers_name_the_input_that_moves_an_outcome():
+    """A campaign without failures still has drivers: an outcome made to follow one input, and
+    one made to depend on the approach port, are traced to that input, the rest far behind."""
+    from oibar_hil.campaign.report import outcome_drivers
+
+    cfg = dataclasses.replace(load_config(DEFAULT), nav="cnn")
+    rng = np.random.default_rng(7)
+    rows = []
+    for i in range(150):
+        v = draw_mission(cfg, i).values
+        row: dict = {f"in_{k}": x for k, x in v.items()}
+        row["contact_closing_speed_mps"] = 0.02 + 0.1 * v["valve_stroke_s"] + rng.normal(0, 2e-4)
+        nav = 0.05 + 0.15 * (v["approach_port"] == 4) + rng.normal(0, 0.01)
+        row["nav_lateral_err_m_p95_below_5m"] = None if i % 15 == 0 else nav  # not measured: skipped
+        row["peak_force_n"] = 22.9  # the same in every mission: nothing to trace
+        rows.append(row)
+    speed = outcome_drivers(rows, cfg, "contact_closing_speed_mps")
+    assert speed[0]["input"] == "valve_stroke_s" and speed[0]["rho"] > 0.9 and speed[0]["p"] < 1e-6
+    assert all(abs(d["rho"]) < 0.5 for d in speed[1:] if d["medians"] == {})
+    nav = outcome_drivers(rows, cfg, "nav_lateral_err_m_p95_below_5m")
+    assert nav[0]["input"] == "approach_port" and nav[0]["p"] < 1e-6
+    assert nav[0]["medians"][4] > max(m for port, m in nav[0]["medians"].items() if port != 4) + 0.1
+    assert nav[1]["p"] > 1e-4  # no other input follows the port
+    assert outcome_drivers(rows, cfg, "peak_force_n") == []
+
+
 # -- a tiny campaign ----------------------------------------------------------------------------
 
 
@@ -312,7 +338,8 @@ def test_ray_campaign_with_a_killed_worker_gives_the_same_table(serial_campaign,
     report = (out / "report.md").read_text()
     assert f"{TINY_MISSIONS}/{TINY_MISSIONS}" in report and "Clopper-Pearson" in report
     assert (out / "figures" / "inputs_success.png").exists()
-    assert (out / "figures" / "inputs_vs_nav_lateral_err_m_p95_below_5m.png").exists()  # what drives nav error
+    nav_figure = out / "figures" / "inputs_vs_nav_lateral_err_m_p95_below_5m.png"  # what drives nav error
+    assert nav_figure.exists()
 
 
 def test_replay_reproduces_a_stored_mission(serial_campaign, capsys):

@@ -8,7 +8,9 @@
    expects), and the outcomes;
 2. failure drivers: every dispersed input, failed against passed missions (Mann-Whitney U:
    does the input sit elsewhere in the missions that failed?), and the failure rate per fault
-   type, phase and approach port;
+   type, phase and approach port; outcome drivers, which a campaign without failures still
+   has: the inputs that move each contact outcome and the navigation error most (rank
+   correlation);
 3. figures: each dispersed input's histogram split by success; each contact and load outcome,
    and the navigation's lateral error, against each dispersed input; the outcome distributions
    against their limits;
@@ -99,6 +101,60 @@ def drivers(rows: list[dict[str, Any]], cfg: CampaignConfig) -> list[dict[str, A
             }
         )
     return sorted(out, key=lambda d: (math.isnan(d["p"]), d["p"]))
+
+
+def outcome_drivers(rows: list[dict[str, Any]], cfg: CampaignConfig, out_col: str) -> list[dict[str, Any]]:
+    """What moves one measured outcome, failures or not: per dispersed input, Spearman's rank
+    correlation (a choice input such as the port: Kruskal-Wallis across its values, with each
+    value's median), over the missions where the outcome was measured; smallest p first."""
+    from scipy.stats import kruskal, spearmanr
+
+    y_all = np.array([np.nan if r[out_col] is None else r[out_col] for r in rows], dtype=float)
+    keep = np.isfinite(y_all)
+    y = y_all[keep]
+    out: list[dict[str, Any]] = []
+    if len(y) < 3 or np.ptp(y) == 0:
+        return out
+    for name in dispersed_inputs(cfg):
+        x = input_values(rows, name)[keep]
+        if np.ptp(x) == 0:
+            continue
+        spec = cfg.inputs.get(name)
+        d: dict[str, Any] = {"input": name, "unit": input_unit(name), "rho": float("nan"), "medians": {}}
+        if spec is not None and spec.kind == "choice":
+            groups = {v: y[x == v] for v in np.unique(x)}
+            d["medians"] = {v: float(np.median(g)) for v, g in groups.items()}
+            sizes = [g for g in groups.values() if len(g)]
+            d["p"] = float(kruskal(*sizes).pvalue) if len(sizes) >= 2 else float("nan")
+        else:
+            res = spearmanr(x, y)
+            d["rho"], d["p"] = float(res.statistic), float(res.pvalue)
+        out.append(d)
+    return sorted(out, key=lambda d: (math.isnan(d["p"]), d["p"]))
+
+
+def _driver_lines(rows: list[dict[str, Any]], cfg: CampaignConfig, top: int = 5) -> list[str]:
+    names = dispersed_inputs(cfg)
+    out = [
+        "## What drives the outcomes",
+        "",
+        f"Each outcome against each of the {len(names)} dispersed inputs, the {top} with the smallest p "
+        "(Spearman's rho; a choice input: Kruskal-Wallis across its values, medians per value). "
+        f"With {len(names)} inputs tried, only p < {0.05 / max(1, len(names)):.2g} stands out (Bonferroni, 5 %).",
+        "",
+        "| outcome | input | rho or medians | p |",
+        "| --- | --- | --- | --- |",
+    ]
+    for out_col in OUTCOME_PLOTS:
+        for d in outcome_drivers(rows, cfg, out_col)[:top]:
+            how = (
+                ", ".join(f"{_fmt(float(v))}: {_fmt(m)}" for v, m in d["medians"].items())
+                if d["medians"]
+                else f"{d['rho']:+.2f}"
+            )
+            out.append(f"| {out_col} | {d['input']} [{d['unit']}] | {how} | {_fmt(d['p'], 2)} |")
+    out.append("")
+    return out
 
 
 def dispersed_inputs(cfg: CampaignConfig) -> list[str]:
@@ -401,6 +457,7 @@ def write_report(folder: Path, rows: list[dict[str, Any]], cfg: CampaignConfig, 
             + "."
         )
         add("")
+    lines += _driver_lines(rows, cfg)
     if figures:
         add("## Figures")
         add("")
