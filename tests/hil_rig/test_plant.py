@@ -148,3 +148,36 @@ def test_the_vehicles_odometry_is_the_truth_plus_its_noise_and_leaves_the_world_
     assert all(m is None for m in odo_off)
     np.testing.assert_array_equal(quiet.s.r_D_m, world.s.r_D_m)
     np.testing.assert_array_equal(quiet.s.v_D_mps, world.s.v_D_mps)
+
+
+def _turning(params, seed=5, steps=3000):
+    """A world turning slowly on guidance's rate setpoint: what its GNC reports of the relative
+    attitude every 10th step, beside the truth; and the odometry it reports the while."""
+    world = World(params, WorldState(), np.random.default_rng(seed))
+    world.set_setpoint(np.zeros(3), np.radians([0.3, -0.1, 0.05]))
+    att, odo = [], []
+    for k in range(steps):
+        world.step(0.01, np.zeros(3))
+        if k % 10 == 0:
+            m = world.relative_attitude(k * 0.01)
+            att.append(None if m is None else (m, world.s.att_rad.copy()))
+            odo.append(world.relative_velocity(k * 0.01))
+    return world, att, odo
+
+
+def test_the_vehicles_attitude_is_the_truth_plus_its_errors_and_leaves_the_world_alone():
+    p = VehicleParams()
+    world, att, odo = _turning(p)
+    errs = np.degrees(np.array([m.att_rad - a for m, a in att]))
+    sigma_deg = np.hypot(p.attitude_ref_bias_deg, p.attitude_ref_noise_deg)
+    assert all(np.degrees(m.sigma_rad) == pytest.approx(sigma_deg) for m, _ in att)
+    # it follows the truth as the chaser turns (9 deg here), off by one constant error per approach
+    assert np.degrees(np.ptp([a[0] for _, a in att])) > 5.0
+    assert np.std(errs, axis=0) == pytest.approx(np.full(3, p.attitude_ref_noise_deg), rel=0.2)
+    assert np.all(np.abs(np.mean(errs, axis=0)) < 4 * p.attitude_ref_bias_deg)
+    assert np.linalg.norm(np.mean(errs, axis=0)) > 5 * p.attitude_ref_noise_deg, "a constant error, not zero"
+    # switched off: no attitude, and the world and its odometry are exactly as with it
+    quiet, att_off, odo_off = _turning(VehicleParams(attitude_ref=False))
+    assert all(m is None for m in att_off)
+    np.testing.assert_array_equal(quiet.s.att_rad, world.s.att_rad)
+    np.testing.assert_array_equal([o.v_D_mps for o in odo_off], [o.v_D_mps for o in odo])

@@ -371,7 +371,13 @@ def test_udp_vehicle_takes_the_gnc_odometry_back():
 
         reply(v_D_mps=[0.0, 0.0, -0.03], sigma_mps=0.003, t_s=9.0)  # 1.5 s old: stale
         assert drained(10.5, 1) is None
-        assert v.statistics() == {"send_errors": 0, "odometry_received": 4, "odometry_rejected": 5}
+        assert v.statistics() == {
+            "send_errors": 0,
+            "odometry_received": 4,
+            "odometry_rejected": 5,
+            "attitude_received": 0,
+            "attitude_rejected": 0,
+        }
     finally:
         v.close()
         gnc.close()

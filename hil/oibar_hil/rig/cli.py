@@ -75,7 +75,8 @@ def _print_nav(r: RunResult) -> None:
     if m.get("nav") != "cnn":
         return
     print(
-        f"  navigation: {m.get('nav_cycles', 0)} cycles, {m.get('nav_hold_cycles', 0)} held; "
+        f"  navigation: {m.get('nav_cycles', 0)} cycles, {m.get('nav_hold_cycles', 0)} held, "
+        f"{m.get('nav_attitude_replaced', 0)} frames on the vehicle's attitude; "
         f"range error median {m.get('nav_range_err_m_median', float('nan')) * 100:.1f} cm, "
         f"lateral error median {m.get('nav_lateral_err_m_median', float('nan')) * 100:.1f} cm "
         f"(p99 {m.get('nav_lateral_err_m_p99', float('nan')) * 100:.1f} cm), "

@@ -10,7 +10,9 @@ source gives it two things: ``frame(t_s, world)`` (the camera frame of this cycl
   (oibar_hil.rig.camera), and the host's Navigator (oibar.nav.core: OibarNet on onnxruntime, the
   checks, the filter) turns the frame into the solution inside the daemon's cycle, with the
   vehicle's own relative velocity (the rig's vehicle interface: the world's
-  ``relative_velocity``, truth plus the GNC's noise). Frames are rendered at the guidance rate.
+  ``relative_velocity``, truth plus the GNC's noise) and its relative attitude (the world's
+  ``relative_attitude``, which the navigator checks the camera's against). Frames are rendered at
+  the guidance rate.
 """
 
 from __future__ import annotations
@@ -63,9 +65,11 @@ class TruthNav:
         frame_t_s: float | None = None,
         frame_seq: int | None = None,
         odometry: Any = None,
+        attitude_ref: Any = None,
     ) -> NavStep:
         """The truth now when a fresh frame came; else, like a coasting filter, the last solution
-        with the reason to hold (no new frame, stale frame) and no confidence."""
+        with the reason to hold (no new frame, stale frame) and no confidence. (``odometry`` and
+        ``attitude_ref`` are the Navigator's arguments: the truth needs neither.)"""
         if image is not None and (frame_t_s is None or t_s - frame_t_s <= self.max_frame_age_s):
             self._last = self.solve(t_s, self.world_of())
             return NavStep(t_s, self._last)
@@ -159,6 +163,7 @@ class CnnNav:
             frame_t_s=t_s,
             frame_seq=self.frames,
             odometry=world.relative_velocity(t_s),
+            attitude_ref=world.relative_attitude(t_s) if frame is not None else None,
         )
         self.last_step = step
         return step.solution

@@ -261,6 +261,9 @@ def write_report(result: Any, out_dir: Path) -> Path:
     }
     if m.get("nav") == "cnn":
         key_metrics["navigation (CNN) cycles / held"] = f"{m.get('nav_cycles')} / {m.get('nav_hold_cycles')}"
+        key_metrics["frames fused on the vehicle's attitude (integrity check)"] = str(
+            m.get("nav_attitude_replaced", 0)
+        )
         key_metrics["navigation errors (median)"] = (
             f"range {m.get('nav_range_err_m_median', float('nan')) * 100:.1f} cm, lateral "
             f"{m.get('nav_lateral_err_m_median', float('nan')) * 100:.1f} cm, misalignment "

@@ -111,6 +111,11 @@ class RigVehicle(VehicleInterface):
             return None  # the truth needs no odometry (and its noise would use the rig's rng)
         return self.rig.world.relative_velocity(t_s)
 
+    def relative_attitude(self, t_s: float) -> Any:
+        if self.rig.nav.name == "truth":
+            return None  # the truth has nothing to check
+        return self.rig.world.relative_attitude(t_s)
+
 
 @dataclass
 class _SafetyWatch:
@@ -391,10 +396,10 @@ class Rig:
         timings = dict(getattr(self.nav, "last_timings_ms", {}))
         if frame is not None:
             timings.update(step.timings_ms, nav_ms=cycle_ms)
-        self._record_nav(step.solution, timings, step.estimate)
+        self._record_nav(step.solution, timings, step.estimate, step.attitude_check)
         return out
 
-    def _record_nav(self, sol: Any, timings: dict, estimate: Any = None) -> None:
+    def _record_nav(self, sol: Any, timings: dict, estimate: Any = None, att_check: Any = None) -> None:
         """The estimate beside the truth, per guidance cycle (report plots, metrics, and the
         report's nav_cycles.csv). The signed errors (estimate - truth, in D; attitude as the
         difference of the rotation vectors, which is the error to first order) are there so a
@@ -406,6 +411,8 @@ class Rig:
             row.update(pose_errors("ans_", estimate.T_cam_target_m, estimate.R_cam_target, w.s))
             T_meas, R_meas = estimate.measurement()
             row.update(pose_errors("meas_", T_meas, R_meas, w.s))
+        if att_check is not None:  # the camera's attitude against the vehicle's (oibar.nav.integrity)
+            row.update(att_check_deg=att_check.disagreement_deg, att_replaced=att_check.replaced)
         b_true = w.odometry_bias_mps  # unreported: the filter only allows for it
         self.nav_log.append(
             {
@@ -440,6 +447,7 @@ class Rig:
             "nav": self.nav.name,
             "nav_cycles": len(log),
             "nav_hold_cycles": sum(1 for r in log if r["hold_reason"]),
+            "nav_attitude_replaced": sum(1 for r in log if r.get("att_replaced")),
         }
         if valid:
             rng = np.array([abs(r["range_est_m"] - r["range_true_m"]) for r in valid])

@@ -8,7 +8,8 @@ own process, with its sensors and actuators on the simulator:
 - its camera is ``frames+tcp://127.0.0.1:PORT`` (oibar.camera.stream): the rig renders the scene
   for the world's pose every 100 ms and serves the frames, as a user's own camera bridge would;
 - its vehicle is ``udp://127.0.0.1:PORT`` (oibar.nav.vehicle.UdpJsonVehicle): the rig is the
-  vehicle's GNC computer, takes the velocity setpoints and answers with the odometry.
+  vehicle's GNC computer, takes the velocity setpoints and answers with the odometry and the
+  relative attitude.
 
 Everything runs in real time on loopback only: the rig paces its lockstep loop to the wall clock.
 The run ends when ``oibar nav`` exits (its guidance finished the mission) or at the scenario's
@@ -246,15 +247,16 @@ class SitlRig(Rig):
             self.world.set_setpoint(self._setpoint.v_sp_D_mps, self._setpoint.w_sp_rad_s)
         if got and self._gnc_addr is not None:
             odo = self.world.relative_velocity(self.t_s)
-            if odo is not None:
+            att = self.world.relative_attitude(self.t_s)
+            if odo is not None or att is not None:
                 # its time of validity on the daemon's clock: the setpoint's t_s plus our time since
-                msg = {
-                    "v_D_mps": [float(x) for x in odo.v_D_mps],
-                    "sigma_mps": float(odo.sigma_mps),
-                    "t_s": self._setpoint_t + (time.monotonic() - self._setpoint_wall),
-                }
+                back: dict[str, Any] = {"t_s": self._setpoint_t + (time.monotonic() - self._setpoint_wall)}
+                if odo is not None:
+                    back.update(v_D_mps=[float(x) for x in odo.v_D_mps], sigma_mps=float(odo.sigma_mps))
+                if att is not None:
+                    back.update(att_rad=[float(x) for x in att.att_rad], att_sigma_rad=float(att.sigma_rad))
                 try:
-                    self.udp.sendto(json.dumps(msg).encode(), self._gnc_addr)
+                    self.udp.sendto(json.dumps(back).encode(), self._gnc_addr)
                 except OSError:
                     pass
 

@@ -16,6 +16,10 @@ The SV's GNC also knows its own relative velocity (IMU and its navigation) and r
 ours (oibar.nav.vehicle ``relative_velocity``): here the true one plus a constant error per
 approach (calibration, not reported) and white noise (reported as its sigma), from a generator
 spawned off the rig's seeded one (the world's own noise stream is unchanged).
+
+It knows the relative attitude too (``relative_attitude``: its star tracker and gyros against the
+target's known attitude): the true one plus a constant error per approach (the target's attitude
+knowledge) and white noise, reported with their combined sigma, from a second spawned generator.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oibar.geometry.docking import R_D_cam_from_attitude, lateral_offset_m, misalignment_deg
-from oibar.nav.vehicle import RelativeVelocity
+from oibar.nav.vehicle import RelativeAttitude, RelativeVelocity
 
 
 @dataclass
@@ -43,6 +47,9 @@ class VehicleParams:
     odometry_bias_mps: float = (
         0.002  # assumption: 1-sigma per axis of a constant error per approach, unreported
     )
+    attitude_ref: bool = True  # the SV's GNC reports its relative attitude to ours
+    attitude_ref_bias_deg: float = 1.0  # assumption: 1-sigma per axis, constant per approach
+    attitude_ref_noise_deg: float = 0.05  # assumption: white, per axis (star tracker and gyros)
     # A constant unmodelled acceleration in D (thruster misalignment, plume impingement), which
     # the velocity loop must fight; zero in the scenarios (issue 62 disperses it)
     accel_bias_mps2: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -72,6 +79,9 @@ class World:
         if params.odometry:
             self._odo_rng = rng.spawn(1)[0]
             self._odo_bias_mps = self._odo_rng.normal(0.0, params.odometry_bias_mps, 3)
+        if params.attitude_ref:  # spawned after the odometry's: that stream stays as it was
+            self._att_rng = rng.spawn(1)[0]
+            self._att_bias_rad = self._att_rng.normal(0.0, np.radians(params.attitude_ref_bias_deg), 3)
 
     def relative_velocity(self, t_s: float) -> RelativeVelocity | None:
         """What the SV's GNC reports of its relative velocity at t_s (VehicleInterface's odometry)."""
@@ -80,6 +90,16 @@ class World:
             return None
         v = self.s.v_D_mps + self._odo_bias_mps + self._odo_rng.normal(0.0, p.odometry_sigma_mps, 3)
         return RelativeVelocity(float(t_s), v, p.odometry_sigma_mps)
+
+    def relative_attitude(self, t_s: float) -> RelativeAttitude | None:
+        """What the SV's GNC reports of the relative attitude at t_s (VehicleInterface's)."""
+        p = self.p
+        if not p.attitude_ref:
+            return None
+        noise_rad = np.radians(p.attitude_ref_noise_deg)
+        att = self.s.att_rad + self._att_bias_rad + self._att_rng.normal(0.0, noise_rad, 3)
+        sigma_rad = float(np.hypot(np.radians(p.attitude_ref_bias_deg), noise_rad))
+        return RelativeAttitude(float(t_s), att, sigma_rad)
 
     def set_setpoint(self, v_sp_mps: np.ndarray, w_sp_rad_s: np.ndarray) -> None:
         self.v_sp_mps = np.asarray(v_sp_mps, dtype=float)

@@ -9,6 +9,11 @@ confidence or a gated outlier each give a solution with ``hold_reason`` set, and
 (oibar.nav.vehicle.RelativeVelocity) or None, fused into the filter's velocity after the frame
 (before it when older). It sharpens the closing speed the MCU checks the capture against; it
 does not make the solution trustworthy without a frame, and a bad or gated one does not hold.
+
+``attitude_ref``: the vehicle's own relative attitude, ``(t_s, att_rad, sigma_rad)``
+(oibar.nav.vehicle.RelativeAttitude) or None. A frame whose attitude disagrees with it beyond
+the check's bound is fused with the vehicle's attitude in place of its own (oibar.nav.integrity);
+the verdict is in ``NavStep.attitude_check``.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import numpy as np
 from oibar.geometry.rotations import quat_to_matrix
 from oibar.nav.filter import NavFilter
 from oibar.nav.guidance import NavSolution
+from oibar.nav.integrity import AttitudeCheck, AttitudeCheckParams, check_attitude, valid_reference
 from oibar.nav.pose import FrameError, PoseEstimate, PoseEstimator
 
 
@@ -29,6 +35,7 @@ from oibar.nav.pose import FrameError, PoseEstimate, PoseEstimator
 class NavigatorParams:
     confidence_min: float = 0.5  # below: do not act on the estimate (the filter coasts)
     max_frame_age_s: float = 0.25  # an older frame is stale: 2.5 cycles at 10 Hz
+    attitude_check: AttitudeCheckParams = field(default_factory=AttitudeCheckParams)
 
 
 @dataclass
@@ -44,6 +51,7 @@ class NavStep:
     hold_reason: str = ""
     timings_ms: dict[str, float] = field(default_factory=dict)
     velocity_update: Any = None  # the filter's VelocityUpdateResult, None without odometry
+    attitude_check: AttitudeCheck | None = None  # None: no vehicle attitude, or no frame fused
 
 
 class Navigator:
@@ -64,15 +72,18 @@ class Navigator:
         frame_t_s: float | None = None,
         frame_seq: int | None = None,
         odometry: Any = None,
+        attitude_ref: Any = None,
     ) -> NavStep:
         """``frame``: an RGB uint8 image, or None when no new frame arrived this cycle.
         ``frame_t_s``: its capture time on the same clock as ``t_s`` (default: now).
-        ``odometry``: ``(t_s, v_D_mps, sigma_mps)`` on the same clock, or None."""
+        ``odometry``: ``(t_s, v_D_mps, sigma_mps)`` on the same clock, or None.
+        ``attitude_ref``: ``(t_s, att_rad, sigma_rad)``, or None."""
         timings: dict[str, float] = {}
         reason = ""
         est = None
         upd = None
         vel_upd = None
+        att_check = None
         odo_t_s = None
         if odometry is not None:
             try:
@@ -107,15 +118,7 @@ class Navigator:
                     if not est.confidence >= self.p.confidence_min:  # NaN-safe
                         reason = f"low confidence {est.confidence:.2f}"
                     else:
-                        t0 = time.perf_counter()
-                        try:
-                            T_m, R_m = est.measurement()  # prior-free where it differs (PoseEstimate)
-                            upd = self.filter.update(ft, T_m, R_m, est.confidence)
-                        except ValueError as exc:  # a frame older than the last one fused
-                            reason = f"frame out of order ({exc})"
-                        timings["filter_ms"] = (time.perf_counter() - t0) * 1e3
-                        if upd is not None and upd.gated:
-                            reason = "gated outlier"
+                        upd, att_check, reason = self._fuse_frame(ft, est, attitude_ref, timings)
         if odometry is not None and odo_t_s is not None:  # (odometry kept: its time is finite)
             vel_upd = self._fuse_velocity(odo_t_s, odometry)
         st = self.filter.state(t_s)
@@ -132,7 +135,28 @@ class Navigator:
             confidence=float(est.confidence) if est is not None else 0.0,
             hold_reason=reason,
         )
-        return NavStep(t_s, sol, frame_seq, frame_t_s, est, upd, reason, timings, velocity_update=vel_upd)
+        return NavStep(
+            t_s, sol, frame_seq, frame_t_s, est, upd, reason, timings, vel_upd, attitude_check=att_check
+        )
+
+    def _fuse_frame(
+        self, ft: float, est: PoseEstimate, attitude_ref: Any, timings: dict[str, float]
+    ) -> tuple[Any, AttitudeCheck | None, str]:
+        """The frame's pose into the filter, checked against the vehicle's attitude first:
+        (the filter's verdict, the check's, why to hold or "")."""
+        t0 = time.perf_counter()
+        upd, att_check, reason = None, None, ""
+        try:
+            T_m, R_m = est.measurement()  # prior-free where it differs (PoseEstimate)
+            if (ref := valid_reference(attitude_ref)) is not None:
+                T_m, R_m, att_check = check_attitude(T_m, R_m, ref, self.p.attitude_check)
+            upd = self.filter.update(ft, T_m, R_m, est.confidence)
+        except ValueError as exc:  # a frame older than the last one fused
+            reason = f"frame out of order ({exc})"
+        timings["filter_ms"] = (time.perf_counter() - t0) * 1e3
+        if upd is not None and upd.gated:
+            reason = "gated outlier"
+        return upd, att_check, reason
 
     def _predicted_pose(self, t_s: float) -> tuple[np.ndarray, np.ndarray] | None:
         """The filter's pose for the frame's time, for an estimator that looks where the target

@@ -21,6 +21,8 @@ class DaemonStats:
     camera_reopens: int = 0
     holds: int = 0
     odometry_errors: int = 0  # the vehicle's relative_velocity raised
+    attitude_errors: int = 0  # the vehicle's relative_attitude raised
+    attitude_replaced: int = 0  # frames fused with the vehicle's attitude (oibar.nav.integrity)
     corrupt_frames: int = 0  # frames the source could not decode: skipped
 
     def summary(self) -> dict[str, Any]:
@@ -34,6 +36,8 @@ class DaemonStats:
             "camera_reopens": self.camera_reopens,
             "hold_cycles": self.holds,
             "odometry_errors": self.odometry_errors,
+            "attitude_errors": self.attitude_errors,
+            "attitude_replaced": self.attitude_replaced,
             "corrupt_frames": self.corrupt_frames,
             "cycle_ms_median": pct(self.cycle_ms, 50),
             "cycle_ms_p99": pct(self.cycle_ms, 99),

@@ -42,6 +42,8 @@ Failure behaviour (each has a test in tests/host/test_nav_daemon.py):
 - low confidence or a gated outlier: that cycle holds;
 - the vehicle's odometry (VehicleInterface.relative_velocity) raising: camera only that cycle,
   counted in ``odometry_errors``; a gated or malformed one is simply not fused;
+- the vehicle's attitude (VehicleInterface.relative_attitude) raising: that frame unchecked,
+  counted in ``attitude_errors``; frames fused with its attitude are counted in ``attitude_replaced``;
 - log disk full: logging stops with one warning, navigation goes on.
 """
 
@@ -224,11 +226,18 @@ class NavDaemon:
         start = self.clock()
         t_s = start - self._t0
         odometry = self._odometry(t_s)
+        attitude = self._vehicle_attitude(t_s)
         if frame is not None:
             step = self.nav.step(
-                t_s, frame.image, frame_t_s=frame.t_host - self._t0, frame_seq=frame.seq, odometry=odometry
+                t_s,
+                frame.image,
+                frame_t_s=frame.t_host - self._t0,
+                frame_seq=frame.seq,
+                odometry=odometry,
+                attitude_ref=attitude,
             )
             self.stats.frames_used += 1
+            self.stats.attitude_replaced += bool(step.attitude_check and step.attitude_check.replaced)
             self._last_frame_at = start
         else:
             step = self.nav.step(t_s, None, odometry=odometry)
@@ -266,7 +275,7 @@ class NavDaemon:
             st.frame_to_command_ms.append((sent - frame.t_host) * 1e3)
         if step.hold_reason:
             st.holds += 1
-        self._log_cycle(t_s, frame, step, out, obs, (end - start) * 1e3, odometry, camera_error)
+        self._log_cycle(t_s, frame, step, out, obs, (end - start) * 1e3, odometry, camera_error, attitude)
         self._last_out, self._last_step = out, step
         return step, out
 
@@ -300,6 +309,14 @@ class NavDaemon:
             self.stats.odometry_errors += 1
             return None
 
+    def _vehicle_attitude(self, t_s: float) -> Any:
+        """The vehicle's own relative attitude, if it reports one (VehicleInterface.relative_attitude)."""
+        try:
+            return self.vehicle.relative_attitude(t_s)
+        except Exception:  # a failing vehicle sensor must not stop navigation: the frame goes unchecked
+            self.stats.attitude_errors += 1
+            return None
+
     def _log_cycle(
         self,
         t_s: float,
@@ -310,6 +327,7 @@ class NavDaemon:
         cycle_ms: float,
         odometry: Any = None,
         camera_error: str = "",
+        attitude: Any = None,
     ) -> None:
         """The cycle into the flight log (oibar.nav.flightlog): it copies what it needs and
         writes in its own thread, and never raises."""
@@ -327,6 +345,7 @@ class NavDaemon:
                 frame_seq=frame.seq if frame is not None else None,
                 frame_t_s=frame.t_host - self._t0 if frame is not None else None,
                 odometry=odometry,
+                vehicle_attitude=attitude if frame is not None else None,
                 link_up=obs.link_up,
                 telemetry=tm,
                 events=list(obs.events),

@@ -36,7 +36,9 @@ port (--port):
 vehicle (--vehicle), where velocity setpoints go:
   none                 keep them in the log only (default)
   udp://HOST:PORT      one JSON datagram per cycle for the vehicle's GNC computer;
-                       its odometry datagrams back are fused (oibar.nav.vehicle)
+                       its odometry datagrams back are fused, and each frame's
+                       attitude is checked against its relative attitude
+                       (oibar.nav.vehicle, oibar.nav.integrity)
   python:MOD:CLASS     your own oibar.nav.vehicle.VehicleInterface subclass
 
 examples:

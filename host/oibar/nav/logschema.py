@@ -90,6 +90,7 @@ MESSAGES: dict[str, list[FieldSpec]] = {
         ("request_results", "RequestResult", REPEATED),
         ("corrupt_frames", UINT64),  # skipped by the source so far
         ("camera_error", STRING),
+        ("vehicle_attitude", "VehicleAttitude"),  # with the cycle's frame only
     ],
     "Odometry": [  # the vehicle's relative velocity as fed to the navigator
         ("t_s", DOUBLE),
@@ -97,6 +98,17 @@ MESSAGES: dict[str, list[FieldSpec]] = {
         ("sigma_mps", DOUBLE),
         ("malformed", STRING),  # repr of what the vehicle gave when it was not (t, v, sigma)
         ("reason", STRING),  # the filter's verdict: fused | gated | ... | dropped
+    ],
+    # the vehicle's relative attitude as fed to the navigator, and the integrity check's verdict
+    "VehicleAttitude": [
+        ("t_s", DOUBLE),
+        ("att_rad", DOUBLE, REPEATED),  # the attitude error in D (rotation vector)
+        ("sigma_rad", DOUBLE),
+        ("malformed", STRING),  # repr of what the vehicle gave when it was not (t, att, sigma)
+        ("checked", BOOL),  # the frame was checked against it (a fused frame)
+        ("disagreement_deg", DOUBLE),  # camera's attitude against the vehicle's
+        ("limit_deg", DOUBLE),
+        ("replaced", BOOL),  # the frame was fused with the vehicle's attitude
     ],
     "Timing": [("name", STRING), ("ms", DOUBLE)],
     "RequestResult": [

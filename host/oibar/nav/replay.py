@@ -2,7 +2,7 @@
 fresh navigator and compare its estimates with the recorded ones.
 
 Each cycle gets what the flight's navigator got: the frame's pixels (``/camera/image``, lossless),
-the cycle and capture times and the vehicle's odometry (``/nav/cycle``), in order, cycles without
+the cycle and capture times, the vehicle's odometry and attitude (``/nav/cycle``), in order, cycles without
 a frame included. With the same model, the same calibration (taken from the log's intrinsics unless
 ``--calibration`` names another) and the same onnxruntime thread count (the log's unless
 ``--threads`` says otherwise) on the same machine, every estimate and filter state comes out
@@ -204,6 +204,16 @@ def _odometry(cyc: Any) -> Any:
     return (float(o.t_s), np.asarray(o.v_D_mps, float), float(o.sigma_mps))
 
 
+def _vehicle_attitude(cyc: Any) -> Any:
+    """The vehicle's attitude the flight checked the frame against (None: none, or malformed)."""
+    if not cyc.HasField("vehicle_attitude"):
+        return None
+    a = cyc.vehicle_attitude
+    if a.malformed or len(a.att_rad) != 3:
+        return None  # the flight's check ignored it too
+    return (float(a.t_s), np.asarray(a.att_rad, float), float(a.sigma_rad))
+
+
 def replay(
     log_path: str | Path,
     navigator: Navigator,
@@ -307,6 +317,7 @@ def _replay_cycle(res: ReplayResult, navigator: Navigator, g: _Group) -> tuple[A
         frame_t_s=float(cyc.frame_t_s) if image is not None else None,
         frame_seq=int(cyc.frame_seq) if image is not None else None,
         odometry=_odometry(cyc),
+        attitude_ref=_vehicle_attitude(cyc) if image is not None else None,
     )
     if image is not None:
         res.frames_replayed += 1

@@ -26,6 +26,13 @@ the navigation filter fuses it with the camera (oibar.nav.filter ``update_veloci
 camera's closing speed has a bias of 10 mm/s and more at contact, the vehicle's IMU/GNC knows it
 to a few mm/s, and the MCU records the capture against it (<= 50 mm/s). It must not block
 either; an exception from it counts as no measurement.
+
+Optional relative attitude: ``relative_attitude(t_s)`` returns what the vehicle knows of the
+relative attitude, :class:`RelativeAttitude` ``(t_s, att_rad, sigma_rad)`` (its own attitude from
+its star tracker and gyros against the target's known attitude, as the attitude error in D; its
+1-sigma per axis, the target's attitude knowledge included), or None (the default). The
+navigator checks the camera's attitude against it every frame (oibar.nav.integrity); the same
+rules hold: never block, an exception counts as none.
 """
 
 from __future__ import annotations
@@ -51,6 +58,16 @@ class RelativeVelocity(NamedTuple):
     sigma_mps: float  # 1-sigma per axis
 
 
+class RelativeAttitude(NamedTuple):
+    """The vehicle's own relative attitude: the attitude error ``att_rad`` (rotation vector from
+    the aligned attitude, body frame, rad: the navigation filter's ``att_rad``) and its 1-sigma
+    per axis (rad), valid at ``t_s`` on the daemon's clock."""
+
+    t_s: float
+    att_rad: np.ndarray  # (3,)
+    sigma_rad: float
+
+
 class VehicleInterface(ABC):
     @abstractmethod
     def send(self, t_s: float, v_D_mps: np.ndarray, w_rad_s: np.ndarray, phase: str) -> None:
@@ -58,6 +75,13 @@ class VehicleInterface(ABC):
 
     def relative_velocity(self, t_s: float) -> RelativeVelocity | None:
         """The latest own relative-velocity measurement at or before t_s, or None (no odometry)."""
+        return None
+
+    def relative_attitude(self, t_s: float) -> RelativeAttitude | None:
+        """The vehicle's own relative attitude at or before t_s, or None (the default): its
+        attitude from its own sensors against the target's known attitude, as the attitude error
+        in D that the navigation filter keeps (oibar.nav.integrity checks the camera's against
+        it). Like ``relative_velocity``: never block, and an exception counts as none."""
         return None
 
     def hold(self, t_s: float) -> None:
@@ -90,6 +114,10 @@ class UdpJsonVehicle(VehicleInterface):
     it (up to one cycle late: give ``t_s`` when you can). The newest measurement is fused once;
     one older than ``max_age_s`` is dropped; a malformed one, or one from the future, is counted
     in ``odometry_rejected`` and ignored, never raised.
+
+    The same datagram (or one of its own) may carry the relative attitude: ``"att_rad": [x, y,
+    z]`` (the attitude error in D, a rotation vector, rad) and ``"att_sigma_rad": s``, under the
+    same ``t_s`` and the same rules (``attitude_received``, ``attitude_rejected``).
     """
 
     max_age_s = 0.5  # odometry older than this is stale (5 cycles)
@@ -105,7 +133,10 @@ class UdpJsonVehicle(VehicleInterface):
         self.errors = 0
         self.odometry_received = 0
         self.odometry_rejected = 0
+        self.attitude_received = 0
+        self.attitude_rejected = 0
         self._latest: RelativeVelocity | None = None
+        self._latest_att: RelativeAttitude | None = None
 
     def send(self, t_s: float, v_D_mps: np.ndarray, w_rad_s: np.ndarray, phase: str) -> None:
         msg = {
@@ -128,50 +159,74 @@ class UdpJsonVehicle(VehicleInterface):
             return None
         return odo
 
+    def relative_attitude(self, t_s: float) -> RelativeAttitude | None:
+        """The newest valid relative attitude not older than ``max_age_s`` (never blocks). Unlike
+        odometry it is not used up: the check compares every frame with it."""
+        self.drain(t_s)
+        att = self._latest_att
+        if att is None or t_s - att.t_s > self.max_age_s:
+            return None
+        return att
+
     max_datagrams_per_cycle = 256  # bounds the work a flooding sender can put in the 10 Hz cycle
 
     def drain(self, now_s: float) -> None:
-        """Read the datagrams waiting on the socket; keep the newest valid measurement."""
+        """Read the datagrams waiting on the socket; keep the newest valid measurements."""
         for _ in range(self.max_datagrams_per_cycle):
             try:
                 data, _ = self.sock.recvfrom(2048)
             except OSError:  # nothing waiting (BlockingIOError) or a socket error: next cycle
                 break
-            odo = self._parse(data, now_s)
+            try:
+                msg = json.loads(data)
+                t = float(msg["t_s"]) if msg.get("t_s") is not None else now_s
+            except (ValueError, TypeError, KeyError, AttributeError):
+                msg, t = None, float("nan")
+            if not isinstance(msg, dict) or not np.isfinite(t) or t > now_s + self.future_tolerance_s:
+                self.odometry_rejected += 1
+                continue
+            t = min(t, now_s)
+            if "att_rad" in msg or "att_sigma_rad" in msg:
+                att = _vector_and_sigma(msg, "att_rad", "att_sigma_rad")
+                if att is None:
+                    self.attitude_rejected += 1
+                else:
+                    self.attitude_received += 1
+                    if self._latest_att is None or t >= self._latest_att.t_s:
+                        self._latest_att = RelativeAttitude(t, *att)
+                if "v_D_mps" not in msg and "sigma_mps" not in msg:
+                    continue  # an attitude datagram alone
+            odo = _vector_and_sigma(msg, "v_D_mps", "sigma_mps")
             if odo is None:
                 self.odometry_rejected += 1
                 continue
             self.odometry_received += 1
-            if self._latest is None or odo.t_s >= self._latest.t_s:
-                self._latest = odo
-
-    def _parse(self, data: bytes, now_s: float) -> RelativeVelocity | None:
-        try:
-            msg = json.loads(data)
-            v = np.asarray(msg["v_D_mps"], dtype=float)
-            sigma = float(msg["sigma_mps"])
-            t = float(msg["t_s"]) if msg.get("t_s") is not None else now_s
-        except (ValueError, TypeError, KeyError, IndexError):
-            return None
-        if (
-            v.shape != (3,)
-            or not np.all(np.isfinite(v))
-            or not (np.isfinite(sigma) and sigma > 0)
-            or not np.isfinite(t)
-            or t > now_s + self.future_tolerance_s
-        ):
-            return None
-        return RelativeVelocity(min(t, now_s), v, sigma)
+            if self._latest is None or t >= self._latest.t_s:
+                self._latest = RelativeVelocity(t, *odo)
 
     def statistics(self) -> dict[str, Any]:
         return {
             "send_errors": self.errors,
             "odometry_received": self.odometry_received,
             "odometry_rejected": self.odometry_rejected,
+            "attitude_received": self.attitude_received,
+            "attitude_rejected": self.attitude_rejected,
         }
 
     def close(self) -> None:
         self.sock.close()
+
+
+def _vector_and_sigma(msg: dict[str, Any], vec_key: str, sigma_key: str) -> tuple[np.ndarray, float] | None:
+    """``msg[vec_key]`` (3 finite numbers) and ``msg[sigma_key]`` (finite, above zero), or None."""
+    try:
+        v = np.asarray(msg[vec_key], dtype=float)
+        sigma = float(msg[sigma_key])
+    except (ValueError, TypeError, KeyError):
+        return None
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or not (np.isfinite(sigma) and sigma > 0):
+        return None
+    return v, sigma
 
 
 def open_vehicle(spec: str) -> VehicleInterface:

@@ -66,6 +66,8 @@ def cycle_message(c: Any) -> Any:
     )
     if c.odometry is not None:
         cyc.odometry.CopyFrom(odometry_message(c.odometry, step.velocity_update))
+    if getattr(c, "vehicle_attitude", None) is not None:
+        cyc.vehicle_attitude.CopyFrom(vehicle_attitude_message(c.vehicle_attitude, step.attitude_check))
     for name, ms in step.timings_ms.items():
         cyc.timings.add(name=str(name), ms=float(ms))
     for r in c.results:
@@ -149,6 +151,23 @@ def odometry_message(odometry: Any, verdict: Any) -> Any:
     except (TypeError, ValueError, IndexError):
         m.malformed = repr(odometry)[:80]
         del m.v_D_mps[:]
+    return m
+
+
+def vehicle_attitude_message(attitude: Any, check: Any) -> Any:
+    """``oibar.log.VehicleAttitude``: the vehicle's attitude as fed, and the check's verdict."""
+    m = logschema.new("VehicleAttitude", checked=check is not None)
+    try:
+        m.t_s = float(attitude[0])
+        m.att_rad.extend(float(v) for v in attitude[1])
+        m.sigma_rad = float(attitude[2])
+    except (TypeError, ValueError, IndexError):
+        m.malformed = repr(attitude)[:80]
+        del m.att_rad[:]
+    if check is not None:
+        m.disagreement_deg = float(check.disagreement_deg)
+        m.limit_deg = float(check.limit_deg)
+        m.replaced = bool(check.replaced)
     return m
 
 

@@ -64,6 +64,7 @@ class CycleInputs:
     frame_seq: int | None = None
     frame_t_s: float | None = None
     odometry: Any = None  # as fed to the navigator: (t_s, v_D_mps, sigma_mps) or None
+    vehicle_attitude: Any = None  # as fed with the frame: (t_s, att_rad, sigma_rad) or None
     link_up: bool = False
     telemetry: Any = None  # pb.Telemetry
     events: list[Any] = field(default_factory=list)  # pb.Event
