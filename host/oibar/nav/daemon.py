@@ -225,8 +225,8 @@ class NavDaemon:
             camera_error = self._cam_error
         start = self.clock()
         t_s = start - self._t0
-        odometry = self._odometry(t_s)
-        attitude = self._vehicle_attitude(t_s)
+        odometry = self._ask_vehicle("relative_velocity", t_s)
+        attitude = self._ask_vehicle("relative_attitude", t_s)
         if frame is not None:
             step = self.nav.step(
                 t_s,
@@ -301,20 +301,16 @@ class NavDaemon:
             self._handle = self._awaiting = None
         return results
 
-    def _odometry(self, t_s: float) -> Any:
-        """The vehicle's own relative velocity, if it reports one (VehicleInterface.relative_velocity)."""
+    def _ask_vehicle(self, what: str, t_s: float) -> Any:
+        """The vehicle's own measurement ``what`` ("relative_velocity", "relative_attitude") at
+        t_s, or None. A failing vehicle sensor must not stop navigation: raising counts in
+        ``stats.odometry_errors`` / ``attitude_errors`` and gives None (camera only, the frame
+        unchecked)."""
         try:
-            return self.vehicle.relative_velocity(t_s)
-        except Exception:  # a failing vehicle sensor must not stop navigation: camera only this cycle
-            self.stats.odometry_errors += 1
-            return None
-
-    def _vehicle_attitude(self, t_s: float) -> Any:
-        """The vehicle's own relative attitude, if it reports one (VehicleInterface.relative_attitude)."""
-        try:
-            return self.vehicle.relative_attitude(t_s)
-        except Exception:  # a failing vehicle sensor must not stop navigation: the frame goes unchecked
-            self.stats.attitude_errors += 1
+            return getattr(self.vehicle, what)(t_s)
+        except Exception:
+            counter = "odometry_errors" if what == "relative_velocity" else "attitude_errors"
+            setattr(self.stats, counter, getattr(self.stats, counter) + 1)
             return None
 
     def _log_cycle(

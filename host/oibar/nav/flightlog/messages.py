@@ -142,28 +142,29 @@ def filter_message(cycle: int, t_s: float, state: Any, step: Any, initialised: b
     return m
 
 
+def _measurement(m: Any, value: Any, vec_field: str, sigma_field: str) -> Any:
+    """A vehicle's ``(t_s, vector, sigma)`` into ``m`` (an Odometry or VehicleAttitude); what is
+    not one goes into ``m.malformed`` as its repr, with no vector."""
+    try:
+        m.t_s = float(value[0])
+        getattr(m, vec_field).extend(float(v) for v in value[1])
+        setattr(m, sigma_field, float(value[2]))
+    except (TypeError, ValueError, IndexError):
+        m.malformed = repr(value)[:80]
+        del getattr(m, vec_field)[:]
+    return m
+
+
 def odometry_message(odometry: Any, verdict: Any) -> Any:
     m = logschema.new("Odometry", reason=str(verdict.reason) if verdict is not None else "dropped")
-    try:
-        m.t_s = float(odometry[0])
-        m.v_D_mps.extend(float(v) for v in odometry[1])
-        m.sigma_mps = float(odometry[2])
-    except (TypeError, ValueError, IndexError):
-        m.malformed = repr(odometry)[:80]
-        del m.v_D_mps[:]
-    return m
+    return _measurement(m, odometry, "v_D_mps", "sigma_mps")
 
 
 def vehicle_attitude_message(attitude: Any, check: Any) -> Any:
     """``oibar.log.VehicleAttitude``: the vehicle's attitude as fed, and the check's verdict."""
-    m = logschema.new("VehicleAttitude", checked=check is not None)
-    try:
-        m.t_s = float(attitude[0])
-        m.att_rad.extend(float(v) for v in attitude[1])
-        m.sigma_rad = float(attitude[2])
-    except (TypeError, ValueError, IndexError):
-        m.malformed = repr(attitude)[:80]
-        del m.att_rad[:]
+    m = _measurement(
+        logschema.new("VehicleAttitude", checked=check is not None), attitude, "att_rad", "sigma_rad"
+    )
     if check is not None:
         m.disagreement_deg = float(check.disagreement_deg)
         m.limit_deg = float(check.limit_deg)
