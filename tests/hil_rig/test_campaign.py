@@ -283,6 +283,9 @@ def test_serial_campaign_rows(serial_campaign):
         assert r["sim_time_s"] > 0 and r["wall_time_s"] > 0 and r["cpu_time_s"] > 0
         if not r["fault"]:
             assert r["captured"] and r["contact_lateral_m"] < 0.05 and r["fuel_transferred_kg"] > 0.02
+            # the true path inside 5 m: inside guidance's corridor there (0.5 m), and not nothing
+            assert 0.0 < r["approach_off_axis_m_max_below_5m"] < 0.5
+        assert r["nav_attitude_replaced"] == 0  # truth navigation: no frame to check
         d = draw_mission(cfg, r["index"])
         assert r["in_start_range_m"] == d.values["start_range_m"] and r["fault"] == d.fault
 
@@ -340,6 +343,7 @@ def test_ray_campaign_with_a_killed_worker_gives_the_same_table(serial_campaign,
     assert (out / "figures" / "inputs_success.png").exists()
     nav_figure = out / "figures" / "inputs_vs_nav_lateral_err_m_p95_below_5m.png"  # what drives nav error
     assert nav_figure.exists()
+    assert (out / "figures" / "inputs_vs_approach_off_axis_m_max_below_5m.png").exists()  # and the path
 
 
 def test_replay_reproduces_a_stored_mission(serial_campaign, capsys):
@@ -781,3 +785,27 @@ def test_a_bad_missions_table_is_refused(fake_runs, tmp_path):
     # another campaign's folder as the destination of a pack
     rc, _, err = fake_runs("pack", str(camp), "--to", str(others["seed"].parent))
     assert rc == EXIT_FOLDER and "holds another campaign" in err
+
+
+def test_a_table_from_before_a_column_reads_it_as_null_and_reports(tmp_path):
+    """cnn_300's packed table (from before nav_attitude_replaced and the true path inside 5 m)
+    is read in today's schema, the new columns null, and its report is written without them."""
+    import shutil
+
+    import pyarrow.parquet as pq
+
+    from oibar_hil.campaign.report import write_report
+    from oibar_hil.campaign.store import load_config, table_rows
+
+    packed = ROOT / "hil" / "campaigns" / "results" / "cnn_300"
+    folder = tmp_path / "cnn_300"
+    shutil.copytree(packed, folder)
+    assert "nav_attitude_replaced" not in pq.read_schema(folder / "missions.parquet").names
+    rows = table_rows(folder)
+    assert len(rows) >= 100 and all(r["success"] for r in rows)
+    assert {r["nav_attitude_replaced"] for r in rows} == {None}
+    assert {r["approach_off_axis_m_max_below_5m"] for r in rows} == {None}
+    report = write_report(folder, rows, load_config(folder)).read_text()
+    assert f"{len(rows)}/{len(rows)}" in report
+    assert (folder / "figures" / "inputs_vs_nav_lateral_err_m_p95_below_5m.png").exists()
+    assert not (folder / "figures" / "inputs_vs_approach_off_axis_m_max_below_5m.png").exists()

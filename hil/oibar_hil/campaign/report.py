@@ -30,8 +30,10 @@ from typing import Any
 
 import numpy as np
 
+from oibar.nav.guidance import CORRIDOR_SLOPE
 from oibar_hil.campaign.dispersion import INPUTS, NOT_APPLIED, CampaignConfig
 from oibar_hil.campaign.stats import Rate, rate
+from oibar_hil.rig.runner import NEAR_RANGE_M
 
 # The limits each contact/load outcome is judged against (paper; the drogue's mouth radius).
 LIMITS = {
@@ -42,12 +44,17 @@ LIMITS = {
     "peak_force_soft_n": (30.0, "soft-docking force limit"),
 }
 # Navigation has no limit of its own: its error is drawn against the funnel mouth it must find.
-NAV_REFERENCE = {"nav_lateral_err_m_p95_below_5m": (0.10, "funnel mouth radius")}
+# The chaser's true path inside 5 m is drawn against guidance's approach corridor there.
+NAV_REFERENCE = {
+    "nav_lateral_err_m_p95_below_5m": (0.10, "funnel mouth radius"),
+    "approach_off_axis_m_max_below_5m": (CORRIDOR_SLOPE * NEAR_RANGE_M, "guidance's corridor at 5 m"),
+}
 OUTCOME_PLOTS = (
     "contact_lateral_m",
     "contact_closing_speed_mps",
     "peak_force_n",
     "nav_lateral_err_m_p95_below_5m",
+    "approach_off_axis_m_max_below_5m",
 )
 WORST_SHOWN = 10
 

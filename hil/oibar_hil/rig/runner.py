@@ -449,6 +449,13 @@ class Rig:
             "nav_hold_cycles": sum(1 for r in log if r["hold_reason"]),
             "nav_attitude_replaced": sum(1 for r in log if r.get("att_replaced")),
         }
+        # Where the chaser truly was: its largest distance from the docking axis inside 5 m, where
+        # guidance's corridor is 0.5 m wide at most (a navigation error shows up here as a path)
+        near_true = [
+            np.hypot(r["true_x_m"], r["true_y_m"]) for r in log if 0.0 < r["range_true_m"] < NEAR_RANGE_M
+        ]
+        if near_true:
+            out["approach_off_axis_m_max_below_5m"] = float(np.max(near_true))
         if valid:
             rng = np.array([abs(r["range_est_m"] - r["range_true_m"]) for r in valid])
             rel = rng / np.maximum(np.array([abs(r["range_true_m"]) for r in valid]) + 0.57, 0.3)
