@@ -152,6 +152,7 @@ def test_the_daemon_checks_every_frame_logs_the_verdict_and_replays_it(tmp_path)
     summary = d.run(max_cycles=25)
     assert summary["frames_used"] >= 20
     assert summary["attitude_replaced"] == summary["frames_used"]
+    assert "ATT: vehicle's (camera 1" in d.status_line(), "the operator sees it live"
     assert lateral_offset_m(d.nav.filter.state(d.clock() - d._t0).r_D_m[:2] - R_TRUE_D_M[:2]) < 0.2
     cycles = [c for c in decoded(tmp_path / "flight.mcap", "/nav/cycle") if c.has_frame]
     att = [c.vehicle_attitude for c in cycles]

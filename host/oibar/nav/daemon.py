@@ -379,10 +379,12 @@ class NavDaemon:
         hold = f"  HOLD: {sol.hold_reason}" if sol.hold_reason else ""
         logw = f"  LOG: {self.log.error}" if self.log is not None and self.log.error else ""
         bad = f"  corrupt {self.stats.corrupt_frames}" if self.stats.corrupt_frames else ""
+        chk = step.attitude_check
+        att = f"  ATT: vehicle's (camera {chk.disagreement_deg:.1f} deg off)" if chk and chk.replaced else ""
         return (
             f"t {self._last_t():7.1f} s  {out.phase:<18} range {rng}  lat {sol.lateral_m * 100:5.1f} cm  "
             f"conf {sol.confidence:4.2f}  MCU {st:<16} link {link}  cycle {cyc:5.1f} ms  "
-            f"missed {self.stats.missed_deadlines}{bad}{hold}{logw}"
+            f"missed {self.stats.missed_deadlines}{bad}{att}{hold}{logw}"
         )
 
     def _last_t(self) -> float:
