@@ -285,7 +285,9 @@ def test_serial_campaign_rows(serial_campaign):
             assert r["captured"] and r["contact_lateral_m"] < 0.05 and r["fuel_transferred_kg"] > 0.02
             # the true path inside 5 m: inside guidance's corridor there (0.5 m), and not nothing
             assert 0.0 < r["approach_off_axis_m_max_below_5m"] < 0.5
-        assert r["nav_attitude_replaced"] == 0  # truth navigation: no frame to check
+        assert (
+            r["nav_attitude_replaced"] == 0 and r["nav_att_check_deg_max"] is None
+        )  # truth: nothing checked
         d = draw_mission(cfg, r["index"])
         assert r["in_start_range_m"] == d.values["start_range_m"] and r["fault"] == d.fault
 
@@ -805,6 +807,7 @@ def test_a_table_from_before_a_column_reads_it_as_null_and_reports(tmp_path):
     assert len(rows) >= 100 and all(r["success"] for r in rows)
     assert {r["nav_attitude_replaced"] for r in rows} == {None}
     assert {r["approach_off_axis_m_max_below_5m"] for r in rows} == {None}
+    assert {r["nav_att_check_deg_max"] for r in rows} == {None}
     report = write_report(folder, rows, load_config(folder)).read_text()
     assert f"{len(rows)}/{len(rows)}" in report
     assert (folder / "figures" / "inputs_vs_nav_lateral_err_m_p95_below_5m.png").exists()

@@ -47,6 +47,11 @@ def test_short_mission_with_the_cnn_in_the_loop(sim_mcu_path, cnn_nav_factory, t
     # the navigator, not the truth, flew it: its errors are real and bounded
     assert 0.0 < m["nav_lateral_err_m_median"] < 0.05
     assert m["nav_misalign_err_deg_median"] > 0.0
+    # every frame fused was checked against the vehicle's attitude, and an ordinary flight's camera
+    # stays inside the check's bound (5 deg + 3 x the vehicle's 1 deg): none replaced
+    checked = [x["att_check_deg"] for x in r.nav_log if "att_check_deg" in x]
+    assert len(checked) > 300 and m["nav_att_check_deg_max"] == pytest.approx(max(checked))
+    assert 0.0 < m["nav_att_check_deg_max"] < 8.0 and m["nav_attitude_replaced"] == 0
     # the vehicle's own velocity went into the filter beside the camera, nearly every cycle
     vc = nav.navigator.filter.velocity_counts
     assert vc["fused"] > 300 and vc["gated"] + vc["reset"] < 0.05 * vc["fused"], vc

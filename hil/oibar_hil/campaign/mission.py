@@ -349,6 +349,7 @@ def _outcome_columns(result: Any, rig: Any) -> dict[str, Any]:
         "nav_hold_cycles": int(m.get("nav_hold_cycles", 0)),
         "nav_lateral_err_m_p95_below_5m": m.get("nav_lateral_err_m_p95_below_5m"),
         "nav_attitude_replaced": int(m.get("nav_attitude_replaced", 0)),
+        "nav_att_check_deg_max": m.get("nav_att_check_deg_max"),
         "approach_off_axis_m_max_below_5m": m.get("approach_off_axis_m_max_below_5m"),
         "sim_time_s": result.sim_time_s,
         "rig_wall_s": result.wall_time_s,
@@ -394,8 +395,10 @@ OUTPUT_COLUMNS: dict[str, str] = {
     "nav_hold_cycles": "int64",
     "nav_lateral_err_m_p95_below_5m": "float64",
     # added after cnn_300 began (older tables read them as null): frames the navigator fused on
-    # the vehicle's attitude (oibar.nav.integrity), and the chaser's true path inside 5 m
+    # the vehicle's attitude (oibar.nav.integrity) and the check's largest disagreement (deg;
+    # none with truth navigation), and the chaser's true path inside 5 m
     "nav_attitude_replaced": "int64",
+    "nav_att_check_deg_max": "float64",
     "approach_off_axis_m_max_below_5m": "float64",
     "sim_time_s": "float64",
     "rig_wall_s": "float64",

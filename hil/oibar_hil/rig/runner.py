@@ -449,6 +449,9 @@ class Rig:
             "nav_hold_cycles": sum(1 for r in log if r["hold_reason"]),
             "nav_attitude_replaced": sum(1 for r in log if r.get("att_replaced")),
         }
+        checked = [r["att_check_deg"] for r in log if "att_check_deg" in r]
+        if checked:  # the integrity check's largest disagreement: a campaign's spread sets its bound
+            out["nav_att_check_deg_max"] = float(np.max(checked))
         # Where the chaser truly was: its largest distance from the docking axis inside 5 m, where
         # guidance's corridor is 0.5 m wide at most (a navigation error shows up here as a path)
         near_true = [
