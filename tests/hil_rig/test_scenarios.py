@@ -54,12 +54,14 @@ def test_the_navigation_metrics_below_5_m_take_only_the_near_cycles():
 
     from oibar_hil.rig.runner import NEAR_RANGE_M, Rig
 
-    def row(rng_m, lat_err_m, mis_est_deg, valid=True):
+    def row(rng_m, lat_err_m, mis_est_deg, valid=True, off_axis_m=0.1):
         return {
             "t_s": 0.0,
             "valid": valid,
             "hold_reason": "" if valid else "no_fix",
             "range_true_m": rng_m,
+            "true_x_m": 0.6 * off_axis_m,
+            "true_y_m": -0.8 * off_axis_m,
             "range_est_m": rng_m,
             "lateral_err_m": lat_err_m,
             "misalign_true_deg": 2.5,
@@ -68,8 +70,9 @@ def test_the_navigation_metrics_below_5_m_take_only_the_near_cycles():
 
     far = [row(8.0, 0.30, 5.0) for _ in range(50)]
     near = [row(NEAR_RANGE_M * k / 21, 0.01 * k, 2.5 + 0.01 * k) for k in range(1, 21)]
-    held = [row(2.0, 9.0, 90.0, valid=False)]
-    inside = [row(-0.05, 0.5, 2.5)]  # probe inside the drogue: not an approach cycle
+    far = far + [row(8.0, 0.30, 5.0, off_axis_m=1.5)]  # far out the path may be wide
+    held = [row(2.0, 9.0, 90.0, valid=False, off_axis_m=0.4)]  # a held cycle's path counts: it is the truth
+    inside = [row(-0.05, 0.5, 2.5, off_axis_m=0.7)]  # probe inside the drogue: not an approach cycle
     m = Rig.nav_metrics(SimpleNamespace(nav_log=far + near + held + inside, nav=SimpleNamespace(name="cnn")))
     lat = 0.01 * np.arange(1, 21)
     assert m["nav_lateral_err_m_max_below_5m"] == pytest.approx(0.20)
@@ -77,3 +80,4 @@ def test_the_navigation_metrics_below_5_m_take_only_the_near_cycles():
     assert m["nav_misalign_err_deg_p95_below_5m"] == pytest.approx(np.percentile(0.01 * np.arange(1, 21), 95))
     assert m["nav_lateral_err_m_p99"] > 0.29  # the whole mission's figure still sees the far cycles
     assert m["nav_hold_cycles"] == 1
+    assert m["approach_off_axis_m_max_below_5m"] == pytest.approx(0.4)

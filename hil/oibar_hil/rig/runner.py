@@ -455,7 +455,9 @@ class Rig:
         # Where the chaser truly was: its largest distance from the docking axis inside 5 m, where
         # guidance's corridor is 0.5 m wide at most (a navigation error shows up here as a path)
         near_true = [
-            np.hypot(r["true_x_m"], r["true_y_m"]) for r in log if 0.0 < r["range_true_m"] < NEAR_RANGE_M
+            np.hypot(r["true_x_m"], r["true_y_m"])
+            for r in log
+            if "true_x_m" in r and 0.0 < r["range_true_m"] < NEAR_RANGE_M
         ]
         if near_true:
             out["approach_off_axis_m_max_below_5m"] = float(np.max(near_true))
