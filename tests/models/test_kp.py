@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -450,6 +451,10 @@ def test_ddp_two_processes_on_gloo(tiny_dataset, kp_sets, tmp_path):
     """torchrun --nproc_per_node 2: both processes step together; rank 0 writes the run."""
     run = tmp_path / "ddp"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    # a port free now: a fixed one was taken once by another process on a busy machine (EADDRINUSE)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
     cmd = [
         sys.executable,
         "-m",
@@ -457,7 +462,7 @@ def test_ddp_two_processes_on_gloo(tiny_dataset, kp_sets, tmp_path):
         "--nproc_per_node",
         "2",
         "--master_port",
-        "29517",
+        str(port),
         "-m",
         "oibar_models.kp_train",
         "--config",
