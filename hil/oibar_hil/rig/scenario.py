@@ -75,7 +75,11 @@ class Scenario:
     path: Path | None = None
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], path: Path | None = None) -> Scenario:
+    def from_dict(
+        cls, d: dict[str, Any], path: Path | None = None, mcu_path: str | Path | None = None
+    ) -> Scenario:
+        """`mcu_path`: the simulated MCU whose parameter table checks the names (the one the rig
+        will fly; default: fw_params.default_mcu_path)."""
         d = dict(d)
         unknown_expect = set(d.get("expect", {})) - EXPECT_KEYS
         if unknown_expect:
@@ -86,7 +90,7 @@ class Scenario:
             if f.get("type") == "param_attack":
                 named += list(f.get("values", {}))
         if named:
-            param_ids(named)
+            param_ids(named, mcu_path)
         start = d.get("start", {})
         return cls(
             name=d.get("name") or (path.stem if path else "scenario"),
