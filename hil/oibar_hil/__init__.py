@@ -14,4 +14,7 @@ the fixture's numbers come from `oibar.geometry`, shared with flight and trainin
 # 0.3.0: the renderer made honest (issue 58): a depth bias of about a texel, so occluders of 1 cm
 # shade; the Earth as an extended, occludable light lit where the Sun lights it; exposure and
 # gamma settings (datasets written by 0.2.0 are refused on resume: re-render them with --force).
-__version__ = "0.3.0"
+# 0.4.0: Earth-shine in the colour of the ground and clouds under the sunlit disc (the Earth's
+# texture, as Mitsuba's environment map lights its path tracer), not a grey albedo of 0.30: 0.13
+# to 0.71 of the Sun's irradiance on a nadir-facing plate over three places, against 0.26 grey.
+__version__ = "0.4.0"

@@ -5,10 +5,10 @@ A depth pass renders the Sun's two shadow-map cascades into one atlas (cached wh
 direction is unchanged) and the Earth's shadow maps into another (one per sample direction over
 its disc, cached while the Earth stays put in LVLH); one pass draws the meshes with Lambert +
 Blinn-Phong lighting from the Sun, Earth-shine from the whole sunlit part of the disc (occluded
-like the Sun) and a small ambient term, and one pass draws the background on
-the pixels left uncovered (black space with an analytic Earth, or a Perlin backdrop). The id
-pass (its own flat shader) writes each part's id into the red channel instead of a colour, for
-label checks. Performance notes for llvmpipe are in docs/synthetic.md.
+like the Sun, in the colour of the ground and clouds under it) and a small ambient term, and one
+pass draws the background on the pixels left uncovered (black space with an analytic Earth, or a
+Perlin backdrop). The id pass (its own flat shader) writes each part's id into the red channel
+instead of a colour, for label checks. Performance notes for llvmpipe are in docs/synthetic.md.
 
 A scene may carry a randomised look (oibar_hil.randomize, issue 58 part 3): the same passes with
 the mesh shader compiled with LOOK defined (per-part materials with a procedural texture, spot
@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -35,10 +36,13 @@ from .camera import R_GL_CV, gl_projection
 from .meshes import ID_ADAPTER, ID_MODULE, ID_OTHER_FIXTURE, Part
 from .randomize import MAX_LAMPS, LookParams
 from .textures import (
+    box_downsample,
+    earth_ground,
     earth_texture,
     lab_clutter_background,
     periodic_noise3d,
     perlin_background,
+    sample_equirect,
     star_background,
 )
 
@@ -101,7 +105,7 @@ uniform vec3 u_sun_dir;          // unit, towards the Sun
 // LEO), each with its own shadow map and a weight (the radiance of the Earth seen there, sunlit
 // or not, times its share of the disc's solid angle).
 uniform vec3 u_earth_l[EARTH_SAMPLES];      // unit, towards that patch of the Earth
-uniform float u_earth_w[EARTH_SAMPLES];     // irradiance weight (Sun = 1)
+uniform vec3 u_earth_w[EARTH_SAMPLES];      // RGB irradiance weight (Sun = 1)
 uniform vec3 u_focus;                       // the centre of those maps
 uniform float u_earth_reach2;               // squared distance from it beyond which no map holds a point
 in vec3 v_e[EARTH_SAMPLES];                 // the point in each map ([0, 1]^3)
@@ -185,7 +189,7 @@ void main() {
     // Earth-shine: each sample's cosine, occluded through its own shadow map (1 cm normal offset,
     // about a texel, and a slope-scaled depth bias, as for the Sun) near the fixture; unoccluded
     // beyond the maps' reach.
-    float earth = 0.0;
+    vec3 earth = vec3(0.0);
     vec3 dp = v_pos - u_focus;
     float r2 = dot(dp, dp) / u_earth_reach2;
     bool mapped = r2 < 1.0;
@@ -412,7 +416,6 @@ class RenderSettings:
     msaa_samples: int = 0  # off: ~2.5x faster on llvmpipe, labels unaffected
     sun_intensity: float = 1.0
     ambient: float = 0.03
-    earth_albedo: float = 0.30  # the Earth's mean Lambertian albedo (a sunlit Earth's share of the Sun)
     earth_samples: int = 6  # patches of the Earth's disc, each a shadow-mapped direction
     earth_shadow_px: int = 512  # side of each of those maps
     earth_shadow_taps: int = 4  # filtered taps per sample (1 or 4): 4 soften its penumbra
@@ -564,19 +567,45 @@ def fibonacci_disc(earth_c_km: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-EARTH_FINE_SAMPLES = 512  # the disc's radiance is integrated over this many directions
+# The disc's radiance is integrated over this many directions (about 2 deg apart from LEO): the
+# ground's colour changes on that scale, so fewer (512) left a patch's colour to a few texels.
+EARTH_FINE_SAMPLES = 4096
+# Earth-shine reads the Earth's texture averaged over blocks of this many texels a side (0.7 deg
+# at 2048 x 1024): each direction then stands for its neighbourhood, not one texel of cloud or sea.
+EARTH_SHINE_TEXEL_BLOCK = 4
+
+
+@lru_cache(maxsize=1)
+def earth_rgba() -> np.ndarray:
+    """The Earth's texture as both renderers draw it (2048 x 1024 RGBA; built once a process,
+    ~2 s, read-only)."""
+    tex = earth_texture(width=2048, height=1024)
+    tex.flags.writeable = False
+    return tex
+
+
+@lru_cache(maxsize=1)
+def earth_shine_ground() -> np.ndarray:
+    """The Earth's albedo (ground and clouds, RGB) that Earth-shine reads: `earth_rgba`'s,
+    averaged over EARTH_SHINE_TEXEL_BLOCK texels a side."""
+    out = box_downsample(earth_ground(earth_rgba()), EARTH_SHINE_TEXEL_BLOCK)
+    out.flags.writeable = False
+    return out
 
 
 class EarthLight:
     """The Earth as an extended light seen from the station: its disc cut into `n` patches of
     equal solid angle (each a shadow-mapped direction, the mean of its part of a fine spiral),
-    and each patch's irradiance weight for a Sun direction (Sun = 1): the integral over the
-    patch of a Lambertian Earth's radiance, albedo / pi * max(n_earth . sun, 0). A surface
-    facing a fully sunlit Earth below gets about albedo x sin^2(disc half-angle), 0.26 at 420 km."""
+    and each patch's RGB irradiance weight for a Sun direction (Sun = 1): the integral over the
+    patch of a Lambertian Earth's radiance, albedo / pi * max(n_earth . sun, 0), with the albedo
+    of the ground (and clouds) each fine direction meets, read from `ground` (an equirectangular
+    RGB map in ECEF, `earth_shine_ground` unless told): the colour Mitsuba's environment map
+    gives the path tracer. A surface facing a fully sunlit Earth of albedo 0.3 below gets about
+    0.3 x sin^2(disc half-angle), 0.26 at 420 km."""
 
-    def __init__(self, earth_c_km: np.ndarray, n: int, albedo: float):
+    def __init__(self, earth_c_km: np.ndarray, n: int, ground: np.ndarray | None = None):
         c = np.asarray(earth_c_km, float)
-        self.albedo = float(albedo)
+        self.ground = earth_shine_ground() if ground is None else np.asarray(ground, float)
         fine = fibonacci_disc(c, EARTH_FINE_SAMPLES)
         coarse = fibonacci_disc(c, n)
         self.patch = np.argmax(fine @ coarse.T, axis=1)
@@ -591,9 +620,25 @@ class EarthLight:
         cos_a = np.sqrt(max(0.0, 1.0 - (EARTH_RADIUS_KM / clen) ** 2))
         self.d_omega = 2.0 * np.pi * (1.0 - cos_a) / EARTH_FINE_SAMPLES
 
-    def weights(self, sun: np.ndarray) -> np.ndarray:
-        radiance = self.albedo / np.pi * np.maximum(self.n_earth @ np.asarray(sun, float), 0.0)
-        w: np.ndarray = np.bincount(self.patch, radiance * self.d_omega, minlength=len(self.dirs))
+    def radiance(self, sun: np.ndarray, R_ecef_lvlh: np.ndarray | None = None) -> np.ndarray:
+        """(EARTH_FINE_SAMPLES, 3): the Earth's RGB radiance (Sun = 1) along each fine direction
+        for the Sun direction `sun` (LVLH), the ground under the disc placed by `R_ecef_lvlh`
+        (identity: ECEF axes along LVLH's)."""
+        n_ecef = self.n_earth if R_ecef_lvlh is None else self.n_earth @ np.asarray(R_ecef_lvlh, float).T
+        albedo = sample_equirect(self.ground, n_ecef)
+        out: np.ndarray = albedo / np.pi * np.maximum(self.n_earth @ np.asarray(sun, float), 0.0)[:, None]
+        return out
+
+    def weights(self, sun: np.ndarray, R_ecef_lvlh: np.ndarray | None = None) -> np.ndarray:
+        """(n, 3): each patch's RGB irradiance weight (`radiance` summed over the patch)."""
+        radiance = self.radiance(sun, R_ecef_lvlh)
+        w: np.ndarray = np.stack(
+            [
+                np.bincount(self.patch, radiance[:, ch] * self.d_omega, minlength=len(self.dirs))
+                for ch in range(3)
+            ],
+            axis=1,
+        )
         return w
 
 
@@ -816,7 +861,7 @@ class Renderer:
             self.bg_tex = self._texture(perlin_background(perlin_seed))
         else:
             if self._earth_tex is None:
-                self._earth_tex = self._texture(earth_texture(width=2048, height=1024))
+                self._earth_tex = self._texture(earth_rgba())
             self.bg_tex = self._earth_tex
         self._shadow_key = None
         self._earth_key = None
@@ -865,7 +910,7 @@ class Renderer:
         self._look_gl["noise"] = noise
         if look.backdrop == "earth":
             if self._earth_tex is None:
-                self._earth_tex = self._texture(earth_texture(width=2048, height=1024))
+                self._earth_tex = self._texture(earth_rgba())
             self.bg_tex = self._earth_tex
         elif look.backdrop == "perlin":
             self.bg_tex = self._texture(perlin_background(look.backdrop_seed))
@@ -952,7 +997,7 @@ class Renderer:
         if key == self._earth_key:
             return
         s = self.settings
-        self._earth = EarthLight(earth_c_km, s.earth_samples, s.earth_albedo)
+        self._earth = EarthLight(earth_c_km, s.earth_samples)
         self._earth_l = self._earth.dirs
         self.ctx.enable(self.ctx.DEPTH_TEST | self.ctx.CULL_FACE)
         self.ctx.polygon_offset = (1.5, 2.0)
@@ -1019,7 +1064,7 @@ class Renderer:
             mp["u_sun_dir"].value = tuple(sun)
             mp["u_earth_l"].write(self._earth_l.astype("f4").tobytes())
             assert self._earth is not None  # _update_earth_shadow ran above
-            w = self._earth.weights(sun) * s.sun_intensity
+            w = self._earth.weights(sun, R_ecef) * s.sun_intensity
             if look is not None:
                 w = w * look.earth_scale
             mp["u_earth_w"].write(w.astype("f4").tobytes())

@@ -31,8 +31,14 @@ import numpy as np
 from oibar.geometry.camera import PinholeCamera
 
 from .meshes import Part
-from .render import DEFAULT_EARTH_CENTER_LVLH_KM, EARTH_RADIUS_KM, RenderSettings, apply_sensor_effects
-from .textures import earth_texture, perlin_background
+from .render import (
+    DEFAULT_EARTH_CENTER_LVLH_KM,
+    EARTH_RADIUS_KM,
+    RenderSettings,
+    apply_sensor_effects,
+    earth_rgba,
+)
+from .textures import earth_ground, perlin_background, sample_equirect
 
 # "matched": our materials, Sun, Earth and backdrop. "lab": the paper's lab (its experimental
 # sequences): the fixture alone, printed in matte grey, lit by one lamp beside the camera, on
@@ -89,14 +95,7 @@ def earth_radiance_map(
     t = b - np.sqrt(np.where(hit, disc, 0.0))
     n = (t[:, None] * d - c) / EARTH_RADIUS_KM
     n_ecef = n @ np.asarray(R_ecef_lvlh, float).T  # R_ecef_lvlh @ n, row by row
-    lon = np.arctan2(n_ecef[:, 1], n_ecef[:, 0]) / (2 * np.pi) + 0.5
-    lat = 0.5 - np.arcsin(np.clip(n_ecef[:, 2], -1, 1)) / np.pi
-    h, w = albedo_rgba.shape[:2]
-    px = (
-        albedo_rgba[np.clip((lat * h).astype(int), 0, h - 1), np.clip((lon * w).astype(int), 0, w - 1)]
-        / 255.0
-    )
-    ground = px[:, :3] * (1 - px[:, 3:4]) + 0.95 * px[:, 3:4]
+    ground = earth_ground(sample_equirect(albedo_rgba, n_ecef))
     L = ground * np.maximum(n @ np.asarray(sun, float), 0.0)[:, None]
     L[~hit] = 0.0
     return L.reshape(dirs_lvlh.shape).astype(np.float32)
@@ -129,7 +128,7 @@ class MitsubaRenderer:
         self._part_ids: list[int] = []
         self.background = "iss"
         self._perlin: np.ndarray | None = None
-        self._earth_tex = earth_texture(width=2048, height=1024)
+        self._earth_tex = earth_rgba()
         self._env_dirs = env_directions(ENV_WIDTH_PX)
         self.frames = 0
         # what the data set's manifest records as the renderer (beside the rasteriser's GL_RENDERER)

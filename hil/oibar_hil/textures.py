@@ -44,6 +44,35 @@ def earth_texture(seed: int = 7, width: int = 1024, height: int = 512) -> np.nda
     return (np.clip(out, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
+def earth_ground(rgba: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float: the Earth's Lambertian albedo per texel of `earth_texture`'s RGBA, the
+    ground's colour under clouds of albedo 0.95 (its cover, A, mixes them)."""
+    px = np.asarray(rgba) / 255.0
+    out: np.ndarray = px[..., :3] * (1 - px[..., 3:4]) + 0.95 * px[..., 3:4]
+    return out
+
+
+def sample_equirect(image: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """`image`'s nearest texel (row 0 at latitude +90, column 0 at longitude -180) in each of
+    the unit directions `d` (..., 3) of its own frame: the mapping the renderers' background
+    shader and Mitsuba's environment use."""
+    d = np.asarray(d, float)
+    lon = np.arctan2(d[..., 1], d[..., 0]) / (2 * np.pi) + 0.5
+    lat = 0.5 - np.arcsin(np.clip(d[..., 2], -1, 1)) / np.pi
+    h, w = image.shape[:2]
+    out: np.ndarray = image[
+        np.clip((lat * h).astype(int), 0, h - 1), np.clip((lon * w).astype(int), 0, w - 1)
+    ]
+    return out
+
+
+def box_downsample(image: np.ndarray, k: int) -> np.ndarray:
+    """Mean of each k x k block (H and W divisible by k)."""
+    h, w = image.shape[:2]
+    out: np.ndarray = image.reshape(h // k, k, w // k, k, *image.shape[2:]).mean(axis=(1, 3))
+    return out
+
+
 def perlin_background(seed: int, width: int = 1024, height: int = 512) -> np.ndarray:
     """RGB uint8 backdrop for the `perlin` subset: fractal Perlin noise between two random
     colours, with a second noise field modulating brightness. One per sequence seed."""

@@ -140,15 +140,19 @@ def test_earth_shine_follows_the_sunlit_part_of_the_disc():
     from oibar_hil.render import EARTH_RADIUS_KM, EarthLight
 
     c = np.array([0.0, 0.0, 6371.0 + 420.0])
-    earth = EarthLight(c, 6, albedo=0.3)
+    earth = EarthLight(c, 6, ground=np.full((2, 4, 3), 0.3))  # a uniformly grey Earth
     sin2 = (EARTH_RADIUS_KM / np.linalg.norm(c)) ** 2
     facing = np.array([0.0, 0.0, 1.0])  # a surface facing nadir sees each patch at this cosine
-    day = float(earth.weights(np.array([0.0, 0.0, -1.0])) @ np.maximum(earth.dirs @ facing, 0.0))
-    night = float(earth.weights(np.array([0.0, 0.0, 1.0])) @ np.maximum(earth.dirs @ facing, 0.0))
+
+    def irradiance(sun):
+        rgb = earth.weights(sun).T @ np.maximum(earth.dirs @ facing, 0.0)
+        assert rgb == pytest.approx(np.full(3, rgb[0]))  # grey
+        return float(rgb[0])
+
+    day, night = irradiance(np.array([0.0, 0.0, -1.0])), irradiance(np.array([0.0, 0.0, 1.0]))
     # the Sun 60 deg from the zenith: the ground the station sees is tilted at most ~20 deg, so
     # it is lit at about cos 60 deg
-    sun60 = np.array([np.sin(np.radians(60.0)), 0.0, -np.cos(np.radians(60.0))])
-    dusk = float(earth.weights(sun60) @ np.maximum(earth.dirs @ facing, 0.0))
+    dusk = irradiance(np.array([np.sin(np.radians(60.0)), 0.0, -np.cos(np.radians(60.0))]))
     # quadrature: rays at angle t from nadir meet the ground where its normal is tilted by
     # t + (angle at the Earth's centre); the Sun overhead lights it at that tilt's cosine
     alpha = np.arcsin(np.sqrt(sin2))
@@ -162,3 +166,46 @@ def test_earth_shine_follows_the_sunlit_part_of_the_disc():
     assert day == pytest.approx(exact, rel=0.10)
     assert night == 0.0
     assert 0.4 * day < dusk < 0.6 * day
+
+
+@pytest.mark.parametrize("seed", [0, 2, 3])
+def test_earth_shine_takes_the_colour_of_the_ground_as_mitsubas_environment_does(seed):
+    """Earth-shine is the Earth's texture (ground and clouds) under the sunlit disc, not a grey
+    constant: the irradiance it gives a nadir-facing surface, per colour channel, is what the
+    path tracer's environment map (render_mitsuba.earth_radiance_map, the same texture) gives it
+    by quadrature over its pixels: within 3 % from the fine directions, within 15 % from the
+    six shadow-mapped patches (their centres' cosine stands for the patch's: +7 % on a uniform
+    Earth, up to +13 % in one channel here). Three places over the globe, of different colour and
+    brightness (0.13-0.71 of the Sun's irradiance)."""
+    from scipy.spatial.transform import Rotation
+
+    from oibar_hil.render import (
+        DEFAULT_EARTH_CENTER_LVLH_KM,
+        EARTH_FINE_SAMPLES,
+        EarthLight,
+        earth_rgba,
+        fibonacci_disc,
+    )
+    from oibar_hil.render_mitsuba import earth_radiance_map, env_directions
+
+    c = np.array(DEFAULT_EARTH_CENTER_LVLH_KM)
+    R_ecef_lvlh = Rotation.random(random_state=seed).as_matrix()
+    sun = np.array([0.3, 0.2, -1.0]) / np.linalg.norm([0.3, 0.2, -1.0])
+    facing = np.array([0.0, 0.0, 1.0])
+    width = 1024
+    d = env_directions(width)
+    L = earth_radiance_map(d, c, R_ecef_lvlh, sun, earth_rgba())  # on the Sun = pi scale
+    theta = (np.arange(width // 2) + 0.5) / (width // 2) * np.pi
+    d_omega = (np.pi / (width // 2)) * (2 * np.pi / width) * np.sin(theta)[:, None]
+    mitsuba = (L * (np.maximum(d @ facing, 0.0) * d_omega)[..., None]).reshape(-1, 3).sum(0) / np.pi
+
+    earth = EarthLight(c, 6)
+    fine_dirs = fibonacci_disc(c, EARTH_FINE_SAMPLES)
+    fine = (
+        earth.radiance(sun, R_ecef_lvlh) * (np.maximum(fine_dirs @ facing, 0.0) * earth.d_omega)[:, None]
+    ).sum(0)
+    patches = earth.weights(sun, R_ecef_lvlh).T @ np.maximum(earth.dirs @ facing, 0.0)
+    assert fine == pytest.approx(mitsuba, rel=0.03)
+    assert patches == pytest.approx(mitsuba, rel=0.15)
+    # the colour too (a grey Earth of albedo 0.3 gives 0.25 in every channel at every place)
+    assert fine / fine.mean() == pytest.approx(mitsuba / mitsuba.mean(), abs=0.03)
