@@ -29,6 +29,31 @@ def test_the_mcu_prints_its_parameter_table(sim_mcu_path):
     assert declared == set(table)
 
 
+def test_scenario_files_and_matrix_cells_check_names_against_the_mcu_that_flies(
+    sim_mcu_path, tmp_path, monkeypatch
+):
+    """`--mcu` reaches the name check of a scenario file (the rig's CLI) and of a fault-matrix
+    cell, as it does a campaign mission's: with no build at the default path, the given MCU's
+    table is read (a campaign from a worktree without one lost mission 193 to this)."""
+    from oibar_hil.rig.matrix import cell_scenario, expectation
+    from oibar_hil.rig.scenario import load_scenario
+
+    monkeypatch.setenv("OIBAR_SIM_MCU", str(tmp_path / "no_build_here"))
+    path = tmp_path / "attack.yaml"
+    path.write_text("faults:\n  - {type: param_attack, at_s: 1.0, values: {debounce_ms: 1}}\n")
+    with pytest.raises(FirmwareParamsError):
+        load_scenario(path)
+    assert load_scenario(path, sim_mcu_path).faults[0].type == "param_attack"
+    exp = expectation("param_attack", "hard_docked")
+    assert not isinstance(exp, str)
+    with pytest.raises(FirmwareParamsError):
+        cell_scenario("param_attack", "hard_docked", exp)
+    assert (
+        cell_scenario("param_attack", "hard_docked", exp, mcu_path=sim_mcu_path).faults[0].type
+        == "param_attack"
+    )
+
+
 def test_a_scenario_naming_a_parameter_the_firmware_lacks_is_refused(sim_mcu_path, monkeypatch):
     monkeypatch.setenv("OIBAR_SIM_MCU", str(sim_mcu_path))
     ok = Scenario.from_dict({"firmware_params": {"nav_max_age_ms": 300}})

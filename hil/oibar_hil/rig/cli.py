@@ -41,7 +41,7 @@ def run_scenario(
     nav_options: dict | None = None,
 ) -> RunResult:
     """Run one scenario, check it, and (by default) write its report."""
-    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario, mcu_path)
     out_dir = (Path(out_root) / sc.name) if out_root else None
     result = Rig(
         sc, mcu_path=mcu_path, out_dir=out_dir, progress=progress, nav=nav, nav_options=nav_options
@@ -155,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     t0 = time.perf_counter()
     for path in paths:
-        sc = load_scenario(path)
+        sc = load_scenario(path, args.mcu)
         if args.start_range_m is not None:
             sc.start.range_m = args.start_range_m
         if args.misalignment_deg is not None:

@@ -116,8 +116,10 @@ class Scenario:
         )
 
 
-def load_scenario(path: str | Path) -> Scenario:
+def load_scenario(path: str | Path, mcu_path: str | Path | None = None) -> Scenario:
+    """The scenario file at `path`, its parameter names checked against `mcu_path`'s table
+    (the simulated MCU that will fly it; default: fw_params.default_mcu_path)."""
     path = Path(path)
     with open(path, encoding="utf-8") as f:
         data = yaml.safe_load(f) or {}
-    return Scenario.from_dict(data, path)
+    return Scenario.from_dict(data, path, mcu_path)
