@@ -302,10 +302,7 @@ class MitsubaRenderer:
         d = np.stack([(u - cam.cx_px) / cam.fx_px, (v - cam.cy_px) / cam.fy_px, np.ones_like(u)], -1)
         d = d @ np.asarray(R_lvlh_cam, float).T
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        h, w = self._perlin.shape[:2]
-        tu = np.arctan2(d[..., 1], d[..., 0]) / (2 * np.pi) + 0.5
-        tv = 0.5 - np.arcsin(np.clip(d[..., 2], -1, 1)) / np.pi
-        tex = self._perlin[np.clip((tv * h).astype(int), 0, h - 1), np.clip((tu * w).astype(int), 0, w - 1)]
+        tex = sample_equirect(self._perlin, d)
         out: np.ndarray = tex / 255.0 * s.exposure ** (1.0 / s.gamma)
         return out
 
