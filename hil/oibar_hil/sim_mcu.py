@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from oibar import argtypes, pb
+from oibar_hil.rig.fw_params import FirmwareParamsError, UnknownFirmwareParam
 from oibar_hil.rig.runner import REPO_ROOT, Rig, RunResult
 from oibar_hil.rig.scenario import load_scenario
 
@@ -221,14 +222,18 @@ def main(argv: list[str] | None = None) -> int:
     limit = args.duration_s if args.duration_s is not None else FOREVER_S
     # the scenario's start and plant only: its faults act on the rig's own host, which is not here
     sc = dataclasses.replace(sc, faults=[], rig=dataclasses.replace(sc.rig, max_time_s=limit * 1.0))
-    rig = PtyMcuRig(
-        sc,
-        mcu_path=args.mcu,
-        speed=args.speed,
-        frames=args.frames,
-        command=command or None,
-        announce=lambda line: print(line, flush=True),
-    )
+    try:  # the scenario's parameter names are checked against this MCU's table here
+        rig = PtyMcuRig(
+            sc,
+            mcu_path=args.mcu,
+            speed=args.speed,
+            frames=args.frames,
+            command=command or None,
+            announce=lambda line: print(line, flush=True),
+        )
+    except (UnknownFirmwareParam, FirmwareParamsError) as exc:
+        print(f"sim-mcu: error: scenario {args.scenario}: {exc}", file=sys.stderr)
+        return EXIT_ERROR
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, _frame: rig.request_stop(signum))
     try:

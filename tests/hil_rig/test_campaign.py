@@ -195,21 +195,36 @@ def test_a_draw_lands_where_the_model_says(sim_mcu_path):
 
 
 def test_a_param_attack_checks_its_names_against_the_mcu_that_flies(sim_mcu_path, tmp_path, monkeypatch):
-    """A mission's scenario checks a param_attack's parameter names against the simulated MCU
-    the campaign flies (`--mcu`), not the default path: cnn_300 flown from a worktree without a
-    build of its own ended mission 193 (param_attack when hard-docked) as an error before it
-    flew, counted as a failure."""
-    from oibar_hil.campaign.mission import build_scenario
+    """A mission's param_attack names are checked against the simulated MCU the campaign flies
+    (`--mcu`), not the default path: cnn_300 flown from a worktree without a build of its own
+    ended mission 193 (param_attack when hard-docked) as an error before it flew, counted as a
+    failure. The check is the rig's, and run_mission gives the rig the campaign's MCU."""
+    from oibar_hil.campaign import mission
+    from oibar_hil.rig import runner
     from oibar_hil.rig.fw_params import FirmwareParamsError
+    from oibar_hil.rig.runner import Rig
 
     cfg = load_config(DEFAULT)
     d = draw_mission(cfg, 193)
     assert d.fault == "param_attack"
     monkeypatch.setenv("OIBAR_SIM_MCU", str(tmp_path / "no_build_here"))  # the default path, empty
+    sc = mission.build_scenario(cfg, d)
+    assert [f.type for f in sc.faults] == ["param_attack"] and sc.param_names()
     with pytest.raises(FirmwareParamsError):
-        build_scenario(cfg, d)
-    sc = build_scenario(cfg, d, sim_mcu_path)
-    assert [f.type for f in sc.faults] == ["param_attack"]
+        Rig(sc)
+    flown = []
+
+    class Stop(Exception):
+        pass
+
+    class CheckedRig(Rig):  # the rig run_mission builds, stopped before it flies
+        def run(self):
+            flown.append(self.mcu_path)
+            raise Stop
+
+    monkeypatch.setattr(runner, "Rig", CheckedRig)
+    row = mission.run_mission(cfg, 193, mcu_path=str(sim_mcu_path)).row
+    assert flown == [Path(sim_mcu_path)] and row["outcome"] == "error" and "Stop" in row["error"]
 
 
 def test_clopper_pearson_figures():

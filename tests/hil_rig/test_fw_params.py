@@ -8,8 +8,15 @@ from pathlib import Path
 
 import pytest
 
-from oibar_hil.rig.fw_params import FirmwareParamsError, firmware_params, param_ids, parse_table
-from oibar_hil.rig.scenario import Scenario
+from oibar_hil.rig.fw_params import (
+    FirmwareParamsError,
+    UnknownFirmwareParam,
+    firmware_params,
+    param_ids,
+    parse_table,
+)
+from oibar_hil.rig.runner import Rig
+from oibar_hil.rig.scenario import Scenario, load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -32,43 +39,61 @@ def test_the_mcu_prints_its_parameter_table(sim_mcu_path):
 def test_scenario_files_and_matrix_cells_check_names_against_the_mcu_that_flies(
     sim_mcu_path, tmp_path, monkeypatch
 ):
-    """`--mcu` reaches the name check of a scenario file (the rig's CLI) and of a fault-matrix
-    cell, as it does a campaign mission's: with no build at the default path, the given MCU's
-    table is read (a campaign from a worktree without one lost mission 193 to this)."""
+    """The rig checks a scenario's parameter names against the MCU it flies (`--mcu`), not the
+    default path: with no build there, a scenario file and a fault-matrix cell load (the loaders
+    check only the shape) and fly with the given MCU (a campaign from a worktree without a build
+    lost mission 193 to a loader's check against the default path)."""
     from oibar_hil.rig.matrix import cell_scenario, expectation
-    from oibar_hil.rig.scenario import load_scenario
 
     monkeypatch.setenv("OIBAR_SIM_MCU", str(tmp_path / "no_build_here"))
     path = tmp_path / "attack.yaml"
     path.write_text("faults:\n  - {type: param_attack, at_s: 1.0, values: {debounce_ms: 1}}\n")
-    with pytest.raises(FirmwareParamsError):
-        load_scenario(path)
-    assert load_scenario(path, sim_mcu_path).faults[0].type == "param_attack"
+    sc = load_scenario(path)
     exp = expectation("param_attack", "hard_docked")
     assert not isinstance(exp, str)
-    with pytest.raises(FirmwareParamsError):
-        cell_scenario("param_attack", "hard_docked", exp)
-    assert (
-        cell_scenario("param_attack", "hard_docked", exp, mcu_path=sim_mcu_path).faults[0].type
-        == "param_attack"
-    )
+    cell = cell_scenario("param_attack", "hard_docked", exp)
+    for scenario in (sc, cell):
+        assert scenario.faults[0].type == "param_attack" and scenario.param_names()
+        with pytest.raises(FirmwareParamsError):  # the default MCU is read only when no other is given
+            Rig(scenario)
+        Rig(scenario, mcu_path=sim_mcu_path)
 
 
-def test_a_scenario_naming_a_parameter_the_firmware_lacks_is_refused(sim_mcu_path, monkeypatch):
-    monkeypatch.setenv("OIBAR_SIM_MCU", str(sim_mcu_path))
+def test_a_scenario_naming_a_parameter_the_firmware_lacks_is_refused_before_it_flies(sim_mcu_path, tmp_path):
     ok = Scenario.from_dict({"firmware_params": {"nav_max_age_ms": 300}})
     assert ok.firmware_params == {"nav_max_age_ms": 300}
-    with pytest.raises(ValueError, match=r"unknown firmware parameter.*nav_max_age_s") as e:
-        Scenario.from_dict({"firmware_params": {"nav_max_age_s": 0.3}})
+    Rig(ok, mcu_path=sim_mcu_path)
+    bad = Scenario.from_dict({"firmware_params": {"nav_max_age_s": 0.3}})
+    with pytest.raises(UnknownFirmwareParam, match=r"unknown firmware parameter.*nav_max_age_s") as e:
+        Rig(bad, mcu_path=sim_mcu_path)
     assert "nav_max_age_ms" in str(e.value)  # the firmware's names are listed
-    with pytest.raises(ValueError, match=r"unknown firmware parameter.*overpressure_bar"):
-        Scenario.from_dict(
-            {"faults": [{"type": "param_attack", "at_s": 1.0, "values": {"overpressure_bar": 30}}]}
-        )
+    attack = Scenario.from_dict(
+        {"faults": [{"type": "param_attack", "at_s": 1.0, "values": {"overpressure_bar": 30}}]}
+    )
+    assert attack.param_names() == ["overpressure_bar"]
+    with pytest.raises(UnknownFirmwareParam, match=r"unknown firmware parameter.*overpressure_bar"):
+        Rig(attack, mcu_path=sim_mcu_path)
     assert param_ids(["debounce_ms", "fill_stall_ms"], sim_mcu_path) == {
         "debounce_ms": 6,
         "fill_stall_ms": 37,
     }
+
+
+def test_the_rig_and_sim_mcu_clis_refuse_an_unknown_name_with_a_clear_error(sim_mcu_path, tmp_path, capsys):
+    """Both command lines say which name and which scenario, exit 2, and fly nothing."""
+    from oibar_hil import sim_mcu
+    from oibar_hil.rig import cli
+
+    path = tmp_path / "typo.yaml"
+    path.write_text("firmware_params: {debounce_s: 0.01}\n")
+    out = tmp_path / "reports"
+    assert cli.main(["--mcu", str(sim_mcu_path), "--out", str(out), "--no-progress", "run", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert f"scenario {path}" in err and "debounce_s" in err and "debounce_ms" in err
+    assert not out.exists()
+    assert sim_mcu.main(["--pty", "--mcu", str(sim_mcu_path), "--scenario", str(path)]) == sim_mcu.EXIT_ERROR
+    err = capsys.readouterr().err
+    assert err.startswith("sim-mcu: error: scenario") and "debounce_s" in err
 
 
 def test_a_missing_or_old_mcu_is_a_clear_error(tmp_path):

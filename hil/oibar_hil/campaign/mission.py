@@ -158,9 +158,8 @@ def expect_of(cfg: CampaignConfig, draw: MissionDraw) -> dict[str, Any]:
     return out
 
 
-def build_scenario(cfg: CampaignConfig, draw: MissionDraw, mcu_path: str | Path | None = None) -> Scenario:
-    """The rig scenario of one draw (every dispersed input at its place: dispersion.INPUTS);
-    `mcu_path`: the simulated MCU that flies it, whose table checks a param_attack's names."""
+def build_scenario(cfg: CampaignConfig, draw: MissionDraw) -> Scenario:
+    """The rig scenario of one draw (every dispersed input at its place: dispersion.INPUTS)."""
     v = draw.values
     mp = MechanismParams()
     faults = []
@@ -213,8 +212,7 @@ def build_scenario(cfg: CampaignConfig, draw: MissionDraw, mcu_path: str | Path 
             },
             "faults": faults,
             "expect": expect_of(cfg, draw),
-        },
-        mcu_path=mcu_path,
+        }
     )
 
 
@@ -297,7 +295,7 @@ def run_mission(
     }
     result = None
     try:
-        sc = build_scenario(cfg, draw, mcu_path)
+        sc = build_scenario(cfg, draw)
         nav = make_nav(cfg, draw, model_path)
         rig = Rig(sc, mcu_path=Path(mcu_path) if mcu_path else None, out_dir=out_dir, nav=nav)
         result = rig.run()

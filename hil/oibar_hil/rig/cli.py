@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 from oibar_hil.rig.checks import evaluate
+from oibar_hil.rig.fw_params import FirmwareParamsError, UnknownFirmwareParam
 from oibar_hil.rig.report import write_report
 from oibar_hil.rig.runner import REPO_ROOT, Rig, RunResult, default_mcu_path
 from oibar_hil.rig.scenario import Scenario, load_scenario
@@ -41,7 +42,7 @@ def run_scenario(
     nav_options: dict | None = None,
 ) -> RunResult:
     """Run one scenario, check it, and (by default) write its report."""
-    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario, mcu_path)
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     out_dir = (Path(out_root) / sc.name) if out_root else None
     result = Rig(
         sc, mcu_path=mcu_path, out_dir=out_dir, progress=progress, nav=nav, nav_options=nav_options
@@ -155,7 +156,11 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     t0 = time.perf_counter()
     for path in paths:
-        sc = load_scenario(path, args.mcu)
+        try:
+            sc = load_scenario(path)
+        except (OSError, ValueError) as exc:
+            print(f"error: scenario {path}: {exc}", file=sys.stderr)
+            return 2
         if args.start_range_m is not None:
             sc.start.range_m = args.start_range_m
         if args.misalignment_deg is not None:
@@ -171,6 +176,9 @@ def main(argv: list[str] | None = None) -> int:
                 nav=nav,
                 nav_options=nav_options,
             )
+        except (UnknownFirmwareParam, FirmwareParamsError) as exc:  # before anything ran
+            print(f"error: scenario {path}: {exc}", file=sys.stderr)
+            return 2
         except Exception as exc:
             from oibar.nav.pose import ModelFileError
 

@@ -23,6 +23,10 @@ class FirmwareParamsError(RuntimeError):
     """The simulated MCU is missing or did not print a parameter table."""
 
 
+class UnknownFirmwareParam(ValueError):
+    """A name the firmware's parameter table does not have."""
+
+
 @dataclass(frozen=True)
 class FirmwareParam:
     id: int
@@ -89,5 +93,7 @@ def param_ids(names: dict[str, float] | list[str], mcu_path: str | Path | None =
     table = firmware_params(mcu_path)
     unknown = sorted(n for n in names if n not in table)
     if unknown:
-        raise ValueError(f"unknown firmware parameter(s) {unknown}; the firmware has {sorted(table)}")
+        raise UnknownFirmwareParam(
+            f"unknown firmware parameter(s) {unknown}; the firmware has {sorted(table)}"
+        )
     return {n: table[n].id for n in names}

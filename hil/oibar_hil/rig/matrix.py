@@ -520,9 +520,7 @@ def _new_mode_expectation(fault: str, phase: str) -> Expect:
     raise ValueError(fault)
 
 
-def cell_scenario(
-    fault: str, phase: str, exp: Expect, seed: int = 7, mcu_path: str | Path | None = None
-) -> Scenario:
+def cell_scenario(fault: str, phase: str, exp: Expect, seed: int = 7) -> Scenario:
     ph = next(p for p in PHASES if p.key == phase)
     spec = {"type": fault, "at_state": ph.at_state, "after_s": ph.after_s, **FAULT_ARGS[fault]}
     expect = {
@@ -542,8 +540,7 @@ def cell_scenario(
             "rig": {"max_time_s": MAX_SIM_TIME_S, "flash_image": fault == "mcu_reset"},
             "faults": [spec],
             "expect": expect,
-        },
-        mcu_path=mcu_path,
+        }
     )
 
 
@@ -670,7 +667,7 @@ def run_cell(fault: str, phase: str, mcu_path: str | None = None) -> CellResult:
     exp = expectation(fault, phase)
     if isinstance(exp, str):
         return CellResult(fault, phase, "n.a.", reason=exp)
-    sc = cell_scenario(fault, phase, exp, mcu_path=mcu_path)
+    sc = cell_scenario(fault, phase, exp)
     expected = f"{exp.outcome}" + (
         f", {'+'.join(f.replace('FAULT_', '') for f in exp.faults)}" if exp.faults else ""
     )

@@ -176,7 +176,12 @@ class Rig:
         self.out_dir = Path(out_dir) if out_dir else None
         self.progress = progress
         self.rng = np.random.default_rng(scenario.seed)
-        fw_ids = param_ids(list(scenario.firmware_params), self.mcu_path) if scenario.firmware_params else {}
+        # Every parameter the scenario names (overrides and param_attack values), checked here
+        # against the table of the MCU this rig flies, before anything runs: the loaders cannot
+        # know which MCU that is (a campaign from a worktree lost mission 193 to a loader's check
+        # against the default build).
+        named = scenario.param_names()
+        fw_ids = param_ids(named, self.mcu_path) if named else {}
         self.controller_factory = controller_factory or (
             lambda: Guidance(
                 scenario.mission, {fw_ids[k]: float(v) for k, v in scenario.firmware_params.items()}

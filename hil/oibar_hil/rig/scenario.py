@@ -11,7 +11,6 @@ import yaml
 
 from oibar.nav.guidance import MissionParams as MissionSpec  # the host's mission parameters
 from oibar_hil.rig.faults import FaultSpec
-from oibar_hil.rig.fw_params import param_ids
 
 EXPECT_KEYS = {
     "outcome",
@@ -74,23 +73,22 @@ class Scenario:
     expect: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
 
+    def param_names(self) -> list[str]:
+        """Every firmware parameter the scenario names: its overrides and its param_attack
+        values. The rig checks them against the table of the MCU it flies (runner.Rig), not the
+        loader: a scenario is data, and which MCU flies it is chosen at run time."""
+        named = list(self.firmware_params)
+        for f in self.faults:
+            if f.type == "param_attack":
+                named += [n for n in f.args.get("values", {}) if n not in named]
+        return named
+
     @classmethod
-    def from_dict(
-        cls, d: dict[str, Any], path: Path | None = None, mcu_path: str | Path | None = None
-    ) -> Scenario:
-        """`mcu_path`: the simulated MCU whose parameter table checks the names (the one the rig
-        will fly; default: fw_params.default_mcu_path)."""
+    def from_dict(cls, d: dict[str, Any], path: Path | None = None) -> Scenario:
         d = dict(d)
         unknown_expect = set(d.get("expect", {})) - EXPECT_KEYS
         if unknown_expect:
             raise ValueError(f"unknown expect keys {sorted(unknown_expect)}; known: {sorted(EXPECT_KEYS)}")
-        # Names checked against the firmware's own table (the simulated MCU prints it).
-        named = list(d.get("firmware_params", {}))
-        for f in d.get("faults", []):
-            if f.get("type") == "param_attack":
-                named += list(f.get("values", {}))
-        if named:
-            param_ids(named, mcu_path)
         start = d.get("start", {})
         return cls(
             name=d.get("name") or (path.stem if path else "scenario"),
@@ -116,10 +114,9 @@ class Scenario:
         )
 
 
-def load_scenario(path: str | Path, mcu_path: str | Path | None = None) -> Scenario:
-    """The scenario file at `path`, its parameter names checked against `mcu_path`'s table
-    (the simulated MCU that will fly it; default: fw_params.default_mcu_path)."""
+def load_scenario(path: str | Path) -> Scenario:
+    """The scenario file at `path` (its parameter names are checked by the rig that flies it)."""
     path = Path(path)
     with open(path, encoding="utf-8") as f:
         data = yaml.safe_load(f) or {}
-    return Scenario.from_dict(data, path, mcu_path)
+    return Scenario.from_dict(data, path)
