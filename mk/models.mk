@@ -188,3 +188,14 @@ registry-card: setup ## rewrite docs/model_card.md's registry tables from models
 
 registry-verify: setup ## the shipped ONNX files against their sha256 in models/registry.toml
 	@$(PY) -m oibar_models.registry verify
+
+# The fixture finder (issue 58, item 4; oibar_models.finder): a small network on the whole frame
+# that places one crop where a far cold frame's direct window misses the fixture. Its frames
+# first: `make dataset-train SHARD=0/2`, `make dataset-train-dr SHARD=0/6`, `make dataset-val`.
+# About 25 min on 2 CPU cores; resumes runs/finder/. Chosen by epoch on validation only.
+FINDER_CONFIG ?= models/configs/finder.yaml
+.PHONY: train-finder
+train-finder: SETUP_PROFILE = train
+train-finder: setup ## train the fixture finder (FINDER_CONFIG; resumes runs/finder/) and export it to models/oibarnet_finder.onnx
+	@$(PY) -m oibar_models.finder train --config $(FINDER_CONFIG)
+	@$(PY) -m oibar_models.finder export --config $(FINDER_CONFIG)

@@ -312,7 +312,8 @@ def retag(src: Path, out: Path, options: dict) -> Path:
     """A copy of the export `src` at `out` (may be `src`) with the flight reading `options`
     (metadata keys without the prefix: mirror_reading, turned_reading_deg, turned_reading_head,
     turned_reading_measurement, placed_pass_refines, filter_measurement, corner_refine_side_px,
-    far_network {"file", "from_m"}, its file beside `out`; fusion replaces the export's fusion
+    far_network {"file", "from_m"}, its file beside `out`; finder {"file"}, the fixture finder,
+    its file beside `out`; fusion replaces the export's fusion
     whole (load_fusion's dict); head_gain goes into the fusion's tables, the new one's if both)
     set, and the new model version when the reading changes what flies; the graph untouched.
     Checked by opening it as the flight runtime does when its first pass lies beside it.
@@ -333,6 +334,7 @@ def retag(src: Path, out: Path, options: dict) -> Path:
         "model_version",
         "head_gain",
         "far_network",
+        "finder",
         "fusion",
     }
     version = options.get("model_version")
@@ -345,13 +347,14 @@ def retag(src: Path, out: Path, options: dict) -> Path:
     meta = read_metadata(src)  # ModelFileError for a missing or foreign file
     if meta.get("kind") != "keypoints":
         raise ValueError(f"{src}: not a keypoint model export (oibar.kind = {meta.get('kind')!r})")
-    far = options.get("far_network")
-    if far is not None:
-        name = str(far.get("file", ""))
-        if Path(name).name != name or not (Path(out).parent / name).is_file():
-            raise ValueError(
-                f"the far network {name!r} must be a file name lying beside {out} (copy it there first)"
-            )
+    for key, what in (("far_network", "the far network"), ("finder", "the fixture finder")):
+        beside = options.get(key)
+        if beside is not None:
+            name = str(beside.get("file", ""))
+            if Path(name).name != name or not (Path(out).parent / name).is_file():
+                raise ValueError(
+                    f"{what} {name!r} must be a file name lying beside {out} (copy it there first)"
+                )
     m = onnx.load(str(src))
     props = {p.key: p.value for p in m.metadata_props}
     if "fusion" in options:  # first, so that a head gain given with it goes into the new one
@@ -492,6 +495,12 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="with --retag: the version the retagged file says it is (MAJOR.MINOR.PATCH)",
     )
+    ap.add_argument(
+        "--finder",
+        default=None,
+        help="with --retag: the fixture finder (oibar_models.finder's export), a file beside the output, "
+        "that places one crop before the search's steps",
+    )
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
     head_gain, err = head_gain_arg(a.head_gain)
@@ -528,6 +537,7 @@ def main(argv: list[str] | None = None) -> int:
                     "far_network",
                     {"file": a.far_network, "from_m": a.far_from_m} if a.far_network is not None else None,
                 ),
+                ("finder", {"file": a.finder} if a.finder is not None else None),
             )
             if v is not None
         }
@@ -539,7 +549,7 @@ def main(argv: list[str] | None = None) -> int:
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
                 "--turned-reading-head, --turned-reading-measurement, --placed-pass-refines, "
                 "--filter-measurement, --corner-refine-side-px, --fusion, --head-gain, --far-network "
-                "with --far-from-m), "
+                "with --far-from-m, --finder), "
                 "--model-version and --out only",
                 file=sys.stderr,
             )

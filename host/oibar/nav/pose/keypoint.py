@@ -21,6 +21,7 @@ from oibar.geometry.rotations import matrix_to_quat, rotation_angle_deg
 from oibar.nav.fit_history import FitHistory
 from oibar.nav.keypoints import CropWindow, PnpResult
 from oibar.nav.pose.direct import DEFAULT_DEFECT_SCALE, PoseEstimator
+from oibar.nav.pose.finder import FixtureFinder
 from oibar.nav.pose.frames import FrameError, check_time, is_blank
 from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, Fusion, fit_rms_crop_px, measurement_without_prior
 from oibar.nav.pose.model_file import ModelFileError, range_limits, read_metadata
@@ -83,6 +84,7 @@ class KeypointPoseEstimator(PoseEstimator):
         placed_pass_refines: bool | None = None,
         overlap_first_pass: bool = True,
         upright: bool = True,
+        finder: bool | None = None,
     ):
         self.path = Path(path)
         # When a prediction (or the latest strong fit) places the first crop, the direct model
@@ -136,6 +138,7 @@ class KeypointPoseEstimator(PoseEstimator):
             self.range_limits_m,
             cold_crop_budget=cold_crop_budget,
             placed_pass_refines=placed_pass_refines,
+            finder=self._open_finder(finder, threads, allow_spinning),
         )
         self.reader.open_far_network(threads, allow_spinning)
         self.reader.warm_up(warmup_runs)
@@ -156,6 +159,28 @@ class KeypointPoseEstimator(PoseEstimator):
     def forget(self) -> None:
         self.fit_history.forget()
         self.search.forget()
+
+    def _open_finder(self, use: bool | None, threads: int, allow_spinning: bool) -> FixtureFinder | None:
+        """``oibar.finder`` ({"file": NAME}): the fixture finder, a file beside this one, that
+        places one crop before SEARCH_STEPS (search.FINDER_*). `use` False leaves it closed
+        (studies); True requires one."""
+        spec = self.meta.get("finder")
+        if use is False or (spec is None and use is None):
+            return None
+        if spec is None:
+            raise ModelFileError(f"{self.path}: no oibar.finder to use")
+        name = spec.get("file") if isinstance(spec, dict) else None
+        if not isinstance(name, str) or Path(name).name != name or not (self.path.parent / name).is_file():
+            raise ModelFileError(
+                f"{self.path}: its fixture finder {spec!r} is missing (oibar.finder {{'file': NAME}}, "
+                "a file beside it)"
+            )
+        finder = FixtureFinder(self.path.parent / name, threads, allow_spinning)
+        if finder.frame_wh != self.frame_wh:
+            raise ModelFileError(
+                f"{finder.path}: reads {finder.frame_wh} frames, this model's camera gives {self.frame_wh}"
+            )
+        return finder
 
     def _first_pass_pool(self) -> ThreadPoolExecutor:
         """The direct model's thread, made on first use in this process: a process forked from

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from oibar.nav.keypoints import CropWindow, PnpResult
+from oibar.nav.pose.finder import FixtureFinder
 from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, Fusion, fit_rms_crop_px
 from oibar.nav.pose.model_file import ModelFileError, export_flag
 from oibar.nav.pose.reader import CropReading, KeypointReader
@@ -118,7 +119,16 @@ COLD_CROP_BUDGET = 60
 # crops each read (the window a pose placed; SEARCH_STEPS; the turn stage; the zoom and the scan,
 # the cold search under its budget; the upside-down check, the zoom-out and the refining pass
 # after a strong fit, outside it). What a slow frame spent its time on (docs/benchmarks.md).
-STAGES = ("placed", "steps", "turn", "zoom", "scan", "upright", "zoom_out", "refine")
+STAGES = ("placed", "found", "steps", "turn", "zoom", "scan", "upright", "zoom_out", "refine")
+# ``oibar.finder`` (oibar.nav.pose.finder): before SEARCH_STEPS, one crop where the fixture finder
+# puts the fixture, when it is sure enough (FINDER_MIN_SCORE, its best cell's probability) and
+# puts it elsewhere than the direct model's window does (its centre more than FINDER_SAME_FRAC of
+# that window's side away, or its side beyond FINDER_SAME_SIDE of it; otherwise SEARCH_STEPS'
+# first crop is the same window). A strong fit there ends the search as one of SEARCH_STEPS'
+# would; a wrong place costs that one crop.
+FINDER_MIN_SCORE = 0.3
+FINDER_SAME_FRAC = 0.15
+FINDER_SAME_SIDE = 1.25
 MIN_COLD_CROP_BUDGET = len(ZOOM_STEPS) + len(WIDE_STEPS) + 1  # the largest batch, the hint's crop
 # A carried cold search is dropped this long (frame time) after its first frame. Its scores and
 # windows stay valid while the fixture barely moves in the image: on the validation scenes it
@@ -167,6 +177,7 @@ class WindowSearch:
         cold_crop_budget: int | None = COLD_CROP_BUDGET,
         placed_pass_refines: bool | None = None,
         zoom_out: bool = True,
+        finder: FixtureFinder | None = None,
     ):
         if cold_crop_budget is not None and cold_crop_budget < MIN_COLD_CROP_BUDGET:
             raise ValueError(
@@ -178,6 +189,7 @@ class WindowSearch:
         self.zoom_search, self.scan_search = bool(zoom_search), bool(scan_search)
         self.cold_crop_budget = cold_crop_budget
         self.zoom_out = bool(zoom_out)
+        self.finder = finder
         placed = export_flag(reader.path, reader.meta, "placed_pass_refines", placed_pass_refines)
         if placed and reader.mirror is not None:
             raise ModelFileError(
@@ -288,9 +300,18 @@ class WindowSearch:
         # the direct model reads every view unrolled: its window stays unturned
         base = self.reader.window_for(R_direct, T_direct, upright=False)
         crops = 0
+        found = self._found_window(image, base)
+        if found is not None:
+            with self.tally("found"):
+                crops += 1
+                keep.consider(
+                    *self._one_pass(image, found, R_direct, f, self.reader.range_for_side_m(found.side_px))
+                )
+            if keep.best is not None:
+                return crops, None
         if base is not None:
             with self.tally("steps"):
-                crops = self._steps_pass(image, base, R_direct, T_direct, f, keep)
+                crops += self._steps_pass(image, base, R_direct, T_direct, f, keep)
         # the turn stage, the zoom and the scan only on a cold start or a lost track: with a
         # prediction their cost would come out of the 100 ms frame budget on every weak far
         # frame of a healthy track
@@ -306,6 +327,24 @@ class WindowSearch:
         if base is not None and self.zoom_search:
             return crops, ColdSearch(level=0, base=base, angle_rad=turn_rad)
         return crops, ColdSearch(level=ZOOM_LEVELS, angle_rad=turn_rad) if self.scan_search else None
+
+    def _found_window(self, image: np.ndarray, base: CropWindow | None) -> CropWindow | None:
+        """The window around the box the fixture finder sees (FINDER_*), or None: no finder, not
+        sure enough, or where the direct model's window is already."""
+        if self.finder is None:
+            return None
+        ans = self.finder.find(image)
+        if not ans.score >= FINDER_MIN_SCORE:
+            return None
+        win = CropWindow(
+            ans.center_px, max(ans.side_px * self.reader.margin, ZOOM_MIN_SIDE_PX), self.reader.out_px
+        )
+        if base is not None:
+            off = float(np.hypot(*np.subtract(win.center_px, base.center_px)))
+            ratio = win.side_px / base.side_px
+            if off <= FINDER_SAME_FRAC * base.side_px and 1 / FINDER_SAME_SIDE <= ratio <= FINDER_SAME_SIDE:
+                return None
+        return win
 
     def _placed_pass(
         self,
