@@ -192,7 +192,9 @@ registry-verify: setup ## the shipped ONNX files against their sha256 in models/
 # The fixture finder (issue 58, item 4; oibar_models.finder): a small network on the whole frame
 # that places one crop where a far cold frame's direct window misses the fixture. Its frames
 # first: `make dataset-train SHARD=0/2`, `make dataset-train-dr SHARD=0/6`, `make dataset-val`.
-# About 25 min on 2 CPU cores; resumes runs/finder/. Chosen by epoch on validation only.
+# About 25 min on 2 CPU cores; resumes runs/finder/. Chosen by epoch on validation only. Its
+# thresholds in the search (oibar.nav.pose.search.FINDER_*) are chosen on validation too, with a
+# model file that names it: `python -m oibar_models.finder_sweep --model CANDIDATE/oibarnet.onnx`.
 FINDER_CONFIG ?= models/configs/finder.yaml
 .PHONY: train-finder
 train-finder: SETUP_PROFILE = train

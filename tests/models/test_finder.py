@@ -96,3 +96,45 @@ def test_a_config_with_a_typo_or_scenes_not_rendered_is_a_clear_error(tmp_path):
             [[str(spec), str(tmp_path / "nowhere"), "1/2"]], 1, np.zeros((3, 3)), cfg, tmp_path / "c.npz"
         )
     assert not (tmp_path / "c.npz").exists()
+
+
+def test_the_threshold_sweep_reads_the_finders_crop_only_where_its_thresholds_allow(
+    tmp_path, tiny_dataset, monkeypatch
+):
+    """oibar_models.finder_sweep: the same model file read cold without its finder and at each
+    setting of search.FINDER_*; a score bar no answer reaches (2) reads no finder crop, none (0)
+    reads one on every frame, and the module's thresholds are as they were afterwards."""
+    import shutil
+    from pathlib import Path
+
+    from oibar.nav.pose import search as S
+    from oibar_models import finder_sweep
+    from oibar_models.kp_evaluate import SETS
+    from oibar_models.kp_export import retag
+
+    root = Path(__file__).resolve().parents[2]
+    for f in (root / "models").glob("oibarnet*.onnx"):
+        shutil.copy(f, tmp_path / f.name)
+    torch.manual_seed(3)
+    cfg = replace(F.FinderConfig(), width=8, out_dir=str(tmp_path / "run"), name="finder_test")
+    (tmp_path / "run").mkdir()
+    torch.save({"net": F.FinderNet(8).state_dict(), "best": {"epoch": 1}}, tmp_path / "run" / "best.pt")
+    F.export(cfg, tmp_path / "finder_test.onnx")
+    model = tmp_path / "oibarnet.onnx"
+    retag(model, model, {"finder": {"file": "finder_test.onnx"}})
+    (tmp_path / "val.json").write_text(json.dumps({"scenes": [{"paper": 3}]}))
+    monkeypatch.setitem(SETS, "val", (str(tmp_path / "val.json"), str(tiny_dataset)))
+    monkeypatch.setenv("OIBAR_TRACKING", "0")
+    before = (S.FINDER_MIN_SCORE, S.FINDER_SAME_FRAC, S.FINDER_SAME_SIDE)
+    out = tmp_path / "sweep"
+    argv = ["--model", str(model), "--stride", "16", "--min-score", "0", "2", "--same-frac", "0"]
+    assert finder_sweep.main([*argv, "--same-side", "1", "--out", str(out), "--no-progress"]) == 0
+    rows = {r["label"]: r for r in json.loads((out / "sweep.json").read_text())}
+    assert rows["no finder"]["found_pct"] == 0.0 and rows["no finder"]["frames"] == 3
+    assert rows["min_score 0 same_frac 0 same_side 1"]["found_pct"] == 100.0
+    assert rows["min_score 2 same_frac 0 same_side 1"]["found_pct"] == 0.0
+    assert all(r["crops_mean"] >= 1 and r["latency_ms_p95"] > 0 for r in rows.values())
+    assert (out / "sweep.png").stat().st_size > 0 and "latency p95 (ms)" in (out / "sweep.md").read_text()
+    assert before == (S.FINDER_MIN_SCORE, S.FINDER_SAME_FRAC, S.FINDER_SAME_SIDE)
+    # a model that names no finder is refused with one line, exit 2
+    assert finder_sweep.main(["--model", str(root / "models" / "oibarnet.onnx"), "--out", str(out)]) == 2
