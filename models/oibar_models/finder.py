@@ -315,7 +315,11 @@ def loss_of(net: FinderNet, x: torch.Tensor, box: torch.Tensor) -> tuple[torch.T
     else:
         l_off = l_side = torch.zeros(())
     loss = l_heat + l_off + l_side
-    return loss, {"heat": float(l_heat), "offset": float(l_off), "side": float(l_side)}
+    return loss, {
+        "heat": float(l_heat.detach()),
+        "offset": float(l_off.detach()),
+        "side": float(l_side.detach()),
+    }
 
 
 # ------------------------------------------------------------------------------- validation
