@@ -103,22 +103,33 @@ COLUMNS = [
 
 
 def plot(path: Path, rows: list[tuple[str, dict]]) -> None:
+    """One row per setting: the cold latency p95 (all frames, far frames) against one 10 Hz
+    cycle, and the share of frames within bounds with the silent failures written beside it."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for label, s in rows:
-        ax.scatter(s["latency_ms_p95"], s["silent_failures"], s=30)
-        ax.annotate(label, (s["latency_ms_p95"], s["silent_failures"]), fontsize=7, xytext=(4, 2),
-                    textcoords="offset points")  # fmt: skip
-    ax.axvline(100.0, ls="--", c="k", lw=0.8, label="one 10 Hz cycle")
-    ax.set_xlabel("cold frame latency, p95 (ms)")
-    ax.set_ylabel("silent failures (frames)")
-    ax.set_title("fixture finder thresholds, validation scenes, each frame alone")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    y = np.arange(len(rows))
+    labels = [label for label, _ in rows]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 0.45 * len(rows) + 1.6), sharey=True)
+    ax[0].barh(y - 0.2, [s["latency_ms_p95"] for _, s in rows], 0.4, label="all frames")
+    ax[0].barh(y + 0.2, [s["latency_ms_p95_far"] for _, s in rows], 0.4, label=f"from {FAR_M:g} m")
+    ax[0].axvline(100.0, ls="--", c="k", lw=0.8, label="one 10 Hz cycle")
+    ax[0].set_xlabel("cold frame latency, p95 (ms)")
+    ax[0].legend(fontsize=8)
+    ax[1].barh(y, [s["within_bounds_pct"] for _, s in rows], 0.6, color="tab:green")
+    for k, (_, s) in enumerate(rows):
+        ax[1].annotate(f"{s['silent_failures']:.0f} silent", (s["within_bounds_pct"], k), fontsize=8,
+                       xytext=(-60, -3), textcoords="offset points", color="w")  # fmt: skip
+    lo = min(s["within_bounds_pct"] for _, s in rows)
+    ax[1].set_xlim(max(0.0, lo - 5.0), 100.0)
+    ax[1].set_xlabel("frames within 5 % and 5 deg (%)")
+    ax[0].set_yticks(y, labels, fontsize=8)
+    ax[0].invert_yaxis()
+    for a in ax:
+        a.grid(alpha=0.3, axis="x")
+    fig.suptitle("fixture finder thresholds: validation scenes, each frame alone (flight setting)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
