@@ -38,8 +38,8 @@ from oibar.nav.pose.model_file import read_metadata
 
 from .config import REPO_ROOT, ConfigError
 from .kp_data import open_scenes
+from .onnx_seal import seal_onnx
 
-METADATA_PREFIX = "oibar."
 INPUT_WH = (192, 128)  # the 744x480 frame / 3.9 (x) and / 3.75 (y): cells of 8 input px
 STRIDE_PX = 8
 SIDE_UNIT_PX = 64.0  # log_side = log(side / this): the box at ~3 m
@@ -444,9 +444,6 @@ def train(cfg: FinderConfig, progress: bool = True) -> dict[str, Any]:
 
 def export(cfg: FinderConfig, out_path: Path | None = None) -> Path:
     """best.pt -> ONNX with the finder's metadata, checked against PyTorch on a random input."""
-    import onnx
-    import onnxruntime as ort
-
     run = cfg.path(cfg.out_dir)
     ck = torch.load(run / "best.pt", weights_only=False)
     net = FinderNet(cfg.width)
@@ -463,7 +460,6 @@ def export(cfg: FinderConfig, out_path: Path | None = None) -> Path:
             net, (x,), str(tmp), input_names=["image"], output_names=["heat", "offset", "log_side"],
             opset_version=17, dynamo=False,
         )  # fmt: skip
-    m = onnx.load(str(tmp))
     meta = {
         "kind": "finder",
         "model_version": cfg.model_version,
@@ -474,20 +470,7 @@ def export(cfg: FinderConfig, out_path: Path | None = None) -> Path:
         "keypoints_from": Path(cfg.keypoints_from).name,
         "validation": {k: round(v, 4) for k, v in ck["best"].items()},
     }
-    for k, v in meta.items():
-        p = m.metadata_props.add()
-        p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
-    m.producer_name = "oibar_models.finder"
-    onnx.checker.check_model(m)
-    onnx.save(m, str(tmp))
-    sess = ort.InferenceSession(str(tmp), providers=["CPUExecutionProvider"])
-    got = sess.run(None, {"image": x.numpy()})
-    with torch.no_grad():
-        want = [t.numpy() for t in net(x)]
-    worst = max(float(np.max(np.abs(a - b))) for a, b in zip(got, want, strict=True))
-    if not worst < 1e-3:
-        tmp.unlink()
-        raise RuntimeError(f"ONNX and PyTorch differ by {worst:g}")
+    worst = seal_onnx(tmp, meta, "oibar_models.finder", net, x)
     tmp.replace(out_path)
     print(f"finder: {out_path} (parity {worst:.1e}; validation {meta['validation']})")
     return out_path

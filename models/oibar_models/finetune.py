@@ -307,12 +307,10 @@ def export_candidate(o: Options, cfg, net, meta: dict, val: dict, spreads: dict[
     maps came out on the training crops (`spreads`: median spreads before and after): trained on
     measured labels, they grow as broad as the labels' noise, and the starting model's gate would
     take every keypoint for absent."""
-    import onnx
-    import onnxruntime as ort
-
     from oibar.nav.pose import KeypointPoseEstimator, PoseEstimator
 
-    from .kp_export import METADATA_PREFIX, export_graph
+    from .kp_export import export_graph
+    from .onnx_seal import ParityError, seal_onnx
 
     out = o.out / "oibarnet.onnx"
     tmp = out.with_suffix(".tmp.onnx")
@@ -346,23 +344,10 @@ def export_candidate(o: Options, cfg, net, meta: dict, val: dict, spreads: dict[
     )
     if not o.far_network:
         new.pop("far_network", None)
-    m = onnx.load(str(tmp))
-    for k, v in new.items():
-        p = m.metadata_props.add()
-        p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
-    m.producer_name = "oibar_models.finetune"
-    onnx.checker.check_model(m)
-    onnx.save(m, str(tmp))
-    sess = ort.InferenceSession(str(tmp), providers=["CPUExecutionProvider"])
-    with torch.no_grad():
-        want = [x.numpy() for x in wrapper(dummy)]
-    err = max(
-        float(np.max(np.abs(a - b)))
-        for a, b in zip(sess.run(None, {"image": dummy.numpy()}), want, strict=True)
-    )
-    if not err < 1e-3:
-        tmp.unlink(missing_ok=True)
-        raise FinetuneError(f"ONNX and PyTorch disagree by {err:.3g}")
+    try:
+        seal_onnx(tmp, new, "oibar_models.finetune", wrapper, dummy)
+    except ParityError as exc:
+        raise FinetuneError(str(exc)) from exc
     for name in companions(new):
         shutil.copy(o.init.parent / name, o.out / name)
     tmp.replace(out)

@@ -28,7 +28,6 @@ import sys
 import warnings
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from oibar.geometry.camera import PinholeCamera
@@ -40,8 +39,8 @@ from .config import ConfigError, parse_override
 from .kp_engine import KpConfig, keypoints_m, load_kp_config, with_fresh_attitude_head
 from .kp_fusion import FUSION_REF_CROP_PX
 from .kpnet import FIXTURE_KEYPOINTS, EnsembleWrapper, ExportWrapper, KeypointNet
+from .onnx_seal import METADATA_PREFIX, seal_onnx
 
-METADATA_PREFIX = "oibar."
 OUTPUT_NAMES = ["kp_crop_px", "kp_spread_px", "kp_present"]
 ATT_OUTPUT = "att_crop_deg"  # only from a checkpoint with the attitude head (model >= 0.6.0)
 _CAM = PinholeCamera()
@@ -190,8 +189,6 @@ def export_onnx(
 ) -> Path:
     """`members`: further (config, checkpoint) pairs read with this one as one graph
     (kpnet.EnsembleWrapper); they must read the same crop and have the attitude head if it has."""
-    import onnx
-
     net, head = network_from(cfg, ck)
     nets, ensemble = net, None
     if members:
@@ -210,8 +207,7 @@ def export_onnx(
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_suffix(".tmp.onnx")
     wrapper, dummy = export_graph(nets, head, cfg.model.out_px, cfg.export.opset, tmp)
-    m = onnx.load(str(tmp))
-    for k, v in metadata_for(
+    meta = metadata_for(
         cfg,
         ck,
         first_pass,
@@ -225,23 +221,8 @@ def export_onnx(
         turned_reading_measurement,
         placed_pass_refines,
         ensemble,
-    ).items():
-        p = m.metadata_props.add()
-        p.key, p.value = METADATA_PREFIX + k, json.dumps(v)
-    m.producer_name = "oibar_models.kp_export"
-    onnx.checker.check_model(m)
-    onnx.save(m, str(tmp))
-    # parity with PyTorch on the same input
-    import onnxruntime as ort
-
-    sess = ort.InferenceSession(str(tmp), providers=["CPUExecutionProvider"])
-    got = sess.run(None, {"image": dummy.numpy()})
-    with torch.no_grad():
-        want = [t.numpy() for t in wrapper(dummy)]
-    err = max(float(np.max(np.abs(a - b))) for a, b in zip(got, want, strict=True))
-    if not err < 1e-3:
-        tmp.unlink(missing_ok=True)
-        raise RuntimeError(f"ONNX and PyTorch disagree by {err:.3g} (crop px or probability)")
+    )
+    seal_onnx(tmp, meta, "oibar_models.kp_export", wrapper, dummy, unit="crop px or probability")
     tmp.replace(out_path)
     return out_path
 
