@@ -195,7 +195,7 @@ registry-verify: setup ## the shipped ONNX files against their sha256 in models/
 # About 25 min on 2 CPU cores; resumes runs/finder/. Chosen by epoch on validation only. Its
 # thresholds in the search (oibar.nav.pose.search.FINDER_*) are chosen on validation too, with a
 # model file that names it: `python -m oibar_models.finder_sweep --model CANDIDATE/oibarnet.onnx`.
-FINDER_CONFIG ?= models/configs/finder.yaml
+FINDER_CONFIG ?= models/configs/finder/oibarnet_finder.yaml
 .PHONY: train-finder
 train-finder: SETUP_PROFILE = train
 train-finder: setup ## train the fixture finder (FINDER_CONFIG; resumes runs/finder/) and export it to models/oibarnet_finder.onnx

@@ -4,8 +4,8 @@ side). It exists for the keypoint estimator's cold frames: where the direct mode
 a far fixture the search reads 85-97 crops; the finder's window is one. Small enough to train on
 2 CPU cores in minutes (about 85 k parameters).
 
-    python -m oibar_models.finder train  --config models/configs/finder.yaml   (resumes)
-    python -m oibar_models.finder export --config models/configs/finder.yaml   (best -> ONNX)
+    python -m oibar_models.finder train  --config models/configs/finder/oibarnet_finder.yaml   (resumes)
+    python -m oibar_models.finder export --config models/configs/finder/oibarnet_finder.yaml   (best -> ONNX)
 
 Labels come from the frames' poses and the keypoint model's own keypoints (its ONNX metadata),
 so the box is exactly the one the flight estimator's window_around frames. The training frames are
@@ -479,7 +479,7 @@ def export(cfg: FinderConfig, out_path: Path | None = None) -> Path:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m oibar_models.finder", description=__doc__.splitlines()[0])
     ap.add_argument("cmd", choices=("train", "export"))
-    ap.add_argument("--config", type=Path, default=REPO_ROOT / "models/configs/finder.yaml")
+    ap.add_argument("--config", type=Path, default=REPO_ROOT / "models/configs/finder/oibarnet_finder.yaml")
     ap.add_argument(
         "--out", type=Path, default=None, help="export: the ONNX file (default models/<name>.onnx)"
     )

@@ -1,7 +1,7 @@
 """Choose the fixture finder's thresholds on validation (issue 58, item 4: cold frames within one
 10 Hz cycle). Every frame of the validation scenes is read cold at the flight setting
 (`forget()`, then `estimate(rgb, t_s)` with the daemon's crop budget), once without the finder
-(the same model file, `finder=False`) and once per setting of oibar.nav.pose.search's FINDER_*
+(the same model file, `finder=False`) and once per setting of oibar.nav.pose.finder_place's FINDER_*
 thresholds; each setting is one run in the experiment tracker (experiment "finder_sweep").
 
     python -m oibar_models.finder_sweep --model CANDIDATE/oibarnet.onnx --stride 16 \
@@ -137,7 +137,7 @@ def plot(path: Path, rows: list[tuple[str, dict]]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     from oibar.nav.pose import KeypointPoseEstimator, ModelFileError, read_metadata
-    from oibar.nav.pose import search as S
+    from oibar.nav.pose import finder_place as S
 
     ap = argparse.ArgumentParser(
         prog="python -m oibar_models.finder_sweep", description=__doc__.split("\n\n")[0]
@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stride", type=int, default=16, help="every n-th frame of each scene (default 16)")
     for k, const in THRESHOLDS.items():
         ap.add_argument(f"--{k.replace('_', '-')}", type=float, nargs="+", default=[getattr(S, const)],
-                        help=f"values of search.{const} (default {getattr(S, const)})")  # fmt: skip
+                        help=f"values of finder_place.{const} (default {getattr(S, const)})")  # fmt: skip
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/finder_sweep")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)

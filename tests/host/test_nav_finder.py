@@ -1,4 +1,4 @@
-"""The fixture finder's place in the search (oibar.nav.pose.search.FINDER_*): one crop where it
+"""The fixture finder's place in the search (oibar.nav.pose.finder_place): one crop where it
 sees the fixture, read before SEARCH_STEPS when it disagrees with the direct model's window. A
 far cold frame whose direct window misses the fixture is the slow case it exists for (85-97
 crops: docs/benchmarks.md); here the direct model is made to miss by 1 m at 8.5 m, as it does on
@@ -18,7 +18,7 @@ from oibar.geometry.rotations import quat_to_matrix
 from oibar.nav.keypoints import project
 from oibar.nav.pose import ModelFileError, PoseEstimator
 from oibar.nav.pose.finder import FinderAnswer
-from oibar.nav.pose.search import FINDER_MIN_SCORE
+from oibar.nav.pose.finder_place import FINDER_MIN_SCORE
 
 ROOT = Path(__file__).resolve().parents[2]
 MODEL = ROOT / "models" / "oibarnet.onnx"

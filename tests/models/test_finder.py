@@ -81,6 +81,13 @@ def test_the_exported_finder_reads_a_frame_as_the_network(tmp_path):
         finder.find(frame[:240])
 
 
+def test_the_shipped_finder_config_loads_with_the_finders_own_loader():
+    # it lives in models/configs/finder/, apart from the whole-frame configs, whose loader rejects it
+    cfg = F.load_finder_config(F.REPO_ROOT / "models/configs/finder/oibarnet_finder.yaml")
+    assert cfg.name == "oibarnet_finder" and cfg.epochs > 0 and cfg.train_sets
+    assert all(not s[1].startswith(("data/test", "data/frozen")) for s in cfg.train_sets + [cfg.val_set])
+
+
 def test_a_config_with_a_typo_or_scenes_not_rendered_is_a_clear_error(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("epoch: 3\n")
@@ -102,12 +109,12 @@ def test_the_threshold_sweep_reads_the_finders_crop_only_where_its_thresholds_al
     tmp_path, tiny_dataset, monkeypatch
 ):
     """oibar_models.finder_sweep: the same model file read cold without its finder and at each
-    setting of search.FINDER_*; a score bar no answer reaches (2) reads no finder crop, none (0)
+    setting of finder_place.FINDER_*; a score bar no answer reaches (2) reads no finder crop, none (0)
     reads one on every frame, and the module's thresholds are as they were afterwards."""
     import shutil
     from pathlib import Path
 
-    from oibar.nav.pose import search as S
+    from oibar.nav.pose import finder_place as S
     from oibar_models import finder_sweep
     from oibar_models.kp_evaluate import SETS
     from oibar_models.kp_export import retag

@@ -162,7 +162,7 @@ class KeypointPoseEstimator(PoseEstimator):
 
     def _open_finder(self, use: bool | None, threads: int, allow_spinning: bool) -> FixtureFinder | None:
         """``oibar.finder`` ({"file": NAME}): the fixture finder, a file beside this one, that
-        places one crop before SEARCH_STEPS (search.FINDER_*). `use` False leaves it closed
+        places one crop before SEARCH_STEPS (finder_place.FINDER_*). `use` False leaves it closed
         (studies); True requires one."""
         spec = self.meta.get("finder")
         if use is False or (spec is None and use is None):

@@ -19,6 +19,7 @@ import numpy as np
 
 from oibar.nav.keypoints import CropWindow, PnpResult
 from oibar.nav.pose.finder import FixtureFinder
+from oibar.nav.pose.finder_place import finder_window
 from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, Fusion, fit_rms_crop_px
 from oibar.nav.pose.model_file import ModelFileError, export_flag
 from oibar.nav.pose.reader import CropReading, KeypointReader
@@ -120,18 +121,6 @@ COLD_CROP_BUDGET = 60
 # the cold search under its budget; the upside-down check, the zoom-out and the refining pass
 # after a strong fit, outside it). What a slow frame spent its time on (docs/benchmarks.md).
 STAGES = ("placed", "found", "steps", "turn", "zoom", "scan", "upright", "zoom_out", "refine")
-# ``oibar.finder`` (oibar.nav.pose.finder): before SEARCH_STEPS, one crop where the fixture finder
-# puts the fixture, when it is sure enough (FINDER_MIN_SCORE, its best cell's probability) and
-# puts it elsewhere than the direct model's window does (its centre more than FINDER_SAME_FRAC of
-# that window's side away, or its side beyond FINDER_SAME_SIDE of it; otherwise SEARCH_STEPS'
-# first crop is the same window). A strong fit there ends the search as one of SEARCH_STEPS'
-# would; a wrong place costs that one crop. Chosen on validation (2026-12-05, finder 0.1.0, every
-# 16th frame alone, `python -m oibar_models.finder_sweep`): scores 0.2-0.3 and 0.15-0.3 of a side
-# gave the same accuracy and p95 (31-32 ms); 0.5 doubled the far frames' p95. 0.3 of a side
-# reads the finder's crop on 40 % of cold frames instead of 50 % for the same answers.
-FINDER_MIN_SCORE = 0.3
-FINDER_SAME_FRAC = 0.3
-FINDER_SAME_SIDE = 1.25
 MIN_COLD_CROP_BUDGET = len(ZOOM_STEPS) + len(WIDE_STEPS) + 1  # the largest batch, the hint's crop
 # A carried cold search is dropped this long (frame time) after its first frame. Its scores and
 # windows stay valid while the fixture barely moves in the image: on the validation scenes it
@@ -303,7 +292,9 @@ class WindowSearch:
         # the direct model reads every view unrolled: its window stays unturned
         base = self.reader.window_for(R_direct, T_direct, upright=False)
         crops = 0
-        found = self._found_window(image, base)
+        found = finder_window(
+            self.finder, image, base, self.reader.margin, ZOOM_MIN_SIDE_PX, self.reader.out_px
+        )
         if found is not None:
             with self.tally("found"):
                 crops += 1
@@ -330,24 +321,6 @@ class WindowSearch:
         if base is not None and self.zoom_search:
             return crops, ColdSearch(level=0, base=base, angle_rad=turn_rad)
         return crops, ColdSearch(level=ZOOM_LEVELS, angle_rad=turn_rad) if self.scan_search else None
-
-    def _found_window(self, image: np.ndarray, base: CropWindow | None) -> CropWindow | None:
-        """The window around the box the fixture finder sees (FINDER_*), or None: no finder, not
-        sure enough, or where the direct model's window is already."""
-        if self.finder is None:
-            return None
-        ans = self.finder.find(image)
-        if not ans.score >= FINDER_MIN_SCORE:
-            return None
-        win = CropWindow(
-            ans.center_px, max(ans.side_px * self.reader.margin, ZOOM_MIN_SIDE_PX), self.reader.out_px
-        )
-        if base is not None:
-            off = float(np.hypot(*np.subtract(win.center_px, base.center_px)))
-            ratio = win.side_px / base.side_px
-            if off <= FINDER_SAME_FRAC * base.side_px and 1 / FINDER_SAME_SIDE <= ratio <= FINDER_SAME_SIDE:
-                return None
-        return win
 
     def _placed_pass(
         self,
