@@ -908,7 +908,7 @@ def test_no_zoom_window_is_smaller_than_a_fixture_in_the_envelope():
 def test_the_scan_windows_cover_the_frame_within_a_quarter_side():
     """Some scan window holds every frame point within a quarter of its side of its centre (per
     axis), as the keypoint network was trained; the outer windows sit flush with the edges."""
-    from oibar.nav.pose.search import SCAN_SIDE_PX, SCAN_STRIDE, scan_windows
+    from oibar.nav.pose.scan import SCAN_SIDE_PX, SCAN_STRIDE, scan_windows
 
     wins = scan_windows((744, 480), SCAN_SIDE_PX, SCAN_STRIDE, 128)
     c = np.array([w.center_px for w in wins])
@@ -963,7 +963,7 @@ def test_the_scan_finds_a_far_fixture_the_first_pass_misplaced_and_misjudged():
     fixture-like: a weak fit, then again in the window that fit draws: a strong one. Without the
     scan the frame has no answer; with a prediction (a track) the scan never runs."""
     from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
-    from oibar.nav.pose.search import SCAN_BATCH, SCAN_SIDE_PX
+    from oibar.nav.pose.scan import SCAN_BATCH, SCAN_SIDE_PX
 
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 10.0))
     image = np.zeros((480, 744, 3), np.uint8)
@@ -994,8 +994,8 @@ def test_a_scan_window_that_sees_too_few_keypoints_is_read_again_smaller(monkeyp
     mission aborted). The scan's windows that give nothing are read again at SCAN_SHRINK_FACTOR
     of their side around their centre; the most fixture-like solves (weak here), and the window
     its pose draws solves strongly. Without SCAN_SHRINK the frame has no answer."""
-    import oibar.nav.pose.search as search_mod
-    from oibar.nav.pose.search import SCAN_SHRINK, SCAN_SHRINK_FACTOR, SCAN_SIDE_PX
+    import oibar.nav.pose.scan as scan_mod
+    from oibar.nav.pose.scan import SCAN_SHRINK, SCAN_SHRINK_FACTOR, SCAN_SIDE_PX
 
     R = FAR_R
     own_10m = window_around(project(K, DEEP, R, FAR_T), 128, 1.25).side_px
@@ -1012,8 +1012,7 @@ def test_a_scan_window_that_sees_too_few_keypoints_is_read_again_smaller(monkeyp
     assert len(shrunk) == 1  # the first-ranked window, read again smaller, found it
     assert len(est.crops) == 11 + 1 + 1 + 1 + 1  # search, scan window, its shrunk one, redraw, refine
 
-    monkeypatch.setattr(search_mod, "SCAN_SHRINK", ())
-    monkeypatch.setattr(search_mod.WindowSearch, "_shrunk_scan_pass", lambda *a: (None, None))
+    monkeypatch.setattr(scan_mod, "SCAN_SHRINK", ())
     est = _scanning_estimator(R, T, scan=True)
     r, _ = est.search.solve(image, R, T_direct)
     assert r is None
@@ -1023,7 +1022,7 @@ def test_a_shrunk_scan_read_that_overruns_the_budget_goes_on_next_frame():
     """The shrunk read (SCAN_SHRINK and its solve) is counted against the frame's crop budget;
     a frame without room for it leaves the search carried, and a later frame reads the window
     again and shrinks it."""
-    from oibar.nav.pose.search import SCAN_SHRINK, SCAN_SHRINK_FACTOR, SCAN_SIDE_PX
+    from oibar.nav.pose.scan import SCAN_SHRINK, SCAN_SHRINK_FACTOR, SCAN_SIDE_PX
 
     R = FAR_R
     own_10m = window_around(project(K, DEEP, R, FAR_T), 128, 1.25).side_px
@@ -1161,7 +1160,8 @@ def test_the_carried_search_finds_what_the_whole_search_finds_frame_by_frame():
     and solves the same window as the whole search on one frame, to the same answer. The frames
     before give provisional answers (`searching`, low confidence)."""
     from oibar.nav.pose.keypoint import FALLBACK_FACTOR
-    from oibar.nav.pose.search import COLD_CROP_BUDGET, SCAN_SIDE_PX
+    from oibar.nav.pose.scan import SCAN_SIDE_PX
+    from oibar.nav.pose.search import COLD_CROP_BUDGET
 
     est, frame = _with_first_pass(_scanning_estimator(FAR_R, FAR_T, scan=True), FAR_R, FAR_T_DIRECT)
     log = _reads(est)

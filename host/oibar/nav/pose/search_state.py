@@ -1,5 +1,5 @@
-"""What a window search keeps: its fits so far (FitKeeper), the cold search it carries from frame
-to frame (ColdSearch), and the scan's windows over the whole frame."""
+"""What a window search keeps: its fits so far (FitKeeper) and the cold search it carries from
+frame to frame (ColdSearch)."""
 
 from __future__ import annotations
 
@@ -10,28 +10,6 @@ import numpy as np
 
 from oibar.nav.keypoints import CropWindow, PnpResult
 from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
-
-
-def scan_windows(
-    frame_wh: tuple[int, int], side_px: float, stride: float, out_px: int, angle_rad: float = 0.0
-) -> list[CropWindow]:
-    """Square windows of side_px covering the frame, centres `stride` sides apart (row-major),
-    the outer ones flush with the frame's edges, each turned by `angle_rad`."""
-    w, h = frame_wh
-    step = side_px * stride
-    windows = []
-    for cy in _spaced(h, side_px, step):
-        for cx in _spaced(w, side_px, step):
-            windows.append(CropWindow((cx, cy), side_px, out_px, angle_rad))
-    return windows
-
-
-def _spaced(length_px: float, side_px: float, step_px: float) -> np.ndarray:
-    """Window centres along one axis: from side/2 to length - side/2, at most step_px apart."""
-    if length_px <= side_px:
-        return np.array([length_px / 2.0])
-    n = int(np.ceil((length_px - side_px) / step_px - 1e-9)) + 1
-    return np.linspace(side_px / 2.0, length_px - side_px / 2.0, n)
 
 
 @dataclass
