@@ -9,7 +9,10 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
    initializer shapes);
 2. the probe on the validation scenes: no slope further from 1 than the shipped model's beyond two
    standard errors of the difference, and none of the shipped model's within 0.1 of 1 leaves that
-   band (a per-frame gain that reads the 3 m view shorter lost in the closed loop: 0.20.0);
+   band (a per-frame gain that reads the 3 m view shorter lost in the closed loop: 0.20.0). The
+   shipped model is probed in the same run (since 2026-12-05: the committed probe was drawn by the
+   renderer of its day, and the renderer's changes since (generator 0.3.0's shadows, 0.4.0's
+   Earth-shine) moved 0.34.0's 3 m attitude slope 0.953 -> 0.995 and its RMS error 0.28 -> 1.94 deg);
 3. the demo with the candidate: lateral p95 below 5 m <= 5 cm, capture within 1 cm of the axis,
    navigator p99 <= 50 ms;
 4. the closed loop paired run by run against the shipped model's runs (held-out, then default):
@@ -30,7 +33,7 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
     python -m oibar_models.judge run --candidate runs/<name>/oibarnet.onnx      # parts 1-3 (~15 min)
     python -m oibar_models.judge loop --candidate runs/<name>/oibarnet.onnx     # part 4 (~85 min)
     python -m oibar_models.judge validation EVAL_JSON --candidate C.onnx        # one part, from
-    python -m oibar_models.judge probe PROBE_JSON                               #   files made
+    python -m oibar_models.judge probe PROBE_JSON [--shipped PROBE_JSON]        #   files made
     python -m oibar_models.judge demo DEMO_JSON                                 #   already
     python -m oibar_models.judge pair held_out=LOOKS_JSON default=LOOKS_JSON \
            [--shipped held_out=LOOKS_JSON ...]   # paired with the shipped model's runs flown beside
@@ -245,6 +248,18 @@ def judge_probe(base: dict[str, Any], cand: dict[str, Any], rule: Rule = Rule())
                 + ")",
             )
     return v
+
+
+def probe_moved(committed: dict[str, Any], today: dict[str, Any], tol: float = 1e-3) -> str:
+    """'' when the shipped model's probe today has its committed slopes (within `tol`), else the
+    largest change: the renderer or the flight code moved under it."""
+    worst, where = 0.0, ""
+    for rb, rt in zip(committed.get("rows", []), today.get("rows", []), strict=False):
+        for k in (x for x in rb if x.endswith("_slope") and x in rt):
+            d = float(rt[k]) - float(rb[k])
+            if abs(d) > abs(worst):
+                worst, where = d, f"{rb['range_m']:g} m {k}"
+    return f"{where} {worst:+.3f}" if abs(worst) > tol else ""
 
 
 def judge_demo(demo: list[dict[str, Any]], rule: Rule = Rule()) -> Verdict:
@@ -574,13 +589,24 @@ def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) 
     )
     if not _report(v1, out):
         return False
-    _run(
-        [py, "-m", "oibar_hil.rig.probe", "--model", str(cand), "--scenes", "val", "--json",
-         str(out / "probe.json"), "--md", str(out / "probe.md"), "--plot", str(out / "probe.png")],
-        out / "probe.log",
-    )  # fmt: skip
-    v2 = judge_probe(
-        _load(BASE_PROBE, "the shipped model's probe"), _load(out / "probe.json", "the probe"), rule
+    for model, name in ((cand, "probe"), (base, "probe_shipped")):
+        _run(
+            [py, "-m", "oibar_hil.rig.probe", "--model", str(model), "--scenes", "val", "--json",
+             str(out / f"{name}.json"), "--md", str(out / f"{name}.md"), "--plot", str(out / f"{name}.png")],
+            out / f"{name}.log",
+        )  # fmt: skip
+    # the shipped model probed beside the candidate, on the frames today's renderer draws: the
+    # committed BASE_PROBE was drawn by the renderer of its day (as part 4 flies the base's runs
+    # again under today's flight code)
+    shipped = _load(out / "probe_shipped.json", "the shipped model's probe")
+    moved = probe_moved(_load(BASE_PROBE, "the shipped model's committed probe"), shipped)
+    if moved:
+        print(
+            f"part 2: the shipped model's probe moved since {BASE_PROBE.name} ({moved}); judged against today's"
+        )
+    v2 = judge_probe(shipped, _load(out / "probe.json", "the probe"), rule)
+    v2.figures["base"] = "the shipped model probed in this run" + (
+        f"; moved from the committed one: {moved}" if moved else ""
     )
     if not _report(v2, out):
         return False
@@ -727,6 +753,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--candidate", type=Path, required=True)
     p = sub.add_parser("probe", help="part 2 from the candidate's probe JSON")
     p.add_argument("probe_json", type=Path)
+    p.add_argument("--shipped", dest="shipped_probe", type=Path,
+                   help="the shipped model's probe made beside it (default: the committed one)")  # fmt: skip
     p = sub.add_parser("demo", help="part 3 from the demo's JSON (python -m oibar_hil.rig --json F demo)")
     p.add_argument("demo_json", type=Path)
     pair = sub.add_parser("pair", help="part 4 from looks JSONs already flown: held_out=FILE default=FILE")
@@ -771,8 +799,9 @@ def main(argv: list[str] | None = None) -> int:
                 a.out,
             )
         elif a.cmd == "probe":
+            shipped = a.shipped_probe or BASE_PROBE
             ok = _report(
-                judge_probe(_load(BASE_PROBE, "the shipped model's probe"), _load(a.probe_json, "the probe")),
+                judge_probe(_load(shipped, "the shipped model's probe"), _load(a.probe_json, "the probe")),
                 a.out,
             )
         elif a.cmd == "demo":

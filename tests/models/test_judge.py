@@ -553,3 +553,52 @@ def test_the_next_base_records_the_flight_code(monkeypatch):
     again = {label: {"runs": _as_flown(base[label]["runs"])} for label in ("held_out", "default")}
     _other_code(monkeypatch, "abcdef0123")
     assert next_base(base, again, "test")["code_tag"] == "abcdef0123"
+
+
+def test_part_2_judges_against_the_shipped_model_probed_in_the_same_run(tmp_path, monkeypatch, capsys):
+    """The committed probe was drawn by the renderer of its day: 0.20.0's probe fails against
+    0.15.3's committed one, and holds against a shipped model that reads today's frames as 0.20.0
+    did. The run probes the shipped model beside the candidate and says the base moved."""
+    import shutil
+    import subprocess
+
+    import oibar_models.judge as judge
+
+    cand, base = tmp_path / "cand.onnx", tmp_path / "shipped.onnx"
+    cand.write_bytes(b"c")
+    base.write_bytes(b"s")
+    monkeypatch.setattr(judge, "BASE_PROBE", PROBE_0153)
+    probed = []
+
+    def fake_run(cmd, log):
+        if "oibar_models.kp_evaluate" in cmd:
+            out = Path(cmd[cmd.index("--out") + 1])
+            out.mkdir(parents=True, exist_ok=True)
+            shutil.copy(DATA / "eval_val_candidate_0200.json", out / "eval.json")
+        elif "oibar_hil.rig.probe" in cmd:
+            probed.append(Path(cmd[cmd.index("--model") + 1]))
+            shutil.copy(DATA / "probe_val_0200.json", cmd[cmd.index("--json") + 1])
+
+    def fake_demo(cmd, **kw):
+        demo = {"metrics": {"nav_lateral_err_m_p95_below_5m": 0.03, "nav_ms_p99": 30.0}, "passed": True}
+        Path(cmd[cmd.index("--json") + 1]).write_text(json.dumps([{**demo, "capture": {"lateral_m": 0.004}}]))
+        return 0
+
+    monkeypatch.setattr(judge, "_run", fake_run)
+    monkeypatch.setattr(subprocess, "call", fake_demo)
+    monkeypatch.setattr(judge, "_version", lambda p: "0.20.0" if p == cand else "0.15.3")
+    monkeypatch.setattr(judge, "_graph_signature", lambda p: GRAPH)
+    monkeypatch.setattr(judge, "_far_graph_signature", lambda p: None)
+    assert judge.run_parts(cand, tmp_path / "out", base=base)
+    assert probed == [cand, base]
+    assert json.loads((tmp_path / "out" / "part2.json").read_text())["holds"] is True
+    assert "probe moved since probe_val_0153.json" in capsys.readouterr().out
+    # by hand: against the committed probe (the default) it fails, against the one made beside it holds
+    out = ["--out", str(tmp_path / "by_hand")]
+    assert main([*out, "probe", str(DATA / "probe_val_0200.json")]) == 1
+    assert (
+        main(
+            [*out, "probe", str(DATA / "probe_val_0200.json"), "--shipped", str(DATA / "probe_val_0200.json")]
+        )
+        == 0
+    )
