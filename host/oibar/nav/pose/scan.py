@@ -5,18 +5,14 @@ on from where a ColdSearch stopped and stops where the frame's crop budget runs 
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from oibar.nav.keypoints import CropWindow, PnpResult
+from oibar.nav.keypoints import CropWindow
 from oibar.nav.pose.reader import KeypointReader
 from oibar.nav.pose.roll import OnePass
-from oibar.nav.pose.search_state import ColdSearch
-
-Fit = tuple[PnpResult, CropWindow] | tuple[None, None]
-Consider = Callable[[PnpResult | None, CropWindow | None], bool]
+from oibar.nav.pose.search_state import ColdSearch, Consider, Fit
 
 # The last resort of a cold start: when the prediction, SEARCH_STEPS and the zoom give no strong
 # fit, the whole frame is read in windows of SCAN_SIDE_PX, SCAN_STRIDE sides apart (so some

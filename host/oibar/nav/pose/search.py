@@ -11,7 +11,7 @@ cycle nears the MCU's link timeout. A strong fit the search found is read upside
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -25,7 +25,7 @@ from oibar.nav.pose.model_file import ModelFileError, export_flag
 from oibar.nav.pose.reader import CropReading, KeypointReader
 from oibar.nav.pose.roll import turned_pass, upright_pass
 from oibar.nav.pose.scan import scan_pass
-from oibar.nav.pose.search_state import ColdSearch, FitKeeper
+from oibar.nav.pose.search_state import ColdSearch, Consider, Fit, FitKeeper
 from oibar.nav.pose.zoom_out import bigger_fixture
 
 # Windows tried in turn until the keypoints give a consistent pose: (shift x, shift y) in window
@@ -117,8 +117,6 @@ COLD_CARRY_MAX_AGE_S = 3.0
 WELL_PLACED_CROP_PX = 8.0
 WELL_PLACED_SIDE_FRAC = 0.10
 WELL_PLACED_ANGLE_DEG = 3.0  # and its turn (reader.UPRIGHT_FROM_DEG) within this of the placed one's
-Fit = tuple[PnpResult, CropWindow] | tuple[None, None]
-Consider = Callable[[PnpResult | None, CropWindow | None], bool]
 
 
 def zoom_steps(wide: bool) -> tuple[tuple[float, float, float], ...]:

@@ -11,6 +11,10 @@ import numpy as np
 from oibar.nav.keypoints import CropWindow, PnpResult
 from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, fit_rms_crop_px
 
+# one window's fit (None, None: no fit), and what the search offers each fit to (FitKeeper.consider)
+Fit = tuple[PnpResult, CropWindow] | tuple[None, None]
+Consider = Callable[[PnpResult | None, CropWindow | None], bool]
+
 
 @dataclass
 class ColdSearch:
