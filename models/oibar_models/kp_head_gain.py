@@ -11,7 +11,12 @@ on aligned approaches, the head reads a tilt short, most close in (0.15.3: 0.84 
 at 0.5 m on the probe); the prior then pulls every answer toward "aligned" by that much.
 
 python -m oibar_models.kp_head_gain --model models/oibarnet.onnx [--stride 2] \
-    [--out runs/kp_head_gain.json] [--plot runs/kp_head_gain.png]
+    [--val-set SPEC ROOT] [--out runs/kp_head_gain.json] [--plot runs/kp_head_gain.png]
+
+`--min-frames` and `--range-edges` are for a toy run (a recipe's smoke build measures a handful
+of frames): fewer frames per bin than MIN_FRAMES_PER_BIN give a slope that is mostly noise, and
+the default bins are the fusion's error models' (kp_fusion.ERROR_RANGE_EDGES_M). The JSON
+records both, so a table measured under them says so.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from oibar.geometry.rotations import quat_to_matrix
 from oibar.nav.error_models import HEAD_GAIN_LIMITS, HeadGainModel
 from oibar.nav.keypoints import project, window_around
 
-from .config import REPO_ROOT
+from .config import REPO_ROOT, ConfigError
 from .data import DatasetError, load_sequence
 from .kp_fusion import ERROR_RANGE_EDGES_M
 from .scenes import load_set
@@ -89,18 +94,23 @@ def bin_slope(true_rad: np.ndarray, head_rad: np.ndarray) -> tuple[float, float,
     return b, se, y.mean(0) - b * x.mean(0)
 
 
-def gain_table(rows: dict[str, np.ndarray], edges_m=ERROR_RANGE_EDGES_M) -> dict:
+def gain_table(
+    rows: dict[str, np.ndarray], edges_m=ERROR_RANGE_EDGES_M, min_frames: int = MIN_FRAMES_PER_BIN
+) -> dict:
     """The head-gain table (HeadGainModel's input) and each bin's statistics. HeadGainError when a
-    bin has fewer than MIN_FRAMES_PER_BIN frames or a gain outside HEAD_GAIN_LIMITS."""
+    bin has fewer than `min_frames` frames or a gain outside HEAD_GAIN_LIMITS."""
     edges = np.asarray(edges_m, float)
     rng = rows["range_m"]
     gains, bins = [], []
     for lo, hi in zip(edges[:-1], edges[1:], strict=True):
         m = (rng >= lo) & (rng < hi)
         n = int(m.sum())
-        if n < MIN_FRAMES_PER_BIN:
-            raise HeadGainError(f"{lo:g}-{hi:g} m: {n} frames, at least {MIN_FRAMES_PER_BIN} needed")
-        b, se, icpt = bin_slope(rows["true_rad"][m], rows["head_rad"][m])
+        if n < min_frames:
+            raise HeadGainError(f"{lo:g}-{hi:g} m: {n} frames, at least {min_frames} needed")
+        try:
+            b, se, icpt = bin_slope(rows["true_rad"][m], rows["head_rad"][m])
+        except HeadGainError as exc:
+            raise HeadGainError(f"{lo:g}-{hi:g} m: {exc}") from exc
         if not HEAD_GAIN_LIMITS[0] <= b <= HEAD_GAIN_LIMITS[1]:
             raise HeadGainError(
                 f"{lo:g}-{hi:g} m: gain {b:.3f} outside {HEAD_GAIN_LIMITS} (a reading gone wrong?)"
@@ -158,13 +168,49 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", type=Path, default=REPO_ROOT / "models/oibarnet.onnx")
     ap.add_argument("--stride", type=int, default=2, help="every n-th frame of each validation scene")
     ap.add_argument("--val-root", type=Path, default=REPO_ROOT / "data/val")
+    ap.add_argument(
+        "--val-set",
+        nargs=2,
+        type=Path,
+        metavar=("SPEC", "ROOT"),
+        default=None,
+        help="the validation scenes (a scene set) and where they are rendered (a recipe's build); "
+        "default: models/scenes/val.json under --val-root",
+    )
+    ap.add_argument(
+        "--min-frames",
+        type=int,
+        default=MIN_FRAMES_PER_BIN,
+        help=f"the fewest frames a range bin is measured on (default {MIN_FRAMES_PER_BIN}; fewer: a toy run)",
+    )
+    ap.add_argument(
+        "--range-edges",
+        default=None,
+        metavar="E0,E1,...",
+        help="the range bins' rising edges in m (default: the fusion's error models', "
+        + ",".join(f"{e:g}" for e in ERROR_RANGE_EDGES_M)
+        + ")",
+    )
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/kp_head_gain.json")
     ap.add_argument("--plot", type=Path, default=None, help="a PNG of the head's tilt against the truth's")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
-    if a.stride < 1:
-        print("error: --stride must be >= 1", file=sys.stderr)
+    if a.stride < 1 or a.min_frames < 2:
+        print("error: --stride must be >= 1 and --min-frames >= 2", file=sys.stderr)
         return 2
+    edges = ERROR_RANGE_EDGES_M
+    if a.range_edges is not None:
+        try:
+            edges = tuple(float(e) for e in a.range_edges.split(","))
+            if len(edges) < 2 or any(e < 0 for e in edges) or not np.all(np.diff(edges) > 0):
+                raise ValueError
+        except ValueError:
+            print(
+                f"error: --range-edges: rising edges >= 0, at least two, got {a.range_edges!r}",
+                file=sys.stderr,
+            )
+            return 2
+    spec, root = a.val_set or (REPO_ROOT / "models/scenes/val.json", a.val_root)
     try:
         est = PoseEstimator(a.model)
     except (ModelFileError, FileNotFoundError) as exc:
@@ -174,20 +220,21 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {a.model} has no attitude head to measure", file=sys.stderr)
         return 2
     try:
-        seqs = [load_sequence(a.val_root / s.name) for s in load_set(REPO_ROOT / "models/scenes/val.json")]
-    except DatasetError as exc:
+        seqs = [load_sequence(REPO_ROOT / root / s.name) for s in load_set(REPO_ROOT / spec)]
+    except (DatasetError, ConfigError) as exc:
         print(f"error: {exc} (render the validation scenes: make dataset-val)", file=sys.stderr)
         return 2
     rows = collect(est, seqs, a.stride, progress=not a.no_progress)
     try:
-        result = gain_table(rows)
+        result = gain_table(rows, edges, a.min_frames)
     except HeadGainError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     doc = {
         "model": str(a.model),
-        "measured_on": "validation scenes (models/scenes/val.json), crops around the true pose",
+        "measured_on": f"validation scenes ({spec}), crops around the true pose",
         "stride": a.stride,
+        "min_frames_per_bin": a.min_frames,
         "frames": len(rows["range_m"]),
         **result,
     }
