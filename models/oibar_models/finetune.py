@@ -1,6 +1,8 @@
 """Fine-tuning the shipped keypoint network on lab recordings, as the paper did (10 lab sequences
 for training, 2 held for its table): a demonstration. Its model does not ship: it is never
-judged (`make judge-kp`), registered or copied to models/.
+judged (`make judge-kp`), registered or copied to models/. A recipe's `finetune` stage
+(oibar_models.build_finetune) runs steps 1-3 below on rendered sequences to make a candidate
+that can be judged and, once registered, ship: its file then says so (`Options.note`).
 
 python -m oibar_models.finetune --data DIR [DIR ...] --val DIR [DIR ...] \
     [--init models/oibarnet.onnx] --out runs/NAME [--steps 1000] [--lr 2e-4] [--seed 0]
@@ -42,6 +44,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -72,6 +75,7 @@ BATCH_NORM = ("frozen", "train")
 # within 5 % 88 -> 97 %, within 5 deg 3 -> 60 % (3 epochs read it upside down). docs/calibration.md.
 STEPS = 1000
 LR = 2e-4
+DEMO_NOTE = "a demonstration (issue 58 item 5): never judged, registered or shipped"
 EVAL_COLUMNS_EXTRA = [
     ("answered_pct", "answered (%)", "{:.1f}"),
     ("silent_failures", "silent failures", "{:d}"),
@@ -106,6 +110,7 @@ class Options:
     force: bool = False
     batch_norm: str = "frozen"  # BATCH_NORM: keep the calibrated statistics while fine-tuning, or "train"
     turn_deg: float | None = None  # the crops' in-plane turn, uniform +-; None: the stage's own
+    note: str = DEMO_NOTE  # what the file's oibar.finetune says it is
 
 
 @dataclass
@@ -339,7 +344,7 @@ def export_candidate(o: Options, cfg, net, meta: dict, val: dict, spreads: dict[
             "batch_norm": o.batch_norm,
             "spread_median_crop_px": spreads,
             "ships": False,
-            "note": "a demonstration (issue 58 item 5): never judged, registered or shipped",
+            "note": o.note,
         },
     )
     if not o.far_network:
@@ -440,9 +445,10 @@ def write_tables(o: Options, results: dict, rows: list) -> dict:
 
 
 # ----------------------------------------------------------------------------- driver
-def run(o: Options) -> dict:
-    from . import tracking
-
+def fine_tuned(o: Options) -> tuple[Any, Path, list[Sequence]]:
+    """Steps 1-3 (recover, fine-tune, export), without the evaluation: (the config it trained
+    under, the candidate file, the held sequences). A recipe's finetune stage (oibar_models.
+    build_finetune) runs this alone: its own evaluate stage measures the candidate."""
     if o.out.exists() and any(o.out.iterdir()) and not o.force:
         raise FinetuneError(f"{o.out} exists and is not empty: choose another --out, or --force")
     train, held = open_sequences(o)
@@ -467,6 +473,13 @@ def run(o: Options) -> dict:
     spreads = {"start": round(spread_start, 3), "finetuned": round(spread_median(net, crops, visible), 3)}
     candidate = export_candidate(o, cfg, net, meta, last, spreads)
     say(o, f"exported {candidate}")
+    return cfg, candidate, held
+
+
+def run(o: Options) -> dict:
+    from . import tracking
+
+    cfg, candidate, held = fine_tuned(o)
     results, rows = evaluate(o, candidate, held)
     summary = write_tables(o, results, rows)
     info = RunInfo(EXPERIMENT, o.out, o.seed)
