@@ -12,6 +12,11 @@ trainer's own resume), an interrupted dataset from its last rendered frame (the 
 Seeded end to end: the recipe's seed is each trainer's `train.seed` (torch's generator, the
 sampler, and the crop augmentation: kp_data.CropDataset), and the export's parity input. Every
 training, selection and evaluation stage is logged to MLflow (oibar_models.tracking).
+
+A candidate fine-tuned from a flight file rather than trained from ImageNet (stage kinds finetune,
+head_gain, retag: oibar_models.build_finetune), e.g.
+
+    python -m oibar_models.build models/recipes/oibarnet_kp_ft.toml
 """
 
 from __future__ import annotations
@@ -362,7 +367,7 @@ class Build:
 
         o = st.opts
         spec, root = self.val_set(st)
-        inputs = {"opts": o, "upstream": self.upstream(o["model"], f"data_{o['val_data']}")}
+        inputs = {"opts": o, "upstream": self.upstream(o["model"], o["head_gain"], f"data_{o['val_data']}")}
 
         def run(d: Path):
             out = d / "fusion.json"
@@ -382,6 +387,8 @@ class Build:
             ]
             if o["pairs"]:
                 argv += ["--pairs", ",".join(f"{a:g}:{b:g}" for a, b in o["pairs"])]
+            if o["head_gain"]:
+                argv += ["--head-gain", str(self.stage_dir(o["head_gain"]) / "head_gain.json")]
             if fusion_main(argv) != 0:
                 raise BuildError(f"stage {st.name}: the fusion grid failed (kp_fusion {' '.join(argv)})")
             best = json.loads(out.read_text())["best"]
@@ -476,6 +483,22 @@ class Build:
             return [d / "entry.toml", d / "card.md", d / "reproduction.json"], verdict
 
         return self.step(st.name, "card", inputs, run)
+
+    # ------------------------------------------------------------------ from a flight file
+    def finetune(self, st: Stage) -> dict:
+        from .build_finetune import finetune
+
+        return finetune(self, st)
+
+    def head_gain(self, st: Stage) -> dict:
+        from .build_finetune import head_gain
+
+        return head_gain(self, st)
+
+    def retag(self, st: Stage) -> dict:
+        from .build_finetune import retag
+
+        return retag(self, st)
 
     # ------------------------------------------------------------------ the whole recipe
     def run(self, only: str | None = None) -> dict[str, dict]:

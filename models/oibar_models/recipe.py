@@ -10,9 +10,17 @@ wrong type or a stage that names a stage it cannot use is a RecipeError naming t
                 (init = "imagenet") or another train stage's checkpoint (init = "STAGE:best|last")
       export    one or two trained networks to the flight file (kp_export), parity-checked and
                 opened as the flight runtime opens it
-      fusion    the fit's weights chosen on validation (kp_fusion's grid) for an export's file
+      fusion    the fit's weights chosen on validation (kp_fusion's grid) for an export's or a
+                fine-tune's file, optionally with a head_gain stage's table
       evaluate  the flight estimator on the validation set (kp_evaluate): the paper's metrics
       card      the model card's tables and a registry entry for the build, from an evaluate stage
+    and, for a candidate fine-tuned from a flight file (oibar_models.build_finetune):
+      finetune  an ONNX file (init, its sha256 pinned by init_sha256) fine-tuned on a list of
+                datasets (oibar_models.finetune: recovered, trained, exported with its tables)
+      head_gain the attitude head's tilt gain per range bin on validation (kp_head_gain)
+      retag     a fine-tune's file with a fusion stage's weights, a head_gain stage's table, an
+                optional fixture finder and the recipe's model_version (kp_export.retag), opened
+                as the flight runtime opens it
 """
 
 from __future__ import annotations
@@ -32,7 +40,10 @@ class RecipeError(ValueError):
 
 VERSION_RE = re.compile(r"\d+\.\d+\.\d+")
 NAME_RE = re.compile(r"[a-z][a-z0-9_]*")
-STAGE_KINDS = ("train", "export", "fusion", "evaluate", "card")
+STAGE_KINDS = ("train", "export", "fusion", "evaluate", "card", "finetune", "head_gain", "retag")
+# the kinds whose stage folder holds a flight file, oibarnet.onnx with its companions
+MODEL_KINDS = ("export", "finetune", "retag")
+BATCH_NORM = ("frozen", "train")  # oibar_models.finetune.BATCH_NORM (not imported: it loads torch)
 # every key a stage of each kind may have (beyond name and kind), with its type and default;
 # None as a default: required
 STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
@@ -56,15 +67,16 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "note": (str, ""),
     },
     "fusion": {
-        "model": (str, None),  # an export stage
+        "model": (str, None),  # an export or finetune stage
         "val_data": (str, None),
         "stride": (int, 16),
         "priors": (list, ["direct", "head"]),
         "pairs": (list, []),  # [[KP_PX, PRIOR_DEG], ...]; empty: the whole grid
+        "head_gain": (str, ""),  # a head_gain stage measured on the same model: the head's tilt divided by it
         "note": (str, ""),
     },
     "evaluate": {
-        "model": (str, None),  # an export stage
+        "model": (str, None),  # an export, finetune or retag stage
         "val_data": (str, None),
         "stride": (int, 2),
         "modes": (list, ["track"]),
@@ -72,6 +84,33 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
     },
     "card": {
         "evaluate": (str, None),
+        "note": (str, ""),
+    },
+    "finetune": {
+        "init": (str, None),  # a keypoint flight file (repository path), its companions beside it
+        "init_sha256": (str, ""),  # checked when the stage runs; "": not pinned
+        "train_data": (list, None),  # datasets, in order: their scenes are the training sequences
+        "val_data": (str, None),  # the held sequences (the trainer's crop validation only)
+        "steps": (int, 1000),  # finetune.STEPS
+        "lr": (float, 2e-4),  # finetune.LR
+        "batch_size": (int, 16),
+        "batch_norm": (str, "frozen"),  # BATCH_NORM
+        "far_network": (bool, True),  # keep init's far network beside the candidate
+        "note": (str, ""),
+    },
+    "head_gain": {
+        "model": (str, None),  # a finetune or export stage
+        "val_data": (str, None),
+        "stride": (int, 4),
+        "min_frames": (int, 0),  # the fewest frames per range bin; 0: kp_head_gain.MIN_FRAMES_PER_BIN
+        "range_edges_m": (list, []),  # the bins' rising edges; []: kp_fusion.ERROR_RANGE_EDGES_M
+        "note": (str, ""),
+    },
+    "retag": {
+        "model": (str, None),  # a finetune stage
+        "fusion": (str, ""),  # a fusion stage on the same model; "": the model's own weights
+        "head_gain": (str, ""),  # a head_gain stage on the same model; "": the model's own table
+        "finder": (str, ""),  # the fixture finder's ONNX (repository path), copied beside; "": none
         "note": (str, ""),
     },
 }
@@ -243,13 +282,25 @@ def load_recipe(path: str | Path) -> Recipe:
     )
 
 
-def _earlier(where: str, key: str, ref: str, before: list[Stage], kind: str) -> None:
+def _earlier(where: str, key: str, ref: str, before: list[Stage], kind: str | tuple[str, ...]) -> Stage:
+    kinds = (kind,) if isinstance(kind, str) else kind
     for s in before:
         if s.name == ref:
-            if s.kind != kind:
-                raise RecipeError(f"{where} {key}: {ref!r} is a stage of kind {s.kind}, not {kind}")
-            return
-    raise RecipeError(f"{where} {key}: no earlier {kind} stage named {ref!r} (stages run in file order)")
+            if s.kind not in kinds:
+                raise RecipeError(
+                    f"{where} {key}: {ref!r} is a stage of kind {s.kind}, not {' or '.join(kinds)}"
+                )
+            return s
+    raise RecipeError(
+        f"{where} {key}: no earlier {' or '.join(kinds)} stage named {ref!r} (stages run in file order)"
+    )
+
+
+def _same_model(where: str, key: str, ref: str, model: str, before: list[Stage]) -> None:
+    """A head_gain or fusion stage `ref` named by a stage that reads `model` measured that model."""
+    up = next(s for s in before if s.name == ref)
+    if up["model"] != model:
+        raise RecipeError(f"{where} {key}: {ref!r} measured stage {up['model']!r}'s model, not {model!r}")
 
 
 def _dataset(where: str, key: str, name: str, datasets: dict[str, Dataset]) -> None:
@@ -292,12 +343,26 @@ def _check_stage(where: str, kind: str, o: dict, before: list[Stage], datasets: 
                 )
         elif o["fusion"]:
             _earlier(where, "fusion", o["fusion"], before, "fusion")
-    elif kind in ("fusion", "evaluate"):
-        _earlier(where, "model", o["model"], before, "export")
+    elif kind in ("fusion", "evaluate", "head_gain"):
+        model_kinds = {"fusion": ("export", "finetune"), "head_gain": ("export", "finetune")}.get(
+            kind, MODEL_KINDS
+        )
+        _earlier(where, "model", o["model"], before, model_kinds)
+        if not o["val_data"]:
+            raise RecipeError(f"{where} val_data: a dataset is required")
         _dataset(where, "val_data", o["val_data"], datasets)
         if o["stride"] < 1:
             raise RecipeError(f"{where} stride: must be >= 1, got {o['stride']}")
-        if kind == "fusion":
+        if kind == "head_gain":
+            _check_head_gain(where, o)
+        elif kind == "fusion":
+            if o["head_gain"]:
+                _earlier(where, "head_gain", o["head_gain"], before, "head_gain")
+                _same_model(where, "head_gain", o["head_gain"], o["model"], before)
+                if "head" not in o["priors"]:
+                    raise RecipeError(
+                        f"{where} head_gain: only the head as a prior reads it; priors {o['priors']!r}"
+                    )
             if not o["priors"] or any(p not in ("direct", "head") for p in o["priors"]):
                 raise RecipeError(f"{where} priors: direct and/or head, got {o['priors']!r}")
             for p in o["pairs"]:
@@ -311,3 +376,57 @@ def _check_stage(where: str, kind: str, o: dict, before: list[Stage], datasets: 
             raise RecipeError(f"{where} modes: single and/or track, got {o['modes']!r}")
     elif kind == "card":
         _earlier(where, "evaluate", o["evaluate"], before, "evaluate")
+    elif kind == "finetune":
+        _check_finetune(where, o, datasets)
+    elif kind == "retag":
+        _earlier(where, "model", o["model"], before, "finetune")
+        if o["fusion"]:
+            fusion = _earlier(where, "fusion", o["fusion"], before, "fusion")
+            _same_model(where, "fusion", o["fusion"], o["model"], before)
+            if o["head_gain"] and fusion["head_gain"] and fusion["head_gain"] != o["head_gain"]:
+                raise RecipeError(
+                    f"{where} head_gain: {o['head_gain']!r}, but the fusion stage {o['fusion']!r} "
+                    f"chose its weights with {fusion['head_gain']!r}"
+                )
+        if o["head_gain"]:
+            _earlier(where, "head_gain", o["head_gain"], before, "head_gain")
+            _same_model(where, "head_gain", o["head_gain"], o["model"], before)
+        if o["finder"] and not resolve(o["finder"]).is_file():
+            raise RecipeError(f"{where} finder: not found: {o['finder']}")
+
+
+def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset]) -> None:
+    if not resolve(o["init"]).is_file():
+        raise RecipeError(f"{where} init: not found: {o['init']}")
+    if o["init_sha256"] and not re.fullmatch(r"[0-9a-f]{64}", o["init_sha256"]):
+        raise RecipeError(f"{where} init_sha256: 64 lower-case hex digits, got {o['init_sha256']!r}")
+    train = o["train_data"]
+    if not train or not all(isinstance(n, str) and n for n in train):
+        raise RecipeError(f"{where} train_data: a list of one or more dataset names, got {train!r}")
+    for n in train:
+        _dataset(where, "train_data", n, datasets)
+    if len(set(train)) != len(train):
+        raise RecipeError(f"{where} train_data: a dataset named twice in {train!r}")
+    if not o["val_data"]:
+        raise RecipeError(f"{where} val_data: a dataset is required")
+    _dataset(where, "val_data", o["val_data"], datasets)
+    if o["val_data"] in train:
+        raise RecipeError(f"{where} val_data: {o['val_data']!r} is also trained on (train_data)")
+    if o["steps"] < 1 or o["batch_size"] < 1:
+        raise RecipeError(f"{where} steps, batch_size: must be >= 1, got {o['steps']}, {o['batch_size']}")
+    if not o["lr"] > 0:
+        raise RecipeError(f"{where} lr: must be > 0, got {o['lr']}")
+    if o["batch_norm"] not in BATCH_NORM:
+        raise RecipeError(f"{where} batch_norm: one of {list(BATCH_NORM)}, got {o['batch_norm']!r}")
+
+
+def _check_head_gain(where: str, o: dict) -> None:
+    if o["min_frames"] != 0 and o["min_frames"] < 2:
+        raise RecipeError(f"{where} min_frames: >= 2 (0: kp_head_gain's own), got {o['min_frames']}")
+    edges = o["range_edges_m"]
+    if edges and (
+        len(edges) < 2
+        or not all(isinstance(e, (int, float)) and not isinstance(e, bool) and e >= 0 for e in edges)
+        or any(b <= a for a, b in zip(edges[:-1], edges[1:], strict=True))
+    ):
+        raise RecipeError(f"{where} range_edges_m: two or more rising edges >= 0 (m), got {edges!r}")

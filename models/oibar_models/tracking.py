@@ -24,7 +24,7 @@ from .config import REPO_ROOT
 DEFAULT_STORE = REPO_ROOT / "runs" / "mlflow" / "mlflow.db"
 # files small enough to keep with every run; checkpoints stay in the run folder (hashed in its marker)
 TRAIN_ARTEFACTS = ("config.yaml", "log.jsonl", "done.json")
-EVAL_ARTEFACTS = ("eval.json", "eval.md", "metrics.json", "fusion.json")
+EVAL_ARTEFACTS = ("eval.json", "eval.md", "metrics.json", "fusion.json", "head_gain.json")
 
 
 class TrackingError(RuntimeError):

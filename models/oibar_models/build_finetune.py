@@ -1,0 +1,243 @@
+"""The recipe stages of a candidate fine-tuned from a flight file, run by oibar_models.build
+(Build.finetune, Build.head_gain, Build.retag) through its `step`: fingerprinted inputs (the
+recipe's keys, the files read by content, the upstream stages' and datasets' keys), a done marker,
+skipped on a rerun whose inputs match.
+
+    finetune   oibar_models.finetune's steps 1-3 (kp_recover, the trainer's loop, the export with
+               every table of the starting file) on the recipe's rendered datasets; the recipe's
+               seed is the fine-tune's. Its own evaluation is not run: an evaluate stage measures
+               the candidate. -> oibarnet.onnx with its first pass (and far network unless
+               far_network = false), finetuned.pt, recovered.pt, config.yaml, log.jsonl, done.json
+    head_gain  kp_head_gain on a finetune's or export's file -> head_gain.json
+    retag      a finetune's file, the graph untouched, with a fusion stage's weights, a head_gain
+               stage's table, an optional fixture finder and the recipe's model_version
+               (kp_export.retag), its companions beside it, opened as the flight runtime opens it
+               -> oibarnet.onnx, the flight file of the candidate
+
+The finetune and head_gain stages are logged to MLflow as the trainer and the evaluations are
+(oibar_models.tracking; OIBAR_TRACKING=0 turns it off).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from oibar.hashing import sha256_file
+
+from .build import BuildError
+from .recipe import Stage, resolve
+
+if TYPE_CHECKING:
+    from .build import Build
+
+MODEL_FILE = "oibarnet.onnx"  # what a finetune, export or retag stage writes in its folder
+
+
+def model_file(b: Build, stage: str) -> Path:
+    return b.stage_dir(stage) / MODEL_FILE
+
+
+def sequences(b: Build, st: Stage) -> tuple[list[Path], list[Path]]:
+    """A finetune stage's training sequence folders, in order (its datasets as listed, each
+    dataset's scenes in its own order), and its held ones."""
+
+    def folders(name: str) -> list[Path]:
+        ds = b.recipe.datasets[name]
+        specs, _ = b.scene_list(ds)
+        return [b.dataset_root(ds) / s.name for s in specs]
+
+    return [p for name in st["train_data"] for p in folders(name)], folders(st["val_data"])
+
+
+def clear(d: Path) -> None:
+    """A stage that does not resume starts from an empty folder: no file of an earlier run (a far
+    network since dropped, say) lies beside its outputs."""
+    for p in d.iterdir():
+        if p.is_file():
+            p.unlink()
+
+
+# ----------------------------------------------------------------------------- finetune
+def finetune(b: Build, st: Stage) -> dict:
+    from dataclasses import asdict
+
+    from oibar.nav.pose import ModelFileError, read_metadata
+
+    from . import tracking
+    from .config import ConfigError
+    from .data import DatasetError
+    from .finetune import FinetuneError, Options, companions, fine_tuned, stage_config
+    from .kp_recover import RecoverError
+
+    o = st.opts
+    init = resolve(o["init"])
+    init_sha = sha256_file(init)
+    if o["init_sha256"] and o["init_sha256"] != init_sha:
+        raise BuildError(
+            f"stage {st.name}: {init} hashes {init_sha[:12]}..., the recipe pins {o['init_sha256'][:12]}..."
+        )
+    try:
+        meta = read_metadata(init)
+    except ModelFileError as exc:
+        raise BuildError(f"stage {st.name}: init: {exc}") from exc
+    train, held = sequences(b, st)
+    opts = Options(
+        data=train,
+        val=held,
+        init=init,
+        out=b.stage_dir(st.name),
+        steps=o["steps"],
+        batch_size=o["batch_size"],
+        lr=o["lr"],
+        seed=b.recipe.seed,
+        far_network=o["far_network"],
+        threads=b.recipe.threads,
+        progress=b.progress,
+        force=True,  # the marker, not the folder, says whether the stage is done
+        batch_norm=o["batch_norm"],
+        note=f"a candidate of recipe {b.recipe.name} (stage {st.name}): it ships only once judged and registered",
+    )
+    kept = dict(meta)
+    if not o["far_network"]:
+        kept.pop("far_network", None)
+    try:
+        cfg, _ = stage_config(opts, meta, 0)  # `steps`, not epochs: the frame count is not read
+        beside = {name: sha256_file(init.parent / name) for name in companions(kept)}
+    except (FinetuneError, ConfigError, KeyError) as exc:
+        raise BuildError(f"stage {st.name}: {exc}") from exc
+    except OSError as exc:
+        raise BuildError(f"stage {st.name}: a file {init.name} names is not beside it: {exc}") from exc
+    inputs = {
+        "opts": o,
+        "init_sha256": init_sha,
+        "companions_sha256": beside,
+        "config": asdict(cfg),
+        "threads": b.recipe.threads,
+        "upstream": b.upstream(*(f"data_{n}" for n in o["train_data"]), f"data_{o['val_data']}"),
+    }
+
+    def run(d: Path):
+        clear(d)
+        try:
+            cfg, candidate, _ = fine_tuned(opts)
+        except (FinetuneError, DatasetError, ConfigError, RecoverError, ModelFileError) as exc:
+            raise BuildError(f"stage {st.name}: {exc}") from exc
+        done = json.loads((d / "done.json").read_text())
+        metrics: dict[str, Any] = {"steps": done["steps"]}
+        metrics |= {f"val_{k}": v for k, v in done["last"].items() if isinstance(v, (int, float))}
+        spreads = read_metadata(candidate)["finetune"]["spread_median_crop_px"]
+        metrics |= {f"spread_median_crop_px_{k}": v for k, v in spreads.items()}
+        tracking.log_training(b.recipe, st.name, cfg, d, metrics)
+        outputs = [candidate, *(d / n for n in companions(read_metadata(candidate))), d / "finetuned.pt"]
+        return outputs, metrics
+
+    return b.step(st.name, "finetune", inputs, run)
+
+
+# ----------------------------------------------------------------------------- head gain
+def head_gain(b: Build, st: Stage) -> dict:
+    from . import tracking
+    from .kp_fusion import ERROR_RANGE_EDGES_M
+    from .kp_head_gain import MIN_FRAMES_PER_BIN
+    from .kp_head_gain import main as head_gain_main
+
+    o = st.opts
+    spec, root = b.val_set(st)
+    edges = [float(e) for e in (o["range_edges_m"] or ERROR_RANGE_EDGES_M)]
+    min_frames = o["min_frames"] or MIN_FRAMES_PER_BIN
+    inputs = {
+        "opts": o,
+        "range_edges_m": edges,  # what the defaults were when it ran
+        "min_frames": min_frames,
+        "upstream": b.upstream(o["model"], f"data_{o['val_data']}"),
+    }
+
+    def run(d: Path):
+        out = d / "head_gain.json"
+        model = model_file(b, o["model"])
+        argv = ["--model", str(model), "--val-set", str(spec), str(root), "--stride", str(o["stride"])]
+        argv += ["--min-frames", str(min_frames), "--range-edges", ",".join(repr(e) for e in edges)]
+        argv += ["--out", str(out), "--no-progress"]
+        if head_gain_main(argv) != 0:
+            raise BuildError(
+                f"stage {st.name}: the head-gain measurement failed (kp_head_gain {' '.join(argv)})"
+            )
+        doc = json.loads(out.read_text())
+        metrics: dict[str, Any] = {"frames": doc["frames"]}
+        for row in doc["bins"]:
+            lo, hi = row["range_m"]
+            metrics[f"tilt_gain_{lo:g}-{hi:g}m"] = round(row["tilt_gain"], 4)
+        tracking.log_evaluation(b.recipe, st.name, model, d, metrics, o, kind="head_gain")
+        return [out], metrics
+
+    return b.step(st.name, "head_gain", inputs, run)
+
+
+# ----------------------------------------------------------------------------- retag
+def retag(b: Build, st: Stage) -> dict:
+    o = st.opts
+    src = model_file(b, o["model"])
+    fusion_file = b.stage_dir(o["fusion"]) / "fusion.json" if o["fusion"] else None
+    gain_file = b.stage_dir(o["head_gain"]) / "head_gain.json" if o["head_gain"] else None
+    finder = resolve(o["finder"]) if o["finder"] else None
+    inputs = {
+        "opts": o,
+        "model_version": b.recipe.model_version,
+        "finder_sha256": sha256_file(finder) if finder else "",
+        "upstream": b.upstream(o["model"], o["fusion"], o["head_gain"]),
+    }
+
+    def run(d: Path):
+        from oibar.nav.pose import KeypointPoseEstimator, ModelFileError, PoseEstimator, read_metadata
+
+        from .finetune import companions
+        from .kp_export import load_fusion, load_head_gain
+        from .kp_export import retag as retag_file
+
+        clear(d)
+        meta = read_metadata(src)
+        written = []
+        for name in companions(meta):  # the first pass (and far network) the file names, beside it
+            shutil.copy(src.parent / name, d / name)
+            written.append(d / name)
+        options: dict[str, Any] = {"model_version": b.recipe.model_version}
+        try:
+            if fusion_file:
+                # PnP alone when the grid chose no prior: no weights, as an export without fusion
+                options["fusion"] = load_fusion(fusion_file, int(meta["crop"]["out_px"])) or {}
+            prior = (options.get("fusion", meta.get("fusion")) or {}).get("attitude_prior")
+            if gain_file:
+                table = load_head_gain(gain_file)
+                if prior == "head":
+                    options["head_gain"] = table
+                else:  # kp_fusion's own rule: its choice carries the gain only with the head as prior
+                    b.say(f"{st.name}: the fusion's prior is {prior or 'none'}, not the head: no head gain")
+        except (OSError, ValueError, KeyError) as exc:
+            raise BuildError(f"stage {st.name}: {exc}") from exc
+        if finder:
+            shutil.copy(finder, d / finder.name)
+            options["finder"] = {"file": finder.name}
+            written.append(d / finder.name)
+        out = d / MODEL_FILE
+        try:
+            retag_file(src, out, options)
+            est = PoseEstimator(out, warmup_runs=1)  # checked as flight opens it, its files beside it
+        except (ModelFileError, ValueError, OSError) as exc:
+            raise BuildError(f"stage {st.name}: the retagged file does not open: {exc}") from exc
+        if not isinstance(est, KeypointPoseEstimator):
+            raise BuildError(f"stage {st.name}: {out} is not a keypoint model")
+        new = read_metadata(out)
+        fusion = new.get("fusion") or {}
+        metrics = {
+            "model_version": new["model_version"],
+            "attitude_prior": fusion.get("attitude_prior", "direct") if fusion else "none",
+            "head_gain": bool(fusion.get("head_gain")),
+            "finder": finder.name if finder else "",
+            "onnx_mib": round(out.stat().st_size / 2**20, 2),
+        }
+        return [out, *written], metrics
+
+    return b.step(st.name, "retag", inputs, run)
