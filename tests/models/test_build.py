@@ -20,6 +20,8 @@ from oibar_models.recipe import RecipeError, load_recipe
 REPO = Path(__file__).resolve().parents[2]
 FULL = REPO / "models/recipes/oibarnet_kp.toml"
 SMOKE = REPO / "models/recipes/oibarnet_kp_smoke.toml"
+FT = REPO / "models/recipes/oibarnet_kp_ft.toml"
+FT_SMOKE = REPO / "models/recipes/oibarnet_kp_ft_smoke.toml"
 
 
 def test_the_committed_recipes_load():
@@ -33,6 +35,11 @@ def test_the_committed_recipes_load():
     kinds = [s.kind for s in smoke.stages]
     assert kinds == ["train", "train", "train", "export", "fusion", "export", "evaluate", "card"]
     assert [s.kind for s in full.stages][-5:] == kinds[-5:]
+    # the fine-tuned candidate's recipe and its smoke twin (tests/models/test_build_finetune.py)
+    ft = load_recipe(FT)
+    assert ft.model_version == "0.35.2" and [s.kind for s in ft.stages] == [
+        s.kind for s in load_recipe(FT_SMOKE).stages
+    ]
 
 
 def test_every_stage_of_the_shipped_recipe_makes_a_valid_config(tmp_path):
