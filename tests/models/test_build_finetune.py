@@ -1,0 +1,280 @@
+"""A candidate fine-tuned from a flight file, rebuilt from its recipe (stage kinds finetune,
+head_gain, retag: oibar_models.build_finetune): bad stages are refused naming the key; the
+committed candidate recipe (models/recipes/oibarnet_kp_ft.toml) loads and plans its training
+sequences in order; its smoke recipe (oibarnet_kp_ft_smoke.toml, the same chain at toy size)
+fine-tunes the shipped file, measures the head's gain, chooses the fusion with it, retags and
+evaluates, logs to MLflow, and skips every stage on a rerun.
+
+Cost: one smoke build and two reruns, about a minute on 2 shared CPU cores."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from oibar.hashing import sha256_file
+from oibar_models.build import MARKER, Build, BuildError, main
+from oibar_models.recipe import RecipeError, load_recipe
+
+REPO = Path(__file__).resolve().parents[2]
+FT = REPO / "models/recipes/oibarnet_kp_ft.toml"
+FT_SMOKE = REPO / "models/recipes/oibarnet_kp_ft_smoke.toml"
+TRAIN_STAGE = """[[stages]]
+name = "stage1"
+kind = "train"
+config = "models/configs/keypoints/oibarnet_kp.yaml"
+init = "imagenet"
+train_data = "train_base"
+val_data = "val"
+
+[[stages]]
+name = "finetune"
+"""
+
+
+def test_the_candidate_recipe_is_the_one_the_brief_names():
+    r = load_recipe(FT)
+    assert (r.name, r.model_version, r.seed, r.threads) == ("oibarnet_kp_ft", "0.35.2", 0, 2)
+    assert [(s.name, s.kind) for s in r.stages] == [
+        ("finetune", "finetune"),
+        ("head_gain", "head_gain"),
+        ("fusion", "fusion"),
+        ("retag", "retag"),
+        ("evaluate", "evaluate"),
+    ]  # no card: a candidate is not registered
+    ds = r.datasets
+    assert ds["train_base"].scenes == [f"tr{i:03d}" for i in range(0, 96, 4)]
+    assert ds["train_turned"].scenes == [f"tr{i:03d}" for i in [*range(96, 120), *range(200, 224)]]
+    assert ds["train_turned"].spec == "models/scenes/train_turned_nearaxis.json"
+    assert (
+        ds["train_dr"].scenes == [f"dr{i:03d}" for i in range(0, 288, 6)]
+        and ds["train_dr"].root == "data/train_dr"
+    )
+    assert ds["val"].spec == "models/scenes/val.json" and ds["val"].scenes == []
+    assert all(d.root for d in ds.values()) and all(d.frames_limit == 0 for d in ds.values())
+    ft = r.stage("finetune").opts
+    assert ft["init"] == "models/oibarnet.onnx" and ft["init_sha256"] == sha256_file(REPO / ft["init"])
+    assert ft["train_data"] == ["train_base", "train_turned", "train_dr"] and ft["val_data"] == "val"
+    assert (ft["steps"], ft["lr"], ft["batch_size"], ft["batch_norm"], ft["far_network"]) == (
+        1000,
+        2e-4,
+        16,
+        "frozen",
+        False,
+    )
+    assert (
+        r.stage("head_gain")["stride"] == 4 and r.stage("head_gain")["min_frames"] == 0
+    )  # kp_head_gain's own
+    fu = r.stage("fusion").opts
+    assert (fu["priors"], fu["pairs"], fu["stride"], fu["head_gain"]) == (["head"], [[2, 3]], 4, "head_gain")
+    rt = r.stage("retag").opts
+    assert (rt["fusion"], rt["head_gain"], rt["finder"]) == ("fusion", "head_gain", "")
+    ev = r.stage("evaluate").opts
+    assert (ev["model"], ev["stride"], ev["modes"]) == ("retag", 2, ["track"])
+
+
+def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
+    """Without rendering or training anything: the fine-tune's sequences are its datasets in the
+    order listed, each dataset's scenes in its own order, in the standard render folders."""
+    from oibar_models.build_finetune import sequences
+
+    b = Build(load_recipe(FT), tmp_path, progress=False)
+    assert b.plan() == {}  # no train stage; the scene lists are written
+    train, held = sequences(b, b.recipe.stage("finetune"))
+    assert len(train) == 120 and len(held) == 22
+    assert [p.name for p in train[:2]] == ["tr000", "tr004"] and train[0].parent == REPO / "data/train"
+    assert [p.name for p in train[24:26]] == ["tr096", "tr097"] and train[24].parent == REPO / "data/train"
+    assert (
+        train[72].name == "dr000" and train[72].parent == REPO / "data/train_dr" and train[-1].name == "dr282"
+    )
+    assert held[0] == REPO / "data/val/va000"
+    scene_list = json.loads((tmp_path / "oibarnet_kp_ft/data/train_dr.json").read_text())
+    assert len(scene_list["scenes"]) == 48
+    assert not (tmp_path / "oibarnet_kp_ft/finetune").exists()  # nothing ran
+
+
+def test_an_init_that_is_not_the_pinned_file_is_refused_before_anything_runs(tmp_path):
+    recipe = load_recipe(FT_SMOKE)
+    st = recipe.stage("finetune")
+    pinned = dataclasses.replace(st, opts={**st.opts, "init_sha256": "0" * 64})
+    b = Build(dataclasses.replace(recipe, stages=[pinned]), tmp_path, progress=False)
+    with pytest.raises(BuildError, match="the recipe pins 000000000000"):
+        b.finetune(pinned)
+    assert not (tmp_path / recipe.name / "finetune").exists()
+
+
+def test_the_batch_norm_choices_are_the_fine_tunes():
+    from oibar_models.finetune import BATCH_NORM, LR, STEPS
+    from oibar_models.recipe import BATCH_NORM as RECIPE_BATCH_NORM
+    from oibar_models.recipe import STAGE_KEYS
+
+    assert RECIPE_BATCH_NORM == BATCH_NORM
+    assert STAGE_KEYS["finetune"]["steps"][1] == STEPS and STAGE_KEYS["finetune"]["lr"][1] == LR
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (
+            ('train_data = ["train_base", "train_dr"]', 'train_data = "train_base"'),
+            "finetune' train_data: expected list",
+        ),
+        (
+            ('train_data = ["train_base", "train_dr"]', "train_data = []"),
+            "a list of one or more dataset names",
+        ),
+        (('train_data = ["train_base", "train_dr"]', 'train_data = ["train_base", 3]'), "dataset names"),
+        (
+            ('train_data = ["train_base", "train_dr"]', 'train_data = ["train_base", "lab"]'),
+            "no dataset 'lab'",
+        ),
+        (('train_data = ["train_base", "train_dr"]', 'train_data = ["train_dr", "train_dr"]'), "named twice"),
+        (
+            ('train_data = ["train_base", "train_dr"]', 'train_data = ["train_base", "val"]'),
+            "is also trained on",
+        ),
+        (('batch_norm = "frozen"', 'batch_norm = "thawed"'), "batch_norm: one of"),
+        (("far_network = false", "far_network = 0"), "far_network: expected bool"),
+        (("steps = 2", "steps = 0"), "steps, batch_size: must be >= 1"),
+        (("lr = 2e-4", "lr = -1.0"), "lr: must be > 0"),
+        (('init = "models/oibarnet.onnx"', 'init = "models/nope.onnx"'), "init: not found"),
+        (
+            ('init = "models/oibarnet.onnx"', 'init = "models/oibarnet.onnx"\ninit_sha256 = "abc"'),
+            "64 lower-case hex",
+        ),
+        (("steps = 2", "steps = 2\nepochs = 1"), r"unknown key\(s\) \['epochs'\]"),
+        (
+            ('kind = "head_gain"\nmodel = "finetune"', 'kind = "head_gain"\nmodel = "stage1"'),
+            "of kind train, not",
+        ),
+        (
+            ("range_edges_m = [0.0, 100.0]", "range_edges_m = [100.0, 0.0]"),
+            "range_edges_m: two or more rising",
+        ),
+        (("min_frames = 16", "min_frames = 1"), "min_frames: >= 2"),
+        (('priors = ["head"]', 'priors = ["direct"]'), "head_gain: only the head as a prior reads it"),
+        (
+            ('pairs = [[2.0, 3.0]]\nhead_gain = "head_gain"', 'head_gain = "nope"'),
+            "no earlier head_gain stage",
+        ),
+        (('kind = "retag"\nmodel = "finetune"', 'kind = "retag"\nmodel = "head_gain"'), "not finetune"),
+        (('kind = "retag"\nmodel = "finetune"', 'kind = "retag"\nmodel = "stage1"'), "not finetune"),
+        (('fusion = "fusion"', 'fusion = "head_gain"'), "fusion: 'head_gain' is a stage of kind head_gain"),
+        (('fusion = "fusion"', 'fusion = "fusion"\nfinder = "models/nope.onnx"'), "finder: not found"),
+        (('model = "retag"', 'model = "head_gain"'), "not export or finetune or retag"),
+    ],
+)
+def test_a_bad_fine_tune_stage_is_refused_with_the_key_that_is_wrong(tmp_path, edit, match):
+    old, new = edit
+    text = FT_SMOKE.read_text().replace('[[stages]]\nname = "finetune"\n', TRAIN_STAGE, 1)
+    assert old in text
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace(old, new, 1))
+    with pytest.raises(RecipeError, match=match):
+        load_recipe(bad)
+    assert main([str(bad), "--runs", str(tmp_path / "runs"), "--no-progress"]) == 2
+    assert not (tmp_path / "runs").exists()  # refused before anything ran
+
+
+@pytest.fixture(scope="module")
+def tracking(tmp_path_factory):
+    store = f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
+    mp = pytest.MonkeyPatch()
+    mp.setenv("MLFLOW_TRACKING_URI", store)
+    mp.setenv("OIBAR_TRACKING", "1")
+    yield store
+    mp.undo()
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory, tracking):
+    runs = tmp_path_factory.mktemp("build_ft")
+    b = Build(load_recipe(FT_SMOKE), runs, progress=False)
+    b.run()
+    return b
+
+
+def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_tables(smoke):
+    from oibar.nav.pose import KeypointPoseEstimator, PoseEstimator, read_metadata
+    from oibar_models.kp_export import load_fusion
+
+    stages = [f"data_{n}" for n in smoke.recipe.datasets] + [s.name for s in smoke.recipe.stages]
+    assert smoke.ran == stages and smoke.skipped == []
+    for name in stages:
+        marker = json.loads((smoke.stage_dir(name) / MARKER).read_text())
+        assert marker["stage"] == name and len(marker["key"]) == 64
+        for rel, sha in marker["outputs"].items():
+            assert (smoke.dir / rel).is_file() and len(sha) == 64
+    # the fine-tune: 2 steps from the shipped file, its training sequences in the recipe's order
+    ft = read_metadata(smoke.stage_dir("finetune") / "oibarnet.onnx")["finetune"]
+    assert ft["steps"] == 2 and ft["seed"] == 7 and ft["from_model_version"] == "0.34.0"
+    assert [Path(p).name for p in ft["data"]] == ["tr000", "dr000"] and [
+        Path(p).name for p in ft["held"]
+    ] == ["va013"]
+    assert smoke.markers["finetune"]["metrics"]["steps"] == 2
+    # the head gain, one bin over every range (the toy's), within the flight code's limits
+    gain = json.loads((smoke.stage_dir("head_gain") / "head_gain.json").read_text())
+    assert gain["frames"] == 20 and gain["min_frames_per_bin"] == 16
+    assert (
+        gain["head_gain"]["range_edges_m"] == [0.0, 100.0] and 0.5 <= gain["head_gain"]["tilt_gain"][0] <= 2.0
+    )
+    fusion_doc = json.loads((smoke.stage_dir("fusion") / "fusion.json").read_text())
+    assert fusion_doc["head_gain"] == gain["head_gain"]  # the grid weighed the head with that gain
+    # the retagged file: the recipe's version, the fusion's choice and the gain, opened as flight opens it
+    out = smoke.stage_dir("retag") / "oibarnet.onnx"
+    est = PoseEstimator(out, warmup_runs=0)
+    assert isinstance(est, KeypointPoseEstimator)
+    meta = read_metadata(out)
+    assert meta["model_version"] == "0.0.2" and "far_network" not in meta
+    assert sorted(p.name for p in out.parent.glob("*.onnx")) == ["oibarnet.onnx", "oibarnet_lite.onnx"]
+    chosen = load_fusion(smoke.stage_dir("fusion") / "fusion.json", int(meta["crop"]["out_px"]))
+    assert chosen is not None and chosen["attitude_prior"] == "head"  # the toy's grid chose the head
+    assert meta["fusion"]["head_gain"] == gain["head_gain"]
+    for k in ("sigma_crop_px", "sigma_prior_deg", "kp_error_model", "prior_error_model"):
+        assert meta["fusion"][k] == chosen[k], k
+    assert smoke.markers["retag"]["metrics"]["head_gain"] is True
+    # evaluated through the flight estimator, as the recipe's evaluate stage says
+    m = smoke.markers["evaluate"]["metrics"]
+    assert m["mode"] == "track" and m["frames"] == 4
+    for k in ("dt_mean_pct", "dq_mean_deg", "compliance_pos_pct", "compliance_att_pct"):
+        assert isinstance(m[k], float) and math.isfinite(m[k]), (k, m)
+    assert json.loads((smoke.stage_dir("evaluate") / "eval.json").read_text())["val"]
+
+
+def test_the_fine_tune_and_its_measurements_are_in_mlflow(smoke, tracking):
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=tracking)
+    exp = client.get_experiment_by_name("oibarnet_kp_ft_smoke")
+    by_stage = {r.data.tags["oibar.stage"]: r for r in client.search_runs([exp.experiment_id])}
+    assert set(by_stage) == {"finetune", "head_gain", "fusion", "evaluate"}
+    assert {k: by_stage[k].data.tags["oibar.kind"] for k in by_stage} == {
+        "finetune": "train",
+        "head_gain": "head_gain",
+        "fusion": "fusion",
+        "evaluate": "evaluate",
+    }
+    assert by_stage["finetune"].data.params["train.seed"] == "7"
+    assert {a.path for a in client.list_artifacts(by_stage["finetune"].info.run_id)} >= {
+        "log.jsonl",
+        "done.json",
+    }
+    hg = by_stage["head_gain"]
+    assert hg.data.metrics["tilt_gain_0-100m"] == smoke.markers["head_gain"]["metrics"]["tilt_gain_0-100m"]
+    assert "head_gain.json" in {a.path for a in client.list_artifacts(hg.info.run_id)}
+
+
+def test_a_rerun_skips_every_stage_and_a_new_version_reruns_the_retag_and_what_reads_it(smoke):
+    again = Build(smoke.recipe, smoke.dir.parent, progress=False)
+    again.run()
+    assert again.ran == [] and len(again.skipped) == len(smoke.recipe.datasets) + len(smoke.recipe.stages)
+    bumped = Build(dataclasses.replace(smoke.recipe, model_version="0.0.3"), smoke.dir.parent, progress=False)
+    bumped.run()
+    assert bumped.ran == ["retag", "evaluate"]
+    from oibar.nav.pose import read_metadata
+
+    assert read_metadata(smoke.stage_dir("retag") / "oibarnet.onnx")["model_version"] == "0.0.3"
