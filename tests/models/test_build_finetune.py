@@ -36,7 +36,7 @@ name = "finetune"
 """
 
 
-def test_the_candidate_recipe_is_the_one_the_brief_names():
+def test_the_candidate_recipe_starts_from_the_shipped_file_with_0_35_1s_chain_and_the_turned_runs():
     r = load_recipe(FT)
     assert (r.name, r.model_version, r.seed, r.threads) == ("oibarnet_kp_ft", "0.35.2", 0, 2)
     assert [(s.name, s.kind) for s in r.stages] == [
