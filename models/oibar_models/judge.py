@@ -7,6 +7,11 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
    at least 0.01 deg, position no worse by more than 0.01 %, neither compliance lower by more than
    0.05 %, and the candidate's graph is the shipped one's (same operators in order, same
    initializer shapes);
+1b. the second renderer's validation looks (since 2026-12-05, issue 58: `make dataset-looks`,
+   Mitsuba 3's matched and lab looks), every frame read cold at the flight setting, both files in
+   one run; on each look: the paper's score (metrics.score: position fraction + attitude rad) no
+   worse by more than 0.001, neither compliance lower by more than 0.5 % (two of 456 frames), no
+   more silent failures (answers out of bounds at a confidence the daemon acts on);
 2. the probe on the validation scenes: no slope further from 1 than the shipped model's beyond two
    standard errors of the difference, and none of the shipped model's within 0.1 of 1 leaves that
    band (a per-frame gain that reads the 3 m view shorter lost in the closed loop: 0.20.0). The
@@ -30,11 +35,12 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
    the code moves (0.15.3's held-out runs flown on 2026-11-29 differ from its committed ones by up
    to 1.3 cm a run, +0.20 +- 0.13 cm on the mean; docs/model_history.md, "Candidate 0.28.0").
 
-    python -m oibar_models.judge run --candidate runs/<name>/oibarnet.onnx      # parts 1-3 (~15 min)
+    python -m oibar_models.judge run --candidate runs/<name>/oibarnet.onnx      # parts 1, 1b, 2, 3 (~17 min)
     python -m oibar_models.judge loop --candidate runs/<name>/oibarnet.onnx     # part 4 (~85 min)
     python -m oibar_models.judge validation EVAL_JSON --candidate C.onnx        # one part, from
-    python -m oibar_models.judge probe PROBE_JSON [--shipped PROBE_JSON]        #   files made
-    python -m oibar_models.judge demo DEMO_JSON                                 #   already
+    python -m oibar_models.judge looks EVAL_JSON --candidate C.onnx             #   files made
+    python -m oibar_models.judge probe PROBE_JSON [--shipped PROBE_JSON]        #   already
+    python -m oibar_models.judge demo DEMO_JSON
     python -m oibar_models.judge pair held_out=LOOKS_JSON default=LOOKS_JSON \
            [--shipped held_out=LOOKS_JSON ...]   # paired with the shipped model's runs flown beside
            [--refly held_out=LOOKS_JSON]         # a worst run's look flown again (both models)
@@ -64,6 +70,8 @@ SHIPPED = REPO / "models/oibarnet.onnx"
 BASE_PROBE = REPO / "models/registry/oibarnet-0.34.0/probe_val_0340.json"
 BASE_LOOP = REPO / "models/registry/oibarnet-0.34.0/loop_candidate_0340.json"
 LOOP_SETS = ("held_out", "default")  # flown in this order (the held-out looks first)
+# Part 1b's sets (oibar_models.kp_evaluate.SETS): the validation looks of the second renderer
+LOOK_SETS = ("val_mitsuba", "val_lab")
 
 
 class JudgeInputError(ValueError):
@@ -77,6 +85,9 @@ class Rule:
     att_gain_deg: float = 0.01
     pos_slack_pct: float = 0.01
     compliance_slack_pct: float = 0.05
+    # part 1b: a transfer the candidate must not lose (the paper's score, as kp_fusion chooses)
+    looks_score_slack: float = 0.001
+    looks_compliance_slack_pct: float = 0.5
     slope_se: float = 2.0
     slope_band: float = 0.1
     demo_lateral_cm: float = 5.0
@@ -144,11 +155,11 @@ def _far_graph_signature(path: Path) -> tuple[list[str], list[tuple[int, ...]]] 
     return _graph_signature(Path(path).parent / str(far["file"]))
 
 
-def _eval_arm(models: dict[str, Any], version: str) -> dict[str, Any]:
-    hits = [v for name, v in models.items() if name.split()[1:2] == [version] and name.endswith(" tracking")]
+def _eval_arm(models: dict[str, Any], version: str, mode: str = "tracking") -> dict[str, Any]:
+    hits = [v for name, v in models.items() if name.split()[1:2] == [version] and name.endswith(" " + mode)]
     if len(hits) != 1:
         raise JudgeInputError(
-            f"the evaluation has {len(hits)} tracking arms of version {version} (arms: {sorted(models)})"
+            f"the evaluation has {len(hits)} {mode} arms of version {version} (arms: {sorted(models)})"
         )
     arm: dict[str, Any] = hits[0]
     return arm
@@ -219,6 +230,66 @@ def judge_validation(
             f"{len(cand_far_graph[1])} initializers, {'the same' if same else 'different'} operators and shapes",
         )
     return v
+
+
+def judge_looks(
+    eval_json: dict[str, Any], base_version: str, cand_version: str, rule: Rule = Rule()
+) -> Verdict:
+    """Part 1b from kp_evaluate's eval.json (both models on LOOK_SETS, each frame read cold)."""
+    from .metrics import score
+
+    if base_version == cand_version:
+        raise JudgeInputError(
+            f"the candidate has the shipped model's version ({base_version}): give it its own"
+        )
+    v = Verdict("1b (Mitsuba looks)")
+    for look in LOOK_SETS:
+        if look not in eval_json:
+            raise JudgeInputError(f"the evaluation has no {look!r} (render it: make dataset-looks)")
+        b = _eval_arm(eval_json[look], base_version, "cold")["_all"]
+        c = _eval_arm(eval_json[look], cand_version, "cold")["_all"]
+        if b.get("frames") != c.get("frames") or not c.get("frames"):
+            raise JudgeInputError(f"{look}: the two arms read {b.get('frames')} / {c.get('frames')} frames")
+        v.figures[look] = {"base": b, "candidate": c}
+        # a model that answers no frame has no means: it scores as bad as can be
+        sb, sc = (score(x) if "dt_mean_pct" in x else math.inf for x in (b, c))
+        v.check(
+            f"{look}: score held",
+            sc - sb <= rule.looks_score_slack,
+            f"{sb:.4f} -> {sc:.4f} ({b.get('dt_mean_pct', math.nan):.2f} -> {c.get('dt_mean_pct', math.nan):.2f} %, "
+            f"{b.get('dq_mean_deg', math.nan):.2f} -> {c.get('dq_mean_deg', math.nan):.2f} deg; "
+            f"needs <= {sb + rule.looks_score_slack:.4f})",
+        )
+        for k in ("compliance_pos_pct", "compliance_att_pct"):
+            d = c.get(k, 0.0) - b.get(k, 0.0)
+            v.check(
+                f"{look}: {k.replace('_pct', '')} held",
+                d >= -rule.looks_compliance_slack_pct,
+                f"{b.get(k, 0.0):.2f} -> {c.get(k, 0.0):.2f} % "
+                f"({d:+.2f}; needs >= {-rule.looks_compliance_slack_pct:+.2f})",
+            )
+        v.check(
+            f"{look}: silent failures held",
+            c["silent_failures"] <= b["silent_failures"],
+            f"{b['silent_failures']} -> {c['silent_failures']} of {c['frames']} frames",
+        )
+    return v
+
+
+def looks_rendered(root: Path = REPO) -> str:
+    """'' when every look of part 1b is rendered (each scene's manifest written), else what is missing."""
+    from .kp_evaluate import SETS
+    from .scenes import load_set
+
+    missing = []
+    for look in LOOK_SETS:
+        spec, data = SETS[look]
+        missing += [
+            f"{data}/{s.name}"
+            for s in load_set(root / spec)
+            if not (root / data / s.name / "manifest.json").is_file()
+        ]
+    return ", ".join(missing)
 
 
 def judge_probe(base: dict[str, Any], cand: dict[str, Any], rule: Rule = Rule()) -> Verdict:
@@ -565,13 +636,19 @@ def _report(v: Verdict, out: Path) -> bool:
 
 
 def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) -> bool:
-    """Parts 1-3 in order, each from the project's own tools, stopping at the first that fails."""
+    """Parts 1, 1b, 2 and 3 in order, each from the project's own tools, stopping at the first that
+    fails."""
     py = sys.executable
     for p in (cand, base, BASE_PROBE):
         if not Path(p).is_file():
             raise JudgeInputError(f"{p}: no such file")
+    missing = looks_rendered()
+    if missing:
+        raise JudgeInputError(
+            f"part 1b reads the second renderer's looks: render them first (make dataset-looks): {missing}"
+        )
     out.mkdir(parents=True, exist_ok=True)
-    for old in out.glob("part[1-4].json"):  # an earlier candidate's verdicts would read as this one's
+    for old in out.glob("part[1-4]*.json"):  # an earlier candidate's verdicts would read as this one's
         old.unlink()
     _run(
         [py, "-m", "oibar_models.kp_evaluate", "--models", str(cand), str(base), "--sets", "val",
@@ -588,6 +665,16 @@ def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) 
         _far_graph_signature(cand),
     )
     if not _report(v1, out):
+        return False
+    _run(
+        [py, "-m", "oibar_models.kp_evaluate", "--models", str(cand), str(base), "--sets", *LOOK_SETS,
+         "--stride", "1", "--modes", "cold", "--no-progress", "--out", str(out / "looks")],
+        out / "looks.log",
+    )  # fmt: skip
+    v1b = judge_looks(
+        _load(out / "looks/eval.json", "kp_evaluate's output"), _version(base), _version(cand), rule
+    )
+    if not _report(v1b, out):
         return False
     for model, name in ((cand, "probe"), (base, "probe_shipped")):
         _run(
@@ -743,12 +830,15 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m oibar_models.judge", description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=REPO / "build/judge", help="where the verdicts go")
     sub = ap.add_subparsers(dest="cmd", required=True)
-    p = sub.add_parser("run", help="parts 1-3 for a candidate (evaluation, probe, demo)")
+    p = sub.add_parser("run", help="parts 1-3 for a candidate (evaluation, Mitsuba looks, probe, demo)")
     p.add_argument("--candidate", type=Path, required=True)
     p = sub.add_parser("loop", help="part 4: fly the base's closed-loop runs with the candidate, then pair")
     p.add_argument("--candidate", type=Path, required=True)
     p.add_argument("--jobs", type=int, default=2)
     p = sub.add_parser("validation", help="part 1 from kp_evaluate's eval.json")
+    p.add_argument("eval_json", type=Path)
+    p.add_argument("--candidate", type=Path, required=True)
+    p = sub.add_parser("looks", help="part 1b from kp_evaluate's eval.json on the Mitsuba looks (cold)")
     p.add_argument("eval_json", type=Path)
     p.add_argument("--candidate", type=Path, required=True)
     p = sub.add_parser("probe", help="part 2 from the candidate's probe JSON")
@@ -795,6 +885,13 @@ def main(argv: list[str] | None = None) -> int:
                     _graph_signature(SHIPPED),
                     _graph_signature(a.candidate),
                     cand_far_graph=_far_graph_signature(a.candidate),
+                ),
+                a.out,
+            )
+        elif a.cmd == "looks":
+            ok = _report(
+                judge_looks(
+                    _load(a.eval_json, "kp_evaluate's output"), _version(SHIPPED), _version(a.candidate)
                 ),
                 a.out,
             )

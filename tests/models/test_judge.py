@@ -13,9 +13,11 @@ from oibar_models.judge import (
     Rule,
     _failing,
     judge_demo,
+    judge_looks,
     judge_loop,
     judge_probe,
     judge_validation,
+    looks_rendered,
     main,
     next_base,
 )
@@ -133,6 +135,97 @@ def test_a_validation_without_both_arms_or_with_one_version_is_refused():
         judge_validation({"test": {}}, "0.15.3", "0.9.9", GRAPH, GRAPH)
 
 
+def _cold(pos, att, cpos, catt, silent, frames=229):
+    return {
+        "_all": {
+            "frames": frames,
+            "dt_mean_pct": pos,
+            "dq_mean_deg": att,
+            "compliance_pos_pct": cpos,
+            "compliance_att_pct": catt,
+            "silent_failures": silent,
+        }
+    }
+
+
+def _looks(matched=None, lab=None):
+    """Part 1b's evaluation: 0.34.0 beside a candidate, each look every 2nd frame read cold, the
+    model card's figures (2026-12-05, "A CPU fine-tune ..."): the matched look read by 0.35.1, the
+    lab look by its fine-tuned network."""
+    return {
+        "val_mitsuba": {
+            "oibarnet 0.34.0 cold": _cold(0.50, 1.25, 100.0, 100.0, 0),
+            "oibarnet 0.35.1 cold": _cold(*(matched or (0.65, 1.03, 100.0, 100.0, 0))),
+        },
+        "val_lab": {
+            "oibarnet 0.34.0 cold": _cold(5.27, 4.74, 55.0, 59.8, 87),
+            "oibarnet 0.35.1 cold": _cold(*(lab or (4.16, 1.75, 97.8, 98.7, 2))),
+        },
+    }
+
+
+@pytest.mark.parametrize(
+    "look, change, clause",
+    [
+        # 0.15 % of range given for 0.22 deg holds (the paper's score); worse by 0.0024 does not
+        ("matched", (0.65, 1.30, 100.0, 100.0, 0), "val_mitsuba: score held"),
+        ("matched", (0.50, 1.25, 99.4, 100.0, 0), "val_mitsuba: compliance_pos held"),
+        ("matched", (0.50, 1.25, 100.0, 99.4, 0), "val_mitsuba: compliance_att held"),
+        ("matched", (0.50, 1.25, 100.0, 100.0, 1), "val_mitsuba: silent failures held"),
+        ("lab", (4.16, 1.75, 97.8, 98.7, 88), "val_lab: silent failures held"),
+        ("lab", (4.16, 1.75, 54.4, 98.7, 2), "val_lab: compliance_pos held"),
+    ],
+)
+def test_each_looks_clause_fails_on_its_own(look, change, clause):
+    """Part 1b: the second renderer's looks must not lose what the shipped model transfers."""
+    assert judge_looks(_looks(), "0.34.0", "0.35.1").holds
+    v = judge_looks(_looks(**{look: change}), "0.34.0", "0.35.1")
+    assert _failing(v) == [clause]
+    # within the slack: one frame in 229 out of the matched look's bounds more
+    assert judge_looks(_looks(matched=(0.50, 1.25, 99.6, 100.0, 0)), "0.34.0", "0.35.1").holds
+
+
+def test_a_looks_evaluation_that_cannot_be_judged_is_refused():
+    ev = _looks()
+    with pytest.raises(JudgeInputError, match="its own"):
+        judge_looks(ev, "0.34.0", "0.34.0")
+    with pytest.raises(JudgeInputError, match="make dataset-looks"):
+        judge_looks({"val_mitsuba": ev["val_mitsuba"]}, "0.34.0", "0.35.1")
+    with pytest.raises(JudgeInputError, match="cold arms of version 0.35.2"):
+        judge_looks(ev, "0.34.0", "0.35.2")
+    short = copy.deepcopy(ev)
+    short["val_lab"]["oibarnet 0.35.1 cold"]["_all"]["frames"] = 100
+    with pytest.raises(JudgeInputError, match="229 / 100 frames"):
+        judge_looks(short, "0.34.0", "0.35.1")
+
+
+def test_a_candidate_that_answers_no_look_frame_fails_the_score():
+    """kp_evaluate writes no means for an arm without an answer: that is the worst score, not a pass."""
+    ev = _looks()
+    ev["val_lab"]["oibarnet 0.35.1 cold"]["_all"] = {"frames": 229, "silent_failures": 0}
+    v = judge_looks(ev, "0.34.0", "0.35.1")
+    assert "val_lab: score held" in _failing(v)
+
+
+def test_looks_rendered_names_each_scene_not_rendered(tmp_path):
+    from oibar_models.kp_evaluate import SETS
+    from oibar_models.scenes import load_set
+
+    repo = Path(__file__).resolve().parents[2]
+    names = []
+    for look in ("val_mitsuba", "val_lab"):
+        spec, data = SETS[look]
+        (tmp_path / spec).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / spec).write_text((repo / spec).read_text())
+        for sc in load_set(repo / spec):
+            (tmp_path / data / sc.name).mkdir(parents=True)
+            (tmp_path / data / sc.name / "manifest.json").write_text("{}")
+            names.append(f"{data}/{sc.name}")
+    assert looks_rendered(tmp_path) == ""
+    (tmp_path / names[-1] / "manifest.json").unlink()  # a scene cut off before its manifest
+    assert looks_rendered(tmp_path) == names[-1]
+
+
 def _probe(slope, se):
     return {"scenes": "v", "rows": [{"range_m": 3.0, "view_slope": slope, "view_slope_se": se}]}
 
@@ -182,6 +275,14 @@ def test_the_command_line_writes_the_verdict_and_says_so_in_its_exit_code(tmp_pa
     assert main(["--out", str(tmp_path), "probe", str(tmp_path / "missing.json")]) == 2
     assert "no such file" in capsys.readouterr().err
     assert main(["--out", str(tmp_path), "pair", "sideways=x.json"]) == 2
+    # part 1b from an evaluation made already
+    monkeypatch.setattr(judge, "_version", lambda p: "0.34.0" if p == judge.SHIPPED else "0.35.1")
+    ev = tmp_path / "looks.json"
+    ev.write_text(json.dumps(_looks(lab=(4.16, 1.75, 97.8, 98.7, 88))))
+    assert main(["--out", str(tmp_path), "looks", str(ev), "--candidate", "c.onnx"]) == 1
+    assert json.loads((tmp_path / "part1b.json").read_text())["holds"] is False
+    ev.write_text(json.dumps(_looks()))
+    assert main(["--out", str(tmp_path), "looks", str(ev), "--candidate", "c.onnx"]) == 0
 
 
 def _other_code(monkeypatch, tag="0123456789"):
@@ -574,7 +675,10 @@ def test_part_2_judges_against_the_shipped_model_probed_in_the_same_run(tmp_path
         if "oibar_models.kp_evaluate" in cmd:
             out = Path(cmd[cmd.index("--out") + 1])
             out.mkdir(parents=True, exist_ok=True)
-            shutil.copy(DATA / "eval_val_candidate_0200.json", out / "eval.json")
+            if "val_mitsuba" in cmd:
+                (out / "eval.json").write_text(json.dumps(_looks_as(_looks(), "0.15.3", "0.20.0")))
+            else:
+                shutil.copy(DATA / "eval_val_candidate_0200.json", out / "eval.json")
         elif "oibar_hil.rig.probe" in cmd:
             probed.append(Path(cmd[cmd.index("--model") + 1]))
             shutil.copy(DATA / "probe_val_0200.json", cmd[cmd.index("--json") + 1])
@@ -585,6 +689,7 @@ def test_part_2_judges_against_the_shipped_model_probed_in_the_same_run(tmp_path
         return 0
 
     monkeypatch.setattr(judge, "_run", fake_run)
+    monkeypatch.setattr(judge, "looks_rendered", lambda: "")
     monkeypatch.setattr(subprocess, "call", fake_demo)
     monkeypatch.setattr(judge, "_version", lambda p: "0.20.0" if p == cand else "0.15.3")
     monkeypatch.setattr(judge, "_graph_signature", lambda p: GRAPH)
@@ -602,3 +707,58 @@ def test_part_2_judges_against_the_shipped_model_probed_in_the_same_run(tmp_path
         )
         == 0
     )
+
+
+def _looks_as(ev, base, cand):
+    """_looks() with its arms named for other versions."""
+    return {
+        look: {f"oibarnet {base if '0.34.0' in k else cand} cold": v for k, v in arms.items()}
+        for look, arms in ev.items()
+    }
+
+
+def test_the_run_reads_the_looks_after_validation_and_stops_when_they_fail(tmp_path, monkeypatch):
+    """Part 1b runs after part 1 holds, on the looks' every frame read cold; a candidate that loses
+    the lab look stops there (no probe flown), and looks not rendered stop the run before it reads
+    anything, naming the scenes."""
+    import shutil
+
+    import oibar_models.judge as judge
+
+    cand, base = tmp_path / "cand.onnx", tmp_path / "shipped.onnx"
+    cand.write_bytes(b"c")
+    base.write_bytes(b"s")
+    ran = []
+
+    def fake_run(cmd, log):
+        ran.append(cmd)
+        out = Path(cmd[cmd.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        if "val_mitsuba" in cmd:
+            lost = _looks(lab=(4.16, 1.75, 97.8, 98.7, 90))
+            (out / "eval.json").write_text(json.dumps(_looks_as(lost, "0.15.3", "0.20.0")))
+        else:
+            shutil.copy(DATA / "eval_val_candidate_0200.json", out / "eval.json")
+
+    monkeypatch.setattr(judge, "_run", fake_run)
+    monkeypatch.setattr(judge, "_version", lambda p: "0.20.0" if p == cand else "0.15.3")
+    monkeypatch.setattr(judge, "_graph_signature", lambda p: GRAPH)
+    monkeypatch.setattr(judge, "_far_graph_signature", lambda p: None)
+    monkeypatch.setattr(judge, "BASE_PROBE", PROBE_0153)
+    monkeypatch.setattr(judge, "looks_rendered", lambda: "")
+    assert not judge.run_parts(cand, tmp_path / "out", base=base)
+    looks_cmd = ran[1]
+    assert [looks_cmd[looks_cmd.index("--sets") + i] for i in (1, 2)] == ["val_mitsuba", "val_lab"]
+    assert (
+        looks_cmd[looks_cmd.index("--modes") + 1] == "cold"
+        and looks_cmd[looks_cmd.index("--stride") + 1] == "1"
+    )
+    assert len(ran) == 2  # no probe after a failed part 1b
+    verdict = json.loads((tmp_path / "out" / "part1b.json").read_text())
+    assert [c["clause"] for c in verdict["clauses"] if not c["holds"]] == ["val_lab: silent failures held"]
+
+    ran.clear()
+    monkeypatch.setattr(judge, "looks_rendered", lambda: "data/val_lab/va000")
+    with pytest.raises(JudgeInputError, match="make dataset-looks.*data/val_lab/va000"):
+        judge.run_parts(cand, tmp_path / "out", base=base)
+    assert ran == []
