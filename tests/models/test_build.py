@@ -106,16 +106,6 @@ def test_a_recipe_that_is_not_toml_is_refused(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def tracking(tmp_path_factory):
-    store = f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
-    mp = pytest.MonkeyPatch()
-    mp.setenv("MLFLOW_TRACKING_URI", store)
-    mp.setenv("OIBAR_TRACKING", "1")
-    yield store
-    mp.undo()
-
-
-@pytest.fixture(scope="module")
 def smoke(tmp_path_factory, tracking):
     runs = tmp_path_factory.mktemp("build")
     b = Build(load_recipe(SMOKE), runs, progress=False)

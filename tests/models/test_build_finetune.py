@@ -181,16 +181,6 @@ def test_a_bad_fine_tune_stage_is_refused_with_the_key_that_is_wrong(tmp_path, e
 
 
 @pytest.fixture(scope="module")
-def tracking(tmp_path_factory):
-    store = f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
-    mp = pytest.MonkeyPatch()
-    mp.setenv("MLFLOW_TRACKING_URI", store)
-    mp.setenv("OIBAR_TRACKING", "1")
-    yield store
-    mp.undo()
-
-
-@pytest.fixture(scope="module")
 def smoke(tmp_path_factory, tracking):
     runs = tmp_path_factory.mktemp("build_ft")
     b = Build(load_recipe(FT_SMOKE), runs, progress=False)
