@@ -389,6 +389,14 @@ class Build:
                 argv += ["--pairs", ",".join(f"{a:g}:{b:g}" for a, b in o["pairs"])]
             if o["head_gain"]:
                 argv += ["--head-gain", str(self.stage_dir(o["head_gain"]) / "head_gain.json")]
+            if o["prior_sigma_scale"]:
+                t = o["prior_sigma_scale"]
+                argv += [
+                    "--prior-sigma-scale",
+                    ",".join(f"{x:g}" for x in t["range_edges_m"])
+                    + ":"
+                    + ",".join(f"{x:g}" for x in t["sigma_scale"]),
+                ]
             if fusion_main(argv) != 0:
                 raise BuildError(f"stage {st.name}: the fusion grid failed (kp_fusion {' '.join(argv)})")
             best = json.loads(out.read_text())["best"]

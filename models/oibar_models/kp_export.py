@@ -283,7 +283,7 @@ def load_fusion(path: Path, out_px: int) -> dict | None:
         "chosen_on": "validation scenes",
         "val": {k: best[k] for k in ("dt_mean_pct", "dq_mean_deg")},
     }
-    for k in ("kp_error_model", "attitude_prior", "prior_error_model", "head_gain"):
+    for k in ("kp_error_model", "attitude_prior", "prior_error_model", "head_gain", "prior_sigma_scale"):
         if best.get(k):
             fusion[k] = best[k]
     return fusion

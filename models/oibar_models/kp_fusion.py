@@ -189,6 +189,23 @@ def fusion_grid(
     return grid
 
 
+def prior_sigma_scale_arg(text: str) -> dict:
+    """'EDGES:SCALES' (comma-separated range edges in m, then one factor per bin) -> a
+    PriorSigmaScale table, checked as the flight code will read it. ValueError when malformed."""
+    from oibar.nav.error_models import PriorSigmaScale
+
+    try:
+        edges, scales = text.split(":")
+        table = {
+            "range_edges_m": [float(x) for x in edges.split(",")],
+            "sigma_scale": [float(x) for x in scales.split(",")],
+        }
+    except ValueError:
+        raise ValueError("give EDGES:SCALES, e.g. 0,3,8,100:1,1000,1") from None
+    PriorSigmaScale(table)
+    return table
+
+
 def score_grid(
     est,
     rows: list[dict],
@@ -197,9 +214,11 @@ def score_grid(
     prior_models: dict | None = None,
     head_gain: dict | None = None,
     pairs: list[tuple[float, float]] | None = None,
+    prior_sigma_scale: dict | None = None,
 ) -> list[dict]:
     """Each fusion of the grid scored on `rows`; `head_gain` (HeadGainModel's table): the head's
-    tilt divided by it wherever the head is the prior, as the flight code does with the export's."""
+    tilt divided by it wherever the head is the prior, as the flight code does with the export's;
+    `prior_sigma_scale` (PriorSigmaScale's table): every prior's sigma scaled by it."""
     out = []
     grid = fusion_grid(
         err_model,
@@ -217,6 +236,8 @@ def score_grid(
             fusion["kp_error_model"] = em
         if pem is not None:
             fusion["prior_error_model"] = pem
+        if prior_sigma_scale is not None and s_deg is not None:
+            fusion["prior_sigma_scale"] = prior_sigma_scale
         T_hat, q_hat = [], []
         for row in rows:
             d = row["direct"]
@@ -241,6 +262,7 @@ def score_grid(
             error_model=em is not None,
             prior_em=pem is not None,
             head_gain=source == "head" and head_gain is not None,
+            prior_sigma_scaled="prior_sigma_scale" in fusion,
             score=metrics.score(s),
         )
         out.append(s)
@@ -285,6 +307,14 @@ def main(argv: list[str] | None = None) -> int:
         "prior sigma), each prior with both error models, and PnP alone; default: the whole grid",
     )
     ap.add_argument(
+        "--prior-sigma-scale",
+        default=None,
+        metavar="EDGES:SCALES",
+        help="a chosen factor on every prior's sigma by camera range (oibar.fusion.prior_sigma_scale; "
+        "chosen on the validation probe, not here), e.g. 0,3,8,100:1,1000,1: from 3 to 8 m the "
+        "keypoints alone decide; carried into the choice",
+    )
+    ap.add_argument(
         "--val-set",
         nargs=2,
         type=Path,
@@ -309,6 +339,13 @@ def main(argv: list[str] | None = None) -> int:
     if err:
         print(err, file=sys.stderr)
         return 2
+    prior_sigma_scale = None
+    if a.prior_sigma_scale is not None:
+        try:
+            prior_sigma_scale = prior_sigma_scale_arg(a.prior_sigma_scale)
+        except ValueError as exc:
+            print(f"error: --prior-sigma-scale {a.prior_sigma_scale!r}: {exc}", file=sys.stderr)
+            return 2
     sources = [p.strip() for p in a.priors.split(",") if p.strip()]
     if not sources or any(p not in ("direct", "head") for p in sources):
         print(f"error: --priors: direct and/or head, got {a.priors!r}", file=sys.stderr)
@@ -333,10 +370,13 @@ def main(argv: list[str] | None = None) -> int:
         {k: v for k, v in pems.items() if k in sources},
         head_gain,
         pairs,
+        prior_sigma_scale,
     )
     best = min(grid, key=lambda g: g["score"])
     if best.get("head_gain"):
         best["head_gain"] = head_gain
+    if best.get("prior_sigma_scaled"):
+        best["prior_sigma_scale"] = prior_sigma_scale
     if best.get("error_model"):
         best["kp_error_model"] = em
     if best.get("prior_em"):
@@ -353,6 +393,7 @@ def main(argv: list[str] | None = None) -> int:
                 "stride": a.stride,
                 "mode": "single" if a.single else "track",
                 "head_gain": head_gain,
+                "prior_sigma_scale": prior_sigma_scale,
                 "best": best,
                 "grid": grid,
                 "kp_error_model": em,

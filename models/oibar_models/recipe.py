@@ -73,6 +73,9 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "priors": (list, ["direct", "head"]),
         "pairs": (list, []),  # [[KP_PX, PRIOR_DEG], ...]; empty: the whole grid
         "head_gain": (str, ""),  # a head_gain stage measured on the same model: the head's tilt divided by it
+        # {range_edges_m = [...], sigma_scale = [...]}: a factor on the prior's sigma by range, chosen
+        # on the validation probe (oibar.fusion.prior_sigma_scale); {}: the error model's weight
+        "prior_sigma_scale": (dict, {}),
         "note": (str, ""),
     },
     "evaluate": {
@@ -372,6 +375,16 @@ def _check_stage(where: str, kind: str, o: dict, before: list[Stage], datasets: 
                     and all(isinstance(x, (int, float)) and x > 0 for x in p)
                 ):
                     raise RecipeError(f"{where} pairs: [[KP_PX, PRIOR_DEG], ...], each > 0, got {p!r}")
+            if o["prior_sigma_scale"]:
+                from oibar.nav.error_models import PriorSigmaScale
+
+                try:
+                    PriorSigmaScale(o["prior_sigma_scale"])
+                except (KeyError, TypeError, ValueError) as exc:
+                    raise RecipeError(
+                        f"{where} prior_sigma_scale: {{range_edges_m = [...], sigma_scale = [...]}}, "
+                        f"one factor per bin ({exc})"
+                    ) from None
         elif not o["modes"] or any(m not in ("single", "track") for m in o["modes"]):
             raise RecipeError(f"{where} modes: single and/or track, got {o['modes']!r}")
     elif kind == "card":

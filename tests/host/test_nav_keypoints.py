@@ -598,7 +598,9 @@ def test_the_head_gain_model_reads_its_range_bin_and_refuses_a_bad_table():
 
 
 @pytest.mark.parametrize("edges", [[0.0, 3.0, 1.0], [0.0, 1.0, 1.0], [0.0, float("nan"), 3.0]])
-@pytest.mark.parametrize("kind", ["KeypointErrorModel", "PriorErrorModel", "HeadGainModel"])
+@pytest.mark.parametrize(
+    "kind", ["KeypointErrorModel", "PriorErrorModel", "HeadGainModel", "PriorSigmaScale"]
+)
 def test_every_range_table_refuses_edges_that_do_not_rise(kind, edges):
     """The export's per-range tables (keypoint and prior error models, head gain) share one check
     of their bins' edges: a falling, repeated or non-finite edge would bin a range silently into
@@ -609,6 +611,7 @@ def test_every_range_table_refuses_edges_that_do_not_rise(kind, edges):
         "KeypointErrorModel": {"rms_crop_px": [[0.5, 0.3]]},
         "PriorErrorModel": {"rms_deg": [1.0, 2.0]},
         "HeadGainModel": {"tilt_gain": [0.9, 1.0]},
+        "PriorSigmaScale": {"sigma_scale": [1.0, 1000.0]},
     }[kind]
     getattr(kp, kind)({"range_edges_m": [0.0, 1.0, 3.0], **rows})  # the same table, rising: read
     with pytest.raises(ValueError, match="rising edges"):
@@ -669,6 +672,60 @@ def test_the_prior_error_model_weighs_the_prior_by_range(monkeypatch):
     r, _ = est.search.solve(np.zeros((480, 744, 3), np.uint8), R, T)
     assert r is not None and seen
     assert all(s == pytest.approx(np.radians(2.0) * 0.5 / ref) for s in seen)
+
+
+def test_the_prior_sigma_scale_weakens_the_prior_only_in_its_ranges(monkeypatch):
+    """fusion.prior_sigma_scale: the prior's sigma (after its error model) times the factor of the
+    fixture's range bin: x1000 from 3 to 8 m, as measured elsewhere; a bad table, or one in a
+    fusion with no prior to scale, is refused when the file is opened."""
+    import oibar.nav.pose.fusion as fusion_mod
+    from oibar.nav.error_models import PriorSigmaScale
+    from oibar.nav.pose import ModelFileError
+    from oibar.nav.pose.fusion import Fusion
+
+    table = {"range_edges_m": [0.0, 3.0, 8.0, 100.0], "sigma_scale": [1.0, 1000.0, 1.0]}
+    m = PriorSigmaScale(table)
+    assert (m.scale(2.9), m.scale(3.0), m.scale(7.9), m.scale(8.0), m.scale(500.0)) == (1, 1000, 1000, 1, 1)
+    for bad, match in (
+        ([1.0, 1000.0], "must have 3 entries"),
+        ([1.0, 0.0, 1.0], "within"),
+        ([1.0, float("inf"), 1.0], "within"),
+        ([1.0, 1e5, 1.0], "within"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            PriorSigmaScale({"range_edges_m": table["range_edges_m"], "sigma_scale": bad})
+
+    seen = []
+    real = fusion_mod.map_pose
+
+    def spy(uv, P, K_, reproj, R_prior, s_px, s_rad, *a):
+        seen.append(s_rad)
+        return real(uv, P, K_, reproj, R_prior, s_px, s_rad, *a)
+
+    monkeypatch.setattr(fusion_mod, "map_pose", spy)
+    for range_m, factor in ((5.0, 1000.0), (2.0, 1.0), (9.0, 1.0)):
+        R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.05, -0.02, range_m))
+        fusion = {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0, "prior_sigma_scale": table}
+        seen.clear()
+        r, _ = _bare_estimator(R, T, fusion=fusion).search.solve(np.zeros((480, 744, 3), np.uint8), R, T)
+        assert r is not None and seen
+        assert all(s == pytest.approx(np.radians(2.0) * factor) for s in seen), (range_m, seen)
+
+    args = ("m.onnx", DEEP, K, 2.0, False)
+    with pytest.raises(ModelFileError, match="prior sigma scale"):
+        Fusion(
+            args[0],
+            {
+                "fusion": {
+                    "sigma_crop_px": 1.0,
+                    "sigma_prior_deg": 2.0,
+                    "prior_sigma_scale": {"range_edges_m": [0, 1], "sigma_scale": [0.0]},
+                }
+            },
+            *args[1:],
+        )
+    with pytest.raises(ModelFileError, match="no prior"):
+        Fusion(args[0], {"fusion": {"prior_sigma_scale": table}}, *args[1:])
 
 
 def test_a_fit_with_a_prior_carries_its_prior_free_twin_for_the_filter():

@@ -157,6 +157,9 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
         ),
         (("min_frames = 16", "min_frames = 1"), "min_frames: >= 2"),
         (('priors = ["head"]', 'priors = ["direct"]'), "head_gain: only the head as a prior reads it"),
+        (("sigma_scale = [1.0, 1000.0]", "sigma_scale = [1.0]"), "prior_sigma_scale: .*must have 2 entries"),
+        (("sigma_scale = [1.0, 1000.0]", "sigma_scale = [1.0, 0.0]"), "prior_sigma_scale: .*within"),
+        (("range_edges_m = [0.0, 3.0, 100.0], ", ""), "prior_sigma_scale: .*range_edges_m"),
         (
             ('pairs = [[2.0, 3.0]]\nhead_gain = "head_gain"', 'head_gain = "nope"'),
             "no earlier head_gain stage",
@@ -214,6 +217,8 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     )
     fusion_doc = json.loads((smoke.stage_dir("fusion") / "fusion.json").read_text())
     assert fusion_doc["head_gain"] == gain["head_gain"]  # the grid weighed the head with that gain
+    scale = {"range_edges_m": [0.0, 3.0, 100.0], "sigma_scale": [1.0, 1000.0]}  # the recipe's
+    assert fusion_doc["prior_sigma_scale"] == scale
     # the retagged file: the recipe's version, the fusion's choice and the gain, opened as flight opens it
     out = smoke.stage_dir("retag") / "oibarnet.onnx"
     est = PoseEstimator(out, warmup_runs=0)
@@ -224,6 +229,8 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     chosen = load_fusion(smoke.stage_dir("fusion") / "fusion.json", int(meta["crop"]["out_px"]))
     assert chosen is not None and chosen["attitude_prior"] == "head"  # the toy's grid chose the head
     assert meta["fusion"]["head_gain"] == gain["head_gain"]
+    assert meta["fusion"]["prior_sigma_scale"] == scale
+    assert est.fusion.prior_sigma_scale(meta["fusion"]).scale(5.0) == 1000.0
     for k in ("sigma_crop_px", "sigma_prior_deg", "kp_error_model", "prior_error_model"):
         assert meta["fusion"][k] == chosen[k], k
     assert smoke.markers["retag"]["metrics"]["head_gain"] is True

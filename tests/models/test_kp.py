@@ -640,6 +640,13 @@ def test_the_fusion_grid_can_score_only_the_pairs_asked_for_with_the_head_gain()
     assert [f.get("attitude_prior") for f in seen] == ["head", None, None]
     assert [r["head_gain"] for r in out] == [True, False, False]
 
+    # `--prior-sigma-scale`: every fusion with a prior is scored with the table, PnP alone not
+    scale = {"range_edges_m": [0.0, 3.0, 8.0, 100.0], "sigma_scale": [1.0, 1000.0, 1.0]}
+    seen.clear()
+    out = score_grid(est, rows, False, em, {"head": pem, "direct": None}, gain, [(2.0, 3.0)], scale)
+    assert [f.get("prior_sigma_scale") for f in seen] == [scale, scale, None]
+    assert [r["prior_sigma_scaled"] for r in out] == [True, True, False]
+
 
 def test_kp_fusion_refuses_bad_pairs_and_an_unreadable_head_gain_before_reading_anything(tmp_path, capsys):
     """kp_fusion's `--pairs` and `--head-gain` are checked first, with what is wrong said."""
@@ -651,6 +658,19 @@ def test_kp_fusion_refuses_bad_pairs_and_an_unreadable_head_gain_before_reading_
         assert "--pairs" in capsys.readouterr().err
     assert fusion_main(["--head-gain", str(tmp_path / "missing.json"), "--out", str(out)]) == 2
     assert "--head-gain" in capsys.readouterr().err and not out.exists()
+    for bad in ("0,3,100", "0,3,100:1", "0,3,100:1,0", "3,0:1", "a:b"):
+        assert fusion_main(["--prior-sigma-scale", bad, "--out", str(out)]) == 2
+        assert "--prior-sigma-scale" in capsys.readouterr().err and not out.exists()
+
+
+def test_the_prior_sigma_scale_option_reads_as_the_flight_code_will():
+    """kp_fusion.prior_sigma_scale_arg: EDGES:SCALES -> the table oibar.fusion carries."""
+    from oibar.nav.error_models import PriorSigmaScale
+    from oibar_models.kp_fusion import prior_sigma_scale_arg
+
+    t = prior_sigma_scale_arg("0,3,8,100:1,1000,1")
+    assert t == {"range_edges_m": [0.0, 3.0, 8.0, 100.0], "sigma_scale": [1.0, 1000.0, 1.0]}
+    assert PriorSigmaScale(t).scale(5.0) == 1000.0
 
 
 def test_the_error_model_is_each_keypoints_rms_per_range_bin():
@@ -1195,6 +1215,7 @@ def test_retag_replaces_the_fusion_with_a_kp_fusion_choice_and_refuses_one_it_ca
         "kp_error_model": {"range_edges_m": edges, "rms_crop_px": [[0.3, 0.4]] * n_kp},
         "prior_error_model": {"range_edges_m": edges, "rms_deg": [0.8, 0.9]},
         "head_gain": {"range_edges_m": edges, "tilt_gain": [0.87, 0.98]},
+        "prior_sigma_scale": {"range_edges_m": edges, "sigma_scale": [1.0, 1000.0]},
     }
     out_px = int(before["crop"]["out_px"])
     (tmp_path / "f.json").write_text(json.dumps({"out_px": out_px, "best": best}))
@@ -1213,7 +1234,7 @@ def test_retag_replaces_the_fusion_with_a_kp_fusion_choice_and_refuses_one_it_ca
     fusion = after["fusion"]
     assert fusion["sigma_crop_px"] == 2.0 and fusion["sigma_prior_deg"] == 3.0
     assert fusion["val"] == {"dt_mean_pct": 0.3, "dq_mean_deg": 0.48}
-    for k in ("kp_error_model", "prior_error_model", "head_gain", "attitude_prior"):
+    for k in ("kp_error_model", "prior_error_model", "head_gain", "attitude_prior", "prior_sigma_scale"):
         assert fusion[k] == best[k]
     assert after["model_version"] == "9.9.9"
     assert {k: v for k, v in after.items() if k not in ("fusion", "model_version")} == {
@@ -1221,6 +1242,7 @@ def test_retag_replaces_the_fusion_with_a_kp_fusion_choice_and_refuses_one_it_ca
     }
     est = KeypointPoseEstimator(model, warmup_runs=0)
     assert est.fusion.head_gain(est.meta["fusion"]).gain(5.0) == 0.98
+    assert est.fusion.prior_sigma_scale(est.meta["fusion"]).scale(5.0) == 1000.0
     assert est.fusion.prior_error_model(est.meta["fusion"]).scale(0.5) == pytest.approx(
         0.8 / np.sqrt((0.64 + 0.81) / 2)
     )

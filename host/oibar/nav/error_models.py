@@ -1,7 +1,8 @@
 """The export's per-range error tables for the keypoint fit (``oibar.fusion``): how well each
 keypoint is found, how far the attitude prior is off, how much of a tilt the attitude head reads;
 each binned by camera range and measured on the validation scenes (oibar_models.kp_fusion,
-oibar_models.kp_head_gain)."""
+oibar_models.kp_head_gain); and where the prior is trusted less than measured (chosen on the
+validation scenes' response probe)."""
 
 from __future__ import annotations
 
@@ -99,6 +100,40 @@ class HeadGainModel:
 
     def gain(self, range_m: float) -> float:
         return float(self.tilt_gain[range_bin(self.edges_m, range_m)])
+
+
+PRIOR_SIGMA_SCALE_LIMITS = (0.01, 1e4)  # beyond: a typo, not a choice (1e3 already lets the keypoints decide)
+
+
+class PriorSigmaScale:
+    """Where the attitude prior is trusted less than its error model says, by camera range: a
+    factor on the prior's sigma per range bin, chosen on the validation scenes' response probe
+    (oibar_hil.rig.probe) and shipped in the export's ``oibar.fusion.prior_sigma_scale``. The
+    error model is measured on near-aligned frames, where a head that reads every tilt a little
+    short still looks accurate; the probe turns the vehicle and sees it pull the answer toward
+    "aligned" (0.35.2 at 3 m: attitude slope 0.944 with it, 0.965 with the keypoints alone). 1
+    keeps the error model's weight; 1000 leaves the fit to the keypoints (the prior still starts
+    it, which keeps a far frame off its mirrored pose)."""
+
+    def __init__(self, table: dict[str, Any]):
+        self.edges_m = range_edges(table, "prior sigma scale")
+        self.sigma_scale = np.asarray(table["sigma_scale"], float)
+        if self.sigma_scale.shape != (len(self.edges_m) - 1,):
+            raise ValueError(
+                f"prior sigma scale: sigma_scale must have {len(self.edges_m) - 1} entries, "
+                f"got {self.sigma_scale.shape}"
+            )
+        lo, hi = PRIOR_SIGMA_SCALE_LIMITS
+        if not np.all(np.isfinite(self.sigma_scale)) or np.any(
+            (self.sigma_scale < lo) | (self.sigma_scale > hi)
+        ):
+            raise ValueError(
+                f"prior sigma scale: every sigma_scale must be within {lo:g}-{hi:g}, "
+                f"got {self.sigma_scale.tolist()}"
+            )
+
+    def scale(self, range_m: float) -> float:
+        return float(self.sigma_scale[range_bin(self.edges_m, range_m)])
 
 
 def range_bin(edges_m: np.ndarray, range_m: float) -> int:

@@ -12,7 +12,7 @@ import numpy as np
 
 from oibar.geometry.docking import tilt_scaled
 from oibar.geometry.rotations import rotation_angle_deg
-from oibar.nav.error_models import HeadGainModel, KeypointErrorModel, PriorErrorModel
+from oibar.nav.error_models import HeadGainModel, KeypointErrorModel, PriorErrorModel, PriorSigmaScale
 from oibar.nav.keypoints import CropWindow, PnpResult, map_pose, solve_pnp
 from oibar.nav.pose.model_file import ModelFileError
 from oibar.nav.pose.reader import CROP_REF_PX
@@ -69,7 +69,7 @@ def measurement_without_prior(
 
 class Fusion:
     """The export's fusion (``oibar.fusion``: the keypoints' and the prior's sigmas, their error
-    tables by range, whose attitude is the prior, the head's gain) and what the filter is fed
+    tables by range, whose attitude is the prior, the head's gain, the prior's chosen scale) and what the filter is fed
     (``oibar.filter_measurement``, ``oibar.turned_reading_measurement``), checked when the
     estimator is built. `fit` also takes another fusion table (a study's), read the same way."""
 
@@ -95,6 +95,10 @@ class Fusion:
             self.prior_error_model(f)
         if f.get("head_gain"):
             self.head_gain(f)
+        if f.get("prior_sigma_scale"):
+            if f.get("sigma_prior_deg") is None:
+                raise ModelFileError(f"{path}: its fusion scales the prior's sigma but has no prior")
+            self.prior_sigma_scale(f)
         meas = (
             meta.get("turned_reading_measurement", "mean")
             if turned_reading_measurement is None
@@ -154,6 +158,11 @@ class Fusion:
         model: HeadGainModel = self._fusion_table(f, "head_gain", HeadGainModel)
         return model
 
+    def prior_sigma_scale(self, f: dict[str, Any]) -> PriorSigmaScale:
+        """The fusion's PriorSigmaScale."""
+        model: PriorSigmaScale = self._fusion_table(f, "prior_sigma_scale", PriorSigmaScale)
+        return model
+
     # ------------------------------------------------------------------ fits
     def fit(
         self,
@@ -178,6 +187,8 @@ class Fusion:
         s_rad = np.radians(float(f["sigma_prior_deg"])) if f else None
         if s_rad is not None and f and f.get("prior_error_model"):
             s_rad *= self.prior_error_model(f).scale(range_m)
+        if s_rad is not None and f and f.get("prior_sigma_scale"):
+            s_rad *= self.prior_sigma_scale(f).scale(range_m)
         return map_pose(
             uv_px,
             self.points_m,
