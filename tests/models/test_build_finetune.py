@@ -38,7 +38,7 @@ name = "finetune"
 
 def test_the_candidate_recipe_starts_from_the_shipped_file_with_0_35_1s_chain_and_the_turned_runs():
     r = load_recipe(FT)
-    assert (r.name, r.model_version, r.seed, r.threads) == ("oibarnet_kp_ft", "0.35.2", 0, 2)
+    assert (r.name, r.model_version, r.seed, r.threads) == ("oibarnet_kp_ft", "0.35.3", 0, 2)
     assert [(s.name, s.kind) for s in r.stages] == [
         ("finetune", "finetune"),
         ("head_gain", "head_gain"),
@@ -71,6 +71,11 @@ def test_the_candidate_recipe_starts_from_the_shipped_file_with_0_35_1s_chain_an
     )  # kp_head_gain's own
     fu = r.stage("fusion").opts
     assert (fu["priors"], fu["pairs"], fu["stride"], fu["head_gain"]) == (["head"], [[2, 3]], 4, "head_gain")
+    # 0.35.3: the keypoints alone from 3 to 5 m (the probe's 3 m answer slopes)
+    assert fu["prior_sigma_scale"] == {
+        "range_edges_m": [0.0, 3.0, 5.0, 100.0],
+        "sigma_scale": [1.0, 1000.0, 1.0],
+    }
     rt = r.stage("retag").opts
     assert (rt["fusion"], rt["head_gain"], rt["finder"]) == ("fusion", "head_gain", "")
     ev = r.stage("evaluate").opts
