@@ -76,6 +76,17 @@ SETS = {
     "test_frozen_mitsuba": ("models/scenes/test_frozen_mitsuba.json", "data/test_frozen_mitsuba"),
     "test_frozen_lab": ("models/scenes/test_frozen_lab.json", "data/test_frozen_lab"),
 }
+# The make target that renders each set (what an error names when a set is not rendered)
+RENDER_TARGETS = {
+    "val": "dataset-val",
+    "test": "dataset",
+    "val_mitsuba": "dataset-looks",
+    "val_lab": "dataset-looks",
+    "val_roll": "dataset-val-roll",
+    "test_frozen": "dataset-test-frozen",
+    "test_frozen_mitsuba": "dataset-test-frozen-looks",
+    "test_frozen_lab": "dataset-test-frozen-looks",
+}
 # Every read of a test set (the paper's sequences 1 and 8, the frozen set) by a model file, so
 # that a test set is read once per shipped model: a second read of the same file is refused
 # unless it says why (--reread), and that reason is kept too.
@@ -427,7 +438,12 @@ def main(argv: list[str] | None = None) -> int:
         try:
             seqs = [load_sequence(REPO_ROOT / root / s.name) for s in load_set(REPO_ROOT / spec)]
         except DatasetError as exc:
-            print(f"error: {exc}\n(render it: make dataset-{set_name})", file=sys.stderr)
+            hint = (
+                f"make {RENDER_TARGETS[set_name]}"
+                if set_name in RENDER_TARGETS
+                else f"the set's own renderer ({root})"
+            )
+            print(f"error: {exc}\n(render it: {hint})", file=sys.stderr)
             return 2
         for label, est, track in ests:
             bins_all = []

@@ -1541,3 +1541,23 @@ def test_the_evaluation_counts_silent_failures():
     s = summarise(NS(T_cam_target=T, q_cam_target=q), r)
     assert s["silent_failures"] == 2 and s["silent_failure_pct"] == pytest.approx(40.0)
     assert s["out_of_bounds_pct"] == pytest.approx(60.0)
+
+
+def test_an_unrendered_set_names_the_make_target_that_renders_it(tmp_path, monkeypatch, capsys):
+    """kp_evaluate: every set has a render target that exists in the Makefiles, and a set that is
+    not rendered is refused naming it (the Mitsuba looks are `make dataset-looks`, not
+    `make dataset-val_lab`)."""
+    import re
+
+    from oibar_models import kp_evaluate
+
+    targets = set()
+    for mk in [REPO / "Makefile", *sorted((REPO / "mk").glob("*.mk"))]:
+        targets |= set(re.findall(r"^([A-Za-z0-9_.-]+)\s*:(?!=)", mk.read_text(), re.M))
+    assert set(kp_evaluate.RENDER_TARGETS) == set(kp_evaluate.SETS)
+    assert set(kp_evaluate.RENDER_TARGETS.values()) <= targets
+    spec = kp_evaluate.SETS["val_lab"][0]
+    monkeypatch.setitem(kp_evaluate.SETS, "val_lab", (spec, str(tmp_path / "nowhere")))
+    argv = ["--models", str(REPO / "models/oibarnet.onnx"), "--sets", "val_lab", "--no-progress"]
+    assert kp_evaluate.main([*argv, "--out", str(tmp_path / "ev")]) == 2
+    assert "(render it: make dataset-looks)" in capsys.readouterr().err
