@@ -548,6 +548,21 @@ def _priors_seen(monkeypatch):
     return seen
 
 
+def _prior_sigmas_seen(monkeypatch):
+    """A list that collects the attitude prior's sigma (rad) of every fit from now on."""
+    import oibar.nav.pose.fusion as fusion_mod
+
+    seen = []
+    real = fusion_mod.map_pose
+
+    def spy(uv, P, K_, reproj, R_prior, s_px, s_rad, *a):
+        seen.append(s_rad)
+        return real(uv, P, K_, reproj, R_prior, s_px, s_rad, *a)
+
+    monkeypatch.setattr(fusion_mod, "map_pose", spy)
+    return seen
+
+
 @pytest.mark.parametrize("source", ["head", "direct", None])
 def test_the_attitude_head_is_the_fits_prior_when_the_fusion_says_so(monkeypatch, source):
     """fusion.attitude_prior = "head": each crop's own attitude reading is the prior of that
@@ -645,7 +660,6 @@ def test_the_head_gain_gives_the_heads_tilt_back_before_it_is_the_prior(monkeypa
 def test_the_prior_error_model_weighs_the_prior_by_range(monkeypatch):
     """fusion.prior_error_model: the prior's sigma at a range is sigma_prior_deg times that bin's
     RMS over the overall RMS; a bad table is refused."""
-    import oibar.nav.pose.fusion as fusion_mod
     from oibar.nav.error_models import PriorErrorModel
 
     table = {"range_edges_m": [0.0, 3.0, 8.0, 100.0], "rms_deg": [2.0, 0.5, 2.0]}
@@ -661,14 +675,7 @@ def test_the_prior_error_model_weighs_the_prior_by_range(monkeypatch):
     R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.3, -0.1, 5.0))
     fusion = {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0, "prior_error_model": table}
     est = _bare_estimator(R, T, fusion=fusion)
-    seen = []
-    real = fusion_mod.map_pose
-
-    def spy(uv, P, K_, reproj, R_prior, s_px, s_rad, *a):
-        seen.append(s_rad)
-        return real(uv, P, K_, reproj, R_prior, s_px, s_rad, *a)
-
-    monkeypatch.setattr(fusion_mod, "map_pose", spy)
+    seen = _prior_sigmas_seen(monkeypatch)
     r, _ = est.search.solve(np.zeros((480, 744, 3), np.uint8), R, T)
     assert r is not None and seen
     assert all(s == pytest.approx(np.radians(2.0) * 0.5 / ref) for s in seen)
@@ -678,7 +685,6 @@ def test_the_prior_sigma_scale_weakens_the_prior_only_in_its_ranges(monkeypatch)
     """fusion.prior_sigma_scale: the prior's sigma (after its error model) times the factor of the
     fixture's range bin: x1000 from 3 to 8 m, as measured elsewhere; a bad table, or one in a
     fusion with no prior to scale, is refused when the file is opened."""
-    import oibar.nav.pose.fusion as fusion_mod
     from oibar.nav.error_models import PriorSigmaScale
     from oibar.nav.pose import ModelFileError
     from oibar.nav.pose.fusion import Fusion
@@ -695,14 +701,7 @@ def test_the_prior_sigma_scale_weakens_the_prior_only_in_its_ranges(monkeypatch)
         with pytest.raises(ValueError, match=match):
             PriorSigmaScale({"range_edges_m": table["range_edges_m"], "sigma_scale": bad})
 
-    seen = []
-    real = fusion_mod.map_pose
-
-    def spy(uv, P, K_, reproj, R_prior, s_px, s_rad, *a):
-        seen.append(s_rad)
-        return real(uv, P, K_, reproj, R_prior, s_px, s_rad, *a)
-
-    monkeypatch.setattr(fusion_mod, "map_pose", spy)
+    seen = _prior_sigmas_seen(monkeypatch)
     for range_m, factor in ((5.0, 1000.0), (2.0, 1.0), (9.0, 1.0)):
         R, T = _pose(np.radians([0.5, -0.5, 0.2]), (0.05, -0.02, range_m))
         fusion = {"sigma_crop_px": 1.0, "sigma_prior_deg": 2.0, "prior_sigma_scale": table}
