@@ -82,6 +82,23 @@ def test_the_candidate_recipe_starts_from_the_shipped_file_with_0_35_1s_chain_an
     assert (ev["model"], ev["stride"], ev["modes"]) == ("retag", 2, ["track"])
 
 
+def test_the_no_turned_runs_candidate_is_the_candidate_recipe_without_them():
+    """models/recipes/oibarnet_kp_ft_noturned.toml (0.35.5) is oibarnet_kp_ft.toml with the turned
+    and near-axis runs taken out of the data and the fine-tune, and nothing else changed: the
+    stages, their options and every other dataset are the same."""
+    a, b = load_recipe(FT), load_recipe(REPO / "models/recipes/oibarnet_kp_ft_noturned.toml")
+    assert (b.name, b.model_version) == ("oibarnet_kp_ft_noturned", "0.35.5")
+    assert list(b.datasets) == [k for k in a.datasets if k != "train_turned"]
+    assert all(b.datasets[k] == a.datasets[k] for k in b.datasets)
+    assert [(s.name, s.kind) for s in b.stages] == [(s.name, s.kind) for s in a.stages]
+    for sa, sb in zip(a.stages, b.stages, strict=True):
+        want = dict(sa.opts)
+        if sa.kind == "finetune":
+            want["train_data"] = [d for d in want["train_data"] if d != "train_turned"]
+        assert sb.opts == want, sa.name
+    assert b.stage("fusion").opts["prior_sigma_scale"]["sigma_scale"] == [1.0, 1000.0, 1.0]
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
