@@ -37,7 +37,7 @@ def test_the_committed_recipes_load():
     assert [s.kind for s in full.stages][-5:] == kinds[-5:]
     # the fine-tuned candidate's recipe and its smoke twin (tests/models/test_build_finetune.py)
     ft = load_recipe(FT)
-    assert ft.model_version == "0.35.2" and [s.kind for s in ft.stages] == [
+    assert ft.model_version == "0.35.3" and [s.kind for s in ft.stages] == [
         s.kind for s in load_recipe(FT_SMOKE).stages
     ]
 
