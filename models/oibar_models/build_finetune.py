@@ -98,6 +98,7 @@ def finetune(b: Build, st: Stage) -> dict:
         progress=b.progress,
         force=True,  # the marker, not the folder, says whether the stage is done
         batch_norm=o["batch_norm"],
+        freeze=tuple(o["freeze"]),
         note=f"a candidate of recipe {b.recipe.name} (stage {st.name}): it ships only once judged and registered",
     )
     kept = dict(meta)
@@ -111,7 +112,8 @@ def finetune(b: Build, st: Stage) -> dict:
     except OSError as exc:
         raise BuildError(f"stage {st.name}: a file {init.name} names is not beside it: {exc}") from exc
     inputs = {
-        "opts": o,
+        # a stage that freezes nothing fingerprints as it did before `freeze` existed
+        "opts": {k: v for k, v in o.items() if k != "freeze" or v},
         "init_sha256": init_sha,
         "companions_sha256": beside,
         "config": asdict(cfg),

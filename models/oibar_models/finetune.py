@@ -75,6 +75,11 @@ BATCH_NORM = ("frozen", "train")
 # within 5 % 88 -> 97 %, within 5 deg 3 -> 60 % (3 epochs read it upside down). docs/calibration.md.
 STEPS = 1000
 LR = 2e-4
+# The network's parts (KeypointNet's children) a fine-tune can keep as they are: their weights get
+# no step and their batch norms keep their statistics. Why "attitude": a fine-tune on near-aligned
+# approaches and randomised looks taught 0.34.0's attitude head to read a turn short (3 m probe,
+# raw slope 0.953 -> 0.894, candidate 0.35.5), and the fit's prior then pulls toward "aligned".
+FREEZABLE = ("backbone", "lateral", "head", "present", "attitude")
 DEMO_NOTE = "a demonstration (issue 58 item 5): never judged, registered or shipped"
 EVAL_COLUMNS_EXTRA = [
     ("answered_pct", "answered (%)", "{:.1f}"),
@@ -110,6 +115,7 @@ class Options:
     force: bool = False
     batch_norm: str = "frozen"  # BATCH_NORM: keep the calibrated statistics while fine-tuning, or "train"
     turn_deg: float | None = None  # the crops' in-plane turn, uniform +-; None: the stage's own
+    freeze: tuple[str, ...] = ()  # FREEZABLE parts kept as init has them
     note: str = DEMO_NOTE  # what the file's oibar.finetune says it is
 
 
@@ -259,7 +265,12 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence]) 
     torch.manual_seed(t.seed)
     train_ds, val_ds = crop_sets(cfg, train, held, t.seed)
     device = torch.device("cpu")
-    opt = torch.optim.AdamW(net.parameters(), lr=t.lr, weight_decay=t.weight_decay)
+    frozen = frozen_parts(net, o.freeze)
+    trained = [p for p in net.parameters() if p.requires_grad]
+    if frozen:
+        n_kept = sum(p.numel() for m in frozen for p in m.parameters())
+        say(o, f"kept as they are: {', '.join(o.freeze)} ({n_kept} weights)")
+    opt = torch.optim.AdamW(trained, lr=t.lr, weight_decay=t.weight_decay)
     gen = torch.Generator().manual_seed(t.seed * 1000)
     loader = iter(
         torch.utils.data.DataLoader(
@@ -275,6 +286,8 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence]) 
         for m in net.modules():
             if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
                 m.eval()
+    for m in frozen:
+        m.eval()
     for step in range(t.steps):
         b = next(loader)
         for g in opt.param_groups:
@@ -302,6 +315,22 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence]) 
     )
     (o.out / "done.json").write_text(json.dumps({"steps": t.steps, "last": s}, indent=1) + "\n")
     return {"steps": t.steps, **s}
+
+
+def frozen_parts(net, names: tuple[str, ...]) -> list[torch.nn.Module]:
+    """The named parts of `net` with their weights taken out of training (FinetuneError for a name
+    that is not one of FREEZABLE or not in this network, or when nothing would be left to train)."""
+    children = dict(net.named_children())
+    parts = []
+    for name in names:
+        if name not in FREEZABLE or name not in children:
+            raise FinetuneError(f"freeze: {name!r} is not a part of this network (one of {list(FREEZABLE)})")
+        parts.append(children[name])
+        for p in children[name].parameters():
+            p.requires_grad_(False)
+    if not any(p.requires_grad for p in net.parameters()):
+        raise FinetuneError(f"freeze: {list(names)} leaves nothing to train")
+    return parts
 
 
 # ----------------------------------------------------------------------------- export
@@ -342,6 +371,7 @@ def export_candidate(o: Options, cfg, net, meta: dict, val: dict, spreads: dict[
             "steps": cfg.train.steps,
             "seed": o.seed,
             "batch_norm": o.batch_norm,
+            "frozen": list(o.freeze),
             "spread_median_crop_px": spreads,
             "ships": False,
             "note": o.note,
@@ -537,6 +567,14 @@ def parse(argv: list[str] | None) -> Options:
         help="turn the training crops in-plane by up to this, either way (default: the stage's own, "
         "15; 100 was tried for rolled views: docs/calibration.md)",
     )
+    ap.add_argument(
+        "--freeze",
+        nargs="+",
+        choices=FREEZABLE,
+        default=[],
+        metavar="PART",
+        help=f"parts of the network kept as --init has them, of {', '.join(FREEZABLE)}",
+    )
     a = ap.parse_args(argv)
     if a.turn_deg is not None and not 0.0 <= a.turn_deg <= 180.0:
         ap.error("--turn-deg must be in [0, 180]")
@@ -548,7 +586,7 @@ def parse(argv: list[str] | None) -> Options:
         a.data, a.val, a.init, a.out, a.config, a.epochs, a.steps, a.batch_size, a.lr, a.seed,
         a.calibrate_crops, a.val_frames, a.stride, tuple(a.modes), not a.no_baseline,
         not a.no_far_network, a.workers, a.threads, not a.no_progress, a.force, a.batch_norm,
-        a.turn_deg,
+        a.turn_deg, tuple(dict.fromkeys(a.freeze)),
     )  # fmt: skip
 
 

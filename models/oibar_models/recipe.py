@@ -44,6 +44,7 @@ STAGE_KINDS = ("train", "export", "fusion", "evaluate", "card", "finetune", "hea
 # the kinds whose stage folder holds a flight file, oibarnet.onnx with its companions
 MODEL_KINDS = ("export", "finetune", "retag")
 BATCH_NORM = ("frozen", "train")  # oibar_models.finetune.BATCH_NORM (not imported: it loads torch)
+FREEZABLE = ("backbone", "lateral", "head", "present", "attitude")  # oibar_models.finetune.FREEZABLE
 # every key a stage of each kind may have (beyond name and kind), with its type and default;
 # None as a default: required
 STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
@@ -99,6 +100,7 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "batch_size": (int, 16),
         "batch_norm": (str, "frozen"),  # BATCH_NORM
         "far_network": (bool, True),  # keep init's far network beside the candidate
+        "freeze": (list, []),  # FREEZABLE parts kept as init has them
         "note": (str, ""),
     },
     "head_gain": {
@@ -431,6 +433,11 @@ def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset]) -> None:
         raise RecipeError(f"{where} lr: must be > 0, got {o['lr']}")
     if o["batch_norm"] not in BATCH_NORM:
         raise RecipeError(f"{where} batch_norm: one of {list(BATCH_NORM)}, got {o['batch_norm']!r}")
+    freeze = o["freeze"]
+    if not all(isinstance(p, str) and p in FREEZABLE for p in freeze) or len(set(freeze)) != len(freeze):
+        raise RecipeError(f"{where} freeze: distinct parts of {list(FREEZABLE)}, got {freeze!r}")
+    if set(freeze) == set(FREEZABLE):
+        raise RecipeError(f"{where} freeze: every part frozen leaves nothing to train")
 
 
 def _check_head_gain(where: str, o: dict) -> None:

@@ -99,6 +99,22 @@ def test_the_no_turned_runs_candidate_is_the_candidate_recipe_without_them():
     assert b.stage("fusion").opts["prior_sigma_scale"]["sigma_scale"] == [1.0, 1000.0, 1.0]
 
 
+def test_the_head_frozen_candidate_is_the_no_turned_runs_candidate_with_its_attitude_head_kept():
+    """models/recipes/oibarnet_kp_ft_headfrozen.toml (0.35.6) is oibarnet_kp_ft_noturned.toml with
+    `freeze = ["attitude"]` in the fine-tune, and nothing else changed."""
+    a = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_noturned.toml")
+    b = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_headfrozen.toml")
+    assert (b.name, b.model_version) == ("oibarnet_kp_ft_headfrozen", "0.35.6")
+    assert b.datasets == a.datasets
+    assert [(s.name, s.kind) for s in b.stages] == [(s.name, s.kind) for s in a.stages]
+    for sa, sb in zip(a.stages, b.stages, strict=True):
+        want = dict(sa.opts)
+        if sa.kind == "finetune":
+            assert want["freeze"] == []
+            want["freeze"] = ["attitude"]
+        assert sb.opts == want, sa.name
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
@@ -135,6 +151,10 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
     from oibar_models.recipe import STAGE_KEYS
 
     assert RECIPE_BATCH_NORM == BATCH_NORM
+    from oibar_models.finetune import FREEZABLE
+    from oibar_models.recipe import FREEZABLE as RECIPE_FREEZABLE
+
+    assert RECIPE_FREEZABLE == FREEZABLE
     assert STAGE_KEYS["finetune"]["steps"][1] == STEPS and STAGE_KEYS["finetune"]["lr"][1] == LR
 
 
@@ -161,6 +181,13 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
         ),
         (('batch_norm = "frozen"', 'batch_norm = "thawed"'), "batch_norm: one of"),
         (("far_network = false", "far_network = 0"), "far_network: expected bool"),
+        (('freeze = ["attitude"]', 'freeze = ["attitudes"]'), "freeze: distinct parts of"),
+        (('freeze = ["attitude"]', 'freeze = ["attitude", "attitude"]'), "freeze: distinct parts of"),
+        (('freeze = ["attitude"]', 'freeze = "attitude"'), "freeze: expected list"),
+        (
+            ('freeze = ["attitude"]', 'freeze = ["backbone", "lateral", "head", "present", "attitude"]'),
+            "leaves nothing to train",
+        ),
         (("steps = 2", "steps = 0"), "steps, batch_size: must be >= 1"),
         (("lr = 2e-4", "lr = -1.0"), "lr: must be > 0"),
         (('init = "models/oibarnet.onnx"', 'init = "models/nope.onnx"'), "init: not found"),
@@ -231,6 +258,16 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
         Path(p).name for p in ft["held"]
     ] == ["va013"]
     assert smoke.markers["finetune"]["metrics"]["steps"] == 2
+    # the frozen attitude head: its weights as recovered from the shipped file, the rest trained
+    import torch
+
+    start = torch.load(smoke.stage_dir("finetune") / "recovered.pt", weights_only=False)["model"]
+    end = torch.load(smoke.stage_dir("finetune") / "finetuned.pt", weights_only=False)["model"]
+    assert ft["frozen"] == ["attitude"]
+    moved = {k for k in start if start[k].is_floating_point() and not torch.equal(start[k], end[k])}
+    assert any(k.startswith("attitude.") for k in start) and moved
+    assert not {k for k in moved if k.startswith("attitude.")}
+    assert {k.split(".")[0] for k in moved} >= {"backbone", "head"}
     # the head gain, one bin over every range (the toy's), within the flight code's limits
     gain = json.loads((smoke.stage_dir("head_gain") / "head_gain.json").read_text())
     assert gain["frames"] == 20 and gain["min_frames_per_bin"] == 16

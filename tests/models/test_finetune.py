@@ -143,3 +143,28 @@ def test_bad_inputs_are_refused(lab, tmp_path, capsys):
     with pytest.raises(SystemExit):  # a turn beyond a half turn is a mistake, not a roll
         main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--turn-deg", "200"])
     assert "--turn-deg must be in [0, 180]" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # a part the network does not have
+        main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--freeze", "neck"])
+    assert "--freeze: invalid choice: 'neck'" in capsys.readouterr().err
+
+
+def test_frozen_parts_keep_their_weights_out_of_training_and_leave_something_to_train():
+    """finetune.frozen_parts: the named children lose their gradients; a name the network lacks,
+    or freezing every part, is refused."""
+    import torch
+
+    from oibar_models.finetune import FREEZABLE, FinetuneError, frozen_parts
+
+    class Toy(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.backbone, self.attitude = torch.nn.Linear(2, 2), torch.nn.Linear(2, 1)
+
+    net = Toy()
+    assert frozen_parts(net, ("attitude",)) == [net.attitude]
+    assert [p.requires_grad for p in net.parameters()] == [True, True, False, False]
+    with pytest.raises(FinetuneError, match="'head' is not a part of this network"):
+        frozen_parts(Toy(), ("head",))
+    with pytest.raises(FinetuneError, match="leaves nothing to train"):
+        frozen_parts(Toy(), ("backbone", "attitude"))
+    assert "head" in FREEZABLE
