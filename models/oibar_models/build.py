@@ -503,6 +503,11 @@ class Build:
 
         return head_gain(self, st)
 
+    def finder(self, st: Stage) -> dict:
+        from .build_finetune import finder
+
+        return finder(self, st)
+
     def retag(self, st: Stage) -> dict:
         from .build_finetune import retag
 

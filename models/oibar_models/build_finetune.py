@@ -1,7 +1,7 @@
 """The recipe stages of a candidate fine-tuned from a flight file, run by oibar_models.build
-(Build.finetune, Build.head_gain, Build.retag) through its `step`: fingerprinted inputs (the
-recipe's keys, the files read by content, the upstream stages' and datasets' keys), a done marker,
-skipped on a rerun whose inputs match.
+(Build.finetune, Build.head_gain, Build.finder, Build.retag) through its `step`: fingerprinted
+inputs (the recipe's keys, the files read by content, the upstream stages' and datasets' keys), a
+done marker, skipped on a rerun whose inputs match.
 
     finetune   oibar_models.finetune's steps 1-3 (kp_recover, the trainer's loop, the export with
                every table of the starting file) on the recipe's rendered datasets; the recipe's
@@ -9,8 +9,11 @@ skipped on a rerun whose inputs match.
                the candidate. -> oibarnet.onnx with its first pass (and far network unless
                far_network = false), finetuned.pt, recovered.pt, config.yaml, log.jsonl, done.json
     head_gain  kp_head_gain on a finetune's or export's file -> head_gain.json
+    finder     oibar_models.finder's train and export under a finder config, on the recipe's
+               datasets, labelled by a keypoint stage's file; resumes -> oibarnet_finder.onnx
     retag      a finetune's file, the graph untouched, with a fusion stage's weights, a head_gain
-               stage's table, an optional fixture finder and the recipe's model_version
+               stage's table, an optional fixture finder (a finder stage's, or a committed file)
+               and the recipe's model_version
                (kp_export.retag), its companions beside it, opened as the flight runtime opens it
                -> oibarnet.onnx, the flight file of the candidate
 
@@ -27,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 
 from oibar.hashing import sha256_file
 
-from .build import BuildError
+from .build import BuildError, fingerprint
 from .recipe import Stage, resolve
 
 if TYPE_CHECKING:
@@ -178,18 +181,81 @@ def head_gain(b: Build, st: Stage) -> dict:
     return b.step(st.name, "head_gain", inputs, run)
 
 
+# ----------------------------------------------------------------------------- finder
+FINDER_FILE = "oibarnet_finder.onnx"  # what a finder stage writes; the flight file names it
+
+
+def finder(b: Build, st: Stage) -> dict:
+    """The fixture finder trained on the recipe's datasets (oibar_models.finder's train and
+    export), its boxes labelled by a keypoint stage's file, its epoch chosen on val_data. An
+    interrupted training resumes from its last epoch; one with other inputs starts afresh."""
+    from dataclasses import asdict, replace
+
+    from . import finder as F
+    from .config import ConfigError
+
+    o = st.opts
+    try:
+        cfg = F.load_finder_config(resolve(o["config"]))
+    except ConfigError as exc:
+        raise BuildError(f"stage {st.name}: {exc}") from exc
+    d = b.stage_dir(st.name)
+    val = b.recipe.datasets[o["val_data"]]
+    cfg = replace(
+        cfg,
+        keypoints_from=str(model_file(b, o["keypoints_from"])),
+        train_sets=[
+            [str(b.dataset_spec(b.recipe.datasets[n])), str(b.dataset_root(b.recipe.datasets[n]))]
+            for n in o["train_data"]
+        ],
+        val_set=[str(b.dataset_spec(val)), str(b.dataset_root(val))],
+        out_dir=str(d),
+        seed=b.recipe.seed,
+        threads=b.recipe.threads,
+    )  # its own model_version: a new candidate version does not retrain it
+    inputs = {
+        "opts": o,
+        "config": asdict(cfg),
+        "upstream": b.upstream(
+            o["keypoints_from"], *(f"data_{n}" for n in o["train_data"]), f"data_{o['val_data']}"
+        ),
+    }
+
+    def run(d: Path):
+        key = fingerprint(inputs)
+        stamp = d / "finder_inputs.sha256"  # whose training last.pt and the caches belong to
+        if not stamp.is_file() or stamp.read_text().strip() != key:
+            shutil.rmtree(d)
+            d.mkdir(parents=True)
+            stamp.write_text(key + "\n")
+        try:
+            best = F.train(cfg, progress=b.progress)
+            out = F.export(cfg, d / FINDER_FILE)
+        except (ConfigError, FileNotFoundError) as exc:
+            raise BuildError(f"stage {st.name}: {exc}") from exc
+        # the trainer logs its own run to MLflow (experiment: the finder config's name)
+        return [out], {k: v for k, v in best.items() if isinstance(v, (int, float))}
+
+    return b.step(st.name, "finder", inputs, run)
+
+
 # ----------------------------------------------------------------------------- retag
 def retag(b: Build, st: Stage) -> dict:
     o = st.opts
     src = model_file(b, o["model"])
     fusion_file = b.stage_dir(o["fusion"]) / "fusion.json" if o["fusion"] else None
     gain_file = b.stage_dir(o["head_gain"]) / "head_gain.json" if o["head_gain"] else None
-    finder = resolve(o["finder"]) if o["finder"] else None
+    finder_stage = o["finder"] if any(s.name == o["finder"] for s in b.recipe.stages) else ""
+    finder = None
+    if finder_stage:
+        finder = b.stage_dir(finder_stage) / FINDER_FILE
+    elif o["finder"]:
+        finder = resolve(o["finder"])
     inputs = {
         "opts": o,
         "model_version": b.recipe.model_version,
         "finder_sha256": sha256_file(finder) if finder else "",
-        "upstream": b.upstream(o["model"], o["fusion"], o["head_gain"]),
+        "upstream": b.upstream(o["model"], o["fusion"], o["head_gain"], finder_stage),
     }
 
     def run(d: Path):

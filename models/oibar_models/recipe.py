@@ -18,9 +18,11 @@ wrong type or a stage that names a stage it cannot use is a RecipeError naming t
       finetune  an ONNX file (init, its sha256 pinned by init_sha256) fine-tuned on a list of
                 datasets (oibar_models.finetune: recovered, trained, exported with its tables)
       head_gain the attitude head's tilt gain per range bin on validation (kp_head_gain)
+      finder    the fixture finder (oibar_models.finder: a finder config's network and schedule)
+                trained on the recipe's datasets, labelled by a keypoint stage's file, exported
       retag     a fine-tune's file with a fusion stage's weights, a head_gain stage's table, an
-                optional fixture finder and the recipe's model_version (kp_export.retag), opened
-                as the flight runtime opens it
+                optional fixture finder (a finder stage or a file) and the recipe's model_version
+                (kp_export.retag), opened as the flight runtime opens it
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ class RecipeError(ValueError):
 
 VERSION_RE = re.compile(r"\d+\.\d+\.\d+")
 NAME_RE = re.compile(r"[a-z][a-z0-9_]*")
-STAGE_KINDS = ("train", "export", "fusion", "evaluate", "card", "finetune", "head_gain", "retag")
+STAGE_KINDS = ("train", "export", "fusion", "evaluate", "card", "finetune", "head_gain", "finder", "retag")
 # the kinds whose stage folder holds a flight file, oibarnet.onnx with its companions
 MODEL_KINDS = ("export", "finetune", "retag")
 BATCH_NORM = ("frozen", "train")  # oibar_models.finetune.BATCH_NORM (not imported: it loads torch)
@@ -111,11 +113,21 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "range_edges_m": (list, []),  # the bins' rising edges; []: kp_fusion.ERROR_RANGE_EDGES_M
         "note": (str, ""),
     },
+    "finder": {
+        "config": (
+            str,
+            None,
+        ),  # a finder config (models/configs/finder/*.yaml): network, schedule, augmentation
+        "keypoints_from": (str, None),  # a finetune, export or retag stage: its keypoints label the boxes
+        "train_data": (list, None),  # datasets, in order (the config's train_sets are not read)
+        "val_data": (str, None),  # the epoch is chosen on it (the config's val_set is not read)
+        "note": (str, ""),
+    },
     "retag": {
         "model": (str, None),  # a finetune stage
         "fusion": (str, ""),  # a fusion stage on the same model; "": the model's own weights
         "head_gain": (str, ""),  # a head_gain stage on the same model; "": the model's own table
-        "finder": (str, ""),  # the fixture finder's ONNX (repository path), copied beside; "": none
+        "finder": (str, ""),  # a finder stage, or a finder ONNX (repository path), copied beside; "": none
         "note": (str, ""),
     },
 }
@@ -406,8 +418,28 @@ def _check_stage(where: str, kind: str, o: dict, before: list[Stage], datasets: 
         if o["head_gain"]:
             _earlier(where, "head_gain", o["head_gain"], before, "head_gain")
             _same_model(where, "head_gain", o["head_gain"], o["model"], before)
-        if o["finder"] and not resolve(o["finder"]).is_file():
-            raise RecipeError(f"{where} finder: not found: {o['finder']}")
+        if o["finder"] and any(s.name == o["finder"] for s in before):
+            _earlier(where, "finder", o["finder"], before, "finder")
+        elif o["finder"] and not resolve(o["finder"]).is_file():
+            raise RecipeError(f"{where} finder: neither an earlier finder stage nor a file: {o['finder']}")
+    elif kind == "finder":
+        _check_finder(where, o, before, datasets)
+
+
+def _check_finder(where: str, o: dict, before: list[Stage], datasets: dict[str, Dataset]) -> None:
+    if not resolve(o["config"]).is_file():
+        raise RecipeError(f"{where} config: not found: {o['config']}")
+    _earlier(where, "keypoints_from", o["keypoints_from"], before, MODEL_KINDS)
+    train = o["train_data"]
+    if not train or not all(isinstance(n, str) and n for n in train) or len(set(train)) != len(train):
+        raise RecipeError(f"{where} train_data: a list of distinct dataset names, got {train!r}")
+    for n in train:
+        _dataset(where, "train_data", n, datasets)
+    if not o["val_data"]:
+        raise RecipeError(f"{where} val_data: a dataset is required")
+    _dataset(where, "val_data", o["val_data"], datasets)
+    if o["val_data"] in train:
+        raise RecipeError(f"{where} val_data: {o['val_data']!r} is also trained on (train_data)")
 
 
 def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset]) -> None:

@@ -216,7 +216,23 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
         (('kind = "retag"\nmodel = "finetune"', 'kind = "retag"\nmodel = "head_gain"'), "not finetune"),
         (('kind = "retag"\nmodel = "finetune"', 'kind = "retag"\nmodel = "stage1"'), "not finetune"),
         (('fusion = "fusion"', 'fusion = "head_gain"'), "fusion: 'head_gain' is a stage of kind head_gain"),
-        (('fusion = "fusion"', 'fusion = "fusion"\nfinder = "models/nope.onnx"'), "finder: not found"),
+        (
+            ('finder = "finder"', 'finder = "models/nope.onnx"'),
+            "finder: neither an earlier finder stage nor a file",
+        ),
+        (
+            ('finder = "finder"', 'finder = "fusion"'),
+            "finder: 'fusion' is a stage of kind fusion, not finder",
+        ),
+        (('keypoints_from = "finetune"', 'keypoints_from = "fusion"'), "keypoints_from: 'fusion' is a stage"),
+        (
+            (
+                'val_data = "val"\n\n[[stages]]\nname = "retag"',
+                'val_data = "train_dr"\n\n[[stages]]\nname = "retag"',
+            ),
+            "val_data: 'train_dr' is also trained on",
+        ),
+        (("finder_smoke.yaml", "finder_nope.yaml"), "config: not found"),
         (('model = "retag"', 'model = "head_gain"'), "not export or finetune or retag"),
     ],
 )
@@ -284,7 +300,24 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     assert isinstance(est, KeypointPoseEstimator)
     meta = read_metadata(out)
     assert meta["model_version"] == "0.0.2" and "far_network" not in meta
-    assert sorted(p.name for p in out.parent.glob("*.onnx")) == ["oibarnet.onnx", "oibarnet_lite.onnx"]
+    assert sorted(p.name for p in out.parent.glob("*.onnx")) == [
+        "oibarnet.onnx",
+        "oibarnet_finder.onnx",
+        "oibarnet_lite.onnx",
+    ]
+    # the finder the recipe trained, labelled by the fine-tune's keypoints, beside and named by the file
+    finder = smoke.stage_dir("finder") / "oibarnet_finder.onnx"
+    assert meta["finder"] == {"file": "oibarnet_finder.onnx"}
+    assert sha256_file(out.parent / "oibarnet_finder.onnx") == sha256_file(finder)
+    fmeta = read_metadata(finder)
+    assert fmeta["kind"] == "finder" and fmeta["model_version"] == "0.0.1"
+    assert (
+        est.search.finder is not None
+        and smoke.markers["retag"]["metrics"]["finder"] == "oibarnet_finder.onnx"
+    )
+    cfg = json.loads((smoke.stage_dir("finder") / "config.yaml").read_text())
+    assert [Path(s).name for s, _ in cfg["train_sets"]] == ["train_base.json", "train_dr.json"]
+    assert cfg["seed"] == 7 and cfg["epochs"] == 1
     chosen = load_fusion(smoke.stage_dir("fusion") / "fusion.json", int(meta["crop"]["out_px"]))
     assert chosen is not None and chosen["attitude_prior"] == "head"  # the toy's grid chose the head
     assert meta["fusion"]["head_gain"] == gain["head_gain"]
@@ -334,3 +367,19 @@ def test_a_rerun_skips_every_stage_and_a_new_version_reruns_the_retag_and_what_r
     from oibar.nav.pose import read_metadata
 
     assert read_metadata(smoke.stage_dir("retag") / "oibarnet.onnx")["model_version"] == "0.0.3"
+
+
+def test_a_finder_stage_resumes_only_its_own_training(smoke):
+    """The finder stage's folder holds the trainer's last.pt and frame caches between runs (an
+    interrupted training resumes); a folder left by other inputs is emptied first, so a finder is
+    never resumed from another recipe's training."""
+    d = smoke.stage_dir("finder")
+    (d / MARKER).unlink()  # as if interrupted
+    stamp = (d / "finder_inputs.sha256").read_text()
+    (d / "finder_inputs.sha256").write_text("0" * 64 + "\n")  # another recipe's training
+    (d / "stale.npz").write_bytes(b"x")
+    again = Build(smoke.recipe, smoke.dir.parent, progress=False)
+    again.run(only="finder")
+    assert "finder" in again.ran and not (d / "stale.npz").exists()
+    assert (d / "finder_inputs.sha256").read_text() == stamp
+    assert (d / "oibarnet_finder.onnx").is_file()
