@@ -115,6 +115,24 @@ def test_the_head_frozen_candidate_is_the_no_turned_runs_candidate_with_its_atti
         assert sb.opts == want, sa.name
 
 
+def test_the_backbone_frozen_candidate_is_the_no_turned_runs_candidate_with_0_34_0s_features_and_no_scale():
+    """models/recipes/oibarnet_kp_ft_bbfrozen.toml (0.35.7) is oibarnet_kp_ft_noturned.toml with the
+    backbone and the attitude head frozen in the fine-tune and the fusion without the prior's
+    scale (a frozen backbone reads as 0.34.0's, whose head needed none), and nothing else changed."""
+    a = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_noturned.toml")
+    b = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_bbfrozen.toml")
+    assert (b.name, b.model_version) == ("oibarnet_kp_ft_bbfrozen", "0.35.7")
+    assert b.datasets == a.datasets
+    assert [(s.name, s.kind) for s in b.stages] == [(s.name, s.kind) for s in a.stages]
+    for sa, sb in zip(a.stages, b.stages, strict=True):
+        want = dict(sa.opts)
+        if sa.kind == "finetune":
+            want["freeze"] = ["backbone", "attitude"]
+        if sa.kind == "fusion":
+            want["prior_sigma_scale"] = {}
+        assert sb.opts == want, sa.name
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
