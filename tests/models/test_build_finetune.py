@@ -99,38 +99,33 @@ def test_the_no_turned_runs_candidate_is_the_candidate_recipe_without_them():
     assert b.stage("fusion").opts["prior_sigma_scale"]["sigma_scale"] == [1.0, 1000.0, 1.0]
 
 
-def test_the_head_frozen_candidate_is_the_no_turned_runs_candidate_with_its_attitude_head_kept():
-    """models/recipes/oibarnet_kp_ft_headfrozen.toml (0.35.6) is oibarnet_kp_ft_noturned.toml with
-    `freeze = ["attitude"]` in the fine-tune, and nothing else changed."""
+def _noturned_but(name: str, version: str, edits: dict[str, dict]) -> None:
+    """models/recipes/<name>.toml is oibarnet_kp_ft_noturned.toml (0.35.5) with the options in
+    `edits` (by stage kind) changed, its own name and version, and nothing else changed."""
     a = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_noturned.toml")
-    b = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_headfrozen.toml")
-    assert (b.name, b.model_version) == ("oibarnet_kp_ft_headfrozen", "0.35.6")
+    b = load_recipe(REPO / f"models/recipes/{name}.toml")
+    assert (b.name, b.model_version) == (name, version)
     assert b.datasets == a.datasets
     assert [(s.name, s.kind) for s in b.stages] == [(s.name, s.kind) for s in a.stages]
     for sa, sb in zip(a.stages, b.stages, strict=True):
         want = dict(sa.opts)
-        if sa.kind == "finetune":
-            assert want["freeze"] == []
-            want["freeze"] = ["attitude"]
-        assert sb.opts == want, sa.name
+        assert all(sa.opts[k] != v for k, v in edits.get(sa.kind, {}).items()), sa.name  # each a change
+        assert sb.opts == want | edits.get(sa.kind, {}), sa.name
+
+
+def test_the_head_frozen_candidate_is_the_no_turned_runs_candidate_with_its_attitude_head_kept():
+    """0.35.6: `freeze = ["attitude"]` in the fine-tune."""
+    _noturned_but("oibarnet_kp_ft_headfrozen", "0.35.6", {"finetune": {"freeze": ["attitude"]}})
 
 
 def test_the_backbone_frozen_candidate_is_the_no_turned_runs_candidate_with_0_34_0s_features_and_no_scale():
-    """models/recipes/oibarnet_kp_ft_bbfrozen.toml (0.35.7) is oibarnet_kp_ft_noturned.toml with the
-    backbone and the attitude head frozen in the fine-tune and the fusion without the prior's
-    scale (a frozen backbone reads as 0.34.0's, whose head needed none), and nothing else changed."""
-    a = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_noturned.toml")
-    b = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_bbfrozen.toml")
-    assert (b.name, b.model_version) == ("oibarnet_kp_ft_bbfrozen", "0.35.7")
-    assert b.datasets == a.datasets
-    assert [(s.name, s.kind) for s in b.stages] == [(s.name, s.kind) for s in a.stages]
-    for sa, sb in zip(a.stages, b.stages, strict=True):
-        want = dict(sa.opts)
-        if sa.kind == "finetune":
-            want["freeze"] = ["backbone", "attitude"]
-        if sa.kind == "fusion":
-            want["prior_sigma_scale"] = {}
-        assert sb.opts == want, sa.name
+    """0.35.7: the backbone and the attitude head frozen in the fine-tune, and the fusion without
+    the prior's scale (a frozen backbone reads as 0.34.0's, whose head needed none)."""
+    _noturned_but(
+        "oibarnet_kp_ft_bbfrozen",
+        "0.35.7",
+        {"finetune": {"freeze": ["backbone", "attitude"]}, "fusion": {"prior_sigma_scale": {}}},
+    )
 
 
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
