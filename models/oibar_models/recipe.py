@@ -114,10 +114,8 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "note": (str, ""),
     },
     "finder": {
-        "config": (
-            str,
-            None,
-        ),  # a finder config (models/configs/finder/*.yaml): network, schedule, augmentation
+        # a finder config (models/configs/finder/*.yaml): its network, schedule and augmentation
+        "config": (str, None),
         "keypoints_from": (str, None),  # a finetune, export or retag stage: its keypoints label the boxes
         "train_data": (list, None),  # datasets, in order (the config's train_sets are not read)
         "val_data": (str, None),  # the epoch is chosen on it (the config's val_set is not read)
@@ -430,23 +428,11 @@ def _check_finder(where: str, o: dict, before: list[Stage], datasets: dict[str, 
     if not resolve(o["config"]).is_file():
         raise RecipeError(f"{where} config: not found: {o['config']}")
     _earlier(where, "keypoints_from", o["keypoints_from"], before, MODEL_KINDS)
-    train = o["train_data"]
-    if not train or not all(isinstance(n, str) and n for n in train) or len(set(train)) != len(train):
-        raise RecipeError(f"{where} train_data: a list of distinct dataset names, got {train!r}")
-    for n in train:
-        _dataset(where, "train_data", n, datasets)
-    if not o["val_data"]:
-        raise RecipeError(f"{where} val_data: a dataset is required")
-    _dataset(where, "val_data", o["val_data"], datasets)
-    if o["val_data"] in train:
-        raise RecipeError(f"{where} val_data: {o['val_data']!r} is also trained on (train_data)")
+    _check_train_val(where, o, datasets)
 
 
-def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset]) -> None:
-    if not resolve(o["init"]).is_file():
-        raise RecipeError(f"{where} init: not found: {o['init']}")
-    if o["init_sha256"] and not re.fullmatch(r"[0-9a-f]{64}", o["init_sha256"]):
-        raise RecipeError(f"{where} init_sha256: 64 lower-case hex digits, got {o['init_sha256']!r}")
+def _check_train_val(where: str, o: dict, datasets: dict[str, Dataset]) -> None:
+    """A stage's train_data (a list of distinct datasets) and val_data (another one)."""
     train = o["train_data"]
     if not train or not all(isinstance(n, str) and n for n in train):
         raise RecipeError(f"{where} train_data: a list of one or more dataset names, got {train!r}")
@@ -459,6 +445,14 @@ def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset]) -> None:
     _dataset(where, "val_data", o["val_data"], datasets)
     if o["val_data"] in train:
         raise RecipeError(f"{where} val_data: {o['val_data']!r} is also trained on (train_data)")
+
+
+def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset]) -> None:
+    if not resolve(o["init"]).is_file():
+        raise RecipeError(f"{where} init: not found: {o['init']}")
+    if o["init_sha256"] and not re.fullmatch(r"[0-9a-f]{64}", o["init_sha256"]):
+        raise RecipeError(f"{where} init_sha256: 64 lower-case hex digits, got {o['init_sha256']!r}")
+    _check_train_val(where, o, datasets)
     if o["steps"] < 1 or o["batch_size"] < 1:
         raise RecipeError(f"{where} steps, batch_size: must be >= 1, got {o['steps']}, {o['batch_size']}")
     if not o["lr"] > 0:
