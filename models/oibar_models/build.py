@@ -367,7 +367,11 @@ class Build:
 
         o = st.opts
         spec, root = self.val_set(st)
-        inputs = {"opts": o, "upstream": self.upstream(o["model"], o["head_gain"], f"data_{o['val_data']}")}
+        inputs = {
+            # pnp_alone at its default fingerprints as before the key existed
+            "opts": {k: v for k, v in o.items() if k != "pnp_alone" or not v},
+            "upstream": self.upstream(o["model"], o["head_gain"], f"data_{o['val_data']}"),
+        }
 
         def run(d: Path):
             out = d / "fusion.json"
@@ -389,6 +393,8 @@ class Build:
                 argv += ["--pairs", ",".join(f"{a:g}:{b:g}" for a, b in o["pairs"])]
             if o["head_gain"]:
                 argv += ["--head-gain", str(self.stage_dir(o["head_gain"]) / "head_gain.json")]
+            if not o["pnp_alone"]:
+                argv.append("--no-pnp-alone")
             if o["prior_sigma_scale"]:
                 t = o["prior_sigma_scale"]
                 argv += [

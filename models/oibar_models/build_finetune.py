@@ -43,16 +43,21 @@ def model_file(b: Build, stage: str) -> Path:
     return b.stage_dir(stage) / MODEL_FILE
 
 
+# finetune keys left out of its fingerprint at their defaults (added after builds that lacked them)
+UNSET_KEYS = ("freeze", "distill_weight", "distill_data")
+
+
+def folders(b: Build, name: str) -> list[Path]:
+    """A dataset's sequence folders, its scenes in its own order."""
+    ds = b.recipe.datasets[name]
+    specs, _ = b.scene_list(ds)
+    return [b.dataset_root(ds) / s.name for s in specs]
+
+
 def sequences(b: Build, st: Stage) -> tuple[list[Path], list[Path]]:
     """A finetune stage's training sequence folders, in order (its datasets as listed, each
     dataset's scenes in its own order), and its held ones."""
-
-    def folders(name: str) -> list[Path]:
-        ds = b.recipe.datasets[name]
-        specs, _ = b.scene_list(ds)
-        return [b.dataset_root(ds) / s.name for s in specs]
-
-    return [p for name in st["train_data"] for p in folders(name)], folders(st["val_data"])
+    return [p for name in st["train_data"] for p in folders(b, name)], folders(b, st["val_data"])
 
 
 def clear(d: Path) -> None:
@@ -102,6 +107,8 @@ def finetune(b: Build, st: Stage) -> dict:
         force=True,  # the marker, not the folder, says whether the stage is done
         batch_norm=o["batch_norm"],
         freeze=tuple(o["freeze"]),
+        distill_weight=o["distill_weight"],
+        distill_data=tuple(p for name in o["distill_data"] for p in folders(b, name)),
         note=f"a candidate of recipe {b.recipe.name} (stage {st.name}): it ships only once judged and registered",
     )
     kept = dict(meta)
@@ -115,8 +122,8 @@ def finetune(b: Build, st: Stage) -> dict:
     except OSError as exc:
         raise BuildError(f"stage {st.name}: a file {init.name} names is not beside it: {exc}") from exc
     inputs = {
-        # a stage that freezes nothing fingerprints as it did before `freeze` existed
-        "opts": {k: v for k, v in o.items() if k != "freeze" or v},
+        # a stage that freezes and distils nothing fingerprints as it did before those keys existed
+        "opts": {k: v for k, v in o.items() if k not in UNSET_KEYS or v},
         "init_sha256": init_sha,
         "companions_sha256": beside,
         "config": asdict(cfg),

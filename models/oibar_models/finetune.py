@@ -37,6 +37,7 @@ companions, eval.md, eval.json, metrics.json.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import shutil
@@ -80,6 +81,17 @@ LR = 2e-4
 # approaches and randomised looks taught 0.34.0's attitude head to read a turn short (3 m probe,
 # raw slope 0.953 -> 0.894, candidate 0.35.5), and the fit's prior then pulls toward "aligned".
 FREEZABLE = ("backbone", "lateral", "head", "present", "attitude")
+# Distillation (learning without forgetting): on the crops of the `distill_data` sequences, the
+# attitude head's output is held to what the starting network answers on the same crop, a squared
+# error in deg^2 (summed over the rotation vector) times `distill_weight`. Why: freezing the head
+# did not keep its turn response (candidate 0.35.6: raw 3 m probe slope 0.897 against 0.34.0's
+# 0.953), because the backbone under it drifted, and the truth term cannot stop that: on
+# near-aligned crops a 3 deg turn read 0.18 deg short costs the L1 truth loss next to nothing
+# beside its own noise, while the starting network's answer is a target the student meets exactly
+# by not drifting. Freezing the whole backbone kept the head but cost the keypoints their share of
+# the new looks (candidate 0.35.7). 1.0: a drift of 0.05 deg pulls back as hard as the truth term
+# (att_loss_weight 0.1 per deg) pushes.
+DISTILL_WEIGHT = 1.0
 DEMO_NOTE = "a demonstration (issue 58 item 5): never judged, registered or shipped"
 EVAL_COLUMNS_EXTRA = [
     ("answered_pct", "answered (%)", "{:.1f}"),
@@ -116,6 +128,8 @@ class Options:
     batch_norm: str = "frozen"  # BATCH_NORM: keep the calibrated statistics while fine-tuning, or "train"
     turn_deg: float | None = None  # the crops' in-plane turn, uniform +-; None: the stage's own
     freeze: tuple[str, ...] = ()  # FREEZABLE parts kept as init has them
+    distill_weight: float = 0.0  # per deg^2; 0: no distillation term
+    distill_data: tuple[Path, ...] = ()  # of `data`, whose crops the term holds; (): every one
     note: str = DEMO_NOTE  # what the file's oibar.finetune says it is
 
 
@@ -142,6 +156,11 @@ def open_sequences(o: Options) -> tuple[list[Sequence], list[Sequence]]:
     both = {p.resolve() for p in o.data} & {p.resolve() for p in o.val}
     if both:
         raise FinetuneError(f"a sequence is both trained on and held: {', '.join(map(str, sorted(both)))}")
+    unknown = sorted(str(p) for p in {p.resolve() for p in o.distill_data} - {p.resolve() for p in o.data})
+    if unknown:
+        raise FinetuneError(f"distill data not among the training sequences: {', '.join(unknown)}")
+    if o.distill_data and not o.distill_weight > 0:
+        raise FinetuneError("distill data given with no distill weight (> 0)")
     names = [s.name for s in train + held]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -288,12 +307,21 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence]) 
                 m.eval()
     for m in frozen:
         m.eval()
+    teacher, taught = distill_teacher(o, net)
+    n_distilled = 0
     for step in range(t.steps):
         b = next(loader)
         for g in opt.param_groups:
             g["lr"] = lr_at(step, t)
         heat, present, att = net(b["image"])
         losses = kp_loss(heat, present, b["kp_crop_px"], b["visible"], t, att, b["att_deg"])
+        if teacher is not None:
+            held_to = taught[b["scene"]]
+            if held_to.any():
+                d = distill_deg2(teacher, b["image"][held_to], att[held_to])
+                losses["loss"] = losses["loss"] + o.distill_weight * d
+                losses["distill_deg2"] = d.detach()
+                n_distilled += int(held_to.sum())
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         opt.step()
@@ -307,6 +335,7 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence]) 
             **{f"train_{k}": round(v, 4) for k, v in running.items()},
             **{f"val_{k}": v for k, v in s.items()},
             "wall_s": round(time.monotonic() - t0, 1),
+            **({"distilled_crops": n_distilled} if teacher is not None else {}),
         }
     )
     log.write_text("".join(json.dumps(r) + "\n" for r in rows))
@@ -315,6 +344,26 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence]) 
     )
     (o.out / "done.json").write_text(json.dumps({"steps": t.steps, "last": s}, indent=1) + "\n")
     return {"steps": t.steps, **s}
+
+
+def distill_teacher(o: Options, net) -> tuple[Any, torch.Tensor]:
+    """The starting network, frozen, as the distillation's teacher (None without the term), and
+    per training sequence whether its crops are held to it."""
+    if not o.distill_weight > 0:
+        return None, torch.zeros(len(o.data), dtype=torch.bool)
+    teacher = copy.deepcopy(net).eval()
+    for p in teacher.parameters():
+        p.requires_grad_(False)
+    held_to = {p.resolve() for p in o.distill_data or o.data}
+    return teacher, torch.tensor([p.resolve() in held_to for p in o.data], dtype=torch.bool)
+
+
+def distill_deg2(teacher, image: torch.Tensor, att_deg: torch.Tensor) -> torch.Tensor:
+    """The mean over crops of the squared distance (deg^2) between `att_deg` and the teacher's
+    attitude head on the same crops (its backbone's last tap only: the keypoint path is not run)."""
+    with torch.no_grad():
+        ref = teacher.attitude(teacher.backbone.features(image)[-1])
+    return ((att_deg - ref) ** 2).sum(-1).mean()
 
 
 def frozen_parts(net, names: tuple[str, ...]) -> list[torch.nn.Module]:
@@ -372,6 +421,8 @@ def export_candidate(o: Options, cfg, net, meta: dict, val: dict, spreads: dict[
             "seed": o.seed,
             "batch_norm": o.batch_norm,
             "frozen": list(o.freeze),
+            "distill_weight_per_deg2": o.distill_weight,
+            "distill_data": [str(p) for p in o.distill_data or (o.data if o.distill_weight > 0 else [])],
             "spread_median_crop_px": spreads,
             "ships": False,
             "note": o.note,
@@ -575,7 +626,27 @@ def parse(argv: list[str] | None) -> Options:
         metavar="PART",
         help=f"parts of the network kept as --init has them, of {', '.join(FREEZABLE)}",
     )
+    ap.add_argument(
+        "--distill-weight",
+        type=float,
+        default=0.0,
+        metavar="W",
+        help="hold the attitude head to --init's answers on the same crops, W per deg^2 "
+        f"(default 0: off; {DISTILL_WEIGHT:g} was chosen for candidate 0.35.8)",
+    )
+    ap.add_argument(
+        "--distill-data",
+        nargs="+",
+        type=Path,
+        default=[],
+        metavar="DIR",
+        help="of the --data sequences, those whose crops the distillation holds (default: every one)",
+    )
     a = ap.parse_args(argv)
+    if not (a.distill_weight >= 0 and math.isfinite(a.distill_weight)):
+        ap.error("--distill-weight must be a finite number >= 0")
+    if a.distill_data and not a.distill_weight > 0:
+        ap.error("--distill-data needs --distill-weight > 0")
     if a.turn_deg is not None and not 0.0 <= a.turn_deg <= 180.0:
         ap.error("--turn-deg must be in [0, 180]")
     if a.steps < 1 or (a.epochs is not None and a.epochs <= 0):
@@ -586,7 +657,7 @@ def parse(argv: list[str] | None) -> Options:
         a.data, a.val, a.init, a.out, a.config, a.epochs, a.steps, a.batch_size, a.lr, a.seed,
         a.calibrate_crops, a.val_frames, a.stride, tuple(a.modes), not a.no_baseline,
         not a.no_far_network, a.workers, a.threads, not a.no_progress, a.force, a.batch_norm,
-        a.turn_deg, tuple(dict.fromkeys(a.freeze)),
+        a.turn_deg, tuple(dict.fromkeys(a.freeze)), a.distill_weight, tuple(a.distill_data),
     )  # fmt: skip
 
 

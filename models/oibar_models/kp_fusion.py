@@ -158,6 +158,7 @@ def fusion_grid(
     prior_models: dict[str, dict | None],
     crop_scale: float = 1.0,
     pairs: list[tuple[float, float]] | None = None,
+    pnp_alone: bool = True,
 ) -> list[tuple]:
     """(attitude prior, keypoint sigma, prior sigma, keypoint error model, prior error model) to
     score, for the priors named in `prior_models` (its value None: that source has no error
@@ -167,7 +168,10 @@ def fusion_grid(
     the model's crop over FUSION_REF_CROP_PX (a 192 px crop reads the fixture over 1.5x the
     pixels, so its keypoint sigmas are 1.5x). `pairs` ((keypoint sigma at a 128 px crop, prior
     sigma deg), ...): only those, each prior with both error models, and PnP alone (the head
-    only where the model has one, as in the whole grid)."""
+    only where the model has one, as in the whole grid). `pnp_alone` False leaves PnP alone out:
+    a fusion that must carry a prior (candidate 0.35.8: the head is what reads a 3 m turn).
+    ValueError when that leaves nothing to score."""
+    alone = [(None, None, None, None, None)] if pnp_alone else []
     if pairs is not None:
         grid = [
             (source, p * crop_scale, d, err_model, pem)
@@ -175,7 +179,11 @@ def fusion_grid(
             if source != "head" or pem is not None
             for p, d in pairs
         ]
-        return [*grid, (None, None, None, None, None)]
+        if not grid + alone:
+            raise ValueError(
+                "no fusion to score: the model has none of the priors, and PnP alone is left out"
+            )
+        return [*grid, *alone]
     sig = [(p * crop_scale, d) for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None]
     models = [None] if err_model is None else [None, err_model]
     grid = [("direct", p, d, m, None) for m in models for p, d in sig] if "direct" in prior_models else []
@@ -185,8 +193,9 @@ def fusion_grid(
         if source == "head":
             grid += [("head", p, d, models[-1], None) for p, d in sig]
         grid += [(source, p, d, models[-1], pem) for p, d in sig]
-    grid.append((None, None, None, None, None))
-    return grid
+    if not grid + alone:
+        raise ValueError("no fusion to score: the model has none of the priors, and PnP alone is left out")
+    return grid + alone
 
 
 def prior_sigma_scale_arg(text: str) -> dict:
@@ -215,6 +224,7 @@ def score_grid(
     head_gain: dict | None = None,
     pairs: list[tuple[float, float]] | None = None,
     prior_sigma_scale: dict | None = None,
+    pnp_alone: bool = True,
 ) -> list[dict]:
     """Each fusion of the grid scored on `rows`; `head_gain` (HeadGainModel's table): the head's
     tilt divided by it wherever the head is the prior, as the flight code does with the export's;
@@ -225,6 +235,7 @@ def score_grid(
         {"direct": None} if prior_models is None else prior_models,
         est.reader.out_px / FUSION_REF_CROP_PX,
         pairs,
+        pnp_alone,
     )
     for source, s_px, s_deg, em, pem in grid:
         fusion = {"sigma_crop_px": s_px, "sigma_prior_deg": s_deg} if s_deg is not None else {}
@@ -315,6 +326,11 @@ def main(argv: list[str] | None = None) -> int:
         "keypoints alone decide; carried into the choice",
     )
     ap.add_argument(
+        "--no-pnp-alone",
+        action="store_true",
+        help="leave PnP alone (no attitude prior) out of the grid: the chosen fusion carries a prior",
+    )
+    ap.add_argument(
         "--val-set",
         nargs=2,
         type=Path,
@@ -362,16 +378,21 @@ def main(argv: list[str] | None = None) -> int:
     rows = collect(est, seqs, a.stride, track=not a.single)
     em = error_model(rows, float(est.reader.reproj_crop_px))
     pems = {source: prior_error_model(rows, source) for source in ("direct", "head")}
-    grid = score_grid(
-        est,
-        rows,
-        not a.no_progress,
-        em,
-        {k: v for k, v in pems.items() if k in sources},
-        head_gain,
-        pairs,
-        prior_sigma_scale,
-    )
+    try:
+        grid = score_grid(
+            est,
+            rows,
+            not a.no_progress,
+            em,
+            {k: v for k, v in pems.items() if k in sources},
+            head_gain,
+            pairs,
+            prior_sigma_scale,
+            not a.no_pnp_alone,
+        )
+    except ValueError as exc:
+        print(f"error: {a.model}: {exc}", file=sys.stderr)
+        return 2
     best = min(grid, key=lambda g: g["score"])
     if best.get("head_gain"):
         best["head_gain"] = head_gain
@@ -394,6 +415,7 @@ def main(argv: list[str] | None = None) -> int:
                 "mode": "single" if a.single else "track",
                 "head_gain": head_gain,
                 "prior_sigma_scale": prior_sigma_scale,
+                "pnp_alone": not a.no_pnp_alone,
                 "best": best,
                 "grid": grid,
                 "kp_error_model": em,

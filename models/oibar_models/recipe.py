@@ -27,6 +27,7 @@ wrong type or a stage that names a stage it cannot use is a RecipeError naming t
 
 from __future__ import annotations
 
+import math
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -79,6 +80,7 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         # {range_edges_m = [...], sigma_scale = [...]}: a factor on the prior's sigma by range, chosen
         # on the validation probe (oibar.fusion.prior_sigma_scale); {}: the error model's weight
         "prior_sigma_scale": (dict, {}),
+        "pnp_alone": (bool, True),  # PnP alone scored beside the priors; false: the fusion carries one
         "note": (str, ""),
     },
     "evaluate": {
@@ -103,6 +105,11 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "batch_norm": (str, "frozen"),  # BATCH_NORM
         "far_network": (bool, True),  # keep init's far network beside the candidate
         "freeze": (list, []),  # FREEZABLE parts kept as init has them
+        "distill_weight": (
+            float,
+            0.0,
+        ),  # per deg^2: the attitude head held to init's (finetune.DISTILL_WEIGHT)
+        "distill_data": (list, []),  # of train_data, whose crops it holds; []: every one
         "note": (str, ""),
     },
     "head_gain": {
@@ -464,6 +471,15 @@ def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset]) -> None:
         raise RecipeError(f"{where} freeze: distinct parts of {list(FREEZABLE)}, got {freeze!r}")
     if set(freeze) == set(FREEZABLE):
         raise RecipeError(f"{where} freeze: every part frozen leaves nothing to train")
+    w, held = o["distill_weight"], o["distill_data"]
+    if not (w >= 0 and math.isfinite(w)):
+        raise RecipeError(f"{where} distill_weight: a finite number >= 0, got {w!r}")
+    if held and not w > 0:
+        raise RecipeError(f"{where} distill_data: given with no distill_weight (> 0)")
+    if not all(isinstance(n, str) and n in o["train_data"] for n in held) or len(set(held)) != len(held):
+        raise RecipeError(
+            f"{where} distill_data: distinct datasets of train_data {o['train_data']!r}, got {held!r}"
+        )
 
 
 def _check_head_gain(where: str, o: dict) -> None:

@@ -201,6 +201,15 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
             ('freeze = ["attitude"]', 'freeze = ["backbone", "lateral", "head", "present", "attitude"]'),
             "leaves nothing to train",
         ),
+        (("distill_weight = 1.0", "distill_weight = -1.0"), "distill_weight: a finite number >= 0"),
+        (("distill_weight = 1.0", "distill_weight = nan"), "distill_weight: a finite number >= 0"),
+        (("distill_weight = 1.0", "distill_weight = 0.0"), "distill_data: given with no distill_weight"),
+        (('distill_data = ["train_base"]', 'distill_data = ["val"]'), "distill_data: distinct datasets of"),
+        (
+            ('distill_data = ["train_base"]', 'distill_data = ["train_base", "train_base"]'),
+            "distill_data: distinct datasets of",
+        ),
+        (("pnp_alone = false", "pnp_alone = 0"), "pnp_alone: expected bool"),
         (("steps = 2", "steps = 0"), "steps, batch_size: must be >= 1"),
         (("lr = 2e-4", "lr = -1.0"), "lr: must be > 0"),
         (('init = "models/oibarnet.onnx"', 'init = "models/nope.onnx"'), "init: not found"),
@@ -297,6 +306,10 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     assert any(k.startswith("attitude.") for k in start) and moved
     assert not {k for k in moved if k.startswith("attitude.")}
     assert {k.split(".")[0] for k in moved} >= {"backbone", "head"}
+    # the distillation: the attitude head's answers on the base renderer's crops held to the start's
+    assert ft["distill_weight_per_deg2"] == 1.0 and [Path(p).name for p in ft["distill_data"]] == ["tr000"]
+    last = json.loads((smoke.stage_dir("finetune") / "log.jsonl").read_text().splitlines()[-1])
+    assert last["distilled_crops"] > 0
     # the head gain, one bin over every range (the toy's), within the flight code's limits
     gain = json.loads((smoke.stage_dir("head_gain") / "head_gain.json").read_text())
     assert gain["frames"] == 20 and gain["min_frames_per_bin"] == 16
@@ -307,6 +320,9 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     assert fusion_doc["head_gain"] == gain["head_gain"]  # the grid weighed the head with that gain
     scale = {"range_edges_m": [0.0, 3.0, 100.0], "sigma_scale": [1.0, 1000.0]}  # the recipe's
     assert fusion_doc["prior_sigma_scale"] == scale
+    # pnp_alone = false: every fusion scored carries the head prior
+    assert fusion_doc["pnp_alone"] is False
+    assert fusion_doc["grid"] and all(g["attitude_prior"] == "head" for g in fusion_doc["grid"])
     # the retagged file: the recipe's version, the fusion's choice and the gain, opened as flight opens it
     out = smoke.stage_dir("retag") / "oibarnet.onnx"
     est = PoseEstimator(out, warmup_runs=0)
@@ -332,7 +348,7 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     assert [Path(s).name for s, _ in cfg["train_sets"]] == ["train_base.json", "train_dr.json"]
     assert cfg["seed"] == 7 and cfg["epochs"] == 1
     chosen = load_fusion(smoke.stage_dir("fusion") / "fusion.json", int(meta["crop"]["out_px"]))
-    assert chosen is not None and chosen["attitude_prior"] == "head"  # the toy's grid chose the head
+    assert chosen is not None and chosen["attitude_prior"] == "head"
     assert meta["fusion"]["head_gain"] == gain["head_gain"]
     assert meta["fusion"]["prior_sigma_scale"] == scale
     assert est.fusion.prior_sigma_scale(meta["fusion"]).scale(5.0) == 1000.0

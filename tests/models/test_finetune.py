@@ -146,6 +146,32 @@ def test_bad_inputs_are_refused(lab, tmp_path, capsys):
     with pytest.raises(SystemExit):  # a part the network does not have
         main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--freeze", "neck"])
     assert "--freeze: invalid choice: 'neck'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # what to distil on, with no distillation
+        main(
+            [
+                "--data",
+                str(lab["train"]),
+                "--val",
+                str(lab["held"]),
+                *base,
+                "--distill-data",
+                str(lab["train"]),
+            ]
+        )
+    assert "--distill-data needs --distill-weight > 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--distill-weight", "-1"])
+    assert "--distill-weight must be a finite number >= 0" in capsys.readouterr().err
+    held = ["--distill-weight", "1", "--distill-data", str(lab["held"])]  # not a training sequence
+    refused(
+        "distill data not among the training sequences",
+        "--data",
+        str(lab["train"]),
+        "--val",
+        str(lab["held"]),
+        *base,
+        *held,
+    )
 
 
 def test_frozen_parts_keep_their_weights_out_of_training_and_leave_something_to_train():
@@ -168,3 +194,51 @@ def test_frozen_parts_keep_their_weights_out_of_training_and_leave_something_to_
     with pytest.raises(FinetuneError, match="leaves nothing to train"):
         frozen_parts(Toy(), ("backbone", "attitude"))
     assert "head" in FREEZABLE
+
+
+def test_the_distillation_pulls_the_attitude_head_back_to_the_starting_networks_answers(tmp_path):
+    """finetune.distill_teacher / distill_deg2: the teacher is a frozen copy of the network as it
+    starts, held to on the named training sequences' crops only; the term is zero before anything
+    moves, grows when the backbone drifts, and its gradient takes the drifted backbone back toward
+    the teacher's answers while the teacher stays as it was."""
+    import torch
+
+    from oibar_models.finetune import Options, distill_deg2, distill_teacher
+    from oibar_models.kpnet import KeypointNet
+
+    torch.manual_seed(0)
+    net = KeypointNet(n_keypoints=4, pretrained=False).eval()
+    with torch.no_grad():  # answers of a few degrees, as a trained head gives (an untrained one: ~0.01)
+        net.attitude[-1].weight.mul_(300.0)
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    o = Options(
+        data=[a, b, c],
+        val=[],
+        init=tmp_path / "m.onnx",
+        out=tmp_path,
+        distill_weight=1.0,
+        distill_data=(c, a),
+    )
+    teacher, taught = distill_teacher(o, net)
+    assert taught.tolist() == [True, False, True]
+    assert distill_teacher(Options(data=[a, b], val=[], init=a, out=tmp_path), net)[0] is None
+    assert distill_teacher(Options(data=[a, b], val=[], init=a, out=tmp_path, distill_weight=0.5), net)[
+        1
+    ].all()
+    x = torch.rand(4, 3, 64, 64)
+    assert float(distill_deg2(teacher, x, net(x)[2])) == pytest.approx(0.0, abs=1e-9)
+    before = {k: v.clone() for k, v in teacher.state_dict().items()}
+    with torch.no_grad():
+        for p in net.backbone.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    opt = torch.optim.Adam(net.backbone.parameters(), lr=1e-3)
+    drifted = float(distill_deg2(teacher, x, net(x)[2]))
+    assert drifted > 1e-6
+    for _ in range(20):
+        d = distill_deg2(teacher, x, net(x)[2])
+        opt.zero_grad()
+        d.backward()
+        opt.step()
+    assert float(distill_deg2(teacher, x, net(x)[2])) < 0.5 * drifted
+    assert all(torch.equal(before[k], v) for k, v in teacher.state_dict().items())
+    assert not any(p.requires_grad for p in teacher.parameters())

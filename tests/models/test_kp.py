@@ -601,6 +601,22 @@ def test_the_fusion_grid_scores_the_priors_asked_for():
     assert at128 == set(SIGMA_CROP_PX) and at192 == {1.5 * p for p in SIGMA_CROP_PX}
 
 
+def test_the_fusion_grid_leaves_pnp_alone_out_when_asked_and_refuses_an_empty_grid():
+    """kp_fusion.fusion_grid(pnp_alone=False) (`--no-pnp-alone`, a recipe's fusion `pnp_alone =
+    false`): every fusion scored carries a prior, in the whole grid and with `pairs`; nothing left
+    to score is an error, not a silent PnP alone."""
+    from oibar_models.kp_fusion import fusion_grid
+
+    em, pem = {"kp": 1}, {"rms_deg": [1.0]}
+    for pairs in (None, [(2.0, 3.0)]):
+        with_alone = fusion_grid(em, {"head": pem}, pairs=pairs)
+        without = fusion_grid(em, {"head": pem}, pairs=pairs, pnp_alone=False)
+        assert without == [g for g in with_alone if g[0] is not None] and without
+        assert {g[0] for g in without} == {"head"}
+        with pytest.raises(ValueError, match="no fusion to score"):
+            fusion_grid(em, {"head": None}, pairs=pairs, pnp_alone=False)
+
+
 def test_the_fusion_grid_can_score_only_the_pairs_asked_for_with_the_head_gain():
     """kp_fusion `--pairs`: only those weights (keypoint sigma scaled to the crop), each prior
     with both error models, and PnP alone; `--head-gain`: every fusion whose prior is the head is
