@@ -128,6 +128,40 @@ def test_the_backbone_frozen_candidate_is_the_no_turned_runs_candidate_with_0_34
     )
 
 
+def test_the_distilled_candidate_is_the_head_frozen_one_distilled_fused_with_the_head_and_with_a_finder():
+    """0.35.8: 0.35.6's recipe (0.35.5 with the head frozen) with the attitude head's answers on the
+    base renderer's crops distilled, a fusion that must carry the head prior and no prior scale,
+    and the fixture finder trained on 0.1.0's half of the base scenes and the randomised looks."""
+    a = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_headfrozen.toml")
+    b = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_distill.toml")
+    assert (b.name, b.model_version) == ("oibarnet_kp_ft_distill", "0.35.8")
+    assert {k: v for k, v in b.datasets.items() if k != "train_half"} == a.datasets
+    half = b.datasets["train_half"]
+    assert (half.spec, half.root) == (a.datasets["train_base"].spec, a.datasets["train_base"].root)
+    assert half.scenes == [f"tr{i:03d}" for i in range(0, 96, 2)]  # as make dataset-train SHARD=0/2
+    assert set(a.datasets["train_base"].scenes) < set(half.scenes)
+    edits = {
+        "finetune": {"distill_weight": 1.0, "distill_data": ["train_base"]},
+        "fusion": {"pnp_alone": False, "prior_sigma_scale": {}},
+        "retag": {"finder": "finder"},
+    }
+    assert [s.name for s in b.stages] == ["finetune", "head_gain", "fusion", "finder", "retag", "evaluate"]
+    for sa in a.stages:
+        sb = b.stage(sa.name)
+        assert sb.kind == sa.kind
+        assert all(sa.opts[k] != v for k, v in edits.get(sa.kind, {}).items()), sa.name  # each a change
+        assert sb.opts == sa.opts | edits.get(sa.kind, {}), sa.name
+    f = b.stage("finder").opts
+    assert (f["keypoints_from"], f["train_data"], f["val_data"]) == (
+        "finetune",
+        ["train_half", "train_dr"],
+        "val",
+    )
+    from oibar_models.finetune import DISTILL_WEIGHT
+
+    assert b.stage("finetune").opts["distill_weight"] == DISTILL_WEIGHT
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
