@@ -179,11 +179,17 @@ def fusion_grid(
             if source != "head" or pem is not None
             for p, d in pairs
         ]
-        if not grid + alone:
-            raise ValueError(
-                "no fusion to score: the model has none of the priors, and PnP alone is left out"
-            )
-        return [*grid, *alone]
+    else:
+        grid = _whole_grid(err_model, prior_models, crop_scale)
+    if not grid + alone:
+        raise ValueError("no fusion to score: the model has none of the priors, and PnP alone is left out")
+    return grid + alone
+
+
+def _whole_grid(
+    err_model: dict | None, prior_models: dict[str, dict | None], crop_scale: float
+) -> list[tuple]:
+    """fusion_grid's every weight pair, without PnP alone."""
     sig = [(p * crop_scale, d) for p in SIGMA_CROP_PX for d in SIGMA_PRIOR_DEG if d is not None]
     models = [None] if err_model is None else [None, err_model]
     grid = [("direct", p, d, m, None) for m in models for p, d in sig] if "direct" in prior_models else []
@@ -193,9 +199,7 @@ def fusion_grid(
         if source == "head":
             grid += [("head", p, d, models[-1], None) for p, d in sig]
         grid += [(source, p, d, models[-1], pem) for p, d in sig]
-    if not grid + alone:
-        raise ValueError("no fusion to score: the model has none of the priors, and PnP alone is left out")
-    return grid + alone
+    return grid
 
 
 def prior_sigma_scale_arg(text: str) -> dict:
