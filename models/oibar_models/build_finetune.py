@@ -44,7 +44,7 @@ def model_file(b: Build, stage: str) -> Path:
 
 
 # finetune keys left out of its fingerprint at their defaults (added after builds that lacked them)
-UNSET_KEYS = ("freeze", "distill_weight", "distill_data")
+UNSET_KEYS = ("freeze", "distill_weight", "distill_data", "distill_from", "distill_from_sha256")
 
 
 def folders(b: Build, name: str) -> list[Path]:
@@ -81,12 +81,11 @@ def finetune(b: Build, st: Stage) -> dict:
     from .kp_recover import RecoverError
 
     o = st.opts
-    init = resolve(o["init"])
-    init_sha = sha256_file(init)
-    if o["init_sha256"] and o["init_sha256"] != init_sha:
-        raise BuildError(
-            f"stage {st.name}: {init} hashes {init_sha[:12]}..., the recipe pins {o['init_sha256'][:12]}..."
-        )
+    init_stage = o["init"] if any(s.name == o["init"] for s in b.recipe.stages) else ""  # its file
+    init = model_file(b, init_stage) if init_stage else resolve(o["init"])
+    init_sha = pinned(st, init, o["init_sha256"])
+    teacher = resolve(o["distill_from"]) if o["distill_from"] else None
+    teacher_sha = pinned(st, teacher, o["distill_from_sha256"]) if teacher else ""
     try:
         meta = read_metadata(init)
     except ModelFileError as exc:
@@ -109,6 +108,8 @@ def finetune(b: Build, st: Stage) -> dict:
         freeze=tuple(o["freeze"]),
         distill_weight=o["distill_weight"],
         distill_data=tuple(p for name in o["distill_data"] for p in folders(b, name)),
+        distill_from=teacher,
+        config=stage_config_of(b, init_stage) if init_stage else None,
         note=f"a candidate of recipe {b.recipe.name} (stage {st.name}): it ships only once judged and registered",
     )
     kept = dict(meta)
@@ -128,7 +129,8 @@ def finetune(b: Build, st: Stage) -> dict:
         "companions_sha256": beside,
         "config": asdict(cfg),
         "threads": b.recipe.threads,
-        "upstream": b.upstream(*(f"data_{n}" for n in o["train_data"]), f"data_{o['val_data']}"),
+        "upstream": b.upstream(*(f"data_{n}" for n in o["train_data"]), f"data_{o['val_data']}", init_stage),
+        **({"distill_from_sha256": teacher_sha} if teacher else {}),
     }
 
     def run(d: Path):
@@ -147,6 +149,22 @@ def finetune(b: Build, st: Stage) -> dict:
         return outputs, metrics
 
     return b.step(st.name, "finetune", inputs, run)
+
+
+def stage_config_of(b: Build, stage: str) -> Path:
+    """The network config an earlier finetune stage derived its own from: a fine-tuned file's
+    oibar.name is its run's, which names no config of models/configs."""
+    import yaml
+
+    return Path(yaml.safe_load((b.stage_dir(stage) / "config.yaml").read_text())["derived_from"])
+
+
+def pinned(st: Stage, path: Path, pin: str) -> str:
+    """`path`'s sha256, checked against the recipe's pin ("": not pinned)."""
+    sha = sha256_file(path)
+    if pin and pin != sha:
+        raise BuildError(f"stage {st.name}: {path} hashes {sha[:12]}..., the recipe pins {pin[:12]}...")
+    return sha
 
 
 # ----------------------------------------------------------------------------- head gain

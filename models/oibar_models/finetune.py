@@ -130,6 +130,7 @@ class Options:
     freeze: tuple[str, ...] = ()  # FREEZABLE parts kept as init has them
     distill_weight: float = 0.0  # per deg^2; 0: no distillation term
     distill_data: tuple[Path, ...] = ()  # of `data`, whose crops the term holds; (): every one
+    distill_from: Path | None = None  # the teacher's flight file; None: init (the starting network)
     note: str = DEMO_NOTE  # what the file's oibar.finetune says it is
 
 
@@ -161,6 +162,8 @@ def open_sequences(o: Options) -> tuple[list[Sequence], list[Sequence]]:
         raise FinetuneError(f"distill data not among the training sequences: {', '.join(unknown)}")
     if o.distill_data and not o.distill_weight > 0:
         raise FinetuneError("distill data given with no distill weight (> 0)")
+    if o.distill_from is not None and not o.distill_weight > 0:
+        raise FinetuneError("a teacher to distil from given with no distill weight (> 0)")
     names = [s.name for s in train + held]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -273,9 +276,37 @@ def start_network(o: Options, cfg, train: list[Sequence]):
     return net, meta
 
 
-def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence]) -> dict:
+def teacher_network(o: Options, cfg, train: list[Sequence], meta: dict):
+    """The network of `o.distill_from` recovered and calibrated on the student's calibration crops
+    (as `start_network` does init), checked against its file; None when the teacher is init."""
+    from oibar.nav.pose import ModelFileError, read_metadata
+
+    if o.distill_from is None:
+        return None
+    try:
+        tmeta = read_metadata(o.distill_from)
+    except ModelFileError as exc:
+        raise FinetuneError(f"distill from: {exc}") from exc
+    if tmeta.get("kind") != "keypoints":
+        raise FinetuneError(
+            f"distill from {o.distill_from}: not a keypoint model (oibar.kind = {tmeta.get('kind')!r})"
+        )
+    net, _, pairs = recover(o.distill_from)
+    if getattr(net, "attitude", None) is None:
+        raise FinetuneError(f"distill from {o.distill_from}: its network has no attitude head to distil")
+    crops, _ = calibration_crops(o, cfg, train, meta)
+    calibrate(net, pairs, crops)
+    err = parity(o.distill_from, net, crops[:16].numpy())
+    if not err < PARITY_TOL:
+        raise FinetuneError(f"the recovered teacher differs from {o.distill_from} by {err:.2g} on the crops")
+    say(o, f"teacher: {o.distill_from} ({tmeta.get('model_version')})")
+    return net
+
+
+def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence], teacher_net=None) -> dict:
     """The training loop of kp_engine.train at fine-tune size: the same crops, loss, schedule and
-    validation, seeded; validated on the held crops before and after (for the log only)."""
+    validation, seeded; validated on the held crops before and after (for the log only). The
+    distillation's teacher is `teacher_net` when given, else the starting network."""
     from .kp_engine import kp_loss, lr_at, train_sampler, validate
 
     t = cfg.train
@@ -307,7 +338,7 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence]) 
                 m.eval()
     for m in frozen:
         m.eval()
-    teacher, taught = distill_teacher(o, net)
+    teacher, taught = distill_teacher(o, net if teacher_net is None else teacher_net)
     n_distilled = 0
     for step in range(t.steps):
         b = next(loader)
@@ -347,15 +378,22 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence]) 
 
 
 def distill_teacher(o: Options, net) -> tuple[Any, torch.Tensor]:
-    """The starting network, frozen, as the distillation's teacher (None without the term), and
-    per training sequence whether its crops are held to it."""
+    """A frozen copy of `net` (the starting network, or the one of `distill_from`) as the
+    distillation's teacher (None without the term), and per training sequence whether its crops
+    are held to it."""
     if not o.distill_weight > 0:
         return None, torch.zeros(len(o.data), dtype=torch.bool)
+    teacher = distill_teacher_copy(net)
+    held_to = {p.resolve() for p in o.distill_data or o.data}
+    return teacher, torch.tensor([p.resolve() in held_to for p in o.data], dtype=torch.bool)
+
+
+def distill_teacher_copy(net):
+    """A frozen copy of `net` in evaluation mode."""
     teacher = copy.deepcopy(net).eval()
     for p in teacher.parameters():
         p.requires_grad_(False)
-    held_to = {p.resolve() for p in o.distill_data or o.data}
-    return teacher, torch.tensor([p.resolve() in held_to for p in o.data], dtype=torch.bool)
+    return teacher
 
 
 def distill_deg2(teacher, image: torch.Tensor, att_deg: torch.Tensor) -> torch.Tensor:
@@ -364,6 +402,21 @@ def distill_deg2(teacher, image: torch.Tensor, att_deg: torch.Tensor) -> torch.T
     with torch.no_grad():
         ref = teacher.attitude(teacher.backbone.features(image)[-1])
     return ((att_deg - ref) ** 2).sum(-1).mean()
+
+
+@torch.no_grad()
+def start_gap_deg2(teacher_net, net, crops: torch.Tensor) -> float:
+    """How far the student starts from its teacher: distill_deg2 on `crops` before any step (0
+    when the teacher is the starting network)."""
+    was = net.training
+    net.eval()
+    teacher = distill_teacher_copy(teacher_net)
+    total = 0.0
+    for i in range(0, len(crops), 32):
+        x = crops[i : i + 32]
+        total += float(distill_deg2(teacher, x, net(x)[2])) * len(x)
+    net.train(was)
+    return round(total / len(crops), 6)
 
 
 def frozen_parts(net, names: tuple[str, ...]) -> list[torch.nn.Module]:
@@ -383,7 +436,9 @@ def frozen_parts(net, names: tuple[str, ...]) -> list[torch.nn.Module]:
 
 
 # ----------------------------------------------------------------------------- export
-def export_candidate(o: Options, cfg, net, meta: dict, val: dict, spreads: dict[str, float]) -> Path:
+def export_candidate(
+    o: Options, cfg, net, meta: dict, val: dict, spreads: dict[str, float], start_gap: float | None = None
+) -> Path:
     """The fine-tuned graph with the shipped file's metadata (its fusion tables, reading options,
     camera and companions), parity-checked, opened as flight opens it. Its keypoint gate
     (``oibar.pnp.max_spread_crop_px``) is the starting model's scaled by how much broader its heat
@@ -423,6 +478,11 @@ def export_candidate(o: Options, cfg, net, meta: dict, val: dict, spreads: dict[
             "frozen": list(o.freeze),
             "distill_weight_per_deg2": o.distill_weight,
             "distill_data": [str(p) for p in o.distill_data or (o.data if o.distill_weight > 0 else [])],
+            **(
+                {"distill_from": str(o.distill_from or o.init), "distill_start_gap_deg2": start_gap}
+                if o.distill_weight > 0
+                else {}
+            ),
             "spread_median_crop_px": spreads,
             "ships": False,
             "note": o.note,
@@ -547,12 +607,17 @@ def fine_tuned(o: Options) -> tuple[Any, Path, list[Sequence]]:
         yaml.safe_dump({"derived_from": str(cfg_path), **asdict(cfg)}, sort_keys=False)
     )
     net, meta = start_network(o, cfg, train)
+    teacher_net = teacher_network(o, cfg, train, meta)
     crops, visible = calibration_crops(o, cfg, train, meta)
     spread_start = spread_median(net, crops, visible)
+    gap = None
+    if o.distill_weight > 0:
+        gap = start_gap_deg2(net if teacher_net is None else teacher_net, net, crops)
+        say(o, f"the student starts {gap:.3g} deg^2 from its teacher on {len(crops)} calibration crops")
     say(o, f"fine-tuning {cfg.train.steps} steps of {cfg.train.batch_size} crops (from {cfg_path.name})")
-    last = finetune(o, cfg, net, train, held)
+    last = finetune(o, cfg, net, train, held, teacher_net)
     spreads = {"start": round(spread_start, 3), "finetuned": round(spread_median(net, crops, visible), 3)}
-    candidate = export_candidate(o, cfg, net, meta, last, spreads)
+    candidate = export_candidate(o, cfg, net, meta, last, spreads, gap)
     say(o, f"exported {candidate}")
     return cfg, candidate, held
 
@@ -631,7 +696,8 @@ def parse(argv: list[str] | None) -> Options:
         type=float,
         default=0.0,
         metavar="W",
-        help="hold the attitude head to --init's answers on the same crops, W per deg^2 "
+        help="hold the attitude head to the teacher's (--distill-from, else --init) answers on the "
+        "same crops, W per deg^2 "
         f"(default 0: off; {DISTILL_WEIGHT:g} was chosen for candidate 0.35.8)",
     )
     ap.add_argument(
@@ -642,11 +708,23 @@ def parse(argv: list[str] | None) -> Options:
         metavar="DIR",
         help="of the --data sequences, those whose crops the distillation holds (default: every one)",
     )
+    ap.add_argument(
+        "--distill-from",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="the teacher: a keypoint flight file whose attitude head's answers the student's are held "
+        "to (default: --init)",
+    )
     a = ap.parse_args(argv)
     if not (a.distill_weight >= 0 and math.isfinite(a.distill_weight)):
         ap.error("--distill-weight must be a finite number >= 0")
     if a.distill_data and not a.distill_weight > 0:
         ap.error("--distill-data needs --distill-weight > 0")
+    if a.distill_from is not None and not a.distill_weight > 0:
+        ap.error("--distill-from needs --distill-weight > 0")
+    if a.distill_from is not None and not a.distill_from.is_file():
+        ap.error(f"--distill-from: not found: {a.distill_from}")
     if a.turn_deg is not None and not 0.0 <= a.turn_deg <= 180.0:
         ap.error("--turn-deg must be in [0, 180]")
     if a.steps < 1 or (a.epochs is not None and a.epochs <= 0):
@@ -658,6 +736,7 @@ def parse(argv: list[str] | None) -> Options:
         a.calibrate_crops, a.val_frames, a.stride, tuple(a.modes), not a.no_baseline,
         not a.no_far_network, a.workers, a.threads, not a.no_progress, a.force, a.batch_norm,
         a.turn_deg, tuple(dict.fromkeys(a.freeze)), a.distill_weight, tuple(a.distill_data),
+        a.distill_from,
     )  # fmt: skip
 
 

@@ -15,8 +15,10 @@ wrong type or a stage that names a stage it cannot use is a RecipeError naming t
       evaluate  the flight estimator on the validation set (kp_evaluate): the paper's metrics
       card      the model card's tables and a registry entry for the build, from an evaluate stage
     and, for a candidate fine-tuned from a flight file (oibar_models.build_finetune):
-      finetune  an ONNX file (init, its sha256 pinned by init_sha256) fine-tuned on a list of
-                datasets (oibar_models.finetune: recovered, trained, exported with its tables)
+      finetune  an ONNX file (init, its sha256 pinned by init_sha256) or an earlier finetune
+                stage's file fine-tuned on a list of datasets (oibar_models.finetune: recovered,
+                trained, exported with its tables), optionally with the attitude head distilled
+                from init or from another flight file (distill_from)
       head_gain the attitude head's tilt gain per range bin on validation (kp_head_gain)
       finder    the fixture finder (oibar_models.finder: a finder config's network and schedule)
                 trained on the recipe's datasets, labelled by a keypoint stage's file, exported
@@ -95,8 +97,10 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "note": (str, ""),
     },
     "finetune": {
-        "init": (str, None),  # a keypoint flight file (repository path), its companions beside it
-        "init_sha256": (str, ""),  # checked when the stage runs; "": not pinned
+        # a keypoint flight file (repository path), its companions beside it, or an earlier
+        # finetune stage (its file)
+        "init": (str, None),
+        "init_sha256": (str, ""),  # checked when the stage runs; "": not pinned (a stage's: never)
         "train_data": (list, None),  # datasets, in order: their scenes are the training sequences
         "val_data": (str, None),  # the held sequences (the trainer's crop validation only)
         "steps": (int, 1000),  # finetune.STEPS
@@ -110,6 +114,8 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
             0.0,
         ),  # per deg^2: the attitude head held to init's (finetune.DISTILL_WEIGHT)
         "distill_data": (list, []),  # of train_data, whose crops it holds; []: every one
+        "distill_from": (str, ""),  # the teacher, a keypoint flight file; "": init
+        "distill_from_sha256": (str, ""),  # checked when the stage runs; "": not pinned
         "note": (str, ""),
     },
     "head_gain": {
@@ -409,7 +415,7 @@ def _check_stage(where: str, kind: str, o: dict, before: list[Stage], datasets: 
     elif kind == "card":
         _earlier(where, "evaluate", o["evaluate"], before, "evaluate")
     elif kind == "finetune":
-        _check_finetune(where, o, datasets)
+        _check_finetune(where, o, datasets, before)
     elif kind == "retag":
         _earlier(where, "model", o["model"], before, "finetune")
         if o["fusion"]:
@@ -454,11 +460,16 @@ def _check_train_val(where: str, o: dict, datasets: dict[str, Dataset]) -> None:
         raise RecipeError(f"{where} val_data: {o['val_data']!r} is also trained on (train_data)")
 
 
-def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset]) -> None:
-    if not resolve(o["init"]).is_file():
-        raise RecipeError(f"{where} init: not found: {o['init']}")
-    if o["init_sha256"] and not re.fullmatch(r"[0-9a-f]{64}", o["init_sha256"]):
-        raise RecipeError(f"{where} init_sha256: 64 lower-case hex digits, got {o['init_sha256']!r}")
+def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset], before: list[Stage]) -> None:
+    if any(s.name == o["init"] for s in before):
+        _earlier(where, "init", o["init"], before, "finetune")
+        if o["init_sha256"]:
+            raise RecipeError(f"{where} init_sha256: {o['init']!r} is a stage, whose file the build makes")
+    elif not resolve(o["init"]).is_file():
+        raise RecipeError(f"{where} init: neither an earlier finetune stage nor a file: {o['init']}")
+    for key in ("init_sha256", "distill_from_sha256"):
+        if o[key] and not re.fullmatch(r"[0-9a-f]{64}", o[key]):
+            raise RecipeError(f"{where} {key}: 64 lower-case hex digits, got {o[key]!r}")
     _check_train_val(where, o, datasets)
     if o["steps"] < 1 or o["batch_size"] < 1:
         raise RecipeError(f"{where} steps, batch_size: must be >= 1, got {o['steps']}, {o['batch_size']}")
@@ -476,6 +487,12 @@ def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset]) -> None:
         raise RecipeError(f"{where} distill_weight: a finite number >= 0, got {w!r}")
     if held and not w > 0:
         raise RecipeError(f"{where} distill_data: given with no distill_weight (> 0)")
+    if o["distill_from"] and not w > 0:
+        raise RecipeError(f"{where} distill_from: given with no distill_weight (> 0)")
+    if o["distill_from"] and not resolve(o["distill_from"]).is_file():
+        raise RecipeError(f"{where} distill_from: not found: {o['distill_from']}")
+    if o["distill_from_sha256"] and not o["distill_from"]:
+        raise RecipeError(f"{where} distill_from_sha256: pins no file (distill_from is not set)")
     if not all(isinstance(n, str) and n in o["train_data"] for n in held) or len(set(held)) != len(held):
         raise RecipeError(
             f"{where} distill_data: distinct datasets of train_data {o['train_data']!r}, got {held!r}"

@@ -190,6 +190,13 @@ def test_an_init_that_is_not_the_pinned_file_is_refused_before_anything_runs(tmp
     with pytest.raises(BuildError, match="the recipe pins 000000000000"):
         b.finetune(pinned)
     assert not (tmp_path / recipe.name / "finetune").exists()
+    # and a teacher that is not the pinned file
+    teacher = {"distill_from": "models/oibarnet.onnx", "distill_from_sha256": "1" * 64}
+    pinned = dataclasses.replace(st, opts={**st.opts, **teacher})
+    b = Build(dataclasses.replace(recipe, stages=[pinned]), tmp_path, progress=False)
+    with pytest.raises(BuildError, match="the recipe pins 111111111111"):
+        b.finetune(pinned)
+    assert not (tmp_path / recipe.name / "finetune").exists()
 
 
 def test_the_batch_norm_choices_are_the_fine_tunes():
@@ -238,6 +245,10 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
         (("distill_weight = 1.0", "distill_weight = -1.0"), "distill_weight: a finite number >= 0"),
         (("distill_weight = 1.0", "distill_weight = nan"), "distill_weight: a finite number >= 0"),
         (("distill_weight = 1.0", "distill_weight = 0.0"), "distill_data: given with no distill_weight"),
+        (
+            ('distill_weight = 1.0\ndistill_data = ["train_base"]\ndistill_from', "distill_from"),
+            "distill_from: given with no distill_weight",
+        ),
         (('distill_data = ["train_base"]', 'distill_data = ["val"]'), "distill_data: distinct datasets of"),
         (
             ('distill_data = ["train_base"]', 'distill_data = ["train_base", "train_base"]'),
@@ -246,14 +257,17 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
         (("pnp_alone = false", "pnp_alone = 0"), "pnp_alone: expected bool"),
         (("steps = 2", "steps = 0"), "steps, batch_size: must be >= 1"),
         (("lr = 2e-4", "lr = -1.0"), "lr: must be > 0"),
-        (('init = "models/oibarnet.onnx"', 'init = "models/nope.onnx"'), "init: not found"),
+        (
+            ('init = "models/oibarnet.onnx"', 'init = "models/nope.onnx"'),
+            "init: neither an earlier finetune stage nor a file",
+        ),
         (
             ('init = "models/oibarnet.onnx"', 'init = "models/oibarnet.onnx"\ninit_sha256 = "abc"'),
             "64 lower-case hex",
         ),
         (("steps = 2", "steps = 2\nepochs = 1"), r"unknown key\(s\) \['epochs'\]"),
         (
-            ('kind = "head_gain"\nmodel = "finetune"', 'kind = "head_gain"\nmodel = "stage1"'),
+            ('kind = "head_gain"\nmodel = "refit"', 'kind = "head_gain"\nmodel = "stage1"'),
             "of kind train, not",
         ),
         (
@@ -269,8 +283,8 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
             ('pairs = [[2.0, 3.0]]\nhead_gain = "head_gain"', 'head_gain = "nope"'),
             "no earlier head_gain stage",
         ),
-        (('kind = "retag"\nmodel = "finetune"', 'kind = "retag"\nmodel = "head_gain"'), "not finetune"),
-        (('kind = "retag"\nmodel = "finetune"', 'kind = "retag"\nmodel = "stage1"'), "not finetune"),
+        (('kind = "retag"\nmodel = "refit"', 'kind = "retag"\nmodel = "head_gain"'), "not finetune"),
+        (('kind = "retag"\nmodel = "refit"', 'kind = "retag"\nmodel = "stage1"'), "not finetune"),
         (('fusion = "fusion"', 'fusion = "head_gain"'), "fusion: 'head_gain' is a stage of kind head_gain"),
         (
             ('finder = "finder"', 'finder = "models/nope.onnx"'),
@@ -280,7 +294,32 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
             ('finder = "finder"', 'finder = "fusion"'),
             "finder: 'fusion' is a stage of kind fusion, not finder",
         ),
-        (('keypoints_from = "finetune"', 'keypoints_from = "fusion"'), "keypoints_from: 'fusion' is a stage"),
+        (('keypoints_from = "refit"', 'keypoints_from = "fusion"'), "keypoints_from: 'fusion' is a stage"),
+        # a second fine-tune from the first's file, taught by another flight file
+        (('init = "finetune"', 'init = "fusion"'), "init: neither an earlier finetune stage nor a file"),
+        (('init = "finetune"', 'init = "stage1"'), "init: 'stage1' is a stage of kind train, not finetune"),
+        (
+            ('init = "finetune"', 'init = "finetune"\ninit_sha256 = "' + "0" * 64 + '"'),
+            "init_sha256: 'finetune' is a stage, whose file the build makes",
+        ),
+        (
+            ('distill_from = "models/oibarnet.onnx"', 'distill_from = "models/nope.onnx"'),
+            "distill_from: not found",
+        ),
+        (
+            (
+                'distill_from = "models/oibarnet.onnx"',
+                'distill_from = ""\ndistill_from_sha256 = "' + "0" * 64 + '"',
+            ),
+            "distill_from_sha256: pins no file",
+        ),
+        (
+            (
+                'distill_from = "models/oibarnet.onnx"',
+                'distill_from = "models/oibarnet.onnx"\ndistill_from_sha256 = "x"',
+            ),
+            "distill_from_sha256: 64 lower-case hex",
+        ),
         (
             (
                 'val_data = "val"\n\n[[stages]]\nname = "retag"',
@@ -344,6 +383,21 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     assert ft["distill_weight_per_deg2"] == 1.0 and [Path(p).name for p in ft["distill_data"]] == ["tr000"]
     last = json.loads((smoke.stage_dir("finetune") / "log.jsonl").read_text().splitlines()[-1])
     assert last["distilled_crops"] > 0
+    assert ft["distill_from"] == str(REPO / "models/oibarnet.onnx")  # its init: it starts on its teacher
+    assert ft["distill_start_gap_deg2"] == pytest.approx(0.0, abs=1e-9)
+    # the refit: a second fine-tune from the first's file, the attitude head alone trained, its
+    # answers held to the shipped file's, which the fine-tuned student does not start on
+    refit = read_metadata(smoke.stage_dir("refit") / "oibarnet.onnx")["finetune"]
+    assert refit["from"] == str(smoke.stage_dir("finetune") / "oibarnet.onnx")
+    assert refit["from_model_version"] == "0.34.0+finetune"
+    assert refit["frozen"] == ["backbone", "lateral", "head", "present"]
+    assert refit["distill_from"] == str(REPO / "models/oibarnet.onnx")
+    assert refit["distill_start_gap_deg2"] > 1e-6
+    start = torch.load(smoke.stage_dir("refit") / "recovered.pt", weights_only=False)["model"]
+    end = torch.load(smoke.stage_dir("refit") / "finetuned.pt", weights_only=False)["model"]
+    moved = {k for k in start if start[k].is_floating_point() and not torch.equal(start[k], end[k])}
+    assert moved and {k.split(".")[0] for k in moved} == {"attitude"}
+    assert smoke.markers["refit"]["inputs"]["upstream"]["finetune"] == smoke.markers["finetune"]["key"]
     # the head gain, one bin over every range (the toy's), within the flight code's limits
     gain = json.loads((smoke.stage_dir("head_gain") / "head_gain.json").read_text())
     assert gain["frames"] == 20 and gain["min_frames_per_bin"] == 16
@@ -403,9 +457,10 @@ def test_the_fine_tune_and_its_measurements_are_in_mlflow(smoke, tracking):
     client = MlflowClient(tracking_uri=tracking)
     exp = client.get_experiment_by_name("oibarnet_kp_ft_smoke")
     by_stage = {r.data.tags["oibar.stage"]: r for r in client.search_runs([exp.experiment_id])}
-    assert set(by_stage) == {"finetune", "head_gain", "fusion", "evaluate"}
+    assert set(by_stage) == {"finetune", "refit", "head_gain", "fusion", "evaluate"}
     assert {k: by_stage[k].data.tags["oibar.kind"] for k in by_stage} == {
         "finetune": "train",
+        "refit": "train",
         "head_gain": "head_gain",
         "fusion": "fusion",
         "evaluate": "evaluate",

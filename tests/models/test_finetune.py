@@ -162,6 +162,20 @@ def test_bad_inputs_are_refused(lab, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--distill-weight", "-1"])
     assert "--distill-weight must be a finite number >= 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # a teacher, with no distillation
+        main(
+            ["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--distill-from", str(SHIPPED_KP)]
+        )
+    assert "--distill-from needs --distill-weight > 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(
+            ["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--distill-weight", "1"]
+            + ["--distill-from", str(tmp_path / "nope.onnx")]
+        )
+    assert "--distill-from: not found" in capsys.readouterr().err
+    teacher = ["--init", str(SHIPPED_KP), "--out", str(tmp_path / "r3"), "--distill-weight", "1"]
+    teacher += ["--distill-from", str(REPO / "models" / "oibarnet_lite.onnx")]  # no keypoints, no head
+    refused("distill from", "--data", str(lab["train"]), "--val", str(lab["held"]), *teacher)
     held = ["--distill-weight", "1", "--distill-data", str(lab["held"])]  # not a training sequence
     refused(
         "distill data not among the training sequences",
