@@ -162,6 +162,38 @@ def test_the_distilled_candidate_is_the_head_frozen_one_distilled_fused_with_the
     assert b.stage("finetune").opts["distill_weight"] == DISTILL_WEIGHT
 
 
+def test_the_refit_candidate_is_the_head_frozen_fine_tune_then_its_head_alone_taught_by_0_34_0():
+    """0.35.9: 0.35.6's fine-tune as it is, then a second fine-tune from its file in which only the
+    attitude head trains, held to the shipped 0.34.0's answers on the base renderer's crops; the
+    rest is 0.35.8's chain (head gain, a fusion that must carry the head prior, the finder, retag,
+    evaluate), read from the refitted file."""
+    a = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_headfrozen.toml")
+    d = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_distill.toml")
+    b = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_refit.toml")
+    assert (b.name, b.model_version) == ("oibarnet_kp_ft_refit", "0.35.9")
+    assert b.datasets == d.datasets
+    assert [s.name for s in b.stages] == ["finetune", "refit", *[s.name for s in d.stages[1:]]]
+    assert b.stage("finetune").opts == a.stage("finetune").opts
+    first = a.stage("finetune").opts
+    refit = {
+        "init": "finetune",
+        "init_sha256": "",
+        "freeze": ["backbone", "lateral", "head", "present"],
+        "distill_weight": 1.0,
+        "distill_data": ["train_base"],
+        "distill_from": "models/oibarnet.onnx",
+        "distill_from_sha256": first["init_sha256"],  # the teacher is the file the first stage starts from
+    }
+    assert b.stage("refit").opts == first | refit
+    from oibar_models.finetune import DISTILL_WEIGHT, FREEZABLE
+
+    assert set(FREEZABLE) - set(refit["freeze"]) == {"attitude"} and refit["distill_weight"] == DISTILL_WEIGHT
+    for sd in d.stages[1:]:
+        sb = b.stage(sd.name)
+        moved = {k: "refit" for k in ("model", "keypoints_from") if sd.opts.get(k) == "finetune"}
+        assert sb.kind == sd.kind and sb.opts == sd.opts | moved, sd.name
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
