@@ -460,8 +460,12 @@ def test_mcu_reboot_is_noticed_without_a_request_and_the_link_comes_back(mcu, ma
     assert wait_for(lambda: client.statistics.rx_packets >= 3)
     mcu.reboot()
     assert wait_for(lambda: states == [True, False, True], timeout_s=3.0), states
-    assert mcu.handshakes_accepted == 2 and client.link_alive
-    assert client.statistics.mcu_restarts >= 1
+    # one loss and one new session; a late reply on a loaded machine may have the client send its
+    # handshake again (same seq, which the MCU always handles: each counts as accepted)
+    stats = client.statistics
+    assert client.link_alive and stats.link_losses == 1
+    assert 2 <= mcu.handshakes_accepted <= 2 + stats.retransmissions
+    assert stats.mcu_restarts >= 1
     assert client.command("NOOP").accepted
 
 
