@@ -276,9 +276,10 @@ def start_network(o: Options, cfg, train: list[Sequence]):
     return net, meta
 
 
-def teacher_network(o: Options, cfg, train: list[Sequence], meta: dict):
-    """The network of `o.distill_from` recovered and calibrated on the student's calibration crops
-    (as `start_network` does init), checked against its file; None when the teacher is init."""
+def teacher_network(o: Options, crops: torch.Tensor):
+    """The network of `o.distill_from` recovered and calibrated on the student's calibration
+    `crops` (as `start_network` does init), checked against its file; None when the teacher is
+    init."""
     from oibar.nav.pose import ModelFileError, read_metadata
 
     if o.distill_from is None:
@@ -294,7 +295,6 @@ def teacher_network(o: Options, cfg, train: list[Sequence], meta: dict):
     net, _, pairs = recover(o.distill_from)
     if getattr(net, "attitude", None) is None:
         raise FinetuneError(f"distill from {o.distill_from}: its network has no attitude head to distil")
-    crops, _ = calibration_crops(o, cfg, train, meta)
     calibrate(net, pairs, crops)
     err = parity(o.distill_from, net, crops[:16].numpy())
     if not err < PARITY_TOL:
@@ -383,17 +383,11 @@ def distill_teacher(o: Options, net) -> tuple[Any, torch.Tensor]:
     are held to it."""
     if not o.distill_weight > 0:
         return None, torch.zeros(len(o.data), dtype=torch.bool)
-    teacher = distill_teacher_copy(net)
-    held_to = {p.resolve() for p in o.distill_data or o.data}
-    return teacher, torch.tensor([p.resolve() in held_to for p in o.data], dtype=torch.bool)
-
-
-def distill_teacher_copy(net):
-    """A frozen copy of `net` in evaluation mode."""
     teacher = copy.deepcopy(net).eval()
     for p in teacher.parameters():
         p.requires_grad_(False)
-    return teacher
+    held_to = {p.resolve() for p in o.distill_data or o.data}
+    return teacher, torch.tensor([p.resolve() in held_to for p in o.data], dtype=torch.bool)
 
 
 def distill_deg2(teacher, image: torch.Tensor, att_deg: torch.Tensor) -> torch.Tensor:
@@ -406,15 +400,16 @@ def distill_deg2(teacher, image: torch.Tensor, att_deg: torch.Tensor) -> torch.T
 
 @torch.no_grad()
 def start_gap_deg2(teacher_net, net, crops: torch.Tensor) -> float:
-    """How far the student starts from its teacher: distill_deg2 on `crops` before any step (0
-    when the teacher is the starting network)."""
-    was = net.training
+    """How far the student starts from its teacher (in evaluation mode, as `distill_teacher` keeps
+    it): distill_deg2 on `crops` before any step (0 when the teacher is the starting network)."""
+    was, taught = net.training, teacher_net.training
     net.eval()
-    teacher = distill_teacher_copy(teacher_net)
+    teacher_net.eval()
     total = 0.0
     for i in range(0, len(crops), 32):
         x = crops[i : i + 32]
-        total += float(distill_deg2(teacher, x, net(x)[2])) * len(x)
+        total += float(distill_deg2(teacher_net, x, net(x)[2])) * len(x)
+    teacher_net.train(taught)
     net.train(was)
     return round(total / len(crops), 6)
 
@@ -607,8 +602,8 @@ def fine_tuned(o: Options) -> tuple[Any, Path, list[Sequence]]:
         yaml.safe_dump({"derived_from": str(cfg_path), **asdict(cfg)}, sort_keys=False)
     )
     net, meta = start_network(o, cfg, train)
-    teacher_net = teacher_network(o, cfg, train, meta)
     crops, visible = calibration_crops(o, cfg, train, meta)
+    teacher_net = teacher_network(o, crops)
     spread_start = spread_median(net, crops, visible)
     gap = None
     if o.distill_weight > 0:
