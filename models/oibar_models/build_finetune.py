@@ -44,7 +44,14 @@ def model_file(b: Build, stage: str) -> Path:
 
 
 # finetune keys left out of its fingerprint at their defaults (added after builds that lacked them)
-UNSET_KEYS = ("freeze", "distill_weight", "distill_data", "distill_from", "distill_from_sha256")
+UNSET = {
+    "freeze": [],
+    "distill_weight": 0.0,
+    "distill_data": [],
+    "distill_from": "",
+    "distill_from_sha256": "",
+    "distill_target": "attitude",
+}
 
 
 def folders(b: Build, name: str) -> list[Path]:
@@ -109,6 +116,7 @@ def finetune(b: Build, st: Stage) -> dict:
         distill_weight=o["distill_weight"],
         distill_data=tuple(p for name in o["distill_data"] for p in folders(b, name)),
         distill_from=teacher,
+        distill_target=o["distill_target"],
         config=stage_config_of(b, init_stage) if init_stage else None,
         note=f"a candidate of recipe {b.recipe.name} (stage {st.name}): it ships only once judged and registered",
     )
@@ -124,7 +132,7 @@ def finetune(b: Build, st: Stage) -> dict:
         raise BuildError(f"stage {st.name}: a file {init.name} names is not beside it: {exc}") from exc
     inputs = {
         # a stage that freezes and distils nothing fingerprints as it did before those keys existed
-        "opts": {k: v for k, v in o.items() if k not in UNSET_KEYS or v},
+        "opts": {k: v for k, v in o.items() if k not in UNSET or v != UNSET[k]},
         "init_sha256": init_sha,
         "companions_sha256": beside,
         "config": asdict(cfg),

@@ -92,6 +92,16 @@ FREEZABLE = ("backbone", "lateral", "head", "present", "attitude")
 # the new looks (candidate 0.35.7). 1.0: a drift of 0.05 deg pulls back as hard as the truth term
 # (att_loss_weight 0.1 per deg) pushes.
 DISTILL_WEIGHT = 1.0
+# What the distillation holds: "attitude", the attitude head's answers (deg^2, above), or
+# "last_tap", the backbone's stride-32 map that the attitude head (and the keypoints' coarsest
+# lateral) reads: its mean squared difference from the teacher's, relative to the teacher's mean
+# square. Why the map: holding the head's answers through the backbone kept the head (0.35.8, raw
+# 3 m probe slope 0.953) but the backbone met it by moving its map further still (relative drift
+# on our renderer's crops 0.22, 0.35.6's 0.15), and the keypoints lost their perspective response;
+# refitting the head alone on 0.35.6's map could not read the turn back (0.35.9, 0.916). Holding
+# the map leaves the three finer maps, which carry most of the keypoints' detail, free to learn
+# the new looks.
+DISTILL_TARGETS = ("attitude", "last_tap")
 DEMO_NOTE = "a demonstration (issue 58 item 5): never judged, registered or shipped"
 EVAL_COLUMNS_EXTRA = [
     ("answered_pct", "answered (%)", "{:.1f}"),
@@ -131,6 +141,7 @@ class Options:
     distill_weight: float = 0.0  # per deg^2; 0: no distillation term
     distill_data: tuple[Path, ...] = ()  # of `data`, whose crops the term holds; (): every one
     distill_from: Path | None = None  # the teacher's flight file; None: init (the starting network)
+    distill_target: str = "attitude"  # DISTILL_TARGETS: what of the teacher's the student is held to
     note: str = DEMO_NOTE  # what the file's oibar.finetune says it is
 
 
@@ -164,6 +175,8 @@ def open_sequences(o: Options) -> tuple[list[Sequence], list[Sequence]]:
         raise FinetuneError("distill data given with no distill weight (> 0)")
     if o.distill_from is not None and not o.distill_weight > 0:
         raise FinetuneError("a teacher to distil from given with no distill weight (> 0)")
+    if o.distill_target not in DISTILL_TARGETS:
+        raise FinetuneError(f"distill target: one of {list(DISTILL_TARGETS)}, got {o.distill_target!r}")
     names = [s.name for s in train + held]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -344,14 +357,16 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence], 
         b = next(loader)
         for g in opt.param_groups:
             g["lr"] = lr_at(step, t)
-        heat, present, att = net(b["image"])
+        taps = net.backbone.features(b["image"])
+        heat, present, att = net.read_taps(taps)
         losses = kp_loss(heat, present, b["kp_crop_px"], b["visible"], t, att, b["att_deg"])
         if teacher is not None:
             held_to = taught[b["scene"]]
             if held_to.any():
-                d = distill_deg2(teacher, b["image"][held_to], att[held_to])
+                student = att if o.distill_target == "attitude" else taps[-1]
+                d = DISTILL[o.distill_target](teacher, b["image"][held_to], student[held_to])
                 losses["loss"] = losses["loss"] + o.distill_weight * d
-                losses["distill_deg2"] = d.detach()
+                losses[DISTILL_LOG[o.distill_target]] = d.detach()
                 n_distilled += int(held_to.sum())
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
@@ -398,17 +413,33 @@ def distill_deg2(teacher, image: torch.Tensor, att_deg: torch.Tensor) -> torch.T
     return ((att_deg - ref) ** 2).sum(-1).mean()
 
 
+def distill_tap(teacher, image: torch.Tensor, tap: torch.Tensor) -> torch.Tensor:
+    """The mean squared difference between `tap` (the student's stride-32 map of `image`) and the
+    teacher's, relative to the teacher's mean square (0: the same map; 1: as far as from zeros)."""
+    with torch.no_grad():
+        ref = teacher.backbone.features(image)[-1]
+    return ((tap - ref) ** 2).mean() / (ref**2).mean().clamp_min(1e-12)
+
+
+DISTILL = {"attitude": distill_deg2, "last_tap": distill_tap}
+# the log's (and the file's start gap's) name for each target's term, with its unit
+DISTILL_LOG = {"attitude": "distill_deg2", "last_tap": "distill_rel"}
+GAP_KEY = {"attitude": "distill_start_gap_deg2", "last_tap": "distill_start_gap_rel"}
+
+
 @torch.no_grad()
-def start_gap_deg2(teacher_net, net, crops: torch.Tensor) -> float:
+def start_gap(teacher_net, net, crops: torch.Tensor, target: str = "attitude") -> float:
     """How far the student starts from its teacher (in evaluation mode, as `distill_teacher` keeps
-    it): distill_deg2 on `crops` before any step (0 when the teacher is the starting network)."""
+    it): the `target`'s distillation term on `crops` before any step (0 when the teacher is the
+    starting network)."""
     was, taught = net.training, teacher_net.training
     net.eval()
     teacher_net.eval()
     total = 0.0
     for i in range(0, len(crops), 32):
         x = crops[i : i + 32]
-        total += float(distill_deg2(teacher_net, x, net(x)[2])) * len(x)
+        student = net(x)[2] if target == "attitude" else net.backbone.features(x)[-1]
+        total += float(DISTILL[target](teacher_net, x, student)) * len(x)
     teacher_net.train(taught)
     net.train(was)
     return round(total / len(crops), 6)
@@ -432,7 +463,7 @@ def frozen_parts(net, names: tuple[str, ...]) -> list[torch.nn.Module]:
 
 # ----------------------------------------------------------------------------- export
 def export_candidate(
-    o: Options, cfg, net, meta: dict, val: dict, spreads: dict[str, float], start_gap: float | None = None
+    o: Options, cfg, net, meta: dict, val: dict, spreads: dict[str, float], gap: float | None = None
 ) -> Path:
     """The fine-tuned graph with the shipped file's metadata (its fusion tables, reading options,
     camera and companions), parity-checked, opened as flight opens it. Its keypoint gate
@@ -474,7 +505,11 @@ def export_candidate(
             "distill_weight_per_deg2": o.distill_weight,
             "distill_data": [str(p) for p in o.distill_data or (o.data if o.distill_weight > 0 else [])],
             **(
-                {"distill_from": str(o.distill_from or o.init), "distill_start_gap_deg2": start_gap}
+                {
+                    "distill_from": str(o.distill_from or o.init),
+                    "distill_target": o.distill_target,
+                    GAP_KEY[o.distill_target]: gap,
+                }
                 if o.distill_weight > 0
                 else {}
             ),
@@ -607,8 +642,9 @@ def fine_tuned(o: Options) -> tuple[Any, Path, list[Sequence]]:
     spread_start = spread_median(net, crops, visible)
     gap = None
     if o.distill_weight > 0:
-        gap = start_gap_deg2(net if teacher_net is None else teacher_net, net, crops)
-        say(o, f"the student starts {gap:.3g} deg^2 from its teacher on {len(crops)} calibration crops")
+        gap = start_gap(net if teacher_net is None else teacher_net, net, crops, o.distill_target)
+        unit = "deg^2" if o.distill_target == "attitude" else "(relative)"
+        say(o, f"the student starts {gap:.3g} {unit} from its teacher on {len(crops)} calibration crops")
     say(o, f"fine-tuning {cfg.train.steps} steps of {cfg.train.batch_size} crops (from {cfg_path.name})")
     last = finetune(o, cfg, net, train, held, teacher_net)
     spreads = {"start": round(spread_start, 3), "finetuned": round(spread_median(net, crops, visible), 3)}
@@ -711,6 +747,13 @@ def parse(argv: list[str] | None) -> Options:
         help="the teacher: a keypoint flight file whose attitude head's answers the student's are held "
         "to (default: --init)",
     )
+    ap.add_argument(
+        "--distill-target",
+        choices=DISTILL_TARGETS,
+        default="attitude",
+        help="what the distillation holds: the attitude head's answers (W per deg^2) or the "
+        "backbone's stride-32 map, last_tap (W per unit of relative mean squared difference)",
+    )
     a = ap.parse_args(argv)
     if not (a.distill_weight >= 0 and math.isfinite(a.distill_weight)):
         ap.error("--distill-weight must be a finite number >= 0")
@@ -718,6 +761,8 @@ def parse(argv: list[str] | None) -> Options:
         ap.error("--distill-data needs --distill-weight > 0")
     if a.distill_from is not None and not a.distill_weight > 0:
         ap.error("--distill-from needs --distill-weight > 0")
+    if a.distill_target != "attitude" and not a.distill_weight > 0:
+        ap.error("--distill-target needs --distill-weight > 0")
     if a.distill_from is not None and not a.distill_from.is_file():
         ap.error(f"--distill-from: not found: {a.distill_from}")
     if a.turn_deg is not None and not 0.0 <= a.turn_deg <= 180.0:
@@ -731,7 +776,7 @@ def parse(argv: list[str] | None) -> Options:
         a.calibrate_crops, a.val_frames, a.stride, tuple(a.modes), not a.no_baseline,
         not a.no_far_network, a.workers, a.threads, not a.no_progress, a.force, a.batch_norm,
         a.turn_deg, tuple(dict.fromkeys(a.freeze)), a.distill_weight, tuple(a.distill_data),
-        a.distill_from,
+        a.distill_from, a.distill_target,
     )  # fmt: skip
 
 

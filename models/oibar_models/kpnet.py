@@ -83,7 +83,11 @@ class KeypointNet(nn.Module):
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """RGB [0, 1] (N, 3, S, S) -> heat-map logits (N, K, S/4, S/4), presence logits (N, K),
         attitude in the crop (N, 3): rotation vector of R_crop_target R_ref^T, degrees."""
-        taps = self.backbone.features(x)
+        return self.read_taps(self.backbone.features(x))
+
+    def read_taps(self, taps: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The heads on the backbone's maps (`forward` after the backbone): a fine-tune that
+        holds the maps themselves reads them once."""
         y = self.lateral[-1](taps[-1])
         for lat, tap in zip(reversed(self.lateral[:-1]), reversed(taps[:-1]), strict=True):
             y = F.interpolate(y, size=tap.shape[-2:], mode="bilinear", align_corners=False) + lat(tap)

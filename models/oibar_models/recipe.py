@@ -50,6 +50,7 @@ STAGE_KINDS = ("train", "export", "fusion", "evaluate", "card", "finetune", "hea
 MODEL_KINDS = ("export", "finetune", "retag")
 BATCH_NORM = ("frozen", "train")  # oibar_models.finetune.BATCH_NORM (not imported: it loads torch)
 FREEZABLE = ("backbone", "lateral", "head", "present", "attitude")  # oibar_models.finetune.FREEZABLE
+DISTILL_TARGETS = ("attitude", "last_tap")  # oibar_models.finetune.DISTILL_TARGETS
 # every key a stage of each kind may have (beyond name and kind), with its type and default;
 # None as a default: required
 STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
@@ -116,6 +117,7 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "distill_data": (list, []),  # of train_data, whose crops it holds; []: every one
         "distill_from": (str, ""),  # the teacher, a keypoint flight file; "": init
         "distill_from_sha256": (str, ""),  # checked when the stage runs; "": not pinned
+        "distill_target": (str, "attitude"),  # DISTILL_TARGETS: the head's answers or the last map
         "note": (str, ""),
     },
     "head_gain": {
@@ -491,6 +493,12 @@ def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset], before: l
         raise RecipeError(f"{where} distill_from: given with no distill_weight (> 0)")
     if o["distill_from"] and not resolve(o["distill_from"]).is_file():
         raise RecipeError(f"{where} distill_from: not found: {o['distill_from']}")
+    if o["distill_target"] not in DISTILL_TARGETS:
+        raise RecipeError(
+            f"{where} distill_target: one of {list(DISTILL_TARGETS)}, got {o['distill_target']!r}"
+        )
+    if o["distill_target"] != "attitude" and not w > 0:
+        raise RecipeError(f"{where} distill_target: given with no distill_weight (> 0)")
     if o["distill_from_sha256"] and not o["distill_from"]:
         raise RecipeError(f"{where} distill_from_sha256: pins no file (distill_from is not set)")
     if not all(isinstance(n, str) and n in o["train_data"] for n in held) or len(set(held)) != len(held):

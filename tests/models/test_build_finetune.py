@@ -241,6 +241,10 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
     from oibar_models.recipe import FREEZABLE as RECIPE_FREEZABLE
 
     assert RECIPE_FREEZABLE == FREEZABLE
+    from oibar_models.finetune import DISTILL_TARGETS
+    from oibar_models.recipe import DISTILL_TARGETS as RECIPE_DISTILL_TARGETS
+
+    assert RECIPE_DISTILL_TARGETS == DISTILL_TARGETS
     assert STAGE_KEYS["finetune"]["steps"][1] == STEPS and STAGE_KEYS["finetune"]["lr"][1] == LR
 
 
@@ -282,6 +286,18 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
             "distill_from: given with no distill_weight",
         ),
         (('distill_data = ["train_base"]', 'distill_data = ["val"]'), "distill_data: distinct datasets of"),
+        (
+            ('distill_data = ["train_base"]', 'distill_data = ["train_base"]\ndistill_target = "features"'),
+            "distill_target: one of",
+        ),
+        (
+            (
+                "distill_weight = 1.0  # as the distilled candidate (oibarnet_kp_ft_distill.toml)\n"
+                'distill_data = ["train_base"]',
+                'distill_target = "last_tap"',
+            ),
+            "distill_target: given with no distill_weight",
+        ),
         (
             ('distill_data = ["train_base"]', 'distill_data = ["train_base", "train_base"]'),
             "distill_data: distinct datasets of",

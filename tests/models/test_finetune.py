@@ -167,6 +167,9 @@ def test_bad_inputs_are_refused(lab, tmp_path, capsys):
             ["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--distill-from", str(SHIPPED_KP)]
         )
     assert "--distill-from needs --distill-weight > 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # a target, with no distillation
+        main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--distill-target", "last_tap"])
+    assert "--distill-target needs --distill-weight > 0" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(
             ["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--distill-weight", "1"]
@@ -256,3 +259,49 @@ def test_the_distillation_pulls_the_attitude_head_back_to_the_starting_networks_
     assert float(distill_deg2(teacher, x, net(x)[2])) < 0.5 * drifted
     assert all(torch.equal(before[k], v) for k, v in teacher.state_dict().items())
     assert not any(p.requires_grad for p in teacher.parameters())
+
+
+def test_the_map_distillation_pulls_the_drifted_backbone_back_to_the_teachers_last_map(tmp_path):
+    """finetune.distill_tap: zero on the teacher's own map, 1 for an empty map (relative to the
+    teacher's mean square), and its gradient takes a drifted backbone's stride-32 map back toward
+    the teacher's; the student's map is the one `read_taps` reads (forward = read_taps(features))."""
+    import torch
+
+    from oibar_models.finetune import (
+        DISTILL,
+        DISTILL_TARGETS,
+        Options,
+        distill_tap,
+        distill_teacher,
+        start_gap,
+    )
+    from oibar_models.kpnet import KeypointNet
+
+    assert set(DISTILL) == set(DISTILL_TARGETS) == {"attitude", "last_tap"}
+    torch.manual_seed(0)
+    net = KeypointNet(n_keypoints=4, pretrained=False).eval()
+    with torch.no_grad():  # maps of a trained network's size (a fresh one's last map is ~1e-8)
+        for m in net.backbone.modules():
+            if isinstance(m, torch.nn.Conv2d):
+                torch.nn.init.kaiming_normal_(m.weight)
+    a = tmp_path / "a"
+    teacher, _ = distill_teacher(Options(data=[a], val=[], init=a, out=tmp_path, distill_weight=1.0), net)
+    x = torch.rand(4, 3, 64, 64)
+    taps = net.backbone.features(x)
+    assert all(torch.equal(u, v) for u, v in zip(net(x), net.read_taps(taps), strict=True))
+    assert float(distill_tap(teacher, x, taps[-1])) == pytest.approx(0.0, abs=1e-9)
+    assert float(distill_tap(teacher, x, torch.zeros_like(taps[-1]))) == pytest.approx(1.0)
+    with torch.no_grad():
+        for p in net.backbone.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    drifted = float(distill_tap(teacher, x, net.backbone.features(x)[-1]))
+    assert drifted > 1e-4
+    assert start_gap(teacher, net, x, "last_tap") == pytest.approx(drifted, rel=1e-4)
+    assert start_gap(teacher, net, x, "attitude") > 0 and not net.training
+    opt = torch.optim.Adam(net.backbone.parameters(), lr=1e-3)
+    for _ in range(20):
+        d = distill_tap(teacher, x, net.backbone.features(x)[-1])
+        opt.zero_grad()
+        d.backward()
+        opt.step()
+    assert float(distill_tap(teacher, x, net.backbone.features(x)[-1])) < 0.5 * drifted
