@@ -194,6 +194,21 @@ def test_the_refit_candidate_is_the_head_frozen_fine_tune_then_its_head_alone_ta
         assert sb.kind == sd.kind and sb.opts == sd.opts | moved, sd.name
 
 
+def test_the_last_map_candidate_is_the_distilled_one_holding_the_backbones_map_instead():
+    """0.35.10 is 0.35.8's recipe but for what its fine-tune holds: the backbone's stride-32 map,
+    10 per unit of relative squared difference, on the same crops, from the same teacher."""
+    d = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_distill.toml")
+    c = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_lasttap.toml")
+    assert (c.name, c.model_version) == ("oibarnet_kp_ft_lasttap", "0.35.10")
+    assert c.datasets == d.datasets and [s.name for s in c.stages] == [s.name for s in d.stages]
+    held = {"distill_weight": 10.0, "distill_target": "last_tap"}
+    assert d.stage("finetune").opts["distill_target"] == "attitude"
+    assert c.stage("finetune").opts == d.stage("finetune").opts | held
+    assert c.stage("finetune").opts["freeze"] == ["attitude"]  # 0.34.0's head reads the held map
+    for sd in d.stages[1:]:
+        assert c.stage(sd.name).kind == sd.kind and c.stage(sd.name).opts == sd.opts, sd.name
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
