@@ -209,6 +209,42 @@ def test_the_last_map_candidate_is_the_distilled_one_holding_the_backbones_map_i
         assert c.stage(sd.name).kind == sd.kind and c.stage(sd.name).opts == sd.opts, sd.name
 
 
+def test_the_mixed_randomised_candidate_is_0_35_6_with_every_port_and_kind_of_approach():
+    """0.35.11 is 0.35.6's recipe but for its randomised scenes, which 0.35.6 drew all from port 1
+    and all plain (every 6th of a set that cycles port and kind with the index), and a finder
+    stage as 0.35.8's; its 48 span every port equally and each kind in the whole set's share."""
+    from collections import Counter
+
+    a = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_headfrozen.toml")
+    d = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_distill.toml")
+    m = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_drmix.toml")
+    assert (m.name, m.model_version) == ("oibarnet_kp_ft_drmix", "0.35.11")
+    dr = json.loads((REPO / "models/scenes/train_dr.json").read_text())["scenes"]
+    by_name = {s["name"]: s for s in dr}
+
+    def kinds(names):
+        scenes = [by_name[n] for n in names]
+        return Counter(s["port"] for s in scenes), {
+            k: sum(k in s for s in scenes) for k in ("turned_deg", "offaxis_m", "rolled_deg")
+        }
+
+    ports, kind = kinds(a.datasets["train_dr"].scenes)
+    assert ports == {1: 48} and kind == {"turned_deg": 0, "offaxis_m": 0, "rolled_deg": 0}  # 0.35.6's
+    names = m.datasets["train_dr"].scenes
+    assert names == [f"dr{6 * k + (k % 12) // 2:03d}" for k in range(48)]
+    ports, kind = kinds(names)
+    whole = {k: sum(k in s for s in dr) / len(dr) for k in kind}
+    assert ports == {p: 8 for p in range(1, 7)}
+    assert {k: v / 48 for k, v in kind.items()} == whole  # 1/4 turned, 1/2 off-axis, 1/3 rolled
+    assert m.datasets["train_base"] == a.datasets["train_base"] and m.datasets["val"] == a.datasets["val"]
+    assert m.datasets["train_half"] == d.datasets["train_half"]
+    assert [s.name for s in m.stages] == ["finetune", "head_gain", "fusion", "finder", "retag", "evaluate"]
+    for sa in a.stages:
+        extra = {"finder": "finder"} if sa.kind == "retag" else {}
+        assert m.stage(sa.name).opts == sa.opts | extra, sa.name
+    assert m.stage("finder").opts == d.stage("finder").opts
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
