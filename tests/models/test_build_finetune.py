@@ -245,6 +245,23 @@ def test_the_mixed_randomised_candidate_is_0_35_6_with_every_port_and_kind_of_ap
     assert m.stage("finder").opts == d.stage("finder").opts
 
 
+def test_the_head_reading_candidate_is_0_35_7_with_its_fusion_made_to_read_the_head():
+    """0.35.12 is 0.35.7's recipe (0.34.0's backbone and attitude head kept) but for a fusion that
+    may not choose PnP alone and a finder stage as 0.35.8's."""
+    f = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_bbfrozen.toml")
+    d = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_distill.toml")
+    h = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_bbhead.toml")
+    assert (h.name, h.model_version) == ("oibarnet_kp_ft_bbhead", "0.35.12")
+    assert h.datasets == f.datasets | {"train_half": d.datasets["train_half"]}
+    assert [s.name for s in h.stages] == ["finetune", "head_gain", "fusion", "finder", "retag", "evaluate"]
+    edits = {"fusion": {"pnp_alone": False}, "retag": {"finder": "finder"}}
+    for sf in f.stages:
+        assert all(sf.opts[k] != v for k, v in edits.get(sf.name, {}).items()), sf.name  # each a change
+        assert h.stage(sf.name).opts == sf.opts | edits.get(sf.name, {}), sf.name
+    assert h.stage("finetune").opts["freeze"] == ["backbone", "attitude"]
+    assert h.stage("finder").opts == d.stage("finder").opts
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
