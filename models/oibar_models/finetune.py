@@ -138,7 +138,7 @@ class Options:
     batch_norm: str = "frozen"  # BATCH_NORM: keep the calibrated statistics while fine-tuning, or "train"
     turn_deg: float | None = None  # the crops' in-plane turn, uniform +-; None: the stage's own
     freeze: tuple[str, ...] = ()  # FREEZABLE parts kept as init has them
-    distill_weight: float = 0.0  # per deg^2; 0: no distillation term
+    distill_weight: float = 0.0  # per deg^2 (attitude) or per unit of relative difference (last_tap); 0: none
     distill_data: tuple[Path, ...] = ()  # of `data`, whose crops the term holds; (): every one
     distill_from: Path | None = None  # the teacher's flight file; None: init (the starting network)
     distill_target: str = "attitude"  # DISTILL_TARGETS: what of the teacher's the student is held to
@@ -422,8 +422,10 @@ def distill_tap(teacher, image: torch.Tensor, tap: torch.Tensor) -> torch.Tensor
 
 
 DISTILL = {"attitude": distill_deg2, "last_tap": distill_tap}
-# the log's (and the file's start gap's) name for each target's term, with its unit
+# per target, with its unit: the log's name of the term, and the file's keys of the weight and of
+# the start gap (oibar.finetune)
 DISTILL_LOG = {"attitude": "distill_deg2", "last_tap": "distill_rel"}
+WEIGHT_KEY = {"attitude": "distill_weight_per_deg2", "last_tap": "distill_weight_per_rel"}
 GAP_KEY = {"attitude": "distill_start_gap_deg2", "last_tap": "distill_start_gap_rel"}
 
 
@@ -502,7 +504,7 @@ def export_candidate(
             "seed": o.seed,
             "batch_norm": o.batch_norm,
             "frozen": list(o.freeze),
-            "distill_weight_per_deg2": o.distill_weight,
+            WEIGHT_KEY[o.distill_target]: o.distill_weight,
             "distill_data": [str(p) for p in o.distill_data or (o.data if o.distill_weight > 0 else [])],
             **(
                 {

@@ -113,7 +113,7 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "distill_weight": (
             float,
             0.0,
-        ),  # per deg^2: the attitude head held to init's (finetune.DISTILL_WEIGHT)
+        ),  # per deg^2 (finetune.DISTILL_WEIGHT), or per unit of relative difference (last_tap)
         "distill_data": (list, []),  # of train_data, whose crops it holds; []: every one
         "distill_from": (str, ""),  # the teacher, a keypoint flight file; "": init
         "distill_from_sha256": (str, ""),  # checked when the stage runs; "": not pinned

@@ -501,6 +501,9 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     assert last["distilled_crops"] > 0
     assert ft["distill_from"] == str(REPO / "models/oibarnet.onnx")  # its init: it starts on its teacher
     assert ft["distill_start_gap_deg2"] == pytest.approx(0.0, abs=1e-9)
+    # the map target's key, at its default, is not in the fingerprint (earlier builds still skip)
+    assert ft["distill_target"] == "attitude" and "distill_weight_per_rel" not in ft
+    assert "distill_target" not in smoke.markers["finetune"]["inputs"]["opts"]
     # the refit: a second fine-tune from the first's file, the attitude head alone trained, its
     # answers held to the shipped file's, which the fine-tuned student does not start on
     refit = read_metadata(smoke.stage_dir("refit") / "oibarnet.onnx")["finetune"]
