@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 from oibar.hashing import sha256_file
 
 from .build import BuildError, fingerprint
-from .recipe import Stage, resolve
+from .recipe import STAGE_KEYS, Stage, resolve
 
 if TYPE_CHECKING:
     from .build import Build
@@ -43,15 +43,16 @@ def model_file(b: Build, stage: str) -> Path:
     return b.stage_dir(stage) / MODEL_FILE
 
 
-# finetune keys left out of its fingerprint at their defaults (added after builds that lacked them)
-UNSET = {
-    "freeze": [],
-    "distill_weight": 0.0,
-    "distill_data": [],
-    "distill_from": "",
-    "distill_from_sha256": "",
-    "distill_target": "attitude",
-}
+# finetune keys left out of its fingerprint at their defaults (recipe.STAGE_KEYS), added after
+# builds that lacked them
+UNSET_KEYS = (
+    "freeze",
+    "distill_weight",
+    "distill_data",
+    "distill_from",
+    "distill_from_sha256",
+    "distill_target",
+)
 
 
 def folders(b: Build, name: str) -> list[Path]:
@@ -132,7 +133,7 @@ def finetune(b: Build, st: Stage) -> dict:
         raise BuildError(f"stage {st.name}: a file {init.name} names is not beside it: {exc}") from exc
     inputs = {
         # a stage that freezes and distils nothing fingerprints as it did before those keys existed
-        "opts": {k: v for k, v in o.items() if k not in UNSET or v != UNSET[k]},
+        "opts": {k: v for k, v in o.items() if k not in UNSET_KEYS or v != STAGE_KEYS["finetune"][k][1]},
         "init_sha256": init_sha,
         "companions_sha256": beside,
         "config": asdict(cfg),
