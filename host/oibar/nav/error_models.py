@@ -1,7 +1,8 @@
 """The export's per-range error tables for the keypoint fit (``oibar.fusion``): how well each
 keypoint is found, how far the attitude prior is off, how much of a tilt the attitude head reads;
 each binned by camera range and measured on the validation scenes (oibar_models.kp_fusion,
-oibar_models.kp_head_gain); and where the prior is trusted less than measured (chosen on the
+oibar_models.kp_head_gain) or on probe frames of training scenes (oibar_models.kp_head_crop_gain);
+and where the prior is trusted less than measured (chosen on the
 validation scenes' response probe)."""
 
 from __future__ import annotations
@@ -100,6 +101,50 @@ class HeadGainModel:
 
     def gain(self, range_m: float) -> float:
         return float(self.tilt_gain[range_bin(self.edges_m, range_m)])
+
+
+# A crop gain outside these is a measurement gone wrong (below 0.4 the head's noise would be
+# amplified more than 2.5x); a leak beyond 0.5 of the bearing is no keystone, a head reading the
+# window's place instead of the fixture.
+HEAD_CROP_GAIN_LIMITS = (0.4, 2.0)
+HEAD_CROP_LEAK_LIMITS = (-0.5, 0.5)
+
+
+class HeadCropGainModel:
+    """How the attitude head reads an out-of-plane rotation in its own crop, by camera range: per
+    range bin, the gain g and the bearing leak k of
+
+        head's x, y = g * truth's x, y + k * window's bearing x, y     (crop frame, deg)
+
+    fitted on probe frames of training scenes (the vehicle moved sideways and turned, in windows
+    cut on the true pose: oibar_models.kp_head_crop_gain) and shipped in the export's
+    ``oibar.fusion.head_crop_gain``. Why both: the crop is an affine cut, so a fixture off the
+    image centre shows a keystone that the head takes for a change of view (k); and a head
+    fine-tuned on looks where a view is hard to see reads every view short (g: 0.64 at 3 m for
+    0.35.6, 0.88 for 0.34.0). A docking-frame gain (HeadGainModel) cannot part the two: a turn
+    moves the bearing, a sideways step the view. ``correct`` inverts the model."""
+
+    def __init__(self, table: dict[str, Any]):
+        self.edges_m = range_edges(table, "head crop gain")
+        n = len(self.edges_m) - 1
+        self.gain = np.asarray(table["gain"], float)
+        self.bearing_leak = np.asarray(table["bearing_leak"], float)
+        for name, v, (lo, hi) in (
+            ("gain", self.gain, HEAD_CROP_GAIN_LIMITS),
+            ("bearing_leak", self.bearing_leak, HEAD_CROP_LEAK_LIMITS),
+        ):
+            if v.shape != (n,):
+                raise ValueError(f"head crop gain: {name} must have {n} entries, got {v.shape}")
+            if not np.all(np.isfinite(v)) or np.any((v < lo) | (v > hi)):
+                raise ValueError(f"head crop gain: every {name} must be within {lo}-{hi}, got {v.tolist()}")
+
+    def correct(self, head_xy_deg: np.ndarray, bearing_xy_deg: np.ndarray, range_m: float) -> np.ndarray:
+        """The out-of-plane rotation (x, y, deg, crop frame) the head's reading stands for."""
+        b = range_bin(self.edges_m, range_m)
+        out: np.ndarray = (
+            np.asarray(head_xy_deg, float) - self.bearing_leak[b] * np.asarray(bearing_xy_deg, float)
+        ) / self.gain[b]
+        return out
 
 
 PRIOR_SIGMA_SCALE_LIMITS = (0.01, 1e4)  # beyond: a typo, not a choice (1e3 already lets the keypoints decide)

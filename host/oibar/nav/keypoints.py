@@ -122,21 +122,37 @@ def cut(image: np.ndarray, win: CropWindow) -> np.ndarray:
     )
 
 
+def _boresight_to_window(win: CropWindow, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rotation vector, camera frame, rad, that turns the camera's boresight onto the window
+    centre; the window's roll about the crop's boresight)."""
+    c = np.linalg.solve(np.asarray(K, float), np.array([*win.center_px, 1.0]))
+    d = c / np.linalg.norm(c)
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, d)
+    s = float(np.linalg.norm(axis))
+    rv = np.zeros(3) if s < 1e-12 else axis / s * np.arctan2(s, float(d @ z))
+    ca, sa = np.cos(win.angle_rad), np.sin(win.angle_rad)
+    roll = np.array([[ca, -sa, 0.0], [sa, ca, 0.0], [0.0, 0.0, 1.0]])
+    return rv, roll
+
+
 def R_crop_cam(win: CropWindow, K: np.ndarray) -> np.ndarray:
     """The crop's own camera: boresight through the window centre, x and y turned with the
     window. Maps camera vectors into it. Why: a crop shows the fixture as a camera pointed at it
     would, so an attitude read from the crop is relative to that camera (allocentric), not to
     the real one. Rotating image coordinates by the window's angle is rolling that camera about
     its boresight by the same angle."""
-    c = np.linalg.solve(np.asarray(K, float), np.array([*win.center_px, 1.0]))
-    d = c / np.linalg.norm(c)
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(z, d)
-    s = float(np.linalg.norm(axis))
-    Q = np.eye(3) if s < 1e-12 else rotvec_to_matrix(axis / s * np.arctan2(s, float(d @ z)))  # cam <- virtual
-    ca, sa = np.cos(win.angle_rad), np.sin(win.angle_rad)
-    roll = np.array([[ca, -sa, 0.0], [sa, ca, 0.0], [0.0, 0.0, 1.0]])
-    out: np.ndarray = roll @ Q.T
+    rv, roll = _boresight_to_window(win, K)
+    out: np.ndarray = roll @ rotvec_to_matrix(rv).T  # rotvec_to_matrix(rv): cam <- virtual
+    return out
+
+
+def bearing_in_crop_deg(win: CropWindow, K: np.ndarray) -> np.ndarray:
+    """The window's bearing: the rotation (vector, deg) that turns the camera's boresight onto
+    the window centre, in the crop's frame. Its x and y are how far off the image centre the
+    crop was cut, which the affine crop shows as a keystone (HeadCropGainModel)."""
+    rv, roll = _boresight_to_window(win, K)
+    out: np.ndarray = np.degrees(roll @ rv)
     return out
 
 

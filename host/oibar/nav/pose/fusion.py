@@ -12,8 +12,22 @@ import numpy as np
 
 from oibar.geometry.docking import tilt_scaled
 from oibar.geometry.rotations import rotation_angle_deg
-from oibar.nav.error_models import HeadGainModel, KeypointErrorModel, PriorErrorModel, PriorSigmaScale
-from oibar.nav.keypoints import CropWindow, PnpResult, map_pose, solve_pnp
+from oibar.nav.error_models import (
+    HeadCropGainModel,
+    HeadGainModel,
+    KeypointErrorModel,
+    PriorErrorModel,
+    PriorSigmaScale,
+)
+from oibar.nav.keypoints import (
+    CropWindow,
+    PnpResult,
+    attitude_from_crop,
+    attitude_in_crop_deg,
+    bearing_in_crop_deg,
+    map_pose,
+    solve_pnp,
+)
 from oibar.nav.pose.model_file import ModelFileError
 from oibar.nav.pose.reader import CROP_REF_PX
 
@@ -69,9 +83,11 @@ def measurement_without_prior(
 
 class Fusion:
     """The export's fusion (``oibar.fusion``: the keypoints' and the prior's sigmas, their error
-    tables by range, whose attitude is the prior, the head's gain, the prior's chosen scale) and what the filter is fed
-    (``oibar.filter_measurement``, ``oibar.turned_reading_measurement``), checked when the
-    estimator is built. `fit` also takes another fusion table (a study's), read the same way."""
+    tables by range, whose attitude is the prior, the head's gain (in the docking frame, or in
+    its crop), the prior's chosen scale) and what the filter is fed (``oibar.filter_measurement``,
+    ``oibar.turned_reading_measurement``), checked when the estimator is built. `fit` also takes
+    another fusion table (a study's), read the same way. `R_att_ref`: the attitude head's
+    reference (KeypointReader.R_att_ref), which a crop gain needs to read the head in its crop."""
 
     def __init__(
         self,
@@ -82,8 +98,10 @@ class Fusion:
         reproj_crop_px: float,
         has_head: bool,
         turned_reading_measurement: str | None = None,
+        R_att_ref: np.ndarray | None = None,
     ):
         self.path, self.points_m, self.K_frame = path, points_m, K_frame
+        self.R_att_ref = None if R_att_ref is None else np.asarray(R_att_ref, float)
         self.reproj_crop_px = reproj_crop_px
         self._tables: dict[str, tuple[Any, Any]] = {}
         f = meta.get("fusion") or {}
@@ -125,6 +143,20 @@ class Fusion:
             raise ModelFileError(f"{path}: its fusion asks for the attitude head, which it lacks")
         if f.get("head_gain") and f.get("attitude_prior") != "head":
             raise ModelFileError(f"{path}: its fusion has a head gain but its prior is not the attitude head")
+        if f.get("head_crop_gain"):
+            if f.get("attitude_prior") != "head":
+                raise ModelFileError(
+                    f"{path}: its fusion has a head crop gain but its prior is not the attitude head"
+                )
+            if f.get("head_gain"):
+                raise ModelFileError(
+                    f"{path}: its fusion has both a head gain and a head crop gain: one correction of the head, not two"
+                )
+            if self.R_att_ref is None:
+                raise ModelFileError(
+                    f"{path}: its fusion has a head crop gain but no attitude head reference"
+                )
+            self.head_crop_gain(f)
 
     # ------------------------------------------------------------------ the tables
     def _fusion_table(self, f: dict[str, Any], key: str, build: Any) -> Any:
@@ -158,6 +190,26 @@ class Fusion:
         model: HeadGainModel = self._fusion_table(f, "head_gain", HeadGainModel)
         return model
 
+    def head_crop_gain(self, f: dict[str, Any]) -> HeadCropGainModel:
+        """The fusion's HeadCropGainModel."""
+        model: HeadCropGainModel = self._fusion_table(f, "head_crop_gain", HeadCropGainModel)
+        return model
+
+    def head_prior(
+        self, R_head: np.ndarray, win: CropWindow, range_m: float, f: dict[str, Any]
+    ) -> np.ndarray:
+        """The head's attitude as the fit's prior: as read, or given back what it shrank by (the
+        fusion's head gain in the docking frame, or its crop gain in the crop it was read in)."""
+        if f.get("head_gain"):
+            return tilt_scaled(R_head, 1.0 / self.head_gain(f).gain(range_m))
+        if f.get("head_crop_gain") and self.R_att_ref is not None:
+            att = attitude_in_crop_deg(win, self.K_frame, R_head, self.R_att_ref)
+            att[:2] = self.head_crop_gain(f).correct(
+                att[:2], bearing_in_crop_deg(win, self.K_frame)[:2], range_m
+            )
+            return attitude_from_crop(win, self.K_frame, att, self.R_att_ref)
+        return R_head
+
     def prior_sigma_scale(self, f: dict[str, Any]) -> PriorSigmaScale:
         """The fusion's PriorSigmaScale."""
         model: PriorSigmaScale = self._fusion_table(f, "prior_sigma_scale", PriorSigmaScale)
@@ -178,9 +230,7 @@ class Fusion:
         without a fusion, PnP alone. `range_m` is where the error tables are read."""
         R_prior = R_direct
         if f and f.get("attitude_prior") == "head" and R_head is not None:
-            R_prior = R_head
-            if f.get("head_gain"):  # the head's tilt given back the size it shrank by
-                R_prior = tilt_scaled(R_prior, 1.0 / self.head_gain(f).gain(range_m))
+            R_prior = self.head_prior(R_head, win, range_m, f)
         s_px: float | np.ndarray | None = float(f["sigma_crop_px"]) / win.scale if f else None
         if s_px is not None and f and f.get("kp_error_model"):
             s_px = s_px * self.error_model(f).scale(range_m)

@@ -131,6 +131,7 @@ class KeypointPoseEstimator(PoseEstimator):
             self.reader.reproj_crop_px,
             has_head=self.reader.R_att_ref is not None,
             turned_reading_measurement=turned_reading_measurement,
+            R_att_ref=self.reader.R_att_ref,
         )
         self.search = WindowSearch(
             self.reader,
