@@ -252,15 +252,34 @@ def load_head_gain(path: Path) -> dict:
     return {"range_edges_m": table["range_edges_m"], "tilt_gain": table["tilt_gain"]}
 
 
-def head_gain_arg(path: Path | None) -> tuple[dict | None, str | None]:
-    """A `--head-gain FILE` option: (its table, None), (None, None) without one, or (None, the
-    error to print) when the file cannot be read or its table would be refused."""
+def load_head_crop_gain(path: Path) -> dict:
+    """The crop-gain table of a `kp_head_crop_gain` JSON, checked as the flight code checks it."""
+    from oibar.nav.error_models import HeadCropGainModel
+
+    table = json.loads(Path(path).read_text())["head_crop_gain"]
+    HeadCropGainModel(table)
+    return {k: table[k] for k in ("range_edges_m", "gain", "bearing_leak")}
+
+
+def _table_arg(path: Path | None, load, flag: str) -> tuple[dict | None, str | None]:
+    """A `FLAG FILE` option read by `load`: (its table, None), (None, None) without one, or (None,
+    the error to print) when the file cannot be read or its table would be refused."""
     if path is None:
         return None, None
     try:
-        return load_head_gain(path), None
-    except (OSError, ValueError, KeyError) as exc:
-        return None, f"error: --head-gain {path}: {exc}"
+        return load(path), None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        return None, f"error: {flag} {path}: {exc}"
+
+
+def head_gain_arg(path: Path | None) -> tuple[dict | None, str | None]:
+    """`--head-gain FILE` (kp_head_gain's JSON): _table_arg's answer."""
+    return _table_arg(path, load_head_gain, "--head-gain")
+
+
+def head_crop_gain_arg(path: Path | None) -> tuple[dict | None, str | None]:
+    """`--head-crop-gain FILE` (kp_head_crop_gain's JSON): _table_arg's answer."""
+    return _table_arg(path, load_head_crop_gain, "--head-crop-gain")
 
 
 def load_fusion(path: Path, out_px: int) -> dict | None:
@@ -283,7 +302,14 @@ def load_fusion(path: Path, out_px: int) -> dict | None:
         "chosen_on": "validation scenes",
         "val": {k: best[k] for k in ("dt_mean_pct", "dq_mean_deg")},
     }
-    for k in ("kp_error_model", "attitude_prior", "prior_error_model", "head_gain", "prior_sigma_scale"):
+    for k in (
+        "kp_error_model",
+        "attitude_prior",
+        "prior_error_model",
+        "head_gain",
+        "head_crop_gain",
+        "prior_sigma_scale",
+    ):
         if best.get(k):
             fusion[k] = best[k]
     return fusion
@@ -295,7 +321,8 @@ def retag(src: Path, out: Path, options: dict) -> Path:
     turned_reading_measurement, placed_pass_refines, filter_measurement, corner_refine_side_px,
     far_network {"file", "from_m"}, its file beside `out`; finder {"file"}, the fixture finder,
     its file beside `out`; fusion replaces the export's fusion
-    whole (load_fusion's dict); head_gain goes into the fusion's tables, the new one's if both)
+    whole (load_fusion's dict); head_gain and head_crop_gain go into the fusion's tables, the new
+    one's if both)
     set, and the new model version when the reading changes what flies; the graph untouched.
     Checked by opening it as the flight runtime does when its first pass lies beside it.
     ValueError for an option that is not a reading option or a version that is not
@@ -314,6 +341,7 @@ def retag(src: Path, out: Path, options: dict) -> Path:
         "corner_refine_side_px",
         "model_version",
         "head_gain",
+        "head_crop_gain",
         "far_network",
         "finder",
         "fusion",
@@ -345,11 +373,13 @@ def retag(src: Path, out: Path, options: dict) -> Path:
     for k, v in options.items():
         if k == "fusion":
             continue
-        if k == "head_gain":  # a table of the fusion's, not a key of its own
+        if k in ("head_gain", "head_crop_gain"):  # a table of the fusion's, not a key of its own
             fusion = json.loads(props.get(METADATA_PREFIX + "fusion", "null")) or {}
             if fusion.get("attitude_prior") != "head":
-                raise ValueError(f"{src}: a head gain needs a fusion whose prior is the attitude head")
-            fusion["head_gain"] = v
+                raise ValueError(
+                    f"{src}: a {k.replace('_', ' ')} needs a fusion whose prior is the attitude head"
+                )
+            fusion[k] = v
             props[METADATA_PREFIX + "fusion"] = json.dumps(fusion)
         else:
             props[METADATA_PREFIX + k] = json.dumps(v)
@@ -408,6 +438,14 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="the JSON of `python -m oibar_models.kp_head_gain`: the attitude head's tilt is divided "
         "by its gain per range before it is the fit's prior (measured on validation scenes)",
+    )
+    ap.add_argument(
+        "--head-crop-gain",
+        type=Path,
+        default=None,
+        help="the JSON of `python -m oibar_models.kp_head_crop_gain`: the attitude head's rotation in "
+        "its crop is given back its gain and bearing leak per range before it is the fit's prior "
+        "(measured on probe frames of training scenes); not with --head-gain",
     )
     ap.add_argument(
         "--mirror-reading",
@@ -485,8 +523,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
     head_gain, err = head_gain_arg(a.head_gain)
-    if err:
-        print(err, file=sys.stderr)
+    head_crop_gain, err_crop = head_crop_gain_arg(a.head_crop_gain)
+    if err or err_crop:
+        print(err or err_crop, file=sys.stderr)
+        return 2
+    if head_gain is not None and head_crop_gain is not None:
+        print("error: --head-gain or --head-crop-gain: one correction of the head, not two", file=sys.stderr)
         return 2
     if a.retag is not None:
         fusion = None
@@ -514,6 +556,7 @@ def main(argv: list[str] | None = None) -> int:
                 ("model_version", a.model_version),
                 ("fusion", fusion),
                 ("head_gain", head_gain),
+                ("head_crop_gain", head_crop_gain),
                 (
                     "far_network",
                     {"file": a.far_network, "from_m": a.far_from_m} if a.far_network is not None else None,
@@ -529,7 +572,8 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
                 "--turned-reading-head, --turned-reading-measurement, --placed-pass-refines, "
-                "--filter-measurement, --corner-refine-side-px, --fusion, --head-gain, --far-network "
+                "--filter-measurement, --corner-refine-side-px, --fusion, --head-gain, "
+                "--head-crop-gain, --far-network "
                 "with --far-from-m, --finder), "
                 "--model-version and --out only",
                 file=sys.stderr,
@@ -588,14 +632,16 @@ def main(argv: list[str] | None = None) -> int:
         except (OSError, ValueError, KeyError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
-    if head_gain is not None:
+    for key, table in (("head_gain", head_gain), ("head_crop_gain", head_crop_gain)):
+        if table is None:
+            continue
         if not fusion or fusion.get("attitude_prior") != "head":
             print(
-                "error: --head-gain needs a fusion whose prior is the attitude head (--fusion)",
+                f"error: --{key.replace('_', '-')} needs a fusion whose prior is the attitude head (--fusion)",
                 file=sys.stderr,
             )
             return 2
-        fusion["head_gain"] = head_gain
+        fusion[key] = table
     try:
         export_onnx(
             cfg,

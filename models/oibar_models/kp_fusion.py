@@ -14,8 +14,8 @@ The error model (oibar.nav.error_models.KeypointErrorModel) is measured here too
 RMS error per range bin, in crops cut around the true pose of the validation frames (errors past
 the PnP inlier threshold clipped to it: RANSAC drops those anyway).
 
-python -m oibar_models.kp_fusion --model models/oibarnet.onnx [--stride 16] [--priors head] [--head-gain FILE]
-    [--pairs 2:3] [--out runs/oibarnet_kp/fusion.json]
+python -m oibar_models.kp_fusion --model models/oibarnet.onnx [--stride 16] [--priors head]
+    [--head-gain FILE | --head-crop-gain FILE] [--pairs 2:3] [--out runs/oibarnet_kp/fusion.json]
 """
 
 from __future__ import annotations
@@ -229,10 +229,12 @@ def score_grid(
     pairs: list[tuple[float, float]] | None = None,
     prior_sigma_scale: dict | None = None,
     pnp_alone: bool = True,
+    head_crop_gain: dict | None = None,
 ) -> list[dict]:
     """Each fusion of the grid scored on `rows`; `head_gain` (HeadGainModel's table): the head's
     tilt divided by it wherever the head is the prior, as the flight code does with the export's;
-    `prior_sigma_scale` (PriorSigmaScale's table): every prior's sigma scaled by it."""
+    `head_crop_gain` (HeadCropGainModel's) likewise, in the head's crop; `prior_sigma_scale`
+    (PriorSigmaScale's table): every prior's sigma scaled by it."""
     out = []
     grid = fusion_grid(
         err_model,
@@ -247,6 +249,8 @@ def score_grid(
             fusion["attitude_prior"] = "head"
             if head_gain is not None:
                 fusion["head_gain"] = head_gain
+            if head_crop_gain is not None:
+                fusion["head_crop_gain"] = head_crop_gain
         if em is not None:
             fusion["kp_error_model"] = em
         if pem is not None:
@@ -277,6 +281,7 @@ def score_grid(
             error_model=em is not None,
             prior_em=pem is not None,
             head_gain=source == "head" and head_gain is not None,
+            head_crop_gain=source == "head" and head_crop_gain is not None,
             prior_sigma_scaled="prior_sigma_scale" in fusion,
             score=metrics.score(s),
         )
@@ -316,6 +321,14 @@ def main(argv: list[str] | None = None) -> int:
         "wherever the head is the prior (and carried into the choice)",
     )
     ap.add_argument(
+        "--head-crop-gain",
+        type=Path,
+        default=None,
+        help="the JSON of `python -m oibar_models.kp_head_crop_gain`: the head's rotation in its crop "
+        "given back its gain and bearing leak wherever the head is the prior (and carried into the "
+        "choice); not with --head-gain",
+    )
+    ap.add_argument(
         "--pairs",
         default=None,
         help="score only these weights, KP_PX:PRIOR_DEG[,...] (keypoint sigma at a 128 px crop, "
@@ -353,11 +366,15 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:
             print(f"error: --pairs: KP_PX:PRIOR_DEG[,...], each > 0, got {a.pairs!r}", file=sys.stderr)
             return 2
-    from .kp_export import head_gain_arg
+    from .kp_export import head_crop_gain_arg, head_gain_arg
 
     head_gain, err = head_gain_arg(a.head_gain)
-    if err:
-        print(err, file=sys.stderr)
+    head_crop_gain, err_crop = head_crop_gain_arg(a.head_crop_gain)
+    if err or err_crop:
+        print(err or err_crop, file=sys.stderr)
+        return 2
+    if head_gain is not None and head_crop_gain is not None:
+        print("error: --head-gain or --head-crop-gain: one correction of the head, not two", file=sys.stderr)
         return 2
     prior_sigma_scale = None
     if a.prior_sigma_scale is not None:
@@ -393,6 +410,7 @@ def main(argv: list[str] | None = None) -> int:
             pairs,
             prior_sigma_scale,
             not a.no_pnp_alone,
+            head_crop_gain,
         )
     except ValueError as exc:
         print(f"error: {a.model}: {exc}", file=sys.stderr)
@@ -400,6 +418,8 @@ def main(argv: list[str] | None = None) -> int:
     best = min(grid, key=lambda g: g["score"])
     if best.get("head_gain"):
         best["head_gain"] = head_gain
+    if best.get("head_crop_gain"):
+        best["head_crop_gain"] = head_crop_gain
     if best.get("prior_sigma_scaled"):
         best["prior_sigma_scale"] = prior_sigma_scale
     if best.get("error_model"):
@@ -418,6 +438,7 @@ def main(argv: list[str] | None = None) -> int:
                 "stride": a.stride,
                 "mode": "single" if a.single else "track",
                 "head_gain": head_gain,
+                "head_crop_gain": head_crop_gain,
                 "prior_sigma_scale": prior_sigma_scale,
                 "pnp_alone": not a.no_pnp_alone,
                 "best": best,

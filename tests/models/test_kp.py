@@ -663,6 +663,16 @@ def test_the_fusion_grid_can_score_only_the_pairs_asked_for_with_the_head_gain()
     assert [f.get("prior_sigma_scale") for f in seen] == [scale, scale, None]
     assert [r["prior_sigma_scaled"] for r in out] == [True, True, False]
 
+    # `--head-crop-gain`: as the head gain, for the head prior alone
+    crop = {"range_edges_m": [0.0, 100.0], "gain": [0.7], "bearing_leak": [-0.05]}
+    seen.clear()
+    out = score_grid(
+        est, rows, False, em, {"head": pem, "direct": None}, None, [(2.0, 3.0)], head_crop_gain=crop
+    )
+    assert [f.get("head_crop_gain") for f in seen] == [crop, None, None]
+    assert [r["head_crop_gain"] for r in out] == [True, False, False]
+    assert not any("head_gain" in f for f in seen)
+
 
 def test_kp_fusion_refuses_bad_pairs_and_an_unreadable_head_gain_before_reading_anything(tmp_path, capsys):
     """kp_fusion's `--pairs` and `--head-gain` are checked first, with what is wrong said."""
@@ -674,6 +684,16 @@ def test_kp_fusion_refuses_bad_pairs_and_an_unreadable_head_gain_before_reading_
         assert "--pairs" in capsys.readouterr().err
     assert fusion_main(["--head-gain", str(tmp_path / "missing.json"), "--out", str(out)]) == 2
     assert "--head-gain" in capsys.readouterr().err and not out.exists()
+    assert fusion_main(["--head-crop-gain", str(tmp_path / "missing.json"), "--out", str(out)]) == 2
+    assert "--head-crop-gain" in capsys.readouterr().err and not out.exists()
+    crop = tmp_path / "crop.json"
+    crop.write_text(
+        json.dumps({"head_crop_gain": {"range_edges_m": [0, 100], "gain": [0.7], "bearing_leak": [0.0]}})
+    )
+    gain = tmp_path / "gain.json"
+    gain.write_text(json.dumps({"head_gain": {"range_edges_m": [0, 100], "tilt_gain": [0.9]}}))
+    assert fusion_main(["--head-gain", str(gain), "--head-crop-gain", str(crop), "--out", str(out)]) == 2
+    assert "one correction of the head, not two" in capsys.readouterr().err and not out.exists()
     for bad in ("0,3,100", "0,3,100:1", "0,3,100:1,0", "3,0:1", "a:b"):
         assert fusion_main(["--prior-sigma-scale", bad, "--out", str(out)]) == 2
         assert "--prior-sigma-scale" in capsys.readouterr().err and not out.exists()
@@ -1207,6 +1227,47 @@ def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head
     set_fusion(dict(fusion_before, attitude_prior="direct"))
     assert export_main(["--retag", str(model), "--head-gain", str(tmp_path / "gain.json")]) == 2
     assert "head_gain" not in read_metadata(model)["fusion"]
+
+
+def test_retag_puts_a_head_crop_gain_into_the_fusion_in_place_of_its_head_gain(tmp_path, capsys):
+    """`kp_export --retag --head-crop-gain FILE` writes kp_head_crop_gain's table into the
+    export's fusion; beside a head gain the runtime refuses the file (one correction of the head,
+    not two), so the retag says so and writes nothing; both options at once are refused first."""
+    import onnx
+
+    from oibar.nav.pose import KeypointPoseEstimator, read_metadata
+    from oibar_models.kp_export import main as export_main
+
+    copy_shipped(tmp_path)
+    model = tmp_path / "oibarnet.onnx"
+    table = {"range_edges_m": [0.0, 1.0, 100.0], "gain": [0.62, 0.64], "bearing_leak": [-0.16, -0.07]}
+    (tmp_path / "crop.json").write_text(json.dumps({"head_crop_gain": table, "bins": []}))
+    (tmp_path / "bad.json").write_text(json.dumps({"head_crop_gain": dict(table, bearing_leak=[0.0, 0.9])}))
+    (tmp_path / "gain.json").write_text(
+        json.dumps({"head_gain": {"range_edges_m": [0, 100], "tilt_gain": [0.9]}})
+    )
+    fusion_before = read_metadata(model)["fusion"]
+    assert fusion_before.get("head_gain")  # the shipped file's own
+
+    crop = ["--head-crop-gain", str(tmp_path / "crop.json")]
+    assert export_main(["--retag", str(model), *crop, "--head-gain", str(tmp_path / "gain.json")]) == 2
+    assert "one correction of the head, not two" in capsys.readouterr().err
+    assert export_main(["--retag", str(model), "--head-crop-gain", str(tmp_path / "bad.json")]) == 2
+    assert "--head-crop-gain" in capsys.readouterr().err
+    assert export_main(["--retag", str(model), *crop]) == 2  # beside the shipped head gain
+    assert "one correction of the head, not two" in capsys.readouterr().err
+    assert read_metadata(model)["fusion"] == fusion_before
+
+    m = onnx.load(str(model))
+    for prop in m.metadata_props:
+        if prop.key == "oibar.fusion":
+            prop.value = json.dumps({k: v for k, v in fusion_before.items() if k != "head_gain"})
+    onnx.save(m, str(model))
+    assert export_main(["--retag", str(model), *crop, "--model-version", "9.9.9"]) == 0
+    fusion = read_metadata(model)["fusion"]
+    assert fusion["head_crop_gain"] == table and "head_gain" not in fusion
+    est = KeypointPoseEstimator(model, warmup_runs=0)
+    assert est.fusion.head_crop_gain(est.meta["fusion"]).bearing_leak.tolist() == [-0.16, -0.07]
 
 
 def test_retag_replaces_the_fusion_with_a_kp_fusion_choice_and_refuses_one_it_cannot_carry(tmp_path, capsys):
