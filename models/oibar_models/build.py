@@ -368,9 +368,13 @@ class Build:
         o = st.opts
         spec, root = self.val_set(st)
         inputs = {
-            # pnp_alone at its default fingerprints as before the key existed
-            "opts": {k: v for k, v in o.items() if k != "pnp_alone" or not v},
-            "upstream": self.upstream(o["model"], o["head_gain"], f"data_{o['val_data']}"),
+            # pnp_alone and head_crop_gain at their defaults fingerprint as before the keys existed
+            "opts": {
+                k: v for k, v in o.items() if (k != "pnp_alone" or not v) and (k != "head_crop_gain" or v)
+            },
+            "upstream": self.upstream(
+                o["model"], o["head_gain"], o["head_crop_gain"], f"data_{o['val_data']}"
+            ),
         }
 
         def run(d: Path):
@@ -393,6 +397,8 @@ class Build:
                 argv += ["--pairs", ",".join(f"{a:g}:{b:g}" for a, b in o["pairs"])]
             if o["head_gain"]:
                 argv += ["--head-gain", str(self.stage_dir(o["head_gain"]) / "head_gain.json")]
+            if o["head_crop_gain"]:
+                argv += ["--head-crop-gain", str(self.stage_dir(o["head_crop_gain"]) / "head_crop_gain.json")]
             if not o["pnp_alone"]:
                 argv.append("--no-pnp-alone")
             if o["prior_sigma_scale"]:
@@ -508,6 +514,11 @@ class Build:
         from .build_finetune import head_gain
 
         return head_gain(self, st)
+
+    def head_crop_gain(self, st: Stage) -> dict:
+        from .build_finetune import head_crop_gain
+
+        return head_crop_gain(self, st)
 
     def finder(self, st: Stage) -> dict:
         from .build_finetune import finder

@@ -9,10 +9,12 @@ done marker, skipped on a rerun whose inputs match.
                the candidate. -> oibarnet.onnx with its first pass (and far network unless
                far_network = false), finetuned.pt, recovered.pt, config.yaml, log.jsonl, done.json
     head_gain  kp_head_gain on a finetune's or export's file -> head_gain.json
+    head_crop_gain  kp_head_crop_gain on a finetune's or export's file, on probe frames of the
+               scenes the recipe names (rendered by the rig camera) -> head_crop_gain.json
     finder     oibar_models.finder's train and export under a finder config, on the recipe's
                datasets, labelled by a keypoint stage's file; resumes -> oibarnet_finder.onnx
     retag      a finetune's file, the graph untouched, with a fusion stage's weights, a head_gain
-               stage's table, an optional fixture finder (a finder stage's, or a committed file)
+               or head_crop_gain stage's table, an optional fixture finder (a finder stage's, or a committed file)
                and the recipe's model_version
                (kp_export.retag), its companions beside it, opened as the flight runtime opens it
                -> oibarnet.onnx, the flight file of the candidate
@@ -215,6 +217,48 @@ def head_gain(b: Build, st: Stage) -> dict:
     return b.step(st.name, "head_gain", inputs, run)
 
 
+# ----------------------------------------------------------------------------- head crop gain
+def head_crop_gain(b: Build, st: Stage) -> dict:
+    from . import tracking
+    from .kp_fusion import ERROR_RANGE_EDGES_M
+    from .kp_head_crop_gain import MIN_FRAMES_PER_BIN, bin_ranges_m
+    from .kp_head_crop_gain import main as crop_gain_main
+
+    o = st.opts
+    spec = resolve(o["spec"])
+    edges = [float(e) for e in (o["range_edges_m"] or ERROR_RANGE_EDGES_M)]
+    min_frames = o["min_frames"] or MIN_FRAMES_PER_BIN
+    inputs = {
+        "opts": o,
+        "spec_sha256": sha256_file(spec),  # the scenes as the rig renders them
+        "range_edges_m": edges,  # what the defaults were when it ran
+        "ranges_m": bin_ranges_m(edges),
+        "min_frames": min_frames,
+        "upstream": b.upstream(o["model"]),
+    }
+
+    def run(d: Path):
+        out = d / "head_crop_gain.json"
+        model = model_file(b, o["model"])
+        argv = ["--model", str(model), "--spec", str(spec), "--scenes", ",".join(o["scenes"])]
+        argv += ["--min-frames", str(min_frames), "--range-edges", ",".join(repr(e) for e in edges)]
+        argv += ["--out", str(out), "--plot", str(d / "head_crop_gain.png"), "--no-progress"]
+        if crop_gain_main(argv) != 0:
+            raise BuildError(
+                f"stage {st.name}: the head crop-gain measurement failed (kp_head_crop_gain {' '.join(argv)})"
+            )
+        doc = json.loads(out.read_text())
+        metrics: dict[str, Any] = {"frames": doc["frames"]}
+        for row in doc["bins"]:
+            lo, hi = row["range_m"]
+            metrics[f"gain_{lo:g}-{hi:g}m"] = round(row["gain"], 4)
+            metrics[f"bearing_leak_{lo:g}-{hi:g}m"] = round(row["bearing_leak"], 4)
+        tracking.log_evaluation(b.recipe, st.name, model, d, metrics, o, kind="head_crop_gain")
+        return [out, d / "head_crop_gain.png"], metrics
+
+    return b.step(st.name, "head_crop_gain", inputs, run)
+
+
 # ----------------------------------------------------------------------------- finder
 FINDER_FILE = "oibarnet_finder.onnx"  # what a finder stage writes; the flight file names it
 
@@ -279,6 +323,7 @@ def retag(b: Build, st: Stage) -> dict:
     src = model_file(b, o["model"])
     fusion_file = b.stage_dir(o["fusion"]) / "fusion.json" if o["fusion"] else None
     gain_file = b.stage_dir(o["head_gain"]) / "head_gain.json" if o["head_gain"] else None
+    crop_file = b.stage_dir(o["head_crop_gain"]) / "head_crop_gain.json" if o["head_crop_gain"] else None
     finder_stage = o["finder"] if any(s.name == o["finder"] for s in b.recipe.stages) else ""
     finder = None
     if finder_stage:
@@ -286,17 +331,18 @@ def retag(b: Build, st: Stage) -> dict:
     elif o["finder"]:
         finder = resolve(o["finder"])
     inputs = {
-        "opts": o,
+        # head_crop_gain unset fingerprints as before the key existed
+        "opts": {k: v for k, v in o.items() if k != "head_crop_gain" or v},
         "model_version": b.recipe.model_version,
         "finder_sha256": sha256_file(finder) if finder else "",
-        "upstream": b.upstream(o["model"], o["fusion"], o["head_gain"], finder_stage),
+        "upstream": b.upstream(o["model"], o["fusion"], o["head_gain"], o["head_crop_gain"], finder_stage),
     }
 
     def run(d: Path):
         from oibar.nav.pose import KeypointPoseEstimator, ModelFileError, PoseEstimator, read_metadata
 
         from .finetune import companions
-        from .kp_export import load_fusion, load_head_gain
+        from .kp_export import load_fusion, load_head_crop_gain, load_head_gain
         from .kp_export import retag as retag_file
 
         clear(d)
@@ -311,12 +357,17 @@ def retag(b: Build, st: Stage) -> dict:
                 # PnP alone when the grid chose no prior: no weights, as an export without fusion
                 options["fusion"] = load_fusion(fusion_file, int(meta["crop"]["out_px"])) or {}
             prior = (options.get("fusion", meta.get("fusion")) or {}).get("attitude_prior")
-            if gain_file:
-                table = load_head_gain(gain_file)
+            for key, path, load in (
+                ("head_gain", gain_file, load_head_gain),
+                ("head_crop_gain", crop_file, load_head_crop_gain),
+            ):
+                if path is None:
+                    continue
+                table = load(path)
                 if prior == "head":
-                    options["head_gain"] = table
+                    options[key] = table
                 else:  # kp_fusion's own rule: its choice carries the gain only with the head as prior
-                    b.say(f"{st.name}: the fusion's prior is {prior or 'none'}, not the head: no head gain")
+                    b.say(f"{st.name}: the fusion's prior is {prior or 'none'}, not the head: no {key}")
         except (OSError, ValueError, KeyError) as exc:
             raise BuildError(f"stage {st.name}: {exc}") from exc
         if finder:
@@ -337,6 +388,7 @@ def retag(b: Build, st: Stage) -> dict:
             "model_version": new["model_version"],
             "attitude_prior": fusion.get("attitude_prior", "direct") if fusion else "none",
             "head_gain": bool(fusion.get("head_gain")),
+            "head_crop_gain": bool(fusion.get("head_crop_gain")),
             "finder": finder.name if finder else "",
             "onnx_mib": round(out.stat().st_size / 2**20, 2),
         }

@@ -20,9 +20,12 @@ wrong type or a stage that names a stage it cannot use is a RecipeError naming t
                 trained, exported with its tables), optionally with the attitude head distilled
                 from init or from another flight file (distill_from)
       head_gain the attitude head's tilt gain per range bin on validation (kp_head_gain)
+      head_crop_gain  the attitude head's gain and bearing leak in its crop per range bin, on
+                probe frames of training scenes the fine-tune did not train on (kp_head_crop_gain)
       finder    the fixture finder (oibar_models.finder: a finder config's network and schedule)
                 trained on the recipe's datasets, labelled by a keypoint stage's file, exported
-      retag     a fine-tune's file with a fusion stage's weights, a head_gain stage's table, an
+      retag     a fine-tune's file with a fusion stage's weights, a head_gain or head_crop_gain
+                stage's table, an
                 optional fixture finder (a finder stage or a file) and the recipe's model_version
                 (kp_export.retag), opened as the flight runtime opens it
 """
@@ -45,7 +48,18 @@ class RecipeError(ValueError):
 
 VERSION_RE = re.compile(r"\d+\.\d+\.\d+")
 NAME_RE = re.compile(r"[a-z][a-z0-9_]*")
-STAGE_KINDS = ("train", "export", "fusion", "evaluate", "card", "finetune", "head_gain", "finder", "retag")
+STAGE_KINDS = (
+    "train",
+    "export",
+    "fusion",
+    "evaluate",
+    "card",
+    "finetune",
+    "head_gain",
+    "head_crop_gain",
+    "finder",
+    "retag",
+)
 # the kinds whose stage folder holds a flight file, oibarnet.onnx with its companions
 MODEL_KINDS = ("export", "finetune", "retag")
 BATCH_NORM = ("frozen", "train")  # oibar_models.finetune.BATCH_NORM (not imported: it loads torch)
@@ -80,6 +94,7 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "priors": (list, ["direct", "head"]),
         "pairs": (list, []),  # [[KP_PX, PRIOR_DEG], ...]; empty: the whole grid
         "head_gain": (str, ""),  # a head_gain stage measured on the same model: the head's tilt divided by it
+        "head_crop_gain": (str, ""),  # a head_crop_gain stage on the same model (not with head_gain)
         # {range_edges_m = [...], sigma_scale = [...]}: a factor on the prior's sigma by range, chosen
         # on the validation probe (oibar.fusion.prior_sigma_scale); {}: the error model's weight
         "prior_sigma_scale": (dict, {}),
@@ -128,6 +143,14 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "range_edges_m": (list, []),  # the bins' rising edges; []: kp_fusion.ERROR_RANGE_EDGES_M
         "note": (str, ""),
     },
+    "head_crop_gain": {
+        "model": (str, None),  # a finetune or export stage
+        "spec": (str, None),  # a scene set (models/scenes/*.json): rendered by the rig, not the build
+        "scenes": (list, None),  # its scenes probed: ones the model's fine-tune did not train on
+        "min_frames": (int, 0),  # the fewest frames per range bin; 0: kp_head_crop_gain.MIN_FRAMES_PER_BIN
+        "range_edges_m": (list, []),  # the bins' rising edges; []: kp_fusion.ERROR_RANGE_EDGES_M
+        "note": (str, ""),
+    },
     "finder": {
         # a finder config (models/configs/finder/*.yaml): its network, schedule and augmentation
         "config": (str, None),
@@ -140,6 +163,7 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "model": (str, None),  # a finetune stage
         "fusion": (str, ""),  # a fusion stage on the same model; "": the model's own weights
         "head_gain": (str, ""),  # a head_gain stage on the same model; "": the model's own table
+        "head_crop_gain": (str, ""),  # a head_crop_gain stage on the same model (not with head_gain)
         "finder": (str, ""),  # a finder stage, or a finder ONNX (repository path), copied beside; "": none
         "note": (str, ""),
     },
@@ -393,6 +417,7 @@ def _check_stage(where: str, kind: str, o: dict, before: list[Stage], datasets: 
                     raise RecipeError(
                         f"{where} head_gain: only the head as a prior reads it; priors {o['priors']!r}"
                     )
+            _check_crop_gain_ref(where, o, before)
             if not o["priors"] or any(p not in ("direct", "head") for p in o["priors"]):
                 raise RecipeError(f"{where} priors: direct and/or head, got {o['priors']!r}")
             for p in o["pairs"]:
@@ -428,15 +453,74 @@ def _check_stage(where: str, kind: str, o: dict, before: list[Stage], datasets: 
                     f"{where} head_gain: {o['head_gain']!r}, but the fusion stage {o['fusion']!r} "
                     f"chose its weights with {fusion['head_gain']!r}"
                 )
+            if o["head_crop_gain"] != fusion["head_crop_gain"]:
+                raise RecipeError(
+                    f"{where} head_crop_gain: {o['head_crop_gain']!r}, but the fusion stage {o['fusion']!r} "
+                    f"chose its weights with {fusion['head_crop_gain']!r}"
+                )
         if o["head_gain"]:
             _earlier(where, "head_gain", o["head_gain"], before, "head_gain")
             _same_model(where, "head_gain", o["head_gain"], o["model"], before)
+        _check_crop_gain_ref(where, o, before)
         if o["finder"] and any(s.name == o["finder"] for s in before):
             _earlier(where, "finder", o["finder"], before, "finder")
         elif o["finder"] and not resolve(o["finder"]).is_file():
             raise RecipeError(f"{where} finder: neither an earlier finder stage nor a file: {o['finder']}")
     elif kind == "finder":
         _check_finder(where, o, before, datasets)
+    elif kind == "head_crop_gain":
+        _check_head_crop_gain(where, o, before, datasets)
+
+
+def _check_crop_gain_ref(where: str, o: dict, before: list[Stage]) -> None:
+    """A fusion or retag stage's head_crop_gain: an earlier head_crop_gain stage on its model,
+    not beside a head_gain, read only by the head as a prior."""
+    if not o["head_crop_gain"]:
+        return
+    _earlier(where, "head_crop_gain", o["head_crop_gain"], before, "head_crop_gain")
+    _same_model(where, "head_crop_gain", o["head_crop_gain"], o["model"], before)
+    if o["head_gain"]:
+        raise RecipeError(f"{where} head_crop_gain: not with head_gain (one correction of the head, not two)")
+    if "priors" in o and "head" not in o["priors"]:
+        raise RecipeError(
+            f"{where} head_crop_gain: only the head as a prior reads it; priors {o['priors']!r}"
+        )
+
+
+def _spec_scene_names(where: str, spec: str) -> list[str]:
+    import json
+
+    try:
+        doc = json.loads(resolve(spec).read_text())
+    except (OSError, ValueError) as exc:
+        raise RecipeError(f"{where} spec: cannot read the scene set {spec} ({exc})") from None
+    items = doc.get("scenes", []) if isinstance(doc, dict) else doc
+    return [str(s.get("name", "")) for s in items if isinstance(s, dict)]
+
+
+def _check_head_crop_gain(where: str, o: dict, before: list[Stage], datasets: dict[str, Dataset]) -> None:
+    model = _earlier(where, "model", o["model"], before, ("export", "finetune"))
+    _check_head_gain(where, o)
+    if not resolve(o["spec"]).is_file():
+        raise RecipeError(f"{where} spec: scene set not found: {o['spec']}")
+    names = o["scenes"]
+    if not names or not all(isinstance(n, str) and n for n in names) or len(set(names)) != len(names):
+        raise RecipeError(f"{where} scenes: a list of distinct scene names, got {names!r}")
+    known = set(_spec_scene_names(where, o["spec"]))
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise RecipeError(f"{where} scenes: {unknown} are not in {o['spec']}")
+    # a calibration on scenes the fine-tune learnt would flatter its head
+    if model.kind == "finetune":
+        for dname in model["train_data"]:
+            ds = datasets[dname]
+            if resolve(ds.spec).resolve() != resolve(o["spec"]).resolve():
+                continue
+            seen = set(ds.scenes) if ds.scenes else known
+            if seen & set(names):
+                raise RecipeError(
+                    f"{where} scenes: {sorted(seen & set(names))} are trained on by {o['model']!r} (dataset {dname!r})"
+                )
 
 
 def _check_finder(where: str, o: dict, before: list[Stage], datasets: dict[str, Dataset]) -> None:
@@ -509,7 +593,7 @@ def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset], before: l
 
 def _check_head_gain(where: str, o: dict) -> None:
     if o["min_frames"] != 0 and o["min_frames"] < 2:
-        raise RecipeError(f"{where} min_frames: >= 2 (0: kp_head_gain's own), got {o['min_frames']}")
+        raise RecipeError(f"{where} min_frames: >= 2 (0: the measurement's own), got {o['min_frames']}")
     edges = o["range_edges_m"]
     if edges and (
         len(edges) < 2

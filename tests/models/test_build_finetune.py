@@ -262,6 +262,45 @@ def test_the_head_reading_candidate_is_0_35_7_with_its_fusion_made_to_read_the_h
     assert h.stage("finder").opts == d.stage("finder").opts
 
 
+def test_the_crop_gain_candidate_is_0_35_6s_fine_tune_read_through_its_heads_crop_gain():
+    """0.35.13 is 0.35.6's recipe (its datasets, its fine-tune as it is) with the docking-frame
+    head gain replaced by the crop gain, measured on the odd training scenes every 4th from tr001
+    (none of them trained on), the head prior carried at every range (no scale, no PnP alone),
+    and a finder stage as 0.35.8's."""
+    h = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_headfrozen.toml")
+    d = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_distill.toml")
+    c = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_cropgain.toml")
+    assert (c.name, c.model_version) == ("oibarnet_kp_ft_cropgain", "0.35.13")
+    assert c.datasets == h.datasets | {"train_half": d.datasets["train_half"]}
+    assert [s.name for s in c.stages] == [
+        "finetune",
+        "head_crop_gain",
+        "fusion",
+        "finder",
+        "retag",
+        "evaluate",
+    ]
+    assert c.stage("finetune").opts == h.stage("finetune").opts
+    cg = c.stage("head_crop_gain").opts
+    assert cg["model"] == "finetune" and cg["spec"] == "models/scenes/train.json"
+    assert cg["scenes"] == [f"tr{i:03d}" for i in range(1, 96, 4)]
+    assert not set(cg["scenes"]) & set(c.datasets["train_base"].scenes)
+    assert (cg["min_frames"], cg["range_edges_m"]) == (0, [])  # the measurement's own
+    fh = dict(h.stage("fusion").opts)
+    assert fh.pop("head_gain") == "head_gain" and fh.pop("prior_sigma_scale")
+    edits = {"head_crop_gain": "head_crop_gain", "pnp_alone": False, "head_gain": "", "prior_sigma_scale": {}}
+    assert c.stage("fusion").opts == fh | edits
+    assert c.stage("finder").opts == d.stage("finder").opts
+    rt = c.stage("retag").opts
+    assert (rt["fusion"], rt["head_gain"], rt["head_crop_gain"], rt["finder"]) == (
+        "fusion",
+        "",
+        "head_crop_gain",
+        "finder",
+    )
+    assert c.stage("evaluate").opts == h.stage("evaluate").opts
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
@@ -444,6 +483,36 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
             "val_data: 'train_dr' is also trained on",
         ),
         (("finder_smoke.yaml", "finder_nope.yaml"), "config: not found"),
+        # the head's crop gain: scenes of its set the fine-tune did not train on, read by the head
+        (('scenes = ["tr001"]', 'scenes = ["tr001", "nope"]'), r"scenes: \['nope'\] are not in"),
+        (('scenes = ["tr001"]', 'scenes = ["tr000"]'), r"scenes: \['tr000'\] are trained on by 'refit'"),
+        (('scenes = ["tr001"]', "scenes = []"), "scenes: a list of distinct scene names"),
+        (
+            (
+                'spec = "models/scenes/train.json"\nscenes = ["tr001"]',
+                'spec = "models/scenes/nope.json"\nscenes = ["tr001"]',
+            ),
+            "spec: scene set not found",
+        ),
+        (
+            (
+                'head_crop_gain = "head_crop_gain"\npnp_alone',
+                'head_crop_gain = "head_crop_gain"\nhead_gain = "head_gain"\npnp_alone',
+            ),
+            "head_crop_gain: not with head_gain",
+        ),
+        (
+            ('head_crop_gain = "head_crop_gain"\npnp_alone', 'head_crop_gain = "head_gain"\npnp_alone'),
+            "'head_gain' is a stage of kind head_gain, not head_crop_gain",
+        ),
+        (
+            ('kind = "head_crop_gain"\nmodel = "refit"', 'kind = "head_crop_gain"\nmodel = "finetune"'),
+            "'head_crop_gain' measured stage 'finetune''s model, not 'refit'",
+        ),
+        (
+            ('fusion = "fusion_crop"\nhead_crop_gain = "head_crop_gain"', 'fusion = "fusion_crop"'),
+            "head_crop_gain: '', but the fusion stage 'fusion_crop' chose its weights with 'head_crop_gain'",
+        ),
         (('model = "retag"', 'model = "head_gain"'), "not export or finetune or retag"),
     ],
 )
@@ -562,6 +631,25 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     for k in ("sigma_crop_px", "sigma_prior_deg", "kp_error_model", "prior_error_model"):
         assert meta["fusion"][k] == chosen[k], k
     assert smoke.markers["retag"]["metrics"]["head_gain"] is True
+    # the head's crop gain: one bin probed at 0.5 and 6.25 m on a scene the fine-tune did not see,
+    # the second fusion weighed the head with it, the second retag carries it and opens
+    crop = json.loads((smoke.stage_dir("head_crop_gain") / "head_crop_gain.json").read_text())
+    assert crop["scenes"] == ["tr001"] and crop["ranges_m"] == [0.5, 6.25] and crop["frames"] == 36
+    assert crop["head_crop_gain"]["range_edges_m"] == [0.0, 100.0]
+    assert 0.4 <= crop["head_crop_gain"]["gain"][0] <= 2.0
+    assert smoke.markers["head_crop_gain"]["metrics"]["gain_0-100m"] == round(crop["bins"][0]["gain"], 4)
+    crop_doc = json.loads((smoke.stage_dir("fusion_crop") / "fusion.json").read_text())
+    assert crop_doc["head_crop_gain"] == crop["head_crop_gain"] and crop_doc["head_gain"] is None
+    assert crop_doc["best"]["head_crop_gain"] == crop["head_crop_gain"]
+    out_crop = smoke.stage_dir("retag_crop") / "oibarnet.onnx"
+    est_crop = PoseEstimator(out_crop, warmup_runs=0)
+    fusion_crop = read_metadata(out_crop)["fusion"]
+    assert fusion_crop["head_crop_gain"] == crop["head_crop_gain"] and "head_gain" not in fusion_crop
+    assert est_crop.fusion.head_crop_gain(fusion_crop).gain[0] == crop["head_crop_gain"]["gain"][0]
+    assert smoke.markers["retag_crop"]["metrics"]["head_crop_gain"] is True
+    # unset, the key stays out of the other stages' fingerprints (earlier builds still skip)
+    for name in ("fusion", "retag"):
+        assert "head_crop_gain" not in smoke.markers[name]["inputs"]["opts"], name
     # evaluated through the flight estimator, as the recipe's evaluate stage says
     m = smoke.markers["evaluate"]["metrics"]
     assert m["mode"] == "track" and m["frames"] == 4
@@ -576,12 +664,22 @@ def test_the_fine_tune_and_its_measurements_are_in_mlflow(smoke, tracking):
     client = MlflowClient(tracking_uri=tracking)
     exp = client.get_experiment_by_name("oibarnet_kp_ft_smoke")
     by_stage = {r.data.tags["oibar.stage"]: r for r in client.search_runs([exp.experiment_id])}
-    assert set(by_stage) == {"finetune", "refit", "head_gain", "fusion", "evaluate"}
+    assert set(by_stage) == {
+        "finetune",
+        "refit",
+        "head_gain",
+        "fusion",
+        "head_crop_gain",
+        "fusion_crop",
+        "evaluate",
+    }
     assert {k: by_stage[k].data.tags["oibar.kind"] for k in by_stage} == {
         "finetune": "train",
         "refit": "train",
         "head_gain": "head_gain",
         "fusion": "fusion",
+        "head_crop_gain": "head_crop_gain",
+        "fusion_crop": "fusion",
         "evaluate": "evaluate",
     }
     assert by_stage["finetune"].data.params["train.seed"] == "7"
@@ -600,7 +698,7 @@ def test_a_rerun_skips_every_stage_and_a_new_version_reruns_the_retag_and_what_r
     assert again.ran == [] and len(again.skipped) == len(smoke.recipe.datasets) + len(smoke.recipe.stages)
     bumped = Build(dataclasses.replace(smoke.recipe, model_version="0.0.3"), smoke.dir.parent, progress=False)
     bumped.run()
-    assert bumped.ran == ["retag", "evaluate"]
+    assert bumped.ran == ["retag", "retag_crop", "evaluate"]
     from oibar.nav.pose import read_metadata
 
     assert read_metadata(smoke.stage_dir("retag") / "oibarnet.onnx")["model_version"] == "0.0.3"
