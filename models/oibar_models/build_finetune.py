@@ -178,48 +178,62 @@ def pinned(st: Stage, path: Path, pin: str) -> str:
     return sha
 
 
-# ----------------------------------------------------------------------------- head gain
-def head_gain(b: Build, st: Stage) -> dict:
+# ----------------------------------------------------------------------------- head gains
+def _gain_stage(
+    b: Build, st: Stage, inputs: dict, argv_of, measure_main, keys: tuple[str, ...], plot: bool
+) -> dict:
+    """A head_gain or head_crop_gain stage: its measurement's command line (`argv_of(model)` and
+    the bins, frames and output every such command takes) run into <kind>.json, each bin's `keys`
+    as the stage's metrics, logged to MLflow."""
     from . import tracking
+
+    o, kind = st.opts, st.kind
+
+    def run(d: Path):
+        out = d / f"{kind}.json"
+        model = model_file(b, o["model"])
+        argv = [*argv_of(model), "--min-frames", str(inputs["min_frames"])]
+        argv += ["--range-edges", ",".join(repr(e) for e in inputs["range_edges_m"])]
+        argv += ["--out", str(out), "--no-progress"]
+        outputs = [out]
+        if plot:
+            argv += ["--plot", str(d / f"{kind}.png")]
+            outputs.append(d / f"{kind}.png")
+        if measure_main(argv) != 0:
+            raise BuildError(f"stage {st.name}: the {kind} measurement failed (kp_{kind} {' '.join(argv)})")
+        doc = json.loads(out.read_text())
+        metrics: dict[str, Any] = {"frames": doc["frames"]}
+        for row in doc["bins"]:
+            lo, hi = row["range_m"]
+            for key in keys:
+                metrics[f"{key}_{lo:g}-{hi:g}m"] = round(row[key], 4)
+        tracking.log_evaluation(b.recipe, st.name, model, d, metrics, o, kind=kind)
+        return outputs, metrics
+
+    return b.step(st.name, kind, inputs, run)
+
+
+def head_gain(b: Build, st: Stage) -> dict:
     from .kp_fusion import ERROR_RANGE_EDGES_M
     from .kp_head_gain import MIN_FRAMES_PER_BIN
     from .kp_head_gain import main as head_gain_main
 
     o = st.opts
     spec, root = b.val_set(st)
-    edges = [float(e) for e in (o["range_edges_m"] or ERROR_RANGE_EDGES_M)]
-    min_frames = o["min_frames"] or MIN_FRAMES_PER_BIN
     inputs = {
         "opts": o,
-        "range_edges_m": edges,  # what the defaults were when it ran
-        "min_frames": min_frames,
+        "range_edges_m": [float(e) for e in (o["range_edges_m"] or ERROR_RANGE_EDGES_M)],  # the defaults then
+        "min_frames": o["min_frames"] or MIN_FRAMES_PER_BIN,
         "upstream": b.upstream(o["model"], f"data_{o['val_data']}"),
     }
 
-    def run(d: Path):
-        out = d / "head_gain.json"
-        model = model_file(b, o["model"])
-        argv = ["--model", str(model), "--val-set", str(spec), str(root), "--stride", str(o["stride"])]
-        argv += ["--min-frames", str(min_frames), "--range-edges", ",".join(repr(e) for e in edges)]
-        argv += ["--out", str(out), "--no-progress"]
-        if head_gain_main(argv) != 0:
-            raise BuildError(
-                f"stage {st.name}: the head-gain measurement failed (kp_head_gain {' '.join(argv)})"
-            )
-        doc = json.loads(out.read_text())
-        metrics: dict[str, Any] = {"frames": doc["frames"]}
-        for row in doc["bins"]:
-            lo, hi = row["range_m"]
-            metrics[f"tilt_gain_{lo:g}-{hi:g}m"] = round(row["tilt_gain"], 4)
-        tracking.log_evaluation(b.recipe, st.name, model, d, metrics, o, kind="head_gain")
-        return [out], metrics
+    def argv_of(model: Path) -> list[str]:
+        return ["--model", str(model), "--val-set", str(spec), str(root), "--stride", str(o["stride"])]
 
-    return b.step(st.name, "head_gain", inputs, run)
+    return _gain_stage(b, st, inputs, argv_of, head_gain_main, ("tilt_gain",), plot=False)
 
 
-# ----------------------------------------------------------------------------- head crop gain
 def head_crop_gain(b: Build, st: Stage) -> dict:
-    from . import tracking
     from .kp_fusion import ERROR_RANGE_EDGES_M
     from .kp_head_crop_gain import MIN_FRAMES_PER_BIN, bin_ranges_m
     from .kp_head_crop_gain import main as crop_gain_main
@@ -227,36 +241,19 @@ def head_crop_gain(b: Build, st: Stage) -> dict:
     o = st.opts
     spec = resolve(o["spec"])
     edges = [float(e) for e in (o["range_edges_m"] or ERROR_RANGE_EDGES_M)]
-    min_frames = o["min_frames"] or MIN_FRAMES_PER_BIN
     inputs = {
         "opts": o,
         "spec_sha256": sha256_file(spec),  # the scenes as the rig renders them
         "range_edges_m": edges,  # what the defaults were when it ran
         "ranges_m": bin_ranges_m(edges),
-        "min_frames": min_frames,
+        "min_frames": o["min_frames"] or MIN_FRAMES_PER_BIN,
         "upstream": b.upstream(o["model"]),
     }
 
-    def run(d: Path):
-        out = d / "head_crop_gain.json"
-        model = model_file(b, o["model"])
-        argv = ["--model", str(model), "--spec", str(spec), "--scenes", ",".join(o["scenes"])]
-        argv += ["--min-frames", str(min_frames), "--range-edges", ",".join(repr(e) for e in edges)]
-        argv += ["--out", str(out), "--plot", str(d / "head_crop_gain.png"), "--no-progress"]
-        if crop_gain_main(argv) != 0:
-            raise BuildError(
-                f"stage {st.name}: the head crop-gain measurement failed (kp_head_crop_gain {' '.join(argv)})"
-            )
-        doc = json.loads(out.read_text())
-        metrics: dict[str, Any] = {"frames": doc["frames"]}
-        for row in doc["bins"]:
-            lo, hi = row["range_m"]
-            metrics[f"gain_{lo:g}-{hi:g}m"] = round(row["gain"], 4)
-            metrics[f"bearing_leak_{lo:g}-{hi:g}m"] = round(row["bearing_leak"], 4)
-        tracking.log_evaluation(b.recipe, st.name, model, d, metrics, o, kind="head_crop_gain")
-        return [out, d / "head_crop_gain.png"], metrics
+    def argv_of(model: Path) -> list[str]:
+        return ["--model", str(model), "--spec", str(spec), "--scenes", ",".join(o["scenes"])]
 
-    return b.step(st.name, "head_crop_gain", inputs, run)
+    return _gain_stage(b, st, inputs, argv_of, crop_gain_main, ("gain", "bearing_leak"), plot=True)
 
 
 # ----------------------------------------------------------------------------- finder

@@ -282,6 +282,20 @@ def head_crop_gain_arg(path: Path | None) -> tuple[dict | None, str | None]:
     return _table_arg(path, load_head_crop_gain, "--head-crop-gain")
 
 
+def head_corrections_args(
+    gain: Path | None, crop_gain: Path | None
+) -> tuple[dict | None, dict | None, str | None]:
+    """`--head-gain FILE` and `--head-crop-gain FILE` together: (head gain, crop gain, None), or
+    (None, None, the error to print) for an unreadable file or both at once."""
+    head_gain, err = head_gain_arg(gain)
+    head_crop_gain, err_crop = head_crop_gain_arg(crop_gain)
+    if err or err_crop:
+        return None, None, err or err_crop
+    if head_gain is not None and head_crop_gain is not None:
+        return None, None, "error: --head-gain or --head-crop-gain: one correction of the head, not two"
+    return head_gain, head_crop_gain, None
+
+
 def load_fusion(path: Path, out_px: int) -> dict | None:
     """The fusion a `kp_fusion` JSON chose ("best"), for a model whose crop is `out_px`: its
     weights and the tables it was scored with. None when the choice was PnP alone. ValueError
@@ -522,13 +536,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("overrides", nargs="*")
     a = ap.parse_args(argv)
-    head_gain, err = head_gain_arg(a.head_gain)
-    head_crop_gain, err_crop = head_crop_gain_arg(a.head_crop_gain)
-    if err or err_crop:
-        print(err or err_crop, file=sys.stderr)
-        return 2
-    if head_gain is not None and head_crop_gain is not None:
-        print("error: --head-gain or --head-crop-gain: one correction of the head, not two", file=sys.stderr)
+    head_gain, head_crop_gain, err = head_corrections_args(a.head_gain, a.head_crop_gain)
+    if err:
+        print(err, file=sys.stderr)
         return 2
     if a.retag is not None:
         fusion = None

@@ -366,15 +366,11 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:
             print(f"error: --pairs: KP_PX:PRIOR_DEG[,...], each > 0, got {a.pairs!r}", file=sys.stderr)
             return 2
-    from .kp_export import head_crop_gain_arg, head_gain_arg
+    from .kp_export import head_corrections_args
 
-    head_gain, err = head_gain_arg(a.head_gain)
-    head_crop_gain, err_crop = head_crop_gain_arg(a.head_crop_gain)
-    if err or err_crop:
-        print(err or err_crop, file=sys.stderr)
-        return 2
-    if head_gain is not None and head_crop_gain is not None:
-        print("error: --head-gain or --head-crop-gain: one correction of the head, not two", file=sys.stderr)
+    head_gain, head_crop_gain, err = head_corrections_args(a.head_gain, a.head_crop_gain)
+    if err:
+        print(err, file=sys.stderr)
         return 2
     prior_sigma_scale = None
     if a.prior_sigma_scale is not None:

@@ -207,8 +207,9 @@ def plot(path: Path, rows: dict[str, np.ndarray], result: dict, title: str) -> N
 
 
 def main(argv: list[str] | None = None) -> int:
-    from oibar.nav.pose import KeypointPoseEstimator, ModelFileError, PoseEstimator
     from oibar_hil.dataset import DatasetError, load_spec_file
+
+    from .kp_head_gain import add_bin_options, head_model, range_edges_arg
 
     ap = argparse.ArgumentParser(
         prog="python -m oibar_models.kp_head_crop_gain", description=__doc__.split("\n\n")[0]
@@ -220,20 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="comma-separated scene names of the set (default: all); scenes the network did not train on",
     )
-    ap.add_argument(
-        "--min-frames",
-        type=int,
-        default=MIN_FRAMES_PER_BIN,
-        help=f"the fewest frames a range bin is fitted on (default {MIN_FRAMES_PER_BIN}; fewer: a toy run)",
-    )
-    ap.add_argument(
-        "--range-edges",
-        default=None,
-        metavar="E0,E1,...",
-        help="the range bins' rising edges in m (default: the fusion's error models', "
-        + ",".join(f"{e:g}" for e in ERROR_RANGE_EDGES_M)
-        + ")",
-    )
+    add_bin_options(ap, MIN_FRAMES_PER_BIN)
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/kp_head_crop_gain.json")
     ap.add_argument("--plot", type=Path, default=None, help="a PNG of each bin's fit")
     ap.add_argument("--no-progress", action="store_true")
@@ -241,18 +229,9 @@ def main(argv: list[str] | None = None) -> int:
     if a.min_frames < 2:
         print("error: --min-frames must be >= 2", file=sys.stderr)
         return 2
-    edges = ERROR_RANGE_EDGES_M
-    if a.range_edges is not None:
-        try:
-            edges = tuple(float(e) for e in a.range_edges.split(","))
-            if len(edges) < 2 or any(e < 0 for e in edges) or not np.all(np.diff(edges) > 0):
-                raise ValueError
-        except ValueError:
-            print(
-                f"error: --range-edges: rising edges >= 0, at least two, got {a.range_edges!r}",
-                file=sys.stderr,
-            )
-            return 2
+    edges = range_edges_arg(a.range_edges)
+    if edges is None:
+        return 2
     try:
         specs = {s.name: s for s in load_spec_file(a.spec)}
     except DatasetError as exc:
@@ -263,13 +242,8 @@ def main(argv: list[str] | None = None) -> int:
     if not names or unknown:
         print(f"error: --scenes: {unknown or 'none'} not in {a.spec}", file=sys.stderr)
         return 2
-    try:
-        est = PoseEstimator(a.model)
-    except (ModelFileError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    if not isinstance(est, KeypointPoseEstimator) or est.reader.R_att_ref is None:
-        print(f"error: {a.model} has no attitude head to measure", file=sys.stderr)
+    est = head_model(a.model)
+    if est is None:
         return 2
     ranges = sorted({r for pair in bin_ranges_m(edges) for r in pair})
     rows = collect(est, [specs[n] for n in names], ranges, progress=not a.no_progress)

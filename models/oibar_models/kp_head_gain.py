@@ -159,8 +159,55 @@ def plot(path: Path, rows: dict[str, np.ndarray], result: dict, title: str) -> N
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> int:
+def add_bin_options(ap: argparse.ArgumentParser, min_frames: int) -> None:
+    """--min-frames and --range-edges, as every per-range-bin measurement of the head takes them."""
+    ap.add_argument(
+        "--min-frames",
+        type=int,
+        default=min_frames,
+        help=f"the fewest frames a range bin is measured on (default {min_frames}; fewer: a toy run)",
+    )
+    ap.add_argument(
+        "--range-edges",
+        default=None,
+        metavar="E0,E1,...",
+        help="the range bins' rising edges in m (default: the fusion's error models', "
+        + ",".join(f"{e:g}" for e in ERROR_RANGE_EDGES_M)
+        + ")",
+    )
+
+
+def range_edges_arg(text: str | None) -> tuple[float, ...] | None:
+    """--range-edges' bins (the fusion's without it), or None once what is wrong is printed."""
+    if text is None:
+        return tuple(ERROR_RANGE_EDGES_M)
+    try:
+        edges = tuple(float(e) for e in text.split(","))
+        if len(edges) < 2 or any(e < 0 for e in edges) or not np.all(np.diff(edges) > 0):
+            raise ValueError
+    except ValueError:
+        print(f"error: --range-edges: rising edges >= 0, at least two, got {text!r}", file=sys.stderr)
+        return None
+    return edges
+
+
+def head_model(path: Path):
+    """The keypoint estimator of `path` whose attitude head is to be measured, or None once what
+    is wrong (no file, no keypoint model, no head) is printed."""
     from oibar.nav.pose import KeypointPoseEstimator, ModelFileError, PoseEstimator
+
+    try:
+        est = PoseEstimator(path)
+    except (ModelFileError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+    if not isinstance(est, KeypointPoseEstimator) or est.reader.R_att_ref is None:
+        print(f"error: {path} has no attitude head to measure", file=sys.stderr)
+        return None
+    return est
+
+
+def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(
         prog="python -m oibar_models.kp_head_gain", description=__doc__.split("\n\n")[0]
@@ -177,20 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         help="the validation scenes (a scene set) and where they are rendered (a recipe's build); "
         "default: models/scenes/val.json under --val-root",
     )
-    ap.add_argument(
-        "--min-frames",
-        type=int,
-        default=MIN_FRAMES_PER_BIN,
-        help=f"the fewest frames a range bin is measured on (default {MIN_FRAMES_PER_BIN}; fewer: a toy run)",
-    )
-    ap.add_argument(
-        "--range-edges",
-        default=None,
-        metavar="E0,E1,...",
-        help="the range bins' rising edges in m (default: the fusion's error models', "
-        + ",".join(f"{e:g}" for e in ERROR_RANGE_EDGES_M)
-        + ")",
-    )
+    add_bin_options(ap, MIN_FRAMES_PER_BIN)
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "runs/kp_head_gain.json")
     ap.add_argument("--plot", type=Path, default=None, help="a PNG of the head's tilt against the truth's")
     ap.add_argument("--no-progress", action="store_true")
@@ -198,26 +232,12 @@ def main(argv: list[str] | None = None) -> int:
     if a.stride < 1 or a.min_frames < 2:
         print("error: --stride must be >= 1 and --min-frames >= 2", file=sys.stderr)
         return 2
-    edges = ERROR_RANGE_EDGES_M
-    if a.range_edges is not None:
-        try:
-            edges = tuple(float(e) for e in a.range_edges.split(","))
-            if len(edges) < 2 or any(e < 0 for e in edges) or not np.all(np.diff(edges) > 0):
-                raise ValueError
-        except ValueError:
-            print(
-                f"error: --range-edges: rising edges >= 0, at least two, got {a.range_edges!r}",
-                file=sys.stderr,
-            )
-            return 2
-    spec, root = a.val_set or (REPO_ROOT / "models/scenes/val.json", a.val_root)
-    try:
-        est = PoseEstimator(a.model)
-    except (ModelFileError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    edges = range_edges_arg(a.range_edges)
+    if edges is None:
         return 2
-    if not isinstance(est, KeypointPoseEstimator) or est.reader.R_att_ref is None:
-        print(f"error: {a.model} has no attitude head to measure", file=sys.stderr)
+    spec, root = a.val_set or (REPO_ROOT / "models/scenes/val.json", a.val_root)
+    est = head_model(a.model)
+    if est is None:
         return 2
     try:
         seqs = [load_sequence(REPO_ROOT / root / s.name) for s in load_set(REPO_ROOT / spec)]
