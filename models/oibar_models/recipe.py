@@ -25,9 +25,8 @@ wrong type or a stage that names a stage it cannot use is a RecipeError naming t
       finder    the fixture finder (oibar_models.finder: a finder config's network and schedule)
                 trained on the recipe's datasets, labelled by a keypoint stage's file, exported
       retag     a fine-tune's file with a fusion stage's weights, a head_gain or head_crop_gain
-                stage's table, an
-                optional fixture finder (a finder stage or a file) and the recipe's model_version
-                (kp_export.retag), opened as the flight runtime opens it
+                stage's table, an optional fixture finder (a finder stage or a file) and the
+                recipe's model_version (kp_export.retag), opened as the flight runtime opens it
 """
 
 from __future__ import annotations
@@ -510,17 +509,20 @@ def _check_head_crop_gain(where: str, o: dict, before: list[Stage], datasets: di
     unknown = [n for n in names if n not in known]
     if unknown:
         raise RecipeError(f"{where} scenes: {unknown} are not in {o['spec']}")
-    # a calibration on scenes the fine-tune learnt would flatter its head
-    if model.kind == "finetune":
-        for dname in model["train_data"]:
+    # a calibration on scenes the fine-tune learnt would flatter its head: the model's fine-tune
+    # and every earlier one it starts from (its init chain)
+    stage: Stage | None = model
+    while stage is not None and stage.kind == "finetune":
+        for dname in stage["train_data"]:
             ds = datasets[dname]
             if resolve(ds.spec).resolve() != resolve(o["spec"]).resolve():
                 continue
             seen = set(ds.scenes) if ds.scenes else known
             if seen & set(names):
                 raise RecipeError(
-                    f"{where} scenes: {sorted(seen & set(names))} are trained on by {o['model']!r} (dataset {dname!r})"
+                    f"{where} scenes: {sorted(seen & set(names))} are trained on by {stage.name!r} (dataset {dname!r})"
                 )
+        stage = next((s for s in before if s.name == stage["init"]), None)
 
 
 def _check_finder(where: str, o: dict, before: list[Stage], datasets: dict[str, Dataset]) -> None:

@@ -536,6 +536,25 @@ def smoke(tmp_path_factory, tracking):
     return b
 
 
+def test_a_crop_gain_on_scenes_an_earlier_fine_tune_in_the_chain_learnt_is_refused(tmp_path):
+    """The refit trains on the randomised looks only; the fine-tune it starts from trained on
+    tr000, so the crop gain may not be measured there either."""
+    text = FT_SMOKE.read_text()
+    refit = 'init = "finetune"\ntrain_data = ["train_base", "train_dr"]'
+    assert refit in text and 'scenes = ["tr001"]' in text
+    text = text.replace(refit, 'init = "finetune"\ntrain_data = ["train_dr"]', 1)
+    held = 'distill_data = ["train_base"]\ndistill_from = "models/oibarnet.onnx"'
+    assert held in text
+    text = text.replace(held, 'distill_data = ["train_dr"]\ndistill_from = "models/oibarnet.onnx"', 1)
+    ok = tmp_path / "ok.toml"
+    ok.write_text(text)
+    load_recipe(ok)  # tr001: no stage of the chain trained on it
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace('scenes = ["tr001"]', 'scenes = ["tr000"]', 1))
+    with pytest.raises(RecipeError, match=r"scenes: \['tr000'\] are trained on by 'finetune'"):
+        load_recipe(bad)
+
+
 def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_tables(smoke):
     from oibar.nav.pose import KeypointPoseEstimator, PoseEstimator, read_metadata
     from oibar_models.kp_export import load_fusion
