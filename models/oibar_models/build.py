@@ -368,9 +368,14 @@ class Build:
         o = st.opts
         spec, root = self.val_set(st)
         inputs = {
-            # pnp_alone and head_crop_gain at their defaults fingerprint as before the keys existed
+            # pnp_alone, head_crop_gain and head_error at their defaults fingerprint as before the
+            # keys existed
             "opts": {
-                k: v for k, v in o.items() if (k != "pnp_alone" or not v) and (k != "head_crop_gain" or v)
+                k: v
+                for k, v in o.items()
+                if (k != "pnp_alone" or not v)
+                and (k != "head_crop_gain" or v)
+                and (k != "head_error" or v != "as_read")
             },
             "upstream": self.upstream(
                 o["model"], o["head_gain"], o["head_crop_gain"], f"data_{o['val_data']}"
@@ -401,6 +406,7 @@ class Build:
                 argv += ["--head-crop-gain", str(self.stage_dir(o["head_crop_gain"]) / "head_crop_gain.json")]
             if not o["pnp_alone"]:
                 argv.append("--no-pnp-alone")
+            argv += ["--head-error", o["head_error"].replace("_", "-")]
             if o["prior_sigma_scale"]:
                 t = o["prior_sigma_scale"]
                 argv += [

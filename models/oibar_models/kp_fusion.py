@@ -13,9 +13,12 @@ measurement), chosen on the closed loop of validation looks (docs/model_history.
 The error model (oibar.nav.error_models.KeypointErrorModel) is measured here too: each keypoint's
 RMS error per range bin, in crops cut around the true pose of the validation frames (errors past
 the PnP inlier threshold clipped to it: RANSAC drops those anyway).
+So is each prior's (PriorErrorModel): its RMS attitude error per range bin, the head's measured
+as the fit uses it, its gain given back (`--head-error as-used`, the default), or as read.
 
 python -m oibar_models.kp_fusion --model models/oibarnet.onnx [--stride 16] [--priors head]
-    [--head-gain FILE | --head-crop-gain FILE] [--pairs 2:3] [--out runs/oibarnet_kp/fusion.json]
+    [--head-gain FILE | --head-crop-gain FILE] [--head-error as-used|as-read] [--pairs 2:3]
+    [--out runs/oibarnet_kp/fusion.json]
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
@@ -87,6 +91,9 @@ def collect(est, seqs, stride: int, track: bool = True) -> list[dict]:
                     "direct": direct,
                     "kp_err_crop_px": err,
                     "prior": prior,
+                    # the head as read and where, for its error as the fit uses it (head_as_used)
+                    "R_head": reading.R_cam_target_head,
+                    "win": win,
                     "prior_err_deg": {
                         "direct": _angle_deg(direct.R_cam_target, R_true),
                         "head": _angle_deg(reading.R_cam_target_head, R_true),
@@ -102,6 +109,21 @@ def _angle_deg(R: np.ndarray | None, R_true: np.ndarray) -> float:
     if R is None or not np.all(np.isfinite(R)):
         return float("nan")
     return rotation_angle_deg(np.asarray(R).T @ R_true)
+
+
+def head_as_used(est, rows: list[dict], correction: dict[str, Any]) -> None:
+    """Each row's head error measured again on the head as the fit takes it for its prior
+    (oibar.nav.pose.fusion.Fusion.head_prior with `correction`: {"head_gain": table} or
+    {"head_crop_gain": table}), in place. Dividing a reading by a gain of 0.65 also multiplies
+    its noise by 1.5: the error model of the head as read under-weighs nothing at 3-8 m, but
+    trusted the corrected head 3-4x too much under 1 m (candidate 0.35.13, 2026-12-07)."""
+    for row in rows:
+        R_head = row.get("R_head")
+        if R_head is None or not np.all(np.isfinite(R_head)):
+            continue
+        rng_m = float(np.linalg.norm(row["T"]))
+        R_used = est.fusion.head_prior(R_head, row["win"], rng_m, correction)
+        row["prior_err_deg"]["head"] = _angle_deg(R_used, quat_to_matrix_np(row["q"]))
 
 
 def prior_error_model(rows: list[dict], source: str) -> dict | None:
@@ -343,6 +365,14 @@ def main(argv: list[str] | None = None) -> int:
         "keypoints alone decide; carried into the choice",
     )
     ap.add_argument(
+        "--head-error",
+        choices=("as-used", "as-read"),
+        default="as-used",
+        help="the head prior's error model measured on the head as the fit uses it, its gain "
+        "given back (as-used, the default), or as the network reads it (as-read: what every "
+        "fusion before 2026-12-07 measured; recipes that did not say so rebuild with it)",
+    )
+    ap.add_argument(
         "--no-pnp-alone",
         action="store_true",
         help="leave PnP alone (no attitude prior) out of the grid: the chosen fusion carries a prior",
@@ -394,6 +424,16 @@ def main(argv: list[str] | None = None) -> int:
     seqs = [load_sequence(REPO_ROOT / root / s.name) for s in load_set(REPO_ROOT / spec)]
     rows = collect(est, seqs, a.stride, track=not a.single)
     em = error_model(rows, float(est.reader.reproj_crop_px))
+    correction = (
+        {"head_gain": head_gain}
+        if head_gain
+        else {"head_crop_gain": head_crop_gain}
+        if head_crop_gain
+        else {}
+    )
+    head_error = "as-read" if not correction else a.head_error
+    if head_error == "as-used":
+        head_as_used(est, rows, correction)
     pems = {source: prior_error_model(rows, source) for source in ("direct", "head")}
     try:
         grid = score_grid(
@@ -437,6 +477,7 @@ def main(argv: list[str] | None = None) -> int:
                 "head_crop_gain": head_crop_gain,
                 "prior_sigma_scale": prior_sigma_scale,
                 "pnp_alone": not a.no_pnp_alone,
+                "head_error": head_error,
                 "best": best,
                 "grid": grid,
                 "kp_error_model": em,

@@ -64,6 +64,7 @@ MODEL_KINDS = ("export", "finetune", "retag")
 BATCH_NORM = ("frozen", "train")  # oibar_models.finetune.BATCH_NORM (not imported: it loads torch)
 FREEZABLE = ("backbone", "lateral", "head", "present", "attitude")  # oibar_models.finetune.FREEZABLE
 DISTILL_TARGETS = ("attitude", "last_tap")  # oibar_models.finetune.DISTILL_TARGETS
+HEAD_ERROR = ("as_read", "as_used")  # a fusion stage's head_error (kp_fusion --head-error)
 # every key a stage of each kind may have (beyond name and kind), with its type and default;
 # None as a default: required
 STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
@@ -98,6 +99,9 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         # on the validation probe (oibar.fusion.prior_sigma_scale); {}: the error model's weight
         "prior_sigma_scale": (dict, {}),
         "pnp_alone": (bool, True),  # PnP alone scored beside the priors; false: the fusion carries one
+        # the head prior's error model measured on the head as the fit uses it (gain given back:
+        # "as_used") or as read ("as_read", what every recipe written before 2026-12-07 built with)
+        "head_error": (str, "as_read"),
         "note": (str, ""),
     },
     "evaluate": {
@@ -426,6 +430,10 @@ def _check_stage(where: str, kind: str, o: dict, before: list[Stage], datasets: 
                     and all(isinstance(x, (int, float)) and x > 0 for x in p)
                 ):
                     raise RecipeError(f"{where} pairs: [[KP_PX, PRIOR_DEG], ...], each > 0, got {p!r}")
+            if o["head_error"] not in HEAD_ERROR:
+                raise RecipeError(
+                    f"{where} head_error: one of {', '.join(HEAD_ERROR)}, got {o['head_error']!r}"
+                )
             if o["prior_sigma_scale"]:
                 from oibar.nav.error_models import PriorSigmaScale
 

@@ -301,6 +301,19 @@ def test_the_crop_gain_candidate_is_0_35_6s_fine_tune_read_through_its_heads_cro
     assert c.stage("evaluate").opts == h.stage("evaluate").opts
 
 
+def test_the_used_head_error_candidate_is_0_35_13_with_the_heads_error_measured_as_corrected():
+    """0.35.14 is 0.35.13's recipe, stage for stage, but for its fusion's head error model,
+    measured on the head as the fit uses it (head_error = "as_used")."""
+    c = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_cropgain.toml")
+    u = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_cropgain_used.toml")
+    assert (u.name, u.model_version) == ("oibarnet_kp_ft_cropgain_used", "0.35.14")
+    assert u.datasets == c.datasets and [s.name for s in u.stages] == [s.name for s in c.stages]
+    assert c.stage("fusion").opts["head_error"] == "as_read"
+    for sc in c.stages:
+        edits = {"head_error": "as_used"} if sc.name == "fusion" else {}
+        assert u.stage(sc.name).opts == sc.opts | edits, sc.name
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
@@ -410,6 +423,10 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
             "distill_data: distinct datasets of",
         ),
         (("pnp_alone = false", "pnp_alone = 0"), "pnp_alone: expected bool"),
+        (
+            ('head_error = "as_used"', 'head_error = "as_fitted"'),
+            "head_error: one of as_read, as_used, got 'as_fitted'",
+        ),
         (("steps = 2", "steps = 0"), "steps, batch_size: must be >= 1"),
         (("lr = 2e-4", "lr = -1.0"), "lr: must be > 0"),
         (
@@ -659,6 +676,11 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     assert smoke.markers["head_crop_gain"]["metrics"]["gain_0-100m"] == round(crop["bins"][0]["gain"], 4)
     crop_doc = json.loads((smoke.stage_dir("fusion_crop") / "fusion.json").read_text())
     assert crop_doc["head_crop_gain"] == crop["head_crop_gain"] and crop_doc["head_gain"] is None
+    # the head's error model measured on the head as corrected (head_error = "as_used"), and in
+    # that stage's fingerprint; the first fusion's as read, its key left out at that default
+    assert crop_doc["head_error"] == "as-used" and fusion_doc["head_error"] == "as-read"
+    assert smoke.markers["fusion_crop"]["inputs"]["opts"]["head_error"] == "as_used"
+    assert "head_error" not in smoke.markers["fusion"]["inputs"]["opts"]
     assert crop_doc["best"]["head_crop_gain"] == crop["head_crop_gain"]
     out_crop = smoke.stage_dir("retag_crop") / "oibarnet.onnx"
     est_crop = PoseEstimator(out_crop, warmup_runs=0)

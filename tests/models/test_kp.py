@@ -576,6 +576,59 @@ def test_the_prior_error_model_is_each_priors_rms_per_range_bin():
     assert prior_error_model(rows, "direct") is None
 
 
+def test_the_head_prior_error_is_measured_on_the_head_as_the_fit_uses_it():
+    """kp_fusion.head_as_used: with a crop gain, each row's head error is that of the corrected
+    head the fit leans on (Fusion.head_prior), not of the network's reading. A head that reads
+    its crop at 0.6 with a bearing leak is off by degrees as read and exact as used; a noisy one
+    is as noisy as read, and 1/0.6 as noisy as used: the error model then weighs it by that."""
+    from types import SimpleNamespace
+
+    from oibar.geometry.rotations import matrix_to_quat, rotation_angle_deg, rotvec_to_matrix
+    from oibar.nav.keypoints import CropWindow, attitude_from_crop, attitude_in_crop_deg, bearing_in_crop_deg
+    from oibar.nav.pose.fusion import Fusion
+    from oibar_models.kp_fusion import head_as_used, prior_error_model
+
+    K = np.array([[583.3333, 0, 372.0], [0, 583.3333, 240.0], [0, 0, 1]])
+    R_ref = rotvec_to_matrix(np.radians([180.0, 0.0, 0.0]))
+    pts = np.array([[-0.25, -0.18, 0], [0.25, -0.18, 0], [0.25, 0.18, 0], [-0.25, 0.18, 0], [0, 0, 0.18]])
+    table = {"range_edges_m": [0.0, 100.0], "gain": [0.6], "bearing_leak": [-0.15]}
+    est = SimpleNamespace(fusion=Fusion("m.onnx", {}, pts, K, 4.0, has_head=True, R_att_ref=R_ref))
+    rng = np.random.default_rng(3)
+    rows, noise_deg = [], []
+    for i in range(40):
+        win = CropWindow((rng.uniform(150, 600), rng.uniform(100, 400)), 90.0, 128, angle_rad=0.2)
+        R_true = rotvec_to_matrix(np.radians(rng.normal(0, 3, 3))) @ R_ref
+        true_c = attitude_in_crop_deg(win, K, R_true, R_ref)
+        head_c = true_c.copy()
+        noise = rng.normal(0, 1.0, 2) if i % 2 else np.zeros(2)  # odd rows: a head with noise
+        head_c[:2] = 0.6 * true_c[:2] - 0.15 * bearing_in_crop_deg(win, K)[:2] + noise
+        R_head = attitude_from_crop(win, K, head_c, R_ref)
+        read = rotation_angle_deg(R_head.T @ R_true)
+        rows.append(
+            {
+                "T": np.array([0.0, 0.0, 3.0]),
+                "q": matrix_to_quat(R_true),
+                "R_head": R_head,
+                "win": win,
+                "prior_err_deg": {"head": read, "direct": 1.0},
+            }
+        )
+        noise_deg.append(float(np.linalg.norm(noise)))
+    as_read = np.array([r["prior_err_deg"]["head"] for r in rows])
+    head_as_used(est, rows, {"head_crop_gain": table})
+    used = np.array([r["prior_err_deg"]["head"] for r in rows])
+    noise_ = np.array(noise_deg)
+    exact = noise_ == 0
+    assert np.all(as_read[exact] > 0.2) and np.all(used[exact] < 1e-4)
+    # the noise comes back divided by the gain
+    assert used[~exact] == pytest.approx(noise_[~exact] / 0.6, rel=0.05)
+    assert prior_error_model(rows, "head")["rms_deg"][0] == pytest.approx(np.sqrt(np.mean(used**2)), abs=1e-3)
+    # rows without the head's reading (a model without one) are left as they are
+    rows[0]["R_head"], rows[0]["prior_err_deg"]["head"] = None, 7.0
+    head_as_used(est, rows, {"head_crop_gain": table})
+    assert rows[0]["prior_err_deg"]["head"] == 7.0
+
+
 def test_the_fusion_grid_scores_the_priors_asked_for():
     """kp_fusion.fusion_grid: the direct prior as before, the head (with and without its error
     model) only when the model has one and it is asked for (`--priors`), PnP alone always."""
