@@ -314,6 +314,19 @@ def test_the_used_head_error_candidate_is_0_35_13_with_the_heads_error_measured_
         assert u.stage(sc.name).opts == sc.opts | edits, sc.name
 
 
+def test_the_five_degree_candidate_is_0_35_14_with_the_head_prior_at_5_deg():
+    """0.35.15 is 0.35.14's recipe, stage for stage, but for its fusion's one pair of weights:
+    2 crop px : 5 deg instead of 2 : 3."""
+    a = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_cropgain_used.toml")
+    b = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_cropgain_used5.toml")
+    assert (b.name, b.model_version) == ("oibarnet_kp_ft_cropgain_used5", "0.35.15")
+    assert b.datasets == a.datasets and [s.name for s in b.stages] == [s.name for s in a.stages]
+    for sa in a.stages:
+        edits = {"pairs": [[2, 5]]} if sa.name == "fusion" else {}
+        assert b.stage(sa.name).opts == sa.opts | edits, sa.name
+    assert b.stage("fusion").opts["head_error"] == "as_used"
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
