@@ -115,8 +115,8 @@ def head_as_used(est, rows: list[dict], correction: dict[str, Any]) -> None:
     """Each row's head error measured again on the head as the fit takes it for its prior
     (oibar.nav.pose.fusion.Fusion.head_prior with `correction`: {"head_gain": table} or
     {"head_crop_gain": table}), in place. Dividing a reading by a gain of 0.65 also multiplies
-    its noise by 1.5: the error model of the head as read under-weighs nothing at 3-8 m, but
-    trusted the corrected head 3-4x too much under 1 m (candidate 0.35.13, 2026-12-07)."""
+    its noise by 1.5: 0.35.13's table of the head as read said 1.13 deg RMS under 1 m, where
+    the head its fit used was 4.15 deg off (1.9x from 3 to 5 m; docs/model_card.md)."""
     for row in rows:
         R_head = row.get("R_head")
         if R_head is None or not np.all(np.isfinite(R_head)):
