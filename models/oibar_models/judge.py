@@ -18,8 +18,12 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
    shipped model is probed in the same run (since 2026-12-05: the committed probe was drawn by the
    renderer of its day, and the renderer's changes since (generator 0.3.0's shadows, 0.4.0's
    Earth-shine) moved 0.34.0's 3 m attitude slope 0.953 -> 0.995 and its RMS error 0.28 -> 1.94 deg);
-3. the demo with the candidate: lateral p95 below 5 m <= 5 cm, capture within 1 cm of the axis,
-   navigator p99 <= 50 ms;
+3. the demo's mission (the nominal mission from 10 m) flown on a validation scene's look
+   (``DEMO_SCENE``, since 2026-12-07; it flew seq01, a test sequence, for every candidate), by the
+   candidate and by the shipped model in the same run: the mission passes, capture within 1 cm of
+   the axis, navigator p99 <= 50 ms, and the lateral p95 below 5 m within 5 cm or no worse than
+   the shipped model's on that flight by more than 0.5 cm (the 5 cm alone was written when the
+   shipped model flew 3.76 cm on the renderer of its day; on today's it flies about 21 cm);
 4. the closed loop paired run by run against the shipped model's runs (held-out, then default):
    every run docks; per set the mean paired lateral p95 difference no worse than
    max(1 SE, 0.10 cm); the worst run no worse by more than 0.5 cm, or else (since 2026-12-01) the
@@ -40,7 +44,7 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
     python -m oibar_models.judge validation EVAL_JSON --candidate C.onnx        # one part, from
     python -m oibar_models.judge looks EVAL_JSON --candidate C.onnx             #   files made
     python -m oibar_models.judge probe PROBE_JSON [--shipped PROBE_JSON]        #   already
-    python -m oibar_models.judge demo DEMO_JSON
+    python -m oibar_models.judge demo DEMO_JSON [--shipped DEMO_JSON]
     python -m oibar_models.judge pair held_out=LOOKS_JSON default=LOOKS_JSON \
            [--shipped held_out=LOOKS_JSON ...]   # paired with the shipped model's runs flown beside
            [--refly held_out=LOOKS_JSON]         # a worst run's look flown again (both models)
@@ -72,6 +76,12 @@ BASE_LOOP = REPO / "models/registry/oibarnet-0.34.0/loop_candidate_0340.json"
 LOOP_SETS = ("held_out", "default")  # flown in this order (the held-out looks first)
 # Part 1b's sets (oibar_models.kp_evaluate.SETS): the validation looks of the second renderer
 LOOK_SETS = ("val_mitsuba", "val_lab")
+# Part 3's scene: the validation scene of seq01's port, approach and background (the demo's own
+# scene, a test sequence, is read once per shipped model, for its card). Chosen by that rule
+# before any candidate flew it.
+DEMO_SCENE = "models/scenes/val.json:va000"
+# The paper's test sequences: part 3 refuses a demo flown on one of them.
+TEST_SEQUENCES = ("seq01", "seq08")
 
 
 class JudgeInputError(ValueError):
@@ -91,6 +101,9 @@ class Rule:
     slope_se: float = 2.0
     slope_band: float = 0.1
     demo_lateral_cm: float = 5.0
+    # or else no worse than the shipped model's lateral p95 on the same flight by more than this
+    # (part 4's worst-run margin)
+    demo_lateral_slack_cm: float = 0.5
     demo_capture_cm: float = 1.0
     demo_nav_p99_ms: float = 50.0
     loop_min_slack_cm: float = 0.10
@@ -333,23 +346,62 @@ def probe_moved(committed: dict[str, Any], today: dict[str, Any], tol: float = 1
     return f"{where} {worst:+.3f}" if abs(worst) > tol else ""
 
 
-def judge_demo(demo: list[dict[str, Any]], rule: Rule = Rule()) -> Verdict:
-    """Part 3 from `python -m oibar_hil.rig --json F demo`."""
-    if not isinstance(demo, list) or len(demo) != 1 or "metrics" not in demo[0]:
-        raise JudgeInputError("the demo's JSON must hold one mission with its metrics")
-    r = demo[0]
+def _demo_run(demo: Any, what: str) -> dict[str, Any]:
+    """The one mission of a demo's JSON (`python -m oibar_hil.rig --json F demo`)."""
+    if (
+        not isinstance(demo, list)
+        or len(demo) != 1
+        or not isinstance(demo[0], dict)
+        or "metrics" not in demo[0]
+    ):
+        raise JudgeInputError(f"{what}: the demo's JSON must hold one mission with its metrics")
+    r: dict[str, Any] = demo[0]
+    scene = r.get("scene")
+    if scene is not None and str(scene).rsplit(":", 1)[-1] in TEST_SEQUENCES:
+        raise JudgeInputError(
+            f"{what}: flown on {scene}, a test sequence (read once per shipped model, for its card); "
+            f"part 3 flies {DEMO_SCENE}"
+        )
+    return r
+
+
+def _lateral_cm(r: dict[str, Any]) -> float:
+    return float(r["metrics"].get("nav_lateral_err_m_p95_below_5m", math.nan)) * 100
+
+
+def judge_demo(
+    demo: list[dict[str, Any]], rule: Rule = Rule(), shipped: list[dict[str, Any]] | None = None
+) -> Verdict:
+    """Part 3 from `python -m oibar_hil.rig --json F demo`, the candidate's flight and (when given)
+    the shipped model's on the same scene."""
+    r = _demo_run(demo, "the candidate's demo")
     m, cap = r["metrics"], r.get("capture") or {}
-    lat_cm = float(m.get("nav_lateral_err_m_p95_below_5m", math.nan)) * 100
+    lat_cm = _lateral_cm(r)
     cap_cm = float(cap.get("lateral_m", math.nan)) * 100
     p99 = float(m.get("nav_ms_p99", math.nan))
     v = Verdict("3 (demo)")
-    v.figures = {"lateral_p95_below_5m_cm": lat_cm, "capture_lateral_cm": cap_cm, "nav_ms_p99": p99}
+    v.figures = {
+        "scene": r.get("scene"),
+        "lateral_p95_below_5m_cm": lat_cm,
+        "capture_lateral_cm": cap_cm,
+        "nav_ms_p99": p99,
+    }
     v.check("mission passes", bool(r.get("passed")), f"{r.get('outcome')}")
-    v.check(
-        "lateral p95 below 5 m",
-        lat_cm <= rule.demo_lateral_cm,
-        f"{lat_cm:.2f} cm (<= {rule.demo_lateral_cm:g})",
-    )
+    detail = f"{lat_cm:.2f} cm (<= {rule.demo_lateral_cm:g}"
+    ok = lat_cm <= rule.demo_lateral_cm
+    if shipped is not None:
+        s = _demo_run(shipped, "the shipped model's demo")
+        if s.get("scene") != r.get("scene"):
+            raise JudgeInputError(
+                f"the two demos flew other scenes ({r.get('scene')} and {s.get('scene')}): "
+                "part 3 pairs them on one"
+            )
+        ship_cm = _lateral_cm(s)
+        v.figures["shipped_lateral_p95_below_5m_cm"] = ship_cm
+        bound = ship_cm + rule.demo_lateral_slack_cm
+        ok = ok or lat_cm <= bound
+        detail += f", or <= {bound:.2f}: the shipped model's {ship_cm:.2f} + {rule.demo_lateral_slack_cm:g}"
+    v.check("lateral p95 below 5 m", ok, detail + ")")
     v.check(
         "capture off the axis",
         cap_cm <= rule.demo_capture_cm,
@@ -697,22 +749,20 @@ def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) 
     )
     if not _report(v2, out):
         return False
-    # the rig exits 1 when a check of the mission fails: part 3 says so from its JSON
-    cmd = [
-        py,
-        "-m",
-        "oibar_hil.rig",
-        "--no-progress",
-        "--model",
-        str(cand),
-        "--json",
-        str(out / "demo.json"),
-        "demo",
-    ]
-    print(f"$ {' '.join(cmd)}  (log: {out / 'demo.log'})", flush=True)
-    with (out / "demo.log").open("w") as f:
-        subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
-    return _report(judge_demo(_load(out / "demo.json", "the demo's metrics"), rule), out)
+    # the demo's mission on a validation scene, by the candidate and the shipped model; the rig
+    # exits 1 when a check of the mission fails: part 3 says so from its JSON
+    for model, name in ((cand, "demo"), (base, "demo_shipped")):
+        cmd = [py, "-m", "oibar_hil.rig", "--no-progress", "--model", str(model), "--scene", DEMO_SCENE,
+               "--out", str(out / "rig"), "--json", str(out / f"{name}.json"), "demo"]  # fmt: skip
+        print(f"$ {' '.join(cmd)}  (log: {out / f'{name}.log'})", flush=True)
+        with (out / f"{name}.log").open("w") as f:
+            subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
+    v3 = judge_demo(
+        _load(out / "demo.json", "the demo's metrics"),
+        rule,
+        shipped=_load(out / "demo_shipped.json", "the shipped model's demo"),
+    )
+    return _report(v3, out)
 
 
 def _fly(models: list[Path], looks: str, plan: dict[str, Any], jobs: int, path: Path) -> dict[str, Any]:
@@ -847,6 +897,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="the shipped model's probe made beside it (default: the committed one)")  # fmt: skip
     p = sub.add_parser("demo", help="part 3 from the demo's JSON (python -m oibar_hil.rig --json F demo)")
     p.add_argument("demo_json", type=Path)
+    p.add_argument("--shipped", dest="shipped_demo", type=Path,
+                   help="the shipped model's demo on the same scene (the lateral clause's other bound)")  # fmt: skip
     pair = sub.add_parser("pair", help="part 4 from looks JSONs already flown: held_out=FILE default=FILE")
     nb = sub.add_parser(
         "base", help="a shipped candidate's flown loop as the next base: held_out=FILE default=FILE"
@@ -902,7 +954,8 @@ def main(argv: list[str] | None = None) -> int:
                 a.out,
             )
         elif a.cmd == "demo":
-            ok = _report(judge_demo(_load(a.demo_json, "the demo's metrics")), a.out)
+            shipped_demo = _load(a.shipped_demo, "the shipped model's demo") if a.shipped_demo else None
+            ok = _report(judge_demo(_load(a.demo_json, "the demo's metrics"), shipped=shipped_demo), a.out)
         else:
             sets = _sets(a.sets)
             base = _load(BASE_LOOP, "the shipped model's closed-loop runs")

@@ -81,3 +81,35 @@ def test_the_navigation_metrics_below_5_m_take_only_the_near_cycles():
     assert m["nav_lateral_err_m_p99"] > 0.29  # the whole mission's figure still sees the far cycles
     assert m["nav_hold_cycles"] == 1
     assert m["approach_off_axis_m_max_below_5m"] == pytest.approx(0.4)
+
+
+def test_the_rigs_json_says_which_scene_and_model_the_camera_flew(tmp_path, monkeypatch):
+    """A judge reads the demo's JSON: it refuses a test sequence and pairs two models' flights only
+    on one scene, so the JSON must say what was flown (and nothing for ground-truth navigation)."""
+    import json
+    import types
+
+    import oibar_hil.rig.cli as cli
+
+    seen = []
+
+    def fake_run(sc, **kw):
+        seen.append(kw["nav_options"])
+        return types.SimpleNamespace(
+            scenario=sc, outcome="completed", passed=True, sim_time_s=1.0, wall_time_s=1.0,
+            speed_factor=1.0, metrics={"nav": kw["nav"]}, capture={}, checks=[], report_path=tmp_path,
+        )  # fmt: skip
+
+    monkeypatch.setattr(cli, "run_scenario", fake_run)
+    monkeypatch.setattr(cli, "_print_nav", lambda r: None)
+    monkeypatch.setattr(cli, "_print_checks", lambda r: None)
+    monkeypatch.setattr(cli, "print_summary", lambda rs: None)
+    out = tmp_path / "demo.json"
+    scene, model = "models/scenes/val.json:va000", tmp_path / "m.onnx"
+    assert cli.main(["--model", str(model), "--scene", scene, "--json", str(out), "demo"]) == 0
+    (r,) = json.loads(out.read_text())
+    assert (r["nav"], r["scene"], r["model"]) == ("cnn", scene, str(model))
+    assert seen[-1] == {"model_path": model, "scene": scene}
+    assert cli.main(["--nav", "truth", "--json", str(out), "demo"]) == 0
+    (r,) = json.loads(out.read_text())
+    assert (r["nav"], r["scene"], r["model"]) == ("truth", None, None)

@@ -207,6 +207,11 @@ def main(argv: list[str] | None = None) -> int:
                 [
                     {
                         "scenario": r.scenario.name,
+                        # what the camera drew and which model read it: a judge refuses a test
+                        # sequence, and pairs two arms only when they flew the same scene
+                        "nav": nav,
+                        "scene": args.scene if nav == "cnn" else None,
+                        "model": str(args.model) if nav == "cnn" and args.model else None,
                         "outcome": r.outcome,
                         "passed": r.passed,
                         "sim_time_s": r.sim_time_s,
