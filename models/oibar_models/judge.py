@@ -51,6 +51,10 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
     python -m oibar_models.judge base --what TEXT --out-file F held_out=LOOKS_JSON default=... \
            [--shipped held_out=LOOKS_JSON ...]   # when a candidate ships: its loop arm as the
                                                  # next base (F), paired as `pair` pairs it
+    python -m oibar_models.judge rebase --what TEXT --out-file F held_out=LOOKS_JSON default=...
+                                                 # the shipped model's arm flown under today's
+                                                 # flight code as the base (F): part 4 under that
+                                                 # code then flies only its spot check
 
 Each prints its clauses and writes its verdict (JSON) under --out; exit 0 when it holds, 1 when
 it fails, 2 on bad input (a missing or malformed file, a base that does not match).
@@ -599,6 +603,29 @@ def base_of_flown(base: dict[str, Any], shipped: dict[str, dict[str, Any]]) -> d
     return out
 
 
+def _set_summary(label: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """A base set in its layout: the runs and their means, paired run by run."""
+    from oibar_hil.rig.looks import mean_se
+
+    mu, se = mean_se([r["lat_p95_new_cm"] - r["lat_p95_base_cm"] for r in runs])
+    n = len(runs)
+    return {
+        "label": label,
+        "n": n,
+        "docked_base": sum(r["outcome_base"] == "completed" for r in runs),
+        "docked_new": sum(r["outcome_new"] == "completed" for r in runs),
+        "lat_p95_base_cm": sum(r["lat_p95_base_cm"] for r in runs) / n,
+        "lat_p95_new_cm": sum(r["lat_p95_new_cm"] for r in runs) / n,
+        "paired_diff_cm": mu,
+        "paired_se_cm": se,
+        "worst_base_cm": max(r["lat_p95_base_cm"] for r in runs),
+        "worst_new_cm": max(r["lat_p95_new_cm"] for r in runs),
+        "capture_base_mm": sum(r["capture_base_mm"] for r in runs) / n,
+        "capture_new_mm": sum(r["capture_new_mm"] for r in runs) / n,
+        "runs": runs,
+    }
+
+
 def next_base(
     base: dict[str, Any],
     flown: dict[str, dict[str, Any]],
@@ -610,7 +637,7 @@ def next_base(
     `judge_loop` pairs the next candidate with what this one flew (its ``*_new`` fields). A worst
     run's re-flight (`refly`) is part 4's evidence and is read as part 4 reads it; the base keeps
     the set's own runs only."""
-    from oibar_hil.rig.looks import code_tag, mean_se
+    from oibar_hil.rig.looks import code_tag
 
     v = judge_loop(base, flown, refly=refly)
     if not v.holds:
@@ -640,23 +667,7 @@ def next_base(
                     "capture_new_mm": round(float(r["capture_lateral_m"]) * 1000, 4),
                 }
             )
-        mu, se = mean_se([r["lat_p95_new_cm"] - r["lat_p95_base_cm"] for r in runs])
-        n = len(runs)
-        out[label] = {
-            "label": label,
-            "n": n,
-            "docked_base": sum(r["outcome_base"] == "completed" for r in runs),
-            "docked_new": sum(r["outcome_new"] == "completed" for r in runs),
-            "lat_p95_base_cm": sum(r["lat_p95_base_cm"] for r in runs) / n,
-            "lat_p95_new_cm": sum(r["lat_p95_new_cm"] for r in runs) / n,
-            "paired_diff_cm": mu,
-            "paired_se_cm": se,
-            "worst_base_cm": max(r["lat_p95_base_cm"] for r in runs),
-            "worst_new_cm": max(r["lat_p95_new_cm"] for r in runs),
-            "capture_base_mm": sum(r["capture_base_mm"] for r in runs) / n,
-            "capture_new_mm": sum(r["capture_new_mm"] for r in runs) / n,
-            "runs": runs,
-        }
+        out[label] = _set_summary(label, runs)
     out["verdict"] = [
         f"{c['clause']}: {'holds' if c['holds'] else 'FAILS'} ({c['detail']})" for c in v.clauses
     ]
@@ -777,6 +788,50 @@ def _fly(models: list[Path], looks: str, plan: dict[str, Any], jobs: int, path: 
         path.with_suffix(".log"),
     )  # fmt: skip
     out: dict[str, Any] = _load(path, "the looks' runs")
+    return out
+
+
+def rebase(base: dict[str, Any], shipped: dict[str, dict[str, Any]], what: str) -> dict[str, Any]:
+    """The committed base with the shipped model's arm flown again under today's flight code
+    (`looks --json` per set, every run of every set): each run's ``*_new`` fields what it flew now,
+    the code's tag today's, so that part 4 under this code flies only the spot check (`fly_loop`)
+    instead of the shipped model's 64 runs. The ``*_base`` fields and the verdict stay as the ship
+    recorded them (the model before it, flown under the code of the ship's day: the set's paired
+    means then span two codes); ``rebased`` says what moved and from which code."""
+    from oibar_hil.rig.looks import code_tag
+
+    missing = [label for label in LOOP_SETS if label not in shipped]
+    if missing:
+        raise JudgeInputError(f"no {missing} set given: a rebase flies every set of the base")
+    now = base_of_flown(base, shipped)
+    out: dict[str, Any] = {k: v for k, v in base.items() if k not in LOOP_SETS}
+    moved: dict[str, Any] = {}
+    for label in LOOP_SETS:
+        flown = {_run_key(r["look"], r["start_m"], r["seed"], r["turn"]): r for r in now[label]["runs"]}
+        runs, diffs = [], []
+        for r in base[label]["runs"]:
+            f = flown[_run_key(r["look"], r["start_m"], r["seed"], r["turn"])]
+            diffs.append(f["lat_p95_new_cm"] - float(r["lat_p95_new_cm"]))
+            runs.append(
+                {
+                    **r,
+                    "outcome_new": f["outcome_new"],
+                    "lat_p95_new_cm": round(float(f["lat_p95_new_cm"]), 4),
+                    "capture_new_mm": round(float(f["capture_new_mm"]), 4),
+                }
+            )
+        out[label] = _set_summary(label, runs)
+        moved[label] = {
+            "mean_cm": round(sum(diffs) / len(diffs), 4),
+            "max_abs_cm": round(max(abs(d) for d in diffs), 4),
+            "docked": sum(r["outcome_new"] == "completed" for r in runs),
+            "runs": len(runs),
+        }
+    out["code_tag"] = code_tag()
+    out["rebased"] = [
+        *base.get("rebased", []),
+        {"what": what, "from_code_tag": base.get("code_tag"), "moved": moved},
+    ]
     return out
 
 
@@ -905,6 +960,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     nb.add_argument("--what", required=True, help="what was flown, by whom, where (kept in the file)")
     nb.add_argument("--out-file", type=Path, required=True)
+    rb = sub.add_parser(
+        "rebase",
+        help="the shipped model's arm flown again under today's flight code as the base: held_out=FILE default=FILE",
+    )
+    rb.add_argument("sets", nargs="+")
+    rb.add_argument("--what", required=True, help="what was flown, by whom, where (kept in the file)")
+    rb.add_argument("--out-file", type=Path, required=True)
     for p in (pair, nb):
         p.add_argument("sets", nargs="+")
         p.add_argument(
@@ -956,6 +1018,17 @@ def main(argv: list[str] | None = None) -> int:
         elif a.cmd == "demo":
             shipped_demo = _load(a.shipped_demo, "the shipped model's demo") if a.shipped_demo else None
             ok = _report(judge_demo(_load(a.demo_json, "the demo's metrics"), shipped=shipped_demo), a.out)
+        elif a.cmd == "rebase":
+            rebased = rebase(_load(BASE_LOOP, "the shipped model's closed-loop runs"), _sets(a.sets), a.what)
+            a.out_file.write_text(json.dumps(rebased, indent=1) + "\n")
+            for label in LOOP_SETS:
+                m = rebased["rebased"][-1]["moved"][label]
+                print(
+                    f"{label}: {m['docked']}/{m['runs']} docked; moved {m['mean_cm']:+.4f} cm on the mean, "
+                    f"{m['max_abs_cm']:.4f} at most"
+                )
+            print(f"wrote {a.out_file}: the base under flight code {rebased['code_tag']}")
+            ok = True
         else:
             sets = _sets(a.sets)
             base = _load(BASE_LOOP, "the shipped model's closed-loop runs")

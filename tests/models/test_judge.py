@@ -680,6 +680,44 @@ def test_a_base_flown_under_todays_code_is_the_shipped_arm_after_a_spot_check(tm
     assert fly(0.0)[1] == [(k, m) for k in ("held-out", "default") for m in ("shipped.onnx", "cand.onnx")]
 
 
+def test_a_rebase_makes_the_shipped_arm_flown_under_todays_code_the_base(tmp_path, monkeypatch, capsys):
+    """The shipped model's 64 runs flown again under today's flight code become the base: its runs'
+    shipped arm what they flew now, the code's tag today's (so part 4 under that code flies only the
+    spot check), the ship's own figures kept and what moved recorded; a set or run missing is refused."""
+    import oibar_models.judge as judge
+
+    base = json.loads(BASE_LOOP.read_text())
+    now = {label: {"runs": _as_flown(_moved(base[label]["runs"], 0.3))} for label in ("held_out", "default")}
+    _other_code(monkeypatch, "feedc0de00")
+    rb = judge.rebase(base, now, "0.34.0 flown again")
+    assert rb["code_tag"] == "feedc0de00" and rb["verdict"] == base["verdict"]
+    assert rb["rebased"][-1]["from_code_tag"] == base["code_tag"]
+    for label in ("held_out", "default"):
+        assert rb["rebased"][-1]["moved"][label]["mean_cm"] == pytest.approx(0.3, abs=1e-4)
+        for old, new in zip(base[label]["runs"], rb[label]["runs"], strict=True):
+            assert new["lat_p95_new_cm"] == pytest.approx(old["lat_p95_new_cm"] + 0.3, abs=1e-4)
+            assert new["lat_p95_base_cm"] == old["lat_p95_base_cm"]
+        assert rb[label]["lat_p95_new_cm"] == pytest.approx(base[label]["lat_p95_new_cm"] + 0.3, abs=1e-3)
+        # today's flights are the rebased base's runs, not the committed one's
+        assert judge.spot_check(rb, label, now[label]) == ""
+        assert "cm" in judge.spot_check(base, label, now[label])
+    with pytest.raises(JudgeInputError, match="default"):
+        judge.rebase(base, {"held_out": now["held_out"]}, "one set")
+    short = {**now, "default": {"runs": now["default"]["runs"][1:]}}
+    with pytest.raises(JudgeInputError, match="flew 39 of the base's 40"):
+        judge.rebase(base, short, "a run missing")
+    # from the command line, into a file part 4 reads as a base
+    files = []
+    for label in ("held_out", "default"):
+        f = tmp_path / f"{label}.json"
+        f.write_text(json.dumps(now[label]))
+        files.append(f"{label}={f}")
+    out = tmp_path / "rebased.json"
+    assert main(["--out", str(tmp_path), "rebase", "--what", "test", "--out-file", str(out), *files]) == 0
+    assert json.loads(out.read_text())["code_tag"] == "feedc0de00"
+    assert "base under flight code feedc0de00" in capsys.readouterr().out
+
+
 def test_the_next_base_records_the_flight_code(monkeypatch):
     base = json.loads(BASE_LOOP.read_text())
     again = {label: {"runs": _as_flown(base[label]["runs"])} for label in ("held_out", "default")}
