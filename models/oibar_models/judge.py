@@ -803,6 +803,10 @@ def rebase(base: dict[str, Any], shipped: dict[str, dict[str, Any]], what: str) 
     missing = [label for label in LOOP_SETS if label not in shipped]
     if missing:
         raise JudgeInputError(f"no {missing} set given: a rebase flies every set of the base")
+    today = code_tag()
+    other = {label: f["code_tag"] for label, f in shipped.items() if f.get("code_tag", today) != today}
+    if other:
+        raise JudgeInputError(f"flown under other flight code than today's ({today}): {other}")
     now = base_of_flown(base, shipped)
     out: dict[str, Any] = {k: v for k, v in base.items() if k not in LOOP_SETS}
     moved: dict[str, Any] = {}
@@ -827,7 +831,7 @@ def rebase(base: dict[str, Any], shipped: dict[str, dict[str, Any]], what: str) 
             "docked": sum(r["outcome_new"] == "completed" for r in runs),
             "runs": len(runs),
         }
-    out["code_tag"] = code_tag()
+    out["code_tag"] = today
     out["rebased"] = [
         *base.get("rebased", []),
         {"what": what, "from_code_tag": base.get("code_tag"), "moved": moved},

@@ -193,3 +193,16 @@ def test_the_held_out_looks_are_the_validation_looks_no_choice_used(capsys):
     assert looks.main(["--model", "truth", "--looks", "held-out,va999"]) == 2
     err = capsys.readouterr().err
     assert "['va999']" in err and "held-out" not in err
+
+
+def test_the_json_says_which_flight_code_flew_the_runs(tmp_path, monkeypatch):
+    """A rebase of the ship rule's loop base checks the code its runs were flown under."""
+    import json
+
+    monkeypatch.setattr(looks, "run_study", lambda keys, *a, **k: [_r(keys[0].model, "va000", 2.0)])
+    monkeypatch.setattr(looks, "code_tag", lambda *a, **k: "c0ffee1234")
+    out = tmp_path / "runs.json"
+    args = ["--model", "truth", "--looks", "va000", "--out", str(tmp_path / "cache"), "--json", str(out)]
+    assert looks.main([*args, "--no-progress"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["code_tag"] == "c0ffee1234" and len(doc["runs"]) == 1

@@ -703,6 +703,11 @@ def test_a_rebase_makes_the_shipped_arm_flown_under_todays_code_the_base(tmp_pat
         assert "cm" in judge.spot_check(base, label, now[label])
     with pytest.raises(JudgeInputError, match="default"):
         judge.rebase(base, {"held_out": now["held_out"]}, "one set")
+    # a set flown under other code than today's is no base for today's
+    stale = {**now, "default": {**now["default"], "code_tag": "0ld0ld0ld0"}}
+    with pytest.raises(JudgeInputError, match="other flight code.*0ld0ld0ld0"):
+        judge.rebase(base, stale, "stale")
+    assert judge.rebase(base, {**now, "default": {**now["default"], "code_tag": "feedc0de00"}}, "x")
     short = {**now, "default": {"runs": now["default"]["runs"][1:]}}
     with pytest.raises(JudgeInputError, match="flew 39 of the base's 40"):
         judge.rebase(base, short, "a run missing")

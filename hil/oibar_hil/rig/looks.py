@@ -395,13 +395,15 @@ def main(argv: list[str] | None = None) -> int:
         RunKey(t, lk, r, s, tn) for s in seeds for tn in turns for r in starts for lk in looks for t in tags
     ]
     # runs are cached per flight-code version: another filter default flies everything again
-    out = args.out / f"code-{code_tag()}"
+    flight_code = code_tag()
+    out = args.out / f"code-{flight_code}"
     results = run_study(keys, paths, args.spec, out, args.jobs, progress=not args.no_progress)
     summary = summarise(results, tags)
     print_table(summary, labels)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         doc = {
+            "code_tag": flight_code,  # what the runs were flown under (a rebase checks it)
             "looks": looks,
             "starts_m": starts,
             "seeds": seeds,
