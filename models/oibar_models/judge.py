@@ -680,6 +680,7 @@ def next_base(
 def _run(cmd: list[str], log: Path) -> None:
     """A step of the rule (a CLI of this project) with its output in `log`; stops on failure."""
     print(f"$ {' '.join(cmd)}  (log: {log})", flush=True)
+    log.parent.mkdir(parents=True, exist_ok=True)  # `judge loop` may be the first to write --out
     with log.open("w") as f:
         rc = subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
     if rc != 0:

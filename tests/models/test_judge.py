@@ -3,6 +3,7 @@ clause on figures made to fail it."""
 
 import copy
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -326,6 +327,18 @@ def _other_code(monkeypatch, tag="0123456789"):
 def _moved(runs, cm):
     """The base's runs with every lateral p95 `cm` larger: the same model under other flight code."""
     return [dict(r, lat_p95_new_cm=r["lat_p95_new_cm"] + cm) for r in runs]
+
+
+def test_a_step_writes_its_log_into_an_out_folder_not_made_yet(tmp_path):
+    """`judge loop --out DIR` on a fresh clone: its first step (the spot check) logs into DIR,
+    which no earlier part made; a failing step still says where its log is."""
+    import oibar_models.judge as judge
+
+    log = tmp_path / "judge" / "spot.log"
+    judge._run([sys.executable, "-c", "print('flown')"], log)
+    assert log.read_text().strip() == "flown"
+    with pytest.raises(judge.JudgeInputError, match="exit 3"):
+        judge._run([sys.executable, "-c", "raise SystemExit(3)"], tmp_path / "again" / "x.log")
 
 
 def test_the_loop_flies_the_bases_runs_held_out_first_and_pairs_them(tmp_path, monkeypatch):
