@@ -118,6 +118,8 @@ def smoke(tmp_path_factory, tracking):
 
 
 def test_the_smoke_build_exports_a_checked_model_with_finite_metrics(smoke):
+    import torch
+
     from oibar.nav.pose import KeypointPoseEstimator, PoseEstimator, read_metadata
 
     stages = ["data_train", "data_val", *(s.name for s in smoke.recipe.stages)]
@@ -125,6 +127,9 @@ def test_the_smoke_build_exports_a_checked_model_with_finite_metrics(smoke):
     for name in stages:
         marker = json.loads((smoke.stage_dir(name) / MARKER).read_text())
         assert marker["stage"] == name and len(marker["key"]) == 64
+        # where it ran, for a rebuild that does not match to the bit
+        assert marker["machine"]["torch"] == torch.__version__
+        assert marker["machine"]["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
         for rel, sha in marker["outputs"].items():
             assert (smoke.dir / rel).is_file() and len(sha) == 64
     out = smoke.stage_dir("export") / "oibarnet.onnx"
