@@ -31,9 +31,10 @@ REPO = HERE.parent
 PROTO = REPO / "proto" / "oibar.proto"
 MODELS = REPO / "models"
 # The default model of `oibar nav` first (oibar.resources.DEFAULT_MODEL), then the files its ONNX
-# metadata names, which must lie beside it: its first pass (oibar.first_pass) and its far network
-# (oibar.far_network). tests/host/test_packaging.py checks this list against that metadata.
-SHIPPED_MODELS = ("oibarnet.onnx", "oibarnet_far.onnx", "oibarnet_lite.onnx")
+# metadata names, which must lie beside it: its first pass (oibar.first_pass), its fixture finder
+# (oibar.finder) and any far network (oibar.far_network). tests/host/test_packaging.py checks this
+# list against that metadata.
+SHIPPED_MODELS = ("oibarnet.onnx", "oibarnet_finder.onnx", "oibarnet_lite.onnx")
 GENERATED = ("oibar_pb2.py", "oibar_pb2.pyi")
 
 

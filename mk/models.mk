@@ -199,6 +199,6 @@ registry-verify: setup ## the shipped ONNX files against their sha256 in models/
 FINDER_CONFIG ?= models/configs/finder/oibarnet_finder.yaml
 .PHONY: train-finder
 train-finder: SETUP_PROFILE = train
-train-finder: setup ## train the fixture finder (FINDER_CONFIG; resumes runs/finder/) and export it to models/oibarnet_finder.onnx
+train-finder: setup ## train the fixture finder (FINDER_CONFIG; resumes runs/finder/) and export it to runs/finder/oibarnet_finder.onnx
 	@$(PY) -m oibar_models.finder train --config $(FINDER_CONFIG)
 	@$(PY) -m oibar_models.finder export --config $(FINDER_CONFIG)

@@ -449,7 +449,8 @@ def export(cfg: FinderConfig, out_path: Path | None = None) -> Path:
     net = FinderNet(cfg.width)
     net.load_state_dict(ck["net"])
     net.eval()
-    out_path = out_path or REPO_ROOT / "models" / f"{cfg.name}.onnx"
+    # beside its run, not into models/: the shipped model's finder lies there (0.35.15 on)
+    out_path = out_path or run / f"{cfg.name}.onnx"
     x = torch.rand(1, 3, INPUT_WH[1], INPUT_WH[0], generator=torch.Generator().manual_seed(0))
     tmp = out_path.with_suffix(".tmp.onnx")
     with (
@@ -481,7 +482,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("cmd", choices=("train", "export"))
     ap.add_argument("--config", type=Path, default=REPO_ROOT / "models/configs/finder/oibarnet_finder.yaml")
     ap.add_argument(
-        "--out", type=Path, default=None, help="export: the ONNX file (default models/<name>.onnx)"
+        "--out", type=Path, default=None, help="export: the ONNX file (default <out_dir>/<name>.onnx)"
     )
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)

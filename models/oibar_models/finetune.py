@@ -184,12 +184,30 @@ def open_sequences(o: Options) -> tuple[list[Sequence], list[Sequence]]:
     return train, held
 
 
+# The stage every fine-tune so far descends from (0.34.0's network under 8 m, stage 15): the config
+# of a fine-tuned file that does not name its own (the 0.35.x candidates, 0.35.15 shipped among them).
+LINEAGE_CONFIG = CONFIG_DIR / "oibarnet_kp_stage15.yaml"
+
+
+def stage_config_path(o: Options, meta: dict) -> Path:
+    """The training config a fine-tune of `meta`'s file starts from: --config, else the stage
+    config of its name; a fine-tuned file is named for its run, not a stage, and keeps its init's
+    architecture, so it takes the config its fine-tune recorded (``oibar.finetune.config``)."""
+    if o.config:
+        return Path(o.config)
+    own = CONFIG_DIR / f"{meta.get('name', '')}.yaml"
+    done = meta.get("finetune")
+    if own.is_file() or not isinstance(done, dict):
+        return own
+    return REPO_ROOT / done["config"] if done.get("config") else LINEAGE_CONFIG
+
+
 def stage_config(o: Options, meta: dict, n_frames: int):
     """The shipped network's last stage's config, turned into a fine-tune: its crop, augmentation,
     loss weights and export settings; the steps, learning rate, seed and run folder the fine-tune's."""
     from .kp_engine import KpConfig
 
-    path = o.config or CONFIG_DIR / f"{meta.get('name', '')}.yaml"
+    path = stage_config_path(o, meta)
     if not Path(path).is_file():
         raise FinetuneError(
             f"no stage config for {o.init} (oibar.name {meta.get('name')!r}): {path} not found; give --config"
@@ -464,6 +482,14 @@ def frozen_parts(net, names: tuple[str, ...]) -> list[torch.nn.Module]:
 
 
 # ----------------------------------------------------------------------------- export
+def _repo_relative(path: Path) -> str:
+    """`path` as the repository names it (a file's metadata must not carry this checkout's place)."""
+    try:
+        return str(Path(path).resolve().relative_to(REPO_ROOT))
+    except ValueError:
+        return str(path)
+
+
 def export_candidate(
     o: Options, cfg, net, meta: dict, val: dict, spreads: dict[str, float], gap: float | None = None
 ) -> Path:
@@ -498,6 +524,7 @@ def export_candidate(
         finetune={
             "from": str(o.init),
             "from_model_version": meta.get("model_version"),
+            "config": _repo_relative(stage_config_path(o, meta)),
             "data": [str(p) for p in o.data],
             "held": [str(p) for p in o.val],
             "steps": cfg.train.steps,
@@ -535,8 +562,11 @@ def export_candidate(
 
 
 def companions(meta: dict) -> list[str]:
+    """The files `meta` names, which must lie beside its model: the first pass, the far network
+    and the fixture finder (a fine-tune keeps its init's finder until a finder stage retags it)."""
     far = meta.get("far_network") or {}
-    return [meta["first_pass"]] + ([far["file"]] if far else [])
+    finder = meta.get("finder") or {}
+    return [meta["first_pass"]] + ([far["file"]] if far else []) + ([finder["file"]] if finder else [])
 
 
 # ----------------------------------------------------------------------------- evaluation

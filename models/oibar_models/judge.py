@@ -75,8 +75,8 @@ REPO = Path(__file__).resolve().parents[2]
 SHIPPED = REPO / "models/oibarnet.onnx"
 # The shipped model's own probe and closed-loop runs, the bases of parts 2 and 4. When a model
 # ships, its probe and its loop arm become the new bases (and these two names change with it).
-BASE_PROBE = REPO / "models/registry/oibarnet-0.34.0/probe_val_0340.json"
-BASE_LOOP = REPO / "models/registry/oibarnet-0.34.0/loop_base_0340_0f3f13b8c6.json"
+BASE_PROBE = REPO / "models/registry/oibarnet-0.35.15/probe_val_03515.json"
+BASE_LOOP = REPO / "models/registry/oibarnet-0.35.15/loop_base_03515_0f3f13b8c6.json"
 LOOP_SETS = ("held_out", "default")  # flown in this order (the held-out looks first)
 # Part 1b's sets (oibar_models.kp_evaluate.SETS): the validation looks of the second renderer
 LOOK_SETS = ("val_mitsuba", "val_lab")

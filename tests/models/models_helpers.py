@@ -28,14 +28,17 @@ CAMERA = {
 SHIPPED_KP = Path(__file__).resolve().parents[2] / "models" / "oibarnet.onnx"
 
 
-def shipped_companions() -> list[str]:
-    """The files the shipped keypoint model opens beside it: its first pass and, when its export
-    names one, its far network (``oibar.far_network``; 0.29.0 has one)."""
+def shipped_companions(far: bool = True) -> list[str]:
+    """The files the shipped keypoint model opens beside it: its first pass, its fixture finder
+    (``oibar.finder``; 0.35.15 has one) and any far network (``oibar.far_network``; 0.34.0 had
+    one), that last left out with `far` False."""
     from oibar.nav.pose import read_metadata
+    from oibar_models.finetune import companions
 
     meta = read_metadata(SHIPPED_KP)
-    far = meta.get("far_network") or {}
-    return [meta["first_pass"]] + ([far["file"]] if far else [])
+    if not far:
+        meta.pop("far_network", None)
+    return companions(meta)
 
 
 def link_shipped_companions(dst: Path) -> None:
@@ -55,8 +58,8 @@ def copy_shipped(dst: Path) -> Path:
 
 
 def one_network_copy(dst: Path) -> Path:
-    """The shipped main file copied into `dst` with its far network unnamed (the main network
-    alone reads every window), its first pass copied beside it; returns the copy."""
+    """The shipped main file copied into `dst` with any far network unnamed (the main network
+    alone reads every window), its first pass and finder copied beside it; returns the copy."""
     import shutil
 
     import onnx
@@ -67,8 +70,8 @@ def one_network_copy(dst: Path) -> Path:
             m.metadata_props.remove(p)
     out = dst / SHIPPED_KP.name
     onnx.save(m, str(out))
-    first = shipped_companions()[0]
-    shutil.copy(SHIPPED_KP.parent / first, dst / first)
+    for name in shipped_companions(far=False):
+        shutil.copy(SHIPPED_KP.parent / name, dst / name)
     return out
 
 

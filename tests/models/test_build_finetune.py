@@ -36,7 +36,7 @@ name = "finetune"
 """
 
 
-def test_the_candidate_recipe_starts_from_the_shipped_file_with_0_35_1s_chain_and_the_turned_runs():
+def test_the_candidate_recipe_starts_from_0_34_0s_file_with_0_35_1s_chain_and_the_turned_runs():
     r = load_recipe(FT)
     assert (r.name, r.model_version, r.seed, r.threads) == ("oibarnet_kp_ft", "0.35.3", 0, 2)
     assert [(s.name, s.kind) for s in r.stages] == [
@@ -57,7 +57,9 @@ def test_the_candidate_recipe_starts_from_the_shipped_file_with_0_35_1s_chain_an
     assert ds["val"].spec == "models/scenes/val.json" and ds["val"].scenes == []
     assert all(d.root for d in ds.values()) and all(d.frames_limit == 0 for d in ds.values())
     ft = r.stage("finetune").opts
-    assert ft["init"] == "models/oibarnet.onnx" and ft["init_sha256"] == sha256_file(REPO / ft["init"])
+    # 0.34.0, kept beside its registry entry since 0.35.15 shipped
+    assert ft["init"] == "models/registry/oibarnet-0.34.0/oibarnet.onnx"
+    assert ft["init_sha256"] == sha256_file(REPO / ft["init"])
     assert ft["train_data"] == ["train_base", "train_turned", "train_dr"] and ft["val_data"] == "val"
     assert (ft["steps"], ft["lr"], ft["batch_size"], ft["batch_norm"], ft["far_network"]) == (
         1000,
@@ -181,7 +183,7 @@ def test_the_refit_candidate_is_the_head_frozen_fine_tune_then_its_head_alone_ta
         "freeze": ["backbone", "lateral", "head", "present"],
         "distill_weight": 1.0,
         "distill_data": ["train_base"],
-        "distill_from": "models/oibarnet.onnx",
+        "distill_from": "models/registry/oibarnet-0.34.0/oibarnet.onnx",
         "distill_from_sha256": first["init_sha256"],  # the teacher is the file the first stage starts from
     }
     assert b.stage("refit").opts == first | refit

@@ -100,7 +100,13 @@ def test_one_step_fine_tune_exports_a_flight_model_and_its_table(lab, tmp_path, 
     # its keypoint gate: the shipped one scaled with how its heat maps broadened on the training crops
     s = meta["finetune"]["spread_median_crop_px"]
     assert s["start"] > 0 and s["finetuned"] > 0
-    assert meta["pnp"]["max_spread_crop_px"] == pytest.approx(9.0 * s["finetuned"] / s["start"], abs=2e-3)
+    from oibar.nav.pose.reader import MAX_SPREAD_CROP_PX
+
+    gate = shipped["pnp"].get("max_spread_crop_px", MAX_SPREAD_CROP_PX)
+    assert meta["pnp"]["max_spread_crop_px"] == pytest.approx(gate * s["finetuned"] / s["start"], abs=2e-3)
+    # the shipped file's companions beside it, its finder among them (a fine-tune keeps its init's)
+    assert meta["finder"] == shipped["finder"] and (out / shipped["finder"]["file"]).is_file()
+    assert meta["finetune"]["config"] == "models/configs/keypoints/oibarnet_kp_stage15.yaml"
     assert est.reader.max_spread_crop_px == meta["pnp"]["max_spread_crop_px"]
     assert meta["model_version"].endswith("+finetune")
     res = json.loads((out / "eval.json").read_text())

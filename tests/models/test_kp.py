@@ -1257,8 +1257,10 @@ def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head
                 p.value = json.dumps(fusion)
         onnx.save(m, str(model))
 
-    # the shipped file's fusion without any head gain of its own
-    fusion_before = {k: v for k, v in read_metadata(model)["fusion"].items() if k != "head_gain"}
+    # the shipped file's fusion without any correction of the head of its own
+    fusion_before = {
+        k: v for k, v in read_metadata(model)["fusion"].items() if k not in ("head_gain", "head_crop_gain")
+    }
     set_fusion(fusion_before)
     table = {"range_edges_m": [0.0, 1.0, 100.0], "tilt_gain": [0.85, 0.95]}
     (tmp_path / "gain.json").write_text(json.dumps({"head_gain": table, "bins": []}))
@@ -1299,23 +1301,30 @@ def test_retag_puts_a_head_crop_gain_into_the_fusion_in_place_of_its_head_gain(t
     (tmp_path / "gain.json").write_text(
         json.dumps({"head_gain": {"range_edges_m": [0, 100], "tilt_gain": [0.9]}})
     )
+
+    def set_fusion(fusion):
+        m = onnx.load(str(model))
+        for prop in m.metadata_props:
+            if prop.key == "oibar.fusion":
+                prop.value = json.dumps(fusion)
+        onnx.save(m, str(model))
+
+    # the shipped file's fusion with a head gain in place of any crop gain (as 0.34.0 carried one)
+    fusion = read_metadata(model)["fusion"]
+    base = {k: v for k, v in fusion.items() if k not in ("head_gain", "head_crop_gain")}
+    set_fusion(dict(base, head_gain={"range_edges_m": [0.0, 100.0], "tilt_gain": [0.9]}))
     fusion_before = read_metadata(model)["fusion"]
-    assert fusion_before.get("head_gain")  # the shipped file's own
 
     crop = ["--head-crop-gain", str(tmp_path / "crop.json")]
     assert export_main(["--retag", str(model), *crop, "--head-gain", str(tmp_path / "gain.json")]) == 2
     assert "one correction of the head, not two" in capsys.readouterr().err
     assert export_main(["--retag", str(model), "--head-crop-gain", str(tmp_path / "bad.json")]) == 2
     assert "--head-crop-gain" in capsys.readouterr().err
-    assert export_main(["--retag", str(model), *crop]) == 2  # beside the shipped head gain
+    assert export_main(["--retag", str(model), *crop]) == 2  # beside the file's head gain
     assert "one correction of the head, not two" in capsys.readouterr().err
     assert read_metadata(model)["fusion"] == fusion_before
 
-    m = onnx.load(str(model))
-    for prop in m.metadata_props:
-        if prop.key == "oibar.fusion":
-            prop.value = json.dumps({k: v for k, v in fusion_before.items() if k != "head_gain"})
-    onnx.save(m, str(model))
+    set_fusion(base)
     assert export_main(["--retag", str(model), *crop, "--model-version", "9.9.9"]) == 0
     fusion = read_metadata(model)["fusion"]
     assert fusion["head_crop_gain"] == table and "head_gain" not in fusion

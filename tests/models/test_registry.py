@@ -34,14 +34,25 @@ def doc() -> dict:
 def test_the_shipped_files_are_the_registered_ones(doc):
     assert verify(doc) == []
     shipped = {p for m in doc["models"] if m["status"] == "shipped" for p in m["files"]}
-    assert shipped == {"models/oibarnet.onnx", "models/oibarnet_far.onnx", "models/oibarnet_lite.onnx"}
+    assert shipped == {"models/oibarnet.onnx", "models/oibarnet_finder.onnx", "models/oibarnet_lite.onnx"}
 
 
-def test_the_shipped_keypoint_model_says_it_predates_its_recipe(doc):
+def test_the_shipped_keypoint_model_is_its_recipes_and_names_its_finder(doc):
+    """0.35.15 is built by its recipe, whose retag stage names the finder the registry ships."""
+    from oibar_models.recipe import load_recipe
+
     m = find(doc, "oibarnet")
-    assert m["version"] == "0.34.0" and len(m["commit"]) == 40
-    assert m["recipe"] == "models/recipes/oibarnet_kp.toml" and "not rebuilt" in m["recipe_status"]
+    assert m["version"] == "0.35.15" and m["recipe"] == "models/recipes/oibarnet_kp_ft_cropgain_used5.toml"
+    recipe = load_recipe(REGISTRY.parent.parent / m["recipe"])
+    assert recipe.model_version == m["version"] and recipe.stage("retag").opts["finder"] == "finder"
     assert all(math.isfinite(m["metrics"]["validation"][k]) for k in ("dt_mean_pct", "dq_mean_deg"))
+
+
+def test_the_retired_model_the_recipes_start_from_is_kept_with_its_files(doc):
+    """0.34.0 is retired, and its files lie beside its records: the 0.35.x recipes fine-tune it."""
+    old = find(doc, "oibarnet", "0.34.0")
+    assert old["status"] == "retired" and len(old["commit"]) == 40 and "not rebuilt" in old["recipe_status"]
+    assert verify({"models": [dict(old, status="shipped")]}) == []
 
 
 def test_the_card_tables_are_the_registrys(doc):
@@ -117,7 +128,7 @@ def test_the_records_lie_beside_the_registry_and_the_judge_reads_them(doc, tmp_p
 
     m = find(doc, "oibarnet")
     records = m["records"]
-    assert records and all(p.startswith("models/registry/oibarnet-0.34.0/") for p in records)
+    assert records and all(p.startswith(f"models/registry/oibarnet-{m['version']}/") for p in records)
     for base in (BASE_PROBE, BASE_LOOP):
         assert str(base.relative_to(REPO_ROOT)) in records
     for entry in doc["models"]:
@@ -131,7 +142,7 @@ def test_the_records_lie_beside_the_registry_and_the_judge_reads_them(doc, tmp_p
     first = next(iter(records))
     changed.write_text(text.replace(records[first], "0" * 64))
     assert verify(load_registry(changed)) == [
-        f"{first}: sha256 differs from the registry's (oibarnet 0.34.0)"
+        f"{first}: sha256 differs from the registry's (oibarnet {m['version']})"
     ]
 
 
