@@ -1237,12 +1237,21 @@ def test_kp_head_gain_says_what_is_missing(tmp_path, capsys):
     assert not out.exists()
 
 
+def _set_fusion(model, fusion: dict) -> None:
+    """Write `fusion` as `model`'s oibar.fusion metadata, in place (a copy's)."""
+    import onnx
+
+    m = onnx.load(str(model))
+    for prop in m.metadata_props:
+        if prop.key == "oibar.fusion":
+            prop.value = json.dumps(fusion)
+    onnx.save(m, str(model))
+
+
 def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head(tmp_path):
     """`kp_export --retag --head-gain FILE` writes kp_head_gain's table into the export's fusion
     (every other fusion table as it was) and the runtime divides by it; a file whose table the
     runtime would refuse, or an export whose prior is not the head, is refused and nothing written."""
-
-    import onnx
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
     from oibar_models.kp_export import main as export_main
@@ -1250,18 +1259,11 @@ def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head
     copy_shipped(tmp_path)
     model = tmp_path / "oibarnet.onnx"
 
-    def set_fusion(fusion):
-        m = onnx.load(str(model))
-        for p in m.metadata_props:
-            if p.key == "oibar.fusion":
-                p.value = json.dumps(fusion)
-        onnx.save(m, str(model))
-
     # the shipped file's fusion without any correction of the head of its own
     fusion_before = {
         k: v for k, v in read_metadata(model)["fusion"].items() if k not in ("head_gain", "head_crop_gain")
     }
-    set_fusion(fusion_before)
+    _set_fusion(model, fusion_before)
     table = {"range_edges_m": [0.0, 1.0, 100.0], "tilt_gain": [0.85, 0.95]}
     (tmp_path / "gain.json").write_text(json.dumps({"head_gain": table, "bins": []}))
     (tmp_path / "bad.json").write_text(json.dumps({"head_gain": dict(table, tilt_gain=[0.85, 9.0])}))
@@ -1279,7 +1281,7 @@ def test_retag_puts_a_head_gain_into_the_fusion_and_refuses_one_without_the_head
     assert est.fusion.head_gain(est.meta["fusion"]).gain(0.5) == 0.85
 
     # an export whose fusion leans on the direct model's attitude: a head gain means nothing there
-    set_fusion(dict(fusion_before, attitude_prior="direct"))
+    _set_fusion(model, dict(fusion_before, attitude_prior="direct"))
     assert export_main(["--retag", str(model), "--head-gain", str(tmp_path / "gain.json")]) == 2
     assert "head_gain" not in read_metadata(model)["fusion"]
 
@@ -1288,7 +1290,6 @@ def test_retag_puts_a_head_crop_gain_into_the_fusion_in_place_of_its_head_gain(t
     """`kp_export --retag --head-crop-gain FILE` writes kp_head_crop_gain's table into the
     export's fusion; beside a head gain the runtime refuses the file (one correction of the head,
     not two), so the retag says so and writes nothing; both options at once are refused first."""
-    import onnx
 
     from oibar.nav.pose import KeypointPoseEstimator, read_metadata
     from oibar_models.kp_export import main as export_main
@@ -1302,17 +1303,10 @@ def test_retag_puts_a_head_crop_gain_into_the_fusion_in_place_of_its_head_gain(t
         json.dumps({"head_gain": {"range_edges_m": [0, 100], "tilt_gain": [0.9]}})
     )
 
-    def set_fusion(fusion):
-        m = onnx.load(str(model))
-        for prop in m.metadata_props:
-            if prop.key == "oibar.fusion":
-                prop.value = json.dumps(fusion)
-        onnx.save(m, str(model))
-
     # the shipped file's fusion with a head gain in place of any crop gain (as 0.34.0 carried one)
     fusion = read_metadata(model)["fusion"]
     base = {k: v for k, v in fusion.items() if k not in ("head_gain", "head_crop_gain")}
-    set_fusion(dict(base, head_gain={"range_edges_m": [0.0, 100.0], "tilt_gain": [0.9]}))
+    _set_fusion(model, dict(base, head_gain={"range_edges_m": [0.0, 100.0], "tilt_gain": [0.9]}))
     fusion_before = read_metadata(model)["fusion"]
 
     crop = ["--head-crop-gain", str(tmp_path / "crop.json")]
@@ -1324,7 +1318,7 @@ def test_retag_puts_a_head_crop_gain_into_the_fusion_in_place_of_its_head_gain(t
     assert "one correction of the head, not two" in capsys.readouterr().err
     assert read_metadata(model)["fusion"] == fusion_before
 
-    set_fusion(base)
+    _set_fusion(model, base)
     assert export_main(["--retag", str(model), *crop, "--model-version", "9.9.9"]) == 0
     fusion = read_metadata(model)["fusion"]
     assert fusion["head_crop_gain"] == table and "head_gain" not in fusion
