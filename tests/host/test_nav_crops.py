@@ -26,12 +26,13 @@ def frame_3m() -> np.ndarray:
     return np.asarray(Image.open(GOLDEN / "cold_3m.png").convert("RGB"))
 
 
-def _counting_estimator():
-    """The shipped estimator at the flight setting, and the rows of every batch its keypoint
-    networks were given (an independent count: onnxruntime's inputs)."""
+def _counting_estimator(finder: bool = True):
+    """The shipped estimator at the flight setting (its fixture finder closed with `finder`
+    False), and the rows of every batch its keypoint networks were given (an independent count:
+    onnxruntime's inputs)."""
     from oibar.nav.pose import PoseEstimator
 
-    est = PoseEstimator(MODEL, threads=1)
+    est = PoseEstimator(MODEL, threads=1, finder=finder)
     rows: list[int] = []
     sessions = [est.reader.session] + ([est.reader.far_session] if est.reader.far_session else [])
     for s in sessions:
@@ -45,16 +46,18 @@ def _counting_estimator():
     return est, rows
 
 
-def test_a_cold_frame_counts_every_crop_by_the_stage_that_read_it(frame_3m):
-    est, rows = _counting_estimator()
+@pytest.mark.parametrize("finder", [True, False])
+def test_a_cold_frame_counts_every_crop_by_the_stage_that_read_it(frame_3m, finder):
+    est, rows = _counting_estimator(finder)
     e = est.estimate(frame_3m, 2.0)
     assert e.crops == sum(rows) > 0
     assert sum(est.last_crops.values()) == e.crops
     assert set(est.last_crops) <= set(STAGES)
-    # nothing placed a window: the direct model's window and SEARCH_STEPS came first, and the
-    # fit they found was checked upside down
-    assert "placed" not in est.last_crops
-    assert est.last_crops["steps"] >= 1 and "upright" in est.last_crops
+    # nothing placed a window: the finder's crop (when the file's finder is open) or else the
+    # direct model's window and SEARCH_STEPS came first, and the fit found was checked upside down
+    assert "placed" not in est.last_crops and "upright" in est.last_crops
+    first = "found" if finder else "steps"
+    assert est.last_crops[first] >= 1 and not {"found", "steps"} - {first} & set(est.last_crops)
 
 
 def test_a_tracked_frame_reads_only_the_window_its_prediction_places(frame_3m):

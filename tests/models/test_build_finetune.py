@@ -600,7 +600,8 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
             assert (smoke.dir / rel).is_file() and len(sha) == 64
     # the fine-tune: 2 steps from the shipped file, its training sequences in the recipe's order
     ft = read_metadata(smoke.stage_dir("finetune") / "oibarnet.onnx")["finetune"]
-    assert ft["steps"] == 2 and ft["seed"] == 7 and ft["from_model_version"] == "0.34.0"
+    shipped = read_metadata(REPO / "models/oibarnet.onnx")["model_version"]
+    assert ft["steps"] == 2 and ft["seed"] == 7 and ft["from_model_version"] == shipped
     assert [Path(p).name for p in ft["data"]] == ["tr000", "dr000"] and [
         Path(p).name for p in ft["held"]
     ] == ["va013"]
@@ -628,7 +629,7 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     # answers held to the shipped file's, which the fine-tuned student does not start on
     refit = read_metadata(smoke.stage_dir("refit") / "oibarnet.onnx")["finetune"]
     assert refit["from"] == str(smoke.stage_dir("finetune") / "oibarnet.onnx")
-    assert refit["from_model_version"] == "0.34.0+finetune"
+    assert refit["from_model_version"] == f"{shipped}+finetune"
     assert refit["frozen"] == ["backbone", "lateral", "head", "present"]
     assert refit["distill_from"] == str(REPO / "models/oibarnet.onnx")
     assert refit["distill_start_gap_deg2"] > 1e-6

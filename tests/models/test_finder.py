@@ -143,5 +143,6 @@ def test_the_threshold_sweep_reads_the_finders_crop_only_where_its_thresholds_al
     assert all(r["crops_mean"] >= 1 and r["latency_ms_p95"] > 0 for r in rows.values())
     assert (out / "sweep.png").stat().st_size > 0 and "latency p95 (ms)" in (out / "sweep.md").read_text()
     assert before == (S.FINDER_MIN_SCORE, S.FINDER_SAME_FRAC, S.FINDER_SAME_SIDE)
-    # a model that names no finder is refused with one line, exit 2
-    assert finder_sweep.main(["--model", str(root / "models" / "oibarnet.onnx"), "--out", str(out)]) == 2
+    # a model that names no finder (0.34.0's, kept beside its records) is refused with one line, exit 2
+    no_finder = root / "models" / "registry" / "oibarnet-0.34.0" / "oibarnet.onnx"
+    assert finder_sweep.main(["--model", str(no_finder), "--out", str(out)]) == 2
