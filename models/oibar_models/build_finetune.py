@@ -48,6 +48,7 @@ def model_file(b: Build, stage: str) -> Path:
 # finetune keys left out of its fingerprint at their defaults (recipe.STAGE_KEYS), added after
 # builds that lacked them
 UNSET_KEYS = (
+    "roll_share",
     "freeze",
     "distill_weight",
     "distill_data",
@@ -120,6 +121,7 @@ def finetune(b: Build, st: Stage) -> dict:
         distill_data=tuple(p for name in o["distill_data"] for p in folders(b, name)),
         distill_from=teacher,
         distill_target=o["distill_target"],
+        roll_share=o["roll_share"],
         config=stage_config_of(b, init_stage) if init_stage else None,
         note=f"a candidate of recipe {b.recipe.name} (stage {st.name}): it ships only once judged and registered",
     )

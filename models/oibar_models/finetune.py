@@ -143,6 +143,7 @@ class Options:
     distill_from: Path | None = None  # the teacher's flight file; None: init (the starting network)
     distill_target: str = "attitude"  # DISTILL_TARGETS: what of the teacher's the student is held to
     note: str = DEMO_NOTE  # what the file's oibar.finetune says it is
+    roll_share: float = 0.0  # share of crops turned by any angle (kp_data.CropAugment.p_roll)
 
 
 @dataclass
@@ -235,6 +236,8 @@ def stage_config(o: Options, meta: dict, n_frames: int):
     }
     if o.turn_deg is not None:
         over["augment"] = {"angle_deg": o.turn_deg}
+    if o.roll_share > 0:
+        over.setdefault("augment", {})["p_roll"] = o.roll_share
     cfg = _build(KpConfig, read_yaml(path, over), str(path))
     out_px = int(meta["crop"]["out_px"])
     if cfg.model.out_px != out_px:
@@ -377,7 +380,9 @@ def finetune(o: Options, cfg, net, train: list[Sequence], held: list[Sequence], 
             g["lr"] = lr_at(step, t)
         taps = net.backbone.features(b["image"])
         heat, present, att = net.read_taps(taps)
-        losses = kp_loss(heat, present, b["kp_crop_px"], b["visible"], t, att, b["att_deg"])
+        losses = kp_loss(
+            heat, present, b["kp_crop_px"], b["visible"], t, att, b["att_deg"], b["att_weight"].to(att.dtype)
+        )
         if teacher is not None:
             held_to = taught[b["scene"]]
             if held_to.any():
@@ -531,6 +536,7 @@ def export_candidate(
             "seed": o.seed,
             "batch_norm": o.batch_norm,
             "frozen": list(o.freeze),
+            **({"roll_share": o.roll_share} if o.roll_share > 0 else {}),  # kp_data.CropAugment.p_roll
             WEIGHT_KEY[o.distill_target]: o.distill_weight,
             "distill_data": [str(p) for p in o.distill_data or (o.data if o.distill_weight > 0 else [])],
             **(
@@ -747,6 +753,14 @@ def parse(argv: list[str] | None) -> Options:
         "15; 100 was tried for rolled views: docs/calibration.md)",
     )
     ap.add_argument(
+        "--roll-share",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="turn this share of the training crops by any angle, for rolled views (default 0: none); "
+        "the attitude head is scored only on the others",
+    )
+    ap.add_argument(
         "--freeze",
         nargs="+",
         choices=FREEZABLE,
@@ -799,6 +813,8 @@ def parse(argv: list[str] | None) -> Options:
         ap.error(f"--distill-from: not found: {a.distill_from}")
     if a.turn_deg is not None and not 0.0 <= a.turn_deg <= 180.0:
         ap.error("--turn-deg must be in [0, 180]")
+    if not 0.0 <= a.roll_share <= 1.0:
+        ap.error("--roll-share must be in [0, 1]")
     if a.steps < 1 or (a.epochs is not None and a.epochs <= 0):
         ap.error("--steps must be >= 1 and --epochs > 0")
     if a.batch_size < 1 or a.stride < 1 or a.calibrate_crops < 1 or not a.lr > 0:
@@ -808,7 +824,7 @@ def parse(argv: list[str] | None) -> Options:
         a.calibrate_crops, a.val_frames, a.stride, tuple(a.modes), not a.no_baseline,
         not a.no_far_network, a.workers, a.threads, not a.no_progress, a.force, a.batch_norm,
         a.turn_deg, tuple(dict.fromkeys(a.freeze)), a.distill_weight, tuple(a.distill_data),
-        a.distill_from, a.distill_target,
+        a.distill_from, a.distill_target, roll_share=a.roll_share,
     )  # fmt: skip
 
 

@@ -59,6 +59,14 @@ class CropAugment:
     # share of crops, after the photometric terms above. Off unless a config asks: every model
     # trained so far saw none, and its crops draw the same numbers as before.
     p_domain: float = 0.0
+    # Share of training crops turned by any angle (uniform +-180 deg) instead of +-angle_deg: the
+    # keypoints of a camera rolled about its boresight. Why: trained on +-15 deg only, a network
+    # reads a view rolled past ~45 deg as unrolled, strong fit and all (docs/model_card.md, "Rolled
+    # approaches"). A 2D keypoint turns with its crop exactly, so their labels stay exact; the
+    # attitude head is scored only within +-angle_deg (`att_weight`), since a head kept as it is
+    # (freeze = ["attitude"]) cannot read a half turn, and the loss would then push its turn into
+    # the backbone. Never on validation crops. 0: no extra draw, so earlier runs draw as before.
+    p_roll: float = 0.0
 
 
 def open_scenes(root: Path, names: list[str] | None = None) -> list[Sequence]:
@@ -185,6 +193,8 @@ class CropDataset(torch.utils.data.Dataset):
         c = np.asarray(base.center_px) + rng.normal(0, a.center_jitter, 2) * base.side_px
         side = base.side_px * float(np.exp(rng.uniform(-a.scale_jitter, a.scale_jitter)))
         ang = np.radians(rng.uniform(-a.angle_deg, a.angle_deg))
+        if self.train and a.p_roll > 0 and rng.random() < a.p_roll:
+            ang = float(rng.uniform(-np.pi, np.pi))
         return CropWindow(tuple(c), side, self.out_px, ang)
 
     def __getitem__(self, i: int) -> dict:
@@ -215,6 +225,8 @@ class CropDataset(torch.utils.data.Dataset):
             "kp_crop_px": torch.from_numpy(kp.astype(np.float32)),
             "att_deg": torch.from_numpy(att.astype(np.float32)),
             "mirrored": mirrored,
+            # the head's loss counts this crop: its turn is one the head is trained to read (p_roll)
+            "att_weight": float(abs(win.angle_rad) <= np.radians(self.aug.angle_deg) + 1e-9),
             "visible": torch.from_numpy(vis),
             "A": torch.from_numpy(win.matrix().astype(np.float64)),
             "T": torch.from_numpy(np.asarray(T, np.float64)),

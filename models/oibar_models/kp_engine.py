@@ -237,6 +237,7 @@ def kp_loss(
     t: KpTrain,
     att: torch.Tensor | None = None,
     att_t: torch.Tensor | None = None,
+    att_w: torch.Tensor | None = None,
 ) -> dict:
     kp, spread, logp = soft_argmax(heat)
     w = vis.float()
@@ -254,7 +255,9 @@ def kp_loss(
     total = t.coord_loss_weight * coord + t.heat_loss_weight * ce + t.present_loss_weight * pres
     extra = {}
     if att is not None and att_t is not None:
-        att_l1 = (att - att_t).abs().sum(-1).mean()
+        l1 = (att - att_t).abs().sum(-1)
+        # att_w: the crops whose turn the head reads (kp_data's att_weight); a mean over those
+        att_l1 = l1.mean() if att_w is None else (l1 * att_w).sum() / att_w.sum().clamp_min(1.0)
         total = total + t.att_loss_weight * att_l1
         extra["att_l1_deg"] = att_l1.detach()
     return {
@@ -628,6 +631,7 @@ def train(cfg: KpConfig, progress: bool = True) -> dict:
             t,
             att,
             b["att_deg"].to(device),
+            b["att_weight"].to(device=device, dtype=att.dtype),
         )
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()

@@ -136,6 +136,7 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "distill_from": (str, ""),  # the teacher, a keypoint flight file; "": init
         "distill_from_sha256": (str, ""),  # checked when the stage runs; "": not pinned
         "distill_target": (str, "attitude"),  # DISTILL_TARGETS: the head's answers or the last map
+        "roll_share": (float, 0.0),  # share of crops turned by any angle (kp_data.CropAugment.p_roll)
         "note": (str, ""),
     },
     "head_gain": {
@@ -587,6 +588,8 @@ def _check_finetune(where: str, o: dict, datasets: dict[str, Dataset], before: l
         raise RecipeError(f"{where} distill_from: given with no distill_weight (> 0)")
     if o["distill_from"] and not resolve(o["distill_from"]).is_file():
         raise RecipeError(f"{where} distill_from: not found: {o['distill_from']}")
+    if not 0.0 <= o["roll_share"] <= 1.0:
+        raise RecipeError(f"{where} roll_share: a share in [0, 1], got {o['roll_share']}")
     if o["distill_target"] not in DISTILL_TARGETS:
         raise RecipeError(
             f"{where} distill_target: one of {list(DISTILL_TARGETS)}, got {o['distill_target']!r}"

@@ -329,6 +329,24 @@ def test_the_five_degree_candidate_is_0_35_14_with_the_head_prior_at_5_deg():
     assert b.stage("fusion").opts["head_error"] == "as_used"
 
 
+def test_the_rolled_candidate_is_0_35_15_with_a_quarter_of_its_crops_turned_and_its_finder():
+    """0.35.16 is 0.35.15's recipe, stage for stage, but for its fine-tune's rolled crops
+    (roll_share 0.25) and its finder: 0.35.15's file, not a stage that would retrain it unchanged
+    (so neither the finder stage nor the half training set it read)."""
+    a = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_cropgain_used5.toml")
+    b = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_rolled.toml")
+    assert (b.name, b.model_version) == ("oibarnet_kp_ft_rolled", "0.35.16")
+    assert b.datasets == {k: v for k, v in a.datasets.items() if k != "train_half"}
+    assert [s.name for s in b.stages] == [s.name for s in a.stages if s.name != "finder"]
+    assert a.stage("finetune").opts["roll_share"] == 0.0
+    for sb in b.stages:
+        edits = {
+            "finetune": {"roll_share": 0.25},
+            "retag": {"finder": "models/oibarnet_finder.onnx"},
+        }.get(sb.name, {})
+        assert sb.opts == a.stage(sb.name).opts | edits, sb.name
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
@@ -437,6 +455,8 @@ def test_the_batch_norm_choices_are_the_fine_tunes():
             ('distill_data = ["train_base"]', 'distill_data = ["train_base", "train_base"]'),
             "distill_data: distinct datasets of",
         ),
+        (('freeze = ["attitude"]', 'freeze = ["attitude"]\nroll_share = 1.5'), "roll_share: a share in"),
+        (('freeze = ["attitude"]', 'freeze = ["attitude"]\nroll_share = nan'), "roll_share: a share in"),
         (("pnp_alone = false", "pnp_alone = 0"), "pnp_alone: expected bool"),
         (
             ('head_error = "as_used"', 'head_error = "as_fitted"'),
@@ -625,6 +645,8 @@ def test_the_smoke_candidate_is_a_flight_file_with_the_recipes_version_and_table
     # the map target's key, at its default, is not in the fingerprint (earlier builds still skip)
     assert ft["distill_target"] == "attitude" and "distill_weight_per_rel" not in ft
     assert "distill_target" not in smoke.markers["finetune"]["inputs"]["opts"]
+    # nor is the rolled crops' share, which the file names only when it turned some
+    assert "roll_share" not in smoke.markers["finetune"]["inputs"]["opts"] and "roll_share" not in ft
     # the refit: a second fine-tune from the first's file, the attitude head alone trained, its
     # answers held to the shipped file's, which the fine-tuned student does not start on
     refit = read_metadata(smoke.stage_dir("refit") / "oibarnet.onnx")["finetune"]

@@ -90,13 +90,16 @@ def test_one_step_fine_tune_exports_a_flight_model_and_its_table(lab, tmp_path, 
     argv += ["--out", str(out), "--steps", "1", "--batch-size", "8", "--calibrate-crops", "8"]
     argv += ["--val-frames", "3", "--modes", "cold", "--no-baseline", "--threads", "2", "--no-progress"]
     argv += ["--turn-deg", "90"]  # rolled crops (the stage's own turn is 15 deg)
+    argv += ["--roll-share", "0.5"]  # and half of them turned by any angle
     assert main(argv) == 0
-    assert yaml.safe_load((out / "config.yaml").read_text())["augment"]["angle_deg"] == 90.0
+    augment = yaml.safe_load((out / "config.yaml").read_text())["augment"]
+    assert augment["angle_deg"] == 90.0 and augment["p_roll"] == 0.5
     est = PoseEstimator(out / "oibarnet.onnx", warmup_runs=0)
     assert isinstance(est, KeypointPoseEstimator)
     meta, shipped = read_metadata(out / "oibarnet.onnx"), read_metadata(SHIPPED_KP)
     assert meta["fusion"] == shipped["fusion"] and meta["camera"] == shipped["camera"]
     assert meta["finetune"]["ships"] is False and meta["finetune"]["steps"] == 1
+    assert meta["finetune"]["roll_share"] == 0.5
     # its keypoint gate: the shipped one scaled with how its heat maps broadened on the training crops
     s = meta["finetune"]["spread_median_crop_px"]
     assert s["start"] > 0 and s["finetuned"] > 0
@@ -149,6 +152,9 @@ def test_bad_inputs_are_refused(lab, tmp_path, capsys):
     with pytest.raises(SystemExit):  # a turn beyond a half turn is a mistake, not a roll
         main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--turn-deg", "200"])
     assert "--turn-deg must be in [0, 180]" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # a share, not a count of crops
+        main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--roll-share", "4"])
+    assert "--roll-share must be in [0, 1]" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # a part the network does not have
         main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--freeze", "neck"])
     assert "--freeze: invalid choice: 'neck'" in capsys.readouterr().err

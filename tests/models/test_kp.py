@@ -201,6 +201,69 @@ def test_the_attitude_label_is_what_the_turned_crop_shows(tiny_dataset):
     assert np.ptp(angles) > 0.01  # the crops were turned
 
 
+def test_a_rolled_crop_turns_its_keypoints_with_it_and_leaves_the_head_unscored(tiny_dataset, monkeypatch):
+    """augment.p_roll: a training crop turned by any angle (a camera rolled about its boresight).
+    Its rim-corner labels still sit on the drawn rim, its attitude label still reads back the
+    frame's true attitude through its window, and the head's loss skips it (att_weight 0) beyond
+    the usual +-angle_deg. Validation crops are never rolled, and p_roll 0 draws what it drew
+    before the option existed."""
+    import oibar_models.kp_data as kd
+    from oibar.geometry.rotations import quat_to_matrix, rotation_angle_deg
+    from oibar.nav.keypoints import CropWindow, attitude_from_crop
+
+    sc = open_scenes(tiny_dataset, ["seq02"])
+    quiet = dict(p_photometric=0, p_noise=0, p_blur=0, p_jpeg=0)
+    rolled = CropDataset(sc, keypoints_m(), 96, CropAugment(**quiet, p_roll=1.0), train=True)
+    angles, checked = [], 0
+    for i in range(0, 48, 3):
+        b = rolled[i % len(rolled)]
+        A = b["A"].numpy()
+        angle = float(np.degrees(np.arctan2(A[1, 0], A[0, 0])))
+        angles.append(angle)
+        assert b["att_weight"] == (1.0 if abs(angle) <= 15.0 + 1e-6 else 0.0), angle
+        img = b["image"].numpy().max(0)
+        for (u, v), vis in zip(b["kp_crop_px"].numpy()[:4], b["visible"].numpy()[:4], strict=True):
+            if vis and 2 < u < 94 and 2 < v < 94:
+                assert img[int(v) - 2 : int(v) + 3, int(u) - 2 : int(u) + 3].max() > 0.4, (i, u, v, angle)
+                checked += 1
+        scale = float(np.sqrt(np.linalg.det(A[:, :2])))
+        centre = np.linalg.solve(A[:, :2], np.full(2, 48.0) - A[:, 2])
+        win = CropWindow(tuple(centre), 96 / scale, 96, np.radians(angle))
+        R = attitude_from_crop(win, sc[0].K, b["att_deg"].numpy().astype(float), rolled.R_ref)
+        k = int(b["frame"])
+        assert rotation_angle_deg(R.T @ quat_to_matrix(sc[0].q_cam_target[k])) < 1e-3
+    assert checked > 10
+    assert max(np.abs(angles)) > 90.0 and min(angles) < -15.0 < 15.0 < max(angles)
+    val = CropDataset(sc, keypoints_m(), 96, CropAugment(**quiet, p_roll=1.0), train=False)
+    assert all(val[i]["att_weight"] == 1.0 for i in range(0, len(val), 5))
+    real_rng = np.random.default_rng
+    for i in (0, 7):
+        monkeypatch.setattr(kd.np.random, "default_rng", lambda seed=None, i=i: real_rng(200 + i))
+        a = CropDataset(sc, keypoints_m(), 96, CropAugment(), train=True)[i]
+        b = CropDataset(sc, keypoints_m(), 96, CropAugment(p_roll=0.0), train=True)[i]
+        assert torch.equal(a["image"], b["image"]) and torch.equal(a["A"], b["A"])
+
+
+def test_the_heads_loss_counts_only_the_crops_it_is_asked_to():
+    """kp_loss's att_w: a crop of weight 0 adds nothing to the head's L1, whatever its error; the
+    mean is over the weighted crops, so one right crop among wrong ones unweighted scores 0."""
+    from oibar_models.kp_engine import KpTrain, kp_loss
+
+    torch.manual_seed(0)
+    heat, present = torch.randn(3, 2, 8, 8), torch.zeros(3, 2)
+    kp, vis = torch.full((3, 2, 2), 16.0), torch.ones(3, 2, dtype=torch.bool)
+    att_t = torch.zeros(3, 3)
+    att = torch.tensor([[0.0, 0.0, 0.0], [90.0, 0.0, 0.0], [0.0, 180.0, 0.0]])
+    t = KpTrain()
+    every = kp_loss(heat, present, kp, vis, t, att, att_t)
+    first = kp_loss(heat, present, kp, vis, t, att, att_t, torch.tensor([1.0, 0.0, 0.0]))
+    two = kp_loss(heat, present, kp, vis, t, att, att_t, torch.tensor([1.0, 1.0, 0.0]))
+    assert float(every["att_l1_deg"]) == pytest.approx(90.0)
+    assert float(first["att_l1_deg"]) == 0.0
+    assert float(two["att_l1_deg"]) == pytest.approx(45.0)
+    assert float(every["loss"] - first["loss"]) == pytest.approx(t.att_loss_weight * 90.0, rel=1e-5)
+
+
 def _smoke_overrides(tiny_dataset, kp_sets, run_dir) -> list[str]:
     return [
         f"data.train_spec={kp_sets / 'train.json'}",
