@@ -81,18 +81,25 @@ KP_RETAG_FUSION_JSON ?= models/registry/oibarnet-0.34.0/kp_fusion_0330.json
 train-kp: setup ## train the keypoint model, all six stages, on `make dataset-train` + `make dataset-val` (resumes runs/<name>/; GPU when present)
 	@for c in $(KP_CONFIGS); do echo "== $$c"; $(PY) -m oibar_models.kp_train --config $$c $(TRAIN_ARGS) || exit 1; done
 
-export-kp: setup ## export the keypoint model to models/oibarnet.onnx: best checkpoint, prior weights chosen on validation, parity-checked
+# Where export-kp writes: a folder of runs/, never models/ (the shipped 0.35.15 is a recipe's, not
+# these stages'; exporting over it would replace the shipped file with 0.34.0's pipeline). The
+# first pass is copied beside, so that the export opens in the flight estimator before it is kept.
+KP_EXPORT_DIR ?= runs/export_kp
+
+export-kp: setup ## rebuild 0.34.0's keypoint files into runs/export_kp/ (KP_EXPORT_DIR): best checkpoint, prior weights chosen on validation, parity-checked
+	@mkdir -p $(KP_EXPORT_DIR) && cp models/oibarnet_lite.onnx $(KP_EXPORT_DIR)/
 ifeq ($(strip $(KP_FUSION_JSON)),)
-	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG)
-	@$(PY) -m oibar_models.kp_fusion --model models/oibarnet.onnx --out runs/oibarnet_kp_fusion.json $(KP_FUSION_ARGS)
-	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --fusion runs/oibarnet_kp_fusion.json $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
+	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --out $(KP_EXPORT_DIR)/oibarnet.onnx
+	@$(PY) -m oibar_models.kp_fusion --model $(KP_EXPORT_DIR)/oibarnet.onnx --out $(KP_EXPORT_DIR)/oibarnet_kp_fusion.json $(KP_FUSION_ARGS)
+	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --out $(KP_EXPORT_DIR)/oibarnet.onnx --fusion $(KP_EXPORT_DIR)/oibarnet_kp_fusion.json $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
 else
-	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --fusion $(KP_FUSION_JSON) $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
+	@$(PY) -m oibar_models.kp_export --config $(KP_CONFIG) --out $(KP_EXPORT_DIR)/oibarnet.onnx --fusion $(KP_FUSION_JSON) $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
 endif
 ifneq ($(strip $(KP_FAR_CONFIG)),)
-	@$(PY) -m oibar_models.kp_export --config $(KP_FAR_CONFIG) --checkpoint $(KP_FAR_CHECKPOINT) $(foreach m,$(KP_FAR_ENSEMBLE),--ensemble $(m)) --out models/oibarnet_far.onnx --fusion $(if $(strip $(KP_FUSION_JSON)),$(KP_FUSION_JSON),runs/oibarnet_kp_fusion.json) $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
-	@$(PY) -m oibar_models.kp_export --retag models/oibarnet.onnx --far-network oibarnet_far.onnx --far-from-m $(KP_FAR_FROM_M) $(if $(strip $(KP_MODEL_VERSION)),--model-version $(KP_MODEL_VERSION),) $(if $(strip $(KP_RETAG_FUSION_JSON)),--fusion $(KP_RETAG_FUSION_JSON),)
+	@$(PY) -m oibar_models.kp_export --config $(KP_FAR_CONFIG) --checkpoint $(KP_FAR_CHECKPOINT) $(foreach m,$(KP_FAR_ENSEMBLE),--ensemble $(m)) --out $(KP_EXPORT_DIR)/oibarnet_far.onnx --fusion $(if $(strip $(KP_FUSION_JSON)),$(KP_FUSION_JSON),$(KP_EXPORT_DIR)/oibarnet_kp_fusion.json) $(if $(strip $(KP_HEAD_GAIN_JSON)),--head-gain $(KP_HEAD_GAIN_JSON),)
+	@$(PY) -m oibar_models.kp_export --retag $(KP_EXPORT_DIR)/oibarnet.onnx --far-network oibarnet_far.onnx --far-from-m $(KP_FAR_FROM_M) $(if $(strip $(KP_MODEL_VERSION)),--model-version $(KP_MODEL_VERSION),) $(if $(strip $(KP_RETAG_FUSION_JSON)),--fusion $(KP_RETAG_FUSION_JSON),)
 endif
+	@echo "exported into $(KP_EXPORT_DIR)/ (compare: sha256sum $(KP_EXPORT_DIR)/oibarnet*.onnx models/registry/oibarnet-0.34.0/oibarnet*.onnx)"
 
 eval-kp: setup ## the flight estimator on validation and test scenes: tables, range bins, latency (runs/eval_kp)
 	@$(PY) -m oibar_models.kp_evaluate --models models/oibarnet.onnx models/oibarnet_lite.onnx $(KP_EVAL_ARGS)
