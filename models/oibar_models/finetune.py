@@ -527,21 +527,23 @@ def export_candidate(
         steps_trained=int(meta.get("steps_trained") or 0) + cfg.train.steps,
         val=val,
         finetune={
-            "from": str(o.init),
+            "from": _repo_relative(o.init),
             "from_model_version": meta.get("model_version"),
             "config": _repo_relative(stage_config_path(o, meta)),
-            "data": [str(p) for p in o.data],
-            "held": [str(p) for p in o.val],
+            "data": [_repo_relative(p) for p in o.data],
+            "held": [_repo_relative(p) for p in o.val],
             "steps": cfg.train.steps,
             "seed": o.seed,
             "batch_norm": o.batch_norm,
             "frozen": list(o.freeze),
             **({"roll_share": o.roll_share} if o.roll_share > 0 else {}),  # kp_data.CropAugment.p_roll
             WEIGHT_KEY[o.distill_target]: o.distill_weight,
-            "distill_data": [str(p) for p in o.distill_data or (o.data if o.distill_weight > 0 else [])],
+            "distill_data": [
+                _repo_relative(p) for p in o.distill_data or (o.data if o.distill_weight > 0 else [])
+            ],
             **(
                 {
-                    "distill_from": str(o.distill_from or o.init),
+                    "distill_from": _repo_relative(o.distill_from or o.init),
                     "distill_target": o.distill_target,
                     GAP_KEY[o.distill_target]: gap,
                 }

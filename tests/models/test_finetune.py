@@ -110,6 +110,9 @@ def test_one_step_fine_tune_exports_a_flight_model_and_its_table(lab, tmp_path, 
     # the shipped file's companions beside it, its finder among them (a fine-tune keeps its init's)
     assert meta["finder"] == shipped["finder"] and (out / shipped["finder"]["file"]).is_file()
     assert meta["finetune"]["config"] == "models/configs/keypoints/oibarnet_kp_stage15.yaml"
+    # paths as the repository names them (no checkout's place); the tmp sequences lie outside it
+    assert meta["finetune"]["from"] == "models/oibarnet.onnx"
+    assert meta["finetune"]["data"] == [str(lab["train"])]
     assert est.reader.max_spread_crop_px == meta["pnp"]["max_spread_crop_px"]
     assert meta["model_version"].endswith("+finetune")
     res = json.loads((out / "eval.json").read_text())
