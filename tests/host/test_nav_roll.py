@@ -137,3 +137,72 @@ def test_an_unrolled_view_reads_unturned_windows(frame_3m):
     e = est.estimate(frame_3m, 0.0)
     est.estimate(frame_3m, 0.1, prior=(e.R_cam_target, e.T_cam_target_m))
     assert seen and all(w.angle_rad == 0.0 for w in seen)
+
+
+def _fit_of_a_rolled_fixture(est, roll_deg: float, any_turn: bool):
+    """Fusion.fit on the exact keypoints of a fixture 3 m ahead, rolled by roll_deg, read in a
+    window that is not turned to it, with the attitude head and the direct model reading it
+    upright (as they read every view): (the fit, the truth R, T)."""
+    from oibar.nav.keypoints import CropWindow
+
+    R0 = rotvec_to_matrix(np.radians([2.0, -1.5, 0.0]))
+    T0 = np.array([0.05, -0.03, 3.0])
+    Rz = _Rz(np.radians(roll_deg))
+    R, T = Rz @ R0, Rz @ T0
+    uv = project(K, est.reader.points_m, R, T)
+    base = window_around(uv, est.reader.out_px, 1.25)
+    win = CropWindow(base.center_px, base.side_px, base.out_px, 0.0)
+    est.fusion.keypoints_any_turn = any_turn
+    return est.fusion.fit(uv, win, R0, R0, 3.0, est.fusion.table), R, T
+
+
+@pytest.mark.parametrize("roll_deg", [90.0, 180.0, -60.0])
+def test_keypoints_that_read_any_turn_fit_a_rolled_fixture_without_the_upright_prior(roll_deg):
+    """oibar.keypoints_any_turn (fusion.PRIOR_MAX_TURN_DEG): where the keypoints show the fixture
+    turned in its window, the fit is PnP alone and lands on the truth; with the head's and the
+    direct model's upright prior (the flag off, as every file before it) the same keypoints give
+    a fit pulled off the truth or none: this is the test of the rule."""
+    est = _estimator()
+    assert est.fusion.table and est.fusion.table.get("sigma_prior_deg") is not None
+    r, R, T = _fit_of_a_rolled_fixture(est, roll_deg, any_turn=True)
+    assert r.ok and r.no_prior is None  # PnP alone: nothing for a filter to compare it with
+    assert rotation_angle_deg(r.R_cam_target.T @ R) < 0.05
+    assert np.linalg.norm(r.T_cam_target_m - T) < 1e-3
+    off, _, _ = _fit_of_a_rolled_fixture(est, roll_deg, any_turn=False)
+    assert not off.ok or rotation_angle_deg(off.R_cam_target.T @ R) > 5.0
+
+
+def test_keypoints_that_read_any_turn_keep_the_prior_on_an_upright_fixture():
+    """Within PRIOR_MAX_TURN_DEG the flag changes nothing: the same fit, bit for bit."""
+    est = _estimator()
+    on, _, _ = _fit_of_a_rolled_fixture(est, 20.0, any_turn=True)
+    off, _, _ = _fit_of_a_rolled_fixture(est, 20.0, any_turn=False)
+    assert on.ok and off.ok and on.no_prior is not None
+    assert np.array_equal(on.R_cam_target, off.R_cam_target)
+    assert np.array_equal(on.T_cam_target_m, off.T_cam_target_m)
+
+
+def test_a_model_that_says_keypoints_any_turn_opens_with_it_and_a_malformed_value_is_refused(tmp_path):
+    import shutil
+
+    import onnx
+
+    from oibar.nav.pose import ModelFileError, PoseEstimator, read_metadata
+
+    for name in [MODEL.name, read_metadata(MODEL)["first_pass"], read_metadata(MODEL)["finder"]["file"]]:
+        shutil.copy(MODEL.parent / name, tmp_path / name)
+    path = tmp_path / MODEL.name
+    assert PoseEstimator(path, warmup_runs=0).fusion.keypoints_any_turn is False  # absent: off
+    for value, ok in (("true", True), ('"yes"', False), ("1", False)):
+        m = onnx.load(str(path))
+        kept = [p for p in m.metadata_props if p.key != "oibar.keypoints_any_turn"]
+        del m.metadata_props[:]
+        m.metadata_props.extend(kept)
+        p = m.metadata_props.add()
+        p.key, p.value = "oibar.keypoints_any_turn", value
+        onnx.save(m, str(path))
+        if ok:
+            assert PoseEstimator(path, warmup_runs=0).fusion.keypoints_any_turn is True
+        else:
+            with pytest.raises(ModelFileError, match="keypoints_any_turn must be true or false"):
+                PoseEstimator(path, warmup_runs=0)

@@ -422,6 +422,7 @@ def map_pose(
     sigma_px: float | np.ndarray | None,
     sigma_prior_rad: float | None,
     min_points: int = 5,
+    pnp: PnpResult | None = None,
 ) -> PnpResult:
     """The pose from keypoints and an attitude prior. Two starts, refined by refine_with_prior, the
     lower cost kept: PnP (RANSAC + LM) and (R_prior, its least-squares T). The second start is what
@@ -429,8 +430,10 @@ def map_pose(
     pixels as well as the true one. Keypoints further than `reproj_px` from the chosen pose are
     dropped and the pose refined again. Without a prior (sigma None): PnP alone. `sigma_px`: one
     number, or one per keypoint (the export's error model, KeypointErrorModel). A fit with the
-    prior carries the PnP-alone one as `no_prior` (what a filter should fuse: see PoseEstimate)."""
-    pnp = solve_pnp(uv_px, points_m, K, reproj_px, min_points=min_points)
+    prior carries the PnP-alone one as `no_prior` (what a filter should fuse: see PoseEstimate).
+    `pnp`: that PnP-alone fit of these keypoints, when the caller has made it already."""
+    if pnp is None:
+        pnp = solve_pnp(uv_px, points_m, K, reproj_px, min_points=min_points)
     if sigma_px is None or sigma_prior_rad is None:
         return pnp
     uv = np.asarray(uv_px, float)

@@ -25,6 +25,7 @@ from oibar.nav.keypoints import (
     attitude_from_crop,
     attitude_in_crop_deg,
     bearing_in_crop_deg,
+    image_roll_rad,
     map_pose,
     solve_pnp,
 )
@@ -56,6 +57,28 @@ FILTER_MEASUREMENTS = ("prior_free", "fused")
 # signed attitude bias by 0.07-0.10 deg on validation and lost the loop on one turn, while its
 # answer gained.
 TURNED_READING_MEASUREMENTS = ("mean", "untouched")
+# Keypoints that read any turn (``oibar.keypoints_any_turn``: a network fine-tuned with a share of
+# its crops turned by any angle, oibar_models' roll_share). In a window not turned to a rolled
+# fixture its keypoints are right, but its attitude head, and the direct model, read every view
+# as near upright: their prior pulls the fit toward the wrong roll and its keypoints out of their
+# reprojection gate. On the roll sweep val_roll (cold, each frame alone), candidate 0.35.16 read
+# keypoints within 1.0-1.4 crop px of the truth in unturned windows at 30-180 deg of roll, yet
+# ended PnP failed or weak on most frames from 90 deg. So where PnP alone has the fixture turned
+# in its window by more than PRIOR_MAX_TURN_DEG, the fit is PnP alone, and the refining pass reads
+# a window that this pose turns upright (reader.window_for), where the prior holds. 30 deg: the
+# head was trained on turns of +-15 deg and reads to ~20 (docs/model_card.md, "Rolled approaches").
+PRIOR_MAX_TURN_DEG = 30.0
+
+
+def turn_in_window_deg(
+    K: np.ndarray, R_cam_target: np.ndarray, T_cam_target_m: np.ndarray, win: CropWindow
+) -> float:
+    """How far a fixture at this pose shows turned from upright in the window `win` (deg, 0..180;
+    0 where it projects nowhere): its image roll plus the window's own turn."""
+    roll = image_roll_rad(K, R_cam_target, T_cam_target_m)
+    if not np.isfinite(roll):
+        return 0.0
+    return float(abs(np.degrees(np.angle(np.exp(1j * (roll + win.angle_rad))))))
 
 
 def fit_rms_crop_px(r: PnpResult, win: CropWindow) -> float:
@@ -128,6 +151,10 @@ class Fusion:
                 f"{TURNED_READING_MEASUREMENTS}, got {meas!r}"
             )
         self.turned_reading_measurement = meas
+        any_turn = meta.get("keypoints_any_turn", False)
+        if not isinstance(any_turn, bool):
+            raise ModelFileError(f"{path}: oibar.keypoints_any_turn must be true or false, got {any_turn!r}")
+        self.keypoints_any_turn = any_turn
         self.filter_measurement = meta.get("filter_measurement", "prior_free")
         if self.filter_measurement not in FILTER_MEASUREMENTS:
             raise ModelFileError(
@@ -227,7 +254,16 @@ class Fusion:
     ) -> PnpResult:
         """One window's keypoints (frame px, NaN where absent) -> PnP, with the fusion `f`'s
         attitude prior: the crop's head (`R_head`) when it says so, else the direct model's;
-        without a fusion, PnP alone. `range_m` is where the error tables are read."""
+        without a fusion, PnP alone; PnP alone too where keypoints that read any turn show the
+        fixture turned in `win` beyond PRIOR_MAX_TURN_DEG. `range_m` is where the error tables
+        are read."""
+        pnp = None
+        if f and self.keypoints_any_turn:
+            pnp = solve_pnp(
+                uv_px, self.points_m, self.K_frame, self.reproj_crop_px / win.scale, min_points=MIN_INLIERS
+            )
+            if pnp.ok and turn_in_window_deg(self.K_frame, *pnp.pose(), win) > PRIOR_MAX_TURN_DEG:
+                return pnp
         R_prior = R_direct
         if f and f.get("attitude_prior") == "head" and R_head is not None:
             R_prior = self.head_prior(R_head, win, range_m, f)
@@ -248,6 +284,7 @@ class Fusion:
             s_px,
             s_rad,
             MIN_INLIERS,
+            pnp,
         )
 
     def fit_without_prior(self, uv_px: np.ndarray, win: CropWindow) -> PnpResult | None:
