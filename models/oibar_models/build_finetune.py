@@ -330,8 +330,8 @@ def retag(b: Build, st: Stage) -> dict:
     elif o["finder"]:
         finder = resolve(o["finder"])
     inputs = {
-        # head_crop_gain unset fingerprints as before the key existed
-        "opts": {k: v for k, v in o.items() if k != "head_crop_gain" or v},
+        # head_crop_gain and keypoints_any_turn unset fingerprint as before the keys existed
+        "opts": {k: v for k, v in o.items() if k not in ("head_crop_gain", "keypoints_any_turn") or v},
         "model_version": b.recipe.model_version,
         "finder_sha256": sha256_file(finder) if finder else "",
         "upstream": b.upstream(o["model"], o["fusion"], o["head_gain"], o["head_crop_gain"], finder_stage),
@@ -351,6 +351,8 @@ def retag(b: Build, st: Stage) -> dict:
             shutil.copy(src.parent / name, d / name)
             written.append(d / name)
         options: dict[str, Any] = {"model_version": b.recipe.model_version}
+        if o["keypoints_any_turn"]:
+            options["keypoints_any_turn"] = True
         try:
             if fusion_file:
                 # PnP alone when the grid chose no prior: no weights, as an export without fusion

@@ -6,7 +6,7 @@ validation figures. Parity against PyTorch is checked before the file is written
 python -m oibar_models.kp_export --config models/configs/keypoints/oibarnet_kp.yaml [--checkpoint best|last]
     [--ensemble OTHER.yaml[:best|last|PATH] ...] [--fusion FUSION.json] [--mirror-reading]
     [--turned-reading-deg DEG] [--turned-reading-head]
-    [--turned-reading-measurement mean|untouched] [--placed-pass-refines]
+    [--turned-reading-measurement mean|untouched] [--placed-pass-refines] [--keypoints-any-turn] (with --retag)
     [--filter-measurement prior_free|fused] [--corner-refine-side-px PX]
 
 `--ensemble` writes one graph that reads each crop with every listed network too and mixes their
@@ -332,7 +332,7 @@ def load_fusion(path: Path, out_px: int) -> dict | None:
 def retag(src: Path, out: Path, options: dict) -> Path:
     """A copy of the export `src` at `out` (may be `src`) with the flight reading `options`
     (metadata keys without the prefix: mirror_reading, turned_reading_deg, turned_reading_head,
-    turned_reading_measurement, placed_pass_refines, filter_measurement, corner_refine_side_px,
+    turned_reading_measurement, placed_pass_refines, keypoints_any_turn, filter_measurement, corner_refine_side_px,
     far_network {"file", "from_m"}, its file beside `out`; finder {"file"}, the fixture finder,
     its file beside `out`; fusion replaces the export's fusion
     whole (load_fusion's dict); head_gain and head_crop_gain go into the fusion's tables, the new
@@ -351,6 +351,7 @@ def retag(src: Path, out: Path, options: dict) -> Path:
         "turned_reading_head",
         "turned_reading_measurement",
         "placed_pass_refines",
+        "keypoints_any_turn",
         "filter_measurement",
         "corner_refine_side_px",
         "model_version",
@@ -497,6 +498,14 @@ def main(argv: list[str] | None = None) -> int:
         "placed: one network run a tracked frame",
     )
     ap.add_argument(
+        "--keypoints-any-turn",
+        action="store_true",
+        default=None,
+        help="the network's keypoints read a fixture at any turn in its crop (a fine-tune with "
+        "roll_share): the fit drops the attitude prior where its keypoints show the fixture turned "
+        "in their window (oibar.nav.pose.fusion.PRIOR_MAX_TURN_DEG)",
+    )
+    ap.add_argument(
         "--filter-measurement",
         choices=FILTER_MEASUREMENTS,
         default=None,
@@ -561,6 +570,7 @@ def main(argv: list[str] | None = None) -> int:
                 ("turned_reading_head", a.turned_reading_head),
                 ("turned_reading_measurement", a.turned_reading_measurement),
                 ("placed_pass_refines", a.placed_pass_refines),
+                ("keypoints_any_turn", a.keypoints_any_turn),
                 ("filter_measurement", a.filter_measurement),
                 ("corner_refine_side_px", a.corner_refine_side_px),
                 ("model_version", a.model_version),
@@ -582,7 +592,7 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 "error: --retag takes the reading options (--mirror-reading, --turned-reading-deg, "
                 "--turned-reading-head, --turned-reading-measurement, --placed-pass-refines, "
-                "--filter-measurement, --corner-refine-side-px, --fusion, --head-gain, "
+                "--keypoints-any-turn, --filter-measurement, --corner-refine-side-px, --fusion, --head-gain, "
                 "--head-crop-gain, --far-network "
                 "with --far-from-m, --finder), "
                 "--model-version and --out only",
@@ -606,6 +616,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if a.far_network is not None or a.far_from_m is not None:
         print("error: --far-network and --far-from-m go with --retag (pair two exports)", file=sys.stderr)
+        return 2
+    if a.keypoints_any_turn:
+        print("error: --keypoints-any-turn goes with --retag (a fine-tune's file says it)", file=sys.stderr)
         return 2
     try:
         cfg = load_kp_config(a.config, parse_override(a.overrides))

@@ -169,6 +169,8 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "head_gain": (str, ""),  # a head_gain stage on the same model; "": the model's own table
         "head_crop_gain": (str, ""),  # a head_crop_gain stage on the same model (not with head_gain)
         "finder": (str, ""),  # a finder stage, or a finder ONNX (repository path), copied beside; "": none
+        # the model's keypoints read any turn (a fine-tune with roll_share)
+        "keypoints_any_turn": (bool, False),
         "note": (str, ""),
     },
 }

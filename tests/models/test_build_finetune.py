@@ -331,8 +331,9 @@ def test_the_five_degree_candidate_is_0_35_14_with_the_head_prior_at_5_deg():
 
 def test_the_rolled_candidate_is_0_35_15_with_a_quarter_of_its_crops_turned_and_its_finder():
     """0.35.16 is 0.35.15's recipe, stage for stage, but for its fine-tune's rolled crops
-    (roll_share 0.25) and its finder: 0.35.15's file, not a stage that would retrain it unchanged
-    (so neither the finder stage nor the half training set it read)."""
+    (roll_share 0.25), its retag saying so (keypoints_any_turn), and its finder: 0.35.15's file,
+    not a stage that would retrain it unchanged (so neither the finder stage nor the half
+    training set it read). 0.35.17 is 0.35.16 trained three times as long."""
     a = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_cropgain_used5.toml")
     b = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_rolled.toml")
     assert (b.name, b.model_version) == ("oibarnet_kp_ft_rolled", "0.35.16")
@@ -342,9 +343,14 @@ def test_the_rolled_candidate_is_0_35_15_with_a_quarter_of_its_crops_turned_and_
     for sb in b.stages:
         edits = {
             "finetune": {"roll_share": 0.25},
-            "retag": {"finder": "models/oibarnet_finder.onnx"},
+            "retag": {"finder": "models/oibarnet_finder.onnx", "keypoints_any_turn": True},
         }.get(sb.name, {})
         assert sb.opts == a.stage(sb.name).opts | edits, sb.name
+    c = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_rolled3k.toml")
+    assert (c.name, c.model_version) == ("oibarnet_kp_ft_rolled3k", "0.35.17") and c.datasets == b.datasets
+    for sc in c.stages:
+        edits = {"steps": 3000} if sc.name == "finetune" else {}
+        assert sc.opts == b.stage(sc.name).opts | edits, sc.name
 
 
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):

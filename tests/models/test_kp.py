@@ -1559,6 +1559,26 @@ def test_retag_sets_the_placed_refining_read_and_an_export_without_it_says_nothi
     assert KeypointPoseEstimator(model, warmup_runs=0).search.placed_pass_refines is True
 
 
+def test_retag_says_the_keypoints_read_any_turn_and_an_export_refuses_the_option(tmp_path, capsys):
+    """`--keypoints-any-turn` (a fine-tune with rolled crops) sets oibar.keypoints_any_turn and the
+    runtime's fusion reads it back; off it is not written; an export (no --retag) refuses it,
+    since only a fine-tune's file can say it."""
+    from oibar.nav.pose import KeypointPoseEstimator, read_metadata
+    from oibar_models.kp_export import main as export_main
+
+    copy_shipped(tmp_path)
+    model = tmp_path / "oibarnet.onnx"
+    assert "keypoints_any_turn" not in read_metadata(model)
+    assert KeypointPoseEstimator(model, warmup_runs=0).fusion.keypoints_any_turn is False
+    assert export_main(["--retag", str(model), "--keypoints-any-turn"]) == 0
+    assert read_metadata(model)["keypoints_any_turn"] is True
+    assert KeypointPoseEstimator(model, warmup_runs=0).fusion.keypoints_any_turn is True
+    cfg = "models/configs/keypoints/oibarnet_kp_stage15.yaml"
+    assert export_main(["--config", cfg, "--keypoints-any-turn", "--out", str(tmp_path / "x.onnx")]) == 2
+    assert "--keypoints-any-turn goes with --retag" in capsys.readouterr().err
+    assert not (tmp_path / "x.onnx").exists()
+
+
 def test_training_can_draw_far_and_off_axis_frames_more_often():
     """data.far_weight / data.offaxis_weight_per_deg (kp_data.frame_weights): a far-range stage
     draws frames from far_from_m on far_weight times as often, and more the further the fixture
