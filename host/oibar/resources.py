@@ -60,20 +60,23 @@ def model_metadata(path: Path) -> dict[str, Any]:
 
 
 def model_version_text(path: Path) -> str:
-    """``0.34.0 (oibarnet_kp_stage15; far network 0.32.0, first pass 0.3.0) PATH``, or what is
-    wrong with the file: this line must never fail."""
+    """``0.35.15 (finetune_finetune; finder 0.1.0, first pass 0.3.0) PATH``: the export and each
+    file beside it that it names (far network, finder, first pass), or what is wrong with the
+    file: this line must never fail."""
+    from oibar.nav.pose.model_file import COMPANION_ROLES, companion_files
+
     try:
         meta = model_metadata(path)
-        parts = [str(meta.get("name", "?"))]
-        far = meta.get("far_network")
-        if isinstance(far, dict) and "file" in far:
-            parts.append(
-                f"far network {model_metadata(path.parent / str(far['file'])).get('model_version', '?')}"
-            )
-        if "first_pass" in meta:
-            first = model_metadata(path.parent / str(meta["first_pass"]))
-            parts.append(f"first pass {first.get('model_version', '?')}")
-        return f"{meta.get('model_version', '?')} ({parts[0]}{'; ' if parts[1:] else ''}{', '.join(parts[1:])}) {path}"
+        files = companion_files(meta)
+        parts = [
+            f"{COMPANION_ROLES[role]} {model_metadata(path.parent / files[role]).get('model_version', '?')}"
+            for role in ("far_network", "finder", "first_pass")
+            if role in files
+        ]
+        inside = "; ".join(
+            [str(meta.get("name", "?")), ", ".join(parts)] if parts else [str(meta.get("name", "?"))]
+        )
+        return f"{meta.get('model_version', '?')} ({inside}) {path}"
     except Exception as exc:  # a missing or broken file: say so, and still print the rest
         return f"unreadable: {path} ({type(exc).__name__}: {exc})"
 

@@ -571,10 +571,11 @@ def export_candidate(
 
 def companions(meta: dict) -> list[str]:
     """The files `meta` names, which must lie beside its model: the first pass, the far network
-    and the fixture finder (a fine-tune keeps its init's finder until a finder stage retags it)."""
-    far = meta.get("far_network") or {}
-    finder = meta.get("finder") or {}
-    return [meta["first_pass"]] + ([far["file"]] if far else []) + ([finder["file"]] if finder else [])
+    and the fixture finder (a fine-tune keeps its init's finder until a finder stage retags it).
+    The flight code's list (oibar.nav.pose.model_file.companion_files), so both agree."""
+    from oibar.nav.pose.model_file import companion_files
+
+    return list(companion_files(meta).values())
 
 
 # ----------------------------------------------------------------------------- evaluation

@@ -1519,6 +1519,7 @@ def test_a_keypoint_gate_that_is_not_a_spread_is_refused(gate, tmp_path):
     import onnx
 
     from oibar.nav.pose import KeypointPoseEstimator, ModelFileError, read_metadata
+    from oibar.nav.pose.model_file import companion_files
 
     shipped = Path(__file__).resolve().parents[2] / "models"
     m = onnx.load(str(shipped / "oibarnet.onnx"))
@@ -1527,8 +1528,7 @@ def test_a_keypoint_gate_that_is_not_a_spread_is_refused(gate, tmp_path):
             p.value = json.dumps({**json.loads(p.value), "max_spread_crop_px": gate})
     onnx.save(m, str(tmp_path / "oibarnet.onnx"))
     meta = read_metadata(shipped / "oibarnet.onnx")
-    beside = [meta["first_pass"]] + [meta[k]["file"] for k in ("far_network", "finder") if k in meta]
-    for name in beside:
+    for name in companion_files(meta).values():
         shutil.copy(shipped / name, tmp_path / name)
     with pytest.raises(ModelFileError, match="max_spread_crop_px"):
         KeypointPoseEstimator(tmp_path / "oibarnet.onnx", warmup_runs=0)
@@ -1809,3 +1809,40 @@ def test_a_fixture_part_read_as_a_far_fixture_is_read_again_larger():
             assert abs(ratio - 1.0) < 0.15, e.T_cam_target_m  # the shipped network needs no zoom-out here
         else:
             assert ratio > 2.5, e.T_cam_target_m  # the part, read far
+
+
+def test_the_files_beside_an_export_are_named_by_role_and_the_version_line_names_each(tmp_path):
+    """model_file.companion_files: the first pass, far network and finder an export names, in that
+    order, roles it lacks left out; `oibar --version`'s model line names each with its version, and
+    a companion missing makes the line say so instead of failing."""
+    import shutil
+    from pathlib import Path
+
+    from oibar.nav.pose import read_metadata
+    from oibar.nav.pose.model_file import companion_files
+    from oibar.resources import model_version_text
+
+    meta = {
+        "first_pass": "lite.onnx",
+        "finder": {"file": "f.onnx"},
+        "far_network": {"file": "far.onnx", "from_m": 8},
+    }
+    assert list(companion_files(meta).items()) == [
+        ("first_pass", "lite.onnx"),
+        ("far_network", "far.onnx"),
+        ("finder", "f.onnx"),
+    ]
+    assert companion_files({"first_pass": "lite.onnx"}) == {"first_pass": "lite.onnx"}
+    assert companion_files({"finder": {}}) == {}
+    shipped = Path(__file__).resolve().parents[2] / "models"
+    files = companion_files(read_metadata(shipped / "oibarnet.onnx"))
+    assert set(files) == {"first_pass", "finder"}  # 0.35.15: one network, a finder
+    for name in ("oibarnet.onnx", *files.values()):
+        shutil.copy(shipped / name, tmp_path / name)
+    finder_v, first_v = (
+        read_metadata(tmp_path / files[k])["model_version"] for k in ("finder", "first_pass")
+    )
+    line = model_version_text(tmp_path / "oibarnet.onnx")
+    assert f"; finder {finder_v}, first pass {first_v}) " in line, line
+    (tmp_path / files["finder"]).unlink()
+    assert model_version_text(tmp_path / "oibarnet.onnx").startswith("unreadable: ")

@@ -413,6 +413,8 @@ def test_pip_install_host_from_a_clean_copy_works_from_an_empty_folder(tmp_path)
     card = re.search(r"OibarNet (\d+\.\d+\.\d+)", (ROOT / "docs" / "model_card.md").read_text())
     assert card and lines[2].startswith(f"model {card[1]} ("), v.stdout
     assert "first pass" in lines[2] and str(py.parent.parent) in lines[2]
+    # every file installed beside the model, with its own version (the shipped one has a finder)
+    assert re.search(r"finder \d+\.\d+\.\d+, first pass \d+\.\d+\.\d+\)", lines[2]), v.stdout
 
     p = subprocess.run(
         [py, "-c", FRESH_INSTALL_CHECK],
@@ -488,6 +490,7 @@ def test_the_sdist_carries_the_generated_module_and_the_models(tmp_path):
 def test_the_shipped_models_are_the_default_and_the_files_its_metadata_names():
     """host/setup.py ships the default model first and exactly the files its ONNX metadata needs
     beside it (first pass, finder, far network, theirs in turn); a checkout resolves the default to them."""
+    from oibar.nav.pose.model_file import companion_files
     from oibar.resources import DEFAULT_MODEL, model_metadata
 
     shipped = _setup_module().SHIPPED_MODELS
@@ -498,12 +501,7 @@ def test_the_shipped_models_are_the_default_and_the_files_its_metadata_names():
         if name in needed:
             continue
         needed.add(name)
-        meta = model_metadata(ROOT / "models" / name)
-        if "first_pass" in meta:
-            todo.append(meta["first_pass"])
-        for key in ("far_network", "finder"):
-            if isinstance(meta.get(key), dict):
-                todo.append(meta[key]["file"])
+        todo.extend(companion_files(model_metadata(ROOT / "models" / name)).values())
     assert needed == set(shipped)
     env = {k: v for k, v in os.environ.items() if k != "OIBAR_MODEL"}
     r = subprocess.run(

@@ -57,6 +57,23 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     return meta
 
 
+# The files an export names, which must lie beside it (its role -> the metadata key naming it):
+# the first pass (a file name), the far network and the fixture finder ({"file": name}).
+COMPANION_ROLES = {"first_pass": "first pass", "far_network": "far network", "finder": "finder"}
+
+
+def companion_files(meta: dict[str, Any]) -> dict[str, str]:
+    """The files an export's metadata names beside it, by role (COMPANION_ROLES' keys, in that
+    order); a role the export does not have is left out."""
+    out = {}
+    for key in COMPANION_ROLES:
+        v = meta.get(key)
+        name = v.get("file") if isinstance(v, dict) else v
+        if isinstance(name, str) and name:
+            out[key] = name
+    return out
+
+
 def export_flag(path: Path, meta: dict[str, Any], key: str, given: bool | None) -> bool:
     """An on/off reading option: `given`, else as the export says (off without the key); a
     value that is not true or false is a damaged export."""
