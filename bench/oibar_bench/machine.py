@@ -12,6 +12,8 @@ import sys
 from importlib import metadata
 from pathlib import Path
 
+from oibar.machine import cpu_model
+
 from .core import ROOT
 
 
@@ -24,16 +26,6 @@ def _first_line(cmd: list[str]) -> str:
         return f"unknown ({exc})"
     text = (out.stdout or out.stderr).strip()
     return text.splitlines()[0] if text else "unknown"
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.lower().startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _ram_gib() -> float | None:
@@ -87,7 +79,7 @@ def describe() -> dict:
     ram = _ram_gib()
     return {
         "machine": {
-            "CPU": _cpu_model(),
+            "CPU": cpu_model(),
             "cores (logical)": str(os.cpu_count()),
             "RAM": f"{ram:.1f} GiB" if ram else "unknown",
             "OS": _os_name(),

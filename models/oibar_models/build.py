@@ -57,15 +57,9 @@ def machine() -> dict[str, Any]:
     frame for frame was not the file built on an AMD EPYC."""
     import platform
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    out: dict[str, Any] = {"cpu": cpu, "python": platform.python_version()}
+    from oibar.machine import cpu_model
+
+    out: dict[str, Any] = {"cpu": cpu_model(), "python": platform.python_version()}
     try:
         import torch
 
