@@ -333,7 +333,8 @@ def test_the_rolled_candidate_is_0_35_15_with_a_quarter_of_its_crops_turned_and_
     """0.35.16 is 0.35.15's recipe, stage for stage, but for its fine-tune's rolled crops
     (roll_share 0.25), its retag saying so (keypoints_any_turn), and its finder: 0.35.15's file,
     not a stage that would retrain it unchanged (so neither the finder stage nor the half
-    training set it read). 0.35.17 is 0.35.16 trained three times as long."""
+    training set it read). 0.35.17 is 0.35.16 trained three times as long, 0.35.18 is
+    0.35.17 with a tenth of its crops turned."""
     a = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_cropgain_used5.toml")
     b = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_rolled.toml")
     assert (b.name, b.model_version) == ("oibarnet_kp_ft_rolled", "0.35.16")
@@ -351,6 +352,11 @@ def test_the_rolled_candidate_is_0_35_15_with_a_quarter_of_its_crops_turned_and_
     for sc in c.stages:
         edits = {"steps": 3000} if sc.name == "finetune" else {}
         assert sc.opts == b.stage(sc.name).opts | edits, sc.name
+    d = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_rolled3k10.toml")  # and 0.35.18, a tenth turned
+    assert (d.name, d.model_version) == ("oibarnet_kp_ft_rolled3k10", "0.35.18") and d.datasets == c.datasets
+    for sd in d.stages:
+        edits = {"roll_share": 0.1} if sd.name == "finetune" else {}
+        assert sd.opts == c.stage(sd.name).opts | edits, sd.name
 
 
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
