@@ -73,9 +73,8 @@ def model_version_text(path: Path) -> str:
             for role in ("far_network", "finder", "first_pass")
             if role in files
         ]
-        inside = "; ".join(
-            [str(meta.get("name", "?")), ", ".join(parts)] if parts else [str(meta.get("name", "?"))]
-        )
+        name = str(meta.get("name", "?"))
+        inside = f"{name}; {', '.join(parts)}" if parts else name
         return f"{meta.get('model_version', '?')} ({inside}) {path}"
     except Exception as exc:  # a missing or broken file: say so, and still print the rest
         return f"unreadable: {path} ({type(exc).__name__}: {exc})"
