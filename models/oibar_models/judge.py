@@ -12,6 +12,12 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
    one run; on each look: the paper's score (metrics.score: position fraction + attitude rad) no
    worse by more than 0.001, neither compliance lower by more than 0.5 % (two of 456 frames), no
    more silent failures (answers out of bounds at a confidence the daemon acts on);
+1c. the roll sweep (since 2026-12-07, issue 58: `make dataset-val-roll`, one validation approach
+   at 13 rolls of 0-180 deg in our renderer), every frame read cold at the flight setting, both
+   files in one run, by part 1b's clauses: a shipped model that reads every roll must not be
+   replaced by one that reads fewer (0.35.15 reads views past about 45 deg of roll as upright:
+   10.6 % / 22.9 deg there, 29 silent failures; the frozen test set's rolled scenes fail alike).
+   Written before candidate 0.35.19's figures; it only adds to what a candidate must hold;
 2. the probe on the validation scenes: no slope further from 1 than the shipped model's beyond two
    standard errors of the difference, and none of the shipped model's within 0.1 of 1 leaves that
    band (a per-frame gain that reads the 3 m view shorter lost in the closed loop: 0.20.0). The
@@ -39,11 +45,12 @@ Every candidate since 0.18.1 was judged by the same four parts, written before i
    the code moves (0.15.3's held-out runs flown on 2026-11-29 differ from its committed ones by up
    to 1.3 cm a run, +0.20 +- 0.13 cm on the mean; docs/model_history.md, "Candidate 0.28.0").
 
-    python -m oibar_models.judge run --candidate runs/<name>/oibarnet.onnx      # parts 1, 1b, 2, 3 (~17 min)
+    python -m oibar_models.judge run --candidate runs/<name>/oibarnet.onnx      # parts 1, 1b, 1c, 2, 3 (~20 min)
     python -m oibar_models.judge loop --candidate runs/<name>/oibarnet.onnx     # part 4 (~85 min)
     python -m oibar_models.judge validation EVAL_JSON --candidate C.onnx        # one part, from
     python -m oibar_models.judge looks EVAL_JSON --candidate C.onnx             #   files made
-    python -m oibar_models.judge probe PROBE_JSON [--shipped PROBE_JSON]        #   already
+    python -m oibar_models.judge rolls EVAL_JSON --candidate C.onnx             #   already
+    python -m oibar_models.judge probe PROBE_JSON [--shipped PROBE_JSON]
     python -m oibar_models.judge demo DEMO_JSON [--shipped DEMO_JSON]
     python -m oibar_models.judge pair held_out=LOOKS_JSON default=LOOKS_JSON \
            [--shipped held_out=LOOKS_JSON ...]   # paired with the shipped model's runs flown beside
@@ -80,6 +87,8 @@ BASE_LOOP = REPO / "models/registry/oibarnet-0.35.15/loop_base_03515_0f3f13b8c6.
 LOOP_SETS = ("held_out", "default")  # flown in this order (the held-out looks first)
 # Part 1b's sets (oibar_models.kp_evaluate.SETS): the validation looks of the second renderer
 LOOK_SETS = ("val_mitsuba", "val_lab")
+# Part 1c's set: the roll sweep in our renderer
+ROLL_SETS = ("val_roll",)
 # Part 3's scene: the validation scene of seq01's port, approach and background (the demo's own
 # scene, a test sequence, is read once per shipped model, for its card). Chosen by that rule
 # before any candidate flew it.
@@ -249,20 +258,26 @@ def judge_validation(
     return v
 
 
-def judge_looks(
-    eval_json: dict[str, Any], base_version: str, cand_version: str, rule: Rule = Rule()
+def judge_cold(
+    eval_json: dict[str, Any],
+    base_version: str,
+    cand_version: str,
+    sets: tuple[str, ...],
+    part: str,
+    rule: Rule = Rule(),
 ) -> Verdict:
-    """Part 1b from kp_evaluate's eval.json (both models on LOOK_SETS, each frame read cold)."""
+    """Parts 1b and 1c from kp_evaluate's eval.json: both models on `sets`, each frame read cold."""
+    from .kp_evaluate import RENDER_TARGETS
     from .metrics import score
 
     if base_version == cand_version:
         raise JudgeInputError(
             f"the candidate has the shipped model's version ({base_version}): give it its own"
         )
-    v = Verdict("1b (Mitsuba looks)")
-    for look in LOOK_SETS:
+    v = Verdict(part)
+    for look in sets:
         if look not in eval_json:
-            raise JudgeInputError(f"the evaluation has no {look!r} (render it: make dataset-looks)")
+            raise JudgeInputError(f"the evaluation has no {look!r} (render it: make {RENDER_TARGETS[look]})")
         b = _eval_arm(eval_json[look], base_version, "cold")["_all"]
         c = _eval_arm(eval_json[look], cand_version, "cold")["_all"]
         if b.get("frames") != c.get("frames") or not c.get("frames"):
@@ -293,13 +308,28 @@ def judge_looks(
     return v
 
 
-def looks_rendered(root: Path = REPO) -> str:
-    """'' when every look of part 1b is rendered (each scene's manifest written), else what is missing."""
+def judge_looks(
+    eval_json: dict[str, Any], base_version: str, cand_version: str, rule: Rule = Rule()
+) -> Verdict:
+    """Part 1b: the second renderer's looks (LOOK_SETS)."""
+    return judge_cold(eval_json, base_version, cand_version, LOOK_SETS, "1b (Mitsuba looks)", rule)
+
+
+def judge_rolls(
+    eval_json: dict[str, Any], base_version: str, cand_version: str, rule: Rule = Rule()
+) -> Verdict:
+    """Part 1c: the roll sweep (ROLL_SETS)."""
+    return judge_cold(eval_json, base_version, cand_version, ROLL_SETS, "1c (roll sweep)", rule)
+
+
+def looks_rendered(root: Path = REPO, sets: tuple[str, ...] = LOOK_SETS) -> str:
+    """'' when every set of `sets` (part 1b's looks by default) is rendered (each scene's manifest
+    written), else what is missing."""
     from .kp_evaluate import SETS
     from .scenes import load_set
 
     missing = []
-    for look in LOOK_SETS:
+    for look in sets:
         spec, data = SETS[look]
         missing += [
             f"{data}/{s.name}"
@@ -700,8 +730,8 @@ def _report(v: Verdict, out: Path) -> bool:
 
 
 def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) -> bool:
-    """Parts 1, 1b, 2 and 3 in order, each from the project's own tools, stopping at the first that
-    fails."""
+    """Parts 1, 1b, 1c, 2 and 3 in order, each from the project's own tools, stopping at the first
+    that fails."""
     py = sys.executable
     for p in (cand, base, BASE_PROBE):
         if not Path(p).is_file():
@@ -710,6 +740,11 @@ def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) 
     if missing:
         raise JudgeInputError(
             f"part 1b reads the second renderer's looks: render them first (make dataset-looks): {missing}"
+        )
+    missing = looks_rendered(sets=ROLL_SETS)
+    if missing:
+        raise JudgeInputError(
+            f"part 1c reads the roll sweep: render it first (make dataset-val-roll): {missing}"
         )
     out.mkdir(parents=True, exist_ok=True)
     for old in out.glob("part[1-4]*.json"):  # an earlier candidate's verdicts would read as this one's
@@ -739,6 +774,16 @@ def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) 
         _load(out / "looks/eval.json", "kp_evaluate's output"), _version(base), _version(cand), rule
     )
     if not _report(v1b, out):
+        return False
+    _run(
+        [py, "-m", "oibar_models.kp_evaluate", "--models", str(cand), str(base), "--sets", *ROLL_SETS,
+         "--stride", "1", "--modes", "cold", "--no-progress", "--out", str(out / "rolls")],
+        out / "rolls.log",
+    )  # fmt: skip
+    v1c = judge_rolls(
+        _load(out / "rolls/eval.json", "kp_evaluate's output"), _version(base), _version(cand), rule
+    )
+    if not _report(v1c, out):
         return False
     for model, name in ((cand, "probe"), (base, "probe_shipped")):
         _run(
@@ -940,7 +985,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m oibar_models.judge", description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=REPO / "build/judge", help="where the verdicts go")
     sub = ap.add_subparsers(dest="cmd", required=True)
-    p = sub.add_parser("run", help="parts 1-3 for a candidate (evaluation, Mitsuba looks, probe, demo)")
+    p = sub.add_parser(
+        "run", help="parts 1-3 for a candidate (evaluation, Mitsuba looks, roll sweep, probe, demo)"
+    )
     p.add_argument("--candidate", type=Path, required=True)
     p = sub.add_parser("loop", help="part 4: fly the base's closed-loop runs with the candidate, then pair")
     p.add_argument("--candidate", type=Path, required=True)
@@ -949,6 +996,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("eval_json", type=Path)
     p.add_argument("--candidate", type=Path, required=True)
     p = sub.add_parser("looks", help="part 1b from kp_evaluate's eval.json on the Mitsuba looks (cold)")
+    p.add_argument("eval_json", type=Path)
+    p.add_argument("--candidate", type=Path, required=True)
+    p = sub.add_parser("rolls", help="part 1c from kp_evaluate's eval.json on the roll sweep (cold)")
     p.add_argument("eval_json", type=Path)
     p.add_argument("--candidate", type=Path, required=True)
     p = sub.add_parser("probe", help="part 2 from the candidate's probe JSON")
@@ -1007,11 +1057,10 @@ def main(argv: list[str] | None = None) -> int:
                 ),
                 a.out,
             )
-        elif a.cmd == "looks":
+        elif a.cmd in ("looks", "rolls"):
+            part = judge_looks if a.cmd == "looks" else judge_rolls
             ok = _report(
-                judge_looks(
-                    _load(a.eval_json, "kp_evaluate's output"), _version(SHIPPED), _version(a.candidate)
-                ),
+                part(_load(a.eval_json, "kp_evaluate's output"), _version(SHIPPED), _version(a.candidate)),
                 a.out,
             )
         elif a.cmd == "probe":

@@ -18,6 +18,7 @@ from oibar_models.judge import (
     judge_looks,
     judge_loop,
     judge_probe,
+    judge_rolls,
     judge_validation,
     looks_rendered,
     main,
@@ -207,6 +208,59 @@ def test_a_candidate_that_answers_no_look_frame_fails_the_score():
     ev["val_lab"]["oibarnet 0.35.1 cold"]["_all"] = {"frames": 229, "silent_failures": 0}
     v = judge_looks(ev, "0.34.0", "0.35.1")
     assert "val_lab: score held" in _failing(v)
+
+
+def _rolls(cand=None):
+    """Part 1c's evaluation: the roll sweep's 401 frames read cold, the figures measured on
+    2026-12-07: 0.35.15 (here the shipped arm) and 0.35.18 with its any-turn flag (the candidate)."""
+    return {
+        "val_roll": {
+            "oibarnet 0.34.0 cold": _cold(10.64, 22.86, 85.8, 75.8, 29, frames=401),
+            "oibarnet 0.35.1 cold": _cold(*(cand or (2.70, 1.74, 98.8, 97.5, 0)), frames=401),
+        }
+    }
+
+
+@pytest.mark.parametrize(
+    "cand, clause",
+    [
+        # a model that reads rolls like the shipped one but one more frame silently wrong
+        ((10.64, 22.86, 85.8, 75.8, 30), "val_roll: silent failures held"),
+        ((10.64, 22.86, 85.0, 75.8, 29), "val_roll: compliance_pos held"),
+        ((10.64, 22.86, 85.8, 75.0, 29), "val_roll: compliance_att held"),
+        ((10.84, 22.86, 85.8, 75.8, 29), "val_roll: score held"),
+    ],
+)
+def test_each_roll_sweep_clause_fails_on_its_own(cand, clause):
+    """Part 1c: a candidate must not read fewer rolls than the shipped model; one that reads them
+    all (0.35.18's figures) holds against 0.35.15's."""
+    assert judge_rolls(_rolls(), "0.34.0", "0.35.1").holds
+    v = judge_rolls(_rolls(cand), "0.34.0", "0.35.1")
+    assert v.part.startswith("1c") and _failing(v) == [clause]
+    # the other way round (a shipped model that reads every roll, a candidate that does not) fails
+    # every clause
+    back = {"val_roll": {"oibarnet 0.34.0 cold": _rolls()["val_roll"]["oibarnet 0.35.1 cold"],
+                         "oibarnet 0.35.1 cold": _rolls()["val_roll"]["oibarnet 0.34.0 cold"]}}  # fmt: skip
+    assert len(_failing(judge_rolls(back, "0.34.0", "0.35.1"))) == 4
+
+
+def test_a_roll_sweep_not_evaluated_is_refused_naming_its_target():
+    with pytest.raises(JudgeInputError, match="make dataset-val-roll"):
+        judge_rolls(_looks(), "0.34.0", "0.35.1")
+
+
+def test_the_rolls_command_judges_an_evaluation_made_already(tmp_path, monkeypatch):
+    import oibar_models.judge as judge
+
+    monkeypatch.setattr(judge, "_version", lambda p: "0.35.1" if "cand" in str(p) else "0.34.0")
+    ok, lost = tmp_path / "ok.json", tmp_path / "lost.json"
+    ok.write_text(json.dumps(_rolls()))
+    lost.write_text(json.dumps(_rolls((10.64, 22.86, 85.8, 75.8, 31))))
+    out = ["--out", str(tmp_path / "out")]
+    assert main([*out, "rolls", str(ok), "--candidate", "cand.onnx"]) == 0
+    assert json.loads((tmp_path / "out" / "part1c.json").read_text())["holds"] is True
+    assert main([*out, "rolls", str(lost), "--candidate", "cand.onnx"]) == 1
+    assert main([*out, "rolls", str(tmp_path / "missing.json"), "--candidate", "cand.onnx"]) == 2
 
 
 def test_looks_rendered_names_each_scene_not_rendered(tmp_path):
@@ -764,6 +818,8 @@ def test_part_2_judges_against_the_shipped_model_probed_in_the_same_run(tmp_path
             out.mkdir(parents=True, exist_ok=True)
             if "val_mitsuba" in cmd:
                 (out / "eval.json").write_text(json.dumps(_looks_as(_looks(), "0.15.3", "0.20.0")))
+            elif "val_roll" in cmd:
+                (out / "eval.json").write_text(json.dumps(_looks_as(_rolls(), "0.15.3", "0.20.0")))
             else:
                 shutil.copy(DATA / "eval_val_candidate_0200.json", out / "eval.json")
         elif "oibar_hil.rig.probe" in cmd:
@@ -782,7 +838,7 @@ def test_part_2_judges_against_the_shipped_model_probed_in_the_same_run(tmp_path
         return 0
 
     monkeypatch.setattr(judge, "_run", fake_run)
-    monkeypatch.setattr(judge, "looks_rendered", lambda: "")
+    monkeypatch.setattr(judge, "looks_rendered", lambda **k: "")
     monkeypatch.setattr(subprocess, "call", fake_demo)
     monkeypatch.setattr(judge, "_version", lambda p: "0.20.0" if p == cand else "0.15.3")
     monkeypatch.setattr(judge, "_graph_signature", lambda p: GRAPH)
@@ -844,7 +900,7 @@ def test_the_run_reads_the_looks_after_validation_and_stops_when_they_fail(tmp_p
     monkeypatch.setattr(judge, "_graph_signature", lambda p: GRAPH)
     monkeypatch.setattr(judge, "_far_graph_signature", lambda p: None)
     monkeypatch.setattr(judge, "BASE_PROBE", PROBE_0153)
-    monkeypatch.setattr(judge, "looks_rendered", lambda: "")
+    monkeypatch.setattr(judge, "looks_rendered", lambda **k: "")
     assert not judge.run_parts(cand, tmp_path / "out", base=base)
     looks_cmd = ran[1]
     assert [looks_cmd[looks_cmd.index("--sets") + i] for i in (1, 2)] == ["val_mitsuba", "val_lab"]
@@ -857,7 +913,81 @@ def test_the_run_reads_the_looks_after_validation_and_stops_when_they_fail(tmp_p
     assert [c["clause"] for c in verdict["clauses"] if not c["holds"]] == ["val_lab: silent failures held"]
 
     ran.clear()
-    monkeypatch.setattr(judge, "looks_rendered", lambda: "data/val_lab/va000")
+    monkeypatch.setattr(judge, "looks_rendered", lambda **k: "data/val_lab/va000")
     with pytest.raises(JudgeInputError, match="make dataset-looks.*data/val_lab/va000"):
         judge.run_parts(cand, tmp_path / "out", base=base)
     assert ran == []
+
+
+def test_the_run_reads_the_roll_sweep_after_the_looks_and_stops_when_it_fails(tmp_path, monkeypatch):
+    """Part 1c runs after part 1b holds, on the roll sweep's every frame read cold; a candidate
+    that reads a roll the shipped model read stops there (no probe), and a sweep not rendered
+    stops the run before it reads anything, naming its make target."""
+    import shutil
+
+    import oibar_models.judge as judge
+
+    cand, base = tmp_path / "cand.onnx", tmp_path / "shipped.onnx"
+    cand.write_bytes(b"c")
+    base.write_bytes(b"s")
+    ran = []
+
+    def fake_run(cmd, log):
+        ran.append(cmd)
+        out = Path(cmd[cmd.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        if "val_mitsuba" in cmd:
+            (out / "eval.json").write_text(json.dumps(_looks_as(_looks(), "0.15.3", "0.20.0")))
+        elif "val_roll" in cmd:  # one silent failure more than the shipped model
+            lost = _rolls((10.64, 22.86, 85.8, 75.8, 30))
+            (out / "eval.json").write_text(json.dumps(_looks_as(lost, "0.15.3", "0.20.0")))
+        else:
+            shutil.copy(DATA / "eval_val_candidate_0200.json", out / "eval.json")
+
+    monkeypatch.setattr(judge, "_run", fake_run)
+    monkeypatch.setattr(judge, "_version", lambda p: "0.20.0" if p == cand else "0.15.3")
+    monkeypatch.setattr(judge, "_graph_signature", lambda p: GRAPH)
+    monkeypatch.setattr(judge, "_far_graph_signature", lambda p: None)
+    monkeypatch.setattr(judge, "BASE_PROBE", PROBE_0153)
+    monkeypatch.setattr(judge, "looks_rendered", lambda **k: "")
+    assert not judge.run_parts(cand, tmp_path / "out", base=base)
+    assert len(ran) == 3  # validation, looks, rolls; no probe after a failed part 1c
+    rolls_cmd = ran[2]
+    assert rolls_cmd[rolls_cmd.index("--sets") + 1 :][:1] == ["val_roll"]
+    assert (
+        rolls_cmd[rolls_cmd.index("--modes") + 1] == "cold"
+        and rolls_cmd[rolls_cmd.index("--stride") + 1] == "1"
+    )
+    assert json.loads((tmp_path / "out" / "part1b.json").read_text())["holds"] is True
+    verdict = json.loads((tmp_path / "out" / "part1c.json").read_text())
+    assert [c["clause"] for c in verdict["clauses"] if not c["holds"]] == ["val_roll: silent failures held"]
+
+    ran.clear()
+    monkeypatch.setattr(
+        judge,
+        "looks_rendered",
+        lambda sets=judge.LOOK_SETS: "data/val_roll/vr000" if "val_roll" in sets else "",
+    )
+    with pytest.raises(JudgeInputError, match="make dataset-val-roll.*data/val_roll/vr000"):
+        judge.run_parts(cand, tmp_path / "out", base=base)
+    assert ran == []
+
+
+def test_roll_sweep_rendered_is_checked_scene_by_scene(tmp_path):
+    from oibar_models.kp_evaluate import SETS
+    from oibar_models.scenes import load_set
+
+    repo = Path(__file__).resolve().parents[2]
+    spec, data = SETS["val_roll"]
+    (tmp_path / spec).parent.mkdir(parents=True, exist_ok=True)
+    (tmp_path / spec).write_text((repo / spec).read_text())
+    scenes = [sc.name for sc in load_set(repo / spec)]
+    for name in scenes[:-1]:
+        (tmp_path / data / name).mkdir(parents=True)
+        (tmp_path / data / name / "manifest.json").write_text("{}")
+    from oibar_models.judge import ROLL_SETS
+
+    assert looks_rendered(tmp_path, sets=ROLL_SETS) == f"{data}/{scenes[-1]}"
+    (tmp_path / data / scenes[-1]).mkdir(parents=True)
+    (tmp_path / data / scenes[-1] / "manifest.json").write_text("{}")
+    assert looks_rendered(tmp_path, sets=ROLL_SETS) == ""
