@@ -359,6 +359,26 @@ def test_the_rolled_candidate_is_0_35_15_with_a_quarter_of_its_crops_turned_and_
         assert sd.opts == c.stage(sd.name).opts | edits, sd.name
 
 
+def test_the_continued_rolled_candidate_starts_from_the_shipped_0_35_15():
+    """0.35.19 is 0.35.18 fine-tuned from 0.35.15's file (pinned by the sha256 the registry keeps
+    for it) instead of 0.34.0's: 2000 steps at half the learning rate, the rest as 0.35.18."""
+    import tomllib
+
+    d = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_rolled3k10.toml")
+    e = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_rolled_cont.toml")
+    assert (e.name, e.model_version) == ("oibarnet_kp_ft_rolled_cont", "0.35.19") and e.datasets == d.datasets
+    registry = tomllib.loads((REPO / "models/registry.toml").read_text())
+    (shipped,) = [m for m in registry["models"] if (m["name"], m["version"]) == ("oibarnet", "0.35.15")]
+    edits = {
+        "init": "models/oibarnet.onnx",
+        "init_sha256": shipped["files"]["models/oibarnet.onnx"],
+        "steps": 2000,
+        "lr": 1e-4,
+    }
+    for se in e.stages:
+        assert se.opts == d.stage(se.name).opts | (edits if se.name == "finetune" else {}), se.name
+
+
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
     """Without rendering or training anything: the fine-tune's sequences are its datasets in the
     order listed, each dataset's scenes in its own order, in the standard render folders."""
