@@ -206,3 +206,62 @@ def test_a_model_that_says_keypoints_any_turn_opens_with_it_and_a_malformed_valu
         else:
             with pytest.raises(ModelFileError, match="keypoints_any_turn must be true or false"):
                 PoseEstimator(path, warmup_runs=0)
+
+
+def _weak_fit_of_a_rolled_fixture(est, roll_deg: float):
+    """A weak fit (reprojection far above the strong bound) of a fixture 3 m ahead rolled by
+    roll_deg, in the unturned window around its keypoints: ((fit, window), the fixture's R, T)."""
+    from oibar.nav.keypoints import PnpResult
+
+    R0 = rotvec_to_matrix(np.radians([2.0, -1.5, 0.0]))
+    T0 = np.array([0.05, -0.03, 3.0])
+    Rz = _Rz(np.radians(roll_deg))
+    R, T = Rz @ R0, Rz @ T0
+    win = window_around(project(est.reader.K_frame, est.reader.points_m, R, T), est.reader.out_px, 1.25)
+    return (PnpResult(True, R, T, rms_px=20.0 * win.scale), win), R, T
+
+
+@pytest.mark.parametrize("roll_deg, any_turn, reads", [
+    (90.0, True, 1), (180.0, True, 1), (-60.0, True, 1),
+    (10.0, True, 0),   # within UPRIGHT_FROM_DEG: the window would not turn
+    (90.0, False, 0),  # a file without the flag searches as before
+])  # fmt: skip
+def test_a_weak_fit_of_a_turned_fixture_has_its_window_turned_upright_read_once(
+    monkeypatch, roll_deg, any_turn, reads
+):
+    """search.WindowSearch._weak_turned_pass: keypoints that read any turn fit a turned fixture in
+    a window not turned to it, but weakly; the window that fit turns upright is read (as the
+    refining pass reads, one crop) and a strong fit there ends the search. Once per weak fit."""
+    from oibar.nav.keypoints import PnpResult
+    from oibar.nav.pose.fusion import turn_in_window_deg
+    from oibar.nav.pose.search_state import FitKeeper
+
+    est = _estimator()
+    est.fusion.keypoints_any_turn = any_turn
+    search = est.search
+    weak, R, T = _weak_fit_of_a_rolled_fixture(est, roll_deg)
+    strong = PnpResult(True, R, T, rms_px=0.0)
+    seen = []
+
+    def one_pass(image, win, R_direct, f, range_m, refining=False, reading=None):
+        seen.append((win, refining, range_m))
+        return strong, win
+
+    monkeypatch.setattr(search, "_one_pass", one_pass)
+    keep = FitKeeper(search._weak_rank)
+    assert not keep.consider(*weak) and keep.weak is not None and keep.weak[0] is weak[0]
+    frame = np.zeros((480, 744, 3), np.uint8)
+    read: list = []
+    assert search._weak_turned_pass(frame, keep, R, None, read) == reads
+    assert len(seen) == reads and search.last_crops.get("weak_turned", 0) == 0  # the stub reads no crop
+    if not reads:
+        assert keep.best is None
+        return
+    ((win, refining, range_m),) = seen
+    assert refining and range_m == pytest.approx(np.linalg.norm(T))
+    assert turn_in_window_deg(est.reader.K_frame, R, T, win) < 1.0  # the fixture upright in it
+    assert turn_in_window_deg(est.reader.K_frame, R, T, weak[1]) > 15.0
+    assert keep.best == (strong, win)
+    # the same weak fit is not read again
+    keep.best = None
+    assert search._weak_turned_pass(frame, keep, R, None, read) == 0 and len(seen) == 1

@@ -20,9 +20,9 @@ import numpy as np
 from oibar.nav.keypoints import CropWindow, PnpResult
 from oibar.nav.pose.finder import FixtureFinder
 from oibar.nav.pose.finder_place import finder_window
-from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, Fusion, fit_rms_crop_px
+from oibar.nav.pose.fusion import STRONG_FIT_RMS_CROP_PX, Fusion, fit_rms_crop_px, turn_in_window_deg
 from oibar.nav.pose.model_file import ModelFileError, export_flag
-from oibar.nav.pose.reader import CropReading, KeypointReader
+from oibar.nav.pose.reader import UPRIGHT_FROM_DEG, CropReading, KeypointReader
 from oibar.nav.pose.roll import turned_pass, upright_pass
 from oibar.nav.pose.scan import scan_pass
 from oibar.nav.pose.search_state import ColdSearch, Consider, Fit, FitKeeper
@@ -93,10 +93,12 @@ ZOOM_MIN_SIDE_PX = 24.0  # no zoom window smaller (the fixture's window at ~15 m
 # budget: 1 crop for the shipped model).
 COLD_CROP_BUDGET = 60
 # The search's stages, in the order a frame may reach them; WindowSearch.last_crops counts the
-# crops each read (the window a pose placed; SEARCH_STEPS; the turn stage; the zoom and the scan,
-# the cold search under its budget; the upside-down check, the zoom-out and the refining pass
-# after a strong fit, outside it). What a slow frame spent its time on (docs/benchmarks.md).
-STAGES = ("placed", "found", "steps", "turn", "zoom", "scan", "upright", "zoom_out", "refine")
+# crops each read (the window a pose placed; the finder's window and SEARCH_STEPS, after either of
+# them the best weak fit read turned upright, for keypoints that read any turn; the turn stage; the
+# zoom and the scan, the cold search under its budget; the upside-down check, the zoom-out and the
+# refining pass after a strong fit, outside it). What a slow frame spent its time on
+# (docs/benchmarks.md).
+STAGES = ("placed", "found", "weak_turned", "steps", "turn", "zoom", "scan", "upright", "zoom_out", "refine")
 MIN_COLD_CROP_BUDGET = len(ZOOM_STEPS) + len(WIDE_STEPS) + 1  # the largest batch, the hint's crop
 # A carried cold search is dropped this long (frame time) after its first frame. Its scores and
 # windows stay valid while the fixture barely moves in the image: on the validation scenes it
@@ -266,6 +268,7 @@ class WindowSearch:
         # the direct model reads every view unrolled: its window stays unturned
         base = self.reader.window_for(R_direct, T_direct, upright=False)
         crops = 0
+        read: list[tuple[PnpResult, CropWindow]] = []  # the weak fits read turned upright
         found = finder_window(
             self.finder, image, base, self.reader.margin, ZOOM_MIN_SIDE_PX, self.reader.out_px
         )
@@ -275,11 +278,13 @@ class WindowSearch:
                 keep.consider(
                     *self._one_pass(image, found, R_direct, f, self.reader.range_for_side_m(found.side_px))
                 )
+            crops += self._weak_turned_pass(image, keep, R_direct, f, read)
             if keep.best is not None:
                 return crops, None
         if base is not None:
             with self.tally("steps"):
                 crops += self._steps_pass(image, base, R_direct, T_direct, f, keep)
+            crops += self._weak_turned_pass(image, keep, R_direct, f, read)
         # the turn stage, the zoom and the scan only on a cold start or a lost track: with a
         # prediction their cost would come out of the 100 ms frame budget on every weak far
         # frame of a healthy track
@@ -340,6 +345,39 @@ class WindowSearch:
             if keep.consider(r, win):
                 break
         return crops
+
+    def _weak_turned_pass(
+        self,
+        image: np.ndarray,
+        keep: FitKeeper,
+        R_direct: np.ndarray,
+        f: dict[str, Any] | None,
+        read: list[tuple[PnpResult, CropWindow]],
+    ) -> int:
+        """Keypoints that read any turn (``oibar.keypoints_any_turn``) place a turned fixture
+        right in a window not turned to it, but less tightly than upright: on the roll sweep
+        val_roll, 0.35.18's fits there at 60-180 deg of roll and 7-10 m came out 0.2-2.9 % / 1-6 deg
+        off yet weak, and each such cold frame then ran the turn stage and the zoom (50-100 crops,
+        0.4-0.5 s). With no strong fit yet, the best weak fit, where it shows the fixture turned
+        beyond UPRIGHT_FROM_DEG in its window, has the window it turns upright read once, as the
+        refining pass reads it (`read`: the weak fits so read, for this frame): crops read."""
+        if keep.best is not None or keep.weak is None or not self.fusion.keypoints_any_turn:
+            return 0
+        if any(w is keep.weak for w in read):
+            return 0
+        read.append(keep.weak)
+        r, win = keep.weak
+        R, T = r.pose()
+        if turn_in_window_deg(self.reader.K_frame, R, T, win) <= UPRIGHT_FROM_DEG:
+            return 0
+        upright = self.reader.window_for(R, T)
+        if upright is None:
+            return 0
+        with self.tally("weak_turned"):
+            keep.consider(
+                *self._one_pass(image, upright, R_direct, f, float(np.linalg.norm(T)), refining=True)
+            )
+        return 1
 
     def _refined(
         self,
