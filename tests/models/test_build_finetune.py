@@ -361,7 +361,8 @@ def test_the_rolled_candidate_is_0_35_15_with_a_quarter_of_its_crops_turned_and_
 
 def test_the_continued_rolled_candidate_starts_from_the_shipped_0_35_15():
     """0.35.19 is 0.35.18 fine-tuned from 0.35.15's file (pinned by the sha256 the registry keeps
-    for it) instead of 0.34.0's: 2000 steps at half the learning rate, the rest as 0.35.18."""
+    for it) instead of 0.34.0's: 2000 steps at half the learning rate, the rest as 0.35.18; 0.35.20
+    is 0.35.19 trained twice as long."""
     import tomllib
 
     d = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_rolled3k10.toml")
@@ -377,6 +378,11 @@ def test_the_continued_rolled_candidate_starts_from_the_shipped_0_35_15():
     }
     for se in e.stages:
         assert se.opts == d.stage(se.name).opts | (edits if se.name == "finetune" else {}), se.name
+    g = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_rolled_cont4k.toml")  # 0.35.20: twice as long
+    assert (g.name, g.model_version) == ("oibarnet_kp_ft_rolled_cont4k", "0.35.20")
+    assert g.datasets == e.datasets
+    for sg in g.stages:
+        assert sg.opts == e.stage(sg.name).opts | ({"steps": 4000} if sg.name == "finetune" else {}), sg.name
 
 
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
