@@ -261,10 +261,11 @@ class WindowSearch:
         keep: FitKeeper,
         cold_start: bool,
     ) -> tuple[int, ColdSearch | None]:
-        """SEARCH_STEPS around the direct model's window (never cut short: they run with a
-        prediction too) and, on a cold start or a lost track (`cold_start`: no prediction), the
-        turn stage: (SEARCH_STEPS' crops, the cold search to go on with when neither found a
-        strong fit, else None). The turn stage's crops are outside the cold search's budget."""
+        """The finder's window and SEARCH_STEPS around the direct model's (never cut short: they
+        run with a prediction too), each followed by `_weak_turned_pass`, and, on a cold start or
+        a lost track (`cold_start`: no prediction), the turn stage: (the crops read before the
+        turn stage, the cold search to go on with when none found a strong fit, else None). The
+        turn stage's crops are outside the cold search's budget."""
         # the direct model reads every view unrolled: its window stays unturned
         base = self.reader.window_for(R_direct, T_direct, upright=False)
         crops = 0
