@@ -155,15 +155,16 @@ lab-demo: setup ## item 5's demonstration: render the 12 lab stand-ins, label th
 # The ship rule for a keypoint candidate against the shipped model (oibar_models.judge, issue 15;
 # docs/model_card.md, "How a candidate ships"): a part that fails stops the rest; verdicts in
 # build/judge/part<N>.json.
-#   make judge-kp JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx        parts 1-3 with 1b, the Mitsuba looks
-#       (~17 min on 2 cores; `make dataset-looks` first, ~35 min once)
+#   make judge-kp JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx        parts 1-3 with 1b, the Mitsuba looks,
+#       and 1c, the roll sweep (~20 min on 2 cores; `make dataset-looks` first, ~35 min once, and
+#       `make dataset-val-roll`, under a minute)
 #   make judge-kp-loop JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx   part 4, the closed loop (~85 min;
 #       as long again after a flight-code change: the shipped model flies beside it; under the code
 #       the base records, the base is its arm after a spot check)
 # The candidate's first pass (oibar.first_pass) must lie beside it, as for any keypoint model.
 JUDGE_CANDIDATE ?=
 .PHONY: judge-kp judge-kp-loop
-judge-kp: firmware-host gen ## the ship rule's parts 1-3 (validation, Mitsuba looks, probe, demo) for JUDGE_CANDIDATE against the shipped model
+judge-kp: firmware-host gen ## the ship rule's parts 1-3 (validation, Mitsuba looks, roll sweep, probe, demo) for JUDGE_CANDIDATE against the shipped model
 	@test -n "$(JUDGE_CANDIDATE)" || { echo "error: give JUDGE_CANDIDATE=runs/<name>/oibarnet.onnx" >&2; exit 2; }
 	@$(PY) -m oibar_models.judge --out $(BUILD)/judge run --candidate $(JUDGE_CANDIDATE)
 
