@@ -921,8 +921,8 @@ def test_the_run_reads_the_looks_after_validation_and_stops_when_they_fail(tmp_p
 
 def test_the_run_reads_the_roll_sweep_after_the_looks_and_stops_when_it_fails(tmp_path, monkeypatch):
     """Part 1c runs after part 1b holds, on the roll sweep's every frame read cold; a candidate
-    that reads a roll the shipped model read stops there (no probe), and a sweep not rendered
-    stops the run before it reads anything, naming its make target."""
+    with one silent failure more than the shipped model stops there (no probe), and a sweep not
+    rendered stops the run before it reads anything, naming its make target."""
     import shutil
 
     import oibar_models.judge as judge
