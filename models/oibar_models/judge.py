@@ -765,26 +765,18 @@ def run_parts(cand: Path, out: Path, base: Path = SHIPPED, rule: Rule = Rule()) 
     )
     if not _report(v1, out):
         return False
-    _run(
-        [py, "-m", "oibar_models.kp_evaluate", "--models", str(cand), str(base), "--sets", *LOOK_SETS,
-         "--stride", "1", "--modes", "cold", "--no-progress", "--out", str(out / "looks")],
-        out / "looks.log",
-    )  # fmt: skip
-    v1b = judge_looks(
-        _load(out / "looks/eval.json", "kp_evaluate's output"), _version(base), _version(cand), rule
-    )
-    if not _report(v1b, out):
-        return False
-    _run(
-        [py, "-m", "oibar_models.kp_evaluate", "--models", str(cand), str(base), "--sets", *ROLL_SETS,
-         "--stride", "1", "--modes", "cold", "--no-progress", "--out", str(out / "rolls")],
-        out / "rolls.log",
-    )  # fmt: skip
-    v1c = judge_rolls(
-        _load(out / "rolls/eval.json", "kp_evaluate's output"), _version(base), _version(cand), rule
-    )
-    if not _report(v1c, out):
-        return False
+    # parts 1b and 1c: every frame of their sets read cold by both files in one run
+    for sets, name, part in ((LOOK_SETS, "looks", judge_looks), (ROLL_SETS, "rolls", judge_rolls)):
+        _run(
+            [py, "-m", "oibar_models.kp_evaluate", "--models", str(cand), str(base), "--sets", *sets,
+             "--stride", "1", "--modes", "cold", "--no-progress", "--out", str(out / name)],
+            out / f"{name}.log",
+        )  # fmt: skip
+        v = part(
+            _load(out / name / "eval.json", "kp_evaluate's output"), _version(base), _version(cand), rule
+        )
+        if not _report(v, out):
+            return False
     for model, name in ((cand, "probe"), (base, "probe_shipped")):
         _run(
             [py, "-m", "oibar_hil.rig.probe", "--model", str(model), "--scenes", "val", "--json",

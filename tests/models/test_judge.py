@@ -872,10 +872,10 @@ def _looks_as(ev, base, cand):
     }
 
 
-def test_the_run_reads_the_looks_after_validation_and_stops_when_they_fail(tmp_path, monkeypatch):
-    """Part 1b runs after part 1 holds, on the looks' every frame read cold; a candidate that loses
-    the lab look stops there (no probe flown), and looks not rendered stop the run before it reads
-    anything, naming the scenes."""
+def _cold_run(tmp_path, monkeypatch, looks: dict, rolls: dict):
+    """run_parts with its steps faked: validation 0.20.0's committed evaluation against 0.15.3,
+    the looks and the roll sweep these evaluations (made by _looks() and _rolls()); the commands
+    run are kept in the list returned beside the two files."""
     import shutil
 
     import oibar_models.judge as judge
@@ -883,17 +883,17 @@ def test_the_run_reads_the_looks_after_validation_and_stops_when_they_fail(tmp_p
     cand, base = tmp_path / "cand.onnx", tmp_path / "shipped.onnx"
     cand.write_bytes(b"c")
     base.write_bytes(b"s")
-    ran = []
+    ran: list[list[str]] = []
 
     def fake_run(cmd, log):
         ran.append(cmd)
         out = Path(cmd[cmd.index("--out") + 1])
         out.mkdir(parents=True, exist_ok=True)
-        if "val_mitsuba" in cmd:
-            lost = _looks(lab=(4.16, 1.75, 97.8, 98.7, 90))
-            (out / "eval.json").write_text(json.dumps(_looks_as(lost, "0.15.3", "0.20.0")))
-        else:
+        ev = looks if "val_mitsuba" in cmd else rolls if "val_roll" in cmd else None
+        if ev is None:
             shutil.copy(DATA / "eval_val_candidate_0200.json", out / "eval.json")
+        else:
+            (out / "eval.json").write_text(json.dumps(_looks_as(ev, "0.15.3", "0.20.0")))
 
     monkeypatch.setattr(judge, "_run", fake_run)
     monkeypatch.setattr(judge, "_version", lambda p: "0.20.0" if p == cand else "0.15.3")
@@ -901,14 +901,30 @@ def test_the_run_reads_the_looks_after_validation_and_stops_when_they_fail(tmp_p
     monkeypatch.setattr(judge, "_far_graph_signature", lambda p: None)
     monkeypatch.setattr(judge, "BASE_PROBE", PROBE_0153)
     monkeypatch.setattr(judge, "looks_rendered", lambda **k: "")
-    assert not judge.run_parts(cand, tmp_path / "out", base=base)
-    looks_cmd = ran[1]
-    assert [looks_cmd[looks_cmd.index("--sets") + i] for i in (1, 2)] == ["val_mitsuba", "val_lab"]
-    assert (
-        looks_cmd[looks_cmd.index("--modes") + 1] == "cold"
-        and looks_cmd[looks_cmd.index("--stride") + 1] == "1"
+    return cand, base, ran
+
+
+def _cold_cmd_ok(cmd: list[str], sets: list[str]) -> bool:
+    """A kp_evaluate command of parts 1b and 1c: these sets, every frame, cold."""
+    i = cmd.index("--sets") + 1
+    return (
+        cmd[i : i + len(sets)] == sets
+        and cmd[cmd.index("--modes") + 1] == "cold"
+        and cmd[cmd.index("--stride") + 1] == "1"
     )
-    assert len(ran) == 2  # no probe after a failed part 1b
+
+
+def test_the_run_reads_the_looks_after_validation_and_stops_when_they_fail(tmp_path, monkeypatch):
+    """Part 1b runs after part 1 holds, on the looks' every frame read cold; a candidate that loses
+    the lab look stops there (no probe flown), and looks not rendered stop the run before it reads
+    anything, naming the scenes."""
+    import oibar_models.judge as judge
+
+    lost = _looks(lab=(4.16, 1.75, 97.8, 98.7, 90))
+    cand, base, ran = _cold_run(tmp_path, monkeypatch, lost, _rolls())
+    assert not judge.run_parts(cand, tmp_path / "out", base=base)
+    assert _cold_cmd_ok(ran[1], ["val_mitsuba", "val_lab"])
+    assert len(ran) == 2  # no roll sweep, no probe after a failed part 1b
     verdict = json.loads((tmp_path / "out" / "part1b.json").read_text())
     assert [c["clause"] for c in verdict["clauses"] if not c["holds"]] == ["val_lab: silent failures held"]
 
@@ -923,41 +939,12 @@ def test_the_run_reads_the_roll_sweep_after_the_looks_and_stops_when_it_fails(tm
     """Part 1c runs after part 1b holds, on the roll sweep's every frame read cold; a candidate
     with one silent failure more than the shipped model stops there (no probe), and a sweep not
     rendered stops the run before it reads anything, naming its make target."""
-    import shutil
-
     import oibar_models.judge as judge
 
-    cand, base = tmp_path / "cand.onnx", tmp_path / "shipped.onnx"
-    cand.write_bytes(b"c")
-    base.write_bytes(b"s")
-    ran = []
-
-    def fake_run(cmd, log):
-        ran.append(cmd)
-        out = Path(cmd[cmd.index("--out") + 1])
-        out.mkdir(parents=True, exist_ok=True)
-        if "val_mitsuba" in cmd:
-            (out / "eval.json").write_text(json.dumps(_looks_as(_looks(), "0.15.3", "0.20.0")))
-        elif "val_roll" in cmd:  # one silent failure more than the shipped model
-            lost = _rolls((10.64, 22.86, 85.8, 75.8, 30))
-            (out / "eval.json").write_text(json.dumps(_looks_as(lost, "0.15.3", "0.20.0")))
-        else:
-            shutil.copy(DATA / "eval_val_candidate_0200.json", out / "eval.json")
-
-    monkeypatch.setattr(judge, "_run", fake_run)
-    monkeypatch.setattr(judge, "_version", lambda p: "0.20.0" if p == cand else "0.15.3")
-    monkeypatch.setattr(judge, "_graph_signature", lambda p: GRAPH)
-    monkeypatch.setattr(judge, "_far_graph_signature", lambda p: None)
-    monkeypatch.setattr(judge, "BASE_PROBE", PROBE_0153)
-    monkeypatch.setattr(judge, "looks_rendered", lambda **k: "")
+    cand, base, ran = _cold_run(tmp_path, monkeypatch, _looks(), _rolls((10.64, 22.86, 85.8, 75.8, 30)))
     assert not judge.run_parts(cand, tmp_path / "out", base=base)
     assert len(ran) == 3  # validation, looks, rolls; no probe after a failed part 1c
-    rolls_cmd = ran[2]
-    assert rolls_cmd[rolls_cmd.index("--sets") + 1 :][:1] == ["val_roll"]
-    assert (
-        rolls_cmd[rolls_cmd.index("--modes") + 1] == "cold"
-        and rolls_cmd[rolls_cmd.index("--stride") + 1] == "1"
-    )
+    assert _cold_cmd_ok(ran[2], ["val_roll"])
     assert json.loads((tmp_path / "out" / "part1b.json").read_text())["holds"] is True
     verdict = json.loads((tmp_path / "out" / "part1c.json").read_text())
     assert [c["clause"] for c in verdict["clauses"] if not c["holds"]] == ["val_roll: silent failures held"]
