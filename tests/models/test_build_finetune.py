@@ -362,7 +362,7 @@ def test_the_rolled_candidate_is_0_35_15_with_a_quarter_of_its_crops_turned_and_
 def test_the_continued_rolled_candidate_starts_from_the_shipped_0_35_15():
     """0.35.19 is 0.35.18 fine-tuned from 0.35.15's file (pinned by the sha256 the registry keeps
     for it) instead of 0.34.0's: 2000 steps at half the learning rate, the rest as 0.35.18; 0.35.20
-    is 0.35.19 trained twice as long."""
+    is 0.35.19 trained twice as long, and 0.35.21 twice as long again."""
     import tomllib
 
     d = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_rolled3k10.toml")
@@ -383,6 +383,11 @@ def test_the_continued_rolled_candidate_starts_from_the_shipped_0_35_15():
     assert g.datasets == e.datasets
     for sg in g.stages:
         assert sg.opts == e.stage(sg.name).opts | ({"steps": 4000} if sg.name == "finetune" else {}), sg.name
+    h = load_recipe(REPO / "models/recipes/oibarnet_kp_ft_rolled_cont8k.toml")  # 0.35.21: twice as long again
+    assert (h.name, h.model_version) == ("oibarnet_kp_ft_rolled_cont8k", "0.35.21")
+    assert h.datasets == e.datasets
+    for sh in h.stages:
+        assert sh.opts == e.stage(sh.name).opts | ({"steps": 8000} if sh.name == "finetune" else {}), sh.name
 
 
 def test_the_candidate_recipe_plans_its_training_sequences_in_order(tmp_path):
