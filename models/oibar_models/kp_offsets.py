@@ -7,7 +7,7 @@ read 4-5.5 % short at every range beyond 3 m (issue 58). A network that reads ev
 outward by the same share reads the fixture larger, hence nearer; one whose search or PnP is at
 fault does not. With the window on the truth the search is out of the question, so this says
 what the network itself does on the look, keypoint by keypoint: what domain randomisation must
-cover (docs/model_card.md, "The lab look, keypoint by keypoint").
+cover (docs/model_history.md, "The studies on other looks").
 
     python -m oibar_models.kp_offsets --sets val val_lab --stride 8 1
     python -m oibar_models.kp_offsets --by-look data/train_dr --stride 2   (randomised looks)
