@@ -23,7 +23,7 @@ from .pose import SHIPPED_KP, approach_frames_dir
 VAL_STRIDE = 16  # of data/val's frames (each scene's every 8th render step): ~18 frames a scene
 COLD_TARGET = Target("<=", 100.0, "ms", "issue 58: p95 of a cold frame within one 10 Hz cycle")
 FAR_FROM_M = 8.0  # the far network's range: where the direct model's window misses most
-SEARCH = ("placed", "steps", "turn", "zoom", "scan")  # the stages that look for a fit
+SEARCH = ("placed", "found", "weak_turned", "steps", "turn", "zoom", "scan")  # the stages that look for a fit
 
 COLUMNS = [
     ("what", "frames"),
@@ -197,10 +197,12 @@ def cold_stages(ctx: Context) -> Result:
         return Result([], [why])
     notes = [
         "Stages in the order a frame may reach them (oibar.nav.pose.search.STAGES): placed (a window a "
-        "pose placed: none on a cold frame), steps (SEARCH_STEPS around the direct model's window), "
-        "turn (its window turned, TURN_STEPS_DEG), zoom and scan (the cold search, under the budget), "
-        "upright (a found fit read upside down), zoom_out (a found fit read larger), refine.",
-        "A frame's search ends at the deepest of placed, steps, turn, zoom and scan it reached: the "
-        "p95 column shows which of them make the slow frames.",
+        "pose placed: none on a cold frame), found (the fixture finder's window), weak_turned (a weak "
+        "fit of a turned fixture read in the window it turns upright; files whose keypoints read any "
+        "turn only), steps (SEARCH_STEPS around the direct model's window), turn (its window turned, "
+        "TURN_STEPS_DEG), zoom and scan (the cold search, under the budget), upright (a found fit read "
+        "upside down), zoom_out (a found fit read larger), refine.",
+        f"A frame's search ends at the deepest of {', '.join(SEARCH[:-1])} and {SEARCH[-1]} it reached: "
+        "the p95 column shows which of them make the slow frames.",
     ]
     return Result(_stage_rows(run["stages"], run["lat"]), notes)

@@ -136,6 +136,27 @@ def test_an_only_run_keeps_the_tables_it_did_not_measure_again(tmp_path):
     assert page.read_text().count("(not run: `--only` left this section out)") == len(core.SECTIONS) - 1
 
 
+def test_a_cold_frames_search_ends_at_its_deepest_search_stage():
+    """The stage table's p95 column: a frame counts where its search ended, the finder's window
+    included (0.35.15's finder ends 40 % of cold frames), and the checks after a fit (upright,
+    zoom_out, refine) never end one."""
+    from oibar_bench.pose_cold import _stage_rows
+
+    stages = [
+        {"found": 1, "upright": 2},  # the finder's window held
+        {"found": 1, "steps": 3, "upright": 2},  # it did not: the steps found the fit
+        {"found": 1, "steps": 11, "zoom": 40, "zoom_out": 29},  # the cold search
+        {"found": 1, "weak_turned": 1, "upright": 2},
+    ]
+    lat_ms = np.array([30.0, 40.0, 300.0, 35.0])
+    rows = {r["stage"]: r for r in _stage_rows(stages, lat_ms)}
+    assert rows["found"]["reached"] == 4 and rows["found"]["deepest_p95_ms"] == 30.0
+    assert rows["weak_turned"]["deepest_p95_ms"] == 35.0
+    assert rows["steps"]["deepest_p95_ms"] == 40.0 and rows["zoom"]["deepest_p95_ms"] == 300.0
+    assert rows["upright"]["deepest_p95_ms"] is None and rows["turn"]["reached"] == 0
+    assert rows["zoom"]["crops_pct"] == 100.0 * 40 / 94
+
+
 def test_map_parser_groups_sections_by_module(tmp_path):
     p = tmp_path / "x.map"
     p.write_text(MAP_TEXT)
