@@ -5,7 +5,8 @@ wrong place costs one crop, never a pose.
 
 Why: a cold far frame whose direct-model window misses the fixture (1-3 sides off at ~10 m)
 read 85-97 crops in the search (about 300 ms against a 100 ms cycle); the finder's window is one
-crop (docs/benchmarks.md, "Where a cold frame's crops go"; docs/model_history.md, "The studies on other looks").
+crop (docs/benchmarks.md, "Where a cold frame's crops go"; docs/model_history.md, "The studies
+on other looks").
 
 Graph (models/oibar_models/finder.py exports it): input ``image`` (1, 3, H, W) float32 in [0, 1],
 the frame resized to ``oibar.input_size_wh``; outputs ``heat`` (1, 1, h, w) logits of "the box
