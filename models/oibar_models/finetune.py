@@ -144,6 +144,11 @@ class Options:
     distill_target: str = "attitude"  # DISTILL_TARGETS: what of the teacher's the student is held to
     note: str = DEMO_NOTE  # what the file's oibar.finetune says it is
     roll_share: float = 0.0  # share of crops turned by any angle (kp_data.CropAugment.p_roll)
+    # the file says its keypoints read any turn (oibar.keypoints_any_turn): the CLI sets it with
+    # --roll-share, since such keypoints read a rolled view and the attitude head (scored on upright
+    # crops only) does not, so the estimator must fit turned views by PnP alone (pose.fusion,
+    # PRIOR_MAX_TURN_DEG). A recipe's finetune stage leaves it to its retag stage, which says it.
+    keypoints_any_turn: bool = False
 
 
 @dataclass
@@ -557,6 +562,8 @@ def export_candidate(
     )
     if not o.far_network:
         new.pop("far_network", None)
+    if o.keypoints_any_turn:
+        new["keypoints_any_turn"] = True
     try:
         seal_onnx(tmp, new, "oibar_models.finetune", wrapper, dummy)
     except ParityError as exc:
@@ -761,7 +768,7 @@ def parse(argv: list[str] | None) -> Options:
         default=0.0,
         metavar="P",
         help="turn this share of the training crops by any angle, for rolled views (default 0: none); "
-        "the attitude head is scored only on the others",
+        "the attitude head is scored only on the others; the file then says its keypoints read any turn",
     )
     ap.add_argument(
         "--freeze",
@@ -827,7 +834,7 @@ def parse(argv: list[str] | None) -> Options:
         a.calibrate_crops, a.val_frames, a.stride, tuple(a.modes), not a.no_baseline,
         not a.no_far_network, a.workers, a.threads, not a.no_progress, a.force, a.batch_norm,
         a.turn_deg, tuple(dict.fromkeys(a.freeze)), a.distill_weight, tuple(a.distill_data),
-        a.distill_from, a.distill_target, roll_share=a.roll_share,
+        a.distill_from, a.distill_target, roll_share=a.roll_share, keypoints_any_turn=a.roll_share > 0,
     )  # fmt: skip
 
 

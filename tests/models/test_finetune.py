@@ -100,6 +100,10 @@ def test_one_step_fine_tune_exports_a_flight_model_and_its_table(lab, tmp_path, 
     assert meta["fusion"] == shipped["fusion"] and meta["camera"] == shipped["camera"]
     assert meta["finetune"]["ships"] is False and meta["finetune"]["steps"] == 1
     assert meta["finetune"]["roll_share"] == 0.5
+    # crops turned by any angle: the estimator is told its keypoints read any turn (the shipped
+    # file, trained without, does not say so)
+    assert meta["keypoints_any_turn"] is True and est.fusion.keypoints_any_turn
+    assert "keypoints_any_turn" not in shipped
     # its keypoint gate: the shipped one scaled with how its heat maps broadened on the training crops
     s = meta["finetune"]["spread_median_crop_px"]
     assert s["start"] > 0 and s["finetuned"] > 0
