@@ -67,30 +67,13 @@ def test_recovers_static_transforms(calib, truth, capsys):
     assert 0.5 < res["residuals"]["chi2_per_dof"] < 2.0  # the stated noise matches the data
 
 
-def test_apply_gives_time_aligned_ground_truth(calib, recording, truth, tmp_path):
-    _, calib_path = calib
-    out = tmp_path / "poses.csv"
-    assert (
-        main(
-            [
-                "calib",
-                "apply",
-                "--calib",
-                str(calib_path),
-                "--mocap",
-                str(recording / "mocap.csv"),
-                "--frames",
-                str(recording / "frames.csv"),
-                "-o",
-                str(out),
-            ]
-        )
-        == 0
-    )
+def _apply_errors(calib_path, recording, out, *extra):
+    """`oibar calib apply` on the recording: its rows and each frame's position (m) and attitude
+    (deg) error against the rig's truth."""
+    argv = ["calib", "apply", "--calib", str(calib_path), "--mocap", str(recording / "mocap.csv")]
+    assert main([*argv, "--frames", str(recording / "frames.csv"), "-o", str(out), *extra]) == 0
     with open(out, newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert tuple(rows[0].keys()) == POSES_COLUMNS
-    assert len(rows) == truth["n_frames"]
     cfg = SynthConfig()
     T_true = inv_T(T_target_cam_at(frame_times(cfg) + cfg.offset_s, cfg))
     dt = [
@@ -104,9 +87,34 @@ def test_apply_gives_time_aligned_ground_truth(calib, recording, truth, tmp_path
         )
         for i, r in enumerate(rows)
     ]
-    # Per frame the stream carries the mocap noise of two bodies (0.5 deg each, ~1 m lever arm).
-    assert np.median(dt) < 0.012 and np.median(dr) < 0.8
-    assert all(abs(float(r["time_s"]) - t) < 1e-6 for r, t in zip(rows, frame_times(cfg), strict=True))
+    return rows, np.array(dt), np.array(dr)
+
+
+def test_apply_gives_time_aligned_ground_truth(calib, recording, truth, tmp_path):
+    _, calib_path = calib
+    rows, dt, dr = _apply_errors(calib_path, recording, tmp_path / "poses.csv")
+    assert tuple(rows[0].keys()) == POSES_COLUMNS
+    assert len(rows) == truth["n_frames"]
+    times = frame_times(SynthConfig())
+    assert all(abs(float(r["time_s"]) - t) < 1e-6 for r, t in zip(rows, times, strict=True))
+    # Interpolated, a frame's label carries the noise of one or two mocap samples of two bodies
+    # (0.5 deg each, ~1 m lever arm); the default local fit (+-0.1 s, ~19 samples) averages it down.
+    _, dt_i, dr_i = _apply_errors(calib_path, recording, tmp_path / "interp.csv", "--smooth-half-width-s", "0")
+    assert np.median(dt_i) < 0.012 and np.median(dr_i) < 0.8
+    assert np.median(dr) < 0.6 * np.median(dr_i) and np.median(dt) < 0.6 * np.median(dt_i)
+    assert np.median(dr) < 0.4
+
+
+@pytest.mark.parametrize("value", ["-0.1", "nan", "11"])
+def test_apply_refuses_a_smoothing_window_out_of_range(calib, recording, tmp_path, capsys, value):
+    _, calib_path = calib
+    argv = ["calib", "apply", "--calib", str(calib_path), "--mocap", str(recording / "mocap.csv")]
+    argv += ["--frames", str(recording / "frames.csv"), "-o", str(tmp_path / "p.csv")]
+    with pytest.raises(SystemExit) as exc:
+        main([*argv, "--smooth-half-width-s", value])
+    assert exc.value.code == 2
+    assert "--smooth-half-width-s" in capsys.readouterr().err
+    assert not (tmp_path / "p.csv").exists()
 
 
 def test_overlay_draws_the_model(calib, recording, tmp_path):

@@ -19,7 +19,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from oibar.argtypes import positive_int
+from oibar.argtypes import number, positive_int
 
 EXIT_OK = 0
 EXIT_ERROR = 2
@@ -92,6 +92,15 @@ def _register_apply(cs) -> None:
         type=float,
         default=None,
         help="longest mocap gap bridged by interpolation (default 2.5 sample periods)",
+    )
+    ap.add_argument(
+        "--smooth-half-width-s",
+        type=number(0.0, 10.0),
+        default=None,
+        metavar="S",
+        help="each label from a local quadratic fit of the mocap within +-S seconds of its frame "
+        "(default: estimate's window, 0.1; 0: interpolate between the two neighbouring samples); "
+        "S must be short against the motion (docs/calibration.md)",
     )
     ap.add_argument("-o", "--out", type=Path, required=True, help="poses CSV to write (dataset format)")
     ap.set_defaults(handler=cmd_apply)
@@ -268,13 +277,14 @@ def _fmt(v, digits: int = 3) -> str:
 
 
 def cmd_apply(a) -> int:
-    from . import io
+    from . import io, timing
     from .pipeline import apply
 
     calib = io.read_calibration(a.calib)
     tracks = io.read_mocap_csv(a.mocap, a.mocap_units)
     frames = io.read_frames_csv(a.frames, check_files=False)
-    rows, skipped = apply(calib, tracks, frames, a.mocap, a.max_gap_s)
+    hw = timing.SMOOTH_HALF_WIDTH_S if a.smooth_half_width_s is None else a.smooth_half_width_s
+    rows, skipped = apply(calib, tracks, frames, a.mocap, a.max_gap_s, hw or None)
     io.write_poses_csv(a.out, rows)
     msg = f"{len(rows)} of {len(frames)} frames -> {a.out}"
     if skipped:

@@ -293,13 +293,30 @@ def distance_m(T_cam_target: np.ndarray) -> float:
 
 
 def apply(
-    calib: dict, tracks: dict, frames: list[dict], mocap_path: Path, max_gap_s: float | None = None
+    calib: dict,
+    tracks: dict,
+    frames: list[dict],
+    mocap_path: Path,
+    max_gap_s: float | None = None,
+    smooth_half_width_s: float | None = timing.SMOOTH_HALF_WIDTH_S,
 ) -> tuple[list[dict], list[int]]:
-    """Ground-truth rows for every frame with mocap coverage; also the frames skipped."""
+    """Ground-truth rows for every frame with mocap coverage; also the frames skipped.
+
+    Each body's pose at a frame is a local quadratic fit of its samples within
+    +-`smooth_half_width_s` (timing.smooth), or with None the interpolation between the two
+    neighbouring samples. Why the fit: an interpolated label carries one or two samples' noise
+    (the paper's mocap, 0.5 deg a sample, turns the whole camera-to-target vector: 0.47 % of
+    range and 0.47 deg on the lab demonstration's runs), and a network fine-tuned on such labels
+    learns heat maps as broad as that noise. The window must be short against the motion (the
+    quadratic must hold over it): docs/calibration.md, "Labels: the mocap's noise"."""
     housing, tmarkers = io.pick_tracks(tracks, calib["housing_body"], calib["target_body"], mocap_path)
     t_f = np.array([f["time_s"] for f in frames]) + float(calib["offset_s"])
-    H, vh = timing.interpolate(housing, t_f, max_gap_s)
-    M, vm = timing.interpolate(tmarkers, t_f, max_gap_s)
+    if smooth_half_width_s:
+        H, vh = timing.smooth(housing, t_f, smooth_half_width_s, max_gap_s)
+        M, vm = timing.smooth(tmarkers, t_f, smooth_half_width_s, max_gap_s)
+    else:
+        H, vh = timing.interpolate(housing, t_f, max_gap_s)
+        M, vm = timing.interpolate(tmarkers, t_f, max_gap_s)
     valid = vh & vm
     if not valid.any():
         raise CalibError(
