@@ -99,7 +99,9 @@ def test_apply_gives_time_aligned_ground_truth(calib, recording, truth, tmp_path
     assert all(abs(float(r["time_s"]) - t) < 1e-6 for r, t in zip(rows, times, strict=True))
     # Interpolated, a frame's label carries the noise of one or two mocap samples of two bodies
     # (0.5 deg each, ~1 m lever arm); the default local fit (+-0.1 s, ~19 samples) averages it down.
-    _, dt_i, dr_i = _apply_errors(calib_path, recording, tmp_path / "interp.csv", "--smooth-half-width-s", "0")
+    _, dt_i, dr_i = _apply_errors(
+        calib_path, recording, tmp_path / "interp.csv", "--smooth-half-width-s", "0"
+    )
     assert np.median(dt_i) < 0.012 and np.median(dr_i) < 0.8
     assert np.median(dr) < 0.6 * np.median(dr_i) and np.median(dt) < 0.6 * np.median(dt_i)
     assert np.median(dr) < 0.4

@@ -324,3 +324,17 @@ def test_the_map_distillation_pulls_the_drifted_backbone_back_to_the_teachers_la
         d.backward()
         opt.step()
     assert float(distill_tap(teacher, x, net.backbone.features(x)[-1])) < 0.5 * drifted
+
+
+def test_the_cli_turns_a_tenth_of_the_crops_by_default_and_says_what_its_keypoints_read():
+    from oibar_models.finetune import ROLL_SHARE, parse
+
+    need = ["--data", "a", "--val", "b", "--out", "c"]
+    o = parse(need)
+    assert o.roll_share == ROLL_SHARE > 0 and o.keypoints_any_turn
+    o = parse([*need, "--roll-share", "0"])  # none turned: its keypoints read upright views only
+    assert o.roll_share == 0 and not o.keypoints_any_turn
+    # a recipe's stage builds Options itself: its retag stage says what the keypoints read
+    from oibar_models.finetune import Options
+
+    assert Options(data=[], val=[], init=SHIPPED_KP, out=Path("x")).keypoints_any_turn is False
