@@ -142,7 +142,7 @@ finetune-lab: setup ## fine-tune the shipped keypoint network on lab sequences (
 
 # The demonstration of item 5 with rendered stand-ins for the lab runs (docs/calibration.md,
 # "Rendered stand-ins for lab runs"): the 12 Mitsuba lab-look sequences of lab_demo.json rendered
-# (resumable; about 40 min on 2 free cores), made into lab recordings and labelled by the toolbox
+# (resumable; 13 min on 2 free cores), made into lab recordings and labelled by the toolbox
 # (scripts/lab_demo.sh: lb000-lb009 into data/lab/train, lb010-lb011 into data/lab/held), then
 # finetune-lab. Its model does not ship.
 .PHONY: lab-demo
