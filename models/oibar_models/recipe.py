@@ -123,7 +123,7 @@ STAGE_KEYS: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "train_data": (list, None),  # datasets, in order: their scenes are the training sequences
         "val_data": (str, None),  # the held sequences (the trainer's crop validation only)
         "steps": (int, 1000),  # finetune.STEPS
-        "lr": (float, 2e-4),  # finetune.LR
+        "lr": (float, 4e-4),  # finetune.LR (every recipe so far names its own rate)
         "batch_size": (int, 16),
         "batch_norm": (str, "frozen"),  # BATCH_NORM
         "far_network": (bool, True),  # keep init's far network beside the candidate
