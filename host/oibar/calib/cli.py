@@ -284,7 +284,7 @@ def cmd_apply(a) -> int:
     tracks = io.read_mocap_csv(a.mocap, a.mocap_units)
     frames = io.read_frames_csv(a.frames, check_files=False)
     hw = timing.SMOOTH_HALF_WIDTH_S if a.smooth_half_width_s is None else a.smooth_half_width_s
-    rows, skipped = apply(calib, tracks, frames, a.mocap, a.max_gap_s, hw or None)
+    rows, skipped = apply(calib, tracks, frames, a.mocap, a.max_gap_s, hw)  # 0: interpolation
     io.write_poses_csv(a.out, rows)
     msg = f"{len(rows)} of {len(frames)} frames -> {a.out}"
     if skipped:

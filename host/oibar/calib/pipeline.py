@@ -303,7 +303,7 @@ def apply(
     """Ground-truth rows for every frame with mocap coverage; also the frames skipped.
 
     Each body's pose at a frame is a local quadratic fit of its samples within
-    +-`smooth_half_width_s` (timing.smooth), or with None the interpolation between the two
+    +-`smooth_half_width_s` (timing.smooth), or with None or 0 the interpolation between the two
     neighbouring samples. Why the fit: an interpolated label carries one or two samples' noise
     (the paper's mocap, 0.5 deg a sample, turns the whole camera-to-target vector: 0.47 % of
     range and 0.47 deg on the lab demonstration's runs), and a network fine-tuned on such labels
