@@ -212,6 +212,8 @@ def summarise(seq, r) -> dict:
         dq_deg = np.degrees(2 * np.arccos(np.clip(dots, 0.0, 1.0)))
         out[ok] = (dt_pct > 5.0) | (dq_deg > 5.0)
     acted = np.asarray(r["confidence"]) >= TRACK_MIN_CONFIDENCE
+    # the share the daemon acts on: no silent failure means little where every frame is flagged
+    s["accepted_pct"] = float(100 * acted.mean())
     s["out_of_bounds_pct"] = float(100 * out.mean())
     s["silent_failures"] = int((out & acted).sum())
     s["silent_failure_pct"] = float(100 * (out & acted).mean())

@@ -1734,7 +1734,8 @@ def test_far_only_scenes_train_on_their_far_frames_alone(tiny_dataset, kp_sets, 
 def test_the_evaluation_counts_silent_failures():
     """A frame beyond the requirement (5 % of range or 5 deg) that the daemon would act on
     (confidence at or above its 0.5) is a silent failure; flagged (low confidence) or within
-    bounds it is not; a frame without an answer is neither (compliance counts it as failed)."""
+    bounds it is not; a frame without an answer is neither (compliance counts it as failed). The
+    share the daemon acts on is reported beside them."""
     from types import SimpleNamespace as NS
 
     from oibar_models.kp_evaluate import summarise
@@ -1757,6 +1758,8 @@ def test_the_evaluation_counts_silent_failures():
     s = summarise(NS(T_cam_target=T, q_cam_target=q), r)
     assert s["silent_failures"] == 2 and s["silent_failure_pct"] == pytest.approx(40.0)
     assert s["out_of_bounds_pct"] == pytest.approx(60.0)
+    # what the daemon acts on (confidence >= 0.5), beside it: frames 0, 1 and 3
+    assert s["accepted_pct"] == pytest.approx(60.0)
 
 
 def test_an_unrendered_set_names_the_make_target_that_renders_it(tmp_path, monkeypatch, capsys):
