@@ -91,6 +91,7 @@ def test_one_step_fine_tune_exports_a_flight_model_and_its_table(lab, tmp_path, 
     argv += ["--val-frames", "3", "--modes", "cold", "--no-baseline", "--threads", "2", "--no-progress"]
     argv += ["--turn-deg", "90"]  # rolled crops (the stage's own turn is 15 deg)
     argv += ["--roll-share", "0.5"]  # and half of them turned by any angle
+    argv += ["--first-pass-steps", "2"]  # the first pass fine-tuned beside it
     assert main(argv) == 0
     augment = yaml.safe_load((out / "config.yaml").read_text())["augment"]
     assert augment["angle_deg"] == 90.0 and augment["p_roll"] == 0.5
@@ -113,6 +114,19 @@ def test_one_step_fine_tune_exports_a_flight_model_and_its_table(lab, tmp_path, 
     assert meta["pnp"]["max_spread_crop_px"] == pytest.approx(gate * s["finetuned"] / s["start"], abs=2e-3)
     # the shipped file's companions beside it, its finder among them (a fine-tune keeps its init's)
     assert meta["finder"] == shipped["finder"] and (out / shipped["finder"]["file"]).is_file()
+    # but its first pass fine-tuned on the same sequences: another network under the same name
+    from oibar.nav.pose.model_file import companion_files
+
+    first = out / companion_files(shipped)["first_pass"]
+    assert meta["first_pass"] == shipped["first_pass"] and meta["finetune"]["first_pass_steps"] == 2
+    first_meta = read_metadata(first)
+    assert first_meta["finetune"]["steps"] == 2 and first_meta["finetune"]["data"] == [str(lab["train"])]
+    xf = np.random.default_rng(0).random((1, 3, 160, 248), dtype=np.float32)
+    outs = [
+        ort.InferenceSession(str(p)).run(None, {"image": xf})[0]
+        for p in (first, SHIPPED_KP.parent / first.name)
+    ]
+    assert np.abs(outs[0] - outs[1]).max() > 1e-4
     assert meta["finetune"]["config"] == "models/configs/keypoints/oibarnet_kp_stage15.yaml"
     # paths as the repository names them (no checkout's place); the tmp sequences lie outside it
     assert meta["finetune"]["from"] == "models/oibarnet.onnx"
@@ -161,6 +175,8 @@ def test_bad_inputs_are_refused(lab, tmp_path, capsys):
     assert "--turn-deg must be in [0, 180]" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # a share, not a count of crops
         main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--roll-share", "4"])
+    with pytest.raises(SystemExit):
+        main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--first-pass-steps", "-1"])
     assert "--roll-share must be in [0, 1]" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # a part the network does not have
         main(["--data", str(lab["train"]), "--val", str(lab["held"]), *base, "--freeze", "neck"])
@@ -332,9 +348,15 @@ def test_the_cli_turns_a_tenth_of_the_crops_by_default_and_says_what_its_keypoin
     need = ["--data", "a", "--val", "b", "--out", "c"]
     o = parse(need)
     assert o.roll_share == ROLL_SHARE > 0 and o.keypoints_any_turn
+    from oibar_models.finetune import FIRST_PASS_STEPS
+
+    assert o.first_pass_steps == FIRST_PASS_STEPS > 0  # the first pass learns the look too
+    assert parse([*need, "--first-pass-steps", "0"]).first_pass_steps == 0
     o = parse([*need, "--roll-share", "0"])  # none turned: its keypoints read upright views only
     assert o.roll_share == 0 and not o.keypoints_any_turn
     # a recipe's stage builds Options itself: its retag stage says what the keypoints read
     from oibar_models.finetune import Options
 
-    assert Options(data=[], val=[], init=SHIPPED_KP, out=Path("x")).keypoints_any_turn is False
+    recipe_like = Options(data=[], val=[], init=SHIPPED_KP, out=Path("x"))
+    assert recipe_like.keypoints_any_turn is False
+    assert recipe_like.first_pass_steps == 0  # and keeps the shipped first pass, which its judge assumes
