@@ -94,7 +94,7 @@ LR = 4e-4
 ROLL_SHARE = 0.1
 # The first pass's fine-tune on the same sequences (--first-pass-steps): FIRST_PASS_STEPS by
 # default, chosen on the validation runs of docs/calibration.md, "The first pass, fine-tuned too":
-# the shipped first pass read lb009's lab look 0.5-9x too far under 7 m, and the estimator flagged
+# the shipped first pass read lb009's lab look 1.5-10x as far as it is under 7 m, and the estimator flagged
 # 44 of its 75 frames (tracking) `direct_disagrees` however right its fit.
 # The network's parts (KeypointNet's children) a fine-tune can keep as they are: their weights get
 # no step and their batch norms keep their statistics. Why "attitude": a fine-tune on near-aligned

@@ -3,8 +3,8 @@ keypoint network (issue 58 item 5).
 
 Why: a keypoint file fine-tuned on a new look still carries the shipped first pass, which never
 saw it. On the lab demonstration's validation run (lb009, Mitsuba's lab look: grey print, spot
-lamp, black background) the shipped first pass reads the fixture 0.5-9x too far under 7 m, so
-the estimator flags 43 of 75 frames `direct_disagrees` (confidence x0.3) however right its fit
+lamp, black background) the shipped first pass reads the fixture 1.5-10x as far as it is under 7 m, so
+the estimator flags 44 of 75 frames `direct_disagrees` (confidence x0.3) however right its fit
 is, until a run of three strong fits within 5 s overrules it; and where PnP fails, its fallback
 answer is the first pass's own: 10x the range at 0.5 m, and upright on a rolled approach.
 
