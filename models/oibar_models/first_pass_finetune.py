@@ -47,7 +47,7 @@ STEPS = 600
 BATCH = 16
 LR = 2e-4
 ROLL_SHARE = 0.0
-PARITY_TOL = 1e-4  # metres, or units of rot6d: the converted graph and the export against the file
+PARITY_TOL = 1e-4  # metres, or units of rot6d: the recovered network and the export against the file
 OUTPUTS = ("position_m", "rot6d")
 EXPORT_OUTPUTS = ("position_m", "q_cam_target", "R_cam_target", "rot6d")
 
