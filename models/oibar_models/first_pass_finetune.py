@@ -57,23 +57,19 @@ class FirstPassError(RuntimeError):
 
 
 def read_meta(path: Path) -> tuple[Any, dict]:
-    """(the ONNX model, its oibar.* metadata decoded)."""
+    """(the ONNX model, its oibar.* metadata decoded, as the flight code reads it)."""
     import onnx
 
-    if not Path(path).is_file():
-        raise FirstPassError(f"{path}: no such file")
+    from oibar.nav.pose import ModelFileError, read_metadata
+
     try:
-        m = onnx.load(str(path))
-    except Exception as exc:  # noqa: BLE001 - a damaged file: one clear error
-        raise FirstPassError(f"{path}: not a readable ONNX file ({exc})") from exc
-    meta = {
-        p.key.removeprefix("oibar."): json.loads(p.value)
-        for p in m.metadata_props
-        if p.key.startswith("oibar.")
-    }
+        meta = read_metadata(path)
+    except ModelFileError as exc:
+        raise FirstPassError(str(exc)) from exc
+    m = onnx.load(str(path))
     names = [o.name for o in m.graph.output]
-    if any(n not in names for n in OUTPUTS) or "input_size_wh" not in meta:
-        raise FirstPassError(f"{path}: not a direct-model export (outputs {names}, no oibar.input_size_wh?)")
+    if any(n not in names for n in OUTPUTS):
+        raise FirstPassError(f"{path}: not a direct-model export (its outputs are {names})")
     return m, meta
 
 

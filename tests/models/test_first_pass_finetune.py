@@ -41,11 +41,11 @@ def test_the_shipped_first_pass_comes_back_as_the_network_the_file_computes():
 def test_a_file_that_is_not_a_first_pass_is_refused(tmp_path):
     with pytest.raises(FirstPassError, match="not a direct-model export"):
         read_meta(SHIPPED_KP)  # the keypoint network
-    with pytest.raises(FirstPassError, match="no such file"):
+    with pytest.raises(FirstPassError, match="not found"):
         recover(tmp_path / "missing.onnx")
     bad = tmp_path / "bad.onnx"
     bad.write_bytes(b"not onnx")
-    with pytest.raises(FirstPassError, match="not a readable ONNX file"):
+    with pytest.raises(FirstPassError, match="not a readable ONNX"):
         recover(bad)
 
 
@@ -125,6 +125,6 @@ def test_bad_arguments_are_refused(tmp_path, capsys):
             main([*argv, "--no-progress"])
         assert exc.value.code == 2
     assert main(["--init", str(tmp_path / "none.onnx"), *base, "--no-progress"]) == 2
-    assert "no such file" in capsys.readouterr().err
+    assert "not found" in capsys.readouterr().err
     # a folder that holds no sequence
     assert main(["--init", str(SHIPPED_LITE), *base, "--no-progress"]) == 2
