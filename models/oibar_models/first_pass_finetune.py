@@ -84,6 +84,11 @@ def recover(path: Path) -> tuple[OibarNet, dict]:
     if meta.get("backbone") != "oibar_lite":
         raise FirstPassError(f"{path}: backbone {meta.get('backbone')!r}; this code recovers oibar_lite only")
     inits = {i.name: numpy_helper.to_array(i) for i in m.graph.initializer}
+    # the exporter stores equal constants once (all-zero biases of an untrained network) and
+    # names the others as Identity nodes of it
+    for n in m.graph.node:
+        if n.op_type == "Identity" and n.input[0] in inits:
+            inits[n.output[0]] = inits[n.input[0]]
     # the convolutions' (weight, bias) in the graph's order, which is the forward pass's
     convs = [
         (inits[n.input[1]], inits[n.input[2]] if len(n.input) > 2 else None)
@@ -93,18 +98,20 @@ def recover(path: Path) -> tuple[OibarNet, dict]:
     try:
         stem = convs[0][0]
         uv_mean, uv_std = inits["net.uvlogz_mean"], inits["net.uvlogz_std"]
-        kp = convs[-1][0]  # the keypoint branch's last convolution: one map per keypoint
-        width = stem.shape[0] / 16
+        head_in = int(inits["net.head_t.weight"].shape[1])
     except (KeyError, IndexError) as exc:
         raise FirstPassError(f"{path}: not the oibar_lite graph this code knows ({exc} missing)") from exc
+    shape = {"coord_channels": stem.shape[1] == 5, "pos_param": "uvlogz"}
+    width = stem.shape[0] / 16
+    # the heads read the pooled features and, with a keypoint branch, 2 coordinates per keypoint
+    keypoints = (head_in - OibarNet("oibar_lite", width, **shape).feature_dim) // 2  # type: ignore[arg-type]
     net = OibarNet(
         "oibar_lite",
         width,
-        coord_channels=stem.shape[1] == 5,
-        pos_param="uvlogz",
         uvlogz_mean=tuple(float(v) for v in uv_mean),
         uvlogz_std=tuple(float(v) for v in uv_std),
-        keypoints=int(kp.shape[0]),
+        keypoints=max(0, keypoints),
+        **shape,  # type: ignore[arg-type]
     )
     w, h = meta["input_size_wh"]
     names = conv_order(net, (h, w))

@@ -128,3 +128,22 @@ def test_bad_arguments_are_refused(tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     # a folder that holds no sequence
     assert main(["--init", str(SHIPPED_LITE), *base, "--no-progress"]) == 2
+
+
+def test_a_first_pass_without_a_keypoint_branch_comes_back_too(tmp_path):
+    """Stage 1's shape (models/configs/oibarnet_lite_base.yaml: no keypoint branch), written by
+    this module's own export, is recovered as that shape and computes what its file computes."""
+    import torch
+
+    from oibar_models.first_pass_finetune import export
+    from oibar_models.nets import OibarNet
+
+    torch.manual_seed(0)
+    net = OibarNet("oibar_lite", 1.0, coord_channels=True, pos_param="uvlogz", keypoints=0).eval()
+    with torch.no_grad():  # a trained look: heads not at their zero start
+        net.head_t.weight.normal_(0.0, 0.01)
+    path = export(net, SHIPPED_LITE, tmp_path / "base.onnx", {"note": "test"})
+    back, meta = recover(path)
+    assert back.keypoints == 0 and meta["finetune"] == {"note": "test"}
+    x = np.random.default_rng(2).random((2, 3, 160, 248), dtype=np.float32)
+    assert parity(path, back, x) < 1e-4
