@@ -758,7 +758,12 @@ def run(o: Options) -> dict:
     try:
         # nothing is selected (the last step is exported): its per-step rows are in log.jsonl
         tracking.log_training(info, f"{o.out.name}/train", cfg, o.out, {})
-        opts = {"data": [str(p) for p in o.data], "held": [str(p) for p in o.val], "modes": list(o.modes)}
+        opts = {
+            "data": [str(p) for p in o.data],
+            "held": [str(p) for p in o.val],
+            "modes": list(o.modes),
+            "first_pass_steps": o.first_pass_steps,
+        }
         tracking.log_evaluation(info, f"{o.out.name}/evaluate", candidate, o.out, summary, opts)
     except tracking.TrackingError as exc:
         print(f"warning: not logged to MLflow: {exc}", file=sys.stderr)

@@ -83,7 +83,7 @@ def test_one_step_fine_tune_exports_a_flight_model_and_its_table(lab, tmp_path, 
     monkeypatch.setattr(
         tracking,
         "log_evaluation",
-        lambda r, stage, model, d, m, o: logged_runs.setdefault(stage, (r, model, m)),
+        lambda r, stage, model, d, m, o: logged_runs.setdefault(stage, (r, model, m, o)),
     )
     out = tmp_path / "run"
     argv = ["--data", str(lab["train"]), "--val", str(lab["held"]), "--init", str(SHIPPED_KP)]
@@ -151,7 +151,8 @@ def test_one_step_fine_tune_exports_a_flight_model_and_its_table(lab, tmp_path, 
     assert np.abs(got[0] - got[1]).max() > 1e-4
     # and both stages go to MLflow, as a build's do
     assert set(logged_runs) == {"run/train", "run/evaluate"}
-    run_info, model, metrics = logged_runs["run/evaluate"]
+    run_info, model, metrics, opts = logged_runs["run/evaluate"]
+    assert opts["first_pass_steps"] == 2
     assert run_info.name == "finetune_lab" and model == out / "oibarnet.onnx"
     assert np.isfinite(metrics["finetuned_cold.dt_mean_pct"])
 
