@@ -92,10 +92,6 @@ LR = 4e-4
 # tracking, within 5 % / 5 deg 97.3 / 92.7 % -> 96.7 / 95.3 %, the rolled look's attitude 21.5 ->
 # 8.4 deg mean (1.07 -> 1.15 median), cold within 5 deg 62 -> 94 %. A recipe's stage says its own.
 ROLL_SHARE = 0.1
-# The first pass's fine-tune on the same sequences (--first-pass-steps): FIRST_PASS_STEPS by
-# default, chosen on the validation runs of docs/calibration.md, "The first pass, fine-tuned too":
-# the shipped first pass read lb009's lab look 1.5-10x as far as it is under 7 m, and the estimator flagged
-# 44 of its 75 frames (tracking) `direct_disagrees` however right its fit.
 # The network's parts (KeypointNet's children) a fine-tune can keep as they are: their weights get
 # no step and their batch norms keep their statistics. Why "attitude": a fine-tune on near-aligned
 # approaches and randomised looks taught 0.34.0's attitude head to read a turn short (3 m probe,
@@ -171,8 +167,11 @@ class Options:
     # PRIOR_MAX_TURN_DEG). A recipe's finetune stage leaves it to its retag stage, which says it.
     keypoints_any_turn: bool = False
     # steps of the first pass's own fine-tune on `data` (oibar_models.first_pass_finetune); 0: the
-    # init's first pass is copied as it is. The CLI's default is FIRST_PASS_STEPS; a recipe's
-    # candidate keeps the shipped first pass (0), as its judge measures the keypoint network.
+    # init's first pass is copied as it is. The CLI's default is FIRST_PASS_STEPS, chosen on the
+    # validation runs of docs/calibration.md, "The first pass, fine-tuned too": the shipped first
+    # pass read lb009's lab look 1.5-10x as far as it is under 7 m, and the estimator flagged 44 of
+    # its 75 frames (tracking) `direct_disagrees` however right its fit. A recipe's candidate keeps
+    # the shipped first pass (0), as its judge measures the keypoint network.
     first_pass_steps: int = 0
 
 
