@@ -259,41 +259,31 @@ def keypoint_supervision(net: OibarNet, meta: dict):
     return KeypointSupervision(cfg, np.asarray(meta["camera"]["K_input"], float), net)
 
 
-def loss_terms(
-    T_hat: torch.Tensor,
-    r6_hat: torch.Tensor,
-    T_m: torch.Tensor,
-    r6: torch.Tensor,
-    kp_term: torch.Tensor | None = None,
-) -> dict:
-    """Position error as a share of the range (the paper's metric) plus the 6D attitude error,
-    batch means, weighted alike; plus the keypoints' mean image error (in half-widths of the
-    image) where the network has them: where the fixture's points lie is what tells its roll."""
-    dt = torch.linalg.vector_norm(T_hat - T_m, dim=-1) / torch.linalg.vector_norm(T_m, dim=-1).clamp_min(0.1)
-    dr = torch.linalg.vector_norm(r6_hat - r6, dim=-1)
-    out = {"loss": dt.mean() + dr.mean(), "dt_frac": dt.mean().detach(), "dr6": dr.mean().detach()}
-    if kp_term is not None:
-        out["loss"] = out["loss"] + kp_term
-        out["dkp"] = kp_term.detach()
-    return out
+def batch_loss(crit, net: OibarNet, b: dict[str, torch.Tensor], kp_sup) -> dict[str, torch.Tensor]:
+    """The trainer's loss (loss.UncertaintyPoseLoss: position error as a share of the range, the
+    paper's metric; the 6D attitude error; the keypoints' mean image error in half-widths of the
+    image where the network has them, which is what tells the fixture's roll), its terms weighted
+    alike (`crit` is not trained) and taken as batch means."""
+    feats = net.features(b["image"])
+    T_hat, r6_hat = net.heads(feats)
+    out = crit(T_hat, r6_hat, b["T_m"], b["rot6d"])
+    n = len(b["image"])
+    terms = {"dt_frac": out["L_t"] / n, "dr6": out["L_r"] / n}
+    loss = out["loss"]
+    if kp_sup is not None:
+        kp_true, valid = kp_sup.targets(b["T_m"], b["rot6d"])
+        kp_term, terms["dkp"] = crit.keypoint_term(kp_sup.predicted(feats), kp_true, valid)
+        loss = loss + kp_term
+        terms["dkp"] = terms["dkp"] / n
+    return {"loss": loss / n, **terms}
 
 
-def keypoint_error(kp_sup, feats: torch.Tensor, T_m: torch.Tensor, r6: torch.Tensor) -> torch.Tensor | None:
-    """The batch's mean distance between predicted and projected keypoints (visible ones)."""
-    if kp_sup is None:
-        return None
-    kp_true, valid = kp_sup.targets(T_m, r6)
-    d = torch.linalg.vector_norm(kp_sup.predicted(feats) - kp_true, dim=-1) * valid
-    return (d.sum(-1) / valid.sum(-1).clamp_min(1.0)).mean()
+def schedule(steps: int, lr: float):
+    """The keypoint trainer's schedule (kp_engine.lr_at): a warm-up over 5 % of the steps, then
+    cosine from `lr` to lr / 40."""
+    from .kp_engine import KpTrain
 
-
-def lr_at(step: int, steps: int, lr: float) -> float:
-    """A short warm-up (5 % of the steps), then cosine from `lr` to lr / 40."""
-    warm = max(1, steps // 20)
-    if step < warm:
-        return lr * (step + 1) / warm
-    x = (step - warm) / max(1, steps - warm)
-    return lr / 40 + (lr - lr / 40) * 0.5 * (1 + math.cos(math.pi * x))
+    return KpTrain(steps=steps, lr=lr, lr_min=lr / 40, warmup_steps=max(1, steps // 20))
 
 
 def finetune(
@@ -310,8 +300,13 @@ def finetune(
 ) -> list[dict]:
     """`steps` Adam steps on `frames` (`kp_sup`: keypoint_supervision's targets, or None);
     -> one row per 50 steps (a tenth of them when fewer than 500), and the last."""
+    from .kp_engine import lr_at
+    from .loss import UncertaintyPoseLoss
+
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
+    crit = UncertaintyPoseLoss(range_normalised=True).requires_grad_(False)  # weights stay exp(0) = 1
+    sched = schedule(steps, lr)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
     net.train()
     freeze_batch_norms(net)
@@ -327,13 +322,8 @@ def finetune(
     every = max(1, min(50, steps // 10))
     for step in range(steps):
         for g in opt.param_groups:
-            g["lr"] = lr_at(step, steps, lr)
-        b = frames.batch(rng, batch, roll_share)
-        feats = net.features(b["image"])
-        T_hat, r6_hat = net.heads(feats)
-        out = loss_terms(
-            T_hat, r6_hat, b["T_m"], b["rot6d"], keypoint_error(kp_sup, feats, b["T_m"], b["rot6d"])
-        )
+            g["lr"] = lr_at(step, sched)
+        out = batch_loss(crit, net, frames.batch(rng, batch, roll_share), kp_sup)
         opt.zero_grad(set_to_none=True)
         out["loss"].backward()
         opt.step()
